@@ -1,0 +1,125 @@
+"""Discretisation (off the tick) and the scalar filter runtime (on the tick).
+
+Method: Tustin (bilinear) with frequency prewarping at a chosen frequency (for the DOB filters:
+the Q cut-off), applied to poles and zeros directly (`scipy.signal.bilinear_zpk`) and realised
+as second-order sections (`zpk2sos`) in float64. No high-order polynomial is ever formed, so
+a Q31 triple pole near z = 1 keeps its exact DC gain (control.md, mistake 3).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import signal
+
+SosArray = np.ndarray  # shape (n_sections, 6): b0 b1 b2 a0(=1) a1 a2
+
+
+def prewarped_fs(rate_hz: float, prewarp_hz: float | None) -> float:
+    """The 'fs' to hand to the bilinear map so that the response matches at `prewarp_hz`."""
+    if prewarp_hz is None:
+        return rate_hz
+    w = 2.0 * math.pi * prewarp_hz
+    return w / (2.0 * math.tan(w / (2.0 * rate_hz)))
+
+
+def tustin_zpk(
+    zeros: Sequence[complex],
+    poles: Sequence[complex],
+    gain: float,
+    rate_hz: float,
+    prewarp_hz: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    fs = prewarped_fs(rate_hz, prewarp_hz)
+    zd, pd, kd = signal.bilinear_zpk(np.asarray(zeros, complex), np.asarray(poles, complex),
+                                     gain, fs)
+    return zd, pd, float(np.real(kd))
+
+
+def zpk_to_sos(zd: np.ndarray, pd: np.ndarray, kd: float) -> SosArray:
+    sos = signal.zpk2sos(zd, pd, kd, pairing="nearest")
+    return np.ascontiguousarray(sos, dtype=np.float64)
+
+
+def sos_dc_gain(sos: SosArray) -> float:
+    g = 1.0
+    for b0, b1, b2, _a0, a1, a2 in sos:
+        g *= (b0 + b1 + b2) / (1.0 + a1 + a2)
+    return float(g)
+
+
+def sos_response(sos: SosArray, freq_hz: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Complex frequency response of the sections at `freq_hz` (vectorised, off the tick)."""
+    zinv = np.exp(-2j * np.pi * np.asarray(freq_hz, float) / rate_hz)
+    h = np.ones_like(zinv)
+    for b0, b1, b2, _a0, a1, a2 in sos:
+        h *= (b0 + zinv * (b1 + zinv * b2)) / (1.0 + zinv * (a1 + zinv * a2))
+    return h
+
+
+class SosFilter:
+    """Cascade of second-order sections, transposed direct form II, scalar float64 arithmetic.
+
+    `step` is the hot-path call; `set_steady` puts every state at the steady state for a
+    constant input (used for bumpless coefficient changes).
+    """
+
+    __slots__ = ("_c", "_n", "_s")
+
+    def __init__(self, sos: SosArray) -> None:
+        arr = np.asarray(sos, dtype=np.float64)
+        if arr.ndim != 2 or arr.shape[1] != 6 or not np.all(np.isfinite(arr)):
+            raise ValueError("sos: expected a finite (n, 6) array")
+        if not np.allclose(arr[:, 3], 1.0):
+            raise ValueError("sos: a0 of every section must be 1")
+        flat: list[float] = []
+        for b0, b1, b2, _a0, a1, a2 in arr:
+            flat += [float(b0), float(b1), float(b2), float(a1), float(a2)]
+        self._c = tuple(flat)
+        self._n = len(arr)
+        self._s = [0.0] * (2 * self._n)
+
+    @property
+    def n_sections(self) -> int:
+        return self._n
+
+    def step(self, x: float) -> float:
+        c = self._c
+        s = self._s
+        j = 0
+        m = 0
+        for _ in range(self._n):
+            y = c[j] * x + s[m]
+            s[m] = c[j + 1] * x - c[j + 3] * y + s[m + 1]
+            s[m + 1] = c[j + 2] * x - c[j + 4] * y
+            x = y
+            j += 5
+            m += 2
+        return x
+
+    def dc_gain(self) -> float:
+        c = self._c
+        g = 1.0
+        for i in range(self._n):
+            j = 5 * i
+            g *= (c[j] + c[j + 1] + c[j + 2]) / (1.0 + c[j + 3] + c[j + 4])
+        return g
+
+    def set_steady(self, x: float) -> float:
+        """States for a constant input x held forever; returns the steady output."""
+        c = self._c
+        s = self._s
+        for i in range(self._n):
+            j = 5 * i
+            b0, b1, b2, a1, a2 = c[j : j + 5]
+            y = x * (b0 + b1 + b2) / (1.0 + a1 + a2)
+            s[2 * i + 1] = b2 * x - a2 * y
+            s[2 * i] = y - b0 * x
+            x = y
+        return x
+
+    def reset(self) -> None:
+        for i in range(len(self._s)):
+            self._s[i] = 0.0
