@@ -33,8 +33,9 @@ def tustin_zpk(
     prewarp_hz: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     fs = prewarped_fs(rate_hz, prewarp_hz)
-    zd, pd, kd = signal.bilinear_zpk(np.asarray(zeros, complex), np.asarray(poles, complex),
-                                     gain, fs)
+    zd, pd, kd = signal.bilinear_zpk(
+        np.asarray(zeros, complex), np.asarray(poles, complex), gain, fs
+    )
     return zd, pd, float(np.real(kd))
 
 

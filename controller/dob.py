@@ -34,7 +34,9 @@ def _cancel(zeros: list[complex], poles: list[complex], rtol: float = 1e-9) -> N
                 break
 
 
-def f1_continuous_zpk(q: QFilter, nominal: NominalModel) -> tuple[list[complex], list[complex], float]:
+def f1_continuous_zpk(
+    q: QFilter, nominal: NominalModel
+) -> tuple[list[complex], list[complex], float]:
     """Q(s) (Mn Pn)^-1(s) = Q(s) mn_den(s) pn_den(s) / pn_num(s) as zeros, poles, gain."""
     qz, qp, qk = q.zpk()
     rm, km = poly_roots_gain(nominal.mn_den)

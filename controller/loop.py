@@ -128,7 +128,9 @@ class ServoLoop:
 
     # -- the hot path --------------------------------------------------------------------------
 
-    def tick(self, ref_deg: float, ref_rate_deg_s: float, pos_deg: float, speed_deg_s: float) -> float:
+    def tick(
+        self, ref_deg: float, ref_rate_deg_s: float, pos_deg: float, speed_deg_s: float
+    ) -> float:
         """One control period; returns the (saturated) load-side speed command in deg/s."""
         pending = self._pending
         if pending is not None:

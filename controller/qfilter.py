@@ -97,7 +97,9 @@ class QFilter:
         return 2
 
 
-def design_q(q_type: QType, *, cutoff_hz: float | None = None, tau_s: float | None = None) -> QFilter:
+def design_q(
+    q_type: QType, *, cutoff_hz: float | None = None, tau_s: float | None = None
+) -> QFilter:
     """Q-filter from either its -3 dB cut-off in Hz or its time constant in s (exactly one)."""
     check_q_type(q_type)
     if (cutoff_hz is None) == (tau_s is None):

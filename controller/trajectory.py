@@ -27,8 +27,8 @@ class Trajectory(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
     def __post_init__(self) -> None:
         if self.kind not in TRAJECTORY_KINDS:
             raise ConfigError(
-                "kind", f"unknown trajectory {self.kind!r}; expected one of "
-                f"{', '.join(TRAJECTORY_KINDS)}"
+                "kind",
+                f"unknown trajectory {self.kind!r}; expected one of {', '.join(TRAJECTORY_KINDS)}",
             )
         limits = {
             "amplitude_deg": (-3600.0, 3600.0),
