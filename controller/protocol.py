@@ -1,0 +1,218 @@
+"""The Zenoh contract: every key expression and message type, in one place.
+
+Encoding: MessagePack (msgspec). Every message is a map with a `v` field (protocol version,
+currently 1); a message of another version is rejected, never guessed at. Tagged unions carry
+a `type` field. Units are in the field names. See docs/protocol.md for the full description.
+"""
+
+from __future__ import annotations
+
+from typing import Any, TypeVar
+
+import msgspec
+
+from controller.config import LoopConfig
+from controller.trajectory import Trajectory
+
+PROTOCOL_VERSION = 1
+KEY_PREFIX = "dobtune"
+
+
+def key_state(rig: str) -> str:
+    """Publisher: batches of loop samples (StateBatch)."""
+    return f"{KEY_PREFIX}/{rig}/state"
+
+
+def key_status(rig: str) -> str:
+    """Publisher, a few Hz: Status."""
+    return f"{KEY_PREFIX}/{rig}/status"
+
+
+def key_config(rig: str) -> str:
+    """Queryable: ConfigRequest -> ConfigReply."""
+    return f"{KEY_PREFIX}/{rig}/config"
+
+
+def key_command(rig: str) -> str:
+    """Queryable: Command -> CommandReply."""
+    return f"{KEY_PREFIX}/{rig}/cmd"
+
+
+def key_estop(rig: str) -> str:
+    """Subscriber: any put here is an emergency stop, whatever its payload."""
+    return f"{KEY_PREFIX}/{rig}/estop"
+
+
+def check_rig_name(rig: str) -> str:
+    if not rig or any(c in rig for c in "/*$?#") or not rig.isprintable():
+        raise ValueError(f"rig_name: {rig!r} is not a valid key chunk (no / * $ ? #, not empty)")
+    return rig
+
+
+class _Msg(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    v: int = PROTOCOL_VERSION
+
+
+# -- state stream -----------------------------------------------------------------------------
+
+
+class StateBatch(_Msg, frozen=True, kw_only=True):
+    """Consecutive loop samples; sample i has sequence number seq0 + i (gaps are detectable).
+
+    Columns are equal-length lists. Angles in load-side degrees, speeds in load-side deg/s.
+    """
+
+    rig: str
+    seq0: int
+    rate_hz: float
+    config_version: int
+    t_s: list[float]
+    ref_deg: list[float]
+    pos_deg: list[float]
+    speed_deg_s: list[float]
+    speed_ref_deg_s: list[float]
+    command_deg_s: list[float]
+    d_hat_deg_s: list[float]
+    error_deg: list[float]
+
+
+# -- status -----------------------------------------------------------------------------------
+
+
+class Timing(msgspec.Struct, frozen=True, kw_only=True):
+    """Loop timing over the last status interval (microseconds), and counters since start."""
+
+    period_p50_us: float
+    period_p99_us: float
+    period_max_us: float
+    compute_p50_us: float
+    compute_p99_us: float
+    compute_max_us: float
+    ticks: int
+    overruns: int
+    skipped_ticks: int
+
+
+class Status(_Msg, frozen=True, kw_only=True):
+    rig: str
+    plant: str  # "sim" | "can"
+    mode: str  # "running" | "stopped" | "estop" | "fault"
+    t_s: float
+    seq: int  # sequence number of the latest sample
+    trajectory: Trajectory
+    config_version: int
+    config: LoopConfig
+    timing: Timing
+    faults: list[str]
+    operator: str = ""
+
+
+# -- config queryable -------------------------------------------------------------------------
+
+
+class Margins(msgspec.Struct, frozen=True, kw_only=True):
+    gain_margin_db: float
+    phase_margin_deg: float
+    peak_sensitivity_db: float
+    small_gain_peak: float
+    max_pole_radius: float
+
+
+class ConfigRequest(_Msg, frozen=True, kw_only=True):
+    """candidate None: just return the active configuration."""
+
+    candidate: LoopConfig | None = None
+    client: str = ""
+
+
+class ConfigReply(_Msg, frozen=True, kw_only=True):
+    accepted: bool
+    version: int  # the active version after this request
+    config: LoopConfig  # the active configuration after this request
+    reasons: list[str] = []
+    margins: Margins | None = None
+
+
+# -- commands ---------------------------------------------------------------------------------
+
+
+class SetTrajectory(msgspec.Struct, frozen=True, kw_only=True, tag="trajectory"):
+    trajectory: Trajectory
+
+
+class Start(msgspec.Struct, frozen=True, kw_only=True, tag="start"):
+    pass
+
+
+class Stop(msgspec.Struct, frozen=True, kw_only=True, tag="stop"):
+    """Controlled stop: hold the present position."""
+
+
+class EStop(msgspec.Struct, frozen=True, kw_only=True, tag="estop"):
+    """Speed command 0 from the next tick, drive disabled, until ResetFault + Start."""
+
+
+class ResetFault(msgspec.Struct, frozen=True, kw_only=True, tag="reset"):
+    pass
+
+
+CommandBody = SetTrajectory | Start | Stop | EStop | ResetFault
+
+
+class Command(_Msg, frozen=True, kw_only=True):
+    body: CommandBody
+    client: str = ""
+
+
+class CommandReply(_Msg, frozen=True, kw_only=True):
+    ok: bool
+    message: str = ""
+    mode: str = ""
+
+
+# -- encoding ---------------------------------------------------------------------------------
+
+_encoder = msgspec.msgpack.Encoder()
+M = TypeVar("M", bound=_Msg)
+
+
+class ProtocolError(ValueError):
+    """A payload that cannot be accepted; the message names the field."""
+
+
+class _Versioned(msgspec.Struct):
+    v: Any = None
+
+
+_version_decoder = msgspec.msgpack.Decoder(_Versioned)
+_decoders: dict[type, msgspec.msgpack.Decoder[Any]] = {}
+
+
+def encode(msg: msgspec.Struct) -> bytes:
+    return _encoder.encode(msg)
+
+
+def decode(data: bytes | bytearray | memoryview, kind: type[M]) -> M:
+    """Decode and validate a message; ProtocolError names the offending field."""
+    raw = bytes(data)
+    try:
+        head = _version_decoder.decode(raw)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise ProtocolError(f"payload: not a MessagePack map ({exc})") from exc
+    if head.v != PROTOCOL_VERSION or isinstance(head.v, bool):
+        raise ProtocolError(
+            f"v: unsupported protocol version {head.v!r}; this side speaks {PROTOCOL_VERSION}"
+        )
+    dec = _decoders.get(kind)
+    if dec is None:
+        dec = _decoders[kind] = msgspec.msgpack.Decoder(kind)
+    try:
+        return dec.decode(raw)  # type: ignore[no-any-return]
+    except msgspec.ValidationError as exc:
+        text = str(exc)
+        if "at `$." in text:
+            field = text.rsplit("at `$.", 1)[1].rstrip("`")
+            raise ProtocolError(f"{field}: {text.rsplit(' - at ', 1)[0]}") from exc
+        raise ProtocolError(text) from exc
+    except msgspec.DecodeError as exc:
+        raise ProtocolError(f"payload: {exc}") from exc
