@@ -1,0 +1,249 @@
+"""The simulated rig against independent references: the article's M(s)P(s), a linearisation
+built here with python-control, and static belt mechanics."""
+
+from __future__ import annotations
+
+import math
+
+import control as ct
+import numpy as np
+import pytest
+
+from controller.disturbance import (
+    DISTURBANCES,
+    NoDisturbance,
+    SineTorque,
+    StepTorque,
+    disturbance_from_name,
+)
+from controller.sim_rig import RigParams, SimRig
+
+# control.md eqs. (33) and (34): the article's identified models, speed command -> load rate.
+M_ARTICLE = ct.tf([1.0], [1.013e-05, 0.004501, 1.0])
+P_ARTICLE = ct.tf([1.013e-05, 0.004501, 1.0], [0.0005169, 0.03215, 1.0])
+
+
+def _run(rig: SimRig, commands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closed loop in the caller's pattern; the read before each step is what a controller sees."""
+    pos = np.empty(len(commands))
+    rate = np.empty(len(commands))
+    for k, u in enumerate(commands):
+        pos[k], rate[k] = rig.read()
+        rig.step(float(u))
+    return pos, rate
+
+
+def _phasor(signal: np.ndarray, freq_hz: float, period_s: float) -> complex:
+    t = np.arange(len(signal)) * period_s
+    return complex(np.sum(signal * np.exp(-2j * math.pi * freq_hz * t)))
+
+
+def _sine_response(freq_hz: float, offset_deg_s: float, amp_deg_s: float) -> complex:
+    """u -> w of the full (noisy, quantised, nonlinear) rig around a one-way speed offset."""
+    rig = SimRig()
+    period = rig.period_s
+    settle = round(2.0 / period)
+    n_periods = max(1, math.ceil(10.0 * freq_hz))  # >= 10 s: averages tooth ripple and noise
+    window = round(n_periods / freq_hz / period)
+    k = np.arange(settle + window)
+    u = offset_deg_s + amp_deg_s * np.sin(2 * math.pi * freq_hz * k * period)
+    _, w = _run(rig, u)
+    return _phasor(w[settle:], freq_hz, period) / _phasor(u[settle:], freq_hz, period)
+
+
+def test_small_signal_response_matches_article_mp() -> None:
+    # Full model: noise, both encoders' quantisation, backlash, friction and tooth ripple are ON.
+    # 20 +- 2 deg/s keeps the load moving one way, so friction is a constant and the belt stays
+    # on one side of the backlash. The measured phase includes ~1 tick of sampling delay
+    # (held command + backward-difference rate): -1.8 deg at 5 Hz.
+    print("\n  f Hz   |MP| dB  err dB  err deg")
+    for f in (0.2, 0.5, 1.0, 2.0, 3.0, 5.0):
+        g = _sine_response(f, offset_deg_s=20.0, amp_deg_s=2.0)
+        ref = complex(np.squeeze((M_ARTICLE * P_ARTICLE)(2j * math.pi * f)))
+        err_db = 20 * math.log10(abs(g) / abs(ref))
+        err_deg = math.degrees(np.angle(g / ref))
+        print(f"  {f:4.1f}  {20 * math.log10(abs(ref)):7.2f}  {err_db:6.3f}  {err_deg:7.2f}")
+        assert abs(err_db) < 1.0, f"{f} Hz: {err_db:.2f} dB off M(s)P(s)"
+        assert abs(err_deg) < 4.0, f"{f} Hz: {err_deg:.2f} deg off M(s)P(s)"
+
+
+def test_mp_product_is_the_stated_second_order() -> None:
+    # Guards the reference itself: M P = 1935 / (s^2 + 62.2 s + 1935) per control.md.
+    mp = ct.minreal(M_ARTICLE * P_ARTICLE, verbose=False)
+    wn, zeta, _ = ct.damp(mp, doprint=False)
+    assert wn[0] ** 2 == pytest.approx(1935, rel=2e-3)
+    assert zeta[0] == pytest.approx(0.707, abs=2e-3)
+
+
+def test_same_seed_same_run_different_seed_differs() -> None:
+    u = 5.0 * np.sin(np.arange(1500) * 1e-3 * 2 * math.pi)
+    a = _run(SimRig(seed=3), u)
+    b = _run(SimRig(seed=3), u)
+    c = _run(SimRig(seed=4), u)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    assert not np.array_equal(a[0], c[0])
+    rig = SimRig(seed=3)
+    _run(rig, u)
+    rig.reset()
+    again = _run(rig, u)
+    np.testing.assert_array_equal(a[1], again[1])
+
+
+@pytest.mark.parametrize("start_deg", [0.0, 1.5, -40.0])
+def test_zero_command_from_rest_stays_put(start_deg: float) -> None:
+    # Bias (0.10) + ripple (0.05) < stiction (0.35): the load must not creep or chatter.
+    rig = SimRig(initial_position_deg=start_deg)
+    pos, rate = _run(rig, np.zeros(2000))
+    assert rig.true_position_deg == pytest.approx(start_deg, abs=1e-9)
+    assert rig.true_speed_deg_s == 0.0
+    lsb = 360.0 / 2**26
+    assert np.all(np.abs(pos - start_deg) < 1e-5 * 6 + lsb)  # noise (std 1e-5) + quantum
+    assert np.std(rate) < 0.03  # backward difference of that noise: ~0.014 deg/s
+
+
+def test_stop_after_motion_sticks_without_chatter() -> None:
+    rig = SimRig()
+    u = np.concatenate([np.full(1000, 5.0), np.full(1000, -5.0), np.zeros(1500)])
+    _run(rig, u)
+    held = rig.true_position_deg
+    speeds = []
+    for _ in range(500):
+        rig.step(0.0)
+        speeds.append(rig.true_speed_deg_s)
+    assert speeds == [0.0] * 500
+    assert rig.true_position_deg == held
+
+
+@pytest.mark.parametrize("command_deg_s", [20.0, -10.0, 1.0])
+def test_dc_gain_is_one(command_deg_s: float) -> None:
+    rig = SimRig()
+    tooth_period_s = 360.0 / 30 / abs(command_deg_s)  # ripple and transmission error period
+    settle = 2000
+    window = round(math.ceil(6.0 / tooth_period_s) * tooth_period_s * 1000)  # whole periods
+    _, w = _run(rig, np.full(settle + window, command_deg_s))
+    assert np.mean(w[settle:]) == pytest.approx(command_deg_s, rel=5e-3)
+    assert rig.motor_speed_deg_s / 132.0 == pytest.approx(command_deg_s, rel=0.05)
+
+
+def test_step_torque_deflects_belt_by_its_compliance() -> None:
+    # Moving at 10 deg/s, the drive holds the motor trajectory; a constant load torque only
+    # re-stretches the belt: the load advances by T / k relative to an undisturbed run.
+    p = RigParams()
+    u = np.full(4000, 10.0)
+    _run(quiet := SimRig(p), u)
+    _run(pushed := SimRig(p, disturbance=StepTorque(amplitude_n_m=0.5, time_s=1.0)), u)
+    shift_deg = pushed.true_position_deg - quiet.true_position_deg
+    assert shift_deg == pytest.approx(math.degrees(0.5 / p.belt_stiffness_n_m_rad), rel=0.03)
+
+
+def _linear_torque_to_load_angle(p: RigParams) -> ct.StateSpace:
+    """Continuous linearisation (ideal drive measurement, no backlash): torque -> load angle."""
+    n, jm, jl = p.gear_ratio, p.motor_inertia_kg_m2, p.load_inertia_kg_m2
+    k, c = p.belt_stiffness_n_m_rad, p.belt_damping_n_m_s_rad
+    kp, ki = p.drive_kp_n_m_s_rad, p.drive_ki_n_m_rad
+    # States: motor angle, motor rate, load angle, load rate, drive integrator (speed ref = 0).
+    a = np.zeros((5, 5))
+    a[0, 1] = 1.0
+    a[1, :] = [
+        -k / n**2 / jm,
+        (-kp - p.motor_viscous_n_m_s_rad - c / n**2) / jm,
+        k / n / jm,
+        c / n / jm,
+        ki / jm,
+    ]
+    a[2, 3] = 1.0
+    a[3, :] = [k / n / jl, c / n / jl, -k / jl, -(c + p.load_viscous_n_m_s_rad) / jl, 0.0]
+    a[4, 1] = -1.0
+    b = np.array([[0.0], [0.0], [0.0], [1.0 / jl], [0.0]])
+    return ct.ss(a, b, np.array([[0.0, 0.0, 180.0 / math.pi, 0.0, 0.0]]), 0.0)
+
+
+@pytest.mark.parametrize("freq_hz", [0.05, 0.5, 2.0])
+def test_sine_torque_moves_load_as_linear_model_predicts(freq_hz: float) -> None:
+    p = RigParams()
+    amp = 1.0
+    settle = 2000
+    window = round(max(1, math.ceil(10 * freq_hz)) / freq_hz * 1000)
+    u = np.full(settle + window, 20.0)
+    pos0, _ = _run(SimRig(p), u)
+    pos1, _ = _run(SimRig(p, disturbance=SineTorque(amplitude_n_m=amp, freq_hz=freq_hz)), u)
+    dpos = (pos1 - pos0)[settle:]
+    torque = amp * np.sin(2 * math.pi * freq_hz * np.arange(settle + window) * 1e-3)[settle:]
+    g = _phasor(dpos, freq_hz, 1e-3) / _phasor(torque, freq_hz, 1e-3)
+    ref = complex(np.squeeze(_linear_torque_to_load_angle(p)(2j * math.pi * freq_hz)))
+    print(f"\n  {freq_hz} Hz: |dpos/T| {abs(g):.4f} deg/N m, linear {abs(ref):.4f}")
+    assert abs(g) == pytest.approx(abs(ref), rel=0.05)
+    assert math.degrees(abs(np.angle(g / ref))) < 5.0
+
+
+def test_disturbance_registry_and_validation() -> None:
+    assert set(DISTURBANCES) >= {"none", "sine-0.05hz", "step"}
+    assert isinstance(disturbance_from_name("none"), NoDisturbance)
+    sine = disturbance_from_name("sine-0.05hz")
+    assert isinstance(sine, SineTorque) and sine.freq_hz == 0.05
+    assert sine.torque_n_m(5.0) == pytest.approx(sine.amplitude_n_m)  # quarter period
+    with pytest.raises(ValueError, match=r"disturbance.*'bogus'.*none.*sine-0\.05hz.*step"):
+        disturbance_from_name("bogus")
+    with pytest.raises(ValueError, match="freq_hz"):
+        SineTorque(amplitude_n_m=1.0, freq_hz=0.0)
+    with pytest.raises(ValueError, match="amplitude_n_m"):
+        SineTorque(amplitude_n_m=math.nan, freq_hz=1.0)
+    with pytest.raises(ValueError, match="time_s"):
+        StepTorque(amplitude_n_m=1.0, time_s=-1.0)
+    with pytest.raises(ValueError, match="amplitude_n_m"):
+        StepTorque(amplitude_n_m=math.inf, time_s=1.0)
+    with pytest.raises(ValueError, match="disturbance"):
+        SimRig(disturbance="step")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("gear_ratio", 0.0),
+        ("motor_inertia_kg_m2", -1e-5),
+        ("load_inertia_kg_m2", math.nan),
+        ("belt_stiffness_n_m_rad", math.inf),
+        ("backlash_deg", -0.01),
+        ("coulomb_torque_n_m", -0.1),
+        ("static_torque_n_m", 0.1),  # below Coulomb
+        ("pulley_teeth", 2.5),
+        ("load_encoder_bits", 0),
+        ("position_noise_deg", -1e-6),
+        ("drive_speed_window_s", 0.0),
+    ],
+)
+def test_param_validation_names_the_field(field: str, value: float) -> None:
+    with pytest.raises(ValueError, match=field):
+        RigParams(**{field: value})
+
+
+def test_rig_argument_validation() -> None:
+    with pytest.raises(ValueError, match="rate_hz"):
+        SimRig(rate_hz=0.0)
+    with pytest.raises(ValueError, match="substeps"):
+        SimRig(substeps=0)
+    with pytest.raises(ValueError, match="seed"):
+        SimRig(seed=-1)
+    with pytest.raises(ValueError, match="initial_position_deg"):
+        SimRig(initial_position_deg=math.nan)
+    rig = SimRig()
+    with pytest.raises(ValueError, match="position_deg"):
+        rig.reset(math.inf)
+    with pytest.raises(ValueError, match="command_deg_s"):
+        rig.step(math.nan)
+
+
+def test_interface_bookkeeping() -> None:
+    rig = SimRig(RigParams(position_noise_deg=0.0), initial_position_deg=12.0)
+    assert rig.read() == (pytest.approx(12.0, abs=1e-5), 0.0)
+    for _ in range(250):
+        rig.step(4.0)
+    assert rig.time_s == pytest.approx(0.25)
+    assert rig.true_speed_deg_s == pytest.approx(4.0, rel=0.2)
+    assert rig.motor_speed_deg_s == pytest.approx(4.0 * 132, rel=0.2)
+    rig.set_disturbance(SineTorque(amplitude_n_m=1.0, freq_hz=1.0))
+    rig.reset(-3.0)
+    assert rig.time_s == 0.0
+    assert rig.true_position_deg == pytest.approx(-3.0)
+    assert rig.true_speed_deg_s == 0.0
