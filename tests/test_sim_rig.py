@@ -215,7 +215,7 @@ def test_disturbance_registry_and_validation() -> None:
 )
 def test_param_validation_names_the_field(field: str, value: float) -> None:
     with pytest.raises(ValueError, match=field):
-        RigParams(**{field: value})
+        RigParams(**{field: value})  # type: ignore[arg-type]
 
 
 def test_rig_argument_validation() -> None:
@@ -247,3 +247,32 @@ def test_interface_bookkeeping() -> None:
     assert rig.time_s == 0.0
     assert rig.true_position_deg == pytest.approx(-3.0)
     assert rig.true_speed_deg_s == 0.0
+
+
+def test_substeps_converged_and_rate_configurable() -> None:
+    # Halving the integration step must not change the 2 Hz response: 10 kHz is converged.
+    def response(**kwargs: int | float) -> complex:
+        rig = SimRig(RigParams(position_noise_deg=0.0), **kwargs)  # type: ignore[arg-type]
+        period = rig.period_s
+        n = round(4.0 / period)
+        u = 20.0 + 2.0 * np.sin(2 * math.pi * 2.0 * np.arange(n) * period)
+        _, w = _run(rig, u)
+        half = n // 2
+        return _phasor(w[half:], 2.0, period) / _phasor(u[half:], 2.0, period)
+
+    base = response()
+    fine = response(substeps=20)
+    assert abs(fine / base - 1) < 0.01
+    slow_loop = response(rate_hz=500.0)  # 2 ms ticks: only the sampling delay changes
+    assert abs(abs(slow_loop) / abs(base) - 1) < 0.01
+    extra_delay_deg = -math.degrees(np.angle(slow_loop / base))
+    assert extra_delay_deg == pytest.approx(360 * 2.0 * 1e-3, abs=0.5)  # one more ms of delay
+
+
+def test_position_is_quantised_to_26_bits() -> None:
+    rig = SimRig(RigParams(position_noise_deg=0.0))
+    pos, _ = _run(rig, np.full(300, 7.0))
+    lsb = 360.0 / 2**26
+    counts = pos / lsb
+    np.testing.assert_allclose(counts, np.round(counts), atol=1e-6)
+    assert abs(rig.read()[0] - rig.true_position_deg) <= lsb / 2 + 1e-12
