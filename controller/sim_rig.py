@@ -20,11 +20,18 @@ Physics (SI inside, load-side degrees at the interface), integrated with semi-im
   Gaussian position noise added before quantisation; the rate is the backward difference of
   that measured position over one tick, as the controller would compute it.
 
-The model is control.md's table unchanged. Checked against the article's identified
-M(s)P(s) = 1935/(s^2 + 62.2 s + 1935) (tests/test_sim_rig.py): the linearised continuous
-model is within 0.3 dB / 2 deg up to 7 Hz; the stepped rig, measured through `read()` as the
-controller sees it, adds about one tick of delay (half from the held command, half from the
-backward-difference rate), i.e. -1.8 deg at 5 Hz.
+The model is control.md's table unchanged. Choices where the table is silent: the belt is
+1:1, so tooth effects repeat `pulley_teeth` times per load revolution (transmission error as a
+function of the pulley angle, ripple torque of the load angle); the bias torque pushes the
+positive direction; the motor has no Coulomb friction; reset() restarts the noise stream, so a
+seed gives the same run after every reset.
+
+Checked against the article's identified M(s)P(s) = 1935/(s^2 + 62.2 s + 1935)
+(tests/test_sim_rig.py): the linearised continuous model is within 0.28 dB / 1.9 deg up to
+7 Hz (control.md's "0.15 dB" is not reproduced by its own table: -0.27 dB at 5 Hz). The stepped
+rig measured through `read()` at 20 +- 2 deg/s, everything on, is within 0.28 dB / 2.3 deg at
+0.2-5 Hz; of that phase, about one tick is sampling delay (half from the held command, half
+from the backward-difference rate), i.e. -1.8 deg at 5 Hz.
 
 The kernel is compiled with numba and works on two preallocated float64 arrays (parameters and
 state); `SimRig` wraps it. The external disturbance is sampled once per tick and held.
