@@ -140,6 +140,26 @@ class ServoLoop:
         e_pos = ref_deg - pos_deg
         pos_int_new = self.pos_int + self._pos_half * (e_pos + self.e_pos_prev)
         r = self._pos_kp * e_pos + pos_int_new + self._ff * ref_rate_deg_s
+        u = self._speed(r, speed_deg_s)
+        # Anti-windup: no integration further into a saturated command.
+        if (u >= self._limit and pos_int_new > self.pos_int) or (
+            u <= -self._limit and pos_int_new < self.pos_int
+        ):
+            pos_int_new = self.pos_int
+        self.pos_int = pos_int_new
+        self.e_pos_prev = e_pos
+        return u
+
+    def tick_speed(self, speed_ref_deg_s: float, speed_deg_s: float) -> float:
+        """One period with the position loop open: Cv + DOB track `speed_ref_deg_s` (used for
+        frequency-response measurement in closed loop and to check eqs. 15-18)."""
+        pending = self._pending
+        if pending is not None:
+            self._pending = None
+            self._swap(pending)
+        return self._speed(speed_ref_deg_s, speed_deg_s)
+
+    def _speed(self, r: float, speed_deg_s: float) -> float:
         e = r - speed_deg_s
         cv_int_new = self.cv_int + self._cv_half * (e + self.e_speed_prev)
         v = self._cv_kp * e + cv_int_new
@@ -151,19 +171,13 @@ class ServoLoop:
         limit = self._limit
         if u > limit:
             u = limit
-            if pos_int_new > self.pos_int:
-                pos_int_new = self.pos_int
             if cv_int_new > self.cv_int:
                 cv_int_new = self.cv_int
         elif u < -limit:
             u = -limit
-            if pos_int_new < self.pos_int:
-                pos_int_new = self.pos_int
             if cv_int_new < self.cv_int:
                 cv_int_new = self.cv_int
-        self.pos_int = pos_int_new
         self.cv_int = cv_int_new
-        self.e_pos_prev = e_pos
         self.e_speed_prev = e
         self.w_prev = speed_deg_s
         self.u_prev = u
