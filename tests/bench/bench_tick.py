@@ -1,0 +1,87 @@
+"""Benchmark: one control tick (position loop + Cv + DOB, no plant) and the closed-loop
+simulator speed. Prints figures; not a test.
+
+    .venv/bin/python tests/bench/bench_tick.py [--ticks N]
+
+Baseline in the same process: the same filters run per sample through scipy.signal.sosfilt
+with carried state (what a numpy-per-sample implementation costs), as a ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+from scipy import signal
+
+from controller.config import LoopConfig
+from controller.experiment import run_experiment
+from controller.loop import LoopCoefficients, ServoLoop
+from controller.trajectory import Trajectory
+
+
+def _percentiles_us(samples_ns: list[int]) -> tuple[float, float, float]:
+    a = np.sort(np.asarray(samples_ns, float)) / 1e3
+    return float(a[len(a) // 2]), float(a[int(len(a) * 0.99)]), float(a[-1])
+
+
+def bench_tick(n: int) -> tuple[float, float, float]:
+    loop = ServoLoop(LoopCoefficients.build(LoopConfig()))
+    rng = np.random.default_rng(0)
+    pos = rng.standard_normal(n).tolist()
+    spd = rng.standard_normal(n).tolist()
+    tick = loop.tick
+    pc = time.perf_counter_ns
+    out = [0] * n
+    for k in range(n):
+        t0 = pc()
+        tick(1.0, 0.5, pos[k], spd[k])
+        out[k] = pc() - t0
+    return _percentiles_us(out)
+
+
+def bench_numpy_baseline(n: int) -> tuple[float, float, float]:
+    dob = LoopCoefficients.build(LoopConfig()).dob
+    z1 = np.zeros((dob.f1_sos.shape[0], 2))
+    z2 = np.zeros((dob.f2_sos.shape[0], 2))
+    x = np.zeros(1)
+    pc = time.perf_counter_ns
+    out = [0] * n
+    for k in range(n):
+        t0 = pc()
+        x[0] = 0.1 * k
+        y1, z1 = signal.sosfilt(dob.f1_sos, x, zi=z1)
+        y2, z2 = signal.sosfilt(dob.f2_sos, x, zi=z2)
+        _ = float(y1[0] - y2[0])
+        out[k] = pc() - t0
+    return _percentiles_us(out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--ticks", type=int, default=200_000)
+    args = ap.parse_args()
+    p50, p99, mx = bench_tick(args.ticks)
+    print(
+        f"tick (pos PI + Cv + DOB): p50 {p50:.2f} us  p99 {p99:.2f} us  max {mx:.1f} us"
+        f"  (target p99 <= 15 us)"
+    )
+    b50, b99, _ = bench_numpy_baseline(min(args.ticks, 50_000))
+    print(
+        f"baseline, DOB filters only via scipy sosfilt per sample: p50 {b50:.2f} us "
+        f"p99 {b99:.2f} us -> the scalar tick is {b50 / p50:.1f}x faster at p50"
+    )
+    run_experiment(LoopConfig(), Trajectory(), 1.0, settle_s=0.0)  # numba cache load
+    for label, cfg in (("no DOB", LoopConfig(dob_on=False)), ("DOB", LoopConfig())):
+        t0 = time.perf_counter()
+        run_experiment(cfg, Trajectory(), 30.0)
+        wall = time.perf_counter() - t0
+        print(
+            f"closed loop 30 s sine ({label}): {wall:.3f} s wall -> {30.0 / wall:.0f}x real "
+            f"time (target >= 200x)"
+        )
+
+
+if __name__ == "__main__":
+    main()

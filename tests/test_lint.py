@@ -1,0 +1,43 @@
+"""Lint (ruff) and static types (mypy) are part of the test suite."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_ruff_clean() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "ruff", "check", "controller", "server", "tests"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_mypy_clean() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "mypy", "controller", "server"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_controller_never_imports_server_or_viser() -> None:
+    code = (
+        "import sys, controller.loop, controller.node, controller.analysis, controller.__main__;"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('server', 'viser'));"
+        "print(','.join(bad))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    assert proc.stdout.strip() == "", f"controller imported: {proc.stdout}"
