@@ -1,0 +1,261 @@
+"""The dashboard: a viser app that joins one controller's Zenoh session.
+
+Built once at start (shared GUI: every browser sees the same candidate and the same live
+state); afterwards worker threads only assign new data to existing handles. The HTTP server
+binds 127.0.0.1 unless told otherwise, and share tunnels are disabled.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+from controller import protocol as proto
+from controller.config import LoopConfig
+from server.client import ClientOptions, ControllerClient, ControllerUnavailable
+from server.live import LivePanel
+from server.scene3d import TurntableScene
+from server.tuning import TuningEngine, TuningPanel
+
+__all__ = ["Dashboard", "DashboardOptions", "run_dashboard"]
+
+WEB_ASSETS = Path(__file__).resolve().parent.parent / "web_assets"
+
+
+@dataclass(frozen=True)
+class DashboardOptions:
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    rig_name: str = "demo"
+    host: str = "127.0.0.1"
+    port: int = 8080
+    live_rate_hz: float = 25.0
+    live_max_points: int = 1000
+    query_timeout_s: float = 3.0
+    verbose: bool = True
+    client_name: str = "dashboard"
+
+
+def _asset(name: str, default: str = "") -> str:
+    try:
+        return (WEB_ASSETS / name).read_text(encoding="utf-8")
+    except OSError:
+        return default
+
+
+class Dashboard:
+    """Client + viser server + panels (context manager)."""
+
+    def __init__(self, opts: DashboardOptions) -> None:
+        self.opts = opts
+        self.client = ControllerClient(
+            ClientOptions(
+                connect=tuple(opts.connect),
+                rig_name=opts.rig_name,
+                query_timeout_s=opts.query_timeout_s,
+                client_name=opts.client_name,
+            )
+        )
+        self.server: Any = None
+        self.engine = TuningEngine()
+        self._requests = ThreadPoolExecutor(max_workers=2, thread_name_prefix="ctl-request")
+        self.tuning: TuningPanel | None = None
+        self.live: LivePanel | None = None
+        self.scene: TurntableScene | None = None
+        self._fetched_active = threading.Event()
+
+    @property
+    def url(self) -> str:
+        assert self.server is not None
+        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+
+    def __enter__(self) -> Dashboard:
+        import viser
+
+        self.client.__enter__()
+        try:
+            server = viser.ViserServer(host=self.opts.host, port=self.opts.port,
+                                       verbose=self.opts.verbose)
+            # Never open a public share tunnel from this app.
+            server.request_share_url = lambda *a, **k: None  # type: ignore[method-assign]
+            self.server = server
+            self._build(server)
+        except BaseException:
+            self._close()
+            raise
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self._close()
+
+    def _close(self) -> None:
+        if self.live is not None:
+            self.live.stop()
+        if self.tuning is not None:
+            self.tuning.stop()
+        self._requests.shutdown(wait=False, cancel_futures=True)
+        if self.server is not None:
+            with contextlib.suppress(Exception):
+                self.server.stop()
+            self.server = None
+        self.client.__exit__(None, None, None)
+
+    # -- building ------------------------------------------------------------------------------
+
+    def _build(self, server: Any) -> None:
+        gui = server.gui
+        gui.configure_theme(control_width="large", show_share_button=False,
+                            brand_color=(31, 119, 180))
+        gui.set_panel_label("dobtune")
+        self.scene = TurntableScene(server.scene)
+        tuning = TuningPanel(gui, self.engine, self._apply_async)
+        live = LivePanel(
+            gui, self.client, self._command_async, on_status=self._on_status,
+            on_frame=self._on_frame, rate_hz=self.opts.live_rate_hz,
+            max_points=self.opts.live_max_points,
+        )
+        self.tuning, self.live = tuning, live
+
+        gui.add_html(_asset("header.html", "<b>dobtune</b>"))
+        live.build_banner()
+        live.build_estop()
+        tabs = gui.add_tab_group()
+        with tabs.add_tab("Tune"):
+            tuning.build_controls()
+            upload = gui.add_upload_button("Upload measured responses (CSV)",
+                                           mime_type="text/csv,.csv", color="gray")
+            self.measured_text = gui.add_html(
+                "<div class='dt-measured' style='font-size:12px;color:#555'>No measured "
+                "responses: 1/|Delta| is the stated bound.</div>")
+            upload.on_upload(self._on_upload)
+        with tabs.add_tab("Live"):
+            live.build_controls()
+        with tabs.add_tab("Help"):
+            gui.add_markdown(_asset("help.md", "Help texts are missing (web_assets/help.md)."))
+
+        plots = gui.add_panel()
+        with plots.add_tab("Bode"):
+            tuning.build_charts()
+        with plots.add_tab("Live traces"):
+            live.build_charts()
+        plots.dock_right()
+        with contextlib.suppress(Exception):
+            plots.set_width(620)
+        self.plots = plots
+
+        tuning.start()
+        live.start()
+        self._requests.submit(self._fetch_active)
+
+    # -- wiring ------------------------------------------------------------------------------
+
+    def _fetch_active(self) -> None:
+        try:
+            reply = self.client.get_config()
+        except (ControllerUnavailable, proto.ProtocolError):
+            return
+        if self.tuning is not None:
+            self.tuning.set_active(reply.config, reply.version)
+            self.tuning.revert()
+        self._fetched_active.set()
+
+    def _on_status(self, st: proto.Status) -> None:
+        t = self.tuning
+        if t is None:
+            return
+        first = t.active_version is None
+        t.set_active(st.config, st.config_version)
+        t.set_trajectory(st.trajectory)
+        if first:
+            t.revert()
+            self._fetched_active.set()
+
+    def _on_frame(self, latest: dict[str, float] | None) -> None:
+        if latest is not None and self.scene is not None:
+            self.scene.update(latest["pos_deg"], latest["ref_deg"])
+
+    def _apply_async(self, cand: LoopConfig) -> None:
+        self._requests.submit(self._apply, cand)
+
+    def _apply(self, cand: LoopConfig) -> None:
+        t = self.tuning
+        assert t is not None
+        try:
+            reply = self.client.apply(cand)
+        except (ControllerUnavailable, proto.ProtocolError) as exc:
+            t.show_error(str(exc))
+            return
+        t.show_reply(reply.accepted, reply.version, list(reply.reasons))
+        t.set_active(reply.config, reply.version)
+
+    def _command_async(self, body: proto.CommandBody) -> None:
+        if isinstance(body, proto.EStop):
+            # The put goes out at once from the callback; the reply is shown when it comes.
+            with contextlib.suppress(Exception):
+                self.client.put_estop()
+        self._requests.submit(self._command, body)
+
+    def _command(self, body: proto.CommandBody) -> None:
+        live = self.live
+        assert live is not None
+        try:
+            reply = self.client.command(body)
+        except (ControllerUnavailable, proto.ProtocolError) as exc:
+            live.command_result.content = (
+                f"<div class='dt-cmd' style='color:#d62728'>{type(body).__name__}: {exc}</div>")
+            return
+        color = "#2e7d32" if reply.ok else "#d62728"
+        live.command_result.content = (
+            f"<div class='dt-cmd' style='color:{color};font-size:12px'>{type(body).__name__}: "
+            f"{'ok' if reply.ok else 'refused'} {reply.message} (mode {reply.mode})</div>")
+
+    def _on_upload(self, event: Any) -> None:
+        f = event.target.value
+        self._requests.submit(self._load_measured, f.name, f.content)
+
+    def _load_measured(self, name: str, content: bytes) -> None:
+        from server.measured import read_measured
+
+        try:
+            measured = read_measured(name, content)
+        except ValueError as exc:
+            self.measured_text.content = (
+                f"<div class='dt-measured' style='color:#d62728'>{name}: {exc}</div>")
+            return
+        self.engine.set_measured((*self.engine.measured, measured))
+        n = len(self.engine.measured)
+        self.measured_text.content = (
+            f"<div class='dt-measured' style='font-size:12px'>{n} measured response(s) loaded; "
+            f"last: {name}. The verdict now uses them.</div>")
+        if self.tuning is not None:
+            self.tuning.request_update()
+
+
+def run_dashboard(opts: DashboardOptions) -> int:
+    """Run until SIGINT/SIGTERM; returns the exit code."""
+    stop = threading.Event()
+
+    def _handler(signum: int, _frame: Any) -> None:
+        stop.set()
+
+    old = {s: signal.signal(s, _handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with Dashboard(opts) as dash:
+            print(f"dobtune dashboard: {dash.url}  (rig '{opts.rig_name}' via "
+                  f"{', '.join(opts.connect)})", flush=True)
+            while not stop.wait(0.5):
+                pass
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    return 0

@@ -1,0 +1,106 @@
+"""3-D view: the timing-belt turntable built once from viser primitives, then only rotated.
+
+Load pulley and turntable share the load axis (origin); the motor pulley sits beside it. The
+belt is drawn as a closed loop around both pulleys with markers that travel along it as the
+load turns; the reference angle is a translucent ghost marker on the turntable rim.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+__all__ = ["TurntableScene", "belt_path"]
+
+TABLE_R = 0.20
+TABLE_Z = 0.12
+LOAD_PULLEY_R = 0.07
+MOTOR_PULLEY_R = 0.025
+MOTOR_X = 0.36
+BELT_Z = 0.05
+N_BELT_MARKERS = 16
+
+
+def _quat_z(angle_rad: float) -> tuple[float, float, float, float]:
+    return (math.cos(angle_rad / 2.0), 0.0, 0.0, math.sin(angle_rad / 2.0))
+
+
+def belt_path(n: int = 200) -> tuple[np.ndarray, float]:
+    """Closed belt polyline (n, 3) around both pulleys (open-belt tangents), and its length."""
+    r1, r2, dx = LOAD_PULLEY_R, MOTOR_PULLEY_R, MOTOR_X
+    beta = math.asin((r1 - r2) / dx)  # tangent angle of an open belt
+    # Arc on the big pulley: angles from pi/2+beta to 3pi/2-beta (the side away from the motor).
+    a1 = np.linspace(math.pi / 2 + beta, 3 * math.pi / 2 - beta, n // 2)
+    a2 = np.linspace(-math.pi / 2 + beta, math.pi / 2 - beta, n // 2)
+    p1 = np.stack([r1 * np.cos(a1), r1 * np.sin(a1)], axis=1)
+    p2 = np.stack([dx + r2 * np.cos(a2), r2 * np.sin(a2)], axis=1)
+    loop = np.concatenate([p1, p2, p1[:1]], axis=0)
+    pts = np.concatenate([loop, np.full((len(loop), 1), BELT_Z)], axis=1)
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    return pts, float(seg.sum())
+
+
+class TurntableScene:
+    """Scene handles; `update(load_deg, ref_deg)` only moves existing nodes."""
+
+    def __init__(self, scene: Any) -> None:
+        self.scene = scene
+        self._path, self._length = belt_path()
+        seg = np.linalg.norm(np.diff(self._path, axis=0), axis=1)
+        self._arc = np.concatenate([[0.0], np.cumsum(seg)])
+        scene.set_up_direction("+z")
+        scene.add_grid("/grid", width=1.2, height=1.2, cell_size=0.1, position=(0.15, 0.0, 0.0))
+        scene.add_box("/base", dimensions=(0.7, 0.4, 0.02), color=(70, 74, 82),
+                      position=(0.16, 0.0, 0.01))
+        scene.add_cylinder("/shaft", radius=0.012, height=TABLE_Z, color=(150, 150, 150),
+                           position=(0.0, 0.0, TABLE_Z / 2))
+        scene.add_cylinder("/motor", radius=0.03, height=0.06, color=(40, 40, 40),
+                           position=(MOTOR_X, 0.0, 0.03))
+        self.load = scene.add_frame("/load", show_axes=False)
+        scene.add_cylinder("/load/table", radius=TABLE_R, height=0.02, color=(200, 205, 215),
+                           position=(0.0, 0.0, TABLE_Z))
+        scene.add_box("/load/pointer", dimensions=(TABLE_R * 0.9, 0.02, 0.012),
+                      color=(31, 119, 180), position=(TABLE_R * 0.45, 0.0, TABLE_Z + 0.016))
+        scene.add_cylinder("/load/pulley", radius=LOAD_PULLEY_R, height=0.025,
+                           color=(180, 140, 60), position=(0.0, 0.0, BELT_Z))
+        scene.add_box("/load/pulley_mark", dimensions=(LOAD_PULLEY_R, 0.008, 0.028),
+                      color=(90, 60, 20), position=(LOAD_PULLEY_R / 2, 0.0, BELT_Z))
+        self.motor = scene.add_frame("/motor_pulley", show_axes=False, position=(MOTOR_X, 0, 0))
+        scene.add_cylinder("/motor_pulley/wheel", radius=MOTOR_PULLEY_R, height=0.025,
+                           color=(180, 140, 60), position=(0.0, 0.0, BELT_Z))
+        scene.add_box("/motor_pulley/mark", dimensions=(MOTOR_PULLEY_R, 0.006, 0.028),
+                      color=(90, 60, 20), position=(MOTOR_PULLEY_R / 2, 0.0, BELT_Z))
+        segs = np.stack([self._path[:-1], self._path[1:]], axis=1)
+        scene.add_line_segments("/belt", points=segs, colors=(30, 30, 30), thickness=0.006)
+        self.markers = scene.add_point_cloud(
+            "/belt_markers", points=self._markers(0.0), colors=(240, 240, 240),
+            point_size=0.012, point_shape="circle",
+        )
+        self.ref = scene.add_frame("/reference", show_axes=False)
+        scene.add_box("/reference/ghost", dimensions=(0.05, 0.03, 0.03), color=(230, 126, 34),
+                      opacity=0.45, position=(TABLE_R + 0.03, 0.0, TABLE_Z))
+        scene.add_label("/reference/ghost/label", "reference",
+                        position=(0.0, 0.0, 0.03))
+        self._last: tuple[float, float] | None = None
+
+    def _markers(self, load_deg: float) -> np.ndarray:
+        # The belt moves by load angle * load pulley radius (positive angle: counter-clockwise).
+        shift = math.radians(load_deg) * LOAD_PULLEY_R
+        s = (np.arange(N_BELT_MARKERS) * self._length / N_BELT_MARKERS - shift) % self._length
+        pts = np.stack([np.interp(s, self._arc, self._path[:, i]) for i in range(3)], axis=1)
+        pts[:, 2] += 0.008
+        return pts.astype(np.float32)
+
+    def update(self, load_deg: float, ref_deg: float) -> None:
+        """Rotate the load and the motor pulley to `load_deg`, the ghost to `ref_deg`."""
+        key = (round(load_deg, 3), round(ref_deg, 3))
+        if key == self._last:
+            return
+        self._last = key
+        a = math.radians(load_deg)
+        self.load.wxyz = _quat_z(a)
+        self.motor.wxyz = _quat_z(a * LOAD_PULLEY_R / MOTOR_PULLEY_R)
+        self.ref.wxyz = _quat_z(math.radians(ref_deg))
+        self.markers.points = self._markers(load_deg)
