@@ -20,6 +20,7 @@ EMCY with a non-zero code, a heartbeat that is late or not "operational".
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable
 from types import TracebackType
@@ -153,7 +154,8 @@ class CanRig:
         self._limit_deg_s = rig.max_load_speed_deg_s
         self._enc_deg_per_count = enc.direction * 360.0 / enc.counts_per_rev
         self._enc_modulus = enc.counts_per_rev if enc.single_turn else self._enc_codec.modulus
-        self._max_step_deg = rig.limits.max_encoder_speed_factor * self._limit_deg_s
+        self._max_encoder_speed_deg_s = (rig.limits.max_encoder_speed_factor
+                                         * self._limit_deg_s)
         self._timeout_ticks = rig.limits.feedback_timeout_ticks
         self._hb_timeout_s = drive.heartbeat_timeout_ms / 1000.0
         self._hb_supervised = self._cia402 and drive.heartbeat_period_ms > 0
@@ -163,6 +165,7 @@ class CanRig:
         else:
             self._bus = FrameBus(bus, owns=False)
         # State.
+        self._lock = threading.RLock()
         self._enabled = False  # commands are live (after start, before stop/fault)
         self._stopped = True
         self._closed = False
@@ -244,23 +247,24 @@ class CanRig:
 
     def step(self, command_deg_s: float) -> None:
         """Send the load-side speed command (limited, scaled to the drive) and a SYNC."""
-        if self._enabled and not math.isfinite(command_deg_s):
-            self._set_fault(f"non-finite speed command {command_deg_s!r}")
-        if self._enabled:
-            limit = self._limit_deg_s
-            u = command_deg_s
-            u = limit if u > limit else -limit if u < -limit else u
-            units = round(u * self._units_per_load_deg_s)
-            controlword = cia402.CW_ENABLE_OPERATION
-            self.last_command_deg_s = units / self._units_per_load_deg_s
-        else:
-            units = 0
-            controlword = cia402.CW_DISABLE_OPERATION
-            self.last_command_deg_s = 0.0
-        try:
-            self._send_command(controlword, units)
-        except CanBusError as exc:
-            self._set_fault(f"bus error: {exc}")
+        with self._lock:  # serialised with stop(): no live command can follow the safe state
+            if self._enabled and not math.isfinite(command_deg_s):
+                self._set_fault(f"non-finite speed command {command_deg_s!r}")
+            if self._enabled:
+                limit = self._limit_deg_s
+                u = command_deg_s
+                u = limit if u > limit else -limit if u < -limit else u
+                units = round(u * self._units_per_load_deg_s)
+                controlword = cia402.CW_ENABLE_OPERATION
+                self.last_command_deg_s = units / self._units_per_load_deg_s
+            else:
+                units = 0
+                controlword = cia402.CW_DISABLE_OPERATION
+                self.last_command_deg_s = 0.0
+            try:
+                self._send_command(controlword, units)
+            except CanBusError as exc:
+                self._set_fault(f"bus error: {exc}")
 
     # --- life cycle -----------------------------------------------------------------------
     def start(self) -> None:
@@ -293,18 +297,22 @@ class CanRig:
         self._enabled = True
 
     def stop(self) -> None:
-        """Safe state: target velocity 0, then disable operation. Idempotent."""
-        if self._stopped:
-            return
-        self._stopped = True
-        self._enabled = False
-        self.last_command_deg_s = 0.0
-        try:
-            self._send_command(cia402.CW_ENABLE_OPERATION, 0)
-            self._send_command(cia402.CW_DISABLE_OPERATION, 0)
-        except CanBusError as exc:
-            if self.fault is None:
-                self.fault = f"bus error while stopping: {exc}"
+        """Safe state: target velocity 0, then disable operation. Idempotent; may be called
+        from another thread (an e-stop) while the loop runs."""
+        with self._lock:
+            if self._stopped:
+                return
+            was_enabled = self._enabled
+            self._stopped = True
+            self._enabled = False
+            self.last_command_deg_s = 0.0
+            try:
+                if was_enabled:  # never enable a drive just to stop it
+                    self._send_command(cia402.CW_ENABLE_OPERATION, 0)
+                self._send_command(cia402.CW_DISABLE_OPERATION, 0)
+            except CanBusError as exc:
+                if self.fault is None:
+                    self.fault = f"bus error while stopping: {exc}"
 
     def close(self) -> None:
         """Stop, then release the bus if this rig opened it."""
@@ -418,7 +426,7 @@ class CanRig:
             if ticks < 1:
                 ticks = 1
             step_deg = delta * self._enc_deg_per_count
-            if abs(step_deg) > self._max_step_deg * ticks * self._period_s + 0.01:
+            if abs(step_deg) > self._max_encoder_speed_deg_s * ticks * self._period_s + 0.01:
                 raise ValueError(f"encoder jump of {step_deg:.3f} deg in {ticks} ticks")
             self._enc_counts += delta
             self._speed_deg_s = step_deg / (ticks * self._period_s)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -282,6 +283,38 @@ def test_dead_node_stops_the_rig(setup: Setup) -> None:
     assert setup.listener.commands()[-1] == (cia402.CW_DISABLE_OPERATION, 0)
     assert eventually(lambda: setup.node.state is State.SWITCHED_ON)  # it still hears us
     assert setup.node.target_units == 0
+
+
+def test_encoder_jump_is_garbage(setup: Setup) -> None:
+    rig = setup.rig
+    rig.start()
+    run(rig, 10, 5.0)
+    position_deg, _ = rig.read()
+    rig.step(5.0)
+    jump = round((position_deg + 90.0) / 360.0 * 2**26) % 2**26
+    setup.listener.bus.send(can.Message(arbitration_id=0x190, is_extended_id=False,
+                                        data=jump.to_bytes(4, "little")))
+    rig.read()
+    assert rig.fault is not None and "encoder jump" in rig.fault, rig.fault
+    assert setup.listener.commands()[-1] == (cia402.CW_DISABLE_OPERATION, 0)
+
+
+def test_stop_from_another_thread_is_final(setup: Setup) -> None:
+    """An e-stop from another thread while the loop runs: nothing live follows it."""
+    rig = setup.rig
+    rig.start()
+    before = len(setup.listener.commands())
+    loop = threading.Thread(target=run, args=(rig, 400, 10.0))
+    loop.start()
+    time.sleep(0.02)
+    rig.stop()
+    loop.join()
+    commands = setup.listener.commands()[before:]
+    first_safe = commands.index((cia402.CW_DISABLE_OPERATION, 0))
+    assert any(v != 0 for _, v in commands[:first_safe])  # it was moving
+    assert set(commands[first_safe:]) == {(cia402.CW_DISABLE_OPERATION, 0)}
+    assert eventually(lambda: setup.node.state is State.SWITCHED_ON)
+    assert rig.fault is None
 
 
 def test_heartbeat_loss_stops_the_rig(setup: Setup) -> None:
