@@ -150,14 +150,22 @@ class Dashboard:
             live.build_charts()
         plots.dock_right()
         with contextlib.suppress(Exception):
+            gui.main_panel.dock_left()
+        with contextlib.suppress(Exception):
             plots.set_width(620)
         self.plots = plots
 
+        server.on_client_connect(self._on_client_connect)
         tuning.start()
         live.start()
         self._requests.submit(self._fetch_active)
 
     # -- wiring ------------------------------------------------------------------------------
+
+    def _on_client_connect(self, client: Any) -> None:
+        """Point each new browser's camera at the turntable."""
+        client.camera.position = (0.75, -0.85, 0.75)
+        client.camera.look_at = (0.15, 0.0, 0.05)
 
     def _fetch_active(self) -> None:
         try:
@@ -225,14 +233,15 @@ class Dashboard:
 
     def _load_measured(self, name: str, content: bytes) -> None:
         from server.measured import read_measured
+        from server.tuning import measured_from_csv
 
         try:
-            measured = read_measured(name, content)
+            measured = measured_from_csv(name, read_measured(name, content))
         except ValueError as exc:
             self.measured_text.content = (
                 f"<div class='dt-measured' style='color:#d62728'>{name}: {exc}</div>")
             return
-        self.engine.set_measured((*self.engine.measured, measured))
+        self.engine.add_measured(measured)
         n = len(self.engine.measured)
         self.measured_text.content = (
             f"<div class='dt-measured' style='font-size:12px'>{n} measured response(s) loaded; "

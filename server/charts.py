@@ -56,6 +56,7 @@ class BodeCurves:
     noise_dob_db: FloatArray
     noise_nodob_db: FloatArray
     q_db: FloatArray
+    rejection_db: FloatArray | None = None
     inv_delta_db: FloatArray | None = None
     inv_delta_measured_db: FloatArray | None = None
 
@@ -136,6 +137,12 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         _line("(17) active", ACTIVE, dash=(6, 4)),
     ),
     _bode_spec(
+        "rejection",
+        "DOB rejection gain |E_without / E_with| (23): > 0 dB where the DOB helps",
+        _line("candidate", CANDIDATE),
+        _line("active", ACTIVE, dash=(6, 4)),
+    ),
+    _bode_spec(
         "small_gain",
         "Small gain: |Q| vs 1/|Delta|",
         _line("|Q| candidate", CANDIDATE),
@@ -160,6 +167,11 @@ def bode_data(key: str, cand: BodeCurves, active: BodeCurves | None) -> tuple[Fl
         cols = (cand.dist_dob_db, cand.dist_nodob_db, act.dist_dob_db)
     elif key == "noise":
         cols = (cand.noise_dob_db, cand.noise_nodob_db, act.noise_dob_db)
+    elif key == "rejection":
+        cols = (
+            cand.rejection_db if cand.rejection_db is not None else nan,
+            act.rejection_db if act.rejection_db is not None else nan,
+        )
     elif key == "small_gain":
         bound = cand.inv_delta_db if cand.inv_delta_db is not None else nan
         meas = cand.inv_delta_measured_db if cand.inv_delta_measured_db is not None else nan

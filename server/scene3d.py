@@ -76,7 +76,7 @@ class TurntableScene:
         scene.add_line_segments("/belt", points=segs, colors=(30, 30, 30), thickness=0.006)
         self.markers = scene.add_point_cloud(
             "/belt_markers", points=self._markers(0.0), colors=(240, 240, 240),
-            point_size=0.012, point_shape="circle",
+            point_size=0.008, point_shape="circle",
         )
         self.ref = scene.add_frame("/reference", show_axes=False)
         scene.add_box("/reference/ghost", dimensions=(0.05, 0.03, 0.03), color=(230, 126, 34),

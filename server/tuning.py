@@ -17,6 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from controller.analysis import (
+    Analysis,
+    MeasuredResponse,
+    PlantKnowledge,
+    analyse,
+    default_grid,
+    recommended_max_cutoff_hz,
+)
 from controller.config import LoopConfig
 from controller.errors import ConfigError
 from controller.trajectory import Trajectory
@@ -63,85 +71,94 @@ class PreviewResult:
     elapsed_s: float
 
 
-def freq_grid_hz(n: int = 240) -> FloatArray:
-    """Common log grid of the Bode plots: 0.01 Hz to just under Nyquist of a 1 kHz loop."""
-    return np.logspace(-2.0, math.log10(450.0), n)
+def freq_grid_hz(rate_hz: float = 1000.0, n: int = 240) -> FloatArray:
+    """Log grid of the Bode plots: 0.01 Hz to just under Nyquist (the gate's own grid)."""
+    return np.asarray(default_grid(rate_hz, n), dtype=np.float64)
 
 
 # -- the analysis adapter -------------------------------------------------------------------------
 
 
-def _provisional_curves(cfg: LoopConfig, f: FloatArray) -> tuple[BodeCurves, GateView]:
-    """Continuous-time nominal curves (control.md eqs. 15-18) used until controller.analysis
-    lands; the verdict here is advisory only, the controller's gate decides."""
-    from controller.qfilter import design_q
-
-    s = 2j * np.pi * f
-    nom = cfg.nominal
-
-    def poly(p: tuple[float, ...]) -> Any:
-        return np.polyval(np.asarray(p, float), s)
-
-    m = 1.0 / poly(nom.mn_den)
-    p = poly(nom.pn_num) / poly(nom.pn_den)
-    cv = cfg.cv_kp * (1.0 + cfg.cv_ki_per_s / s)
-    loop = cv * m * p
-    qn, qd = design_q(cfg.q_type, cutoff_hz=cfg.q_cutoff_hz).tf()  # type: ignore[arg-type]
-    q = np.polyval(qn, s) / np.polyval(qd, s)
-    if not cfg.dob_on:
-        q = np.zeros_like(q)
-    d = 1.0 + loop
-    w_bound = 0.2 * np.abs((1 + s / (2 * np.pi * 3.0)) / (1 + s / (2 * np.pi * 15.0)))
+def curves_from_analysis(a: Analysis) -> tuple[BodeCurves, GateView]:
+    """Adapter: the gate's Analysis -> what the charts draw and the verdict box shows."""
+    bound = [src.inv_delta_db for src in a.sources if src.kind == "bound"]
+    measured = [src.inv_delta_db for src in a.sources if src.kind == "measured"]
     curves = BodeCurves(
-        freq_hz=f,
-        open_loop_db=charts.db(loop),
-        open_loop_phase_deg=np.degrees(np.unwrap(np.angle(loop))),
-        closed_dob_db=charts.db(loop / d),
-        closed_nodob_db=charts.db(loop / d),
-        dist_dob_db=charts.db(p * (1 - q) / d),
-        dist_nodob_db=charts.db(p / d),
-        noise_dob_db=charts.db((loop + q) / d),
-        noise_nodob_db=charts.db(loop / d),
-        q_db=charts.db(q),
-        inv_delta_db=charts.db(1.0 / w_bound),
+        freq_hz=a.freq_hz,
+        open_loop_db=a.open_loop_mag_db,
+        open_loop_phase_deg=a.open_loop_phase_deg,
+        closed_dob_db=charts.db(a.closed_loop_dob),
+        closed_nodob_db=charts.db(a.closed_loop_no_dob),
+        dist_dob_db=charts.db(a.disturbance_dob),
+        dist_nodob_db=charts.db(a.disturbance_no_dob),
+        noise_dob_db=charts.db(a.noise_dob),
+        noise_nodob_db=charts.db(a.noise_no_dob),
+        q_db=a.q_mag_db,
+        rejection_db=a.rejection_db,
+        inv_delta_db=bound[0] if bound else None,
+        # The worst measured response at each frequency (smallest 1/|Delta|).
+        inv_delta_measured_db=np.min(np.stack(measured), axis=0) if measured else None,
     )
-    mag = np.abs(loop)
-    phase = curves.open_loop_phase_deg
-    margins: dict[str, float] = {}
-    cross = np.nonzero((mag[:-1] >= 1.0) & (mag[1:] < 1.0))[0]
-    margins["phase_margin_deg"] = float(180.0 + phase[cross[0]]) if len(cross) else math.inf
-    pc = np.nonzero((phase[:-1] > -180.0) & (phase[1:] <= -180.0))[0]
-    margins["gain_margin_db"] = float(-charts.db(mag[pc[0]])) if len(pc) else math.inf
-    margins["peak_sensitivity_db"] = float(np.max(charts.db(1.0 / d)))
-    sg = np.abs(w_bound * q / d)
-    margins["small_gain_peak"] = float(np.max(sg))
-    reasons = []
-    if margins["phase_margin_deg"] < 30.0:
-        reasons.append(f"phase margin {margins['phase_margin_deg']:.1f} deg < 30 deg")
-    if margins["gain_margin_db"] < 6.0:
-        reasons.append(f"gain margin {margins['gain_margin_db']:.1f} dB < 6 dB")
-    if margins["small_gain_peak"] >= 1.0:
-        reasons.append(f"small-gain peak {margins['small_gain_peak']:.2f} >= 1")
-    gate = GateView("reject" if reasons else "accept", tuple(reasons), margins)
-    return curves, gate
+    margins = {
+        "gain_margin_db": a.gain_margin_db,
+        "phase_margin_deg": a.phase_margin_deg,
+        "peak_sensitivity_db": a.peak_sensitivity_db,
+        "small_gain_peak": a.small_gain_peak,
+        "max_pole_radius": a.max_pole_radius,
+    }
+    return curves, GateView(a.verdict, tuple(a.reasons), margins)
+
+
+def measured_from_csv(name: str, data: Any) -> MeasuredResponse:
+    """A CSV response (FrdData) as the gate's plant knowledge: a continuous response u -> w."""
+    return MeasuredResponse(name=name, freq_hz=data.freq_hz, response=data.response)
 
 
 class TuningEngine:
     """Evaluates candidates; caches the evaluation of configurations seen before."""
 
-    def __init__(self, freq_hz: FloatArray | None = None, preview_duration_s: float = 12.6):
-        self.freq_hz = freq_grid_hz() if freq_hz is None else freq_hz
+    def __init__(self, n_freq: int = 240, preview_duration_s: float = 12.6):
+        self.n_freq = n_freq
+        self.freq_hz = freq_grid_hz(1000.0, n_freq)
         self.preview_duration_s = preview_duration_s
-        self.measured: tuple[Any, ...] = ()
+        self.plant = PlantKnowledge()
         self._cache: dict[LoopConfig, Evaluation] = {}
+        self._rec_cache: dict[LoopConfig, float | None] = {}
         self._preview_cache: dict[tuple[LoopConfig, Trajectory], PreviewResult] = {}
         self._lock = threading.Lock()
 
-    def set_measured(self, measured: tuple[Any, ...]) -> None:
-        """Measured frequency responses (from the CSV upload); invalidates cached verdicts."""
+    @property
+    def measured(self) -> tuple[MeasuredResponse, ...]:
+        return self.plant.measured
+
+    def add_measured(self, m: MeasuredResponse) -> None:
+        """A measured response (CSV upload; same name replaces); invalidates cached verdicts."""
         with self._lock:
-            self.measured = measured
+            kept = tuple(x for x in self.plant.measured if x.name != m.name)
+            self.plant = PlantKnowledge(measured=(*kept, m), bound=self.plant.bound)
             self._cache.clear()
+            self._rec_cache.clear()
+
+    def cached_recommendation(self, cfg: LoopConfig) -> tuple[bool, float | None]:
+        """(known, value) without computing."""
+        key = cfg.with_(q_cutoff_hz=1.0, dob_on=True)
+        with self._lock:
+            if key in self._rec_cache:
+                return True, self._rec_cache[key]
+        return False, None
+
+    def recommended_max_cutoff_hz(self, cfg: LoopConfig) -> float | None:
+        """The gate's largest accepted Q cut-off for this candidate's other settings (cached;
+        ~0.1 s, so call it off the slider path)."""
+        key = cfg.with_(q_cutoff_hz=1.0, dob_on=True)
+        with self._lock:
+            if key in self._rec_cache:
+                return self._rec_cache[key]
+            plant = self.plant
+        rec = recommended_max_cutoff_hz(key, plant, highest_hz=CUTOFF_MAX_HZ)
+        with self._lock:
+            self._rec_cache[key] = rec
+        return rec
 
     def evaluate(self, cfg: LoopConfig) -> Evaluation:
         with self._lock:
@@ -149,7 +166,10 @@ class TuningEngine:
         if hit is not None:
             return hit
         t0 = time.perf_counter()
-        curves, gate = _provisional_curves(cfg, self.freq_hz)
+        with self._lock:
+            plant = self.plant
+        grid = freq_grid_hz(cfg.rate_hz, self.n_freq)
+        curves, gate = curves_from_analysis(analyse(cfg, plant, freq_hz=grid))
         ev = Evaluation(cfg, curves, gate, time.perf_counter() - t0)
         with self._lock:
             if len(self._cache) > 64:
@@ -399,7 +419,7 @@ class TuningPanel:
         for spec in charts.BODE_CHARTS:
             n = len(spec.series)
             self._charts[spec.key] = gui.add_uplot(
-                data=(self.engine.freq_hz, *([np.zeros_like(self.engine.freq_hz)] * (n - 1))),
+                data=(self.engine.freq_hz, *([np.ones_like(self.engine.freq_hz)] * (n - 1))),
                 series=spec.series, scales=spec.scales, axes=spec.axes, title=spec.title,
                 height=spec.height, aspect=2.0,
             )
@@ -515,16 +535,17 @@ class TuningPanel:
             cand = self.candidate()
         except ConfigError as exc:
             self.verdict.content = format_gate_html(None, str(exc))
-            self.cutoff_text.content = self._cutoff_html(self.cutoff_hz, None)
+            self.cutoff_text.content = self._cutoff_html(self.cutoff_hz, None, True)
             return
         ev = self.engine.evaluate(cand)
         act = self.engine.evaluate(self.active)
         for key, handle in self._charts.items():
             handle.data = charts.bode_data(key, ev.curves, act.curves)
         self.verdict.content = format_gate_html(ev)
-        rec = ev.gate.recommended_max_cutoff_hz
-        self.cutoff_text.content = self._cutoff_html(cand.q_cutoff_hz, rec)
-        self._update_marks(rec)
+        known, rec = self.engine.cached_recommendation(cand)
+        self.cutoff_text.content = self._cutoff_html(cand.q_cutoff_hz, rec, known)
+        if known:
+            self._update_marks(rec)
         self.apply_button.color = "green" if ev.gate.accepted else "orange"
         self.last_evaluation = ev
         self.last_update_s = time.perf_counter() - t0
@@ -543,6 +564,11 @@ class TuningPanel:
 
     def _run_preview(self, item: tuple[LoopConfig, LoopConfig, Trajectory]) -> None:
         cand, active, traj = item
+        known, _ = self.engine.cached_recommendation(cand)
+        if not known:
+            rec = self.engine.recommended_max_cutoff_hz(cand)
+            self.cutoff_text.content = self._cutoff_html(cand.q_cutoff_hz, rec, True)
+            self._update_marks(rec)
         pc = self.engine.preview(cand, traj)
         pa = self.engine.preview(active, traj)
         if self._preview_chart is not None:
@@ -558,8 +584,14 @@ class TuningPanel:
 
     # -- text --------------------------------------------------------------------------------
 
-    def _cutoff_html(self, cutoff_hz: float, rec: float | None) -> str:
-        rec_txt = f" &middot; gate's recommended max <b>{rec:.2f} Hz</b>" if rec else ""
+    def _cutoff_html(self, cutoff_hz: float, rec: float | None, known: bool = True) -> str:
+        if not known:
+            rec_txt = " &middot; recommended max: computing..."
+        elif rec is None:
+            rec_txt = " &middot; <span style='color:#d62728'>the gate accepts no cut-off with " \
+                "these gains</span>"
+        else:
+            rec_txt = f" &middot; gate's recommended max <b>{rec:.2f} Hz</b>"
         warn = ""
         if rec is not None and cutoff_hz > rec:
             warn = " <span style='color:#d62728'>(above the recommendation)</span>"

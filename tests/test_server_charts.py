@@ -1,0 +1,76 @@
+"""Chart data (pure): decimation keeps spikes, Bode data shapes, log axes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controller.analysis import analyse
+from controller.config import LoopConfig
+from server import charts
+from server.tuning import curves_from_analysis, freq_grid_hz
+
+
+def test_minmax_decimate_keeps_extremes_and_bounds_size() -> None:
+    t = np.arange(60_000) / 1000.0
+    y = np.sin(t)
+    y[31_234] = 5.0  # a one-sample spike
+    y[12_345] = -4.0
+    x, (yd,) = charts.minmax_decimate(t, [y], 1000)
+    assert len(x) <= 1000
+    assert len(x) == len(yd)
+    assert yd.max() == 5.0
+    assert yd.min() == -4.0
+    assert np.all(np.diff(x) >= 0)
+    assert x[-1] == t[-1]
+
+
+def test_minmax_decimate_passes_short_series_through() -> None:
+    t = np.arange(10.0)
+    x, (y,) = charts.minmax_decimate(t, [t * 2], 1000)
+    np.testing.assert_array_equal(x, t)
+    np.testing.assert_array_equal(y, t * 2)
+
+
+def test_bode_specs_use_log_frequency_axis() -> None:
+    for spec in charts.BODE_CHARTS:
+        assert spec.scales["x"]["distr"] == 3
+        assert spec.scales["x"]["log"] == 10
+
+
+@pytest.mark.parametrize("spec", charts.BODE_CHARTS, ids=lambda s: s.key)
+def test_bode_data_matches_series(spec: charts.ChartSpec) -> None:
+    cfg = LoopConfig()
+    cand, _ = curves_from_analysis(analyse(cfg, freq_hz=freq_grid_hz()))
+    act, _ = curves_from_analysis(analyse(cfg.with_(q_cutoff_hz=2.0), freq_hz=freq_grid_hz()))
+    data = charts.bode_data(spec.key, cand, act)
+    assert len(data) == len(spec.series)
+    assert all(d.shape == cand.freq_hz.shape for d in data)
+    assert np.all(np.isfinite(data[1]))
+
+
+def test_disturbance_chart_shows_dob_rejection_at_low_frequency() -> None:
+    cand, _ = curves_from_analysis(analyse(LoopConfig(), freq_hz=freq_grid_hz()))
+    f, with_dob, without, _active = charts.bode_data("disturbance", cand, None)
+    low = f < 0.05
+    assert np.all(with_dob[low] < without[low] - 6.0)  # eq. 16 well below eq. 18
+
+
+def test_live_data_is_relative_to_newest_sample() -> None:
+    n = 5000
+    t = np.arange(n) / 1000.0
+    cols = {c: np.random.default_rng(0).normal(size=n) for cols in charts.LIVE_COLUMNS.values()
+            for c in cols}
+    version = np.where(t > 2.5, 2.0, 1.0)
+    data = charts.live_data(t, cols, version, max_points=800)
+    for spec in charts.LIVE_CHARTS:
+        d = data[spec.key]
+        assert len(d) == len(spec.series)
+        assert d[0][-1] == 0.0
+        assert len(d[0]) <= 800
+    assert set(data["error"][-1]) == {1.0, 2.0}
+
+
+def test_live_data_empty() -> None:
+    data = charts.live_data(np.zeros(0), {}, np.zeros(0))
+    assert all(len(d[0]) == 2 for d in data.values())

@@ -1,0 +1,92 @@
+"""Tuning: slider move -> plots + margins + verdict within 50 ms; 12.6 s preview within 200 ms.
+
+The dashboard runs without a controller here (it shows the 'not reachable' banner); the tuning
+path does not need one.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from controller.config import LoopConfig
+from controller.trajectory import Trajectory
+from server.app import Dashboard, DashboardOptions
+from server.tuning import TuningEngine, format_gate_html
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def dash() -> Iterator[Dashboard]:
+    opts = DashboardOptions(
+        port=free_port(), connect=(f"tcp/127.0.0.1:{free_port()}",), verbose=False
+    )
+    with Dashboard(opts) as d:
+        assert d.tuning is not None
+        assert d.tuning.wait_preview_idle(30.0)
+        yield d
+
+
+def test_slider_move_updates_plots_margins_verdict_within_50_ms(dash: Dashboard) -> None:
+    t = dash.tuning
+    assert t is not None
+    times = []
+    for k, log_hz in enumerate(np.linspace(-1.0, 0.6, 25)):
+        before = t.update_count
+        old_data = t._charts["small_gain"].data[1].copy()
+        t0 = time.perf_counter()
+        t.cutoff_log.value = float(round(log_hz, 3))  # what a browser slider drag does
+        assert t.wait_idle(2.0)
+        times.append(time.perf_counter() - t0)
+        assert t.update_count == before + 1
+        ev = t.last_evaluation
+        assert ev is not None and math.isclose(ev.config.q_cutoff_hz, 10**log_hz, rel_tol=2e-3)
+        if k:
+            assert not np.allclose(t._charts["small_gain"].data[1], old_data)  # |Q| moved
+        assert "Verdict" in t.verdict.content
+    times_ms = np.array(times) * 1e3
+    print(f"slider->update: p50 {np.percentile(times_ms, 50):.1f} ms, "
+          f"max {times_ms.max():.1f} ms")
+    assert np.percentile(times_ms, 50) <= 50.0
+    assert np.percentile(times_ms, 90) <= 50.0
+
+
+def test_rejected_candidate_is_highlighted(dash: Dashboard) -> None:
+    t = dash.tuning
+    assert t is not None
+    t.cv_kp.value = 3.0
+    assert t.wait_idle(2.0)
+    ev = t.last_evaluation
+    assert ev is not None and not ev.gate.accepted
+    assert "REJECT" in t.verdict.content and "dt-reject" in t.verdict.content
+    t.revert()
+    assert t.wait_idle(2.0)
+
+
+def test_preview_of_one_sine_period_within_200_ms() -> None:
+    eng = TuningEngine()
+    cfg = LoopConfig()
+    traj = Trajectory()
+    eng.preview(cfg.with_(q_cutoff_hz=0.3), traj)  # warm-up (numba compile)
+    res = eng.preview(cfg, traj)
+    print(f"preview 12.6 s sine: {res.elapsed_s * 1e3:.0f} ms, peak {res.peak_error_deg:.4f}")
+    assert abs(res.t_s[-1] - 4 * math.pi) < 0.01
+    assert res.elapsed_s <= 0.2
+    assert 0.0 < res.rmse_deg < res.peak_error_deg
+
+
+def test_gate_html_lists_every_reason() -> None:
+    eng = TuningEngine()
+    ev = eng.evaluate(LoopConfig(cv_kp=3.0))
+    html = format_gate_html(ev)
+    assert html.count("dt-reason") == len(ev.gate.reasons) >= 1
