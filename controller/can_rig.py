@@ -15,6 +15,14 @@ disable operation; afterwards ``step`` only sends zero): feedback missing for
 ``feedback_timeout_ticks`` consecutive ticks, a bus error, a short/garbled frame on a feedback
 id, an implausible encoder jump, the statusword fault bit or leaving Operation enabled, an
 EMCY with a non-zero code, a heartbeat that is late or not "operational".
+
+Timing: a tick counts as fed when every feedback frame (TPDO1, TPDO2 and the encoder for
+cia402) arrived after its SYNC. ``read()`` may block until ``SYNC time + wait_feedback_s``
+for missing frames; a 1 kHz loop that reads about a period after the SYNC therefore never
+waits. The frames carry no SYNC counter, so a frame later than that counts for the next tick.
+While feedback is missing ``read()`` returns the last values. ``step()`` and ``stop()`` are
+serialised by a lock, so an e-stop from another thread is never followed by a live command;
+everything else is meant for the loop's thread.
 """
 
 from __future__ import annotations
@@ -66,15 +74,17 @@ class FrameBus:
         """Open the bus described by the rig file. No acceptance filters: error frames and
         every feedback id must come through, and a rig's bus carries a few frames per tick."""
         try:
-            bus = can.Bus(interface=config.interface, channel=config.channel,
-                          bitrate=config.bitrate)
+            bus = can.Bus(
+                interface=config.interface, channel=config.channel, bitrate=config.bitrate
+            )
         except (can.CanError, OSError, ValueError) as exc:
             raise CanBusError(f"cannot open {config.interface}:{config.channel}: {exc}") from exc
         return cls(bus, owns=True)
 
     def send(self, can_id: int, data: bytes) -> None:
-        msg = can.Message(arbitration_id=can_id, data=data, is_extended_id=can_id > 0x7FF,
-                          check=False)
+        msg = can.Message(
+            arbitration_id=can_id, data=data, is_extended_id=can_id > 0x7FF, check=False
+        )
         try:
             self._bus.send(msg)
         except can.CanError as exc:
@@ -154,8 +164,7 @@ class CanRig:
         self._limit_deg_s = rig.max_load_speed_deg_s
         self._enc_deg_per_count = enc.direction * 360.0 / enc.counts_per_rev
         self._enc_modulus = enc.counts_per_rev if enc.single_turn else self._enc_codec.modulus
-        self._max_encoder_speed_deg_s = (rig.limits.max_encoder_speed_factor
-                                         * self._limit_deg_s)
+        self._max_encoder_speed_deg_s = rig.limits.max_encoder_speed_factor * self._limit_deg_s
         self._timeout_ticks = rig.limits.feedback_timeout_ticks
         self._hb_timeout_s = drive.heartbeat_timeout_ms / 1000.0
         self._hb_supervised = self._cia402 and drive.heartbeat_period_ms > 0
@@ -387,8 +396,9 @@ class CanRig:
                 self._motor_speed_deg_s = velocity * self._motor_deg_s_per_unit
                 self._got |= _TPDO1
             elif can_id == self._id_tpdo2:
-                self._motor_position_deg = (cia402.parse_tpdo_position(data)
-                                            * self._motor_deg_per_count)
+                self._motor_position_deg = (
+                    cia402.parse_tpdo_position(data) * self._motor_deg_per_count
+                )
                 self._got |= _TPDO2
             elif can_id == self._id_raw_vel:
                 assert self._raw_vel is not None
@@ -445,8 +455,7 @@ class CanRig:
             self._set_fault(f"drive fault (statusword 0x{statusword:04X})")
         elif state is not State.OPERATION_ENABLED:
             name = "unknown state" if state is None else state.name
-            self._set_fault(f"drive left Operation enabled: {name} "
-                            f"(statusword 0x{statusword:04X})")
+            self._set_fault(f"drive left Operation enabled: {name} (statusword 0x{statusword:04X})")
 
     def _on_heartbeat(self, nmt_state: int) -> None:
         self._hb_state = nmt_state
@@ -462,11 +471,12 @@ class CanRig:
         if self.fault is not None:
             raise RigFault(self.fault)
         if self._got != self._need:
-            raise RigFault("timeout waiting for the drive's feedback during start "
-                           f"(frames 0b{self._got:03b} of 0b{self._need:03b})")
+            raise RigFault(
+                "timeout waiting for the drive's feedback during start "
+                f"(frames 0b{self._got:03b} of 0b{self._need:03b})"
+            )
 
-    def _sdo_write(self, index: int, subindex: int, value: int, size: int,
-                   deadline: float) -> None:
+    def _sdo_write(self, index: int, subindex: int, value: int, size: int, deadline: float) -> None:
         assert self._id_sdo_tx is not None
         ids = self.rig.drive.cob_ids
         self._sdo_reply = None
@@ -482,17 +492,18 @@ class CanRig:
         if (reply.index, reply.subindex) != (index, subindex):
             raise RigFault(f"SDO reply for 0x{reply.index:04X} while writing 0x{index:04X}")
         if not reply.ok:
-            raise RigFault(f"SDO write 0x{index:04X}:{subindex} = {value} aborted "
-                           f"(0x{reply.abort_code:08X})")
+            raise RigFault(
+                f"SDO write 0x{index:04X}:{subindex} = {value} aborted (0x{reply.abort_code:08X})"
+            )
 
     def _start_cia402(self, deadline: float) -> None:
         drive = self.rig.drive
         self._sdo_write(cia402.MODES_OF_OPERATION, 0, cia402.PROFILE_VELOCITY_MODE, 1, deadline)
         if drive.heartbeat_period_ms > 0:
-            self._sdo_write(cia402.PRODUCER_HEARTBEAT_TIME, 0, drive.heartbeat_period_ms, 2,
-                            deadline)
-        self._bus.send(drive.cob_ids.nmt, cia402.make_nmt(cia402.NmtCommand.START,
-                                                           drive.node_id))
+            self._sdo_write(
+                cia402.PRODUCER_HEARTBEAT_TIME, 0, drive.heartbeat_period_ms, 2, deadline
+            )
+        self._bus.send(drive.cob_ids.nmt, cia402.make_nmt(cia402.NmtCommand.START, drive.node_id))
         # Disable voltage first: a known starting point, and the low edge a fault reset needs.
         controlword = cia402.CW_DISABLE_VOLTAGE
         resets = 0

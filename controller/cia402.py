@@ -440,8 +440,17 @@ _STRUCT_CODES = {1: "b", 2: "h", 4: "i", 8: "q"}
 class FieldCodec:
     """Reads/writes one integer field at a byte offset of a frame (any length 1..8)."""
 
-    __slots__ = ("_struct", "byteorder", "length", "max_value", "min_dlc", "min_value",
-                 "modulus", "offset", "signed")
+    __slots__ = (
+        "_struct",
+        "byteorder",
+        "length",
+        "max_value",
+        "min_dlc",
+        "min_value",
+        "modulus",
+        "offset",
+        "signed",
+    )
 
     def __init__(
         self, offset: int, length: int, signed: bool, byteorder: Literal["little", "big"]
@@ -469,12 +478,13 @@ class FieldCodec:
     def decode(self, data: bytes) -> int:
         """The field's value; ValueError when the frame is too short to hold it."""
         if len(data) < self.min_dlc:
-            raise ValueError(f"frame of {len(data)} bytes too short for field ending at "
-                             f"byte {self.min_dlc}")
+            raise ValueError(
+                f"frame of {len(data)} bytes too short for field ending at byte {self.min_dlc}"
+            )
         if self._struct is not None:
             value: int = self._struct.unpack_from(data, self.offset)[0]
             return value
-        return int.from_bytes(data[self.offset:self.min_dlc], self.byteorder, signed=self.signed)
+        return int.from_bytes(data[self.offset : self.min_dlc], self.byteorder, signed=self.signed)
 
     def encode_into(self, buffer: bytearray, value: int) -> None:
         """Write ``value`` into ``buffer`` (which must be at least ``min_dlc`` long)."""
@@ -483,6 +493,6 @@ class FieldCodec:
         if self._struct is not None:
             self._struct.pack_into(buffer, self.offset, value)
         else:
-            buffer[self.offset:self.min_dlc] = value.to_bytes(
+            buffer[self.offset : self.min_dlc] = value.to_bytes(
                 self.length, self.byteorder, signed=self.signed
             )

@@ -179,8 +179,9 @@ class RigFile:
     @property
     def max_load_speed_deg_s(self) -> float:
         """The tighter of the command limit and the drive's speed limit, load side."""
-        return min(self.limits.command_limit_deg_s,
-                   self.drive.max_speed_rpm * 6.0 / self.drive.gear_ratio)
+        return min(
+            self.limits.command_limit_deg_s, self.drive.max_speed_rpm * 6.0 / self.drive.gear_ratio
+        )
 
 
 # --- Parsing -------------------------------------------------------------------------------
@@ -232,8 +233,9 @@ class _Table:
             raise ConfigError(self._name(key), f"expected true or false, got {value!r}")
         return value
 
-    def int_(self, key: str, default: int | None = None, *, lo: int | None = None,
-             hi: int | None = None) -> int:
+    def int_(
+        self, key: str, default: int | None = None, *, lo: int | None = None, hi: int | None = None
+    ) -> int:
         value = self._get(key, _REQUIRED if default is None else default)
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(self._name(key), f"expected an integer, got {value!r}")
@@ -247,8 +249,14 @@ class _Table:
             return None
         return self.int_(key, lo=lo, hi=hi)
 
-    def float_(self, key: str, default: float | None = None, *, positive: bool = False,
-               nonnegative: bool = False) -> float:
+    def float_(
+        self,
+        key: str,
+        default: float | None = None,
+        *,
+        positive: bool = False,
+        nonnegative: bool = False,
+    ) -> float:
         value = self._get(key, _REQUIRED if default is None else default)
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(self._name(key), f"expected a number, got {value!r}")
@@ -311,8 +319,9 @@ def _cob_ids(t: _Table | None, node_id: int) -> CobIds:
 def _raw(t: _Table) -> RawProfileConfig:
     command_id = t.int_("command_id", lo=0, hi=_MAX_EXT_ID)
     command = _layout(t, "command_")
-    command_dlc = t.int_("command_dlc", command.offset + command.length,
-                         lo=command.offset + command.length, hi=8)
+    command_dlc = t.int_(
+        "command_dlc", command.offset + command.length, lo=command.offset + command.length, hi=8
+    )
     feedback_id = t.opt_int("velocity_feedback_id", lo=0, hi=_MAX_EXT_ID)
     feedback = _layout(t, "velocity_feedback_") if feedback_id is not None else None
     t.done()
@@ -328,11 +337,14 @@ def _drive(t: _Table) -> DriveConfig:
     velocity_unit = t.str_("velocity_unit", choices=tuple(VELOCITY_UNITS))
     max_speed_rpm = t.float_("max_speed_rpm", positive=True)
     heartbeat_period_ms = t.int_("heartbeat_period_ms", 100, lo=0, hi=65535)
-    heartbeat_timeout_ms = t.float_("heartbeat_timeout_ms", 2.5 * heartbeat_period_ms,
-                                    nonnegative=True)
+    heartbeat_timeout_ms = t.float_(
+        "heartbeat_timeout_ms", 2.5 * heartbeat_period_ms, nonnegative=True
+    )
     if heartbeat_period_ms and heartbeat_timeout_ms <= heartbeat_period_ms:
-        raise ConfigError(f"{t.path}.heartbeat_timeout_ms", f"must exceed heartbeat_period_ms "
-                         f"({heartbeat_timeout_ms} <= {heartbeat_period_ms})")
+        raise ConfigError(
+            f"{t.path}.heartbeat_timeout_ms",
+            f"must exceed heartbeat_period_ms ({heartbeat_timeout_ms} <= {heartbeat_period_ms})",
+        )
     enable_timeout_s = t.float_("enable_timeout_s", 1.0, positive=True)
     send_sync = t.bool_("send_sync", True)
     cob_ids = _cob_ids(t.table("cob_ids", optional=True), node_id)
@@ -344,14 +356,26 @@ def _drive(t: _Table) -> DriveConfig:
         raise ConfigError(f"{t.path}.send_sync", "the cia402 profile needs SYNC for its TPDOs")
     t.done()
     drive = DriveConfig(
-        node_id, cast(Literal["cia402", "raw"], profile), counts_per_rev, gear_ratio,
-        direction, velocity_unit, max_speed_rpm, heartbeat_period_ms, heartbeat_timeout_ms,
-        enable_timeout_s, send_sync, cob_ids, raw,
+        node_id,
+        cast(Literal["cia402", "raw"], profile),
+        counts_per_rev,
+        gear_ratio,
+        direction,
+        velocity_unit,
+        max_speed_rpm,
+        heartbeat_period_ms,
+        heartbeat_timeout_ms,
+        enable_timeout_s,
+        send_sync,
+        cob_ids,
+        raw,
     )
     top_units = max_speed_rpm * 6.0 * drive.velocity_units_per_motor_deg_s
     if top_units > 2**31 - 1:
-        raise ConfigError(f"{t.path}.max_speed_rpm", f"{max_speed_rpm} rpm overflows the i32 "
-                         f"velocity in {velocity_unit}")
+        raise ConfigError(
+            f"{t.path}.max_speed_rpm",
+            f"{max_speed_rpm} rpm overflows the i32 velocity in {velocity_unit}",
+        )
     return drive
 
 
@@ -363,8 +387,9 @@ def _load_encoder(t: _Table) -> LoadEncoderConfig:
     direction = t.direction("direction")
     t.done()
     if single_turn and counts_per_rev > 1 << (8 * layout.length - (1 if layout.signed else 0)):
-        raise ConfigError(f"{t.path}.counts_per_rev", f"{counts_per_rev} does not fit in "
-                         f"{layout.length} bytes")
+        raise ConfigError(
+            f"{t.path}.counts_per_rev", f"{counts_per_rev} does not fit in {layout.length} bytes"
+        )
     return LoadEncoderConfig(frame_id, layout, counts_per_rev, single_turn, direction)
 
 
@@ -388,8 +413,11 @@ def parse_rig_file(text: str) -> RigFile:
     top = _Table(data, "")
     name = top.str_("name", "rig")
     bus_t = top.req_table("bus")
-    bus = BusConfig(bus_t.str_("interface"), str(bus_t.str_("channel")),
-                    bus_t.int_("bitrate", 1_000_000, lo=10_000, hi=8_000_000))
+    bus = BusConfig(
+        bus_t.str_("interface"),
+        str(bus_t.str_("channel")),
+        bus_t.int_("bitrate", 1_000_000, lo=10_000, hi=8_000_000),
+    )
     bus_t.done()
     drive = _drive(top.req_table("drive"))
     encoder = _load_encoder(top.req_table("load_encoder"))

@@ -92,8 +92,11 @@ class SimDriveNode:
         self._enc_modulus = enc.counts_per_rev if enc.single_turn else self._enc_codec.modulus
         self._raw = drive.raw if not self._cia402 else None
         self._raw_cmd = self._raw.command.codec() if self._raw is not None else None
-        self._raw_vel = (self._raw.velocity_feedback.codec()
-                         if self._raw is not None and self._raw.velocity_feedback else None)
+        self._raw_vel = (
+            self._raw.velocity_feedback.codec()
+            if self._raw is not None and self._raw.velocity_feedback
+            else None
+        )
         # Drive state (touched by the node thread only, read by tests).
         self.nmt_state = NmtState.PRE_OPERATIONAL if self._cia402 else NmtState.OPERATIONAL
         self.state = State.SWITCH_ON_DISABLED
@@ -194,8 +197,10 @@ class SimDriveNode:
             command, node = cia402.parse_nmt(data)
             if node in (0, self._node_id):
                 self._on_nmt(command)
-        elif can_id == ids.sdo_rx and self.nmt_state in (NmtState.PRE_OPERATIONAL,
-                                                         NmtState.OPERATIONAL):
+        elif can_id == ids.sdo_rx and self.nmt_state in (
+            NmtState.PRE_OPERATIONAL,
+            NmtState.OPERATIONAL,
+        ):
             self._on_sdo(data)
 
     def _on_nmt(self, command: int) -> None:
@@ -230,8 +235,11 @@ class SimDriveNode:
             self.heartbeat_period_ms = request.value
         else:
             abort = cia402.SDO_ABORT_NO_OBJECT
-        reply = (cia402.make_sdo_abort(index, sub, abort) if abort
-                 else cia402.make_sdo_download_reply(index, sub))
+        reply = (
+            cia402.make_sdo_abort(index, sub, abort)
+            if abort
+            else cia402.make_sdo_download_reply(index, sub)
+        )
         self._send(self._ids.sdo_tx, reply)
 
     def _on_sync(self) -> None:
@@ -269,8 +277,9 @@ class SimDriveNode:
         motor_units = _i32(self.plant.motor_speed_deg_s * self._units_per_motor_deg_s)
         if self._cia402:
             statusword = cia402.statusword_for(self.state)
-            self._send(ids.tpdo_status_velocity,
-                       cia402.make_tpdo_status_velocity(statusword, motor_units))
+            self._send(
+                ids.tpdo_status_velocity, cia402.make_tpdo_status_velocity(statusword, motor_units)
+            )
             counts = _i32(self._motor_position_deg * self._counts_per_motor_deg)
             self._send(ids.tpdo_position, cia402.make_tpdo_position(counts))
         elif self._raw is not None and self._raw.velocity_feedback_id is not None:

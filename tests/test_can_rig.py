@@ -42,8 +42,9 @@ def virtual_rig(text: str | None = None) -> RigFile:
     return dataclasses.replace(
         rig,
         bus=dataclasses.replace(rig.bus, interface="virtual", channel=f"t-{uuid.uuid4().hex}"),
-        drive=dataclasses.replace(rig.drive, heartbeat_period_ms=20, heartbeat_timeout_ms=250.0,
-                                  enable_timeout_s=2.0),
+        drive=dataclasses.replace(
+            rig.drive, heartbeat_period_ms=20, heartbeat_timeout_ms=250.0, enable_timeout_s=2.0
+        ),
     )
 
 
@@ -56,8 +57,7 @@ class Listener:
 
     def drain(self) -> list[tuple[int, bytes]]:
         while (msg := self.bus.recv(0.0)) is not None:
-            self.frames.append((-1 if msg.is_error_frame else msg.arbitration_id,
-                                bytes(msg.data)))
+            self.frames.append((-1 if msg.is_error_frame else msg.arbitration_id, bytes(msg.data)))
         return self.frames
 
     def commands(self) -> list[tuple[int, int]]:
@@ -128,7 +128,8 @@ def test_start_resets_a_faulted_drive(setup: Setup) -> None:
 def test_start_without_a_drive_times_out() -> None:
     rig_file = virtual_rig()
     rig_file = dataclasses.replace(
-        rig_file, drive=dataclasses.replace(rig_file.drive, enable_timeout_s=0.1))
+        rig_file, drive=dataclasses.replace(rig_file.drive, enable_timeout_s=0.1)
+    )
     listener = Listener(rig_file.bus.channel)
     with CanRig(rig_file) as rig:
         t0 = time.monotonic()
@@ -212,8 +213,9 @@ def test_servo_loop_through_can_matches_the_direct_sim_rig(setup: Setup) -> None
     straight = run_experiment(cfg, sine, 2.0, rig=direct, settle_s=0.0)
     assert setup.rig.fault is None
     assert float(np.max(np.abs(via_can.pos_deg - straight.pos_deg))) < 1e-3
-    assert via_can.metrics.peak_error_deg == pytest.approx(straight.metrics.peak_error_deg,
-                                                           rel=0.02)
+    assert via_can.metrics.peak_error_deg == pytest.approx(
+        straight.metrics.peak_error_deg, rel=0.02
+    )
     assert via_can.metrics.rmse_deg == pytest.approx(straight.metrics.rmse_deg, rel=0.02)
 
 
@@ -292,8 +294,9 @@ def test_encoder_jump_is_garbage(setup: Setup) -> None:
     position_deg, _ = rig.read()
     rig.step(5.0)
     jump = round((position_deg + 90.0) / 360.0 * 2**26) % 2**26
-    setup.listener.bus.send(can.Message(arbitration_id=0x190, is_extended_id=False,
-                                        data=jump.to_bytes(4, "little")))
+    setup.listener.bus.send(
+        can.Message(arbitration_id=0x190, is_extended_id=False, data=jump.to_bytes(4, "little"))
+    )
     rig.read()
     assert rig.fault is not None and "encoder jump" in rig.fault, rig.fault
     assert setup.listener.commands()[-1] == (cia402.CW_DISABLE_OPERATION, 0)
@@ -336,8 +339,11 @@ def test_bus_error_frame_stops_the_rig(setup: Setup) -> None:
     rig = setup.rig
     rig.start()
     run(rig, 5, 5.0)
-    setup.listener.bus.send(can.Message(is_error_frame=True, arbitration_id=0x20000080,
-                                        is_extended_id=True, data=bytes(8)))
+    setup.listener.bus.send(
+        can.Message(
+            is_error_frame=True, arbitration_id=0x20000080, is_extended_id=True, data=bytes(8)
+        )
+    )
     run(rig, 1, 5.0)
     assert rig.fault is not None and "error frame" in rig.fault
 
@@ -377,8 +383,9 @@ def test_close_releases_the_bus() -> None:
 # --- The raw profile ------------------------------------------------------------------------
 def test_raw_profile_moves_the_load() -> None:
     text = EXAMPLE.read_text().replace('profile = "cia402"', 'profile = "raw"')
-    text = re.sub(r"^# (\[drive\.raw\]|command_|velocity_feedback_)", r"\1", text,
-                  flags=re.MULTILINE)
+    text = re.sub(
+        r"^# (\[drive\.raw\]|command_|velocity_feedback_)", r"\1", text, flags=re.MULTILINE
+    )
     rig_file = virtual_rig(text)
     listener = Listener(rig_file.bus.channel)
     plant = SimRig(seed=2)
@@ -389,8 +396,9 @@ def test_raw_profile_moves_the_load() -> None:
         assert sum(w for _, w in samples[500:]) / 300 == pytest.approx(-8.0, rel=0.03)
         assert rig.motor_speed_deg_s == pytest.approx(-8.0 * 132, rel=0.03)
         frames = [d for i, d in listener.drain() if i == 0x120]
-        assert frames[-1] == round(-8.0 * UNITS_PER_DEG_S).to_bytes(4, "little", signed=True) \
-            + bytes(4)
+        assert frames[-1] == round(-8.0 * UNITS_PER_DEG_S).to_bytes(
+            4, "little", signed=True
+        ) + bytes(4)
         rig.read()
         node.inject("no_feedback")
         for _ in range(5):

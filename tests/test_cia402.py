@@ -215,8 +215,11 @@ def _edit(pattern: str, replacement: str) -> str:
         (r"^velocity_unit = .*$", 'velocity_unit = "furlong/fortnight"', "drive.velocity_unit"),
         (r"^profile = .*$", 'profile = "raw"', "drive.raw"),
         (r"^direction = 1 ", "direction = 2 ", "drive.direction"),
-        (r"^heartbeat_timeout_ms = .*$", "heartbeat_timeout_ms = 50.0",
-         "drive.heartbeat_timeout_ms"),
+        (
+            r"^heartbeat_timeout_ms = .*$",
+            "heartbeat_timeout_ms = 50.0",
+            "drive.heartbeat_timeout_ms",
+        ),
         (r"^max_speed_rpm = .*$", "max_speed_rpm = inf", "drive.max_speed_rpm"),
         (r"^\[bus\]", "[buss]", "bus"),
         (r"^channel = .*$", "", "bus.channel"),
@@ -225,12 +228,21 @@ def _edit(pattern: str, replacement: str) -> str:
         (r"^length = 4 ", "length = 2 ", "load_encoder.counts_per_rev"),  # 2^26 > 16 bits
         (r"^byteorder = .*$", 'byteorder = "middle"', "load_encoder.byteorder"),
         (r"^command_limit_deg_s = .*$", "", "limits.command_limit_deg_s"),
-        (r"^feedback_timeout_ticks = .*$", "feedback_timeout_tick = 5",
-         "limits.feedback_timeout_tick"),  # a typo is an unknown key, not a silent default
-        (r"^feedback_timeout_ticks = .*$", "feedback_timeout_ticks = 0",
-         "limits.feedback_timeout_ticks"),
-        (r"^# \[drive.cob_ids\]\n# nmt = 0x000", "[drive.cob_ids]\nrpdo_command = 0x181",
-         "drive.cob_ids"),
+        (
+            r"^feedback_timeout_ticks = .*$",
+            "feedback_timeout_tick = 5",
+            "limits.feedback_timeout_tick",
+        ),  # a typo is an unknown key, not a silent default
+        (
+            r"^feedback_timeout_ticks = .*$",
+            "feedback_timeout_ticks = 0",
+            "limits.feedback_timeout_ticks",
+        ),
+        (
+            r"^# \[drive.cob_ids\]\n# nmt = 0x000",
+            "[drive.cob_ids]\nrpdo_command = 0x181",
+            "drive.cob_ids",
+        ),
         (r"^name = .*$", "name = 'x'\nspeed = 3", "speed"),
     ],
 )
@@ -251,8 +263,9 @@ def test_cob_id_override_and_defaults() -> None:
 
 def test_raw_profile_parses() -> None:
     text = EXAMPLE.read_text().replace('profile = "cia402"', 'profile = "raw"')
-    text = re.sub(r"^# (\[drive\.raw\]|command_|velocity_feedback_)", r"\1", text,
-                  flags=re.MULTILINE)
+    text = re.sub(
+        r"^# (\[drive\.raw\]|command_|velocity_feedback_)", r"\1", text, flags=re.MULTILINE
+    )
     rig = parse_rig_file(text)
     assert rig.drive.raw is not None
     assert rig.drive.raw.command_id == 0x120 and rig.drive.raw.command_dlc == 8

@@ -63,8 +63,9 @@ class LoopbackBus(can.BusABC):
                 (0x281, cia402.make_tpdo_position(self.counts // 10)),
                 (0x190, (self.counts % (1 << 26)).to_bytes(4, "little")),
             ):
-                self.queue.append(can.Message(arbitration_id=can_id, data=data,
-                                              is_extended_id=False))
+                self.queue.append(
+                    can.Message(arbitration_id=can_id, data=data, is_extended_id=False)
+                )
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         return (self.queue.popleft() if self.queue else None), False
@@ -81,7 +82,8 @@ def _ready(rig: CanRig) -> None:
 def bench_adapter(n: int, rig_file: RigFile) -> float:
     # no heartbeat supervision: the loopback has no heartbeat producer
     rig_file = dataclasses.replace(
-        rig_file, drive=dataclasses.replace(rig_file.drive, heartbeat_period_ms=0))
+        rig_file, drive=dataclasses.replace(rig_file.drive, heartbeat_period_ms=0)
+    )
     bus = LoopbackBus()
     with CanRig(rig_file, bus=bus, wait_feedback_s=0.0) as rig:
         _ready(rig)
@@ -97,8 +99,11 @@ def bench_adapter(n: int, rig_file: RigFile) -> float:
 
 def bench_round_trip(n: int, rig_file: RigFile) -> float:
     rig_file = dataclasses.replace(
-        rig_file, bus=dataclasses.replace(rig_file.bus, interface="virtual",
-                                          channel=f"bench-{uuid.uuid4().hex}"))
+        rig_file,
+        bus=dataclasses.replace(
+            rig_file.bus, interface="virtual", channel=f"bench-{uuid.uuid4().hex}"
+        ),
+    )
     with SimDriveNode(rig_file) as _node, CanRig(rig_file, wait_feedback_s=0.1) as rig:
         rig.start()
         t0 = time.perf_counter()
