@@ -12,7 +12,9 @@ from controller.excitation import SteppedSineSpec, stepped_sine
 from controller.frd_estimate import FrdData, estimate_stepped_sine
 from controller.model_fit import (
     coherence_weights,
+    fit_frd,
     fit_second_order,
+    frd_weights,
     relative_uncertainty,
     uncertainty_bound,
 )
@@ -138,6 +140,40 @@ def test_fit_through_the_estimation_chain_with_zoh_delay() -> None:
     # without the half-sample delay the damping comes out about 3 % low
     no_delay = fit_second_order(est.freq_hz, est.response, est.coherence)
     assert abs(no_delay.zeta / ZETA - 1) > abs(fit.zeta / ZETA - 1)
+
+
+def test_fit_frd_uncertainty_matches_monte_carlo_on_stepped_sine() -> None:
+    """Estimate + fit repeated on fresh noise: the reported std matches the actual spread."""
+    num, den, _ = sig.cont2discrete(([1935.0], [1.0, 62.2, 1935.0]), 1.0 / FS, method="zoh")
+    ss = stepped_sine(SteppedSineSpec(f_min_hz=0.5, f_max_hz=20.0, min_measure_s=1.0, settle_s=0.2))
+    w0 = sig.lfilter(np.ravel(num), np.ravel(den), ss.signal)
+    rng = np.random.default_rng(5)
+    fits = []
+    for _ in range(40):
+        est = estimate_stepped_sine(ss, ss.signal, w0 + 0.5 * rng.standard_normal(w0.size))
+        fits.append(fit_frd(est, delay_s=0.5 / FS))
+    wn = np.array([f.wn_rad_s for f in fits])
+    zeta = np.array([f.zeta for f in fits])
+    assert 0.7 < np.std(wn) / np.mean([f.wn_std_rad_s for f in fits]) < 1.4
+    assert 0.7 < np.std(zeta) / np.mean([f.zeta_std for f in fits]) < 1.4
+    assert np.mean(wn) == pytest.approx(WN, rel=0.005)
+    assert np.mean(zeta) == pytest.approx(ZETA, rel=0.005)
+    # several positions at once: the concatenated fit uses every point
+    joint = fit_frd([est, est], delay_s=0.5 / FS)
+    assert joint.n_points == 2 * est.freq_hz.size
+    weights = frd_weights(est)
+    assert np.all(np.isfinite(weights))
+    assert np.all(weights > 0)
+
+
+def test_frd_weights_for_csv_data() -> None:
+    data = FrdData(freq_hz=F, mag_db=np.zeros(F.size), phase_deg=np.zeros(F.size), coherence=None)
+    np.testing.assert_array_equal(frd_weights(data), np.ones(F.size))
+    coh = np.full(F.size, 0.9)
+    with_coh = FrdData(
+        freq_hz=F, mag_db=np.zeros(F.size), phase_deg=np.zeros(F.size), coherence=coh
+    )
+    np.testing.assert_allclose(frd_weights(with_coh), 9.0)
 
 
 def test_relative_uncertainty_and_bound() -> None:
