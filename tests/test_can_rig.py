@@ -219,6 +219,32 @@ def test_servo_loop_through_can_matches_the_direct_sim_rig(setup: Setup) -> None
     assert via_can.metrics.rmse_deg == pytest.approx(straight.metrics.rmse_deg, rel=0.02)
 
 
+def test_answer_before_step_adds_one_tick_of_delay() -> None:
+    """The node's real-drive timing (sample at SYNC, then move) lags SimRig by one tick."""
+    rig_file = virtual_rig()
+    plant = SimRig(seed=4)
+    with (
+        SimDriveNode(rig_file, plant, answer_before_step=True) as node,
+        CanRig(rig_file, wait_feedback_s=WAIT_S) as rig,
+    ):
+        rig.start()
+        direct = SimRig(seed=4)
+        for _ in range(node.syncs):  # same steps (and noise draws) as the node's plant
+            direct.step(0.0)
+        through_can, straight = [], []
+        for k in range(300):
+            u = 20.0 * math.sin(k / 30.0)
+            through_can.append(rig.read()[0])
+            rig.step(u)
+            straight.append(direct.read()[0])
+            direct.step(u)
+        assert rig.fault is None
+    assert max(abs(p) for p in straight) > 1.0
+    # what CanRig reads at tick k+1 is what SimRig reads at tick k
+    assert max(abs(a - b) for a, b in zip(through_can[1:], straight[:-1], strict=True)) < 1e-4
+    assert max(abs(a - b) for a, b in zip(through_can, straight, strict=True)) > 0.01
+
+
 # --- Faults ---------------------------------------------------------------------------------
 def test_lost_feedback_gives_safe_state_within_timeout(setup: Setup) -> None:
     rig = setup.rig
