@@ -610,73 +610,108 @@ def _closed_loop_matrix(cfg: LoopConfig, dob: _Dob | None) -> FloatArray:
     return a
 
 
-# --------------------------------------------------------------------------- margins
+# --------------------------------------------------------------------------- refinement
+
+Outputs = dict[str, ComplexArray]
+Evaluator = Callable[[FloatArray], Outputs]
 
 
-def _illinois(
-    fun: Callable[[FloatArray], FloatArray], lo: FloatArray, hi: FloatArray, iters: int = 12
-) -> FloatArray:
-    """Vectorised Illinois regula falsi for sign-changing brackets [lo, hi] in x."""
-    flo, fhi = fun(lo), fun(hi)
-    lo, hi = lo.copy(), hi.copy()
-    side = np.zeros(lo.shape, dtype=np.int8)
-    x = lo
-    for _ in range(iters):
-        with np.errstate(all="ignore"):
-            x = (lo * fhi - hi * flo) / (fhi - flo)
-        bad = ~np.isfinite(x) | (x <= np.minimum(lo, hi)) | (x >= np.maximum(lo, hi))
-        x = np.where(bad, 0.5 * (lo + hi), x)
-        fx = fun(x)
-        left = np.sign(fx) == np.sign(flo)
-        # Move the endpoint whose sign matches; halve the other's value if it is stuck.
-        lo = np.where(left, x, lo)
-        flo_new = np.where(left, fx, flo)
-        hi = np.where(left, hi, x)
-        fhi_new = np.where(left, fhi, fx)
-        fhi_new = np.where(left & (side == 1), fhi_new * 0.5, fhi_new)
-        flo_new = np.where(~left & (side == -1), flo_new * 0.5, flo_new)
-        side = np.where(left, 1, -1).astype(np.int8)
-        flo, fhi = flo_new, fhi_new
-        if np.all(np.abs(hi - lo) < 1e-12):
-            break
-    return x
+@dataclass(eq=False)
+class _Task:
+    """One feature to refine in log frequency: a root (kind 0), a minimum (-1), a maximum (+1)
+    of fn(outputs[key]) inside [lo, hi]."""
+
+    key: str
+    kind: int
+    fn: Callable[[ComplexArray], FloatArray]
+    lo: float
+    hi: float
+    x: float = math.nan
+    best_x: float = math.nan
+    best_v: float = math.nan
+    out: complex = complex(math.nan)
+    value: float = math.nan
+
+    @property
+    def freq_hz(self) -> float:
+        return math.exp(self.x)
 
 
-def _refine_extremum(
-    fun: Callable[[FloatArray], FloatArray], x: FloatArray, i: int, maximise: bool
-) -> tuple[float, float]:
-    """Refine an extremum of fun near grid index i (x: log frequencies); returns (x*, f*)."""
-    lo = x[max(i - 1, 0)]
-    hi = x[min(i + 1, x.size - 1)]
-    sign = -1.0 if maximise else 1.0
-    best_x, best_v = float(x[i]), float(sign * fun(np.array([x[i]]))[0])
-    for _ in range(3):
-        pts = np.linspace(lo, hi, 17)
-        vals = sign * fun(pts)
-        j = int(np.argmin(vals))
-        if vals[j] < best_v:
-            best_x, best_v = float(pts[j]), float(vals[j])
-        step = pts[1] - pts[0]
-        lo, hi = best_x - step, best_x + step
-    # Final parabola through the bracket.
-    pts = np.array([lo, best_x, hi])
-    vals = sign * fun(pts)
-    den = vals[0] - 2 * vals[1] + vals[2]
-    if den > 0:
-        xs = best_x + 0.5 * (hi - best_x) * (vals[0] - vals[2]) / den
-        vs = float(sign * fun(np.array([xs]))[0])
-        if vs < best_v:
-            best_x, best_v = float(xs), vs
-    return best_x, sign * best_v
+def _solve(tasks: list[_Task], ev: Evaluator, n: int = 9, rounds: int = 2) -> None:
+    """Refine all tasks together: each round evaluates n points per bracket in one batched
+    call and shrinks every bracket n/2-fold; a final secant (roots) or parabola (extrema)
+    step and one more batched evaluation give the values at the refined frequencies."""
+    if not tasks:
+        return
+    for _ in range(rounds):
+        pts = np.concatenate([np.linspace(t.lo, t.hi, n) for t in tasks])
+        outs = ev(np.exp(pts))
+        for j, t in enumerate(tasks):
+            p = pts[j * n : (j + 1) * n]
+            v = t.fn(outs[t.key][j * n : (j + 1) * n])
+            if t.kind == 0:
+                s = np.sign(v)
+                k = np.nonzero(s[:-1] != s[1:])[0]
+                if k.size:
+                    i = int(k[0])
+                    t.lo, t.hi = float(p[i]), float(p[i + 1])
+                    a, b = float(v[i]), float(v[i + 1])
+                    t.x = t.lo if a == b else (t.lo * b - t.hi * a) / (b - a)
+                else:
+                    t.x = float(p[int(np.argmin(np.abs(v)))])
+                continue
+            sv = np.where(np.isfinite(v), -t.kind * v, np.inf)
+            i = int(np.argmin(sv))
+            if not sv[i] >= -t.kind * t.best_v:  # also true while best_v is nan
+                t.best_x, t.best_v = float(p[i]), float(v[i])
+            i0, i1 = max(i - 1, 0), min(i + 1, n - 1)
+            t.lo, t.hi = float(p[i0]), float(p[i1])
+            t.x = float(p[i])
+            if 0 < i < n - 1:
+                den = sv[i - 1] - 2.0 * sv[i] + sv[i + 1]
+                if den > 0:
+                    t.x = float(p[i] + 0.5 * (p[1] - p[0]) * (sv[i - 1] - sv[i + 1]) / den)
+    final = ev(np.exp(np.array([t.x for t in tasks])))
+    for j, t in enumerate(tasks):
+        t.out = complex(final[t.key][j])
+        t.value = float(t.fn(final[t.key][j : j + 1])[0])
+        if t.kind != 0 and not (-t.kind * t.value <= -t.kind * t.best_v):
+            t.x, t.value = t.best_x, t.best_v
 
 
-def _margins(
-    f: FloatArray, loop: ComplexArray, evaluate: Callable[[FloatArray], ComplexArray]
-) -> Margins:
-    """Margins from a sampled loop response, each crossing refined on `evaluate`."""
-    x = np.log(f)
-    mag = np.abs(loop)
-    logm = np.log(mag)
+def _log_mag(h: ComplexArray) -> FloatArray:
+    return np.log(np.abs(h))
+
+
+def _neg_arg(h: ComplexArray) -> FloatArray:
+    return np.angle(-h)
+
+
+def _dist(h: ComplexArray) -> FloatArray:
+    return np.abs(1.0 + h)
+
+
+def _abs(h: ComplexArray) -> FloatArray:
+    return np.abs(h)
+
+
+def _bw_fn(h: ComplexArray) -> FloatArray:
+    return np.log(np.abs(h) / _DB_3)
+
+
+@dataclass(eq=False)
+class _LoopTasks:
+    gain: list[_Task]
+    phase: list[_Task]
+    ms: _Task
+
+    def all(self) -> list[_Task]:
+        return [*self.gain, *self.phase, self.ms]
+
+
+def _loop_tasks(x: FloatArray, loop: ComplexArray, key: str) -> _LoopTasks:
+    """Brackets of every gain crossover, every negative-real-axis crossing and min |1 + L|."""
+    logm = np.log(np.abs(loop))
     ok = np.isfinite(logm[:-1]) & np.isfinite(logm[1:])
     gi = np.nonzero(ok & (np.sign(logm[:-1]) != np.sign(logm[1:])))[0]
     arg = np.angle(-loop)
@@ -685,48 +720,47 @@ def _margins(
         & (np.abs(arg[:-1]) < 0.5 * np.pi)
         & (np.abs(arg[1:]) < 0.5 * np.pi)
     )[0]
+    dist = np.abs(1.0 + loop)
+    i = int(np.argmin(np.where(np.isfinite(dist), dist, np.inf)))
+    return _LoopTasks(
+        gain=[_Task(key, 0, _log_mag, float(x[k]), float(x[k + 1])) for k in gi],
+        phase=[_Task(key, 0, _neg_arg, float(x[k]), float(x[k + 1])) for k in pi_],
+        ms=_Task(key, -1, _dist, float(x[max(i - 1, 0)]), float(x[min(i + 1, x.size - 1)])),
+    )
 
-    def fmag(xx: FloatArray) -> FloatArray:
-        return np.log(np.abs(evaluate(np.exp(xx))))
 
-    def farg(xx: FloatArray) -> FloatArray:
-        return np.angle(-evaluate(np.exp(xx)))
-
+def _margins(t: _LoopTasks) -> Margins:
+    """python-control's choice: the PM of smallest |PM|, the GM closest to 0 dB."""
     pm_deg, gm_db = math.inf, math.inf
     wgc, wpc = math.nan, math.nan
     delay = math.inf
-    if gi.size:
-        xc = _illinois(fmag, x[gi], x[gi + 1])
-        lc = evaluate(np.exp(xc))
-        pms = np.remainder(np.degrees(np.angle(lc)), 360.0) - 180.0
-        j = int(np.argmin(np.abs(pms)))
-        pm_deg, wgc = float(pms[j]), float(np.exp(xc[j]))
-        dm = np.where(pms > 0, np.radians(pms) / (_TWO_PI * np.exp(xc)), 0.0)
-        delay = float(np.min(dm))
-    if pi_.size:
-        xp = _illinois(farg, x[pi_], x[pi_ + 1])
-        lp = evaluate(np.exp(xp))
-        keep = np.real(lp) <= 0
-        if np.any(keep):
-            gms = -20.0 * np.log10(np.abs(lp[keep]))
-            j = int(np.argmin(np.abs(gms)))
-            gm_db, wpc = float(gms[j]), float(np.exp(xp[keep][j]))
-    dist = np.abs(1.0 + loop)
-    i = int(np.argmin(np.where(np.isfinite(dist), dist, np.inf)))
-
-    def fdist(xx: FloatArray) -> FloatArray:
-        return np.abs(1.0 + evaluate(np.exp(xx)))
-
-    xs, sm = _refine_extremum(fdist, x, i, maximise=False)
+    for g in t.gain:
+        pm = (math.degrees(np.angle(g.out)) % 360.0) - 180.0
+        if abs(pm) < abs(pm_deg):
+            pm_deg, wgc = pm, g.freq_hz
+        delay = min(delay, math.radians(pm) / (_TWO_PI * g.freq_hz) if pm > 0 else 0.0)
+    for p in t.phase:
+        if p.out.real <= 0 and abs(p.out) > 0:
+            gm = -20.0 * math.log10(abs(p.out))
+            if abs(gm) < abs(gm_db):
+                gm_db, wpc = gm, p.freq_hz
+    sm = t.ms.value
     return Margins(
         gain_margin_db=gm_db,
         phase_crossover_hz=wpc,
         phase_margin_deg=pm_deg,
         gain_crossover_hz=wgc,
         delay_margin_s=delay,
-        peak_sensitivity_db=float(-20.0 * math.log10(sm)) if sm > 0 else math.inf,
-        peak_sensitivity_hz=float(math.exp(xs)),
+        peak_sensitivity_db=-20.0 * math.log10(sm) if sm > 0 else math.inf,
+        peak_sensitivity_hz=t.ms.freq_hz,
     )
+
+
+def _peak_task(x: FloatArray, vals: FloatArray, key: str) -> _Task:
+    i = int(np.argmax(np.where(np.isfinite(vals), vals, -np.inf)))
+    t = _Task(key, 1, _abs, float(x[max(i - 1, 0)]), float(x[min(i + 1, x.size - 1)]))
+    t.best_x, t.best_v = float(x[i]), float(vals[i])
+    return t
 
 
 def _winding_ok(one_plus_l: ComplexArray, m_integrators: int) -> bool:
@@ -748,19 +782,6 @@ def _winding_ok(one_plus_l: ComplexArray, m_integrators: int) -> bool:
 
 
 # --------------------------------------------------------------------------- analyse
-
-
-def _peak(
-    vals: FloatArray, x: FloatArray, refine: Callable[[FloatArray], FloatArray] | None
-) -> tuple[float, float]:
-    finite = np.where(np.isfinite(vals), vals, -np.inf)
-    i = int(np.argmax(finite))
-    if refine is None:
-        return float(vals[i]), float(np.exp(x[i]))
-    xs, v = _refine_extremum(refine, x, i, maximise=True)
-    if v < vals[i]:
-        return float(vals[i]), float(np.exp(x[i]))
-    return v, float(math.exp(xs))
 
 
 class _MeasuredModel:
@@ -823,6 +844,7 @@ def analyse(
     x = np.log(f)
     dob = _dob(cfg)
     on = cfg.dob_on
+    used = dob if on else None
     bk = _blocks(cfg, dob, f)
     g, cv, ctot, f1, f2d = bk.g, bk.cv, bk.ctot, bk.f1, bk.f2d
     one_f2 = 1.0 - f2d
@@ -833,30 +855,46 @@ def analyse(
     pd = g / mn
     gyw_on = gcv / d_on
     gyw_off = gcv / d_off
-
-    def loop_at(ff: FloatArray, gg: ComplexArray | None = None) -> ComplexArray:
-        b = _blocks(cfg, dob if on else None, ff)
-        gx = b.g if gg is None else gg
-        return gx * (b.cv + b.f1) / (1.0 - b.f2d)
-
     loop = g * (cv + f1) / one_f2 if on else gcv
-    margins = _margins(f, loop, loop_at)
-
-    # Bandwidth of the speed closed loop (DC gain 1: the integrators).
     gyw = gyw_on if on else gyw_off
+    bound = plant.bound
+
+    def ev(ff: FloatArray) -> Outputs:
+        b = _blocks(cfg, used, ff)
+        k_speed = b.cv + b.f1
+        one = 1.0 - b.f2d
+        out = {"L": b.g * k_speed / one, "gyw": b.g * b.cv / (one + b.g * k_speed)}
+        if bound is not None:
+            w = bound.magnitude(ff)
+            k_full = b.ctot + b.f1
+            out["wts"] = w * b.g * k_speed / (one + b.g * k_speed)
+            out["wtf"] = w * b.g * k_full / (one + b.g * k_full)
+        return out
+
+    lt = _loop_tasks(x, loop, "L")
+    tasks = lt.all()
     below = np.nonzero(np.abs(gyw) < _DB_3)[0]
-    bandwidth = math.nan
+    bw_task = None
     if below.size and below[0] > 0:
         i = int(below[0])
+        bw_task = _Task("gyw", 0, _bw_fn, float(x[i - 1]), float(x[i]))
+        tasks.append(bw_task)
+    bound_tasks: list[_Task] = []
+    if bound is not None:
+        wmag = bound.magnitude(f)
+        d_full = one_f2 + g * (ctot + f1) if on else 1.0 + g * ctot
+        t_speed = g * (cv + f1) / d_on if on else gyw_off
+        t_full = g * (ctot + f1) / d_full
+        bound_tasks = [
+            _peak_task(x, wmag * np.abs(t_speed), "wts"),
+            _peak_task(x, wmag * np.abs(t_full), "wtf"),
+        ]
+        tasks += bound_tasks
+    _solve(tasks, ev)
+    margins = _margins(lt)
+    bandwidth = bw_task.freq_hz if bw_task is not None else math.nan
 
-        def fbw(xx: FloatArray) -> FloatArray:
-            b = _blocks(cfg, dob if on else None, np.exp(xx))
-            gy = b.g * b.cv / ((1.0 - b.f2d) + b.g * (b.cv + b.f1))
-            return np.log(np.abs(gy) / _DB_3)
-
-        bandwidth = float(np.exp(_illinois(fbw, x[i - 1 : i], x[i : i + 1])[0]))
-
-    poles = np.linalg.eigvals(_closed_loop_matrix(cfg, dob if on else None))
+    poles = np.linalg.eigvals(_closed_loop_matrix(cfg, used))
     max_radius = float(np.max(np.abs(poles)))
 
     reasons: list[str] = []
@@ -868,52 +906,37 @@ def analyse(
     _margin_reasons(margins, limits, "", reasons)
 
     sources: list[SourceResult] = []
-    k_speed = cv + f1
-    k_full = ctot + f1
     for m in plant.measured:
         model = _MeasuredModel(m, cfg)
         sources.append(_measured_source(cfg, dob, on, model, m.name, f, bk, limits, reasons))
-        del model
-    if plant.bound is not None:
-        wmag = plant.bound.magnitude(f)
-        t_speed = g * k_speed / d_on if on else gyw_off
-        d_full = one_f2 + g * k_full if on else 1.0 + g * ctot
-        t_full = g * k_full / d_full if on else g * ctot / d_full
-        bnd = plant.bound
-
-        def wt(ff: FloatArray, full: bool) -> FloatArray:
-            b = _blocks(cfg, dob if on else None, ff)
-            k = (b.ctot if full else b.cv) + b.f1
-            return bnd.magnitude(ff) * np.abs(b.g * k / ((1.0 - b.f2d) + b.g * k))
-
-        sp, sf = _peak(wmag * np.abs(t_speed), x, lambda xx: wt(np.exp(xx), False))
-        fp, ff_ = _peak(wmag * np.abs(t_full), x, lambda xx: wt(np.exp(xx), True))
+    if bound is not None:
+        sp, fp = bound_tasks
         dq = wmag * np.abs(f2d) if on else np.zeros_like(wmag)
         j = int(np.argmax(dq))
-        src = SourceResult(
-            name=bnd.name,
-            kind="bound",
-            small_gain_peak=sp,
-            small_gain_freq_hz=sf,
-            small_gain_full_peak=fp,
-            small_gain_full_freq_hz=ff_,
-            delta_q_peak=float(dq[j]),
-            delta_q_freq_hz=float(f[j]),
-            base_loop_stable=True,
-            margins=None,
-            inv_delta_db=_readonly(-20.0 * np.log10(wmag)),
+        sources.append(
+            SourceResult(
+                name=bound.name,
+                kind="bound",
+                small_gain_peak=sp.value,
+                small_gain_freq_hz=sp.freq_hz,
+                small_gain_full_peak=fp.value,
+                small_gain_full_freq_hz=fp.freq_hz,
+                delta_q_peak=float(dq[j]),
+                delta_q_freq_hz=float(f[j]),
+                base_loop_stable=True,
+                margins=None,
+                inv_delta_db=_readonly(-20.0 * np.log10(wmag)),
+            )
         )
-        sources.append(src)
-        for peak, at, which in ((sp, sf, "speed loop"), (fp, ff_, "with position loop")):
-            if not peak < limits.small_gain_max:
+        for t, which in ((sp, "speed loop"), (fp, "with position loop")):
+            if not t.value < limits.small_gain_max:
                 reasons.append(
-                    f"||W T|| ({which}) peaks at {peak:.3g} at {_fmt_hz(at)} for bound "
-                    f"{bnd.name!r} >= {limits.small_gain_max:g}"
+                    f"||W T|| ({which}) peaks at {t.value:.3g} at {_fmt_hz(t.freq_hz)} for bound "
+                    f"{bound.name!r} >= {limits.small_gain_max:g}"
                 )
 
     peaks = [s.small_gain_peak for s in sources] + [s.small_gain_full_peak for s in sources]
     peaks = [p for p in peaks if math.isfinite(p)]
-    phase = np.degrees(np.unwrap(np.angle(loop)))
     with np.errstate(divide="ignore"):
         rejection = 20.0 * np.log10(np.abs(d_on / (one_f2 * d_off)))
     return Analysis(
@@ -922,7 +945,7 @@ def analyse(
         freq_hz=f,
         open_loop=_readonly(loop),
         open_loop_mag_db=_readonly(20.0 * np.log10(np.abs(loop))),
-        open_loop_phase_deg=_readonly(phase),
+        open_loop_phase_deg=_readonly(np.degrees(np.unwrap(np.angle(loop)))),
         closed_loop=_readonly(gyw),
         closed_loop_dob=_readonly(gyw_on),
         closed_loop_no_dob=_readonly(gyw_off),
@@ -975,10 +998,7 @@ def _measured_source(
     x = np.log(f)
     gm, delta = model.discrete(f, bk.g)
     suffix = f" for response {name!r}"
-
-    def pieces(ff: FloatArray) -> tuple[_Blocks, ComplexArray]:
-        b = _blocks(cfg, dob, ff)
-        return b, model.discrete(ff, b.g)[0]
+    used = dob if on else None
 
     # The loops without DOB must be stable with this plant (base of the small-gain test).
     base_ok = _winding_ok(1.0 + gm * bk.cv, _integrators(cfg, False)) and _winding_ok(
@@ -988,37 +1008,44 @@ def _measured_source(
         reasons.append(
             f"the loop without DOB is not proven stable{suffix} (argument principle on 1 + G C)"
         )
+
+    def ev(ff: FloatArray) -> Outputs:
+        b = _blocks(cfg, used, ff)
+        g2 = model.discrete(ff, b.g)[0]
+        num = g2 * b.f1 - b.f2d
+        return {
+            "L": g2 * (b.cv + b.f1) / (1.0 - b.f2d),
+            "xs": num / (1.0 + g2 * b.cv),
+            "xf": num / (1.0 + g2 * b.ctot),
+        }
+
+    loop = gm * (bk.cv + bk.f1) / (1.0 - bk.f2d) if on else gm * bk.cv
+    lt = _loop_tasks(x, loop, "L")
+    tasks = lt.all()
     num = gm * bk.f1 - bk.f2d
-
-    def xabs(xx: FloatArray, full: bool) -> FloatArray:
-        b, g2 = pieces(np.exp(xx))
-        c = b.ctot if full else b.cv
-        return np.abs((g2 * b.f1 - b.f2d) / (1.0 + g2 * c))
-
     if on:
-        sp, sf = _peak(np.abs(num / (1.0 + gm * bk.cv)), x, lambda xx: xabs(xx, False))
-        fp, ff_ = _peak(np.abs(num / (1.0 + gm * bk.ctot)), x, lambda xx: xabs(xx, True))
+        sg = [
+            _peak_task(x, np.abs(num / (1.0 + gm * bk.cv)), "xs"),
+            _peak_task(x, np.abs(num / (1.0 + gm * bk.ctot)), "xf"),
+        ]
+        tasks += sg
+    _solve(tasks, ev)
+    if on:
+        sp, fp = sg
         dq = np.abs(delta * bk.f2d)
         j = int(np.argmax(dq))
         dq_peak, dq_f = float(dq[j]), float(f[j])
-        for peak, at, which in ((sp, sf, ""), (fp, ff_, " (with position loop)")):
-            if not peak < limits.small_gain_max:
+        for t, which in ((sp, ""), (fp, " (with position loop)")):
+            if not t.value < limits.small_gain_max:
                 reasons.append(
-                    f"eq. 21{which} peaks at {peak:.3g} at {_fmt_hz(at)}{suffix} "
+                    f"eq. 21{which} peaks at {t.value:.3g} at {_fmt_hz(t.freq_hz)}{suffix} "
                     f">= {limits.small_gain_max:g}"
                 )
-        loop = gm * (bk.cv + bk.f1) / (1.0 - bk.f2d)
+        peaks = (sp.value, sp.freq_hz, fp.value, fp.freq_hz)
     else:
-        sp = sf = fp = ff_ = dq_peak = dq_f = math.nan
-        loop = gm * bk.cv
-
-    def loop_at(ff: FloatArray) -> ComplexArray:
-        b, g2 = pieces(ff)
-        if on:
-            return g2 * (b.cv + b.f1) / (1.0 - b.f2d)
-        return g2 * b.cv
-
-    margins = _margins(f, loop, loop_at)
+        dq_peak = dq_f = math.nan
+        peaks = (math.nan,) * 4
+    margins = _margins(lt)
     if limits.check_measured_margins:
         _margin_reasons(margins, limits, suffix, reasons)
     with np.errstate(divide="ignore"):
@@ -1026,10 +1053,10 @@ def _measured_source(
     return SourceResult(
         name=name,
         kind="measured",
-        small_gain_peak=sp,
-        small_gain_freq_hz=sf,
-        small_gain_full_peak=fp,
-        small_gain_full_freq_hz=ff_,
+        small_gain_peak=peaks[0],
+        small_gain_freq_hz=peaks[1],
+        small_gain_full_peak=peaks[2],
+        small_gain_full_freq_hz=peaks[3],
         delta_q_peak=dq_peak,
         delta_q_freq_hz=dq_f,
         base_loop_stable=base_ok,
