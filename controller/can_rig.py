@@ -124,7 +124,8 @@ class CanRig:
     ) -> None:
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"rate_hz={rate_hz!r} must be finite and > 0")
-        self.rig = rig
+        self.rig_file = rig
+        """The rig description this adapter was built from."""
         self.fault: str | None = None
         """Why the rig was stopped, or None."""
         drive, enc, ids = rig.drive, rig.load_encoder, rig.drive.cob_ids
@@ -287,7 +288,7 @@ class CanRig:
         self._enabled = False
         self._stopped = False
         self._missed = 0
-        deadline = self._clock() + self.rig.drive.enable_timeout_s
+        deadline = self._clock() + self.rig_file.drive.enable_timeout_s
         try:
             self._collect(0.0)
             if self._cia402:
@@ -478,7 +479,7 @@ class CanRig:
 
     def _sdo_write(self, index: int, subindex: int, value: int, size: int, deadline: float) -> None:
         assert self._id_sdo_tx is not None
-        ids = self.rig.drive.cob_ids
+        ids = self.rig_file.drive.cob_ids
         self._sdo_reply = None
         self._bus.send(ids.sdo_rx, cia402.make_sdo_download(index, subindex, value, size))
         bus = self._bus
@@ -497,7 +498,7 @@ class CanRig:
             )
 
     def _start_cia402(self, deadline: float) -> None:
-        drive = self.rig.drive
+        drive = self.rig_file.drive
         self._sdo_write(cia402.MODES_OF_OPERATION, 0, cia402.PROFILE_VELOCITY_MODE, 1, deadline)
         if drive.heartbeat_period_ms > 0:
             self._sdo_write(

@@ -74,7 +74,8 @@ class SimDriveNode:
 
             plant = SimRig(rate_hz=rate_hz)
         self.plant = plant
-        self.rig = rig
+        self.rig_file = rig
+        self._owns_bus = bus is None
         self._bus = bus if bus is not None else FrameBus.open(rig.bus)
         drive, enc, ids = rig.drive, rig.load_encoder, rig.drive.cob_ids
         self._cia402 = drive.profile == "cia402"
@@ -130,7 +131,8 @@ class SimDriveNode:
         if self._thread is not None:
             self._thread.join()
             self._thread = None
-        self._bus.close()
+        if self._owns_bus:
+            self._bus.close()
 
     def __enter__(self) -> SimDriveNode:
         return self.start()

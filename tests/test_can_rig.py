@@ -135,7 +135,7 @@ def test_start_without_a_drive_times_out() -> None:
         t0 = time.monotonic()
         with pytest.raises(RigFault, match="SDO"):
             rig.start()
-        assert time.monotonic() - t0 < 0.5
+        assert time.monotonic() - t0 < 1.0
         assert rig.fault is not None
         assert listener.commands()[-1] == (cia402.CW_DISABLE_OPERATION, 0)
     listener.bus.shutdown()
@@ -357,7 +357,7 @@ def test_heartbeat_loss_stops_the_rig(setup: Setup) -> None:
         time.sleep(0.002)
     elapsed = time.monotonic() - t0
     assert rig.fault is not None and "heartbeat lost" in rig.fault
-    assert 0.25 - 0.03 <= elapsed < 0.6  # timeout 250 ms after the last heartbeat
+    assert 0.25 - 0.03 <= elapsed < 1.0  # timeout 250 ms after the last heartbeat
     assert setup.listener.commands()[-1] == (cia402.CW_DISABLE_OPERATION, 0)
 
 
