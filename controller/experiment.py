@@ -22,7 +22,7 @@ from controller.sim_rig import RigParams, SimRig
 from controller.trajectory import Trajectory
 
 #: The article's figures (Yu et al. 2022, Table in control.md) for the 5 sin(0.5 t) deg test.
-ARTICLE_SINE = {
+ARTICLE_SINE: dict[str, dict[str, float | None]] = {
     "no DOB": {"peak_error_deg": 0.1, "rmse_deg": 0.0231},
     "DOB": {"peak_error_deg": 0.05, "rmse_deg": 0.0207},
     "DOB + FF": {"peak_error_deg": None, "rmse_deg": 0.0052},
