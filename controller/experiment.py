@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -122,6 +123,14 @@ def compute_metrics(
 ProgressFn = Callable[[float], None]
 
 
+class Rig(Protocol):
+    """What the loop needs of a rig: the simulated one, or the real one over CAN."""
+
+    def read(self) -> tuple[float, float]: ...
+
+    def step(self, command_deg_s: float) -> None: ...
+
+
 def run_experiment(
     cfg: LoopConfig,
     trajectory: Trajectory,
@@ -133,7 +142,7 @@ def run_experiment(
     rig_params: RigParams | None = None,
     settle_s: float | None = None,
     progress: ProgressFn | None = None,
-    rig: SimRig | None = None,
+    rig: Rig | None = None,
 ) -> ExperimentResult:
     """Run the loop against the simulated rig for `duration_s` simulated seconds."""
     if not (isinstance(duration_s, (int, float)) and math.isfinite(duration_s)):

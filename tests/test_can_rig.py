@@ -14,7 +14,6 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import cast
 
 import can
 import can.interfaces.virtual
@@ -210,7 +209,7 @@ def test_servo_loop_through_can_matches_the_direct_sim_rig(setup: Setup) -> None
     cfg = LoopConfig(command_limit_deg_s=setup.rig_file.limits.command_limit_deg_s)
     sine = default_trajectory("sine")
     # experiment.py types its rig as SimRig; CanRig duck-types it.
-    via_can = run_experiment(cfg, sine, 2.0, rig=cast(SimRig, setup.rig), settle_s=0.0)
+    via_can = run_experiment(cfg, sine, 2.0, rig=setup.rig, settle_s=0.0)
     straight = run_experiment(cfg, sine, 2.0, rig=direct, settle_s=0.0)
     assert setup.rig.fault is None
     assert float(np.max(np.abs(via_can.pos_deg - straight.pos_deg))) < 1e-3
