@@ -86,7 +86,7 @@ def curves_from_analysis(a: Analysis) -> tuple[BodeCurves, GateView]:
     curves = BodeCurves(
         freq_hz=a.freq_hz,
         open_loop_db=a.open_loop_mag_db,
-        open_loop_phase_deg=a.open_loop_phase_deg,
+        open_loop_phase_deg=_wrap_start(a.open_loop_phase_deg),
         closed_dob_db=charts.db(a.closed_loop_dob),
         closed_nodob_db=charts.db(a.closed_loop_no_dob),
         dist_dob_db=charts.db(a.disturbance_dob),
@@ -107,6 +107,14 @@ def curves_from_analysis(a: Analysis) -> tuple[BodeCurves, GateView]:
         "max_pole_radius": a.max_pole_radius,
     }
     return curves, GateView(a.verdict, tuple(a.reasons), margins)
+
+
+def _wrap_start(phase_deg: FloatArray) -> FloatArray:
+    """Shift an unwrapped phase by whole turns so that it starts in (-270, 90] deg."""
+    if len(phase_deg) == 0:
+        return phase_deg
+    turns = math.floor((phase_deg[0] + 270.0) / 360.0)
+    return np.asarray(phase_deg - 360.0 * turns, dtype=np.float64)
 
 
 def measured_from_csv(name: str, data: Any) -> MeasuredResponse:

@@ -1,0 +1,165 @@
+"""The dashboard in headless Chromium, steps in order (one page for the module):
+load; the cut-off slider changes Bode data and margins; Apply of a stable candidate changes
+the controller's config; Apply of an unstable one is refused with the reason; e-stop.
+Screenshots of every step go to test-artifacts/.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from server.app import Dashboard
+from server.client import ControllerClient
+
+pytestmark = pytest.mark.browser
+
+#: JS: the candidate |Q| series of the small-gain chart (viser's uPlot test point).
+Q_SERIES_JS = """() => {
+  const ups = Object.values(window.__viserTestpoints?.uplots || {});
+  for (const u of ups) {
+    const i = u.chart.series.findIndex(s => s.label === '|Q| candidate');
+    if (i > 0) return Array.from(u.chart.data[i]);
+  }
+  return null;
+}"""
+
+
+def _slider_row(page: Any, label: str) -> Any:
+    fid = page.locator("label", has_text=label).first.get_attribute("for")
+    return page.locator(f"[id='{fid}']")
+
+
+def _set_number(page: Any, label: str, value: float) -> None:
+    """Type into the number box beside a slider (what a user does for an exact value)."""
+    row = _slider_row(page, label).locator("xpath=..")
+    box = row.locator("input").last
+    box.fill(str(value))
+    box.press("Enter")
+
+
+def _text(page: Any, selector: str) -> str:
+    return str(page.locator(selector).first.inner_text())
+
+
+def test_page_loads(page: Any, dashboard: Dashboard, artifacts: Path) -> None:
+    page.wait_for_selector("text=E-STOP", timeout=20_000)
+    page.wait_for_selector(".dt-banner.dt-ok", timeout=20_000)
+    page.wait_for_selector(".dt-verdict", timeout=10_000)
+    page.wait_for_function(
+        "() => Object.keys(window.__viserTestpoints?.uplots || {}).length >= 7", timeout=20_000
+    )
+    page.wait_for_function(f"() => ({Q_SERIES_JS})() !== null && ({Q_SERIES_JS})().at(-1) < -20")
+    page.screenshot(path=str(artifacts / "browser_1_loaded.png"))
+    assert "Connected" in _text(page, ".dt-banner")
+
+
+def test_cutoff_slider_changes_bode_and_margins(page: Any, artifacts: Path) -> None:
+    q_before = page.evaluate(Q_SERIES_JS)
+    margins_before = _text(page, ".dt-verdict")
+    slider = _slider_row(page, "Q cut-off")
+    box = slider.bounding_box()
+    assert box is not None
+    # Click on the track at 75 %: the browser moves the thumb like a drag would.
+    page.mouse.click(box["x"] + 0.75 * box["width"], box["y"] + box["height"] / 2)
+    page.wait_for_function(
+        f"(before) => JSON.stringify(({Q_SERIES_JS})()) !== JSON.stringify(before)",
+        arg=q_before, timeout=5_000,
+    )
+    page.wait_for_function(
+        "(before) => document.querySelector('.dt-verdict').innerText !== before",
+        arg=margins_before, timeout=5_000,
+    )
+    page.screenshot(path=str(artifacts / "browser_2_slider_moved.png"))
+    q_after = page.evaluate(Q_SERIES_JS)
+    # A higher cut-off: |Q| at the top frequencies rises.
+    assert q_after[-1] > q_before[-1] + 1.0
+    assert _text(page, ".dt-verdict") != margins_before
+
+
+def _wait(cond: Any, timeout_s: float = 10.0) -> None:
+    end = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.05)
+
+
+def test_apply_stable_candidate_changes_controller_config(
+    page: Any, probe: ControllerClient, artifacts: Path
+) -> None:
+    before = probe.get_config()
+    _set_number(page, "Q cut-off", 0.0)  # log10: 1 Hz
+    _set_number(page, "Cv Kp", 0.5)
+    page.wait_for_selector(".dt-verdict.dt-accept", timeout=5_000)
+    page.get_by_role("button", name="Apply candidate").click()
+    page.wait_for_selector("text=Accepted", timeout=10_000)
+    page.screenshot(path=str(artifacts / "browser_3_apply_accepted.png"))
+    after = probe.get_config()  # through Zenoh, not through the page
+    assert after.version > before.version
+    assert math.isclose(after.config.q_cutoff_hz, 1.0, rel_tol=1e-3)
+    _wait(lambda: probe.status is not None and probe.status.config_version == after.version)
+
+
+def test_apply_unstable_candidate_is_refused_and_config_unchanged(
+    page: Any, probe: ControllerClient, artifacts: Path
+) -> None:
+    before = probe.get_config()
+    _set_number(page, "Cv Kp", 3.0)
+    page.wait_for_selector(".dt-verdict.dt-reject", timeout=5_000)
+    page.get_by_role("button", name="Apply candidate").click()
+    page.wait_for_selector(".dt-apply-rejected", timeout=10_000)
+    page.screenshot(path=str(artifacts / "browser_4_apply_rejected.png"))
+    reasons = page.locator(".dt-reject-reason").all_inner_texts()
+    assert reasons and all(r.strip() for r in reasons)
+    after = probe.get_config()
+    assert after.version == before.version
+    assert after.config == before.config
+    assert after.config.cv_kp != 3.0
+
+
+LIVE_X_JS = """() => {
+  const ups = Object.values(window.__viserTestpoints?.uplots || {});
+  for (const u of ups) {
+    if (u.chart.series.some(s => s.label === 'd_hat')) return u.chart.data[0].length;
+  }
+  return -1;
+}"""
+LIVE_ERR_JS = """() => {
+  const ups = Object.values(window.__viserTestpoints?.uplots || {});
+  for (const u of ups) {
+    const i = u.chart.series.findIndex(s => s.label === 'error');
+    if (i > 0) return Array.from(u.chart.data[i]).slice(-5);
+  }
+  return null;
+}"""
+
+
+def test_live_traces_roll(page: Any, artifacts: Path) -> None:
+    page.get_by_role("tab", name="Live traces").click()
+    page.get_by_role("tab", name="Live", exact=True).click()
+    page.wait_for_function(f"() => ({LIVE_X_JS})() > 100", timeout=10_000)
+    first = page.evaluate(LIVE_ERR_JS)
+    page.wait_for_function(
+        f"(a) => JSON.stringify(({LIVE_ERR_JS})()) !== JSON.stringify(a)", arg=first,
+        timeout=5_000,
+    )
+    page.wait_for_selector(".dt-metrics table", timeout=5_000)
+    page.screenshot(path=str(artifacts / "browser_5_live.png"))
+
+
+def test_estop_from_page_stops_the_controller(
+    page: Any, probe: ControllerClient, artifacts: Path
+) -> None:
+    page.get_by_role("button", name="E-STOP").click()
+    _wait(lambda: probe.status is not None and probe.status.mode == "estop", 5.0)
+    # Every sample after the stop commands zero speed.
+    time.sleep(0.3)
+    cols, _ = probe.ring.window(0.1)
+    assert len(cols["command_deg_s"]) > 0
+    assert all(u == 0.0 for u in cols["command_deg_s"])
+    page.wait_for_selector(".dt-banner.dt-estop", timeout=5_000)
+    page.screenshot(path=str(artifacts / "browser_6_estop.png"))
