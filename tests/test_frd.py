@@ -1,0 +1,70 @@
+"""Measured responses for the gate: CSV files -> MeasuredResponse (errors name file and line)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controller.frd import load_measured, measured_from_csv, measured_from_model
+from controller.frd_estimate import write_frd_csv
+
+
+def _write(tmp_path: Path, text: str, name: str = "resp.csv") -> Path:
+    p = tmp_path / name
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+GOOD = "freq_hz,mag_db,phase_deg,coherence\n1.0,0.0,-10\n2.0,-6.0,-20,0.5\n"
+
+
+def test_round_trip_with_the_project_writer(tmp_path: Path) -> None:
+    f = np.geomspace(0.1, 100.0, 50)
+    h = 1.0 / (1 + 1j * f / 7.0) ** 2
+    write_frd_csv(tmp_path / "pos_120deg.csv", f, h)
+    (m,) = load_measured([tmp_path / "pos_120deg.csv"])
+    assert m.name == "pos_120deg" and not m.sampled
+    np.testing.assert_allclose(m.freq_hz, f, rtol=1e-9)
+    np.testing.assert_allclose(m.response, h, rtol=1e-8)
+
+
+@pytest.mark.parametrize(
+    ("text", "line", "what"),
+    [
+        ("freq_hz,mag_db\n1,0\n", 1, "missing column 'phase_deg'"),
+        ("# comment\nfreq_hz,mag_db,phase_deg\n1,0,0\n2,x,0\n", 4, "not a number"),
+        ("freq_hz,mag_db,phase_deg\n1,0,0\n2,nan,0\n", 3, "not finite"),
+        ("freq_hz,mag_db,phase_deg\n1,0,0\n3,0,0\n\n2,0,0\n", 5, "not increasing"),
+        ("freq_hz,mag_db,phase_deg\n1,0,0\n1,0,0\n", 3, "not increasing"),
+        ("freq_hz,mag_db,phase_deg\n1,0\n", 2, "expected 3 fields"),
+    ],
+)
+def test_csv_errors_name_file_and_line(tmp_path: Path, text: str, line: int, what: str) -> None:
+    p = _write(tmp_path, text)
+    with pytest.raises(ValueError, match=f"resp.csv:{line}: .*{what}"):
+        measured_from_csv(p)
+
+
+def test_coherence_filter_and_unique_names(tmp_path: Path) -> None:
+    a = _write(tmp_path, GOOD.replace("-10\n", "-10,0.9\n"))
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    b = _write(sub, GOOD.replace("-10\n", "-10,0.9\n"))
+    m1, m2 = load_measured([a, b])
+    assert (m1.name, m2.name) == ("resp", "resp#2")
+    with pytest.raises(ValueError, match="fewer than 2 points"):
+        measured_from_csv(a, min_coherence=0.8)
+    m = measured_from_csv(a, min_coherence=0.4)
+    assert m.response[1] == pytest.approx(10 ** (-6 / 20) * np.exp(-1j * np.radians(20)))
+
+
+def test_model_variant() -> None:
+    f = np.array([0.0001, 7.0])
+    wn = 2 * np.pi * 7.0
+    m = measured_from_model("resonant", f, [2.0], [1 / wn**2, 2 * 0.05 / wn, 1.0])
+    assert m.response[0] == pytest.approx(2.0, rel=1e-5)
+    assert m.response[1] == pytest.approx(2.0 / (2j * 0.05))  # Q = 1/(2 zeta) at resonance
+    with pytest.raises(ValueError, match="finite"), np.errstate(all="ignore"):
+        measured_from_model("undamped", f, [2.0], [1 / wn**2, 0.0, 1.0])
