@@ -1,0 +1,111 @@
+"""`dobtune check` command body: exit codes, output, errors naming file and line."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controller.analysis import nominal_continuous_response
+from controller.check_cmd import check_main
+from controller.config import LoopConfig, config_to_builtins
+from controller.frd_estimate import write_frd_csv
+
+KEYS = {
+    "verdict",
+    "reasons",
+    "gain_margin_db",
+    "phase_margin_deg",
+    "peak_sensitivity_db",
+    "small_gain_peak",
+    "max_pole_radius",
+    "recommended_max_cutoff_hz",
+    "config",
+}
+
+
+def _run(
+    as_json: bool = False,
+    *,
+    config_path: Path | None = None,
+    q_type: str | None = None,
+    cutoff_hz: float | None = None,
+    frd_paths: list[Path] | None = None,
+) -> tuple[int, str]:
+    out = io.StringIO()
+    code = check_main(config_path, q_type, cutoff_hz, frd_paths or [], as_json, out)
+    return code, out.getvalue()
+
+
+def test_default_config_is_accepted_with_a_table() -> None:
+    code, text = _run()
+    assert code == 0
+    assert "verdict: ACCEPT" in text
+    assert "phase margin" in text and "recommended max cut-off (q31)" in text
+
+
+def test_json_output_has_the_keys_and_the_effective_config(tmp_path: Path) -> None:
+    path = tmp_path / "cfg.json"
+    path.write_text(json.dumps(config_to_builtins(LoopConfig(cv_kp=0.6))), encoding="utf-8")
+    code, text = _run(True, config_path=path, q_type="q20", cutoff_hz=1.5)
+    data = json.loads(text)
+    assert code == 0 and data["verdict"] == "accept"
+    assert KEYS <= data.keys()
+    cfg = data["config"]
+    assert (cfg["cv_kp"], cfg["q_type"], cfg["q_cutoff_hz"]) == (0.6, "q20", 1.5)
+    assert cfg["q_tau_s"] == pytest.approx(0.10243 / 1.5, rel=1e-4)
+    assert data["recommended_max_cutoff_hz"] > 0
+
+
+def test_rejected_candidate_exits_1_with_reasons() -> None:
+    code, text = _run(cutoff_hz=5.0)  # peak sensitivity 6.1 dB > 6 dB
+    assert code == 1
+    assert "verdict: REJECT" in text and "peak sensitivity" in text
+    code, text = _run(True, cutoff_hz=5.0)
+    data = json.loads(text)
+    assert code == 1 and data["verdict"] == "reject" and data["reasons"]
+
+
+def test_measured_files_feed_the_gate(tmp_path: Path) -> None:
+    f = np.geomspace(0.01, 400.0, 200)
+    h = 1.6 * nominal_continuous_response(LoopConfig().nominal, f)
+    write_frd_csv(tmp_path / "gain160.csv", f, h)
+    code, text = _run(True, frd_paths=[tmp_path / "gain160.csv"])
+    data = json.loads(text)
+    assert [s["name"] for s in data["sources"]] == ["gain160"]
+    assert data["small_gain_peak"] is not None
+    assert code == (0 if data["verdict"] == "accept" else 1)
+
+
+def test_bad_json_names_the_line(tmp_path: Path) -> None:
+    path = tmp_path / "cfg.json"
+    path.write_text('{\n  "cv_kp": 0.5,\n  "q_type": q31\n}\n', encoding="utf-8")
+    code, text = _run(config_path=path)
+    assert code == 2
+    assert f"{path}:3: invalid JSON" in text
+
+
+def test_bad_field_names_the_field_and_line(tmp_path: Path) -> None:
+    path = tmp_path / "cfg.json"
+    path.write_text('{\n  "rate_hz": 1000,\n  "cv_kp": -1\n}\n', encoding="utf-8")
+    code, text = _run(config_path=path)
+    assert code == 2
+    assert f"{path}:3" in text and "cv_kp" in text
+    code, text = _run(True, config_path=tmp_path / "missing.json")
+    assert code == 2 and "cannot read config" in json.loads(text)["error"]
+
+
+def test_bad_overrides_and_bad_response_file(tmp_path: Path) -> None:
+    code, text = _run(q_type="q99")
+    assert code == 2 and "--q" in text and "q99" in text
+    code, text = _run(cutoff_hz=600.0)
+    assert code == 2 and "--cutoff-hz" in text and "Nyquist" in text
+    bad = tmp_path / "bad.csv"
+    bad.write_text("freq_hz,mag_db,phase_deg\n1,0,0\n2,zero,0\n", encoding="utf-8")
+    code, text = _run(frd_paths=[bad])
+    assert code == 2 and f"{bad}:3:" in text
+    code, text = _run(frd_paths=[tmp_path / "nope.csv"])
+    assert code == 2 and "nope.csv" in text
