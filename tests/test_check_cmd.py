@@ -53,7 +53,7 @@ def test_json_output_has_the_keys_and_the_effective_config(tmp_path: Path) -> No
     code, text = _run(True, config_path=path, q_type="q20", cutoff_hz=1.5)
     data = json.loads(text)
     assert code == 0 and data["verdict"] == "accept"
-    assert KEYS <= data.keys()
+    assert data.keys() >= KEYS
     cfg = data["config"]
     assert (cfg["cv_kp"], cfg["q_type"], cfg["q_cutoff_hz"]) == (0.6, "q20", 1.5)
     assert cfg["q_tau_s"] == pytest.approx(0.10243 / 1.5, rel=1e-4)
