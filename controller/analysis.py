@@ -47,6 +47,7 @@ Outside the measured band the relative error Delta is held at its value at the n
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -504,19 +505,23 @@ class _Dob:
 
 
 _DOB_CACHE: OrderedDict[tuple[object, ...], _Dob] = OrderedDict()
+_DOB_LOCK = threading.Lock()  # analyse() runs on GUI thread pools and in the controller
 
 
 def _dob(cfg: LoopConfig) -> _Dob:
+    """The implemented DOB filters, cached per (Q type, cut-off, rate, nominal model)."""
     key = (cfg.q_type, cfg.q_cutoff_hz, cfg.rate_hz, cfg.nominal)
-    hit = _DOB_CACHE.get(key)
-    if hit is not None:
-        _DOB_CACHE.move_to_end(key)
-        return hit
+    with _DOB_LOCK:
+        hit = _DOB_CACHE.get(key)
+        if hit is not None:
+            _DOB_CACHE.move_to_end(key)
+            return hit
     d = design_dob(cfg)
     out = _Dob(d.q.tau_s, d.f1_sos, d.f2_sos, _sos_ss(d.f1_sos), _sos_ss(d.f2_sos))
-    _DOB_CACHE[key] = out
-    if len(_DOB_CACHE) > 256:
-        _DOB_CACHE.popitem(last=False)
+    with _DOB_LOCK:
+        _DOB_CACHE[key] = out
+        if len(_DOB_CACHE) > 256:
+            _DOB_CACHE.popitem(last=False)
     return out
 
 
@@ -767,11 +772,14 @@ def _winding_ok(one_plus_l: ComplexArray, m_integrators: int) -> bool:
     """Argument principle for 1 + L with L = (stable) x (m poles at z = 1) x (k > 0).
 
     Stable iff arg(1 + L) turns by m*90 deg from 0+ (where it is -m*90 deg) to Nyquist (0).
-    The grid must start where the integrators dominate (|L| >> 1) and end where |L| << 1.
+    The grid must start where the integrators dominate (|L| >> 1) and end where |L| << 1;
+    otherwise the loop is reported as not proven stable.
     """
-    if m_integrators == 0:
-        return bool(np.all(np.abs(one_plus_l) > 0))
-    if abs(one_plus_l[0]) < 2.0 or abs(one_plus_l[-1] - 1.0) > 0.5:
+    if not np.all(np.isfinite(one_plus_l)) or np.any(one_plus_l == 0):
+        return False
+    if m_integrators > 0 and abs(one_plus_l[0]) < 2.0:
+        return False
+    if abs(one_plus_l[-1] - 1.0) > 0.5:
         return False
     ph = np.unwrap(np.angle(one_plus_l))
     start = -0.5 * np.pi * m_integrators

@@ -314,6 +314,28 @@ def test_measured_response_validation() -> None:
         GateLimits(small_gain_max=1.5)
 
 
+def test_sampled_response_equal_to_the_exact_plant_has_no_model_error() -> None:
+    cfg = LoopConfig(q_cutoff_hz=2.0)
+    f = np.geomspace(0.01, 450.0, 300)
+    g = _resp(Ref(cfg).g, f, cfg.period_s)
+    a = analyse(cfg, PlantKnowledge(measured=(MeasuredResponse("s", f, g, sampled=True),)))
+    src = a.sources[0]
+    assert np.all(src.inv_delta_db > 120.0)  # |Delta| < 1e-6 everywhere
+    assert src.margins is not None
+    assert src.margins.phase_margin_deg == pytest.approx(a.margins.phase_margin_deg, abs=1e-3)
+
+
+def test_measured_plant_that_destabilises_the_plain_loop_is_rejected() -> None:
+    cfg = LoopConfig()
+    f = np.geomspace(0.01, 450.0, 300)
+    m = MeasuredResponse("x15", f, 15.0 * nominal_continuous_response(cfg.nominal, f))
+    a = analyse(cfg, PlantKnowledge(measured=(m,)))
+    assert not a.sources[0].base_loop_stable
+    assert a.verdict == "reject"
+    assert any("without DOB is not proven stable for response 'x15'" in r for r in a.reasons)
+    assert np.max(np.abs(Ref(cfg.with_(cv_kp=7.5)).full_loop_poles())) > 1.0  # indeed
+
+
 def _plant_variant(cfg: LoopConfig, gain: float, mode: tuple[float, float, float] | None):
     """MnPn x gain x (optional) a resonance/antiresonance pair (fz, fp, zeta)."""
     n = cfg.nominal
