@@ -41,7 +41,11 @@ Why the gate is sound, and what it assumes:
   alone is not sufficient (control.md) and is only reported.
 Measured continuous responses G_c(jw) become discrete by the ZOH + backward-difference
 equivalent G_c(jw) e^{-jwTs} sinc^2(w Ts/2), valid well below Nyquist (aliasing neglected).
-Outside the measured band the relative error Delta is held at its value at the nearest end.
+Measured data are interpolated as their ratio R = G_c / (Mn Pn) to the nominal model (log
+magnitude and unwrapped phase, linear in log f), so a response equal to the model gives
+Delta = 0 exactly; outside the measured band Delta is held at its value at the nearest end.
+The argument-principle test assumes the grid starts where the integrators dominate and ends
+where |L| << 1 (the default grid, 0.01 Hz to Nyquist, does); if not, it reports "not proven".
 """
 
 from __future__ import annotations
