@@ -289,6 +289,10 @@ class SourceResult:
     base_loop_stable: bool
     """Measured: the loop without DOB, with and without the position loop, passes the
     argument-principle test (always True for a bound: the nominal poles cover it)."""
+    full_loop_winding_ok: bool
+    """Measured: the whole loop (DOB and position loop as configured) passes the argument-
+    principle test on D_m = 1 - F2 z^-1 + G_m (C_tot + F1) itself. Exact where the grid is
+    adequate, unlike the sufficient eq. 21; reported only, not part of the verdict."""
     margins: Margins | None
     """Margins of L_u computed with this response (None for a bound)."""
     inv_delta_db: FloatArray
@@ -936,6 +940,7 @@ def analyse(
                 delta_q_peak=float(dq[j]),
                 delta_q_freq_hz=float(f[j]),
                 base_loop_stable=True,
+                full_loop_winding_ok=True,
                 margins=None,
                 inv_delta_db=_readonly(-20.0 * np.log10(wmag)),
             )
@@ -1021,6 +1026,9 @@ def _measured_source(
             f"the loop without DOB is not proven stable{suffix} (argument principle on 1 + G C)"
         )
 
+    d_full = 1.0 - bk.f2d + gm * (bk.ctot + bk.f1) if on else 1.0 + gm * bk.ctot
+    full_ok = _winding_ok(d_full, _integrators(cfg, True))
+
     def ev(ff: FloatArray) -> Outputs:
         b = _blocks(cfg, used, ff)
         g2 = model.discrete(ff, b.g)[0]
@@ -1072,6 +1080,7 @@ def _measured_source(
         delta_q_peak=dq_peak,
         delta_q_freq_hz=dq_f,
         base_loop_stable=base_ok,
+        full_loop_winding_ok=full_ok,
         margins=margins,
         inv_delta_db=_readonly(inv_delta),
     )
