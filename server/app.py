@@ -35,7 +35,7 @@ class DashboardOptions:
     host: str = "127.0.0.1"
     port: int = 8080
     live_rate_hz: float = 25.0
-    live_max_points: int = 1000
+    live_max_points: int = 600
     query_timeout_s: float = 3.0
     verbose: bool = True
     client_name: str = "dashboard"

@@ -275,6 +275,8 @@ class LatestWins:
 
     fn: Callable[[Any], None]
     name: str = "latest-wins"
+    #: Wait this long for a newer item before running (keeps slow work off a moving slider).
+    debounce_s: float = 0.0
     _item: Any = None
     _has: bool = False
     _cond: threading.Condition = field(default_factory=threading.Condition)
@@ -318,10 +320,16 @@ class LatestWins:
                     self._cond.wait()
                 if self._stop:
                     return
+                self._busy = True
+                if self.debounce_s > 0.0:
+                    while self._has and not self._stop:
+                        self._has = False
+                        self._cond.wait(self.debounce_s)
+                    if self._stop:
+                        return
                 item = self._item
                 self._has = False
                 self._item = None
-                self._busy = True
             try:
                 self.fn(item)
             except Exception as exc:  # a failing update must not kill the worker
@@ -373,7 +381,9 @@ class TuningPanel:
         self._preview_chart: Any = None
         self._preview_text: Any = None
         self._worker = LatestWins(self._update, name="tuning-update")
-        self._preview_worker = LatestWins(self._run_preview, name="tuning-preview")
+        self._preview_worker = LatestWins(
+            self._run_preview, name="tuning-preview", debounce_s=0.08
+        )
 
     # -- building --------------------------------------------------------------------------
 

@@ -1,0 +1,143 @@
+"""Dashboard benchmarks: slider-to-update latency (server side, p50/p99); live refresh rate in
+the browser and the dashboard process's CPU while one headless browser watches the live tab.
+
+Run: .venv/bin/python tests/bench/bench_dashboard.py [--seconds 15]
+The controller is the real one (`python -m controller`) when controller.node exists, else the
+stand-in tests/browser/fake_controller.py; the dashboard runs as its own process
+(`python -m server`) so its CPU time is measured alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from server.app import Dashboard, DashboardOptions  # noqa: E402
+from server.demo import controller_command, stop_process  # noqa: E402
+
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run"]
+RIG = "bench"
+
+REFRESH_JS = """(ms) => new Promise(resolve => {
+  const ups = Object.values(window.__viserTestpoints?.uplots || {});
+  const u = ups.find(x => x.chart.series.some(s => s.label === 'error'));
+  if (!u) { resolve(-1); return; }
+  let last = u.chart.data, n = 0, frames = 0;
+  const t0 = performance.now();
+  const iv = setInterval(() => { if (u.chart.data !== last) { n++; last = u.chart.data; } }, 2);
+  function frame() {
+    frames++;
+    if (performance.now() - t0 < ms) requestAnimationFrame(frame);
+    else { clearInterval(iv); resolve([n / (ms / 1000), frames / (ms / 1000)]); }
+  }
+  requestAnimationFrame(frame);
+})"""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def cpu_seconds(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def bench_slider(n: int = 200) -> dict[str, float]:
+    opts = DashboardOptions(port=free_port(), connect=(f"tcp/127.0.0.1:{free_port()}",),
+                            verbose=False)
+    with Dashboard(opts) as d:
+        t = d.tuning
+        assert t is not None
+        t.wait_preview_idle(30.0)
+        rng = np.random.default_rng(0)
+        lat = []
+        for x in rng.uniform(-1.3, 1.6, n):
+            t0 = time.perf_counter()
+            t.cutoff_log.value = float(round(x, 3))
+            t.wait_idle(5.0)
+            lat.append(time.perf_counter() - t0)
+        ms = np.array(lat) * 1e3
+        return {"slider_p50_ms": float(np.percentile(ms, 50)),
+                "slider_p99_ms": float(np.percentile(ms, 99)),
+                "slider_max_ms": float(ms.max()), "n": n}
+
+
+def bench_live(seconds: float) -> dict[str, float]:
+    from playwright.sync_api import sync_playwright
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    port = free_port()
+    with tempfile.TemporaryDirectory() as state:
+        if importlib.util.find_spec("controller.node") is not None:
+            ctl_cmd = controller_command(endpoint, RIG, Path(state))
+        else:
+            ctl_cmd = [sys.executable, str(ROOT / "tests/browser/fake_controller.py"), endpoint,
+                       RIG]
+        ctl = subprocess.Popen(ctl_cmd, cwd=ROOT)
+        dash = subprocess.Popen(
+            [sys.executable, "-m", "server", "--connect", endpoint, "--rig-name", RIG,
+             "--port", str(port)], cwd=ROOT, stdout=subprocess.DEVNULL)
+        try:
+            time.sleep(3.0)
+            with sync_playwright() as p:
+                b = p.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
+                pg = b.new_page(viewport={"width": 1600, "height": 1000})
+                ws_frames: list[tuple[float, int]] = []
+                pg.on("websocket", lambda ws: ws.on(
+                    "framereceived",
+                    lambda data: ws_frames.append((time.monotonic(), len(data)))))
+                pg.goto(f"http://127.0.0.1:{port}")
+                pg.wait_for_selector(".dt-banner.dt-ok", timeout=30_000)
+                pg.get_by_role("tab", name="Live traces").click()
+                pg.get_by_role("tab", name="Live", exact=True).click()
+                pg.wait_for_timeout(2000)
+                c0, w0 = cpu_seconds(dash.pid), time.monotonic()
+                n0 = len(ws_frames)
+                applied_hz, raf_hz = pg.evaluate(REFRESH_JS, seconds * 1000)
+                c1, w1 = cpu_seconds(dash.pid), time.monotonic()
+                got = [f for f in ws_frames[n0:] if f[0] <= w1]
+                b.close()
+            return {"ws_frames_received_hz": len(got) / (w1 - w0),
+                    "ws_kbytes_per_s": sum(n for _, n in got) / (w1 - w0) / 1e3,
+                    "charts_applied_hz": float(applied_hz),
+                    "browser_raf_fps": float(raf_hz),
+                    "dashboard_cpu_pct": 100.0 * (c1 - c0) / (w1 - w0),
+                    "seconds": w1 - w0,
+                    "controller": "real" if "controller" in ctl_cmd else "stand-in"}
+        finally:
+            stop_process(dash)
+            stop_process(ctl)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seconds", type=float, default=15.0)
+    ap.add_argument("--skip-live", action="store_true")
+    args = ap.parse_args()
+    out = bench_slider()
+    if not args.skip_live:
+        out.update(bench_live(args.seconds))
+    print(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
