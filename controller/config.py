@@ -8,13 +8,13 @@ r = Cp e_pos + ff_gain * d(theta_ref)/dt (feedforward only when ff_on).
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import msgspec
 
 from controller.errors import ConfigError
 from controller.qfilter import Q_TYPES
+from controller.validate import in_range, number
 
 Poly2 = tuple[float, float, float]
 
@@ -24,23 +24,6 @@ ARTICLE_PN_NUM: Poly2 = (1.013e-05, 0.004501, 1.0)
 ARTICLE_PN_DEN: Poly2 = (0.0005169, 0.03215, 1.0)
 
 
-def _number(value: Any, field: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(field, f"expected a number, got {type(value).__name__}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ConfigError(field, f"must be finite, got {v}")
-    return v
-
-
-def _in_range(value: Any, field: str, lo: float, hi: float, *, lo_open: bool = False) -> float:
-    v = _number(value, field)
-    if (v <= lo if lo_open else v < lo) or v > hi:
-        bracket = "(" if lo_open else "["
-        raise ConfigError(field, f"{v} is out of range {bracket}{lo}, {hi}]")
-    return v
-
-
 def _poly_degree(p: Poly2) -> int:
     return 2 if p[0] != 0.0 else (1 if p[1] != 0.0 else 0)
 
@@ -48,7 +31,7 @@ def _poly_degree(p: Poly2) -> int:
 def _check_poly(p: Any, field: str) -> None:
     if not isinstance(p, tuple) or len(p) != 3:
         raise ConfigError(field, "expected 3 coefficients (s^2, s, 1)")
-    a2, a1, a0 = (_number(c, f"{field}[{i}]") for i, c in enumerate(p))
+    a2, a1, a0 = (number(c, f"{field}[{i}]") for i, c in enumerate(p))
     if a0 <= 0.0:
         raise ConfigError(f"{field}[2]", f"constant term must be > 0, got {a0}")
     if a2 < 0.0 or a1 < 0.0:
@@ -96,27 +79,27 @@ class LoopConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
     command_limit_deg_s: float = 100.0
 
     def __post_init__(self) -> None:
-        rate = _in_range(self.rate_hz, "rate_hz", 50.0, 20000.0)
-        _in_range(self.cv_kp, "cv_kp", 0.0, 1e3, lo_open=True)
-        _in_range(self.cv_ki_per_s, "cv_ki_per_s", 0.0, rate / 2)
-        _in_range(self.pos_kp_per_s, "pos_kp_per_s", 0.0, rate / 2, lo_open=True)
-        _in_range(self.pos_ki_per_s, "pos_ki_per_s", 0.0, rate / 2)
+        rate = in_range(self.rate_hz, "rate_hz", 50.0, 20000.0)
+        in_range(self.cv_kp, "cv_kp", 0.0, 1e3, lo_open=True)
+        in_range(self.cv_ki_per_s, "cv_ki_per_s", 0.0, rate / 2)
+        in_range(self.pos_kp_per_s, "pos_kp_per_s", 0.0, rate / 2, lo_open=True)
+        in_range(self.pos_ki_per_s, "pos_ki_per_s", 0.0, rate / 2)
         for name in ("ff_on", "dob_on"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(name, f"expected true/false, got {getattr(self, name)!r}")
-        _in_range(self.ff_gain, "ff_gain", 0.0, 2.0)
+        in_range(self.ff_gain, "ff_gain", 0.0, 2.0)
         if self.q_type not in Q_TYPES:
             raise ConfigError(
                 "q_type", f"unknown Q type {self.q_type!r}; expected one of {', '.join(Q_TYPES)}"
             )
-        cut = _number(self.q_cutoff_hz, "q_cutoff_hz")
+        cut = number(self.q_cutoff_hz, "q_cutoff_hz")
         if cut <= 0.0:
             raise ConfigError("q_cutoff_hz", f"must be > 0, got {cut}")
         if cut >= rate / 2:
             raise ConfigError(
                 "q_cutoff_hz", f"{cut} Hz is at or above the Nyquist limit {rate / 2} Hz"
             )
-        _in_range(self.command_limit_deg_s, "command_limit_deg_s", 0.0, 1e4, lo_open=True)
+        in_range(self.command_limit_deg_s, "command_limit_deg_s", 0.0, 1e4, lo_open=True)
         if not isinstance(self.nominal, NominalModel):
             raise ConfigError("nominal", "expected a NominalModel")
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 from controller.errors import ConfigError
+from controller.validate import number
 
 __all__ = [
     "DISTURBANCES",
@@ -28,11 +29,6 @@ class Disturbance(Protocol):
     """Anything with `torque_n_m(time_s) -> float` can disturb the rig."""
 
     def torque_n_m(self, time_s: float) -> float: ...
-
-
-def _check_finite(field: str, value: float) -> None:
-    if not math.isfinite(value):
-        raise ConfigError(field, f"must be finite, got {value!r}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,9 +48,9 @@ class SineTorque:
     phase_deg: float = 0.0
 
     def __post_init__(self) -> None:
-        _check_finite("amplitude_n_m", self.amplitude_n_m)
-        _check_finite("freq_hz", self.freq_hz)
-        _check_finite("phase_deg", self.phase_deg)
+        number(self.amplitude_n_m, "amplitude_n_m")
+        number(self.freq_hz, "freq_hz")
+        number(self.phase_deg, "phase_deg")
         if self.freq_hz <= 0.0:
             raise ConfigError("freq_hz", f"must be > 0, got {self.freq_hz!r}")
 
@@ -71,8 +67,8 @@ class StepTorque:
     time_s: float
 
     def __post_init__(self) -> None:
-        _check_finite("amplitude_n_m", self.amplitude_n_m)
-        _check_finite("time_s", self.time_s)
+        number(self.amplitude_n_m, "amplitude_n_m")
+        number(self.time_s, "time_s")
         if self.time_s < 0.0:
             raise ConfigError("time_s", f"must be >= 0, got {self.time_s!r}")
 

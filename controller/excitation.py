@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from controller.errors import ConfigError
+from controller.validate import nonnegative, positive
 
 __all__ = [
     "Multisine",
@@ -52,26 +53,6 @@ IntArray = NDArray[np.int64]
 
 
 # --------------------------------------------------------------------------- validation helpers
-
-
-def _finite_positive(value: object, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ConfigError(name, f"must be a number (got {value!r})")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ConfigError(name, f"must be finite (got {v})")
-    if v <= 0.0:
-        raise ConfigError(name, f"must be > 0 (got {v})")
-    return v
-
-
-def _finite_nonneg(value: object, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ConfigError(name, f"must be a number (got {value!r})")
-    v = float(value)
-    if not math.isfinite(v) or v < 0.0:
-        raise ConfigError(name, f"must be finite and >= 0 (got {v})")
-    return v
 
 
 def _integer(value: object, name: str, minimum: int) -> int:
@@ -95,9 +76,9 @@ def _set(obj: object, name: str, value: object) -> None:
 
 
 def _check_band(spec: SteppedSineSpec | MultisineSpec) -> None:
-    fs = _finite_positive(spec.sample_rate_hz, "sample_rate_hz")
-    f_min = _finite_positive(spec.f_min_hz, "f_min_hz")
-    f_max = _finite_positive(spec.f_max_hz, "f_max_hz")
+    fs = positive(spec.sample_rate_hz, "sample_rate_hz")
+    f_min = positive(spec.f_min_hz, "f_min_hz")
+    f_max = positive(spec.f_max_hz, "f_max_hz")
     if f_min >= f_max:
         raise ConfigError("f_min_hz", f"must be < f_max_hz (got {f_min} >= {f_max})")
     if f_max >= fs / 2.0:
@@ -182,13 +163,13 @@ class SteppedSineSpec:
     def __post_init__(self) -> None:
         _check_band(self)
         _set(self, "points_per_decade", _integer(self.points_per_decade, "points_per_decade", 1))
-        _set(self, "amplitude_deg_s", _finite_positive(self.amplitude_deg_s, "amplitude_deg_s"))
+        _set(self, "amplitude_deg_s", positive(self.amplitude_deg_s, "amplitude_deg_s"))
         if self.window_deg is not None:
-            _set(self, "window_deg", _finite_positive(self.window_deg, "window_deg"))
+            _set(self, "window_deg", positive(self.window_deg, "window_deg"))
         _set(self, "min_periods", _integer(self.min_periods, "min_periods", 1))
-        _set(self, "min_measure_s", _finite_nonneg(self.min_measure_s, "min_measure_s"))
+        _set(self, "min_measure_s", nonnegative(self.min_measure_s, "min_measure_s"))
         _set(self, "settle_periods", _integer(self.settle_periods, "settle_periods", 0))
-        _set(self, "settle_s", _finite_nonneg(self.settle_s, "settle_s"))
+        _set(self, "settle_s", nonnegative(self.settle_s, "settle_s"))
         _set(self, "ramp_periods", _integer(self.ramp_periods, "ramp_periods", 0))
 
 
@@ -355,9 +336,9 @@ class MultisineSpec:
             )
         _set(self, "n_periods", _integer(self.n_periods, "n_periods", 1))
         _set(self, "transient_periods", _integer(self.transient_periods, "transient_periods", 0))
-        _set(self, "amplitude_deg_s", _finite_positive(self.amplitude_deg_s, "amplitude_deg_s"))
+        _set(self, "amplitude_deg_s", positive(self.amplitude_deg_s, "amplitude_deg_s"))
         if self.window_deg is not None:
-            _set(self, "window_deg", _finite_positive(self.window_deg, "window_deg"))
+            _set(self, "window_deg", positive(self.window_deg, "window_deg"))
         if self.points_per_decade is not None:
             _set(
                 self,
@@ -368,7 +349,7 @@ class MultisineSpec:
             _set(
                 self,
                 "position_knee_hz",
-                _finite_positive(self.position_knee_hz, "position_knee_hz"),
+                positive(self.position_knee_hz, "position_knee_hz"),
             )
         _set(self, "crest_iterations", _integer(self.crest_iterations, "crest_iterations", 0))
         if self.bins().size == 0:

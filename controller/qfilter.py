@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from controller.errors import ConfigError
+from controller.validate import positive
 
 QType = Literal["q20", "q31"]
 Q_TYPES: tuple[QType, ...] = ("q20", "q31")
@@ -46,26 +47,15 @@ def check_q_type(q_type: object, field: str = "q_type") -> QType:
     return q_type  # type: ignore[return-value]
 
 
-def check_positive_finite(value: object, field: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(field, f"expected a number, got {type(value).__name__}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ConfigError(field, f"must be finite, got {v}")
-    if v <= 0.0:
-        raise ConfigError(field, f"must be > 0, got {v}")
-    return v
-
-
 def tau_from_cutoff(q_type: QType, cutoff_hz: float) -> float:
     """Time constant tau (s) whose -3 dB frequency is `cutoff_hz`."""
     check_q_type(q_type)
-    return CUTOFF_TAU_PRODUCT[q_type] / check_positive_finite(cutoff_hz, "cutoff_hz")
+    return CUTOFF_TAU_PRODUCT[q_type] / positive(cutoff_hz, "cutoff_hz")
 
 
 def cutoff_from_tau(q_type: QType, tau_s: float) -> float:
     check_q_type(q_type)
-    return CUTOFF_TAU_PRODUCT[q_type] / check_positive_finite(tau_s, "tau_s")
+    return CUTOFF_TAU_PRODUCT[q_type] / positive(tau_s, "tau_s")
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,4 +97,4 @@ def design_q(
     if cutoff_hz is not None:
         return QFilter(q_type, tau_from_cutoff(q_type, cutoff_hz))
     assert tau_s is not None
-    return QFilter(q_type, check_positive_finite(tau_s, "tau_s"))
+    return QFilter(q_type, positive(tau_s, "tau_s"))

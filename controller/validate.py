@@ -1,0 +1,44 @@
+"""Field validation shared by every config and message: clear errors naming the field."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from controller.errors import ConfigError
+
+_NUMBER_TYPES = (int, float, np.integer, np.floating)
+
+
+def number(value: object, field: str) -> float:
+    """A finite real number (bool is not a number here)."""
+    if isinstance(value, bool) or not isinstance(value, _NUMBER_TYPES):
+        raise ConfigError(field, f"expected a number, got {type(value).__name__} {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ConfigError(field, f"must be finite, got {v}")
+    return v
+
+
+def positive(value: object, field: str) -> float:
+    v = number(value, field)
+    if v <= 0.0:
+        raise ConfigError(field, f"must be > 0, got {v}")
+    return v
+
+
+def nonnegative(value: object, field: str) -> float:
+    v = number(value, field)
+    if v < 0.0:
+        raise ConfigError(field, f"must be >= 0, got {v}")
+    return v
+
+
+def in_range(value: object, field: str, lo: float, hi: float, *, lo_open: bool = False) -> float:
+    """lo <= value <= hi (lo < value with lo_open)."""
+    v = number(value, field)
+    if (v <= lo if lo_open else v < lo) or v > hi:
+        bracket = "(" if lo_open else "["
+        raise ConfigError(field, f"{v} is out of range {bracket}{lo}, {hi}]")
+    return v
