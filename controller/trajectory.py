@@ -8,6 +8,7 @@ from typing import Literal
 import msgspec
 
 from controller.errors import ConfigError
+from controller.validate import in_range
 
 TrajectoryKind = Literal["sine", "step", "ramp", "hold"]
 TRAJECTORY_KINDS: tuple[str, ...] = ("sine", "step", "ramp", "hold")
@@ -38,11 +39,7 @@ class Trajectory(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
             "step_time_s": (0.0, 1e6),
         }
         for name, (lo, hi) in limits.items():
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ConfigError(name, f"expected a finite number, got {v!r}")
-            if not lo <= v <= hi:
-                raise ConfigError(name, f"{v} is out of range [{lo}, {hi}]")
+            in_range(getattr(self, name), name, lo, hi)
 
     @property
     def period_s(self) -> float | None:
