@@ -1,0 +1,103 @@
+"""Dashboard wiring without a browser: two dashboards on one controller, measured-response
+upload, the 'controller gone' banner, ports released on exit, dependency direction."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controller.analysis import nominal_continuous_response
+from controller.config import NominalModel
+from controller.frd_estimate import write_frd_csv
+from server.app import Dashboard, DashboardOptions
+from server.demo import stop_process
+
+FAKE = Path(__file__).resolve().parent / "browser" / "fake_controller.py"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_for(cond: Callable[[], bool], timeout_s: float = 15.0) -> None:
+    end = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.05)
+
+
+def port_is_free(port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+        return True
+
+
+@pytest.mark.integration
+def test_two_dashboards_watch_one_controller_then_it_goes_away(tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = subprocess.Popen([sys.executable, str(FAKE), endpoint, "apptest"])
+    ports = [free_port(), free_port()]
+    try:
+        opts = [DashboardOptions(connect=(endpoint,), rig_name="apptest", port=p, verbose=False,
+                                 query_timeout_s=1.0) for p in ports]
+        with Dashboard(opts[0]) as a, Dashboard(opts[1]) as b:
+            for d in (a, b):
+                wait_for(lambda d=d: d.client.connected and d.client.ring.total > 500)
+                assert d.live is not None
+                wait_for(lambda d=d: "dt-ok" in d.live.banner.content)
+            assert a.tuning is not None and b.tuning is not None
+            wait_for(lambda: a.tuning.active_version == b.tuning.active_version == 1)
+            # Upload a measured response (the nominal model, 10 % high) into one dashboard.
+            f = np.geomspace(0.1, 20, 40)
+            csv = tmp_path / "frf.csv"
+            write_frd_csv(csv, f, 1.1 * nominal_continuous_response(NominalModel(), f))
+            a._load_measured("frf.csv", csv.read_bytes())
+            assert len(a.engine.measured) == 1
+            assert a.tuning.wait_preview_idle(30.0)
+            a.tuning.request_update()
+            assert a.tuning.wait_idle(5.0)
+            ev = a.tuning.last_evaluation
+            assert ev is not None and ev.curves.inv_delta_measured_db is not None
+            assert np.isfinite(ev.gate.margins["small_gain_peak"])
+            # The controller goes away: both show the banner.
+            stop_process(proc)
+            for d in (a, b):
+                assert d.live is not None
+                wait_for(lambda d=d: "dt-gone" in d.live.banner.content, 10.0)
+    finally:
+        stop_process(proc)
+    for p in ports:
+        wait_for(lambda p=p: port_is_free(p), 10.0)
+
+
+def test_bad_upload_is_reported_not_raised() -> None:
+    opts = DashboardOptions(port=free_port(), connect=(f"tcp/127.0.0.1:{free_port()}",),
+                            verbose=False)
+    with Dashboard(opts) as d:
+        d._load_measured("x.csv", b"not,a,response\n1,2\n")
+        assert "x.csv" in d.measured_text.content
+        assert len(d.engine.measured) == 0
+
+
+def test_controller_never_imports_server_or_viser() -> None:
+    code = (
+        "import sys, controller.loop, controller.protocol, controller.analysis, "
+        "controller.experiment; "
+        "bad = [m for m in sys.modules if m.split('.')[0] in ('server', 'viser')]; "
+        "print(bad); sys.exit(1 if bad else 0)"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       cwd=Path(__file__).resolve().parents[1])
+    assert r.returncode == 0, r.stdout + r.stderr
