@@ -14,7 +14,7 @@ import msgspec
 
 from controller.errors import ConfigError
 from controller.qfilter import Q_TYPES
-from controller.validate import in_range, number
+from controller.validate import in_range, number, split_msgspec_error
 
 Poly2 = tuple[float, float, float]
 
@@ -122,16 +122,4 @@ def config_from_builtins(data: Any) -> LoopConfig:
     try:
         return msgspec.convert(data, LoopConfig, strict=True)
     except msgspec.ValidationError as exc:
-        field = _field_of(str(exc))
-        raise ConfigError(field, str(exc).removeprefix(f"{field}: ")) from exc
-
-
-def _field_of(message: str) -> str:
-    # msgspec: "Expected `float`, got `str` - at `$.cv_kp`"
-    if "at `$." in message:
-        return message.rsplit("at `$.", 1)[1].rstrip("`")
-    if "Object contains unknown field `" in message:
-        return message.split("unknown field `", 1)[1].split("`", 1)[0]
-    if ":" in message:
-        return message.split(":", 1)[0]
-    return "config"
+        raise ConfigError(*split_msgspec_error(str(exc))) from exc

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 
@@ -42,3 +43,30 @@ def in_range(value: object, field: str, lo: float, hi: float, *, lo_open: bool =
         bracket = "(" if lo_open else "["
         raise ConfigError(field, f"{v} is out of range {bracket}{lo}, {hi}]")
     return v
+
+
+_FIELD_RE = re.compile(r"^([A-Za-z_][\w.\[\]]*): (.*)$", re.S)
+
+
+def split_msgspec_error(text: str) -> tuple[str, str]:
+    """(field path, message) from a msgspec ValidationError text.
+
+    msgspec's own errors read "Expected `float`, got `str` - at `$.candidate.cv_kp`"; errors
+    raised by our validators inside nested structs read "cv_kp: must be > 0 - at `$.candidate`".
+    Both become a dotted path from the message root ("candidate.cv_kp").
+    """
+    path = ""
+    body = text
+    if " - at `$" in text:
+        body, _, tail = text.rpartition(" - at `$")
+        path = tail.rstrip("`").lstrip(".")
+    m = _FIELD_RE.match(body)
+    if m:
+        inner, message = m.group(1), m.group(2)
+        if path and not inner.startswith(path):
+            return f"{path}.{inner}", message
+        return inner, message
+    if body.startswith("Object contains unknown field `"):
+        name = body.split("`", 2)[1]
+        return (f"{path}.{name}" if path else name), body
+    return (path or "payload"), body
