@@ -123,6 +123,40 @@ def run_check_args(args: argparse.Namespace) -> int:
     return check_main(args.config, args.q_type, args.cutoff_hz, args.frd, args.json, sys.stdout)
 
 
+def add_identify_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--plant", default=None, metavar="sim", help="offline simulated rig (default)")
+    p.add_argument("--connect", default=None, metavar="ENDPOINT", help="running controller")
+    p.add_argument("--rig-name", default=None, metavar="NAME", help="with --connect")
+    p.add_argument("--mode", default="open", metavar="open|closed", help="default: open")
+    p.add_argument("--signal", default="sine", metavar="sine|multisine", help="default: sine")
+    p.add_argument("--f-min", dest="f_min_hz", type=float, default=0.1, metavar="HZ")
+    p.add_argument("--f-max", dest="f_max_hz", type=float, default=20.0, metavar="HZ")
+    p.add_argument("--positions", type=int, default=3, metavar="N", help="default: 3")
+    p.add_argument("--amplitude", dest="amplitude_deg_s", type=float, default=10.0, metavar="DEG_S")
+    p.add_argument("--out", type=Path, default=Path("identify-out"), metavar="DIR")
+    p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+
+
+def run_identify_args(args: argparse.Namespace) -> int:
+    from controller.identify_cmd import identify_main
+
+    return identify_main(
+        plant=args.plant,
+        connect=args.connect,
+        rig_name=args.rig_name,
+        mode=args.mode,
+        signal=args.signal,
+        f_min_hz=args.f_min_hz,
+        f_max_hz=args.f_max_hz,
+        positions=args.positions,
+        amplitude_deg_s=args.amplitude_deg_s,
+        out_dir=args.out,
+        as_json=args.json,
+        out=sys.stdout,
+        err=sys.stderr,
+    )
+
+
 COMMANDS = {
     "experiment": (
         "offline experiment on the simulated rig",
@@ -131,6 +165,11 @@ COMMANDS = {
     ),
     "check": ("stability check of a configuration", add_check_arguments, run_check_args),
     "controller": ("run the controller process", add_controller_arguments, run_controller_args),
+    "identify": (
+        "measure the plant's frequency response, fit Mn Pn, recommend Q cut-offs",
+        add_identify_arguments,
+        run_identify_args,
+    ),
 }
 
 

@@ -384,9 +384,17 @@ class IdentifyResult:
     nominal: NominalModel | None = None
     """The fit as a NominalModel (article form: Mn from the config, Pn = Mn_den / fit_den)."""
     recommended_cutoff_hz: dict[str, float | None] = field(default_factory=dict)
-    """Gate's largest accepted cut-off per Q type, fitted nominal + measured responses."""
+    """Gate's largest accepted cut-off per Q type, fitted nominal + measured responses (None:
+    even the lowest is rejected; the search stops at a tenth of the loop rate)."""
+    recommended_cutoff_hz_config: dict[str, float | None] = field(default_factory=dict)
+    """The same with the configuration's own nominal model (if the fit is not adopted)."""
     gate_checks: tuple[GateCheck, ...] = ()
-    """Q31 at the recommended cut-off and at 1.5x it."""
+    """Q31 at the recommended cut-off and at 1.5x it (fitted nominal)."""
+
+    @property
+    def fitted_config(self) -> LoopConfig | None:
+        """The run's configuration with the fitted nominal model (what "use as nominal" means)."""
+        return None if self.nominal is None else self.config.with_(nominal=self.nominal)
 
     def measured_responses(self) -> tuple[MeasuredResponse, ...]:
         """The complete positions' responses as the gate's plant knowledge."""
@@ -881,11 +889,15 @@ def _analyse_result(spec: IdentifySpec, cfg: LoopConfig, result: IdentifyResult)
     except ConfigError:
         nominal = None  # not a stable, damped second order: no recommendation
     rec: dict[str, float | None] = {}
+    rec_config: dict[str, float | None] = {}
     checks: list[GateCheck] = []
     measured = result.measured_responses()
+    if measured:
+        plant = PlantKnowledge(measured=measured)
+        for qt in ("q31", "q20"):
+            rec_config[qt] = recommended_max_cutoff_hz(cfg, plant, q_type=qt)
     if nominal is not None and measured:
         gate_cfg = cfg.with_(nominal=nominal, dob_on=True)
-        plant = PlantKnowledge(measured=measured)
         for qt in ("q31", "q20"):
             rec[qt] = recommended_max_cutoff_hz(gate_cfg, plant, q_type=qt)
         r31 = rec["q31"]
@@ -902,6 +914,7 @@ def _analyse_result(spec: IdentifySpec, cfg: LoopConfig, result: IdentifyResult)
         uncertainty=unc,
         nominal=nominal,
         recommended_cutoff_hz=rec,
+        recommended_cutoff_hz_config=rec_config,
         gate_checks=tuple(checks),
     )
 
