@@ -24,10 +24,15 @@ from controller.trajectory import Trajectory
 
 
 def main(endpoint: str, rig: str) -> int:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps("peer"))
-    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
+    try:
+        from controller.zenoh_session import zenoh_config
+
+        conf = zenoh_config(listen=(endpoint,))
+    except ImportError:  # until controller/zenoh_session.py is committed
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps("peer"))
+        conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
