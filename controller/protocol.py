@@ -7,6 +7,7 @@ a `type` field. Units are in the field names. See docs/protocol.md for the full 
 
 from __future__ import annotations
 
+import re
 from typing import Any, TypeVar
 
 import msgspec
@@ -74,6 +75,8 @@ class StateBatch(_Msg, frozen=True, kw_only=True):
     command_deg_s: list[float]
     d_hat_deg_s: list[float]
     error_deg: list[float]
+    epoch_s: float = 0.0  # UNIX time of t_s = 0 (sample i happened at epoch_s + t_s[i])
+    mode: str = ""  # the mode during every sample of this batch ("" from older senders)
 
 
 # -- status -----------------------------------------------------------------------------------
@@ -91,6 +94,7 @@ class Timing(msgspec.Struct, frozen=True, kw_only=True):
     ticks: int
     overruns: int
     skipped_ticks: int
+    dropped_samples: int = 0  # samples the publisher could not take (gaps in `state`)
 
 
 class Status(_Msg, frozen=True, kw_only=True):
@@ -105,6 +109,8 @@ class Status(_Msg, frozen=True, kw_only=True):
     timing: Timing
     faults: list[str]
     operator: str = ""
+    estop_seq: int = -1  # sequence number of the first tick of the latest e-stop
+    notes: list[str] = []  # non-fault information (e.g. real-time priority refused)
 
 
 # -- config queryable -------------------------------------------------------------------------
@@ -131,6 +137,7 @@ class ConfigReply(_Msg, frozen=True, kw_only=True):
     config: LoopConfig  # the active configuration after this request
     reasons: list[str] = []
     margins: Margins | None = None
+    field: str = ""  # for a malformed request: the offending field ("payload", "candidate.x")
 
 
 # -- commands ---------------------------------------------------------------------------------
@@ -167,7 +174,10 @@ class Command(_Msg, frozen=True, kw_only=True):
 class CommandReply(_Msg, frozen=True, kw_only=True):
     ok: bool
     message: str = ""
-    mode: str = ""
+    mode: str = ""  # the mode after the command
+    field: str = ""  # for a malformed request: the offending field
+    seq: int = -1  # first tick (sequence number) at which the command was in effect
+    received_seq: int = -1  # the last completed tick when the command arrived
 
 
 # -- encoding ---------------------------------------------------------------------------------
@@ -177,7 +187,40 @@ M = TypeVar("M", bound=_Msg)
 
 
 class ProtocolError(ValueError):
-    """A payload that cannot be accepted; the message names the field."""
+    """A payload that cannot be accepted; the message starts with the field ("field: why")."""
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        if field is None:
+            field = message.split(": ", 1)[0] if ": " in message else "payload"
+        super().__init__(message)
+        self.field = field
+
+
+_POST_INIT_FIELD = re.compile(r"^([A-Za-z_][\w.\[\]]*): (.*)$", re.DOTALL)
+
+
+def _validation_error(text: str) -> ProtocolError:
+    """Turn a msgspec validation message into "path.to.field: why"."""
+    msg, path = text, ""
+    if " - at `$" in text:
+        msg, at = text.rsplit(" - at `$", 1)
+        path = at.rstrip("`").lstrip(".")
+    for marker in ("Object contains unknown field `", "Object missing required field `"):
+        if msg.startswith(marker):
+            name = msg[len(marker) :].split("`", 1)[0]
+            what = "unknown field" if "unknown" in marker else "missing required field"
+            field = f"{path}.{name}" if path else name
+            return ProtocolError(f"{field}: {what}", field)
+    m = _POST_INIT_FIELD.match(msg)
+    if m is not None:  # a ConfigError raised by a struct's validation names its own field
+        name = m.group(1)
+        last = path.rsplit(".", 1)[-1]
+        if last and name.startswith((f"{last}.", f"{last}[")):  # "nominal" + "nominal.x"
+            path = path[: -len(last)].rstrip(".")
+        field = f"{path}.{name}" if path else name
+        return ProtocolError(f"{field}: {m.group(2)}", field)
+    field = path or "payload"
+    return ProtocolError(f"{field}: {msg}", field)
 
 
 class _Versioned(msgspec.Struct):
@@ -198,10 +241,15 @@ def decode(data: bytes | bytearray | memoryview, kind: type[M]) -> M:
     try:
         head = _version_decoder.decode(raw)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
-        raise ProtocolError(f"payload: not a MessagePack map ({exc})") from exc
+        raise ProtocolError(f"payload: not a MessagePack map ({exc})", "payload") from exc
+    except RecursionError as exc:
+        raise ProtocolError("payload: nested too deeply", "payload") from exc
     if head.v != PROTOCOL_VERSION or isinstance(head.v, bool):
+        shown = repr(head.v)
+        shown = shown if len(shown) <= 40 else shown[:37] + "..."
         raise ProtocolError(
-            f"v: unsupported protocol version {head.v!r}; this side speaks {PROTOCOL_VERSION}"
+            f"v: unsupported protocol version {shown}; this side speaks {PROTOCOL_VERSION}",
+            "v",
         )
     dec = _decoders.get(kind)
     if dec is None:
@@ -209,10 +257,8 @@ def decode(data: bytes | bytearray | memoryview, kind: type[M]) -> M:
     try:
         return dec.decode(raw)  # type: ignore[no-any-return]
     except msgspec.ValidationError as exc:
-        text = str(exc)
-        if "at `$." in text:
-            field = text.rsplit("at `$.", 1)[1].rstrip("`")
-            raise ProtocolError(f"{field}: {text.rsplit(' - at ', 1)[0]}") from exc
-        raise ProtocolError(text) from exc
+        raise _validation_error(str(exc)) from exc
     except msgspec.DecodeError as exc:
-        raise ProtocolError(f"payload: {exc}") from exc
+        raise ProtocolError(f"payload: {exc}", "payload") from exc
+    except RecursionError as exc:
+        raise ProtocolError("payload: nested too deeply", "payload") from exc

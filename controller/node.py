@@ -1,0 +1,603 @@
+"""The controller process: rig + servo loop + Zenoh, the config gate, commands and e-stop.
+
+Threads (the loop's own thread is the main thread, so signals stop it between ticks):
+- main: `Runtime.run()`, the 1 kHz loop (optionally SCHED_FIFO).
+- state publisher: encodes finished sample blocks as StateBatch and puts them.
+- status: Status every `status_period_s`.
+- config worker: decodes ConfigRequest, runs the stability gate (`controller.analysis`) in
+  this process, persists, asks the loop to swap at a tick boundary, waits for it, replies.
+- command worker: decodes Command; an EStop sets the loop's flag before anything else.
+Zenoh callbacks only hand the query to a worker's queue (or, for the e-stop key, set the
+loop's flag); they never decode, block or call Zenoh.
+
+The controller is the single authority: nothing but an accepted candidate changes what runs.
+An operator lease (`dobtune/<rig>/lease`) is not implemented yet: any peer that can reach
+the endpoints may apply configurations and commands (Status.operator stays "").
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import math
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import msgspec
+
+from controller import protocol as proto
+from controller.config import LoopConfig, config_from_builtins
+from controller.errors import ConfigError
+from controller.loop import LoopCoefficients, ServoLoop
+from controller.persistence import PersistenceError, StateStore
+from controller.runtime import (
+    ESTOP,
+    ApplyCoefficients,
+    Rig,
+    Runtime,
+    RuntimeOptions,
+    try_realtime_priority,
+)
+from controller.trajectory import Trajectory
+from controller.zenoh_session import DEFAULT_LISTEN, check_endpoint, open_session
+
+__all__ = ["ControllerOptions", "gate", "margins_dict", "run_controller"]
+
+_SHUTDOWN = object()
+
+
+@dataclass(frozen=True)
+class ControllerOptions:
+    """Everything `run_controller` needs; built by `controller.__main__` from the command line."""
+
+    plant: str = "sim"
+    """"sim" (the simulated rig, in lockstep with the loop) or "can" (needs rig_file)."""
+    rig_file: Path | None = None
+    rig_name: str = "demo"
+    """The `<rig>` chunk of every key."""
+    listen: tuple[str, ...] = DEFAULT_LISTEN
+    connect: tuple[str, ...] = ()
+    config_path: Path | None = None
+    """An initial LoopConfig (JSON). It goes through the gate like any candidate."""
+    state_dir: Path | None = None
+    """Active config + applied-changes log; default ./var/<rig_name>."""
+    rate_hz: float | None = None
+    """Loop rate override (otherwise the configuration's rate_hz)."""
+    seed: int = 0
+    realtime_priority: bool = False
+    trajectory: Trajectory = field(default_factory=Trajectory)
+    status_period_s: float = 0.2
+    max_payload_bytes: int = 64 * 1024
+    """Larger queries are rejected before decoding."""
+    apply_timeout_s: float = 1.0
+    """How long a request waits for the loop's tick boundary before replying with an error."""
+    spin_s: float = 0.0002
+    switch_interval_s: float = 0.0002
+    """sys.setswitchinterval for this process: bounds how long another Python thread can
+    keep the loop's thread waiting for the interpreter lock."""
+    sim_drive_node: bool = False
+    """plant="can" only: run a simulated CiA 402 drive node in this process on the rig
+    file's bus (python-can `virtual`): the whole CAN path without hardware."""
+
+
+# -- the stability gate (one adapter to controller.analysis) ------------------------------------
+
+
+def gate(cfg: LoopConfig) -> tuple[bool, tuple[str, ...], proto.Margins]:
+    """Run the stability analysis; (accepted, reasons, margins). Never raises."""
+    from controller.analysis import analyse
+
+    nan = float("nan")
+    try:
+        a = analyse(cfg)
+    except Exception as exc:
+        empty = proto.Margins(
+            gain_margin_db=nan,
+            phase_margin_deg=nan,
+            peak_sensitivity_db=nan,
+            small_gain_peak=nan,
+            max_pole_radius=nan,
+        )
+        return False, (f"analysis failed: {type(exc).__name__}: {exc}",), empty
+    margins = proto.Margins(
+        gain_margin_db=float(a.gain_margin_db),
+        phase_margin_deg=float(a.phase_margin_deg),
+        peak_sensitivity_db=float(a.peak_sensitivity_db),
+        small_gain_peak=float(a.small_gain_peak),
+        max_pole_radius=float(a.max_pole_radius),
+    )
+    accepted = bool(a.accepted)
+    reasons = tuple(a.reasons) if not accepted else ()
+    if not accepted and not reasons:
+        reasons = ("rejected by the stability analysis",)
+    return accepted, reasons, margins
+
+
+def margins_dict(m: proto.Margins | None) -> dict[str, float] | None:
+    return None if m is None else msgspec.to_builtins(m)  # type: ignore[no-any-return]
+
+
+# -- startup ----------------------------------------------------------------------------------
+
+
+class StartupError(RuntimeError):
+    """The controller cannot start (bad options, a configuration the gate rejects, ...)."""
+
+
+def _initial_config(
+    opts: ControllerOptions, store: StateStore
+) -> tuple[LoopConfig, int, proto.Margins]:
+    """The configuration to start with: --config, else the saved one, else the default;
+    --rate-hz overrides the rate. It must pass the gate; a change is saved and logged."""
+    saved = store.load()
+    if opts.config_path is not None:
+        try:
+            data = msgspec.json.decode(Path(opts.config_path).read_bytes())
+            candidate = config_from_builtins(data)
+        except (OSError, msgspec.DecodeError) as exc:
+            raise StartupError(f"--config {opts.config_path}: {exc}") from exc
+        except ConfigError as exc:
+            raise StartupError(f"--config {opts.config_path}: {exc}") from exc
+        source = f"--config {opts.config_path}"
+    elif saved is not None:
+        candidate = saved.config
+        source = f"saved {store.active_path}"
+    else:
+        candidate = LoopConfig()
+        source = "default"
+    if opts.rate_hz is not None:
+        try:
+            candidate = candidate.with_(rate_hz=opts.rate_hz)
+        except ConfigError as exc:
+            raise StartupError(f"--rate-hz: {exc}") from exc
+    accepted, reasons, margins = gate(candidate)
+    if not accepted:
+        raise StartupError(f"{source}: rejected by the stability gate: " + "; ".join(reasons))
+    if saved is not None and saved.config == candidate:
+        return candidate, saved.version, margins
+    version = (saved.version if saved is not None else 0) + 1
+    store.save(candidate, version)
+    store.append_change(
+        old=None if saved is None else saved.config,
+        old_version=None if saved is None else saved.version,
+        new=candidate,
+        version=version,
+        margins=margins_dict(margins),
+        client=f"startup ({source})",
+    )
+    return candidate, version, margins
+
+
+@contextlib.contextmanager
+def _open_rig(opts: ControllerOptions, rate_hz: float) -> Iterator[tuple[Rig, list[str]]]:
+    """The plant, with anything it needs running; yields (rig, startup faults)."""
+    if opts.plant == "sim":
+        from controller.sim_rig import SimRig
+
+        yield SimRig(rate_hz=rate_hz, seed=opts.seed), []
+        return
+    from controller.can_rig import CanRig, RigFault
+    from controller.rig_file import load_rig_file
+
+    if opts.rig_file is None:
+        raise StartupError("--plant can needs --rig FILE")
+    try:
+        rig_file = load_rig_file(opts.rig_file)
+    except (OSError, ValueError) as exc:
+        raise StartupError(f"--rig {opts.rig_file}: {exc}") from exc
+    with contextlib.ExitStack() as stack:
+        if opts.sim_drive_node:
+            from controller.sim_drive_node import SimDriveNode
+            from controller.sim_rig import SimRig
+
+            plant = SimRig(rate_hz=rate_hz, seed=opts.seed)
+            stack.enter_context(SimDriveNode(rig_file, plant, rate_hz=rate_hz))
+        rig = stack.enter_context(CanRig(rig_file, rate_hz=rate_hz))
+        faults: list[str] = []
+        try:
+            rig.start()
+        except RigFault as exc:
+            faults.append(f"drive did not start: {exc}")
+        yield rig, faults
+
+
+# -- the node ---------------------------------------------------------------------------------
+
+
+class _Node:
+    """The Zenoh side of one controller: handlers, publishers and their threads."""
+
+    def __init__(
+        self,
+        opts: ControllerOptions,
+        runtime: Runtime,
+        store: StateStore,
+        margins: proto.Margins,
+        notes: list[str],
+        log: TextIO,
+    ) -> None:
+        self.opts = opts
+        self.rt = runtime
+        self.store = store
+        self.rig_name = opts.rig_name
+        self.margins = margins
+        self.notes = notes
+        self.log = log
+        self.stop_event = threading.Event()
+        self.config_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.command_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._apply_lock = threading.Lock()
+        self._threads: list[threading.Thread] = []
+        self._entities: list[Any] = []
+        self.state_pub: Any = None
+        self.status_pub: Any = None
+        self.errors: list[str] = []
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def declare(self, session: Any) -> None:
+        import zenoh
+
+        rig = self.rig_name
+        self.state_pub = session.declare_publisher(
+            proto.key_state(rig),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        self.status_pub = session.declare_publisher(
+            proto.key_status(rig), congestion_control=zenoh.CongestionControl.DROP
+        )
+        self._entities += [self.state_pub, self.status_pub]
+        # Callbacks: hand over and return (no decoding, no Zenoh calls, no blocking).
+        self._entities.append(session.declare_queryable(proto.key_config(rig), self.config_q.put))
+        self._entities.append(session.declare_queryable(proto.key_command(rig), self.command_q.put))
+        rt = self.rt
+        self._entities.append(
+            session.declare_subscriber(proto.key_estop(rig), lambda _s: rt.estop("estop key"))
+        )
+
+    def start_threads(self) -> None:
+        for name, target in (
+            ("state-publisher", self._publish_state),
+            ("status", self._publish_status),
+            ("config-worker", self._config_worker),
+            ("command-worker", self._command_worker),
+        ):
+            t = threading.Thread(target=target, name=name, daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def close(self) -> None:
+        """Stop the threads (after the loop has finished), then undeclare everything."""
+        self.stop_event.set()
+        self.config_q.put(_SHUTDOWN)
+        self.command_q.put(_SHUTDOWN)
+        for t in self._threads:
+            t.join(timeout=5.0)
+        for e in reversed(self._entities):
+            with contextlib.suppress(Exception):
+                e.undeclare()
+        self._entities.clear()
+        # Queries that arrived after the workers ended are dropped (the client times out).
+        for q in (self.config_q, self.command_q):
+            with contextlib.suppress(queue.Empty):
+                while True:
+                    item = q.get_nowait()
+                    if item is not _SHUTDOWN:
+                        with contextlib.suppress(Exception):
+                            item.drop()
+
+    def _warn(self, text: str) -> None:
+        self.errors.append(text)
+        del self.errors[:-8]
+        with contextlib.suppress(Exception):
+            print(f"dobtune controller: {text}", file=self.log, flush=True)
+
+    # -- state and status --------------------------------------------------------------------
+
+    def _publish_state(self) -> None:
+        rt = self.rt
+        rig = self.rig_name
+        rate = rt.options.rate_hz
+        encode = proto.encode
+        put = self.state_pub.put
+
+        def sink(seq0: int, version: int, mode: str, cols: Sequence[list[float]]) -> None:
+            msg = proto.StateBatch(
+                rig=rig,
+                seq0=seq0,
+                rate_hz=rate,
+                config_version=version,
+                t_s=cols[0],
+                ref_deg=cols[1],
+                pos_deg=cols[2],
+                speed_deg_s=cols[3],
+                speed_ref_deg_s=cols[4],
+                command_deg_s=cols[5],
+                d_hat_deg_s=cols[6],
+                error_deg=cols[7],
+                epoch_s=rt.epoch_s,
+                mode=mode,
+            )
+            try:
+                put(encode(msg))
+            except Exception as exc:
+                self._warn(f"state put failed: {exc}")
+
+        rt.publisher(sink, self.stop_event)
+
+    def status(self) -> proto.Status:
+        rt = self.rt
+        snap = rt.timing_snapshot()
+        timing = proto.Timing(
+            period_p50_us=snap.period_p50_us,
+            period_p99_us=snap.period_p99_us,
+            period_max_us=snap.period_max_us,
+            compute_p50_us=snap.compute_p50_us,
+            compute_p99_us=snap.compute_p99_us,
+            compute_max_us=snap.compute_max_us,
+            ticks=snap.ticks,
+            overruns=snap.overruns,
+            skipped_ticks=snap.skipped_ticks,
+            dropped_samples=snap.dropped_samples,
+        )
+        faults = [rt.fault] if rt.fault else []
+        if rt.mode == ESTOP:
+            faults.append(f"e-stop ({rt.estop_source}) at seq {rt.estop_seq}")
+        active = rt.loop.active
+        return proto.Status(
+            rig=self.rig_name,
+            plant=self.opts.plant,
+            mode=rt.mode,
+            t_s=time.perf_counter() - rt.t0,
+            seq=rt.seq,
+            trajectory=rt.trajectory,
+            config_version=active.version,
+            config=active.config,
+            timing=timing,
+            faults=faults,
+            estop_seq=rt.estop_seq,
+            notes=[*self.notes, *self.errors],
+        )
+
+    def _publish_status(self) -> None:
+        period = self.opts.status_period_s
+        while not self.stop_event.wait(period):
+            try:
+                self.status_pub.put(proto.encode(self.status()))
+            except Exception as exc:
+                self._warn(f"status put failed: {exc}")
+
+    # -- queries -----------------------------------------------------------------------------
+
+    def _serve(self, q: queue.SimpleQueue[Any], handle: Callable[[bytes], bytes]) -> None:
+        while True:
+            query = q.get()
+            if query is _SHUTDOWN:
+                return
+            try:
+                payload = query.payload
+                data = b"" if payload is None else payload.to_bytes()
+                reply = handle(data)
+                query.reply(query.key_expr, reply)
+            except Exception as exc:  # never let a query end the worker
+                self._warn(f"query handler error: {type(exc).__name__}: {exc}")
+                with contextlib.suppress(Exception):
+                    query.reply_err(f"internal error: {type(exc).__name__}: {exc}".encode())
+            finally:
+                with contextlib.suppress(Exception):
+                    query.drop()
+
+    def _config_worker(self) -> None:
+        self._serve(self.config_q, self.handle_config)
+
+    def _command_worker(self) -> None:
+        self._serve(self.command_q, self.handle_command)
+
+    def _config_reply(self, **kw: Any) -> bytes:
+        active = self.rt.loop.active
+        kw.setdefault("version", active.version)
+        kw.setdefault("config", active.config)
+        return proto.encode(proto.ConfigReply(**kw))
+
+    def _too_large(self, data: bytes) -> str | None:
+        if len(data) > self.opts.max_payload_bytes:
+            return f"payload: {len(data)} bytes is over the limit of {self.opts.max_payload_bytes}"
+        return None
+
+    def handle_config(self, data: bytes) -> bytes:
+        """ConfigRequest -> ConfigReply (always a ConfigReply, also for a malformed request)."""
+        big = self._too_large(data)
+        if big is not None:
+            return self._config_reply(accepted=False, reasons=[big], field="payload")
+        if not data:
+            return self._config_reply(accepted=True, margins=self.margins)
+        try:
+            req = proto.decode(data, proto.ConfigRequest)
+        except proto.ProtocolError as exc:
+            return self._config_reply(accepted=False, reasons=[str(exc)], field=exc.field)
+        if req.candidate is None:
+            return self._config_reply(accepted=True, margins=self.margins)
+        return self.apply(req.candidate, req.client)
+
+    def apply(self, candidate: LoopConfig, client: str) -> bytes:
+        """Gate, persist, swap at a tick boundary, log; one candidate at a time."""
+        with self._apply_lock:
+            active = self.rt.loop.active
+            if candidate.rate_hz != active.config.rate_hz:
+                reason = (
+                    f"candidate.rate_hz: {candidate.rate_hz} Hz differs from the running loop's "
+                    f"{active.config.rate_hz} Hz; the rate changes only on restart (--rate-hz)"
+                )
+                return self._config_reply(
+                    accepted=False, reasons=[reason], field="candidate.rate_hz"
+                )
+            accepted, reasons, margins = gate(candidate)
+            if not accepted:
+                return self._config_reply(accepted=False, reasons=list(reasons), margins=margins)
+            if candidate == active.config:
+                return self._config_reply(accepted=True, margins=margins)
+            version = active.version + 1
+            try:
+                coefficients = LoopCoefficients.build(candidate, version)
+            except Exception as exc:
+                reason = f"candidate: filters could not be built: {exc}"
+                return self._config_reply(accepted=False, reasons=[reason], margins=margins)
+            try:
+                self.store.save(candidate, version)
+            except PersistenceError as exc:
+                reason = f"state_dir: not applied, the configuration could not be saved: {exc}"
+                return self._config_reply(accepted=False, reasons=[reason], margins=margins)
+            ticket = self.rt.submit(ApplyCoefficients(coefficients))
+            if not ticket.wait(self.opts.apply_timeout_s) or not ticket.ok:
+                # Saved but not (yet) swapped: only while shutting down. Report it.
+                reason = f"loop: not applied at a tick boundary ({ticket.message or 'timeout'})"
+                return self._config_reply(accepted=False, reasons=[reason], margins=margins)
+            self._wait_version(version)
+            self.margins = margins
+            try:
+                self.store.append_change(
+                    old=active.config,
+                    old_version=active.version,
+                    new=candidate,
+                    version=version,
+                    margins=margins_dict(margins),
+                    client=client,
+                )
+            except PersistenceError as exc:
+                self._warn(str(exc))
+            return self._config_reply(
+                accepted=True, version=version, config=candidate, margins=margins
+            )
+
+    def _wait_version(self, version: int) -> None:
+        # The loop swaps at the start of the tick that served the ticket; this returns at
+        # once unless that tick is still running.
+        deadline = time.monotonic() + self.opts.apply_timeout_s
+        while self.rt.loop.active.version < version and time.monotonic() < deadline:
+            time.sleep(0.0005)
+
+    def handle_command(self, data: bytes) -> bytes:
+        """Command -> CommandReply. An EStop engages before the payload is even validated
+        further than its type."""
+        rt = self.rt
+        big = self._too_large(data)
+        if big is not None:
+            return proto.encode(
+                proto.CommandReply(ok=False, message=big, mode=rt.mode, field="payload")
+            )
+        try:
+            cmd = proto.decode(data, proto.Command)
+        except proto.ProtocolError as exc:
+            return proto.encode(
+                proto.CommandReply(ok=False, message=str(exc), mode=rt.mode, field=exc.field)
+            )
+        ticket = rt.submit(cmd.body)  # EStop: the loop's flag is set inside submit
+        if not ticket.wait(self.opts.apply_timeout_s):
+            return proto.encode(
+                proto.CommandReply(
+                    ok=False,
+                    message="loop did not reach a tick boundary in time",
+                    mode=rt.mode,
+                    received_seq=ticket.received_seq,
+                )
+            )
+        return proto.encode(
+            proto.CommandReply(
+                ok=ticket.ok,
+                message=ticket.message,
+                mode=ticket.mode,
+                seq=ticket.seq,
+                received_seq=ticket.received_seq,
+            )
+        )
+
+
+def _check_options(opts: ControllerOptions) -> None:
+    if opts.plant not in ("sim", "can"):
+        raise StartupError(f"--plant: expected sim or can, got {opts.plant!r}")
+    try:
+        proto.check_rig_name(opts.rig_name)
+        for e in (*opts.listen, *opts.connect):
+            check_endpoint(e)
+    except ValueError as exc:
+        raise StartupError(str(exc)) from exc
+    if opts.rate_hz is not None and not math.isfinite(opts.rate_hz):
+        raise StartupError(f"--rate-hz: must be finite, got {opts.rate_hz}")
+    if not (0.01 <= opts.status_period_s <= 10.0):
+        raise StartupError(f"status_period_s: {opts.status_period_s} out of range [0.01, 10]")
+
+
+def run_controller(opts: ControllerOptions, *, log: TextIO | None = None) -> int:
+    """Run the controller until SIGINT/SIGTERM; 0 on a clean stop, 2 if it cannot start."""
+    out = log if log is not None else sys.stderr
+    try:
+        _check_options(opts)
+        state_dir = opts.state_dir if opts.state_dir is not None else Path("var") / opts.rig_name
+        store = StateStore(state_dir)
+        cfg, version, margins = _initial_config(opts, store)
+    except (StartupError, PersistenceError) as exc:
+        print(f"dobtune controller: {exc}", file=out, flush=True)
+        return 2
+
+    previous_switch = sys.getswitchinterval()
+    sys.setswitchinterval(opts.switch_interval_s)
+    runtime: Runtime | None = None
+    stopping = threading.Event()
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        stopping.set()
+        if runtime is not None:
+            runtime.stop()
+
+    previous_handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with _open_rig(opts, cfg.rate_hz) as (rig, rig_faults):
+            loop = ServoLoop(LoopCoefficients.build(cfg, version))
+            runtime = Runtime(
+                loop,
+                rig,
+                options=RuntimeOptions(rate_hz=cfg.rate_hz, spin_s=opts.spin_s),
+                trajectory=opts.trajectory,
+            )
+            if rig_faults:
+                runtime.fault = rig_faults[0]
+                runtime.mode = "fault"
+            notes: list[str] = []
+            with open_session(opts.listen, opts.connect) as session:
+                node = _Node(opts, runtime, store, margins, notes, out)
+                try:
+                    node.declare(session)
+                    node.start_threads()
+                    if opts.realtime_priority:
+                        notes.append(try_realtime_priority())
+                    gc.collect()
+                    gc.freeze()  # what exists now is never scanned again (fewer GC pauses)
+                    print(
+                        f"dobtune controller: rig {opts.rig_name!r} plant {opts.plant} at "
+                        f"{cfg.rate_hz:g} Hz, config v{version}, listening on "
+                        f"{', '.join(opts.listen) or '-'}",
+                        file=out,
+                        flush=True,
+                    )
+                    if not stopping.is_set():
+                        runtime.run()
+                finally:
+                    runtime.stop()
+                    node.close()
+    except StartupError as exc:
+        print(f"dobtune controller: {exc}", file=out, flush=True)
+        return 2
+    finally:
+        for s, h in previous_handlers.items():
+            signal.signal(s, h)
+        sys.setswitchinterval(previous_switch)
+    print("dobtune controller: stopped", file=out, flush=True)
+    return 0
