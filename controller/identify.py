@@ -505,8 +505,8 @@ def _pitch_lock(spec: IdentifySpec, exc: SteppedSine | Multisine, i: int, amp: f
     number ``j`` of `periodic_pitch_deg`.
 
     A disturbance periodic in position (a belt tooth) then runs ``j`` whole cycles over the
-    record, which is orthogonal to every DFT bin but bin ``j``; ``j`` and ``2 j`` are kept off
-    the excited bins. Returns ``amp`` unchanged when less than one pitch is travelled.
+    record, which is orthogonal to every DFT bin but bin ``j``; ``j`` (and ``2 j`` if possible)
+    are kept off the excited bins. Returns ``amp`` unchanged when no such ``j >= 1`` exists.
     """
     pitch = spec.periodic_pitch_deg
     if pitch is None:
@@ -520,10 +520,11 @@ def _pitch_lock(spec: IdentifySpec, exc: SteppedSine | Multisine, i: int, amp: f
         p = exc.spec.n_periods
         t_meas = p * exc.spec.period_samples / fs
         excited = {int(k) * p for k in exc.bins}
-    v0 = spec.offset_ratio * amp
-    for j in range(math.floor(v0 * t_meas / pitch + 1e-9), 0, -1):
-        if j not in excited and 2 * j not in excited:
-            return j * pitch / t_meas / spec.offset_ratio
+    j0 = math.floor(spec.offset_ratio * amp * t_meas / pitch + 1e-9)
+    for harmonics in ((1, 2), (1,)):  # keep the second harmonic off too if possible
+        for j in range(j0, 0, -1):
+            if all(h * j not in excited for h in harmonics):
+                return j * pitch / t_meas / spec.offset_ratio
     return amp
 
 

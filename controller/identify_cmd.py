@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -26,6 +27,7 @@ from controller.identify import (
     IdentifyResult,
     IdentifySpec,
     PositionRecord,
+    RigLike,
     run_identification,
 )
 
@@ -317,10 +319,12 @@ def identify_main(
     *,
     cfg: LoopConfig | None = None,
     spec_overrides: dict[str, Any] | None = None,
+    rig_factory: Callable[[], RigLike] | None = None,
 ) -> int:
     """Run the identification and report; returns the exit code (0 ok, 1 aborted, 2 bad input).
 
-    ``spec_overrides`` sets further `IdentifySpec` fields (tests use it for short runs).
+    ``spec_overrides`` sets further `IdentifySpec` fields (tests use it for short runs);
+    ``rig_factory`` replaces the simulated rig (tests: a faulty rig).
     """
     if connect is not None:
         if plant is not None:
@@ -354,7 +358,7 @@ def identify_main(
     t0 = time.perf_counter()
     code = EXIT_OK
     try:
-        result = run_identification(spec, loop_cfg, progress=progress)
+        result = run_identification(spec, loop_cfg, rig_factory, progress)
     except ConfigError as exc:
         progress.done()
         flag = _FLAGS.get(exc.field, exc.field)
