@@ -155,20 +155,20 @@ def test_recommended_q31_is_accepted_and_1p5x_is_rejected(open_sine: IdentifyRes
 def test_limit_hit_aborts_cleanly_back_to_hold() -> None:
     @dataclass
     class Push:
-        """Someone pushes the table: a load torque beyond what the drive can hold."""
+        """Someone shoves the table: a load torque beyond what the drive can hold, briefly."""
 
         t0_s: float
-        duration_s: float = 0.5
-        amplitude_n_m: float = 36.0
+        duration_s: float = 0.15
+        amplitude_n_m: float = 40.0
 
         def torque_n_m(self, time_s: float) -> float:
             return self.amplitude_n_m if self.t0_s <= time_s < self.t0_s + self.duration_s else 0.0
 
     spec = IdentifySpec(
         f_min_hz=0.5, f_max_hz=5.0, points_per_decade=4, min_measure_s=1.0, positions=2,
-        window_deg=20.0, hold_s=2.0,
+        window_deg=20.0, hold_s=3.0,
     )  # fmt: skip
-    # an undisturbed run takes ~50 s; push during the second position's third frequency
+    # an undisturbed run takes ~56 s; the shove comes during the second position's 2nd point
     rig = SimRig(disturbance=Push(t0_s=42.0))
     with pytest.raises(IdentifyAborted) as info:
         run_identification(spec, LoopConfig(), rig_factory=lambda: rig)
@@ -192,11 +192,14 @@ def test_limit_hit_aborts_cleanly_back_to_hold() -> None:
     assert np.all(raw.u_deg_s[start : start + n_stop] == 0.0)  # command 0 first
     hold = slice(start + n_stop, None)
     assert np.all(raw.x_deg_s[hold] == 0.0) and np.all(raw.offset_deg_s[hold] == 0.0)
-    # then the position loop holds: the speed settles to ~0 and the position stays put
-    tail = slice(-200, None)
-    assert np.max(np.abs(raw.w_deg_s[tail])) < 0.1  # quantisation-level rate noise
-    assert np.ptp(raw.pos_deg[tail]) < 0.01
-    assert abs(rig.true_speed_deg_s) < 0.05
+    assert np.any(raw.u_deg_s[hold] != 0.0)  # the position loop is acting
+    # then the position loop holds where the load stopped: over the last second the speed
+    # averages ~0 and the position stays within the stiction limit cycle (control.md, 5.)
+    ref = raw.pos_deg[start + n_stop]
+    tail = slice(-1000, None)
+    assert abs(float(np.mean(raw.w_deg_s[tail]))) < 0.2
+    assert np.max(np.abs(raw.pos_deg[tail] - ref)) < 0.25
+    assert np.ptp(raw.pos_deg[tail]) < 0.25
 
 
 def test_duration_and_window_are_checked_before_anything_moves() -> None:
