@@ -390,6 +390,8 @@ class IdentifyResult:
     """The same with the configuration's own nominal model (if the fit is not adopted)."""
     gate_checks: tuple[GateCheck, ...] = ()
     """Q31 at the recommended cut-off and at 1.5x it (fitted nominal)."""
+    notes: tuple[str, ...] = ()
+    """What could not be done as asked (fit band widened, no usable fit, ...)."""
 
     @property
     def fitted_config(self) -> LoopConfig | None:
@@ -847,7 +849,7 @@ def _estimate(
     return _continuous(sampled, rate_hz), sampled
 
 
-def _fit(spec: IdentifySpec, estimates: list[FrdEstimate]) -> SecondOrderFit:
+def _fit(spec: IdentifySpec, estimates: list[FrdEstimate], notes: list[str]) -> SecondOrderFit:
     """Unit-DC second order on all positions together, inverse-variance weights with a floor.
 
     The weights are ``1 / (var + floor^2)``: the between-period variance of each point plus
@@ -856,12 +858,21 @@ def _fit(spec: IdentifySpec, estimates: list[FrdEstimate]) -> SecondOrderFit:
     """
     var = np.concatenate([1.0 / frd_weights(e) for e in estimates])
     weights = 1.0 / (np.nan_to_num(var, nan=0.0, posinf=1e12) + spec.fit_error_floor**2)
+    f = np.concatenate([e.freq_hz for e in estimates])
+    lo, hi = spec.fit_f_lo_hz, spec.fit_f_hi_hz
+    in_band = np.unique(f[(f >= (lo or 0.0)) & (f <= (hi or math.inf))])
+    if in_band.size < 3:
+        notes.append(
+            f"only {in_band.size} measured frequencies in the fit band "
+            f"[{lo or 'min'}, {hi or 'max'}] Hz: fitted over the whole measured band instead"
+        )
+        lo = hi = None
     return fit_second_order(
-        np.concatenate([e.freq_hz for e in estimates]),
+        f,
         np.concatenate([e.response for e in estimates]),
         model="unit_dc",
-        f_lo_hz=spec.fit_f_lo_hz,
-        f_hi_hz=spec.fit_f_hi_hz,
+        f_lo_hz=lo,
+        f_hi_hz=hi,
         weights=weights,
     )
 
@@ -883,31 +894,42 @@ def _analyse_result(spec: IdentifySpec, cfg: LoopConfig, result: IdentifyResult)
         if len(estimates) >= 2
         else None
     )
-    fit = _fit(spec, estimates)
-    unc = uncertainty_bound(fit, estimates)
+    notes: list[str] = []
+    fit: SecondOrderFit | None = None
+    unc: ModelUncertainty | None = None
+    nominal: NominalModel | None = None
     try:
-        nominal: NominalModel | None = fitted_nominal(fit, cfg.nominal)
-    except ConfigError:
-        nominal = None  # not a stable, damped second order: no recommendation
+        fit = _fit(spec, estimates, notes)
+    except ValueError as exc:
+        notes.append(f"no fit: {exc}")
+    if fit is not None:
+        unc = uncertainty_bound(fit, estimates)
+        try:
+            nominal = fitted_nominal(fit, cfg.nominal)
+        except ConfigError as exc:  # not a stable, damped second order
+            notes.append(f"the fit is not a usable nominal model ({exc})")
     rec: dict[str, float | None] = {}
     rec_config: dict[str, float | None] = {}
     checks: list[GateCheck] = []
     measured = result.measured_responses()
-    if measured:
-        plant = PlantKnowledge(measured=measured)
-        for qt in ("q31", "q20"):
-            rec_config[qt] = recommended_max_cutoff_hz(cfg, plant, q_type=qt)
-    if nominal is not None and measured:
-        gate_cfg = cfg.with_(nominal=nominal, dob_on=True)
-        for qt in ("q31", "q20"):
-            rec[qt] = recommended_max_cutoff_hz(gate_cfg, plant, q_type=qt)
-        r31 = rec["q31"]
-        if r31 is not None:
-            for fc in (r31, 1.5 * r31):
-                if fc >= 0.5 * cfg.rate_hz:
-                    continue
-                a = analyse(gate_cfg.with_(q_type="q31", q_cutoff_hz=fc), plant)
-                checks.append(GateCheck("q31", fc, a.accepted, a.small_gain_peak, a.reasons))
+    try:
+        if measured:
+            plant = PlantKnowledge(measured=measured)
+            for qt in ("q31", "q20"):
+                rec_config[qt] = recommended_max_cutoff_hz(cfg, plant, q_type=qt)
+        if nominal is not None and measured:
+            gate_cfg = cfg.with_(nominal=nominal, dob_on=True)
+            for qt in ("q31", "q20"):
+                rec[qt] = recommended_max_cutoff_hz(gate_cfg, plant, q_type=qt)
+            r31 = rec["q31"]
+            if r31 is not None:
+                for fc in (r31, 1.5 * r31):
+                    if fc >= 0.5 * cfg.rate_hz:
+                        continue
+                    a = analyse(gate_cfg.with_(q_type="q31", q_cutoff_hz=fc), plant)
+                    checks.append(GateCheck("q31", fc, a.accepted, a.small_gain_peak, a.reasons))
+    except ValueError as exc:
+        notes.append(f"the gate could not use the measured responses: {exc}")
     return dataclasses.replace(
         result,
         agreement=agree,
@@ -917,6 +939,7 @@ def _analyse_result(spec: IdentifySpec, cfg: LoopConfig, result: IdentifyResult)
         recommended_cutoff_hz=rec,
         recommended_cutoff_hz_config=rec_config,
         gate_checks=tuple(checks),
+        notes=tuple(notes),
     )
 
 
@@ -967,13 +990,14 @@ def run_identification(
         run.center = c
         done = 0
         try:
-            run.window_on = False
-            run.label = f"position {i + 1}/{n_pos}: moving to {c:g} deg"
-            run.move_to(c + segments[0].start_rel_deg)
-            run.window_on = True
-            for seg in segments:
+            for k, seg in enumerate(segments):
                 target = c + seg.start_rel_deg
-                if seg.reposition or abs(rig.read()[0] - target) > tol:
+                if k == 0:  # the move between positions: no window yet
+                    run.window_on = False
+                    run.label = f"position {i + 1}/{n_pos}: moving to {c:g} deg"
+                    run.move_to(target)
+                    run.window_on = True
+                elif seg.reposition or abs(rig.read()[0] - target) > tol:
                     run.label = f"position {i + 1}/{n_pos}: repositioning"
                     run.move_to(target)
                 run.label = _segment_label(exc, seg, i, n_pos, len(segments))

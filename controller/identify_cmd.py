@@ -157,6 +157,7 @@ def summary_json(
             }
             for g in result.gate_checks
         ],
+        "notes": list(result.notes),
         "config": config_to_builtins(result.config),
     }
 
@@ -258,6 +259,7 @@ def report_text(summary: dict[str, Any], out_dir: Path) -> str:
         verdict = "accept" if g["accepted"] else "REJECT"
         why = f" ({g['reasons'][0]})" if g["reasons"] else ""
         lines.append(f"  gate at {g['q_type'].upper()} {g['cutoff_hz']:.3g} Hz: {verdict}{why}")
+    lines += [f"  note: {n}" for n in summary["notes"]]
     if not summary["complete"]:
         lines.append(f"ABORTED: {summary['abort_reason']} (partial data kept)")
     lines.append(

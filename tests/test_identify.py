@@ -403,3 +403,12 @@ def test_identify_subcommand_is_registered() -> None:
         8.0,
     )
     assert (args.positions, args.amplitude_deg_s, args.out, args.json) == (2, 5.0, Path("x"), True)
+
+
+def test_fit_band_without_data_is_widened_and_noted() -> None:
+    spec = IdentifySpec(f_min_hz=12.0, f_max_hz=40.0, positions=1, min_measure_s=0.5)
+    result = run_identification(spec, LoopConfig())
+    assert result.complete and result.fit is not None
+    f = result.positions[0].estimate.freq_hz  # type: ignore[union-attr]
+    assert result.fit.f_lo_hz == f[0] and result.fit.n_points == f.size
+    assert any("fit band" in n for n in result.notes)
