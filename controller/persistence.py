@@ -112,6 +112,7 @@ class StateStore:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=self.directory)
         try:
             try:
+                os.fchmod(fd, 0o644)  # mkstemp's 0600 would hide the file from other tools
                 view = memoryview(data)
                 while view:
                     n = os.write(fd, view)

@@ -1,0 +1,123 @@
+"""Active configuration saved atomically and restored; the applied-changes log."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from controller.config import LoopConfig
+from controller.persistence import ACTIVE_FILE, PersistenceError, StateStore
+
+
+def test_nothing_saved_yet(tmp_path: Path) -> None:
+    store = StateStore(tmp_path / "new" / "dir")
+    assert store.directory.is_dir()
+    assert store.load() is None
+    assert store.read_changes() == []
+
+
+def test_save_then_load_round_trips(tmp_path: Path) -> None:
+    store = StateStore(tmp_path)
+    cfg = LoopConfig(q_cutoff_hz=0.8, ff_on=True, q_type="q20")
+    store.save(cfg, 7)
+    got = StateStore(tmp_path).load()
+    assert got is not None
+    assert got.config == cfg and got.version == 7 and got.saved_at_s > 0
+    doc = json.loads((tmp_path / ACTIVE_FILE).read_text())
+    assert doc["version"] == 7 and doc["config"]["q_type"] == "q20"
+
+
+def test_save_replaces_atomically_and_leaves_no_temporary_files(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    store = StateStore(tmp_path)
+    store.save(LoopConfig(), 1)
+    calls: list[tuple[str, str]] = []
+    real_replace = os.replace
+
+    def spy(src: str, dst: str) -> None:
+        calls.append((str(src), str(dst)))
+        # The new content is complete in the temporary file before the rename.
+        assert json.loads(Path(src).read_text())["version"] == 2
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", spy)
+    store.save(LoopConfig(cv_kp=0.6), 2)
+    assert len(calls) == 1 and calls[0][1] == str(tmp_path / ACTIVE_FILE)
+    assert Path(calls[0][0]).parent == tmp_path
+    assert sorted(p.name for p in tmp_path.iterdir()) == [ACTIVE_FILE]
+
+
+def test_a_failed_write_keeps_the_old_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    store = StateStore(tmp_path)
+    store.save(LoopConfig(), 1)
+    before = (tmp_path / ACTIVE_FILE).read_bytes()
+
+    def broken_fsync(fd: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", broken_fsync)
+    with pytest.raises(PersistenceError, match="cannot write"):
+        store.save(LoopConfig(cv_kp=0.7), 2)
+    assert (tmp_path / ACTIVE_FILE).read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == [ACTIVE_FILE]
+
+
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [
+        (b"{not json", "not valid JSON"),
+        (b"[1, 2]", "JSON object"),
+        (b'{"version": -1, "config": {}}', "version"),
+        (b'{"version": 3, "config": {"cv_kp": "x"}}', "config.cv_kp"),
+        (b'{"version": 3, "config": {"q_cutoff_hz": 900.0}}', "q_cutoff_hz"),
+    ],
+)
+def test_an_invalid_saved_file_is_an_error_not_a_silent_default(
+    tmp_path: Path, content: bytes, match: str
+) -> None:
+    (tmp_path / ACTIVE_FILE).write_bytes(content)
+    with pytest.raises(PersistenceError, match=match):
+        StateStore(tmp_path).load()
+
+
+def test_change_log_appends_one_line_per_change(tmp_path: Path) -> None:
+    store = StateStore(tmp_path)
+    a, b = LoopConfig(), LoopConfig(q_cutoff_hz=1.0)
+    store.append_change(old=None, old_version=None, new=a, version=1, margins=None, time_s=10.0)
+    margins = {
+        "gain_margin_db": float("inf"),
+        "phase_margin_deg": 55.0,
+        "small_gain_peak": float("nan"),
+    }
+    store.append_change(old=a, old_version=1, new=b, version=2, margins=margins, client="dash")
+    lines = (tmp_path / "applied_changes.jsonl").read_text().splitlines()
+    assert len(lines) == 2
+    entries = [json.loads(x) for x in lines]  # strict JSON: inf/nan became null
+    assert entries[0]["time_s"] == 10.0 and entries[0]["old"] is None
+    assert entries[1]["old"]["q_cutoff_hz"] == 0.5 and entries[1]["new"]["q_cutoff_hz"] == 1.0
+    assert entries[1]["margins"] == {
+        "gain_margin_db": None,
+        "phase_margin_deg": 55.0,
+        "small_gain_peak": None,
+    }
+    assert entries[1]["client"] == "dash" and entries[1]["old_version"] == 1
+    assert store.read_changes() == entries
+
+
+def test_a_torn_last_log_line_is_skipped(tmp_path: Path) -> None:
+    store = StateStore(tmp_path)
+    store.append_change(old=None, old_version=None, new=LoopConfig(), version=1, margins=None)
+    with open(tmp_path / "applied_changes.jsonl", "ab") as f:
+        f.write(b'{"time_s": 1.0, "vers')
+    assert [e["version"] for e in store.read_changes()] == [1]
+
+
+def test_unwritable_directory_is_reported(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(PersistenceError, match="state_dir"):
+        StateStore(blocker / "sub")

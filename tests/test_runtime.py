@@ -1,0 +1,356 @@
+"""The real-time runtime: scheduling (fake clock), sample hand-off, requests, e-stop, faults."""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import tracemalloc
+from collections.abc import Sequence
+
+import pytest
+
+from controller.config import LoopConfig
+from controller.loop import LoopCoefficients, ServoLoop
+from controller.protocol import EStop, ResetFault, SetTrajectory, Start, Stop
+from controller.runtime import (
+    COLUMNS,
+    ESTOP,
+    FAULT,
+    RUNNING,
+    STOPPED,
+    ApplyCoefficients,
+    Runtime,
+    RuntimeOptions,
+)
+from controller.sim_rig import SimRig
+from controller.trajectory import Trajectory
+
+CMD = COLUMNS.index("command_deg_s")
+
+
+class FakeClock:
+    """Time advances only through sleep(), rig work, and 1 us per clock read (so spins end)."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+        self.sleeps: list[float] = []
+
+    def clock(self) -> float:
+        self.now += 1e-6
+        return self.now
+
+    def sleep(self, s: float) -> None:
+        assert s >= 0.0
+        self.sleeps.append(s)
+        self.now += s
+
+
+class FakeRig:
+    """Records commands; each step costs `cost_s[k]` of fake time; may report a fault."""
+
+    def __init__(self, clock: FakeClock | None = None, cost_s: dict[int, float] | None = None):
+        self.clock = clock
+        self.cost_s = cost_s or {}
+        self.commands: list[float] = []
+        self.step_times: list[float] = []
+        self.fault: str | None = None
+        self.stops = 0
+        self.starts = 0
+        self.pos = 0.0
+
+    def read(self) -> tuple[float, float]:
+        return self.pos, 0.0
+
+    def step(self, command_deg_s: float) -> None:
+        k = len(self.commands)
+        self.commands.append(command_deg_s)
+        if self.clock is not None:
+            self.step_times.append(self.clock.now)
+            self.clock.now += self.cost_s.get(k, 0.0)
+        self.pos += command_deg_s * 1e-3
+
+    def stop(self) -> None:
+        self.stops += 1
+
+    def start(self) -> None:
+        self.starts += 1
+
+
+def make_loop(version: int = 1, **cfg: object) -> ServoLoop:
+    return ServoLoop(LoopCoefficients.build(LoopConfig(**cfg), version))  # type: ignore[arg-type]
+
+
+class Collector:
+    def __init__(self) -> None:
+        self.batches: list[tuple[int, int, str, list[list[float]]]] = []
+
+    def __call__(self, seq0: int, version: int, mode: str, cols: Sequence[list[float]]) -> None:
+        self.batches.append((seq0, version, mode, [list(c) for c in cols]))
+
+    def column(self, name: str) -> list[float]:
+        i = COLUMNS.index(name)
+        return [x for b in self.batches for x in b[3][i]]
+
+    def per_sample(self, what: int) -> list[object]:
+        return [b[what] for b in self.batches for _ in b[3][0]]
+
+
+def run_with_publisher(rt: Runtime, ticks: int) -> Collector:
+    col = Collector()
+    stop = threading.Event()
+    th = threading.Thread(target=rt.publisher, args=(col, stop, 0.001))
+    th.start()
+    try:
+        rt.run(max_ticks=ticks)
+    finally:
+        stop.set()
+        th.join(10.0)
+    assert not th.is_alive()
+    return col
+
+
+# -- scheduling ---------------------------------------------------------------------------------
+
+
+def test_ticks_start_on_the_deadline_grid() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc)
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt.run(max_ticks=50)
+    starts = [t - rig.step_times[0] for t in rig.step_times[:50]]  # then the shutdown's 0
+    for k, t in enumerate(starts):
+        assert t == pytest.approx(k * 1e-3, abs=2e-5)
+    assert rt.overruns == 0 and rt.skipped_ticks == 0
+    # It slept most of each period and spun only the last `spin_s`.
+    assert all(s == pytest.approx(1e-3 - 2e-4, abs=5e-5) for s in fc.sleeps[1:])
+
+
+def test_overrun_skips_ahead_instead_of_bursting() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc, cost_s={5: 3.5e-3})  # tick 5 takes 3.5 periods
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt.run(max_ticks=20)
+    t = [x - rig.step_times[0] for x in rig.step_times]
+    assert rt.overruns == 1
+    assert rt.skipped_ticks == 2  # deadlines at 6 and 7 ms are given up
+    # Tick 6 starts right after the long tick (late), tick 7 on the grid again at 9 ms:
+    # never two ticks back to back to catch up.
+    assert t[6] == pytest.approx(8.5e-3, abs=3e-5)
+    assert t[7] == pytest.approx(9.0e-3, abs=3e-5)
+    gaps = [b - a for a, b in itertools.pairwise(t[6:20])]
+    assert min(gaps) > 0.4e-3
+    snap = rt.timing_snapshot()
+    assert snap.overruns == 1 and snap.period_max_us > 3000
+
+
+def test_late_tick_within_a_period_runs_at_once_without_skipping() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc, cost_s={3: 1.4e-3})
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt.run(max_ticks=10)
+    assert rt.overruns == 1 and rt.skipped_ticks == 0
+    t = [x - rig.step_times[0] for x in rig.step_times]
+    assert t[4] == pytest.approx(3e-3 + 1.4e-3, abs=3e-5)
+    assert t[5] == pytest.approx(5e-3, abs=3e-5)
+
+
+def test_timing_snapshot_covers_ticks_since_the_previous_one() -> None:
+    fc = FakeClock()
+    rt = Runtime(make_loop(), FakeRig(fc), clock=fc.clock, sleep=fc.sleep)
+    rt.run(max_ticks=100)
+    a = rt.timing_snapshot()
+    assert a.samples == 99 and a.ticks == 100
+    assert a.period_p50_us == pytest.approx(1000.0, abs=20.0)
+    b = rt.timing_snapshot()
+    assert b.samples == 0
+
+
+# -- samples --------------------------------------------------------------------------------------
+
+
+def test_every_sample_reaches_the_publisher_in_order() -> None:
+    rt = Runtime(make_loop(), SimRig(), options=RuntimeOptions(batch_size=20))
+    col = run_with_publisher(rt, 500)
+    seq = [b[0] for b in col.batches]
+    assert seq == list(range(0, 500, 20))
+    assert len(col.column("t_s")) == 500
+    t = col.column("t_s")
+    assert all(b > a for a, b in itertools.pairwise(t))
+    assert rt.dropped_samples == 0
+    # error = ref - pos, and the loop tracks the sine start.
+    ref, pos, err = col.column("ref_deg"), col.column("pos_deg"), col.column("error_deg")
+    assert all(e == pytest.approx(r - p) for r, p, e in zip(ref, pos, err, strict=True))
+
+
+def test_a_stalled_publisher_makes_counted_gaps_not_a_stalled_loop() -> None:
+    fc = FakeClock()
+    rt = Runtime(
+        make_loop(),
+        FakeRig(fc),
+        options=RuntimeOptions(batch_size=10, ring_blocks=3),
+        clock=fc.clock,
+        sleep=fc.sleep,
+    )
+    rt.run(max_ticks=100)  # nobody consumes
+    assert rt.ticks == 100
+    assert rt.dropped_samples == 100 - 30
+    col = Collector()
+    stop = threading.Event()
+    stop.set()
+    rt.publisher(col, stop, 0.001)  # flushes what was kept: the first 30, in order
+    assert [b[0] for b in col.batches] == [0, 10, 20]
+
+
+class NullRig:
+    def read(self) -> tuple[float, float]:
+        return 0.1, 0.2
+
+    def step(self, command_deg_s: float) -> None:
+        pass
+
+
+def test_the_tick_allocates_nothing_that_stays() -> None:
+    # (SimRig refills its noise block every 4096 ticks, outside the loop's control.)
+    rt = Runtime(make_loop(), NullRig(), options=RuntimeOptions(ring_blocks=8, batch_size=20))
+    tick = rt._tick
+    for k in range(400):  # warm up: every block of the ring written once
+        tick(k * 1e-3)
+        rt._ring.consumed = rt._ring.produced
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for k in range(400, 5400):
+            tick(k * 1e-3)
+            rt._ring.consumed = rt._ring.produced
+        after = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    assert after - before < 4096, after - before
+
+
+# -- requests -------------------------------------------------------------------------------------
+
+
+def test_new_coefficients_take_effect_at_a_tick_boundary_and_split_the_batch() -> None:
+    loop = make_loop(1)
+    rt = Runtime(loop, SimRig(), options=RuntimeOptions(batch_size=20))
+    new = LoopCoefficients.build(LoopConfig(q_cutoff_hz=1.0), 2)
+    col = Collector()
+    stop = threading.Event()
+    th = threading.Thread(target=rt.publisher, args=(col, stop, 0.001))
+    th.start()
+    runner = threading.Thread(target=rt.run, kwargs={"max_ticks": 300})
+    runner.start()
+    assert rt.running.wait(5.0)
+    ticket = rt.submit(ApplyCoefficients(new))
+    assert ticket.wait(5.0) and ticket.ok
+    runner.join(10.0)
+    stop.set()
+    th.join(10.0)
+    versions = col.per_sample(1)
+    first_new = versions.index(2)
+    assert first_new == ticket.seq
+    assert set(versions[:first_new]) == {1} and set(versions[first_new:]) == {2}
+    assert all(len(set(b[3][0])) == len(b[3][0]) for b in col.batches)  # homogeneous blocks
+    assert rt.config_version == 2
+
+
+def test_estop_zeroes_the_command_from_the_next_tick_and_stops_the_drive() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc)
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt.run(max_ticks=200)
+    assert abs(rig.commands[199]) > 0.0
+    stops = rig.stops
+    rt.estop("test")
+    rt._stop = False
+    rt.run(max_ticks=5)
+    assert rt.mode == ESTOP and rt.estop_seq == 200 and rt.estop_source == "test"
+    assert rig.commands[201:206] == [0.0] * 5  # [200] is the first run's shutdown
+    assert rig.stops > stops + 1
+    # Start is refused until reset; reset holds the present position.
+    t_start = rt.submit(Start())
+    t_reset = rt.submit(ResetFault())
+    t_start2 = rt.submit(Start())
+    rt._stop = False
+    rt.run(max_ticks=1)
+    assert not t_start.ok and "reset" in t_start.message
+    assert t_reset.ok and rig.starts == 1
+    assert t_start2.ok and t_start2.mode == RUNNING
+
+
+def test_estop_ticket_reports_the_tick_it_took_effect() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc)
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt.run(max_ticks=10)
+    t = rt.submit(EStop())
+    rt._stop = False
+    rt.run(max_ticks=2)
+    assert t.ok and t.seq == 10 and t.received_seq == 9 and t.mode == ESTOP
+    assert rig.commands[9] != 0.0 and rig.commands[11] == 0.0  # [10]: the shutdown
+
+
+def test_rig_fault_gives_command_zero_and_keeps_ticking() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc)
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt.run(max_ticks=100)
+    rig.fault = "no complete feedback for 3 ticks"
+    rt._stop = False
+    rt.run(max_ticks=10)
+    assert rt.mode == FAULT and rt.fault == rig.fault
+    assert rig.commands[101:] == [0.0] * 11 and rig.stops >= 1
+    assert rt.ticks == 110
+
+
+def test_rig_exception_is_a_fault_not_a_crash() -> None:
+    class Broken(FakeRig):
+        def read(self) -> tuple[float, float]:
+            raise OSError("bus gone")
+
+    fc = FakeClock()
+    rig = Broken(fc)
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt.run(max_ticks=5)
+    assert rt.mode == FAULT and "bus gone" in (rt.fault or "")
+    assert rig.commands == [0.0] * 6  # 5 ticks and the shutdown
+
+
+def test_stop_holds_position_and_start_resumes_the_trajectory() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc)
+    traj = Trajectory(kind="ramp", slope_deg_s=2.0)
+    rt = Runtime(make_loop(), rig, trajectory=traj, clock=fc.clock, sleep=fc.sleep)
+    rt.run(max_ticks=50)
+    t_stop = rt.submit(Stop())
+    rt._stop = False
+    rt.run(max_ticks=1)
+    assert t_stop.ok and rt.mode == STOPPED
+    assert rt.trajectory.kind == "hold"
+    new = Trajectory(kind="hold", offset_deg=1.0)
+    t_set = rt.submit(SetTrajectory(trajectory=new))
+    t_start = rt.submit(Start())
+    rt._stop = False
+    rt.run(max_ticks=1)
+    assert t_set.ok and t_start.ok and rt.mode == RUNNING and rt.trajectory == new
+
+
+def test_shutdown_commands_zero_and_answers_late_requests() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc)
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt.run(max_ticks=100)
+    assert rig.commands[-1] == 0.0 and rig.stops == 1
+    late = rt.submit(Start())
+    rt._shutdown()
+    assert late.done.is_set() and not late.ok
+
+
+def test_options_are_validated() -> None:
+    with pytest.raises(ValueError, match="spin_s"):
+        RuntimeOptions(spin_s=0.002)
+    with pytest.raises(ValueError, match="batch_size"):
+        RuntimeOptions(batch_size=0)
+    with pytest.raises(ValueError, match="mode"):
+        Runtime(make_loop(), FakeRig(), mode=ESTOP)
