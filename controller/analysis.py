@@ -237,6 +237,9 @@ class GateLimits:
     """Strict: every closed-loop pole radius must be < this."""
     check_measured_margins: bool = True
     """Also hold the margins of L_u computed with each measured response to the limits."""
+    noise_to_command_max_db: float = 20.0
+    """Peak gain from speed-measurement noise to the command, |(Cv + F1) / D|: a high Q
+    cut-off makes F1 ~ Q (Mn Pn)^-1 differentiate twice and floods the drive with noise."""
 
     def __post_init__(self) -> None:
         def need(ok: bool, what: str) -> None:
@@ -248,6 +251,7 @@ class GateLimits:
         need(0.0 < self.peak_sensitivity_max_db < 60.0, "peak_sensitivity_max_db in (0, 60)")
         need(0.0 < self.small_gain_max <= 1.0, "small_gain_max in (0, 1]")
         need(0.0 < self.pole_radius_max <= 1.0, "pole_radius_max in (0, 1]")
+        need(0.0 < self.noise_to_command_max_db <= 80.0, "noise_to_command_max_db in (0, 80]")
 
 
 # --------------------------------------------------------------------------- result objects
@@ -339,6 +343,8 @@ class Analysis:
     """Largest small-gain value over all sources and both loops (nan without sources)."""
     verdict: Verdict
     reasons: tuple[str, ...]
+    noise_to_command_peak_db: float = math.nan
+    """max |(Cv + F1)/D| in dB: how much speed-measurement noise reaches the command."""
 
     @property
     def accepted(self) -> bool:
@@ -920,6 +926,14 @@ def analyse(
             + (" (unstable)" if max_radius >= 1.0 else "")
         )
     _margin_reasons(margins, limits, "", reasons)
+    noise_cmd = np.abs((cv + f1) / d_on) if on else np.abs(cv / d_off)
+    k_noise = int(np.argmax(noise_cmd))
+    noise_cmd_db = float(20.0 * np.log10(noise_cmd[k_noise]))
+    if not noise_cmd_db <= limits.noise_to_command_max_db:
+        reasons.append(
+            f"noise to command gain {noise_cmd_db:.1f} dB > {limits.noise_to_command_max_db:g} dB"
+            f" (at {_fmt_hz(float(f[k_noise]))})"
+        )
 
     sources: list[SourceResult] = []
     for m in plant.measured:
@@ -980,6 +994,7 @@ def analyse(
         small_gain_peak=max(peaks) if peaks else math.nan,
         verdict="accept" if not reasons else "reject",
         reasons=tuple(reasons),
+        noise_to_command_peak_db=noise_cmd_db,
     )
 
 

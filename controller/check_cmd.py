@@ -88,6 +88,7 @@ def report_json(a: Analysis, recommended_hz: float | None) -> dict[str, Any]:
         "bandwidth_hz": _finite(a.bandwidth_hz),
         "small_gain_peak": _finite(a.small_gain_peak),
         "max_pole_radius": a.max_pole_radius,
+        "noise_to_command_peak_db": _finite(a.noise_to_command_peak_db),
         "recommended_max_cutoff_hz": recommended_hz,
         "recommended_for_q_type": a.config.q_type,
         "sources": [
@@ -130,6 +131,7 @@ def report_text(a: Analysis, recommended_hz: float | None) -> str:
         row("peak sensitivity", _fmt(m.peak_sensitivity_db, "dB"), m.peak_sensitivity_hz),
         row("speed-loop bandwidth", _fmt(a.bandwidth_hz, "Hz", ".3g")),
         row("max closed-loop pole radius", f"{a.max_pole_radius:.5f}"),
+        row("noise -> command peak", _fmt(a.noise_to_command_peak_db, "dB")),
     ]
     for s in a.sources:
         if s.kind == "bound":

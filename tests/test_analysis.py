@@ -450,3 +450,27 @@ def test_default_grid_and_result_shapes() -> None:
     assert math.isclose(a.tau_s, design_dob(cfg).q.tau_s)
     with pytest.raises(ValueError):
         a.open_loop[0] = 0  # read-only
+
+
+@pytest.mark.parametrize("cfg", CONFIGS, ids=_ids)
+def test_noise_to_command_peak_agrees_with_python_control(cfg: LoopConfig) -> None:
+    ref = Ref(cfg)
+    t_zu = ct.feedback(ref.k_speed, ref.g)  # measurement noise -> command
+    a = analyse(cfg)
+    expected_db = 20 * np.log10(np.max(np.abs(_resp(t_zu, a.freq_hz, ref.ts))))
+    assert a.noise_to_command_peak_db == pytest.approx(expected_db, abs=0.01)
+
+
+def test_high_q_cutoff_is_rejected_for_noise_even_when_stable() -> None:
+    """Q31 at 100 Hz is nominally stable with margins, but F1 ~ Q (Mn Pn)^-1 then amplifies
+    speed noise ~220x into the command: the gate says so."""
+    a = analyse(LoopConfig(q_cutoff_hz=100.0))
+    assert a.max_pole_radius < 1.0
+    assert a.verdict == "reject"
+    assert any(r.startswith("noise to command gain") for r in a.reasons), a.reasons
+    assert (
+        analyse(
+            LoopConfig(q_cutoff_hz=100.0), limits=GateLimits(noise_to_command_max_db=60)
+        ).verdict
+        == "accept"
+    )
