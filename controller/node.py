@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import math
+import os
 import queue
 import signal
 import sys
@@ -82,6 +83,8 @@ class ControllerOptions:
     switch_interval_s: float = 0.0002
     """sys.setswitchinterval for this process: bounds how long another Python thread can
     keep the loop's thread waiting for the interpreter lock."""
+    gate_in_subprocess: bool = True
+    """Run the stability analysis in a worker process (see GateRunner)."""
     sim_drive_node: bool = False
     """plant="can" only: run a simulated CiA 402 drive node in this process on the rig
     file's bus (python-can `virtual`): the whole CAN path without hardware."""
@@ -94,18 +97,10 @@ def gate(cfg: LoopConfig) -> tuple[bool, tuple[str, ...], proto.Margins]:
     """Run the stability analysis; (accepted, reasons, margins). Never raises."""
     from controller.analysis import analyse
 
-    nan = float("nan")
     try:
         a = analyse(cfg)
     except Exception as exc:
-        empty = proto.Margins(
-            gain_margin_db=nan,
-            phase_margin_deg=nan,
-            peak_sensitivity_db=nan,
-            small_gain_peak=nan,
-            max_pole_radius=nan,
-        )
-        return False, (f"analysis failed: {type(exc).__name__}: {exc}",), empty
+        return False, (f"analysis failed: {type(exc).__name__}: {exc}",), _nan_margins()
     margins = proto.Margins(
         gain_margin_db=float(a.gain_margin_db),
         phase_margin_deg=float(a.phase_margin_deg),
@@ -120,6 +115,117 @@ def gate(cfg: LoopConfig) -> tuple[bool, tuple[str, ...], proto.Margins]:
     return accepted, reasons, margins
 
 
+def _nan_margins() -> proto.Margins:
+    nan = float("nan")
+    return proto.Margins(
+        gain_margin_db=nan,
+        phase_margin_deg=nan,
+        peak_sensitivity_db=nan,
+        small_gain_peak=nan,
+        max_pole_radius=nan,
+    )
+
+
+def _worker_init() -> None:
+    # Ctrl-C in a terminal reaches the whole process group: the parent decides, not us.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # The loop's process wins the CPU over an analysis on a busy machine.
+    with contextlib.suppress(OSError):
+        os.nice(10)
+
+
+GateResult = tuple[bool, tuple[str, ...], proto.Margins]
+
+
+def gate_and_build(
+    cfg: LoopConfig, version: int
+) -> tuple[bool, tuple[str, ...], proto.Margins, LoopCoefficients | None]:
+    """`gate`, then (if accepted) the loop's filters for `version`. Never raises."""
+    accepted, reasons, margins = gate(cfg)
+    if not accepted:
+        return accepted, reasons, margins, None
+    try:
+        return True, (), margins, LoopCoefficients.build(cfg, version)
+    except Exception as exc:
+        return False, (f"candidate: filters could not be built: {exc}",), margins, None
+
+
+class GateRunner:
+    """Runs `gate` in a worker process (default) or in the calling thread.
+
+    In a worker the analysis (NumPy + Python, ~10 ms) never competes with the loop's thread
+    for this interpreter's lock: run in a thread of the controller it made the loop overrun
+    on a busy machine. A worker that hangs is killed after `timeout_s` and the candidate
+    rejected; the next check starts a fresh one.
+    """
+
+    def __init__(self, *, subprocess: bool = True, timeout_s: float = 10.0) -> None:
+        self._subprocess = subprocess
+        self._timeout_s = timeout_s
+        self._pool: Any = None
+        self._lock = threading.Lock()
+
+    def _executor(self) -> Any:
+        if self._pool is None:
+            import concurrent.futures
+            import multiprocessing
+
+            self._pool = concurrent.futures.ProcessPoolExecutor(
+                max_workers=1,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_worker_init,
+            )
+        return self._pool
+
+    def check(self, cfg: LoopConfig) -> GateResult:
+        """The gate's verdict on `cfg`."""
+        accepted, reasons, margins, _ = self.check_and_build(cfg, 0, build=False)
+        return accepted, reasons, margins
+
+    def check_and_build(
+        self, cfg: LoopConfig, version: int, *, build: bool = True
+    ) -> tuple[bool, tuple[str, ...], proto.Margins, LoopCoefficients | None]:
+        """The gate's verdict and, if accepted and `build`, the coefficients to swap in."""
+        if not self._subprocess:
+            return gate_and_build(cfg, version) if build else (*gate(cfg), None)
+        import concurrent.futures
+
+        with self._lock:
+            try:
+                if build:
+                    fut = self._executor().submit(gate_and_build, cfg, version)
+                    result: tuple[bool, tuple[str, ...], proto.Margins, LoopCoefficients | None] = (
+                        fut.result(timeout=self._timeout_s)
+                    )
+                    return result
+                fut = self._executor().submit(gate, cfg)
+                verdict: GateResult = fut.result(timeout=self._timeout_s)
+                return (*verdict, None)
+            except concurrent.futures.TimeoutError:
+                self._kill()
+                reason = f"analysis: no verdict within {self._timeout_s:g} s"
+            except Exception as exc:  # a dead worker (BrokenProcessPool), pickling, ...
+                self._kill()
+                reason = f"analysis worker failed: {type(exc).__name__}: {exc}"
+            return False, (reason,), _nan_margins(), None
+
+    def _kill(self) -> None:
+        pool, self._pool = self._pool, None
+        if pool is None:
+            return
+        for proc in list(getattr(pool, "_processes", {}).values()):
+            with contextlib.suppress(Exception):
+                proc.kill()
+        with contextlib.suppress(Exception):
+            pool.shutdown(wait=False, cancel_futures=True)
+
+    def close(self) -> None:
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
 def margins_dict(m: proto.Margins | None) -> dict[str, float] | None:
     return None if m is None else msgspec.to_builtins(m)  # type: ignore[no-any-return]
 
@@ -132,7 +238,7 @@ class StartupError(RuntimeError):
 
 
 def _initial_config(
-    opts: ControllerOptions, store: StateStore
+    opts: ControllerOptions, store: StateStore, check: Callable[[LoopConfig], GateResult]
 ) -> tuple[LoopConfig, int, proto.Margins]:
     """The configuration to start with: --config, else the saved one, else the default;
     --rate-hz overrides the rate. It must pass the gate; a change is saved and logged."""
@@ -157,7 +263,7 @@ def _initial_config(
             candidate = candidate.with_(rate_hz=opts.rate_hz)
         except ConfigError as exc:
             raise StartupError(f"--rate-hz: {exc}") from exc
-    accepted, reasons, margins = gate(candidate)
+    accepted, reasons, margins = check(candidate)
     if not accepted:
         raise StartupError(f"{source}: rejected by the stability gate: " + "; ".join(reasons))
     if saved is not None and saved.config == candidate:
@@ -222,8 +328,10 @@ class _Node:
         margins: proto.Margins,
         notes: list[str],
         log: TextIO,
+        gate_runner: GateRunner,
     ) -> None:
         self.opts = opts
+        self.gate = gate_runner
         self.rt = runtime
         self.store = store
         self.rig_name = opts.rig_name
@@ -439,17 +547,16 @@ class _Node:
                 return self._config_reply(
                     accepted=False, reasons=[reason], field="candidate.rate_hz"
                 )
-            accepted, reasons, margins = gate(candidate)
+            version = active.version + 1
+            same = candidate == active.config
+            # The analysis and the filter design run in the gate's worker process.
+            accepted, reasons, margins, coefficients = self.gate.check_and_build(
+                candidate, version, build=not same
+            )
             if not accepted:
                 return self._config_reply(accepted=False, reasons=list(reasons), margins=margins)
-            if candidate == active.config:
+            if same or coefficients is None:
                 return self._config_reply(accepted=True, margins=margins)
-            version = active.version + 1
-            try:
-                coefficients = LoopCoefficients.build(candidate, version)
-            except Exception as exc:
-                reason = f"candidate: filters could not be built: {exc}"
-                return self._config_reply(accepted=False, reasons=[reason], margins=margins)
             try:
                 self.store.save(candidate, version)
             except PersistenceError as exc:
@@ -538,11 +645,20 @@ def _check_options(opts: ControllerOptions) -> None:
 def run_controller(opts: ControllerOptions, *, log: TextIO | None = None) -> int:
     """Run the controller until SIGINT/SIGTERM; 0 on a clean stop, 2 if it cannot start."""
     out = log if log is not None else sys.stderr
+    runner = GateRunner(subprocess=opts.gate_in_subprocess)
+    try:
+        return _run(opts, runner, out)
+    finally:
+        runner.close()
+
+
+def _run(opts: ControllerOptions, runner: GateRunner, out: TextIO) -> int:
     try:
         _check_options(opts)
         state_dir = opts.state_dir if opts.state_dir is not None else Path("var") / opts.rig_name
         store = StateStore(state_dir)
-        cfg, version, margins = _initial_config(opts, store)
+        # The first check also starts the gate's worker process, before the loop runs.
+        cfg, version, margins = _initial_config(opts, store, runner.check)
     except (StartupError, PersistenceError) as exc:
         print(f"dobtune controller: {exc}", file=out, flush=True)
         return 2
@@ -572,7 +688,7 @@ def run_controller(opts: ControllerOptions, *, log: TextIO | None = None) -> int
                 runtime.mode = "fault"
             notes: list[str] = []
             with open_session(opts.listen, opts.connect) as session:
-                node = _Node(opts, runtime, store, margins, notes, out)
+                node = _Node(opts, runtime, store, margins, notes, out, runner)
                 try:
                     node.declare(session)
                     node.start_threads()
