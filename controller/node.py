@@ -79,6 +79,9 @@ class ControllerOptions:
     """Larger queries are rejected before decoding."""
     apply_timeout_s: float = 1.0
     """How long a request waits for the loop's tick boundary before replying with an error."""
+    command_timeout_s: float = 5.0
+    """The same for commands: a reset re-enables the drive inside the loop (CAN: up to the
+    rig file's enable_timeout_s)."""
     spin_s: float = 0.0002
     switch_interval_s: float = 0.0002
     """sys.setswitchinterval for this process: bounds how long another Python thread can
@@ -607,7 +610,7 @@ class _Node:
                 proto.CommandReply(ok=False, message=str(exc), mode=rt.mode, field=exc.field)
             )
         ticket = rt.submit(cmd.body)  # EStop: the loop's flag is set inside submit
-        if not ticket.wait(self.opts.apply_timeout_s):
+        if not ticket.wait(self.opts.command_timeout_s):
             return proto.encode(
                 proto.CommandReply(
                     ok=False,
