@@ -587,8 +587,8 @@ class Runtime:
                 self.mode = FAULT
                 t.ok, t.message = False, f"drive did not enable: {exc}"
                 return
+        # (An e-stop requested meanwhile stays pending: the next tick honours it.)
         self.fault = None
-        self._estop_request = None
         self.loop.reset()
         self._enter_stopped(pos)
         t.ok = True

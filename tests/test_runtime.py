@@ -354,3 +354,24 @@ def test_options_are_validated() -> None:
         RuntimeOptions(batch_size=0)
     with pytest.raises(ValueError, match="mode"):
         Runtime(make_loop(), FakeRig(), mode=ESTOP)
+
+
+def test_an_estop_arriving_during_a_reset_is_not_lost() -> None:
+    fc = FakeClock()
+    rt: Runtime
+
+    class EstopOnStart(FakeRig):
+        def start(self) -> None:
+            super().start()
+            rt.estop("during reset")  # another thread, while the tick re-enables the drive
+
+    rig = EstopOnStart(fc)
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt.estop("first")
+    rt.run(max_ticks=3)
+    assert rt.mode == ESTOP
+    reset = rt.submit(ResetFault())
+    rt._stop = False
+    rt.run(max_ticks=2)
+    assert reset.ok
+    assert rt.mode == ESTOP and rt.estop_source == "during reset"
