@@ -77,6 +77,8 @@ class ControllerOptions:
     status_period_s: float = 0.2
     max_payload_bytes: int = 64 * 1024
     """Larger queries are rejected before decoding."""
+    max_pending_queries: int = 256
+    """Per queryable; beyond this, new queries are dropped unanswered."""
     apply_timeout_s: float = 1.0
     """How long a request waits for the loop's tick boundary before replying with an error."""
     command_timeout_s: float = 5.0
@@ -350,6 +352,7 @@ class _Node:
         self.state_pub: Any = None
         self.status_pub: Any = None
         self.errors: list[str] = []
+        self.shed_queries = 0
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -367,12 +370,29 @@ class _Node:
         )
         self._entities += [self.state_pub, self.status_pub]
         # Callbacks: hand over and return (no decoding, no Zenoh calls, no blocking).
-        self._entities.append(session.declare_queryable(proto.key_config(rig), self.config_q.put))
-        self._entities.append(session.declare_queryable(proto.key_command(rig), self.command_q.put))
+        self._entities.append(
+            session.declare_queryable(proto.key_config(rig), self._enqueue(self.config_q))
+        )
+        self._entities.append(
+            session.declare_queryable(proto.key_command(rig), self._enqueue(self.command_q))
+        )
         rt = self.rt
         self._entities.append(
             session.declare_subscriber(proto.key_estop(rig), lambda _s: rt.estop("estop key"))
         )
+
+    def _enqueue(self, q: queue.SimpleQueue[Any]) -> Callable[[Any], None]:
+        limit = self.opts.max_pending_queries
+
+        def put(query: Any) -> None:
+            # A flood beyond the bound is shed: the query is released unanswered (the client
+            # times out) instead of growing memory without limit.
+            if q.qsize() < limit:
+                q.put(query)
+            else:
+                self.shed_queries += 1
+
+        return put
 
     def start_threads(self) -> None:
         for name, target in (
@@ -475,7 +495,11 @@ class _Node:
             timing=timing,
             faults=faults,
             estop_seq=rt.estop_seq,
-            notes=[*self.notes, *self.errors],
+            notes=[
+                *self.notes,
+                *self.errors,
+                *([f"{self.shed_queries} queries shed (flood)"] if self.shed_queries else []),
+            ],
         )
 
     def _publish_status(self) -> None:

@@ -308,3 +308,56 @@ def test_a_config_the_gate_rejects_does_not_start(
     assert proc.proc.wait(timeout=60) == 2
     assert "stability gate" in proc.log()
     assert not (proc.state_dir / "active_config.json").exists()
+
+
+def test_a_flood_of_queries_does_not_stall_the_loop_or_the_stream(
+    controller: ControllerProcess, client: Client
+) -> None:
+    """Four threads of another peer hammer both queryables with GETs, rejected candidates
+    and garbage for 3 s, while this peer checks the stream stays whole."""
+    import threading
+
+    stop = threading.Event()
+    counts = [0] * 4
+    payloads = [
+        None,
+        ENC({"v": 1, "candidate": {"cv_kp": 20.0}}),
+        b"\xc1garbage",
+        ENC({"v": 1, "body": {"type": "launch"}}),
+    ]
+
+    def hammer(i: int) -> None:
+        with Client(controller.endpoint, controller.rig) as c:
+            while not stop.is_set():
+                if i == 3:
+                    c.command_raw(payloads[i] or b"")
+                else:
+                    c.config_raw(payloads[i])
+                counts[i] += 1
+
+    st0 = client.fresh_status()
+    with client.state() as col:
+        assert wait_until(lambda: len(col.batches()) > 0, 5.0)
+        threads = [threading.Thread(target=hammer, args=(i,)) for i in range(4)]
+        for t in threads:
+            t.start()
+        try:
+            assert not wait_until(lambda: any(not t.is_alive() for t in threads), 3.0)
+        finally:
+            stop.set()
+            for t in threads:
+                t.join(10.0)
+        last = col.last_seq()
+        assert col.wait_for_seq(last + 100, 5.0)
+    st1 = client.fresh_status()
+    assert min(counts) > 10, counts
+    batches = [b for _, b in col.batches()]
+    for a, b in itertools.pairwise(batches):
+        assert b.seq0 == a.seq0 + len(a.t_s), "gap in the state stream during the flood"
+    # The loop kept its rate: at normal priority on 2 shared cores, a flood that saturates
+    # the CPU makes some ticks late (measured ~1.5 %, ~0.2 % with --realtime-priority), but
+    # never by whole periods in a row and never a lost sample.
+    ticks = st1.timing.ticks - st0.timing.ticks
+    assert st1.timing.overruns - st0.timing.overruns <= 5 + ticks // 10, (st0.timing, st1.timing)
+    assert st1.timing.skipped_ticks - st0.timing.skipped_ticks <= 5 + ticks // 50
+    assert st1.timing.dropped_samples == 0
