@@ -672,14 +672,37 @@ def _check_options(opts: ControllerOptions) -> None:
 def run_controller(opts: ControllerOptions, *, log: TextIO | None = None) -> int:
     """Run the controller until SIGINT/SIGTERM; 0 on a clean stop, 2 if it cannot start."""
     out = log if log is not None else sys.stderr
-    runner = GateRunner(subprocess=opts.gate_in_subprocess)
+    stopper = _Stopper()
+    # Our handlers stay installed until everything is shut down: a second Ctrl-C (a terminal
+    # signals the whole process group, then a launcher may signal again) never interrupts
+    # the shutdown half-way.
+    previous = {s: signal.signal(s, stopper.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    runner: GateRunner | None = None
     try:
-        return _run(opts, runner, out)
+        runner = GateRunner(subprocess=opts.gate_in_subprocess)
+        return _run(opts, runner, out, stopper)
     finally:
-        runner.close()
+        if runner is not None:
+            runner.close()
+        for s, h in previous.items():
+            signal.signal(s, h)
 
 
-def _run(opts: ControllerOptions, runner: GateRunner, out: TextIO) -> int:
+class _Stopper:
+    """SIGINT/SIGTERM: stop the loop (command 0) and let the process wind down."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.runtime: Runtime | None = None
+
+    def on_signal(self, signum: int, _frame: Any) -> None:
+        self.event.set()
+        runtime = self.runtime
+        if runtime is not None:
+            runtime.stop()
+
+
+def _run(opts: ControllerOptions, runner: GateRunner, out: TextIO, stopper: _Stopper) -> int:
     try:
         _check_options(opts)
         state_dir = opts.state_dir if opts.state_dir is not None else Path("var") / opts.rig_name
@@ -692,15 +715,6 @@ def _run(opts: ControllerOptions, runner: GateRunner, out: TextIO) -> int:
 
     previous_switch = sys.getswitchinterval()
     sys.setswitchinterval(opts.switch_interval_s)
-    runtime: Runtime | None = None
-    stopping = threading.Event()
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        stopping.set()
-        if runtime is not None:
-            runtime.stop()
-
-    previous_handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         with _open_rig(opts, cfg.rate_hz) as (rig, rig_faults):
             loop = ServoLoop(LoopCoefficients.build(cfg, version))
@@ -710,6 +724,7 @@ def _run(opts: ControllerOptions, runner: GateRunner, out: TextIO) -> int:
                 options=RuntimeOptions(rate_hz=cfg.rate_hz, spin_s=opts.spin_s),
                 trajectory=opts.trajectory,
             )
+            stopper.runtime = runtime
             if rig_faults:
                 runtime.fault = rig_faults[0]
                 runtime.mode = "fault"
@@ -730,7 +745,7 @@ def _run(opts: ControllerOptions, runner: GateRunner, out: TextIO) -> int:
                         file=out,
                         flush=True,
                     )
-                    if not stopping.is_set():
+                    if not stopper.event.is_set():
                         runtime.run()
                 finally:
                     runtime.stop()
@@ -739,8 +754,6 @@ def _run(opts: ControllerOptions, runner: GateRunner, out: TextIO) -> int:
         print(f"dobtune controller: {exc}", file=out, flush=True)
         return 2
     finally:
-        for s, h in previous_handlers.items():
-            signal.signal(s, h)
         sys.setswitchinterval(previous_switch)
     print("dobtune controller: stopped", file=out, flush=True)
     return 0

@@ -1,0 +1,61 @@
+"""`dobtune demo` as a user runs it: starts, prints the URL, and Ctrl-C (SIGINT to the whole
+process group, as a terminal sends it) or SIGTERM stops both processes cleanly."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import urllib.request
+
+import pytest
+from procs import REPO, free_port, port_is_free, wait_until
+
+pytestmark = pytest.mark.integration
+
+
+@pytest.mark.parametrize("how", ["ctrl-c", "sigterm"])
+def test_demo_starts_serves_and_stops_cleanly(how: str) -> None:
+    http_port, zenoh_port = free_port(), free_port()
+    cmd = [
+        sys.executable,
+        "-c",
+        "import sys; from server.__main__ import dobtune_main;sys.exit(dobtune_main(sys.argv[1:]))",
+        "demo",
+        "--port",
+        str(http_port),
+        "--zenoh-port",
+        str(zenoh_port),
+    ]
+    proc = subprocess.Popen(
+        cmd,
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        assert proc.stdout is not None
+        url = None
+        for line in proc.stdout:
+            if "dobtune demo: open " in line:
+                url = line.split("open ", 1)[1].split()[0]
+                break
+        assert url == f"http://127.0.0.1:{http_port}"
+        with urllib.request.urlopen(url, timeout=10) as resp:
+            assert resp.status == 200
+        if how == "ctrl-c":
+            os.killpg(proc.pid, signal.SIGINT)
+        else:
+            proc.send_signal(signal.SIGTERM)
+        rest = proc.stdout.read()
+        assert proc.wait(timeout=30) == 0, rest
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert "Traceback" not in rest, rest
+    assert "dobtune controller: stopped" in rest and "dobtune demo: stopped" in rest
+    assert wait_until(lambda: port_is_free(http_port) and port_is_free(zenoh_port), 10.0)
