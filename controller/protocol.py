@@ -7,13 +7,13 @@ a `type` field. Units are in the field names. See docs/protocol.md for the full 
 
 from __future__ import annotations
 
-import re
 from typing import Any, TypeVar
 
 import msgspec
 
 from controller.config import LoopConfig
 from controller.trajectory import Trajectory
+from controller.validate import split_msgspec_error
 
 PROTOCOL_VERSION = 1
 KEY_PREFIX = "dobtune"
@@ -196,31 +196,10 @@ class ProtocolError(ValueError):
         self.field = field
 
 
-_POST_INIT_FIELD = re.compile(r"^([A-Za-z_][\w.\[\]]*): (.*)$", re.DOTALL)
-
-
 def _validation_error(text: str) -> ProtocolError:
     """Turn a msgspec validation message into "path.to.field: why"."""
-    msg, path = text, ""
-    if " - at `$" in text:
-        msg, at = text.rsplit(" - at `$", 1)
-        path = at.rstrip("`").lstrip(".")
-    for marker in ("Object contains unknown field `", "Object missing required field `"):
-        if msg.startswith(marker):
-            name = msg[len(marker) :].split("`", 1)[0]
-            what = "unknown field" if "unknown" in marker else "missing required field"
-            field = f"{path}.{name}" if path else name
-            return ProtocolError(f"{field}: {what}", field)
-    m = _POST_INIT_FIELD.match(msg)
-    if m is not None:  # a ConfigError raised by a struct's validation names its own field
-        name = m.group(1)
-        last = path.rsplit(".", 1)[-1]
-        if last and name.startswith((f"{last}.", f"{last}[")):  # "nominal" + "nominal.x"
-            path = path[: -len(last)].rstrip(".")
-        field = f"{path}.{name}" if path else name
-        return ProtocolError(f"{field}: {m.group(2)}", field)
-    field = path or "payload"
-    return ProtocolError(f"{field}: {msg}", field)
+    field, why = split_msgspec_error(text)
+    return ProtocolError(f"{field}: {why}", field)
 
 
 class _Versioned(msgspec.Struct):

@@ -46,27 +46,33 @@ def in_range(value: object, field: str, lo: float, hi: float, *, lo_open: bool =
 
 
 _FIELD_RE = re.compile(r"^([A-Za-z_][\w.\[\]]*): (.*)$", re.S)
+_MISSING_OR_UNKNOWN = (
+    ("Object contains unknown field `", "unknown field"),
+    ("Object missing required field `", "missing required field"),
+)
 
 
 def split_msgspec_error(text: str) -> tuple[str, str]:
     """(field path, message) from a msgspec ValidationError text.
 
     msgspec's own errors read "Expected `float`, got `str` - at `$.candidate.cv_kp`"; errors
-    raised by our validators inside nested structs read "cv_kp: must be > 0 - at `$.candidate`".
-    Both become a dotted path from the message root ("candidate.cv_kp").
+    raised by our validators inside nested structs read "cv_kp: must be > 0 - at `$.candidate`"
+    (or repeat the struct's own name: "nominal.pn_den: ... - at `$.candidate.nominal`").
+    All become a dotted path from the message root: "candidate.cv_kp".
     """
-    path = ""
-    body = text
+    msg, path = text, ""
     if " - at `$" in text:
-        body, _, tail = text.rpartition(" - at `$")
-        path = tail.rstrip("`").lstrip(".")
-    m = _FIELD_RE.match(body)
-    if m:
-        inner, message = m.group(1), m.group(2)
-        if path and not inner.startswith(path):
-            return f"{path}.{inner}", message
-        return inner, message
-    if body.startswith("Object contains unknown field `"):
-        name = body.split("`", 2)[1]
-        return (f"{path}.{name}" if path else name), body
-    return (path or "payload"), body
+        msg, at = text.rsplit(" - at `$", 1)
+        path = at.rstrip("`").lstrip(".")
+    for marker, what in _MISSING_OR_UNKNOWN:
+        if msg.startswith(marker):
+            name = msg[len(marker) :].split("`", 1)[0]
+            return (f"{path}.{name}" if path else name), what
+    m = _FIELD_RE.match(msg)
+    if m is not None:
+        name, why = m.group(1), m.group(2)
+        last = path.rsplit(".", 1)[-1]
+        if last and (name == last or name.startswith((f"{last}.", f"{last}["))):
+            path = path[: -len(last)].rstrip(".")
+        return (f"{path}.{name}" if path else name), why
+    return (path or "payload"), msg
