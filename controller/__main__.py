@@ -39,6 +39,12 @@ def add_controller_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate-hz", type=float, default=None, help="loop rate (default: config)")
     p.add_argument("--seed", type=int, default=0, help="simulated plant noise seed")
     p.add_argument("--realtime-priority", action="store_true", help="try SCHED_FIFO")
+    p.add_argument(
+        "--sim-drive-node",
+        action="store_true",
+        help="with --plant can: answer on the rig file's bus with a simulated CiA 402 drive "
+        "(python-can virtual bus) — rehearse the CAN path without hardware",
+    )
 
 
 def run_controller_args(args: argparse.Namespace) -> int:
@@ -56,6 +62,7 @@ def run_controller_args(args: argparse.Namespace) -> int:
         rate_hz=args.rate_hz,
         seed=args.seed,
         realtime_priority=args.realtime_priority,
+        sim_drive_node=args.sim_drive_node,
     )
     return run_controller(opts)
 
