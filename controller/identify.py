@@ -86,6 +86,7 @@ from controller.model_fit import (
     frd_weights,
     uncertainty_bound,
 )
+from controller.validate import number, positive
 
 __all__ = [
     "MODES",
@@ -132,22 +133,6 @@ class RigLike(Protocol):
 
 
 # --------------------------------------------------------------------------------- the spec
-
-
-def _number(value: object, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ConfigError(name, f"must be a number (got {value!r})")
-    v = float(value)
-    if not math.isfinite(v):
-        raise ConfigError(name, f"must be finite (got {v})")
-    return v
-
-
-def _positive(value: object, name: str) -> float:
-    v = _number(value, name)
-    if v <= 0.0:
-        raise ConfigError(name, f"must be > 0 (got {v})")
-    return v
 
 
 def _integer(value: object, name: str, lo: int, hi: int) -> int:
@@ -231,51 +216,51 @@ class IdentifySpec:
             raise ConfigError(
                 "signal", f"must be one of {', '.join(SIGNALS)} (got {self.signal!r})"
             )
-        f_lo = _positive(self.f_min_hz, "f_min_hz")
-        f_hi = _positive(self.f_max_hz, "f_max_hz")
+        f_lo = positive(self.f_min_hz, "f_min_hz")
+        f_hi = positive(self.f_max_hz, "f_max_hz")
         if f_lo >= f_hi:
             raise ConfigError("f_min_hz", f"must be < f_max_hz (got {f_lo} >= {f_hi})")
         put("f_min_hz", f_lo)
         put("f_max_hz", f_hi)
         put("points_per_decade", _integer(self.points_per_decade, "points_per_decade", 1, 200))
         put("positions", _integer(self.positions, "positions", 1, 36))
-        put("span_deg", _positive(self.span_deg, "span_deg"))
-        put("first_position_deg", _number(self.first_position_deg, "first_position_deg"))
-        put("amplitude_deg_s", _positive(self.amplitude_deg_s, "amplitude_deg_s"))
-        put("window_deg", _positive(self.window_deg, "window_deg"))
-        put("max_duration_s", _positive(self.max_duration_s, "max_duration_s"))
+        put("span_deg", positive(self.span_deg, "span_deg"))
+        put("first_position_deg", number(self.first_position_deg, "first_position_deg"))
+        put("amplitude_deg_s", positive(self.amplitude_deg_s, "amplitude_deg_s"))
+        put("window_deg", positive(self.window_deg, "window_deg"))
+        put("max_duration_s", positive(self.max_duration_s, "max_duration_s"))
         put("seed", _integer(self.seed, "seed", 0, 2**63 - 1))
-        ratio = _number(self.offset_ratio, "offset_ratio")
+        ratio = number(self.offset_ratio, "offset_ratio")
         if ratio < 1.2:
             raise ConfigError("offset_ratio", f"must be >= 1.2 (got {ratio})")
         put("offset_ratio", ratio)
-        put("min_offset_deg_s", _positive(self.min_offset_deg_s, "min_offset_deg_s"))
-        frac = _number(self.travel_fraction, "travel_fraction")
+        put("min_offset_deg_s", positive(self.min_offset_deg_s, "min_offset_deg_s"))
+        frac = number(self.travel_fraction, "travel_fraction")
         if not 0.1 <= frac <= 1.0:
             raise ConfigError("travel_fraction", f"must be in [0.1, 1] (got {frac})")
         put("travel_fraction", frac)
         put("min_periods", _integer(self.min_periods, "min_periods", 2, 1000))
-        put("min_measure_s", _number(self.min_measure_s, "min_measure_s"))
+        put("min_measure_s", number(self.min_measure_s, "min_measure_s"))
         if self.min_measure_s < 0:
             raise ConfigError("min_measure_s", f"must be >= 0 (got {self.min_measure_s})")
         put("multisine_periods", _integer(self.multisine_periods, "multisine_periods", 2, 1000))
         for name in ("fit_f_lo_hz", "fit_f_hi_hz"):
             if getattr(self, name) is not None:
-                put(name, _positive(getattr(self, name), name))
+                put(name, positive(getattr(self, name), name))
         if (
             self.fit_f_lo_hz is not None
             and self.fit_f_hi_hz is not None
             and self.fit_f_lo_hz >= self.fit_f_hi_hz
         ):
             raise ConfigError("fit_f_lo_hz", "must be < fit_f_hi_hz")
-        put("fit_error_floor", _positive(self.fit_error_floor, "fit_error_floor"))
+        put("fit_error_floor", positive(self.fit_error_floor, "fit_error_floor"))
         if self.periodic_pitch_deg is not None:
-            put("periodic_pitch_deg", _positive(self.periodic_pitch_deg, "periodic_pitch_deg"))
-        put("agreement_tol_db", _positive(self.agreement_tol_db, "agreement_tol_db"))
-        put("agreement_tol_deg", _positive(self.agreement_tol_deg, "agreement_tol_deg"))
-        put("move_speed_deg_s", _positive(self.move_speed_deg_s, "move_speed_deg_s"))
+            put("periodic_pitch_deg", positive(self.periodic_pitch_deg, "periodic_pitch_deg"))
+        put("agreement_tol_db", positive(self.agreement_tol_db, "agreement_tol_db"))
+        put("agreement_tol_deg", positive(self.agreement_tol_deg, "agreement_tol_deg"))
+        put("move_speed_deg_s", positive(self.move_speed_deg_s, "move_speed_deg_s"))
         for name in ("settle_s", "stop_s", "hold_s"):
-            v = _number(getattr(self, name), name)
+            v = number(getattr(self, name), name)
             if v < 0:
                 raise ConfigError(name, f"must be >= 0 (got {v})")
             put(name, v)

@@ -79,6 +79,19 @@ class StateBatch(_Msg, frozen=True, kw_only=True):
     mode: str = ""  # the mode during every sample of this batch ("" from older senders)
 
 
+#: The per-sample columns of StateBatch, in order (one list each).
+STATE_COLUMNS: tuple[str, ...] = (
+    "t_s",
+    "ref_deg",
+    "pos_deg",
+    "speed_deg_s",
+    "speed_ref_deg_s",
+    "command_deg_s",
+    "d_hat_deg_s",
+    "error_deg",
+)
+
+
 # -- status -----------------------------------------------------------------------------------
 
 

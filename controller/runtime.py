@@ -36,7 +36,7 @@ from typing import Protocol
 import numpy as np
 
 from controller.loop import LoopCoefficients, ServoLoop
-from controller.protocol import EStop, ResetFault, SetTrajectory, Start, Stop
+from controller.protocol import STATE_COLUMNS, EStop, ResetFault, SetTrajectory, Start, Stop
 from controller.trajectory import Trajectory
 
 __all__ = [
@@ -59,17 +59,7 @@ STOPPED = "stopped"
 ESTOP = "estop"
 FAULT = "fault"
 
-#: Sample columns, in buffer order (the StateBatch fields of the same names).
-COLUMNS: tuple[str, ...] = (
-    "t_s",
-    "ref_deg",
-    "pos_deg",
-    "speed_deg_s",
-    "speed_ref_deg_s",
-    "command_deg_s",
-    "d_hat_deg_s",
-    "error_deg",
-)
+COLUMNS = STATE_COLUMNS
 
 
 class Rig(Protocol):

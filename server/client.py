@@ -18,19 +18,11 @@ import numpy as np
 
 from controller import protocol as proto
 from controller.config import LoopConfig
+from controller.zenoh_session import open_session
 
 __all__ = ["ClientOptions", "ControllerClient", "ControllerUnavailable", "StateRing"]
 
-COLUMNS: tuple[str, ...] = (
-    "t_s",
-    "ref_deg",
-    "pos_deg",
-    "speed_deg_s",
-    "speed_ref_deg_s",
-    "command_deg_s",
-    "d_hat_deg_s",
-    "error_deg",
-)
+COLUMNS = proto.STATE_COLUMNS
 
 
 class ControllerUnavailable(RuntimeError):
@@ -134,23 +126,6 @@ class _Counters:
     version_marks: list[VersionMark] = field(default_factory=list)
 
 
-def _open_session(listen: tuple[str, ...], connect: tuple[str, ...]) -> Any:
-    try:
-        from controller.zenoh_session import open_session
-    except ImportError:  # TODO(issue 5): remove once controller/zenoh_session.py lands
-        import json
-
-        import zenoh
-
-        conf = zenoh.Config()
-        conf.insert_json5("mode", json.dumps("peer"))
-        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        return zenoh.open(conf)
-    return open_session(listen=listen, connect=connect)
-
-
 class ControllerClient:
     """One Zenoh session to one controller (context manager)."""
 
@@ -174,7 +149,7 @@ class ControllerClient:
         import zenoh
 
         rig = self.opts.rig_name
-        self._session = _open_session(self.opts.listen, self.opts.connect)
+        self._session = open_session(self.opts.listen, self.opts.connect)
         try:
             self._state_sub = self._session.declare_subscriber(
                 proto.key_state(rig), zenoh.handlers.RingChannel(4096)
