@@ -105,6 +105,7 @@ def curves_from_analysis(a: Analysis) -> tuple[BodeCurves, GateView]:
         "peak_sensitivity_db": a.peak_sensitivity_db,
         "small_gain_peak": a.small_gain_peak,
         "max_pole_radius": a.max_pole_radius,
+        "noise_to_command_peak_db": a.noise_to_command_peak_db,
     }
     return curves, GateView(a.verdict, tuple(a.reasons), margins)
 
@@ -221,6 +222,7 @@ _MARGIN_LABELS = (
     ("peak_sensitivity_db", "peak |S|", "dB", 2),
     ("small_gain_peak", "small-gain peak", "", 3),
     ("max_pole_radius", "max |pole|", "", 5),
+    ("noise_to_command_peak_db", "noise -> command", "dB", 1),
 )
 
 
@@ -401,6 +403,12 @@ class TuningPanel:
             marks=((-1.0, "0.1 Hz"), (0.0, "1 Hz"), (1.0, "10 Hz")),
             hint="-3 dB cut-off of Q, log scale. The mark 'max' is the gate's recommendation.",
         )
+        self.cutoff_hz_input = gui.add_number(
+            "Q cut-off (Hz)", initial_value=round(a.q_cutoff_hz, 4), min=CUTOFF_MIN_HZ,
+            max=CUTOFF_MAX_HZ, step=0.001, hint="type the -3 dB cut-off in Hz; the slider follows",
+        )
+        self.cutoff_hz_input.on_update(self._on_cutoff_hz_typed)
+        self.cutoff_log.on_update(self._on_cutoff_slider)
         self.cutoff_text = gui.add_html(self._cutoff_html(a.q_cutoff_hz, None))
         self.dob_on = gui.add_checkbox("DOB on", a.dob_on)
         self.ff_on = gui.add_checkbox("Velocity feedforward", a.ff_on)
@@ -475,6 +483,25 @@ class TuningPanel:
 
     # -- events (GUI thread pool: short) -----------------------------------------------------
 
+    def _on_cutoff_hz_typed(self, _event: Any) -> None:
+        """The Hz box drives the log slider (the slider's own callback then re-evaluates)."""
+        if self._suppress:
+            return
+        hz = float(self.cutoff_hz_input.value)
+        lo, hi = math.log10(CUTOFF_MIN_HZ), math.log10(CUTOFF_MAX_HZ)
+        target = _clamp(math.log10(max(hz, CUTOFF_MIN_HZ)), lo, hi)
+        if abs(float(self.cutoff_log.value) - target) > 1e-9:
+            self.cutoff_log.value = target  # its callback re-evaluates the candidate
+
+    def _on_cutoff_slider(self, _event: Any) -> None:
+        hz = round(self.cutoff_hz, 4)
+        if abs(float(self.cutoff_hz_input.value) - hz) > 1e-9:
+            prev, self._suppress = self._suppress, True
+            try:
+                self.cutoff_hz_input.value = hz
+            finally:
+                self._suppress = prev
+
     def _on_control(self, _event: Any) -> None:
         if not self._suppress:
             self.request_update()
@@ -535,6 +562,7 @@ class TuningPanel:
             self.q_type.value = _label_of(a.q_type)
             lo, hi = math.log10(CUTOFF_MIN_HZ), math.log10(CUTOFF_MAX_HZ)
             self.cutoff_log.value = _clamp(math.log10(a.q_cutoff_hz), lo, hi)
+            self.cutoff_hz_input.value = round(a.q_cutoff_hz, 4)
             self.dob_on.value = a.dob_on
             self.ff_on.value = a.ff_on
             self.cv_kp.value = _clamp(a.cv_kp, 0.05, 3.0)

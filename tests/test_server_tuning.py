@@ -61,6 +61,24 @@ def test_slider_move_updates_plots_margins_verdict_within_50_ms(dash: Dashboard)
     assert np.percentile(times_ms, 90) <= 50.0
 
 
+def test_typing_the_cutoff_in_hz_moves_the_slider_and_reevaluates(dash: Dashboard) -> None:
+    t = dash.tuning
+    assert t is not None
+    before = t.update_count
+    t.cutoff_hz_input.value = 2.5  # what typing in the Hz box does
+    assert t.wait_idle(2.0)
+    assert t.update_count == before + 1
+    assert float(t.cutoff_log.value) == pytest.approx(math.log10(2.5), abs=1e-9)
+    ev = t.last_evaluation
+    assert ev is not None and ev.config.q_cutoff_hz == pytest.approx(2.5, rel=1e-3)
+    assert "noise -&gt; command" in t.verdict.content or "noise -> command" in t.verdict.content
+    t.cutoff_log.value = 0.0  # and the slider drives the box
+    assert t.wait_idle(2.0)
+    assert float(t.cutoff_hz_input.value) == pytest.approx(1.0)
+    t.revert()
+    assert t.wait_idle(2.0)
+
+
 def test_rejected_candidate_is_highlighted(dash: Dashboard) -> None:
     t = dash.tuning
     assert t is not None
