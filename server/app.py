@@ -19,9 +19,10 @@ from typing import Any
 from controller import protocol as proto
 from controller.config import LoopConfig
 from server.client import ClientOptions, ControllerClient, ControllerUnavailable
+from server.identify_panel import IdentifyPanel, NominalTuningPanel
 from server.live import LivePanel
 from server.scene3d import TurntableScene
-from server.tuning import TuningEngine, TuningPanel
+from server.tuning import TuningEngine
 
 __all__ = ["Dashboard", "DashboardOptions", "run_dashboard"]
 
@@ -64,7 +65,8 @@ class Dashboard:
         self.server: Any = None
         self.engine = TuningEngine()
         self._requests = ThreadPoolExecutor(max_workers=2, thread_name_prefix="ctl-request")
-        self.tuning: TuningPanel | None = None
+        self.tuning: NominalTuningPanel | None = None
+        self.identify: IdentifyPanel | None = None
         self.live: LivePanel | None = None
         self.scene: TurntableScene | None = None
         self._fetched_active = threading.Event()
@@ -103,6 +105,8 @@ class Dashboard:
             self.live.stop()
         if self.tuning is not None:
             self.tuning.stop()
+        if self.identify is not None:
+            self.identify.stop()
         self._requests.shutdown(wait=False, cancel_futures=True)
         if self.server is not None:
             with contextlib.suppress(Exception):
@@ -118,7 +122,8 @@ class Dashboard:
                             brand_color=(31, 119, 180))
         gui.set_panel_label("dobtune")
         self.scene = TurntableScene(server.scene)
-        tuning = TuningPanel(gui, self.engine, self._apply_async)
+        tuning = NominalTuningPanel(gui, self.engine, self._apply_async)
+        self.identify = IdentifyPanel(gui, tuning, add_measured=self.engine.add_measured)
         live = LivePanel(
             gui, self.client, self._command_async, on_status=self._on_status,
             on_frame=self._on_frame, rate_hz=self.opts.live_rate_hz,
@@ -140,6 +145,8 @@ class Dashboard:
             upload.on_upload(self._on_upload)
         with tabs.add_tab("Live"):
             live.build_controls()
+        with tabs.add_tab("Identify"):
+            self.identify.build_controls()
         with tabs.add_tab("Help"):
             gui.add_markdown(_asset("help.md", "Help texts are missing (web_assets/help.md)."))
 
@@ -148,6 +155,8 @@ class Dashboard:
             tuning.build_charts()
         with plots.add_tab("Live traces"):
             live.build_charts()
+        with plots.add_tab("Identify"):
+            self.identify.build_charts()
         plots.dock_right()
         with contextlib.suppress(Exception):
             gui.main_panel.dock_left()

@@ -20,8 +20,11 @@ __all__ = [
     "PREVIEW_CHART",
     "BodeCurves",
     "ChartSpec",
+    "MeasuredCurve",
     "bode_data",
     "db",
+    "identify_chart_specs",
+    "identify_data",
     "live_data",
     "minmax_decimate",
     "preview_data",
@@ -298,4 +301,139 @@ def live_data(
     return {
         key: (x, *(by_name[c] for c in cols), by_name["version"])
         for key, cols in LIVE_COLUMNS.items()
+    }
+
+
+# -- identification (measured responses building up) ---------------------------------------------
+
+#: One colour per measurement position (cycled).
+POSITION_COLORS = ("#1f77b4", "#2ca02c", "#9467bd", "#e8871e", "#17becf", "#8c564b")
+FIT = "#d62728"
+
+
+@dataclass(frozen=True)
+class MeasuredCurve:
+    """One measured response to draw (plain arrays; NaN std where it is unknown)."""
+
+    label: str
+    freq_hz: FloatArray
+    mag_db: FloatArray
+    phase_deg: FloatArray
+    mag_std_db: FloatArray
+    coherence: FloatArray
+    complete: bool = True
+
+
+def _rgba(hex_color: str, alpha: float) -> str:
+    r, g, b = (int(hex_color[i:i + 2], 16) for i in (1, 3, 5))
+    return f"rgba({r},{g},{b},{alpha})"
+
+
+def _points(label: str, stroke: str, **extra: Any) -> dict[str, Any]:
+    s = _line(label, stroke)
+    s.update({"points": {"show": True, "size": 6}, "spanGaps": True, **extra})
+    return s
+
+
+def identify_chart_specs(n_positions: int) -> tuple[ChartSpec, ...]:
+    """Magnitude (with the +-1 std band of each position and the fit), phase (with the fit) and
+    coherence of `n_positions` measured responses on a log frequency axis.
+
+    Series of the magnitude chart per position k: |G| k, |G|+std k, |G|-std k (the band is
+    filled between the last two); then the fit. Phase: one per position, then the fit.
+    Coherence: one per position.
+    """
+    n = max(1, int(n_positions))
+    colors = [POSITION_COLORS[k % len(POSITION_COLORS)] for k in range(n)]
+    mag: list[dict[str, Any]] = []
+    bands: list[dict[str, Any]] = []
+    for k, c in enumerate(colors):
+        i = 1 + 3 * k
+        mag.append(_points(f"pos {k + 1} |G|", c))
+        mag.append(_line(f"pos {k + 1} +std", _rgba(c, 0.35), width=0.5))
+        mag.append(_line(f"pos {k + 1} -std", _rgba(c, 0.35), width=0.5))
+        bands.append({"series": (i + 1, i + 2), "fill": _rgba(c, 0.15)})
+    fit = _line("fit Mn Pn", FIT, dash=(6, 4), width=1.5)
+    fit["spanGaps"] = True
+    phase = [_points(f"pos {k + 1} phase", c) for k, c in enumerate(colors)]
+    coh = [_points(f"pos {k + 1} coherence", c) for k, c in enumerate(colors)]
+    return (
+        ChartSpec(
+            key="identify_mag",
+            title="Measured |G| = |w/u| with +-1 std band, and the fit",
+            series=({"label": "f (Hz)"}, *mag, fit),
+            scales=dict(_LOG_X),
+            axes=({"label": "Hz", "scale": "x"}, {"label": "dB", "scale": "y"}),
+            height=240,
+            extra={"bands": tuple(bands)},
+        ),
+        ChartSpec(
+            key="identify_phase",
+            title="Measured phase of w/u, and the fit",
+            series=({"label": "f (Hz)"}, *phase, dict(fit, label="fit phase")),
+            scales=dict(_LOG_X),
+            axes=({"label": "Hz", "scale": "x"}, {"label": "deg", "scale": "y"}),
+            height=200,
+        ),
+        ChartSpec(
+            key="identify_coherence",
+            title="Coherence",
+            series=({"label": "f (Hz)"}, *coh),
+            scales={"x": _LOG_X["x"], "y": {"auto": False, "range": (0.0, 1.05)}},
+            axes=({"label": "Hz", "scale": "x"}, {"label": "", "scale": "y"}),
+            height=150,
+        ),
+    )
+
+
+def identify_data(
+    n_positions: int,
+    curves: Sequence[MeasuredCurve | None],
+    fit_freq_hz: FloatArray | None = None,
+    fit_response: npt.NDArray[np.complex128] | None = None,
+) -> dict[str, tuple[FloatArray, ...]]:
+    """Data tuples for `identify_chart_specs(n_positions)`.
+
+    The x grid is the union of every curve's frequencies and the fit's; a series is NaN where
+    it has no point (drawn with spanGaps). Curves missing so far (None) are all NaN. With no
+    data at all, a two-point placeholder grid.
+    """
+    n = max(1, int(n_positions))
+    have = [c for c in curves[:n] if c is not None and c.freq_hz.size > 0]
+    grids = [c.freq_hz for c in have]
+    if fit_freq_hz is not None and fit_response is not None and fit_freq_hz.size > 0:
+        grids.append(np.asarray(fit_freq_hz, dtype=np.float64))
+    x = np.unique(np.concatenate(grids)) if grids else np.array([0.1, 10.0])
+    nan = np.full(x.size, np.nan)
+
+    def on_grid(f: FloatArray, y: FloatArray) -> FloatArray:
+        out = nan.copy()
+        out[np.searchsorted(x, f)] = y
+        return out
+
+    mag: list[FloatArray] = []
+    phase: list[FloatArray] = []
+    coh: list[FloatArray] = []
+    for k in range(n):
+        c = curves[k] if k < len(curves) else None
+        if c is None or c.freq_hz.size == 0:
+            mag += [nan, nan, nan]
+            phase.append(nan)
+            coh.append(nan)
+            continue
+        std = np.nan_to_num(np.asarray(c.mag_std_db, dtype=np.float64), nan=0.0)
+        m = on_grid(c.freq_hz, c.mag_db)
+        mag += [m, on_grid(c.freq_hz, c.mag_db + std), on_grid(c.freq_hz, c.mag_db - std)]
+        phase.append(on_grid(c.freq_hz, c.phase_deg))
+        coh.append(on_grid(c.freq_hz, c.coherence))
+    if fit_freq_hz is not None and fit_response is not None and fit_freq_hz.size > 0:
+        fit_mag = on_grid(fit_freq_hz, db(fit_response))
+        ph = np.degrees(np.unwrap(np.angle(fit_response)))
+        fit_phase = on_grid(fit_freq_hz, ph)
+    else:
+        fit_mag = fit_phase = nan
+    return {
+        "identify_mag": (x, *mag, fit_mag),
+        "identify_phase": (x, *phase, fit_phase),
+        "identify_coherence": (x, *coh),
     }

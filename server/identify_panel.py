@@ -1,0 +1,586 @@
+"""The Identify panel: measure the frequency response, fit Mn Pn, recommend the Q cut-off.
+
+This version runs the identification OFFLINE ON THE SIMULATED RIG, in a worker thread of the
+dashboard (`controller.identify.run_identification` against a `SimRig`), and says so on the
+panel. Running it through the controller (the IdentifyStart / IdentifyAbort commands and the
+``dobtune/<rig>/identify`` queryable) is left for later.
+
+How it runs: one `run_identification` per measurement position on one simulated rig (the load
+moves on from where the previous position left it), so each position's response is drawn as
+soon as it is measured; the positions are then fitted together (fit, Delta, agreement, the
+gate's recommended cut-offs). An optional pace ("x real time") slows the simulation down so a
+run can be watched and aborted. Abort stops the simulation at the next tick; the positions
+measured so far stay on the charts, marked incomplete (the interrupted position is dropped).
+
+"Use as nominal model" never talks to the controller: it puts the fitted nominal (and the
+measured responses, as the gate's plant knowledge) into the tuning candidate, which is then
+evaluated like any other change and sent only by the Tune tab's Apply.
+
+GUI callbacks only read widgets, check the state under a lock and start/signal the worker;
+viser's ``disabled`` flags are cosmetic, every button re-checks the state here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from controller.analysis import MeasuredResponse
+from controller.config import LoopConfig, NominalModel
+from controller.errors import ConfigError
+from controller.identify import (
+    IdentifyAborted,
+    IdentifyResult,
+    IdentifySpec,
+    PositionRecord,
+    RigLike,
+    run_identification,
+)
+from server import charts
+from server.tuning import TuningPanel
+
+__all__ = [
+    "ABORTED",
+    "DONE",
+    "FAILED",
+    "IDLE",
+    "RUNNING",
+    "IdentifyPanel",
+    "IdentifySettings",
+    "NominalTuningPanel",
+    "UserAbort",
+    "curve_of",
+    "format_result_html",
+]
+
+IDLE, RUNNING, DONE, ABORTED, FAILED = "idle", "running", "done", "aborted", "failed"
+
+OFFLINE_NOTE = "offline on the simulated rig"
+
+
+class UserAbort(Exception):
+    """Raised inside the simulation when the user presses Abort."""
+
+
+# -- the tuning candidate's nominal -------------------------------------------------------------
+
+
+class NominalTuningPanel(TuningPanel):
+    """The tuning panel with a nominal-model slot in the candidate.
+
+    ``nominal_override`` (set by "Use as nominal model") replaces the active configuration's
+    nominal in the candidate; the gate evaluates it and Apply sends it like any other change.
+    Revert clears it.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.nominal_override: NominalModel | None = None
+
+    def candidate(self) -> LoopConfig:
+        cand = super().candidate()
+        if self.nominal_override is not None:
+            cand = cand.with_(nominal=self.nominal_override)
+        return cand
+
+    def set_nominal(self, nominal: NominalModel | None) -> None:
+        """Use `nominal` in the candidate (None: the active one) and re-evaluate; no apply."""
+        self.nominal_override = nominal
+        self.request_update()
+
+    def revert(self) -> None:
+        self.nominal_override = None
+        super().revert()
+
+
+# -- pure helpers -------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class IdentifySettings:
+    """What the panel's controls ask for."""
+
+    mode: str = "open"
+    signal: str = "sine"
+    f_min_hz: float = 0.1
+    f_max_hz: float = 20.0
+    points_per_decade: int = 10
+    positions: int = 3
+    amplitude_deg_s: float = 10.0
+    pace: float = 0.0
+    """Simulated seconds per wall second (0: as fast as possible)."""
+
+    def spec(self) -> IdentifySpec:
+        """The validated spec; raises ConfigError naming the field."""
+        return IdentifySpec(
+            mode=self.mode,
+            signal=self.signal,
+            f_min_hz=float(self.f_min_hz),
+            f_max_hz=float(self.f_max_hz),
+            points_per_decade=int(self.points_per_decade),
+            positions=int(self.positions),
+            amplitude_deg_s=float(self.amplitude_deg_s),
+        )
+
+
+def curve_of(p: PositionRecord) -> charts.MeasuredCurve | None:
+    """A position's measured response for the charts (None if nothing was measured)."""
+    e = p.estimate
+    if e is None or e.freq_hz.size == 0:
+        return None
+    return charts.MeasuredCurve(
+        label=f"pos {p.index + 1} ({p.center_deg:g} deg)",
+        freq_hz=np.asarray(e.freq_hz, dtype=np.float64),
+        mag_db=np.asarray(e.mag_db, dtype=np.float64),
+        phase_deg=np.asarray(e.phase_deg, dtype=np.float64),
+        mag_std_db=np.asarray(e.mag_std_db, dtype=np.float64),
+        coherence=np.asarray(e.coherence, dtype=np.float64),
+        complete=p.complete,
+    )
+
+
+def _esc(text: str) -> str:
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+def _hz(v: float | None) -> str:
+    return "none accepted" if v is None else f"{v:.3g} Hz"
+
+
+def format_result_html(result: IdentifyResult | None, n_positions: int) -> str:
+    """Fit, agreement, recommended cut-offs and notes as a small HTML block."""
+    if result is None:
+        return "<div class='dt-identify-result' style='font-size:12px;color:#555'>No result yet."\
+               "</div>"
+    rows: list[str] = []
+    done = sum(1 for p in result.positions if p.complete)
+    if not result.complete:
+        rows.append(
+            "<div class='dt-id-incomplete' style='color:#d62728'><b>INCOMPLETE</b>: "
+            f"{done} of {n_positions} position(s) measured"
+            + (f" ({_esc(result.abort_reason)})" if result.abort_reason else "")
+            + "; nothing fitted.</div>"
+        )
+    fit = result.fit
+    if fit is not None:
+        rows.append(
+            "<div class='dt-id-fit'><b>Fit Mn Pn</b> = 1/(a2 s&sup2; + a1 s + 1): "
+            f"f<sub>n</sub> = <b>{fit.natural_freq_hz:.3f} &plusmn; "
+            f"{fit.natural_freq_std_hz:.3f} Hz</b> "
+            f"(&omega;<sub>n</sub> {fit.wn_rad_s:.2f} &plusmn; {fit.wn_std_rad_s:.2f} rad/s), "
+            f"&zeta; = <b>{fit.zeta:.3f} &plusmn; {fit.zeta_std:.3f}</b>; residual "
+            f"{fit.residual_rms_db:.2f} dB / {fit.residual_rms_deg:.1f} deg rms over "
+            f"{fit.f_lo_hz:.3g}-{fit.f_hi_hz:.3g} Hz ({fit.n_points} points)</div>"
+        )
+    if result.complete:
+        if result.agreement is not None:
+            a = result.agreement
+            rows.append(
+                f"<div class='dt-id-agree'>Positions agree (within {a.tol_db:g} dB / "
+                f"{a.tol_deg:g} deg) below <b>{a.agree_below_hz:.3g} Hz</b></div>"
+            )
+        else:
+            rows.append("<div class='dt-id-agree'>Agreement across positions: needs at least "
+                        "two positions.</div>")
+        rec = result.recommended_cutoff_hz
+        if rec:
+            rows.append(
+                "<div class='dt-id-cutoff'>Gate's recommended max cut-off with the fitted "
+                f"nominal: <b>Q31 {_hz(rec.get('q31'))}</b>, <b>Q20 {_hz(rec.get('q20'))}</b>"
+                "</div>"
+            )
+        for c in result.gate_checks:
+            rows.append(
+                f"<div class='dt-id-check' style='font-size:11px;color:#555'>gate at "
+                f"{c.q_type.upper()} {c.cutoff_hz:.3g} Hz: "
+                f"{'accept' if c.accepted else 'reject'} (small-gain peak "
+                f"{c.small_gain_peak:.2f})</div>"
+            )
+    for note in result.notes:
+        rows.append(f"<div class='dt-id-note' style='color:#b36b00'>{_esc(note)}</div>")
+    rows.append(
+        f"<div style='font-size:11px;color:#888'>{result.simulated_s:.1f} s simulated</div>"
+    )
+    return "<div class='dt-identify-result' style='font-size:12px'>" + "".join(rows) + "</div>"
+
+
+def _status_html(state: str, text: str) -> str:
+    color = {RUNNING: "#1f77b4", DONE: "#2e7d32", ABORTED: "#d62728", FAILED: "#d62728"}.get(
+        state, "#555"
+    )
+    return (
+        f"<div class='dt-identify-status dt-id-{state}' style='font-size:12px;color:{color}'>"
+        f"<b>{state}</b> &middot; {_esc(text)} <span style='color:#888'>({OFFLINE_NOTE})"
+        "</span></div>"
+    )
+
+
+class _PacedRig:
+    """A rig wrapper: raises UserAbort at the next tick after `abort` is set and, with
+    ``pace > 0``, keeps simulated time at most `pace` x the wall time."""
+
+    def __init__(self, rig: RigLike, rate_hz: float, abort: threading.Event, pace: float) -> None:
+        self.rig = rig
+        self.abort = abort
+        self.ts = 1.0 / rate_hz
+        self.pace = pace
+        self.ticks = 0
+        self.t0 = time.monotonic()
+        self.chunk = max(1, round(0.02 * rate_hz))
+
+    def read(self) -> tuple[float, float]:
+        return self.rig.read()
+
+    def step(self, command_deg_s: float) -> None:
+        if self.abort.is_set():
+            raise UserAbort("aborted by the user")
+        self.rig.step(command_deg_s)
+        self.ticks += 1
+        if self.pace > 0.0 and self.ticks % self.chunk == 0:
+            ahead = self.ticks * self.ts / self.pace - (time.monotonic() - self.t0)
+            if ahead > 0.0:
+                self.abort.wait(ahead)
+
+
+def _combine(spec: IdentifySpec, cfg: LoopConfig, results: list[IdentifyResult],
+             complete: bool, reason: str | None) -> IdentifyResult:
+    """One result from the per-position runs (`results` not empty), fitted together when
+    complete."""
+    positions = tuple(
+        dataclasses.replace(p, index=k) for k, r in enumerate(results) for p in r.positions[:1]
+    )
+    if complete and len(results) == 1:
+        return dataclasses.replace(results[0], spec=spec, positions=positions)
+    base = IdentifyResult(
+        spec=spec,
+        config=cfg,
+        excitation=results[0].excitation,
+        positions=positions,
+        complete=complete,
+        abort_reason=reason,
+        simulated_s=sum(r.simulated_s for r in results),
+    )
+    if not complete:
+        return base
+    # The positions were measured in separate runs: fit them together as one run does.
+    from controller.identify import _analyse_result
+
+    return _analyse_result(spec, cfg, base)
+
+
+# -- the panel ----------------------------------------------------------------------------------
+
+
+_MODES = ("open", "closed")
+_SIGNALS = ("sine", "multisine")
+
+
+class IdentifyPanel:
+    """Settings, Start/Abort, progress and result (`build_controls`) and the response charts
+    (`build_charts`); the run happens in one worker thread at a time."""
+
+    def __init__(
+        self,
+        gui: Any,
+        tuning: NominalTuningPanel | None,
+        config_fn: Callable[[], LoopConfig] | None = None,
+        rig_factory: Callable[[LoopConfig, int], RigLike] | None = None,
+        add_measured: Callable[[MeasuredResponse], None] | None = None,
+    ) -> None:
+        self.gui = gui
+        self.tuning = tuning
+        self._config_fn = config_fn or (
+            (lambda: tuning.active) if tuning is not None else LoopConfig
+        )
+        self._rig_factory = rig_factory or _sim_rig
+        self._add_measured = add_measured
+        self._lock = threading.Lock()
+        self._abort = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.state = IDLE
+        self.text = "not started"
+        self.progress = 0.0
+        self.result: IdentifyResult | None = None
+        self.n_positions = 3
+        self.curves: list[charts.MeasuredCurve | None] = []
+        self.charts: dict[str, Any] = {}
+        self.chart_updates = 0
+        self._chart_n = 0
+        self._last_publish = 0.0
+        self._chart_box: Any = None
+        self.chart_note: Any = None
+
+    # -- building --------------------------------------------------------------------------
+
+    def build_controls(self) -> None:
+        gui = self.gui
+        d = IdentifySettings()
+        gui.add_html(
+            "<div class='dt-identify-note' style='font-size:12px;color:#b36b00'>Runs "
+            f"<b>{OFFLINE_NOTE}</b> (not on the controller's rig yet).</div>"
+        )
+        self.mode = gui.add_dropdown("Mode", _MODES, initial_value=d.mode,
+                                     hint="open: u = offset + excitation; closed: speed loop "
+                                          "active, excitation added to its command")
+        self.signal = gui.add_dropdown("Signal", _SIGNALS, initial_value=d.signal,
+                                       hint="stepped sine or periodic multisine")
+        self.f_min = gui.add_number("f min (Hz)", d.f_min_hz, min=0.01, max=200.0, step=0.01)
+        self.f_max = gui.add_number("f max (Hz)", d.f_max_hz, min=0.02, max=400.0, step=0.01)
+        self.ppd = gui.add_number("Points per decade", d.points_per_decade, min=1, max=200,
+                                  step=1)
+        self.positions = gui.add_number("Positions", d.positions, min=1, max=36, step=1,
+                                        hint="evenly spread over a turn")
+        self.amplitude = gui.add_number("Amplitude (deg/s)", d.amplitude_deg_s, min=0.1,
+                                        max=100.0, step=0.1,
+                                        hint="largest excitation amplitude, load speed")
+        self.pace = gui.add_number("Pace (x real time, 0 = fastest)", d.pace, min=0.0,
+                                   max=1000.0, step=0.5)
+        self.start_button = gui.add_button("Start identification", color="green")
+        self.abort_button = gui.add_button("Abort", color="red", disabled=True)
+        self.progress_bar = gui.add_progress_bar(0.0)
+        self.status = gui.add_html(_status_html(IDLE, self.text))
+        self.result_html = gui.add_html(format_result_html(None, 0))
+        self.use_button = gui.add_button("Use as nominal model", color="blue", disabled=True,
+                                         hint="put the fitted Mn Pn into the tuning candidate "
+                                              "(checked by the gate; Apply sends it)")
+        self.use_result = gui.add_html("<div class='dt-id-use' style='font-size:12px'></div>")
+        self.start_button.on_click(lambda _e: self.start())
+        self.abort_button.on_click(lambda _e: self.abort())
+        self.use_button.on_click(lambda _e: self.use_as_nominal())
+
+    def build_charts(self) -> None:
+        self.chart_note = self.gui.add_html(
+            "<div class='dt-identify-charts' style='font-size:12px;color:#555'>Identification "
+            f"({OFFLINE_NOTE}): each position's response appears when it is measured.</div>")
+        self._chart_box = self.gui.add_folder("Measured response", expand_by_default=True)
+        self._make_charts(self.n_positions)
+
+    def _make_charts(self, n: int) -> None:
+        """(Re)create the charts for `n` positions (the series count of a uPlot is fixed)."""
+        if self._chart_box is None:
+            return
+        for h in self.charts.values():
+            with contextlib.suppress(Exception):
+                h.remove()
+        self.charts = {}
+        data = charts.identify_data(n, [])
+        with self._chart_box:
+            for spec in charts.identify_chart_specs(n):
+                self.charts[spec.key] = self.gui.add_uplot(
+                    data=data[spec.key], series=spec.series, scales=spec.scales,
+                    axes=spec.axes, title=spec.title, height=spec.height, aspect=2.0,
+                    bands=spec.extra.get("bands"),
+                )
+        self._chart_n = n
+
+    def stop(self) -> None:
+        self._abort.set()
+        t = self._thread
+        if t is not None:
+            t.join(timeout=5.0)
+
+    # -- reading the controls ----------------------------------------------------------------
+
+    def settings(self) -> IdentifySettings:
+        return IdentifySettings(
+            mode=str(self.mode.value),
+            signal=str(self.signal.value),
+            f_min_hz=float(self.f_min.value),
+            f_max_hz=float(self.f_max.value),
+            points_per_decade=round(float(self.ppd.value)),
+            positions=round(float(self.positions.value)),
+            amplitude_deg_s=float(self.amplitude.value),
+            pace=max(0.0, float(self.pace.value)),
+        )
+
+    # -- events (short) ----------------------------------------------------------------------
+
+    def start(self, settings: IdentifySettings | None = None) -> bool:
+        """Start a run unless one is running; False (and a message) if not started."""
+        s = settings or self.settings()
+        try:
+            spec = s.spec()
+            cfg = self._config_fn()
+            if spec.f_max_hz >= 0.5 * cfg.rate_hz:
+                raise ConfigError("f_max_hz", f"must be below Nyquist {0.5 * cfg.rate_hz} Hz")
+        except ConfigError as exc:
+            self.status.content = _status_html(self.state, f"not started: {exc}")
+            return False
+        with self._lock:
+            if self.state == RUNNING:
+                self.status.content = _status_html(RUNNING, "a run is already in progress")
+                return False
+            self.state = RUNNING
+            self._abort.clear()
+            self.result = None
+            self.curves = []
+            self.progress = 0.0
+            self.n_positions = spec.positions
+            self._thread = threading.Thread(
+                target=self._run, args=(spec, cfg, s.pace), name="identify", daemon=True
+            )
+        self.text = "starting"
+        self.start_button.disabled = True
+        self.abort_button.disabled = False
+        self.use_button.disabled = True
+        self.use_result.content = "<div class='dt-id-use' style='font-size:12px'></div>"
+        self.result_html.content = format_result_html(None, 0)
+        self.progress_bar.value = 0.0
+        self.progress_bar.animated = True
+        self.status.content = _status_html(RUNNING, self.text)
+        self._thread.start()
+        return True
+
+    def abort(self) -> bool:
+        with self._lock:
+            if self.state != RUNNING:
+                self.status.content = _status_html(self.state, "nothing to abort")
+                return False
+            self._abort.set()
+        self.status.content = _status_html(RUNNING, "aborting...")
+        return True
+
+    def use_as_nominal(self) -> bool:
+        """Put the fitted nominal into the tuning candidate (never sent from here)."""
+        with self._lock:
+            result = self.result if self.state == DONE else None
+        if result is None or result.nominal is None or not result.complete:
+            self.use_result.content = (
+                "<div class='dt-id-use' style='color:#d62728;font-size:12px'>No complete "
+                "identification with a usable fit: nothing to use.</div>")
+            return False
+        if self.tuning is None:
+            return False
+        if self._add_measured is not None:
+            for m in result.measured_responses():
+                self._add_measured(dataclasses.replace(m, name=f"identify {m.name}"))
+        self.tuning.set_nominal(result.nominal)
+        fit = result.fit
+        wn = f" (f<sub>n</sub> {fit.natural_freq_hz:.3f} Hz, &zeta; {fit.zeta:.3f})" if fit else ""
+        self.use_result.content = (
+            "<div class='dt-id-use dt-id-used' style='font-size:12px;border:2px solid #1f77b4;"
+            "padding:4px;border-radius:4px'>The tuning candidate now uses the fitted Mn Pn"
+            f"{wn} and the measured responses. Check the verdict on the <b>Tune</b> tab; "
+            "<b>Apply</b> there sends it (the controller's gate decides). Revert drops it."
+            "</div>")
+        return True
+
+    # -- the worker ----------------------------------------------------------------------------
+
+    def wait_done(self, timeout_s: float = 30.0) -> bool:
+        t = self._thread
+        if t is not None:
+            t.join(timeout=timeout_s)
+        return self.state != RUNNING
+
+    def _run(self, spec: IdentifySpec, cfg: LoopConfig, pace: float) -> None:
+        n = spec.positions
+        if self._chart_n != n:
+            self._make_charts(n)
+        self._publish_charts(None)
+        sim = self._rig_factory(cfg, spec.seed)
+        rig = _PacedRig(sim, cfg.rate_hz, self._abort, pace)
+        results: list[IdentifyResult] = []
+        reason: str | None = None
+        state = DONE
+        final: IdentifyResult | None = None
+        try:
+            for k, c in enumerate(spec.centers_deg):
+                one = spec.with_(positions=1, first_position_deg=c, span_deg=spec.span_deg / n)
+
+                def progress(frac: float, text: str, k: int = k) -> None:
+                    self._on_progress((k + min(frac, 0.99)) / n,
+                                      text.replace("position 1/1", f"position {k + 1}/{n}"))
+
+                try:
+                    r = run_identification(one, cfg, lambda: rig, progress)
+                except IdentifyAborted as exc:
+                    # a limit: keep what was measured, the position is incomplete
+                    results.append(exc.result)
+                    reason, state = exc.reason, ABORTED
+                    break
+                results.append(r)
+                self.curves.append(curve_of(r.positions[0]))
+                self._publish_charts(None)
+            if results:
+                final = _combine(spec, cfg, results, state == DONE, reason)
+        except UserAbort:
+            reason, state = "aborted by the user", ABORTED
+            if results:
+                final = _combine(spec, cfg, results, False, reason)
+        except Exception as exc:  # show it; the worker must not die silently
+            reason, state = f"{type(exc).__name__}: {exc}", FAILED
+        self._finish(state, final, reason, spec)
+
+    def _on_progress(self, fraction: float, text: str) -> None:
+        now = time.monotonic()
+        self.progress, self.text = fraction, text
+        if now - self._last_publish < 0.1:
+            return
+        self._last_publish = now
+        self.progress_bar.value = round(100.0 * min(max(fraction, 0.0), 1.0), 1)
+        self.status.content = _status_html(RUNNING, f"{100 * fraction:.0f} % {text}")
+
+    def _publish_charts(self, result: IdentifyResult | None) -> None:
+        fit_f = fit_g = None
+        if result is not None and result.fit is not None and self.curves:
+            have = [c for c in self.curves if c is not None]
+            if have:
+                lo = min(float(c.freq_hz[0]) for c in have)
+                hi = max(float(c.freq_hz[-1]) for c in have)
+                fit_f = np.geomspace(lo, hi, 80)
+                fit_g = result.fit.response(fit_f, include_delay=False)
+        data = charts.identify_data(self._chart_n, self.curves, fit_f, fit_g)
+        for key, h in self.charts.items():
+            h.data = data[key]
+        self.chart_updates += 1
+
+    def _finish(self, state: str, result: IdentifyResult | None, reason: str | None,
+                spec: IdentifySpec) -> None:
+        if result is not None:
+            # an aborted run may have partial positions that were never drawn
+            self.curves = [curve_of(p) for p in result.positions]
+        self._publish_charts(result)
+        n = spec.positions
+        if state == DONE:
+            text = "done"
+            if result is not None and result.fit is not None:
+                text += f": fit f_n {result.fit.natural_freq_hz:.3f} Hz"
+        else:
+            text = f"{reason or state}"
+            if state == ABORTED:
+                kept = 0 if result is None else sum(1 for p in result.positions if p.complete)
+                text = f"INCOMPLETE, {text}: {kept} of {n} position(s) kept"
+        self.result_html.content = format_result_html(result, n)
+        if self.chart_note is not None:
+            done = state == DONE
+            self.chart_note.content = (
+                f"<div class='dt-identify-charts dt-id-{state}' style='font-size:12px;"
+                f"color:{'#555' if done else '#d62728'}'>"
+                + ("Identification complete" if done else f"<b>INCOMPLETE</b> ({_esc(text)})")
+                + f" &middot; {OFFLINE_NOTE}</div>")
+        self.progress_bar.animated = False
+        if state == DONE:
+            self.progress_bar.value = 100.0
+        with self._lock:
+            self.result = result
+            self.state = state
+            self.text = text
+        self.status.content = _status_html(state, text)
+        self.start_button.disabled = False
+        self.abort_button.disabled = True
+        self.use_button.disabled = not (
+            state == DONE and result is not None and result.nominal is not None
+        )
+
+
+def _sim_rig(cfg: LoopConfig, seed: int) -> RigLike:
+    from controller.sim_rig import SimRig
+
+    return SimRig(rate_hz=cfg.rate_hz, seed=seed)

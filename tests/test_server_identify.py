@@ -1,0 +1,179 @@
+"""The dashboard's Identify panel without a browser (offline on the simulated rig; no
+controller: the dashboard shows its 'not reachable' banner, identification does not need it).
+
+A short run fills the charts and shows the fit and the recommended cut-offs; Abort mid-run
+keeps the measured positions, marked incomplete; "Use as nominal model" changes the tuning
+candidate's nominal and re-evaluates it, and sends nothing.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from controller.config import LoopConfig
+from server import charts
+from server.app import Dashboard, DashboardOptions
+from server.identify_panel import (
+    ABORTED,
+    DONE,
+    IdentifyPanel,
+    IdentifySettings,
+    NominalTuningPanel,
+)
+
+SHORT = IdentifySettings(mode="open", signal="multisine", f_min_hz=1.0, f_max_hz=8.0,
+                         points_per_decade=4, positions=1, amplitude_deg_s=10.0)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_for(cond: Any, timeout_s: float = 20.0) -> None:
+    end = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.02)
+
+
+@pytest.fixture(scope="module")
+def dash() -> Iterator[Dashboard]:
+    opts = DashboardOptions(
+        port=free_port(), connect=(f"tcp/127.0.0.1:{free_port()}",), verbose=False
+    )
+    with Dashboard(opts) as d:
+        assert d.tuning is not None and d.identify is not None
+        assert d.tuning.wait_preview_idle(30.0)
+        yield d
+
+
+@pytest.fixture(scope="module")
+def short_run(dash: Dashboard) -> IdentifyPanel:
+    p = dash.identify
+    assert p is not None
+    t0 = time.perf_counter()
+    assert p.start(SHORT)
+    assert p.wait_done(30.0)
+    print(f"short identification: {time.perf_counter() - t0:.2f} s wall")
+    return p
+
+
+def _finite(a: np.ndarray) -> int:
+    return int(np.isfinite(a).sum())
+
+
+def test_short_identification_fills_charts_and_shows_fit_and_cutoffs(
+    short_run: IdentifyPanel,
+) -> None:
+    p = short_run
+    assert p.state == DONE, p.text
+    r = p.result
+    assert r is not None and r.complete and r.fit is not None and r.nominal is not None
+    # charts: 1 position -> |G|, +std, -std, fit; phase + fit; coherence
+    mag = p.charts["identify_mag"].data
+    assert len(mag) == 1 + 3 + 1
+    n_meas = r.positions[0].estimate.freq_hz.size  # type: ignore[union-attr]
+    assert n_meas >= 4
+    assert _finite(mag[1]) == n_meas
+    assert _finite(mag[2]) == n_meas and np.all(mag[2][np.isfinite(mag[2])]
+                                                 >= mag[1][np.isfinite(mag[2])])
+    assert _finite(mag[4]) >= 50  # the fit on a dense grid
+    assert np.all(np.diff(mag[0]) > 0)
+    coh = p.charts["identify_coherence"].data
+    assert _finite(coh[1]) == n_meas and np.nanmin(coh[1]) > 0.9
+    # the simulated rig's M(s)P(s): about 7.1 Hz, zeta about 0.73
+    assert 6.4 < r.fit.natural_freq_hz < 7.8
+    html = p.result_html.content
+    assert "Fit Mn Pn" in html and "&zeta;" in html and "residual" in html
+    assert "Q31" in html and "Q20" in html and "recommended" in html
+    assert r.recommended_cutoff_hz["q31"] is not None
+    assert f"{r.recommended_cutoff_hz['q31']:.3g} Hz" in html
+    assert "two positions" in html  # agreement needs >= 2
+    assert float(p.progress_bar.value) == 100.0
+    assert "dt-id-done" in p.status.content and "offline on the simulated rig" in p.status.content
+    assert not p.use_button.disabled and not p.start_button.disabled and p.abort_button.disabled
+
+
+def test_use_as_nominal_changes_candidate_and_reevaluates_without_apply(
+    dash: Dashboard, short_run: IdentifyPanel,
+) -> None:
+    t = dash.tuning
+    assert isinstance(t, NominalTuningPanel)
+    applied: list[LoopConfig] = []
+    t._apply_fn = applied.append
+    assert t.wait_idle(5.0)
+    r = short_run.result
+    assert r is not None and r.nominal is not None
+    assert t.candidate().nominal != r.nominal
+    before = t.update_count
+    assert short_run.use_as_nominal()
+    wait_for(lambda: t.update_count > before and t.wait_idle(0.1))
+    assert t.candidate().nominal == r.nominal
+    ev = t.last_evaluation
+    assert ev is not None and ev.config.nominal == r.nominal  # the gate saw the fitted model
+    assert t.active.nominal != r.nominal  # nothing reached the controller's config
+    assert applied == []
+    assert any(m.name.startswith("identify ") for m in dash.engine.measured)
+    assert "Apply" in short_run.use_result.content
+    # Revert drops it
+    t.revert()
+    assert t.wait_idle(5.0)
+    assert t.candidate().nominal == t.active.nominal
+    assert applied == []
+
+
+def test_abort_mid_run_keeps_partial_data_marked_incomplete(dash: Dashboard) -> None:
+    p = dash.identify
+    assert p is not None
+    slow = IdentifySettings(mode="open", signal="multisine", f_min_hz=1.0, f_max_hz=8.0,
+                            points_per_decade=4, positions=3, pace=4.0)
+    assert p.start(slow)
+    assert not p.start(slow)  # a second start while running is refused (server-side check)
+    assert "already" in p.status.content
+    wait_for(lambda: len(p.curves) >= 1, 30.0)  # the first position is on the chart
+    assert _finite(p.charts["identify_mag"].data[1]) > 0
+    assert p.abort()
+    assert p.wait_done(10.0)
+    assert p.state == ABORTED
+    r = p.result
+    assert r is not None and not r.complete and r.fit is None
+    assert 1 <= sum(1 for q in r.positions if q.complete) < 3
+    mag = p.charts["identify_mag"].data
+    assert len(mag) == 1 + 3 * 3 + 1
+    assert _finite(mag[1]) > 0  # position 1 still drawn
+    assert _finite(mag[-1]) == 0  # no fit
+    assert "INCOMPLETE" in p.result_html.content and "INCOMPLETE" in p.status.content
+    assert "dt-id-aborted" in p.status.content and "INCOMPLETE" in p.chart_note.content
+    assert p.use_button.disabled and not p.use_as_nominal()
+    assert not p.abort()  # nothing running any more
+
+
+def test_bad_settings_are_refused_before_anything_runs(dash: Dashboard) -> None:
+    p = dash.identify
+    assert p is not None
+    assert not p.start(IdentifySettings(f_min_hz=5.0, f_max_hz=2.0))
+    assert "f_min_hz" in p.status.content and p.state != "running"
+
+
+def test_identify_chart_data_pure() -> None:
+    f = np.array([1.0, 2.0, 4.0])
+    c = charts.MeasuredCurve("a", f, np.array([0.0, -1.0, -3.0]), np.array([-5.0, -10.0, -20.0]),
+                             np.array([0.1, np.nan, 0.2]), np.array([0.99, 0.98, 0.97]))
+    d = charts.identify_data(2, [c, None], np.array([1.5, 3.0]), np.array([1.0 + 0j, 0.5j]))
+    x = d["identify_mag"][0]
+    assert list(x) == [1.0, 1.5, 2.0, 3.0, 4.0]
+    assert len(d["identify_mag"]) == 1 + 6 + 1 and len(d["identify_phase"]) == 1 + 2 + 1
+    assert np.isnan(d["identify_mag"][4]).all()  # position 2 not measured yet
+    assert d["identify_mag"][2][2] == -1.0  # NaN std -> no band width
+    specs = charts.identify_chart_specs(2)
+    for s in specs:
+        assert len(s.series) == len(d[s.key])
+    assert specs[0].extra["bands"][1]["series"] == (5, 6)
