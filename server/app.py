@@ -17,6 +17,7 @@ from types import TracebackType
 from typing import Any
 
 from controller import protocol as proto
+from controller.analysis import MeasuredResponse
 from controller.config import LoopConfig
 from server.client import ClientOptions, ControllerClient, ControllerUnavailable
 from server.identify_panel import IdentifyPanel, NominalTuningPanel
@@ -123,7 +124,7 @@ class Dashboard:
         gui.set_panel_label("dobtune")
         self.scene = TurntableScene(server.scene)
         tuning = NominalTuningPanel(gui, self.engine, self._apply_async)
-        self.identify = IdentifyPanel(gui, tuning, add_measured=self.engine.add_measured)
+        self.identify = IdentifyPanel(gui, tuning, add_measured=self._add_identified)
         live = LivePanel(
             gui, self.client, self._command_async, on_status=self._on_status,
             on_frame=self._on_frame, rate_hz=self.opts.live_rate_hz,
@@ -239,6 +240,12 @@ class Dashboard:
     def _on_upload(self, event: Any) -> None:
         f = event.target.value
         self._requests.submit(self._load_measured, f.name, f.content)
+
+    def _add_identified(self, m: MeasuredResponse) -> None:
+        self.engine.add_measured(m)
+        self.measured_text.content = (
+            f"<div class='dt-measured' style='font-size:12px'>{len(self.engine.measured)} "
+            f"measured response(s); last: {m.name} (Identify). The verdict now uses them.</div>")
 
     def _load_measured(self, name: str, content: bytes) -> None:
         from server.measured import read_measured

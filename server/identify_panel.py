@@ -98,6 +98,18 @@ class NominalTuningPanel(TuningPanel):
         self.nominal_override = None
         super().revert()
 
+    def _cutoff_html(self, cutoff_hz: float, rec: float | None, known: bool = True) -> str:
+        html = super()._cutoff_html(cutoff_hz, rec, known)
+        n = self.nominal_override
+        if n is None:
+            return html
+        a2, a1, _ = n.pn_den
+        return html + (
+            "<div class='dt-nominal-fitted' style='font-size:12px;color:#1f77b4'>Candidate "
+            f"nominal: <b>fitted by Identify</b> (Pn den {a2:.3g} s&sup2; + {a1:.3g} s + 1); "
+            "Revert drops it.</div>"
+        )
+
 
 # -- pure helpers -------------------------------------------------------------------------------
 
@@ -196,11 +208,12 @@ def format_result_html(result: IdentifyResult | None, n_positions: int) -> str:
                 "</div>"
             )
         for c in result.gate_checks:
+            why = "" if c.accepted or not c.reasons else f": {_esc(c.reasons[0])}"
             rows.append(
                 f"<div class='dt-id-check' style='font-size:11px;color:#555'>gate at "
                 f"{c.q_type.upper()} {c.cutoff_hz:.3g} Hz: "
                 f"{'accept' if c.accepted else 'reject'} (small-gain peak "
-                f"{c.small_gain_peak:.2f})</div>"
+                f"{c.small_gain_peak:.2f}){why}</div>"
             )
     for note in result.notes:
         rows.append(f"<div class='dt-id-note' style='color:#b36b00'>{_esc(note)}</div>")

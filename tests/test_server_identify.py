@@ -123,10 +123,13 @@ def test_use_as_nominal_changes_candidate_and_reevaluates_without_apply(
     assert applied == []
     assert any(m.name.startswith("identify ") for m in dash.engine.measured)
     assert "Apply" in short_run.use_result.content
+    assert "dt-nominal-fitted" in t.cutoff_text.content  # the Tune tab says so
+    assert "Identify" in dash.measured_text.content
     # Revert drops it
     t.revert()
     assert t.wait_idle(5.0)
     assert t.candidate().nominal == t.active.nominal
+    assert "dt-nominal-fitted" not in t.cutoff_text.content
     assert applied == []
 
 

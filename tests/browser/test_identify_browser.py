@@ -1,0 +1,93 @@
+"""The Identify panel in headless Chromium: open the tab, set a short run (multisine, one
+position), start it, wait for completion on the page, check the charts and the fit, use the
+fit as the nominal model (the Tune verdict re-evaluates; nothing is applied). Screenshots go
+to test-artifacts/identify_*.png.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from server.app import Dashboard
+from server.client import ControllerClient
+
+pytestmark = pytest.mark.browser
+
+#: JS: number of finite points of a series of any uPlot, by label.
+FINITE_JS = """(label) => {
+  const ups = Object.values(window.__viserTestpoints?.uplots || {});
+  for (const u of ups) {
+    const i = u.chart.series.findIndex(s => s.label === label);
+    if (i > 0) return Array.from(u.chart.data[i]).filter(v => v !== null && isFinite(v)).length;
+  }
+  return -1;
+}"""
+
+
+def _input(page: Any, label: str) -> Any:
+    fid = page.locator("label", has_text=label).first.get_attribute("for")
+    el = page.locator(f"[id='{fid}']")
+    return el if el.evaluate("e => e.tagName") == "INPUT" else el.locator("input").first
+
+
+def _set_number(page: Any, label: str, value: float) -> None:
+    box = _input(page, label)
+    box.fill(str(value))
+    box.press("Enter")
+
+
+def _choose(page: Any, label: str, option: str) -> None:
+    _input(page, label).click()
+    page.get_by_role("option", name=option, exact=True).click()
+
+
+def test_identify_short_run_in_the_browser(
+    page: Any, dashboard: Dashboard, probe: ControllerClient, artifacts: Path
+) -> None:
+    page.wait_for_selector("text=E-STOP", timeout=20_000)
+    tabs = page.get_by_role("tab", name="Identify")
+    tabs.nth(0).click()
+    tabs.nth(1).click()
+    page.wait_for_selector(".dt-identify-note", timeout=10_000)
+    assert "offline on the simulated rig" in page.locator(".dt-identify-note").inner_text()
+    _choose(page, "Signal", "multisine")
+    _set_number(page, "f min (Hz)", 1.0)
+    _set_number(page, "f max (Hz)", 8.0)
+    _set_number(page, "Points per decade", 4)
+    _set_number(page, "Positions", 1)
+    _set_number(page, "Pace (x real time", 2)  # about 4 s: the progress can be seen
+    page.wait_for_timeout(300)  # the values reach the server
+    ident = dashboard.identify
+    assert ident is not None
+    s = ident.settings()
+    assert (s.signal, s.f_min_hz, s.f_max_hz, s.positions) == ("multisine", 1.0, 8.0, 1)
+    before = probe.get_config()
+    page.get_by_role("button", name="Start identification").click()
+    page.wait_for_selector(".dt-identify-status.dt-id-running", timeout=5_000)
+    page.screenshot(path=str(artifacts / "identify_1_running.png"))
+    page.wait_for_selector(".dt-identify-status.dt-id-done", timeout=60_000)
+    page.wait_for_selector(".dt-id-fit", timeout=5_000)
+    page.wait_for_function(f"() => ({FINITE_JS})('pos 1 |G|') >= 4", timeout=10_000)
+    page.wait_for_function(f"() => ({FINITE_JS})('fit Mn Pn') >= 50", timeout=10_000)
+    page.screenshot(path=str(artifacts / "identify_2_done.png"))
+    fit = page.locator(".dt-id-fit").inner_text()
+    cut = page.locator(".dt-id-cutoff").inner_text()
+    assert "Hz" in fit and "±" in fit
+    assert "Q31" in cut and "Q20" in cut
+    assert page.evaluate(f"() => ({FINITE_JS})('pos 1 coherence')") >= 4
+
+    # Use as nominal: the candidate changes, the controller's config does not.
+    page.get_by_role("button", name="Use as nominal model").click()
+    page.wait_for_selector(".dt-id-used", timeout=5_000)
+    assert dashboard.tuning is not None and dashboard.tuning.wait_idle(5.0)
+    result = ident.result
+    assert result is not None and dashboard.tuning.candidate().nominal == result.nominal
+    page.get_by_role("tab", name="Tune").click()
+    page.wait_for_selector(".dt-verdict", timeout=5_000)
+    page.wait_for_selector(".dt-nominal-fitted", timeout=5_000)
+    page.screenshot(path=str(artifacts / "identify_3_used_as_nominal.png"))
+    after = probe.get_config()
+    assert after.version == before.version and after.config == before.config
