@@ -51,12 +51,15 @@ __all__ = [
     "FAILED",
     "IDLE",
     "RUNNING",
+    "FitView",
     "IdentifyPanel",
     "IdentifySettings",
+    "IdentifyView",
     "NominalTuningPanel",
     "UserAbort",
     "curve_of",
     "format_result_html",
+    "view_from_result",
 ]
 
 IDLE, RUNNING, DONE, ABORTED, FAILED = "idle", "running", "done", "aborted", "failed"
@@ -165,61 +168,133 @@ def _hz(v: float | None) -> str:
     return "none accepted" if v is None else f"{v:.3g} Hz"
 
 
-def format_result_html(result: IdentifyResult | None, n_positions: int) -> str:
+@dataclasses.dataclass(frozen=True)
+class FitView:
+    """The fitted Mn Pn = 1 / (a2 s^2 + a1 s + 1), as displayed."""
+
+    a2: float
+    a1: float
+    natural_freq_hz: float
+    natural_freq_std_hz: float
+    zeta: float
+    zeta_std: float
+    residual_rms_db: float
+    residual_rms_deg: float
+    f_lo_hz: float
+    f_hi_hz: float
+    n_points: int
+
+    def response(self, freq_hz: charts.FloatArray) -> Any:
+        s = 2j * np.pi * np.asarray(freq_hz, dtype=np.float64)
+        return 1.0 / (self.a2 * s * s + self.a1 * s + 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class IdentifyView:
+    """What the panel shows of one run, wherever it ran."""
+
+    n_positions: int
+    complete: bool
+    abort_reason: str | None
+    positions_done: int
+    curves: tuple[charts.MeasuredCurve | None, ...]
+    fit: FitView | None = None
+    agreement_hz: float | None = None
+    agreement_tol: tuple[float, float] = (1.0, 10.0)
+    recommended_cutoff_hz: dict[str, float | None] = dataclasses.field(default_factory=dict)
+    checks: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
+    simulated_s: float | None = None
+    nominal: NominalModel | None = None
+    measured: tuple[MeasuredResponse, ...] = ()
+
+
+def view_from_result(result: IdentifyResult, n_positions: int) -> IdentifyView:
+    """Adapter: an offline IdentifyResult -> what the panel shows."""
+    f = result.fit
+    fit = None if f is None else FitView(
+        a2=f.params["a2"], a1=f.params["a1"], natural_freq_hz=f.natural_freq_hz,
+        natural_freq_std_hz=f.natural_freq_std_hz, zeta=float(f.zeta),
+        zeta_std=float(f.zeta_std), residual_rms_db=f.residual_rms_db,
+        residual_rms_deg=f.residual_rms_deg, f_lo_hz=f.f_lo_hz, f_hi_hz=f.f_hi_hz,
+        n_points=f.n_points,
+    )
+    checks = []
+    for c in result.gate_checks:
+        why = "" if c.accepted or not c.reasons else f": {c.reasons[0]}"
+        checks.append(f"gate at {c.q_type.upper()} {c.cutoff_hz:.3g} Hz: "
+                      f"{'accept' if c.accepted else 'reject'} (small-gain peak "
+                      f"{c.small_gain_peak:.2f}){why}")
+    a = result.agreement
+    return IdentifyView(
+        n_positions=n_positions,
+        complete=result.complete,
+        abort_reason=result.abort_reason,
+        positions_done=sum(1 for p in result.positions if p.complete),
+        curves=tuple(curve_of(p) for p in result.positions),
+        fit=fit,
+        agreement_hz=None if a is None else a.agree_below_hz,
+        agreement_tol=(result.spec.agreement_tol_db, result.spec.agreement_tol_deg),
+        recommended_cutoff_hz=dict(result.recommended_cutoff_hz) if result.complete else {},
+        checks=tuple(checks),
+        notes=tuple(result.notes),
+        simulated_s=result.simulated_s,
+        nominal=result.nominal if result.complete else None,
+        measured=result.measured_responses(),
+    )
+
+
+def format_result_html(view: IdentifyView | None) -> str:
     """Fit, agreement, recommended cut-offs and notes as a small HTML block."""
-    if result is None:
+    if view is None:
         return "<div class='dt-identify-result' style='font-size:12px;color:#555'>No result yet."\
                "</div>"
     rows: list[str] = []
-    done = sum(1 for p in result.positions if p.complete)
-    if not result.complete:
+    if not view.complete:
         rows.append(
             "<div class='dt-id-incomplete' style='color:#d62728'><b>INCOMPLETE</b>: "
-            f"{done} of {n_positions} position(s) measured"
-            + (f" ({_esc(result.abort_reason)})" if result.abort_reason else "")
+            f"{view.positions_done} of {view.n_positions} position(s) measured"
+            + (f" ({_esc(view.abort_reason)})" if view.abort_reason else "")
             + "; nothing fitted.</div>"
         )
-    fit = result.fit
+    fit = view.fit
     if fit is not None:
+        wn, wn_std = 2 * np.pi * fit.natural_freq_hz, 2 * np.pi * fit.natural_freq_std_hz
         rows.append(
             "<div class='dt-id-fit'><b>Fit Mn Pn</b> = 1/(a2 s&sup2; + a1 s + 1): "
             f"f<sub>n</sub> = <b>{fit.natural_freq_hz:.3f} &plusmn; "
             f"{fit.natural_freq_std_hz:.3f} Hz</b> "
-            f"(&omega;<sub>n</sub> {fit.wn_rad_s:.2f} &plusmn; {fit.wn_std_rad_s:.2f} rad/s), "
+            f"(&omega;<sub>n</sub> {wn:.2f} &plusmn; {wn_std:.2f} rad/s), "
             f"&zeta; = <b>{fit.zeta:.3f} &plusmn; {fit.zeta_std:.3f}</b>; residual "
             f"{fit.residual_rms_db:.2f} dB / {fit.residual_rms_deg:.1f} deg rms over "
             f"{fit.f_lo_hz:.3g}-{fit.f_hi_hz:.3g} Hz ({fit.n_points} points)</div>"
         )
-    if result.complete:
-        if result.agreement is not None:
-            a = result.agreement
+    if view.complete:
+        if view.agreement_hz is not None:
+            tol_db, tol_deg = view.agreement_tol
             rows.append(
-                f"<div class='dt-id-agree'>Positions agree (within {a.tol_db:g} dB / "
-                f"{a.tol_deg:g} deg) below <b>{a.agree_below_hz:.3g} Hz</b></div>"
+                f"<div class='dt-id-agree'>Positions agree (within {tol_db:g} dB / "
+                f"{tol_deg:g} deg) below <b>{view.agreement_hz:.3g} Hz</b></div>"
             )
         else:
             rows.append("<div class='dt-id-agree'>Agreement across positions: needs at least "
                         "two positions.</div>")
-        rec = result.recommended_cutoff_hz
+        rec = view.recommended_cutoff_hz
         if rec:
             rows.append(
                 "<div class='dt-id-cutoff'>Gate's recommended max cut-off with the fitted "
                 f"nominal: <b>Q31 {_hz(rec.get('q31'))}</b>, <b>Q20 {_hz(rec.get('q20'))}</b>"
                 "</div>"
             )
-        for c in result.gate_checks:
-            why = "" if c.accepted or not c.reasons else f": {_esc(c.reasons[0])}"
+        for c in view.checks:
             rows.append(
-                f"<div class='dt-id-check' style='font-size:11px;color:#555'>gate at "
-                f"{c.q_type.upper()} {c.cutoff_hz:.3g} Hz: "
-                f"{'accept' if c.accepted else 'reject'} (small-gain peak "
-                f"{c.small_gain_peak:.2f}){why}</div>"
-            )
-    for note in result.notes:
+                f"<div class='dt-id-check' style='font-size:11px;color:#555'>{_esc(c)}</div>")
+    for note in view.notes:
         rows.append(f"<div class='dt-id-note' style='color:#b36b00'>{_esc(note)}</div>")
-    rows.append(
-        f"<div style='font-size:11px;color:#888'>{result.simulated_s:.1f} s simulated</div>"
-    )
+    if view.simulated_s is not None:
+        rows.append(
+            f"<div style='font-size:11px;color:#888'>{view.simulated_s:.1f} s on the rig</div>"
+        )
     return "<div class='dt-identify-result' style='font-size:12px'>" + "".join(rows) + "</div>"
 
 
@@ -320,6 +395,8 @@ class IdentifyPanel:
         self.text = "not started"
         self.progress = 0.0
         self.result: IdentifyResult | None = None
+        """The offline run's full result."""
+        self.view: IdentifyView | None = None
         self.n_positions = 3
         self.curves: list[charts.MeasuredCurve | None] = []
         self.charts: dict[str, Any] = {}
@@ -358,7 +435,7 @@ class IdentifyPanel:
         self.abort_button = gui.add_button("Abort", color="red", disabled=True)
         self.progress_bar = gui.add_progress_bar(0.0)
         self.status = gui.add_html(_status_html(IDLE, self.text))
-        self.result_html = gui.add_html(format_result_html(None, 0))
+        self.result_html = gui.add_html(format_result_html(None))
         self.use_button = gui.add_button("Use as nominal model", color="blue", disabled=True,
                                          hint="put the fitted Mn Pn into the tuning candidate "
                                               "(checked by the gate; Apply sends it)")
@@ -432,6 +509,7 @@ class IdentifyPanel:
             self.state = RUNNING
             self._abort.clear()
             self.result = None
+            self.view = None
             self.curves = []
             self.progress = 0.0
             self.n_positions = spec.positions
@@ -443,7 +521,7 @@ class IdentifyPanel:
         self.abort_button.disabled = False
         self.use_button.disabled = True
         self.use_result.content = "<div class='dt-id-use' style='font-size:12px'></div>"
-        self.result_html.content = format_result_html(None, 0)
+        self.result_html.content = format_result_html(None)
         self.progress_bar.value = 0.0
         self.progress_bar.animated = True
         self.status.content = _status_html(RUNNING, self.text)
@@ -462,8 +540,8 @@ class IdentifyPanel:
     def use_as_nominal(self) -> bool:
         """Put the fitted nominal into the tuning candidate (never sent from here)."""
         with self._lock:
-            result = self.result if self.state == DONE else None
-        if result is None or result.nominal is None or not result.complete:
+            view = self.view if self.state == DONE else None
+        if view is None or view.nominal is None or not view.complete:
             self.use_result.content = (
                 "<div class='dt-id-use' style='color:#d62728;font-size:12px'>No complete "
                 "identification with a usable fit: nothing to use.</div>")
@@ -471,10 +549,10 @@ class IdentifyPanel:
         if self.tuning is None:
             return False
         if self._add_measured is not None:
-            for m in result.measured_responses():
+            for m in view.measured:
                 self._add_measured(dataclasses.replace(m, name=f"identify {m.name}"))
-        self.tuning.set_nominal(result.nominal)
-        fit = result.fit
+        self.tuning.set_nominal(view.nominal)
+        fit = view.fit
         wn = f" (f<sub>n</sub> {fit.natural_freq_hz:.3f} Hz, &zeta; {fit.zeta:.3f})" if fit else ""
         self.use_result.content = (
             "<div class='dt-id-use dt-id-used' style='font-size:12px;border:2px solid #1f77b4;"
@@ -540,15 +618,14 @@ class IdentifyPanel:
         self.progress_bar.value = round(100.0 * min(max(fraction, 0.0), 1.0), 1)
         self.status.content = _status_html(RUNNING, f"{100 * fraction:.0f} % {text}")
 
-    def _publish_charts(self, result: IdentifyResult | None) -> None:
+    def _publish_charts(self, fit: FitView | None) -> None:
         fit_f = fit_g = None
-        if result is not None and result.fit is not None and self.curves:
-            have = [c for c in self.curves if c is not None]
-            if have:
-                lo = min(float(c.freq_hz[0]) for c in have)
-                hi = max(float(c.freq_hz[-1]) for c in have)
-                fit_f = np.geomspace(lo, hi, 80)
-                fit_g = result.fit.response(fit_f, include_delay=False)
+        have = [c for c in self.curves if c is not None]
+        if fit is not None and have:
+            lo = min(float(c.freq_hz[0]) for c in have)
+            hi = max(float(c.freq_hz[-1]) for c in have)
+            fit_f = np.geomspace(lo, hi, 80)
+            fit_g = fit.response(fit_f)
         data = charts.identify_data(self._chart_n, self.curves, fit_f, fit_g)
         for key, h in self.charts.items():
             h.data = data[key]
@@ -556,21 +633,27 @@ class IdentifyPanel:
 
     def _finish(self, state: str, result: IdentifyResult | None, reason: str | None,
                 spec: IdentifySpec) -> None:
-        if result is not None:
+        view = None if result is None else view_from_result(result, spec.positions)
+        with self._lock:
+            self.result = result
+        self._show_end(state, view, reason, spec.positions)
+
+    def _show_end(self, state: str, view: IdentifyView | None, reason: str | None,
+                  n: int) -> None:
+        if view is not None:
             # an aborted run may have partial positions that were never drawn
-            self.curves = [curve_of(p) for p in result.positions]
-        self._publish_charts(result)
-        n = spec.positions
+            self.curves = list(view.curves)
+        self._publish_charts(None if view is None else view.fit)
         if state == DONE:
             text = "done"
-            if result is not None and result.fit is not None:
-                text += f": fit f_n {result.fit.natural_freq_hz:.3f} Hz"
+            if view is not None and view.fit is not None:
+                text += f": fit f_n {view.fit.natural_freq_hz:.3f} Hz"
         else:
             text = f"{reason or state}"
             if state == ABORTED:
-                kept = 0 if result is None else sum(1 for p in result.positions if p.complete)
+                kept = 0 if view is None else view.positions_done
                 text = f"INCOMPLETE, {text}: {kept} of {n} position(s) kept"
-        self.result_html.content = format_result_html(result, n)
+        self.result_html.content = format_result_html(view)
         if self.chart_note is not None:
             done = state == DONE
             self.chart_note.content = (
@@ -582,14 +665,14 @@ class IdentifyPanel:
         if state == DONE:
             self.progress_bar.value = 100.0
         with self._lock:
-            self.result = result
+            self.view = view
             self.state = state
             self.text = text
         self.status.content = _status_html(state, text)
         self.start_button.disabled = False
         self.abort_button.disabled = True
         self.use_button.disabled = not (
-            state == DONE and result is not None and result.nominal is not None
+            state == DONE and view is not None and view.nominal is not None
         )
 
 
