@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
@@ -86,6 +86,7 @@ from controller.model_fit import (
     frd_weights,
     uncertainty_bound,
 )
+from controller.runtime import ExcitationProgram
 from controller.validate import number, positive
 
 __all__ = [
@@ -99,11 +100,15 @@ __all__ = [
     "IdentifyResult",
     "IdentifySpec",
     "PositionRecord",
+    "ProgramPlan",
     "ProgressFn",
     "RawRecord",
     "RigLike",
     "fitted_nominal",
+    "plan_program",
+    "result_from_program",
     "run_identification",
+    "to_program",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -1025,3 +1030,219 @@ def _segment_label(
     else:
         what = f"multisine {exc.freq_hz[0]:.3g}-{exc.freq_hz[-1]:.3g} Hz"
     return f"position {i + 1}/{n_pos}: {what}, {seg.amplitude:.2g} deg/s"
+
+
+# ------------------------------------------------------------------- inside the controller
+
+
+@dataclass(frozen=True, eq=False)
+class ProgramPlan:
+    """A whole identification as per-tick columns for `controller.runtime.ExcitationProgram`.
+
+    Unlike `run_identification` (which repositions only when the load drifted), every segment
+    is preceded by a planned position-loop move to its start (then ``settle_s``): the program
+    is fixed before it starts, so drift is corrected unconditionally.
+    """
+
+    spec: IdentifySpec
+    config: LoopConfig
+    excitation: SteppedSine | Multisine = field(repr=False)
+    n_segments: int
+    kind: list[int] = field(repr=False)
+    a: list[float] = field(repr=False)
+    b: list[float] = field(repr=False)
+    target: list[float] = field(repr=False)
+    first: list[bool] = field(repr=False)
+    center: list[float] = field(repr=False)
+    window: list[bool] = field(repr=False)
+    pos_index: list[int] = field(repr=False)
+    exc_index: list[int] = field(repr=False)
+    seg_end: list[int] = field(repr=False)
+    """Tick (exclusive) at which each segment ends, position by position."""
+    labels: list[tuple[int, str]] = field(repr=False)
+    """(first tick, text) of each section, for progress reports."""
+
+    @property
+    def n_ticks(self) -> int:
+        return len(self.kind)
+
+    def label_at(self, tick: int) -> str:
+        text = ""
+        for k, t in self.labels:
+            if k > tick:
+                break
+            text = t
+        return text
+
+
+def plan_program(spec: IdentifySpec, cfg: LoopConfig, start_deg: float) -> ProgramPlan:
+    """Plan every tick of a run that starts with the load at `start_deg`.
+
+    Raises `ConfigError` (naming the spec field) if it cannot be planned within the limits.
+    """
+    if not isinstance(spec, IdentifySpec):
+        raise ConfigError("spec", f"must be an IdentifySpec (got {type(spec).__name__})")
+    rate = cfg.rate_hz
+    ts = 1.0 / rate
+    if spec.f_max_hz >= 0.5 * rate:
+        raise ConfigError("f_max_hz", f"must be below Nyquist {0.5 * rate} Hz")
+    exc = _build_excitation(spec, rate)
+    segments = _plan(spec, exc, rate, cfg.command_limit_deg_s)
+    kind: list[int] = []
+    a: list[float] = []
+    b: list[float] = []
+    target: list[float] = []
+    first: list[bool] = []
+    center: list[float] = []
+    window: list[bool] = []
+    pos_index: list[int] = []
+    exc_index: list[int] = []
+    seg_end: list[int] = []
+    labels: list[tuple[int, str]] = []
+    here = start_deg
+    n_pos = len(spec.centers_deg)
+    n_hold = round(spec.settle_s * rate)
+    for i, c in enumerate(spec.centers_deg):
+        for k, seg in enumerate(segments):
+            goal = c + seg.start_rel_deg
+            dist = goal - here
+            n_move = round(
+                max(_MIN_MOVE_S, math.pi * abs(dist) / (2.0 * spec.move_speed_deg_s)) * rate
+            )
+            q = np.arange(1, n_move + 1) / n_move
+            shape = np.concatenate([0.5 - 0.5 * np.cos(np.pi * q), np.ones(n_hold)])
+            slope = np.concatenate(
+                [np.pi / (2.0 * n_move * ts) * np.sin(np.pi * q), np.zeros(n_hold)]
+            )
+            n = shape.size
+            labels.append(
+                (
+                    len(kind),
+                    f"position {i + 1}/{n_pos}: "
+                    + (f"moving to {c:g} deg" if k == 0 else "repositioning"),
+                )
+            )
+            kind += [0] * n
+            a += shape.tolist()
+            b += slope.tolist()
+            target += [goal] * n
+            first += [True] + [False] * (n - 1)
+            center += [c] * n
+            window += [k > 0] * n
+            pos_index += [i] * n
+            exc_index += [-1] * n
+            labels.append((len(kind), _segment_label(exc, seg, i, n_pos, len(segments))))
+            m = seg.offset.size
+            kind += [1] * m
+            a += seg.offset.tolist()
+            b += seg.x.tolist()
+            target += [0.0] * m
+            first += [False] * m
+            center += [c] * m
+            window += [True] * m
+            pos_index += [i] * m
+            exc_index += seg.exc_index.tolist()
+            seg_end.append(len(kind))
+            here = goal + seg.travel_deg
+    if len(kind) > spec.max_duration_s * rate:
+        raise ConfigError(
+            "max_duration_s",
+            f"the plan takes {len(kind) / rate:.0f} s, more than {spec.max_duration_s:g} s",
+        )
+    return ProgramPlan(
+        spec=spec,
+        config=cfg,
+        excitation=exc,
+        n_segments=len(segments),
+        kind=kind,
+        a=a,
+        b=b,
+        target=target,
+        first=first,
+        center=center,
+        window=window,
+        pos_index=pos_index,
+        exc_index=exc_index,
+        seg_end=seg_end,
+        labels=labels,
+    )
+
+
+def to_program(plan: ProgramPlan) -> ExcitationProgram:
+    """The runtime object that executes `plan` inside the tick."""
+    spec = plan.spec
+    return ExcitationProgram(
+        plan.kind,
+        plan.a,
+        plan.b,
+        plan.target,
+        plan.first,
+        plan.center,
+        plan.window,
+        closed=spec.mode == "closed",
+        window_deg=spec.window_deg,
+        amplitude_limit=spec.amplitude_deg_s * (1.0 + 1e-9),
+        max_duration_s=spec.max_duration_s,
+        command_limit=plan.config.command_limit_deg_s,
+    )
+
+
+def result_from_program(
+    plan: ProgramPlan,
+    u: Sequence[float],
+    w: Sequence[float],
+    pos: Sequence[float],
+    n_done: int,
+    abort_reason: str | None,
+    analyse_result: bool = True,
+) -> IdentifyResult:
+    """Estimate (and, for a complete run, fit and check) from the records of a program.
+
+    `u`, `w`, `pos` hold at least `n_done` executed ticks. After an abort the positions
+    reached are kept, the last one incomplete; nothing is fitted.
+    """
+    spec, cfg, exc = plan.spec, plan.config, plan.excitation
+    rate = cfg.rate_hz
+    closed = spec.mode == "closed"
+    kind = np.asarray(plan.kind[:n_done], dtype=np.int8)
+    pidx = np.asarray(plan.pos_index[:n_done], dtype=np.int64)
+    a = np.asarray(plan.a[:n_done])
+    bx = np.asarray(plan.b[:n_done])
+    exc_i = np.asarray(plan.exc_index[:n_done], dtype=np.int64)
+    t = np.arange(n_done) * (1.0 / rate)
+    uu = np.asarray(u[:n_done], dtype=np.float64)
+    ww = np.asarray(w[:n_done], dtype=np.float64)
+    pp = np.asarray(pos[:n_done], dtype=np.float64)
+    excite = kind == PHASE_EXCITE
+    records: list[PositionRecord] = []
+    n_seg = plan.n_segments
+    for i, c in enumerate(plan.spec.centers_deg):
+        m = pidx == i
+        if not m.any():
+            break
+        ends = plan.seg_end[i * n_seg : (i + 1) * n_seg]
+        done = sum(1 for e in ends if e <= n_done)
+        raw = RawRecord(
+            t_s=t[m],
+            u_deg_s=uu[m],
+            w_deg_s=ww[m],
+            x_deg_s=np.where(excite, bx, 0.0)[m],
+            pos_deg=pp[m],
+            offset_deg_s=np.where(excite, a, 0.0)[m],
+            phase=kind[m],
+            exc_index=exc_i[m],
+        )
+        cont, sampled = _estimate(exc, raw, done, closed, rate)
+        records.append(PositionRecord(i, c, raw, cont, sampled, done, n_seg))
+    result = IdentifyResult(
+        spec=spec,
+        config=cfg,
+        excitation=exc,
+        positions=tuple(records),
+        complete=abort_reason is None,
+        abort_reason=abort_reason,
+        simulated_s=n_done / rate,
+    )
+    if abort_reason is None and analyse_result:
+        result = _analyse_result(spec, cfg, result)
+    return result

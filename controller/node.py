@@ -40,8 +40,11 @@ from controller.loop import LoopCoefficients, ServoLoop
 from controller.persistence import PersistenceError, StateStore
 from controller.runtime import (
     ESTOP,
+    AbortProgram,
     ApplyCoefficients,
+    ExcitationProgram,
     Rig,
+    RunProgram,
     Runtime,
     RuntimeOptions,
     try_realtime_priority,
@@ -214,6 +217,22 @@ class GateRunner:
                 reason = f"analysis worker failed: {type(exc).__name__}: {exc}"
             return False, (reason,), _nan_margins(), None
 
+    def call(self, fn: Callable[..., Any], *args: Any, timeout_s: float = 120.0) -> Any:
+        """Run `fn(*args)` in the worker process (or here without one); raises on failure."""
+        if not self._subprocess:
+            return fn(*args)
+        import concurrent.futures
+
+        with self._lock:
+            try:
+                return self._executor().submit(fn, *args).result(timeout=timeout_s)
+            except concurrent.futures.TimeoutError:
+                self._kill()
+                raise
+            except Exception:
+                self._kill()
+                raise
+
     def _kill(self) -> None:
         pool, self._pool = self._pool, None
         if pool is None:
@@ -233,6 +252,77 @@ class GateRunner:
 
 def margins_dict(m: proto.Margins | None) -> dict[str, float] | None:
     return None if m is None else msgspec.to_builtins(m)  # type: ignore[no-any-return]
+
+
+# -- identification (results computed off the loop: the gate's worker process) ----------------
+
+
+def identify_analysis(
+    plan: Any,
+    u: Sequence[float],
+    w: Sequence[float],
+    pos: Sequence[float],
+    n_done: int,
+    abort_reason: str | None,
+    wall_s: float,
+) -> dict[str, Any]:
+    """Estimate (fit and gate when complete) from a program's records; the IdentifyStatus
+    fields that carry results. Runs in the gate's worker process."""
+    import json
+
+    import numpy as np
+
+    from controller.identify import result_from_program
+    from controller.identify_cmd import csv_name, summary_json
+
+    result = result_from_program(plan, u, w, pos, n_done, abort_reason)
+    positions = []
+    files: dict[int, tuple[str | None, str]] = {}
+    for p in result.positions:
+        est = p.estimate
+        files[p.index] = (None if est is None else csv_name(p), "")
+        positions.append(
+            proto.PositionResponse(
+                index=p.index,
+                center_deg=p.center_deg,
+                complete=p.complete,
+                points_done=p.points_done,
+                points_total=p.points_total,
+                freq_hz=[] if est is None else est.freq_hz.tolist(),
+                mag_db=[] if est is None else (20.0 * np.log10(np.abs(est.response))).tolist(),
+                phase_deg=[] if est is None else np.degrees(np.angle(est.response)).tolist(),
+                coherence=[] if est is None else est.coherence.tolist(),
+            )
+        )
+    summary = summary_json(result, files, wall_s)
+    summary["plant"] = "controller"
+
+    def finite(v: float | None) -> float | None:
+        return float(v) if v is not None and math.isfinite(v) else None
+
+    fit = result.fit
+    return {
+        "positions": positions,
+        "natural_freq_hz": None if fit is None else finite(fit.natural_freq_hz),
+        "zeta": None if fit is None else finite(fit.zeta),
+        "agreement_freq_hz": finite(summary["agreement_freq_hz"]),
+        "recommended_cutoff_hz": {k: finite(v) for k, v in result.recommended_cutoff_hz.items()},
+        "summary_json": json.dumps(summary, allow_nan=False),
+    }
+
+
+class _IdentifyJob:
+    """The latest identification run as the node sees it."""
+
+    def __init__(self, run_id: int, plan: Any, program: ExcitationProgram) -> None:
+        self.run_id = run_id
+        self.plan = plan
+        self.program = program
+        self.state = "running"
+        self.t0 = time.monotonic()
+        self.results: dict[str, Any] = {}
+        self.abort_reason = ""
+        self.text = ""
 
 
 # -- startup ----------------------------------------------------------------------------------
@@ -346,6 +436,9 @@ class _Node:
         self.stop_event = threading.Event()
         self.config_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.command_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.identify_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._job: _IdentifyJob | None = None
+        self._job_lock = threading.Lock()
         self._apply_lock = threading.Lock()
         self._threads: list[threading.Thread] = []
         self._entities: list[Any] = []
@@ -376,6 +469,9 @@ class _Node:
         self._entities.append(
             session.declare_queryable(proto.key_command(rig), self._enqueue(self.command_q))
         )
+        self._entities.append(
+            session.declare_queryable(proto.key_identify(rig), self._enqueue(self.identify_q))
+        )
         rt = self.rt
         self._entities.append(
             session.declare_subscriber(proto.key_estop(rig), lambda _s: rt.estop("estop key"))
@@ -400,6 +496,7 @@ class _Node:
             ("status", self._publish_status),
             ("config-worker", self._config_worker),
             ("command-worker", self._command_worker),
+            ("identify-worker", self._identify_worker),
         ):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -410,6 +507,7 @@ class _Node:
         self.stop_event.set()
         self.config_q.put(_SHUTDOWN)
         self.command_q.put(_SHUTDOWN)
+        self.identify_q.put(_SHUTDOWN)
         for t in self._threads:
             t.join(timeout=5.0)
         for e in reversed(self._entities):
@@ -417,7 +515,7 @@ class _Node:
                 e.undeclare()
         self._entities.clear()
         # Queries that arrived after the workers ended are dropped (the client times out).
-        for q in (self.config_q, self.command_q):
+        for q in (self.config_q, self.command_q, self.identify_q):
             with contextlib.suppress(queue.Empty):
                 while True:
                     item = q.get_nowait()
@@ -536,6 +634,103 @@ class _Node:
     def _command_worker(self) -> None:
         self._serve(self.command_q, self.handle_command)
 
+    def _identify_worker(self) -> None:
+        self._serve(self.identify_q, self.handle_identify)
+
+    # -- identification ------------------------------------------------------------------------
+
+    def handle_identify(self, data: bytes) -> bytes:
+        """Any payload -> IdentifyStatus of the latest run."""
+        return proto.encode(self.identify_status())
+
+    def identify_status(self) -> proto.IdentifyStatus:
+        job = self._job
+        if job is None:
+            return proto.IdentifyStatus(rig=self.rig_name, state="idle")
+        prog = job.program
+        state = job.state
+        if state == "running":
+            progress = prog.n_done / prog.n
+            text = job.plan.label_at(prog.n_done)
+        else:
+            progress = 1.0 if state == "done" else prog.n_done / prog.n
+            text = job.text
+        return proto.IdentifyStatus(
+            rig=self.rig_name,
+            state=state,
+            run_id=job.run_id,
+            progress=progress,
+            text=text,
+            abort_reason=job.abort_reason,
+            **job.results,
+        )
+
+    def start_identify(self, msg: proto.IdentifySpecMsg, client: str) -> proto.CommandReply:
+        """Plan (here, off the loop), hand the program to the tick, watch it in a thread."""
+        from controller.identify import IdentifySpec, plan_program, to_program
+
+        rt = self.rt
+        with self._job_lock:
+            if self._job is not None and self._job.state in ("running", "analysing"):
+                return proto.CommandReply(
+                    ok=False, message="an identification is already running", mode=rt.mode
+                )
+            try:
+                spec = IdentifySpec(**msgspec.structs.asdict(msg))
+                plan = plan_program(spec, rt.loop.active.config, rt.last_pos_deg)
+            except ConfigError as exc:
+                name = f"body.spec.{exc.field}"
+                return proto.CommandReply(
+                    ok=False, message=f"{name}: {exc}", mode=rt.mode, field=name
+                )
+            program = to_program(plan)
+            ticket = rt.submit(RunProgram(program))
+            if not ticket.wait(self.opts.command_timeout_s) or not ticket.ok:
+                return proto.CommandReply(
+                    ok=False,
+                    message=ticket.message or "loop did not reach a tick boundary in time",
+                    mode=rt.mode,
+                    received_seq=ticket.received_seq,
+                )
+            run_id = (self._job.run_id if self._job is not None else 0) + 1
+            job = self._job = _IdentifyJob(run_id, plan, program)
+        t = threading.Thread(target=self._watch, args=(job,), name="identify-watch", daemon=True)
+        t.start()
+        return proto.CommandReply(
+            ok=True,
+            message=f"identification {run_id}: {plan.n_ticks / plan.config.rate_hz:.1f} s planned",
+            mode=ticket.mode,
+            seq=ticket.seq,
+            received_seq=ticket.received_seq,
+        )
+
+    def _watch(self, job: _IdentifyJob) -> None:
+        prog = job.program
+        while not prog.over:
+            if self.stop_event.wait(0.05):
+                prog._abort("controller shutting down", "shutdown")  # the loop has ended
+                break
+        aborted = prog.state == "aborted"
+        job.abort_reason = prog.reason if aborted else ""
+        job.text = "analysing"
+        job.state = "analysing"
+        try:
+            job.results = self.gate.call(
+                identify_analysis,
+                job.plan,
+                prog.rec_u,
+                prog.rec_w,
+                prog.rec_pos,
+                prog.n_done,
+                prog.reason if aborted else None,
+                time.monotonic() - job.t0,
+            )
+            job.text = f"aborted: {prog.reason}" if aborted else "done"
+        except Exception as exc:
+            self._warn(f"identification analysis failed: {type(exc).__name__}: {exc}")
+            job.text = f"analysis failed: {type(exc).__name__}: {exc}"
+        job.state = "aborted" if aborted else "done"
+
     def _config_reply(self, **kw: Any) -> bytes:
         active = self.rt.loop.active
         kw.setdefault("version", active.version)
@@ -633,7 +828,14 @@ class _Node:
             return proto.encode(
                 proto.CommandReply(ok=False, message=str(exc), mode=rt.mode, field=exc.field)
             )
-        ticket = rt.submit(cmd.body)  # EStop: the loop's flag is set inside submit
+        body = cmd.body
+        if isinstance(body, proto.IdentifyStart):
+            return proto.encode(self.start_identify(body.spec, cmd.client))
+        ticket = rt.submit(
+            AbortProgram(f"aborted by {cmd.client or 'a client'}")
+            if isinstance(body, proto.IdentifyAbort)
+            else body
+        )  # EStop: the loop's flag is set inside submit
         if not ticket.wait(self.opts.command_timeout_s):
             return proto.encode(
                 proto.CommandReply(

@@ -44,6 +44,11 @@ def key_estop(rig: str) -> str:
     return f"{KEY_PREFIX}/{rig}/estop"
 
 
+def key_identify(rig: str) -> str:
+    """Queryable: any payload (or none) -> IdentifyStatus."""
+    return f"{KEY_PREFIX}/{rig}/identify"
+
+
 def check_rig_name(rig: str) -> str:
     if not rig or any(c in rig for c in "/*$?#") or not rig.isprintable():
         raise ValueError(f"rig_name: {rig!r} is not a valid key chunk (no / * $ ? #, not empty)")
@@ -176,7 +181,48 @@ class ResetFault(msgspec.Struct, frozen=True, kw_only=True, tag="reset"):
     pass
 
 
-CommandBody = SetTrajectory | Start | Stop | EStop | ResetFault
+class IdentifySpecMsg(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The fields of `controller.identify.IdentifySpec` that a remote run may set (same names,
+    units and defaults; validated again by IdentifySpec, errors name `body.spec.<field>`)."""
+
+    mode: str = "open"
+    signal: str = "sine"
+    f_min_hz: float = 0.1
+    f_max_hz: float = 20.0
+    points_per_decade: int = 10
+    positions: int = 3
+    span_deg: float = 360.0
+    first_position_deg: float = 0.0
+    amplitude_deg_s: float = 10.0
+    window_deg: float = 60.0
+    max_duration_s: float = 3600.0
+    offset_ratio: float = 2.0
+    min_offset_deg_s: float = 0.5
+    travel_fraction: float = 0.8
+    min_periods: int = 2
+    min_measure_s: float = 2.0
+    multisine_periods: int = 3
+    fit_f_lo_hz: float | None = None
+    fit_f_hi_hz: float | None = 10.0
+    fit_error_floor: float = 0.01
+    periodic_pitch_deg: float | None = 12.0
+    agreement_tol_db: float = 1.0
+    agreement_tol_deg: float = 10.0
+    move_speed_deg_s: float = 30.0
+    settle_s: float = 0.5
+
+
+class IdentifyStart(msgspec.Struct, frozen=True, kw_only=True, tag="identify_start"):
+    """Run an identification inside the loop (mode must be running or stopped)."""
+
+    spec: IdentifySpecMsg = IdentifySpecMsg()
+
+
+class IdentifyAbort(msgspec.Struct, frozen=True, kw_only=True, tag="identify_abort"):
+    """Abort the running identification: the loop holds the present position."""
+
+
+CommandBody = SetTrajectory | Start | Stop | EStop | ResetFault | IdentifyStart | IdentifyAbort
 
 
 class Command(_Msg, frozen=True, kw_only=True):
@@ -191,6 +237,44 @@ class CommandReply(_Msg, frozen=True, kw_only=True):
     field: str = ""  # for a malformed request: the offending field
     seq: int = -1  # first tick (sequence number) at which the command was in effect
     received_seq: int = -1  # the last completed tick when the command arrived
+
+
+# -- identification -----------------------------------------------------------------------------
+
+
+class PositionResponse(msgspec.Struct, frozen=True, kw_only=True):
+    """The response measured at one position (continuous equivalent, u -> w)."""
+
+    index: int
+    center_deg: float
+    complete: bool
+    points_done: int
+    points_total: int
+    freq_hz: list[float] = []
+    mag_db: list[float] = []
+    phase_deg: list[float] = []
+    coherence: list[float] = []
+
+
+#: Values of IdentifyStatus.state.
+IDENTIFY_STATES: tuple[str, ...] = ("idle", "running", "analysing", "done", "aborted")
+
+
+class IdentifyStatus(_Msg, frozen=True, kw_only=True):
+    """The latest identification run (run_id counts runs since the controller started)."""
+
+    rig: str
+    state: str  # idle | running | analysing | done | aborted
+    run_id: int = 0
+    progress: float = 0.0  # 0..1
+    text: str = ""
+    abort_reason: str = ""
+    positions: list[PositionResponse] = []  # after the run (partial after an abort)
+    natural_freq_hz: float | None = None  # fit of Mn Pn (done only)
+    zeta: float | None = None
+    agreement_freq_hz: float | None = None
+    recommended_cutoff_hz: dict[str, float | None] = {}
+    summary_json: str = ""  # the summary.json `dobtune identify` writes (done/aborted)
 
 
 # -- encoding ---------------------------------------------------------------------------------

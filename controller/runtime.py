@@ -28,6 +28,7 @@ import math
 import os
 import threading
 import time
+from array import array
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -45,8 +46,11 @@ __all__ = [
     "FAULT",
     "RUNNING",
     "STOPPED",
+    "AbortProgram",
     "ApplyCoefficients",
+    "ExcitationProgram",
     "Rig",
+    "RunProgram",
     "Runtime",
     "RuntimeOptions",
     "Ticket",
@@ -123,7 +127,152 @@ class ApplyCoefficients:
         self.coefficients = coefficients
 
 
-RequestBody = SetTrajectory | Start | Stop | EStop | ResetFault | ApplyCoefficients
+class ExcitationProgram:
+    """A preplanned per-tick program run inside the tick (identification); lists only.
+
+    Tick i of the program is either a *move* (``kind[i] == 0``: the position loop follows
+    ``ref = start + (target[i] - start) * a[i]``, rate ``(target[i] - start) * b[i]``, where
+    ``start`` is the position at the first tick of the move, ``first[i]``) or an *excitation*
+    tick (``kind[i] == 1``: offset ``a[i]``, excitation ``b[i]``; open mode ``u = a + b``,
+    closed mode ``u = loop.tick_speed(a, w) + b`` with ``loop.u_prev = u``). Limits checked
+    every tick: ``|b| <= amplitude_limit`` on excitation ticks, ``|pos - center[i]| <=
+    window_deg`` where ``window[i]``, elapsed time ``<= max_duration_s``. The records (u, w,
+    pos of every executed tick) are preallocated arrays; the tick only indexes.
+
+    State: ``pending`` -> ``running`` -> ``done`` | ``aborted`` (``reason``), written by the tick
+    only; ``n_done`` ticks were executed.
+    """
+
+    def __init__(
+        self,
+        kind: list[int],
+        a: list[float],
+        b: list[float],
+        target: list[float],
+        first: list[bool],
+        center: list[float],
+        window: list[bool],
+        *,
+        closed: bool,
+        window_deg: float,
+        amplitude_limit: float,
+        max_duration_s: float,
+        command_limit: float,
+    ) -> None:
+        n = len(kind)
+        if n == 0 or any(len(c) != n for c in (a, b, target, first, center, window)):
+            raise ValueError("program: all columns must have the same, non-zero length")
+        self.n = n
+        self.kind, self.a, self.b, self.target = kind, a, b, target
+        self.first, self.center, self.window = first, center, window
+        self.closed = closed
+        self.window_deg = window_deg
+        self.amplitude_limit = amplitude_limit
+        self.max_duration_s = max_duration_s
+        self.command_limit = command_limit
+        # array('d'): storing a float keeps no object alive (a list slot would)
+        self.rec_u = array("d", bytes(8 * n))
+        self.rec_w = array("d", bytes(8 * n))
+        self.rec_pos = array("d", bytes(8 * n))
+        self.n_done = 0
+        self.state = "pending"
+        self.reason = ""
+        self.limit = ""
+        self.start_seq = -1
+        self.ref = 0.0
+        self.r = 0.0
+        self._t0 = -1.0
+        self._move_start = 0.0
+
+    def step(self, t_s: float, pos: float, w: float, loop: ServoLoop) -> float:
+        """One tick; returns the command. Sets state done/aborted (then the caller holds)."""
+        i = self.n_done
+        if self._t0 < 0.0:
+            self._t0 = t_s
+            self.state = "running"
+        if t_s - self._t0 > self.max_duration_s:
+            self._abort(f"maximum duration {self.max_duration_s:g} s reached", "duration")
+            return 0.0
+        c = self.center[i]
+        if self.window[i] and abs(pos - c) > self.window_deg:
+            self._abort(
+                f"position window: {pos:.3f} deg is outside {c:g} +- {self.window_deg:g} deg",
+                "window",
+            )
+            return 0.0
+        if self.kind[i] == 0:
+            if self.first[i]:
+                loop.reset()
+                self._move_start = pos
+            start = self._move_start
+            dist = self.target[i] - start
+            ref = start + dist * self.a[i]
+            u = loop.tick(ref, dist * self.b[i], pos, w)
+            self.ref = ref
+            self.r = loop.speed_ref_deg_s
+        else:
+            off = self.a[i]
+            x = self.b[i]
+            if x > self.amplitude_limit or x < -self.amplitude_limit:
+                self._abort(f"amplitude: |{x:.3g}| deg/s over the limit", "amplitude")
+                return 0.0
+            u = (loop.tick_speed(off, w) if self.closed else off) + x
+            limit = self.command_limit
+            if u > limit:
+                u = limit
+            elif u < -limit:
+                u = -limit
+            if self.closed:
+                loop.u_prev = u
+            self.ref = pos
+            self.r = off
+        self.rec_u[i] = u
+        self.rec_w[i] = w
+        self.rec_pos[i] = pos
+        i += 1
+        self.n_done = i
+        if i == self.n:
+            self.state = "done"
+        return u
+
+    def _abort(self, reason: str, limit: str) -> None:
+        self.reason = reason
+        self.limit = limit
+        self.state = "aborted"
+
+    @property
+    def over(self) -> bool:
+        return self.state in ("done", "aborted")
+
+
+class RunProgram:
+    """Request body: start an ExcitationProgram at the next tick (mode running or stopped)."""
+
+    __slots__ = ("program",)
+
+    def __init__(self, program: ExcitationProgram) -> None:
+        self.program = program
+
+
+class AbortProgram:
+    """Request body: abort the running program; the loop holds the present position."""
+
+    __slots__ = ("reason",)
+
+    def __init__(self, reason: str = "aborted by request") -> None:
+        self.reason = reason
+
+
+RequestBody = (
+    SetTrajectory
+    | Start
+    | Stop
+    | EStop
+    | ResetFault
+    | ApplyCoefficients
+    | RunProgram
+    | AbortProgram
+)
 
 
 class Ticket:
@@ -245,6 +394,7 @@ class Runtime:
         self._blk_version = -1
         self._blk_mode = ""
         self.last_pos_deg = 0.0
+        self.program: ExcitationProgram | None = None
 
     # -- requests (any thread) -----------------------------------------------------------------
 
@@ -410,7 +560,23 @@ class Runtime:
         ref, ref_rate = self._traj_at(k * self.period_s)
         loop = self.loop
         mode = self.mode
-        if mode in (RUNNING, STOPPED):
+        prog = self.program
+        if prog is not None:
+            if mode == RUNNING:
+                u = prog.step(t_s, pos, w, loop)
+                if prog.state == "aborted":
+                    self._end_program(pos)
+                    u = loop.tick(pos, 0.0, pos, w)
+                else:
+                    ref = prog.ref
+                    if prog.state == "done":
+                        self._end_program(pos)
+            else:  # e-stop or fault (engaged at the start of this tick): command 0
+                self._abort_program(f"{mode} ({self.fault or self.estop_source})", mode)
+                loop.tick(pos, 0.0, pos, w)
+                u = 0.0
+            d_hat = loop.d_hat
+        elif mode in (RUNNING, STOPPED):
             u = loop.tick(ref, ref_rate, pos, w)
             d_hat = loop.d_hat
         else:
@@ -426,7 +592,8 @@ class Runtime:
         seq = self.seq + 1
         self.seq = seq
         self.ticks += 1
-        self._store(seq, t_s, ref, pos, w, loop.speed_ref_deg_s, u, d_hat, ref - pos)
+        r = loop.speed_ref_deg_s if prog is None else prog.r
+        self._store(seq, t_s, ref, pos, w, r, u, d_hat, ref - pos)
 
     def _store(
         self,
@@ -487,6 +654,18 @@ class Runtime:
         self._traj_at = traj.at
         self._traj_k = 0
 
+    def _end_program(self, pos: float) -> None:
+        """The program is over (done or aborted): the position loop holds `pos` (running)."""
+        self.program = None
+        self.loop.reset()
+        self._set_trajectory(Trajectory(kind="hold", offset_deg=pos))
+
+    def _abort_program(self, reason: str, limit: str) -> None:
+        prog = self.program
+        if prog is not None:
+            prog._abort(reason, limit)
+            self.program = None
+
     def _enter_stopped(self, pos: float) -> None:
         self.mode = STOPPED
         self._set_trajectory(Trajectory(kind="hold", offset_deg=pos))
@@ -535,13 +714,32 @@ class Runtime:
         if isinstance(b, ApplyCoefficients):
             self.loop.request(b.coefficients)
             t.ok = True
+        elif isinstance(b, RunProgram):
+            if self.program is not None:
+                t.ok, t.message = False, "an identification is already running"
+            elif self.mode not in (RUNNING, STOPPED):
+                t.ok, t.message = False, f"mode is {self.mode}: send reset and start first"
+            else:
+                self.mode = RUNNING
+                b.program.start_seq = next_seq
+                self.program = b.program
+                t.ok = True
+        elif isinstance(b, AbortProgram):
+            if self.program is None:
+                t.ok, t.message = True, "no identification running"
+            else:
+                self._abort_program(b.reason, "request")
+                self._end_program(pos)
+                t.ok = True
         elif isinstance(b, EStop):
             t.ok = self.mode == ESTOP
             t.seq = self.estop_seq
             t.message = "" if t.ok else "e-stop did not engage"
         elif isinstance(b, SetTrajectory):
             self.run_trajectory = b.trajectory
-            if self.mode == RUNNING:
+            if self.program is not None:
+                t.ok, t.message = True, "trajectory set; it runs after the identification"
+            elif self.mode == RUNNING:
                 self._set_trajectory(b.trajectory)
             t.ok = True
             t.message = "" if self.mode == RUNNING else f"trajectory set; mode is {self.mode}"
@@ -554,6 +752,9 @@ class Runtime:
                     self._set_trajectory(self.run_trajectory)
                 t.ok = True
         elif isinstance(b, Stop):
+            if self.program is not None:
+                self._abort_program("stop command", "request")
+                self.program = None
             if self.mode == RUNNING:
                 self._enter_stopped(pos)
             t.ok = self.mode == STOPPED

@@ -19,6 +19,8 @@ from controller.runtime import (
     RUNNING,
     STOPPED,
     ApplyCoefficients,
+    ExcitationProgram,
+    RunProgram,
     Runtime,
     RuntimeOptions,
 )
@@ -375,3 +377,108 @@ def test_an_estop_arriving_during_a_reset_is_not_lost() -> None:
     rt.run(max_ticks=2)
     assert reset.ok
     assert rt.mode == ESTOP and rt.estop_source == "during reset"
+
+
+# -- excitation programs (identification inside the loop) ---------------------------------------
+
+
+def _program(n_move: int = 50, n_exc: int = 200, **kw: object) -> ExcitationProgram:
+    """A move to 0 then an open-loop excitation: offset 1 deg/s + 0.5 sin."""
+    import math
+
+    exc = [0.5 * math.sin(2.0 * math.pi * k / 100.0) for k in range(n_exc)]
+    opts: dict[str, object] = {
+        "closed": False,
+        "window_deg": 10.0,
+        "amplitude_limit": 0.5,
+        "max_duration_s": 100.0,
+        "command_limit": 100.0,
+    }
+    opts.update(kw)
+    return ExcitationProgram(
+        [0] * n_move + [1] * n_exc,
+        [1.0] * n_move + [1.0] * n_exc,
+        [0.0] * n_move + exc,
+        [0.0] * (n_move + n_exc),
+        [True] + [False] * (n_move + n_exc - 1),
+        [0.0] * (n_move + n_exc),
+        [False] * n_move + [True] * n_exc,
+        **opts,  # type: ignore[arg-type]
+    )
+
+
+def test_program_runs_in_the_tick_records_every_tick_then_holds() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc)
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    prog = _program()
+    ticket = rt.submit(RunProgram(prog))
+    rt.run(max_ticks=300)
+    assert ticket.ok and prog.state == "done" and prog.n_done == prog.n == 250
+    start = ticket.seq
+    # open mode: u = offset + x exactly, tick by tick
+    for k in range(50, 250):
+        assert rig.commands[start + k] == pytest.approx(1.0 + prog.b[k])
+        assert prog.rec_u[k] == rig.commands[start + k]
+    assert rt.program is None and rt.mode == RUNNING and rt.trajectory.kind == "hold"
+
+
+def test_program_window_hit_aborts_to_a_hold_of_the_present_position() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc)
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    prog = _program(n_exc=2000, window_deg=0.5)  # 1 deg/s leaves +-0.5 deg after ~0.5 s
+    ticket = rt.submit(RunProgram(prog))
+    rt.run(max_ticks=1500)
+    assert ticket.ok and prog.state == "aborted" and prog.limit == "window"
+    assert "position window" in prog.reason and 50 < prog.n_done < 1000
+    assert rt.program is None and rt.mode == RUNNING
+    assert rt.trajectory.kind == "hold" and abs(rt.trajectory.offset_deg) > 0.5
+
+
+def test_program_duration_limit_and_estop() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc)
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    prog = _program(max_duration_s=0.1)
+    rt.submit(RunProgram(prog))
+    rt.run(max_ticks=300)
+    assert prog.state == "aborted" and prog.limit == "duration"
+    # e-stop during a program: command 0 from the very next tick, the program aborted
+    rt._stop = False
+    prog = _program(n_exc=2000)
+    rt.submit(RunProgram(prog))
+    rt.run(max_ticks=100)
+    assert prog.state == "running"
+    rt.estop("test")
+    rt._stop = False
+    n = len(rig.commands)
+    rt.run(max_ticks=5)
+    assert prog.state == "aborted" and prog.limit == ESTOP and rt.program is None
+    assert rig.commands[n : n + 5] == [0.0] * 5
+    # and a new program is refused until reset
+    t = rt.submit(RunProgram(_program()))
+    rt._stop = False
+    rt.run(max_ticks=1)
+    assert not t.ok and "estop" in t.message
+
+
+def test_a_program_tick_allocates_nothing_that_stays() -> None:
+    rt = Runtime(make_loop(), NullRig(), options=RuntimeOptions(ring_blocks=8, batch_size=20))
+    prog = _program(n_move=3000, n_exc=3000, window_deg=1e9)
+    rt.submit(RunProgram(prog))
+    tick = rt._tick
+    for k in range(400):
+        tick(k * 1e-3)
+        rt._ring.consumed = rt._ring.produced
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for k in range(400, 5400):
+            tick(k * 1e-3)
+            rt._ring.consumed = rt._ring.produced
+        after = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    assert prog.state == "running" and prog.n_done == 5400
+    assert after - before < 4096, after - before
