@@ -4,8 +4,10 @@ body, no argv).
 Writes into ``out_dir``: ``pos<k>_<deg>deg.csv`` per position (``freq_hz,mag_db,phase_deg,
 coherence``, the continuous-equivalent response u -> w, readable by ``dobtune check --frd``),
 ``raw_pos<k>.npz`` (every tick: t_s, u, w, x, pos, offset, phase, exc_index) and
-``summary.json``. Exit codes: 0 done, 1 aborted by a limit (partial data written, marked
-incomplete), 2 bad input (the message names the flag or field).
+``summary.json``. With ``--connect`` the run executes inside the controller's loop (see
+`controller.node`); the same files are written except the raw records. Exit codes: 0 done,
+1 aborted by a limit (partial data written, marked incomplete), 2 bad input (the message
+names the flag or field).
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ _FLAGS = {
     "amplitude_deg_s": "--amplitude",
 }
 
+
+#: Obsolete (``--connect`` is implemented); kept so older imports keep working.
 NOT_IMPLEMENTED = (
     "not implemented yet: identification through a running controller (issue 6 part 4); "
     "use --plant sim"
@@ -55,7 +59,7 @@ def _finite(v: float | None) -> float | None:
     return v if v is not None and math.isfinite(v) else None
 
 
-def _csv_name(p: PositionRecord) -> str:
+def csv_name(p: PositionRecord) -> str:
     return f"{p.name}.csv"
 
 
@@ -169,7 +173,7 @@ def _write(result: IdentifyResult, out_dir: Path) -> dict[int, tuple[str | None,
         csv: str | None = None
         est = p.estimate
         if est is not None:
-            csv = _csv_name(p)
+            csv = csv_name(p)
             write_frd_csv(out_dir / csv, est.freq_hz, est.response, est.coherence)
         raw = _raw_name(p)
         np.savez_compressed(
@@ -333,11 +337,21 @@ def identify_main(
             return _bad("--plant and --connect are exclusive", as_json, out, err)
         if not rig_name:
             return _bad("--connect needs --rig-name", as_json, out, err)
-        if as_json:
-            out.write(json.dumps({"error": NOT_IMPLEMENTED}) + "\n")
-        else:
-            err.write(f"error: {NOT_IMPLEMENTED}\n")
-        return EXIT_BAD_INPUT
+        return _remote(
+            connect,
+            rig_name,
+            mode,
+            signal,
+            f_min_hz,
+            f_max_hz,
+            positions,
+            amplitude_deg_s,
+            out_dir,
+            as_json,
+            out,
+            err,
+            spec_overrides or {},
+        )
     if plant not in (None, "sim"):
         return _bad(f"--plant: only 'sim' is supported here (got {plant!r})", as_json, out, err)
     try:
@@ -387,3 +401,139 @@ def identify_main(
     if code == EXIT_ABORTED:
         err.write(f"error: identification aborted: {result.abort_reason}\n")
     return code
+
+
+# -- through a running controller -------------------------------------------------------------
+
+
+def _remote(
+    endpoint: str,
+    rig_name: str,
+    mode: str,
+    signal: str,
+    f_min_hz: float,
+    f_max_hz: float,
+    positions: int,
+    amplitude_deg_s: float,
+    out_dir: Path,
+    as_json: bool,
+    out: TextIO,
+    err: TextIO,
+    overrides: dict[str, Any],
+    poll_s: float = 0.2,
+) -> int:
+    """Start the run in the controller's loop, follow it, fetch the results, write the files
+    (as offline, without the raw records: those stay in the state stream)."""
+    import msgspec
+
+    from controller import protocol as proto
+    from controller.zenoh_session import check_endpoint, open_session
+
+    try:
+        check_endpoint(endpoint)
+        proto.check_rig_name(rig_name)
+    except ValueError as exc:
+        return _bad(f"--connect/--rig-name: {exc}", as_json, out, err)
+    fields = {
+        "mode": mode,
+        "signal": signal,
+        "f_min_hz": f_min_hz,
+        "f_max_hz": f_max_hz,
+        "positions": positions,
+        "amplitude_deg_s": amplitude_deg_s,
+        **overrides,
+    }
+    try:
+        IdentifySpec(**fields)  # the same checks as the controller's, before connecting
+        msg = msgspec.convert(fields, proto.IdentifySpecMsg)
+    except ConfigError as exc:
+        return _bad(f"{_FLAGS.get(exc.field, exc.field)}: {exc}", as_json, out, err)
+    except (TypeError, msgspec.ValidationError) as exc:
+        return _bad(f"spec: {exc}", as_json, out, err)
+    timeout_s = 5.0
+
+    def query(session: Any, key: str, payload: bytes | None) -> bytes | None:
+        kw: dict[str, Any] = {"timeout": timeout_s}
+        if payload is not None:
+            kw["payload"] = payload
+        for reply in session.get(key, **kw):
+            if reply.ok is not None:
+                data: bytes = reply.ok.payload.to_bytes()
+                return data
+            return None
+        return None
+
+    t0 = time.perf_counter()
+    progress = _Progress(err)
+    with open_session(listen=(), connect=[endpoint]) as session:
+        cmd = proto.encode(proto.Command(body=proto.IdentifyStart(spec=msg), client="identify"))
+        raw = None
+        deadline = time.monotonic() + 10.0
+        while raw is None and time.monotonic() < deadline:  # the session may still connect
+            raw = query(session, proto.key_command(rig_name), cmd)
+        if raw is None:
+            return _bad(
+                f"--connect: no reply from rig {rig_name!r} at {endpoint}", as_json, out, err
+            )
+        reply = proto.decode(raw, proto.CommandReply)
+        if not reply.ok:
+            return _bad(f"controller refused: {reply.message}", as_json, out, err)
+        deadline = time.monotonic() + msg.max_duration_s + 300.0
+        status: proto.IdentifyStatus | None = None
+        while time.monotonic() < deadline:
+            data = query(session, proto.key_identify(rig_name), None)
+            if data is not None:
+                status = proto.decode(data, proto.IdentifyStatus)
+                progress(min(status.progress, 0.99), status.text)
+                if status.state in ("done", "aborted"):
+                    break
+            time.sleep(poll_s)
+        progress.done()
+    if status is None or status.state not in ("done", "aborted"):
+        return _bad("controller: no result before the deadline", as_json, out, err)
+    try:
+        summary = _write_remote(status, out_dir, time.perf_counter() - t0)
+    except OSError as exc:
+        return _bad(f"--out: cannot write to {out_dir}: {exc}", as_json, out, err)
+    if as_json:
+        out.write(json.dumps(summary, allow_nan=False) + "\n")
+    else:
+        out.write(report_text(summary, out_dir))
+    if status.state == "aborted":
+        err.write(f"error: identification aborted: {status.abort_reason}\n")
+        return EXIT_ABORTED
+    return EXIT_OK
+
+
+def _write_remote(status: Any, out_dir: Path, wall_s: float) -> dict[str, Any]:
+    from controller.config import NominalModel, config_from_builtins
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summary: dict[str, Any] = json.loads(status.summary_json) if status.summary_json else {}
+    if not summary:
+        raise OSError(f"the controller sent no summary ({status.text})")
+    summary["wall_s"] = wall_s
+    by_index = {p["index"]: p for p in summary["positions"]}
+    for p in status.positions:
+        if p.freq_hz:
+            name = f"pos{p.index}_{p.center_deg:g}deg.csv"
+            resp = 10.0 ** (np.asarray(p.mag_db) / 20.0) * np.exp(1j * np.radians(p.phase_deg))
+            write_frd_csv(out_dir / name, p.freq_hz, resp, p.coherence)
+            by_index[p.index]["csv"] = name
+        by_index[p.index]["raw"] = None
+    if summary.get("nominal") is not None:
+        n = summary["nominal"]
+        cfg = config_from_builtins(summary["config"]).with_(
+            nominal=NominalModel(
+                mn_den=tuple(n["mn_den"]), pn_num=tuple(n["pn_num"]), pn_den=tuple(n["pn_den"])
+            )
+        )
+        name = "config_fitted.json"
+        (out_dir / name).write_text(
+            json.dumps(config_to_builtins(cfg), indent=2) + "\n", encoding="utf-8"
+        )
+        summary["fitted_config"] = name
+    (out_dir / "summary.json").write_text(
+        json.dumps(summary, indent=2, allow_nan=False) + "\n", encoding="utf-8"
+    )
+    return summary
