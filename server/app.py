@@ -124,7 +124,8 @@ class Dashboard:
         gui.set_panel_label("dobtune")
         self.scene = TurntableScene(server.scene)
         tuning = NominalTuningPanel(gui, self.engine, self._apply_async)
-        self.identify = IdentifyPanel(gui, tuning, add_measured=self._add_identified)
+        self.identify = IdentifyPanel(gui, tuning, add_measured=self._add_identified,
+                                      client=self.client)
         live = LivePanel(
             gui, self.client, self._command_async, on_status=self._on_status,
             on_frame=self._on_frame, rate_hz=self.opts.live_rate_hz,

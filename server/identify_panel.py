@@ -1,11 +1,16 @@
 """The Identify panel: measure the frequency response, fit Mn Pn, recommend the Q cut-off.
 
-This version runs the identification OFFLINE ON THE SIMULATED RIG, in a worker thread of the
-dashboard (`controller.identify.run_identification` against a `SimRig`), and says so on the
-panel. Running it through the controller (the IdentifyStart / IdentifyAbort commands and the
-``dobtune/<rig>/identify`` queryable) is left for later.
+Two places to run, chosen on the panel (and always named in the status line):
 
-How it runs: one `run_identification` per measurement position on one simulated rig (the load
+* **on the controller** (default when connected): the IdentifyStart command carries the spec,
+  the controller runs the excitation inside its loop; a worker thread polls the
+  ``dobtune/<rig>/identify`` queryable (IdentifyStatus: progress, then the results) and Abort
+  sends IdentifyAbort (the controller holds the position and keeps the partial data). The
+  controller's status carries no per-point standard deviation, so those curves have no band.
+* **offline on the simulated rig**, in a worker thread of the dashboard
+  (`controller.identify.run_identification` against a `SimRig`).
+
+Offline, it runs as one `run_identification` per measurement position on one simulated rig (the load
 moves on from where the previous position left it), so each position's response is drawn as
 soon as it is measured; the positions are then fitted together (fit, Delta, agreement, the
 gate's recommended cut-offs). An optional pace ("x real time") slows the simulation down so a
@@ -24,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import threading
 import time
 from collections.abc import Callable
@@ -31,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from controller import protocol as proto
 from controller.analysis import MeasuredResponse
 from controller.config import LoopConfig, NominalModel
 from controller.errors import ConfigError
@@ -43,6 +50,7 @@ from controller.identify import (
     run_identification,
 )
 from server import charts
+from server.client import ControllerClient, ControllerUnavailable
 from server.tuning import TuningPanel
 
 __all__ = [
@@ -60,11 +68,13 @@ __all__ = [
     "curve_of",
     "format_result_html",
     "view_from_result",
+    "view_from_status",
 ]
 
 IDLE, RUNNING, DONE, ABORTED, FAILED = "idle", "running", "done", "aborted", "failed"
 
 OFFLINE_NOTE = "offline on the simulated rig"
+WHERE_CONTROLLER, WHERE_OFFLINE = "controller", "offline simulation"
 
 
 class UserAbort(Exception):
@@ -129,7 +139,9 @@ class IdentifySettings:
     positions: int = 3
     amplitude_deg_s: float = 10.0
     pace: float = 0.0
-    """Simulated seconds per wall second (0: as fast as possible)."""
+    """Simulated seconds per wall second (0: as fast as possible); offline only."""
+    where: str = WHERE_OFFLINE
+    """WHERE_CONTROLLER or WHERE_OFFLINE."""
 
     def spec(self) -> IdentifySpec:
         """The validated spec; raises ConfigError naming the field."""
@@ -244,6 +256,97 @@ def view_from_result(result: IdentifyResult, n_positions: int) -> IdentifyView:
     )
 
 
+def view_from_status(
+    st: proto.IdentifyStatus, n_positions: int, base: NominalModel
+) -> IdentifyView:
+    """Adapter: the controller's IdentifyStatus (and its summary JSON) -> what the panel shows.
+
+    The status has no per-point standard deviation: the curves have no band. `base` supplies
+    Mn when the summary carries no nominal (the article form: Pn = Mn_den / fit_den)."""
+    summary: dict[str, Any] = {}
+    if st.summary_json:
+        with contextlib.suppress(ValueError):
+            summary = json.loads(st.summary_json)
+    curves: list[charts.MeasuredCurve | None] = []
+    measured: list[MeasuredResponse] = []
+    for p in st.positions:
+        if not p.freq_hz:
+            curves.append(None)
+            continue
+        f = np.asarray(p.freq_hz, dtype=np.float64)
+        mag = np.asarray(p.mag_db, dtype=np.float64)
+        ph = np.degrees(np.unwrap(np.radians(np.asarray(p.phase_deg, dtype=np.float64))))
+        curves.append(charts.MeasuredCurve(
+            label=f"pos {p.index + 1} ({p.center_deg:g} deg)", freq_hz=f, mag_db=mag,
+            phase_deg=ph, mag_std_db=np.full(f.size, np.nan),
+            coherence=np.asarray(p.coherence, dtype=np.float64), complete=p.complete,
+        ))
+        if p.complete and f.size >= 2:
+            resp = (10.0 ** (mag / 20.0) * np.exp(1j * np.radians(ph))).astype(np.complex128)
+            measured.append(MeasuredResponse(
+                name=f"pos{p.index}_{p.center_deg:g}deg", freq_hz=f, response=resp))
+    complete = st.state == "done" and bool(st.positions) and all(
+        p.complete for p in st.positions) and len(st.positions) == n_positions
+    fit: FitView | None = None
+    fo = summary.get("fit")
+    if complete and isinstance(fo, dict):
+        with contextlib.suppress(KeyError, TypeError, ValueError):
+            band = fo.get("band_hz") or [float("nan"), float("nan")]
+            fit = FitView(
+                a2=float(fo["a2"]), a1=float(fo["a1"]),
+                natural_freq_hz=float(fo["natural_freq_hz"]),
+                natural_freq_std_hz=float(fo.get("natural_freq_std_hz") or float("nan")),
+                zeta=float(fo["zeta"]), zeta_std=float(fo.get("zeta_std") or float("nan")),
+                residual_rms_db=float(fo["residual_rms_db"]),
+                residual_rms_deg=float(fo["residual_rms_deg"]),
+                f_lo_hz=float(band[0]), f_hi_hz=float(band[1]), n_points=int(fo["n_points"]),
+            )
+    nominal: NominalModel | None = None
+    if fit is not None:
+        no = summary.get("nominal")
+        with contextlib.suppress(ConfigError, KeyError, TypeError, ValueError):
+            nominal = (
+                NominalModel(mn_den=tuple(no["mn_den"]), pn_num=tuple(no["pn_num"]),
+                             pn_den=tuple(no["pn_den"]))
+                if isinstance(no, dict)
+                else NominalModel(mn_den=base.mn_den, pn_num=base.mn_den,
+                                  pn_den=(fit.a2, fit.a1, 1.0))
+            )
+    agree = summary.get("agreement") or {}
+    checks = []
+    for g in summary.get("gate_checks") or []:
+        with contextlib.suppress(KeyError, TypeError, ValueError):
+            why = "" if g["accepted"] or not g.get("reasons") else f": {g['reasons'][0]}"
+            peak = g.get("small_gain_peak")
+            checks.append(
+                f"gate at {str(g['q_type']).upper()} {float(g['cutoff_hz']):.3g} Hz: "
+                f"{'accept' if g['accepted'] else 'reject'}"
+                + (f" (small-gain peak {float(peak):.2f})" if peak is not None else "") + why)
+    sim_s = summary.get("simulated_s")
+    return IdentifyView(
+        n_positions=n_positions,
+        complete=complete,
+        abort_reason=st.abort_reason or None,
+        positions_done=sum(1 for p in st.positions if p.complete),
+        curves=tuple(curves),
+        fit=fit,
+        agreement_hz=st.agreement_freq_hz,
+        agreement_tol=(float(agree.get("tol_db", 1.0)), float(agree.get("tol_deg", 10.0))),
+        recommended_cutoff_hz=dict(st.recommended_cutoff_hz) if complete else {},
+        checks=tuple(checks),
+        notes=tuple(str(x) for x in summary.get("notes") or ()),
+        simulated_s=float(sim_s) if isinstance(sim_s, (int, float)) else None,
+        nominal=nominal,
+        measured=tuple(measured),
+    )
+
+
+def _query_identify(client: ControllerClient) -> proto.IdentifyStatus:
+    """The controller's latest identification (raises ControllerUnavailable/ProtocolError)."""
+    data = client._query(proto.key_identify(client.opts.rig_name), b"")
+    return proto.decode(data, proto.IdentifyStatus)
+
+
 def format_result_html(view: IdentifyView | None) -> str:
     """Fit, agreement, recommended cut-offs and notes as a small HTML block."""
     if view is None:
@@ -298,13 +401,13 @@ def format_result_html(view: IdentifyView | None) -> str:
     return "<div class='dt-identify-result' style='font-size:12px'>" + "".join(rows) + "</div>"
 
 
-def _status_html(state: str, text: str) -> str:
+def _status_html(state: str, text: str, where: str = OFFLINE_NOTE) -> str:
     color = {RUNNING: "#1f77b4", DONE: "#2e7d32", ABORTED: "#d62728", FAILED: "#d62728"}.get(
         state, "#555"
     )
     return (
         f"<div class='dt-identify-status dt-id-{state}' style='font-size:12px;color:{color}'>"
-        f"<b>{state}</b> &middot; {_esc(text)} <span style='color:#888'>({OFFLINE_NOTE})"
+        f"<b>{state}</b> &middot; {_esc(text)} <span style='color:#888'>({_esc(where)})"
         "</span></div>"
     )
 
@@ -380,6 +483,7 @@ class IdentifyPanel:
         config_fn: Callable[[], LoopConfig] | None = None,
         rig_factory: Callable[[LoopConfig, int], RigLike] | None = None,
         add_measured: Callable[[MeasuredResponse], None] | None = None,
+        client: ControllerClient | None = None,
     ) -> None:
         self.gui = gui
         self.tuning = tuning
@@ -388,6 +492,9 @@ class IdentifyPanel:
         )
         self._rig_factory = rig_factory or _sim_rig
         self._add_measured = add_measured
+        self.client = client
+        self.where_note = OFFLINE_NOTE
+        self._closing = threading.Event()
         self._lock = threading.Lock()
         self._abort = threading.Event()
         self._thread: threading.Thread | None = None
@@ -411,9 +518,16 @@ class IdentifyPanel:
     def build_controls(self) -> None:
         gui = self.gui
         d = IdentifySettings()
+        if self.client is not None:
+            self.where = gui.add_dropdown(
+                "Run on", (WHERE_CONTROLLER, WHERE_OFFLINE), initial_value=WHERE_CONTROLLER,
+                hint="controller: the excitation runs in its loop and the rig moves; offline "
+                     "simulation: the built-in simulated rig in this dashboard")
         gui.add_html(
-            "<div class='dt-identify-note' style='font-size:12px;color:#b36b00'>Runs "
-            f"<b>{OFFLINE_NOTE}</b> (not on the controller's rig yet).</div>"
+            "<div class='dt-identify-note' style='font-size:12px;color:#b36b00'>"
+            + ("On the controller the <b>rig moves</b> (limits: amplitude, position window, "
+               "duration; E-STOP aborts). " if self.client is not None else "")
+            + f"Offline: <b>{OFFLINE_NOTE}</b>.</div>"
         )
         self.mode = gui.add_dropdown("Mode", _MODES, initial_value=d.mode,
                                      hint="open: u = offset + excitation; closed: speed loop "
@@ -430,7 +544,7 @@ class IdentifyPanel:
                                         max=100.0, step=0.1,
                                         hint="largest excitation amplitude, load speed")
         self.pace = gui.add_number("Pace (x real time, 0 = fastest)", d.pace, min=0.0,
-                                   max=1000.0, step=0.5)
+                                   max=1000.0, step=0.5, hint="offline only")
         self.start_button = gui.add_button("Start identification", color="green")
         self.abort_button = gui.add_button("Abort", color="red", disabled=True)
         self.progress_bar = gui.add_progress_bar(0.0)
@@ -446,8 +560,8 @@ class IdentifyPanel:
 
     def build_charts(self) -> None:
         self.chart_note = self.gui.add_html(
-            "<div class='dt-identify-charts' style='font-size:12px;color:#555'>Identification "
-            f"({OFFLINE_NOTE}): each position's response appears when it is measured.</div>")
+            "<div class='dt-identify-charts' style='font-size:12px;color:#555'>Identification: "
+            "the measured responses appear here.</div>")
         self._chart_box = self.gui.add_folder("Measured response", expand_by_default=True)
         self._make_charts(self.n_positions)
 
@@ -470,6 +584,8 @@ class IdentifyPanel:
         self._chart_n = n
 
     def stop(self) -> None:
+        """Dashboard shutdown: an offline run stops; a run on the controller goes on there."""
+        self._closing.set()
         self._abort.set()
         t = self._thread
         if t is not None:
@@ -487,6 +603,7 @@ class IdentifyPanel:
             positions=round(float(self.positions.value)),
             amplitude_deg_s=float(self.amplitude.value),
             pace=max(0.0, float(self.pace.value)),
+            where=str(self.where.value) if self.client is not None else WHERE_OFFLINE,
         )
 
     # -- events (short) ----------------------------------------------------------------------
@@ -504,7 +621,8 @@ class IdentifyPanel:
             return False
         with self._lock:
             if self.state == RUNNING:
-                self.status.content = _status_html(RUNNING, "a run is already in progress")
+                self.status.content = _status_html(
+                    RUNNING, "a run is already in progress", self.where_note)
                 return False
             self.state = RUNNING
             self._abort.clear()
@@ -513,8 +631,14 @@ class IdentifyPanel:
             self.curves = []
             self.progress = 0.0
             self.n_positions = spec.positions
+            remote = s.where == WHERE_CONTROLLER and self.client is not None
+            self.where_note = (
+                f"on the controller, rig {self.client.opts.rig_name}"
+                if remote and self.client is not None else OFFLINE_NOTE
+            )
             self._thread = threading.Thread(
-                target=self._run, args=(spec, cfg, s.pace), name="identify", daemon=True
+                target=self._run_remote if remote else self._run,
+                args=(spec, cfg, s.pace), name="identify", daemon=True,
             )
         self.text = "starting"
         self.start_button.disabled = True
@@ -524,7 +648,7 @@ class IdentifyPanel:
         self.result_html.content = format_result_html(None)
         self.progress_bar.value = 0.0
         self.progress_bar.animated = True
-        self.status.content = _status_html(RUNNING, self.text)
+        self.status.content = _status_html(RUNNING, self.text, self.where_note)
         self._thread.start()
         return True
 
@@ -534,7 +658,7 @@ class IdentifyPanel:
                 self.status.content = _status_html(self.state, "nothing to abort")
                 return False
             self._abort.set()
-        self.status.content = _status_html(RUNNING, "aborting...")
+        self.status.content = _status_html(RUNNING, "aborting...", self.where_note)
         return True
 
     def use_as_nominal(self) -> bool:
@@ -609,6 +733,49 @@ class IdentifyPanel:
             reason, state = f"{type(exc).__name__}: {exc}", FAILED
         self._finish(state, final, reason, spec)
 
+    def _run_remote(self, spec: IdentifySpec, cfg: LoopConfig, _pace: float) -> None:
+        """Start the run on the controller, poll its status until it is over."""
+        client = self.client
+        assert client is not None
+        n = spec.positions
+        if self._chart_n != n:
+            self._make_charts(n)
+        self._publish_charts(None)
+        try:
+            prev = _query_identify(client).run_id
+            body = proto.IdentifyStart(spec=proto.IdentifySpecMsg(
+                mode=spec.mode, signal=spec.signal, f_min_hz=spec.f_min_hz,
+                f_max_hz=spec.f_max_hz, points_per_decade=spec.points_per_decade,
+                positions=spec.positions, amplitude_deg_s=spec.amplitude_deg_s,
+            ))
+            reply = client.command(body)
+            if not reply.ok:
+                self._show_end(FAILED, None, f"refused by the controller: {reply.message}", n)
+                return
+            sent_abort = False
+            while True:
+                if self._closing.is_set():
+                    return  # the dashboard closes; the run goes on in the controller
+                if self._abort.is_set() and not sent_abort:
+                    r = client.command(proto.IdentifyAbort())
+                    sent_abort = True
+                    if not r.ok:
+                        self.status.content = _status_html(
+                            RUNNING, f"abort refused: {r.message}", self.where_note)
+                st = _query_identify(client)
+                if st.run_id > prev:
+                    if st.state in ("done", "aborted"):
+                        break
+                    self._on_progress(st.progress, st.text or st.state)
+                time.sleep(0.2)  # polling period of the status queryable
+        except (ControllerUnavailable, proto.ProtocolError) as exc:
+            self._show_end(FAILED, None, f"controller: {exc}", n)
+            return
+        view = view_from_status(st, n, cfg.nominal)
+        aborted = st.state == "aborted" or not view.complete
+        reason = st.abort_reason or (st.text if aborted else None)
+        self._show_end(ABORTED if aborted else DONE, view, reason, n)
+
     def _on_progress(self, fraction: float, text: str) -> None:
         now = time.monotonic()
         self.progress, self.text = fraction, text
@@ -616,7 +783,8 @@ class IdentifyPanel:
             return
         self._last_publish = now
         self.progress_bar.value = round(100.0 * min(max(fraction, 0.0), 1.0), 1)
-        self.status.content = _status_html(RUNNING, f"{100 * fraction:.0f} % {text}")
+        self.status.content = _status_html(
+            RUNNING, f"{100 * fraction:.0f} % {text}", self.where_note)
 
     def _publish_charts(self, fit: FitView | None) -> None:
         fit_f = fit_g = None
@@ -660,7 +828,9 @@ class IdentifyPanel:
                 f"<div class='dt-identify-charts dt-id-{state}' style='font-size:12px;"
                 f"color:{'#555' if done else '#d62728'}'>"
                 + ("Identification complete" if done else f"<b>INCOMPLETE</b> ({_esc(text)})")
-                + f" &middot; {OFFLINE_NOTE}</div>")
+                + f" &middot; {_esc(self.where_note)}"
+                + ("" if self.where_note == OFFLINE_NOTE
+                   else " (its status has no per-point std: no band)") + "</div>")
         self.progress_bar.animated = False
         if state == DONE:
             self.progress_bar.value = 100.0
@@ -668,7 +838,7 @@ class IdentifyPanel:
             self.view = view
             self.state = state
             self.text = text
-        self.status.content = _status_html(state, text)
+        self.status.content = _status_html(state, text, self.where_note)
         self.start_button.disabled = False
         self.abort_button.disabled = True
         self.use_button.disabled = not (

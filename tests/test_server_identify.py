@@ -1,14 +1,19 @@
-"""The dashboard's Identify panel without a browser (offline on the simulated rig; no
-controller: the dashboard shows its 'not reachable' banner, identification does not need it).
+"""The dashboard's Identify panel without a browser.
 
-A short run fills the charts and shows the fit and the recommended cut-offs; Abort mid-run
+Offline on the simulated rig (no controller: the dashboard shows its 'not reachable' banner):
+a short run fills the charts and shows the fit and the recommended cut-offs; Abort mid-run
 keeps the measured positions, marked incomplete; "Use as nominal model" changes the tuning
 candidate's nominal and re-evaluates it, and sends nothing.
+
+On a real controller process (integration): the same short run inside its loop through
+IdentifyStart and the identify queryable; Abort through IdentifyAbort keeps the partial data.
 """
 
 from __future__ import annotations
 
 import socket
+import subprocess
+import tempfile
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -19,9 +24,11 @@ import pytest
 from controller.config import LoopConfig
 from server import charts
 from server.app import Dashboard, DashboardOptions
+from server.demo import controller_command, stop_process
 from server.identify_panel import (
     ABORTED,
     DONE,
+    WHERE_CONTROLLER,
     IdentifyPanel,
     IdentifySettings,
     NominalTuningPanel,
@@ -180,3 +187,78 @@ def test_identify_chart_data_pure() -> None:
     for s in specs:
         assert len(s.series) == len(d[s.key])
     assert specs[0].extra["bands"][1]["series"] == (5, 6)
+
+
+# -- on the controller ----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def remote_dash() -> Iterator[Dashboard]:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with tempfile.TemporaryDirectory(prefix="dobtune-identify-") as state:
+        from pathlib import Path
+
+        proc = subprocess.Popen(controller_command(endpoint, "idtest", Path(state)))
+        try:
+            opts = DashboardOptions(connect=(endpoint,), rig_name="idtest", port=free_port(),
+                                    verbose=False)
+            with Dashboard(opts) as d:
+                wait_for(lambda: d.client.status is not None
+                         and d.client.status.mode == "running", 30.0)
+                yield d
+        finally:
+            stop_process(proc)
+
+
+@pytest.mark.integration
+def test_short_identification_on_the_controller(remote_dash: Dashboard) -> None:
+    d = remote_dash
+    p, t = d.identify, d.tuning
+    assert p is not None and isinstance(t, NominalTuningPanel)
+    assert p.settings().where == WHERE_CONTROLLER  # the default when a controller is known
+    applied: list[LoopConfig] = []
+    t._apply_fn = applied.append
+    before = d.client.get_config()
+    t0 = time.perf_counter()
+    assert p.start(SHORT.__class__(**{**SHORT.__dict__, "where": WHERE_CONTROLLER}))
+    wait_for(lambda: p.progress > 0.1, 20.0)  # progress comes from the controller's status
+    assert "on the controller" in p.status.content
+    assert p.wait_done(90.0)
+    print(f"short identification on the controller: {time.perf_counter() - t0:.1f} s wall")
+    assert p.state == DONE, p.text
+    v = p.view
+    assert v is not None and v.complete and v.fit is not None and v.nominal is not None
+    assert 6.4 < v.fit.natural_freq_hz < 7.8
+    assert v.recommended_cutoff_hz.get("q31") is not None
+    mag = p.charts["identify_mag"].data
+    assert _finite(mag[1]) >= 4 and _finite(mag[-1]) >= 50
+    html = p.result_html.content
+    assert "Fit Mn Pn" in html and "Q31" in html and "Q20" in html
+    assert p.result is None  # the controller's run: no offline result
+    assert p.use_as_nominal()
+    wait_for(lambda: t.wait_idle(0.1) and t.candidate().nominal == v.nominal)
+    assert applied == []
+    after = d.client.get_config()
+    assert after.version == before.version and after.config == before.config
+    t.revert()
+
+
+@pytest.mark.integration
+def test_abort_on_the_controller_keeps_partial_data(remote_dash: Dashboard) -> None:
+    p = remote_dash.identify
+    assert p is not None
+    two = IdentifySettings(mode="open", signal="multisine", f_min_hz=1.0, f_max_hz=8.0,
+                           points_per_decade=4, positions=2, where=WHERE_CONTROLLER)
+    assert p.start(two)
+    wait_for(lambda: p.progress > 0.6, 60.0)  # into the second position
+    assert p.abort()
+    assert p.wait_done(30.0)
+    assert p.state == ABORTED, p.text
+    v = p.view
+    assert v is not None and not v.complete and v.fit is None and v.nominal is None
+    assert v.positions_done == 1
+    assert _finite(p.charts["identify_mag"].data[1]) >= 4  # position 1 still drawn
+    assert "INCOMPLETE" in p.result_html.content and "INCOMPLETE" in p.status.content
+    assert not p.use_as_nominal()
+    st = remote_dash.client.status
+    assert st is not None and st.mode == "running"  # the controller holds; no fault

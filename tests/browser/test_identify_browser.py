@@ -1,7 +1,7 @@
 """The Identify panel in headless Chromium: open the tab, set a short run (multisine, one
-position), start it, wait for completion on the page, check the charts and the fit, use the
-fit as the nominal model (the Tune verdict re-evaluates; nothing is applied). Screenshots go
-to test-artifacts/identify_*.png.
+position) on the controller (the excitation runs in its loop), start it, wait for completion on
+the page, check the charts and the fit, use the fit as the nominal model (the Tune verdict
+re-evaluates; nothing is applied). Screenshots go to test-artifacts/identify_*.png.
 """
 
 from __future__ import annotations
@@ -53,20 +53,25 @@ def test_identify_short_run_in_the_browser(
     tabs.nth(1).click()
     page.wait_for_selector(".dt-identify-note", timeout=10_000)
     assert "offline on the simulated rig" in page.locator(".dt-identify-note").inner_text()
+    assert _input(page, "Run on").input_value() == "controller"
     _choose(page, "Signal", "multisine")
     _set_number(page, "f min (Hz)", 1.0)
     _set_number(page, "f max (Hz)", 8.0)
     _set_number(page, "Points per decade", 4)
     _set_number(page, "Positions", 1)
-    _set_number(page, "Pace (x real time", 2)  # about 4 s: the progress can be seen
     page.wait_for_timeout(300)  # the values reach the server
     ident = dashboard.identify
     assert ident is not None
     s = ident.settings()
-    assert (s.signal, s.f_min_hz, s.f_max_hz, s.positions) == ("multisine", 1.0, 8.0, 1)
+    assert (s.where, s.signal, s.f_min_hz, s.f_max_hz, s.positions) == (
+        "controller", "multisine", 1.0, 8.0, 1)
     before = probe.get_config()
     page.get_by_role("button", name="Start identification").click()
     page.wait_for_selector(".dt-identify-status.dt-id-running", timeout=5_000)
+    page.wait_for_function(
+        "() => /\\d+ %/.test(document.querySelector('.dt-identify-status').innerText)",
+        timeout=10_000)  # progress from the controller's status
+    assert "on the controller" in page.locator(".dt-identify-status").inner_text()
     page.screenshot(path=str(artifacts / "identify_1_running.png"))
     page.wait_for_selector(".dt-identify-status.dt-id-done", timeout=60_000)
     page.wait_for_selector(".dt-id-fit", timeout=5_000)
@@ -83,8 +88,9 @@ def test_identify_short_run_in_the_browser(
     page.get_by_role("button", name="Use as nominal model").click()
     page.wait_for_selector(".dt-id-used", timeout=5_000)
     assert dashboard.tuning is not None and dashboard.tuning.wait_idle(5.0)
-    result = ident.result
-    assert result is not None and dashboard.tuning.candidate().nominal == result.nominal
+    view = ident.view  # what the controller reported
+    assert view is not None and view.nominal is not None
+    assert dashboard.tuning.candidate().nominal == view.nominal
     page.get_by_role("tab", name="Tune").click()
     page.wait_for_selector(".dt-verdict", timeout=5_000)
     page.wait_for_selector(".dt-nominal-fitted", timeout=5_000)
