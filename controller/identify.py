@@ -47,9 +47,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from array import array
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -1048,19 +1049,21 @@ class ProgramPlan:
     config: LoopConfig
     excitation: SteppedSine | Multisine = field(repr=False)
     n_segments: int
-    kind: list[int] = field(repr=False)
-    a: list[float] = field(repr=False)
-    b: list[float] = field(repr=False)
-    target: list[float] = field(repr=False)
-    first: list[bool] = field(repr=False)
-    center: list[float] = field(repr=False)
-    window: list[bool] = field(repr=False)
-    pos_index: list[int] = field(repr=False)
-    exc_index: list[int] = field(repr=False)
     seg_end: list[int] = field(repr=False)
     """Tick (exclusive) at which each segment ends, position by position."""
     labels: list[tuple[int, str]] = field(repr=False)
     """(first tick, text) of each section, for progress reports."""
+    # Per-tick columns as array.array (see ExcitationProgram): no Python object per element,
+    # so building, pickling and holding a long plan never loads the controller's GC.
+    kind: array[int] = field(repr=False)
+    a: array[float] = field(repr=False)
+    b: array[float] = field(repr=False)
+    target: array[float] = field(repr=False)
+    first: array[int] = field(repr=False)
+    center: array[float] = field(repr=False)
+    window: array[int] = field(repr=False)
+    pos_index: array[int] = field(repr=False)
+    exc_index: array[int] = field(repr=False)
 
     @property
     def n_ticks(self) -> int:
@@ -1073,6 +1076,26 @@ class ProgramPlan:
                 break
             text = t
         return text
+
+
+#: ProgramPlan's per-tick columns and their array typecodes.
+_PLAN_COLUMNS: dict[str, str] = {
+    "kind": "b",
+    "a": "d",
+    "b": "d",
+    "target": "d",
+    "first": "b",
+    "center": "d",
+    "window": "b",
+    "pos_index": "q",
+    "exc_index": "q",
+}
+
+
+def _as_array(x: NDArray[np.generic], code: str) -> array[Any]:
+    out: array[Any] = array(code)
+    out.frombytes(np.ascontiguousarray(x, dtype=np.dtype(code)).tobytes())
+    return out
 
 
 def plan_program(spec: IdentifySpec, cfg: LoopConfig, start_deg: float) -> ProgramPlan:
@@ -1088,17 +1111,15 @@ def plan_program(spec: IdentifySpec, cfg: LoopConfig, start_deg: float) -> Progr
         raise ConfigError("f_max_hz", f"must be below Nyquist {0.5 * rate} Hz")
     exc = _build_excitation(spec, rate)
     segments = _plan(spec, exc, rate, cfg.command_limit_deg_s)
-    kind: list[int] = []
-    a: list[float] = []
-    b: list[float] = []
-    target: list[float] = []
-    first: list[bool] = []
-    center: list[float] = []
-    window: list[bool] = []
-    pos_index: list[int] = []
-    exc_index: list[int] = []
+    cols: dict[str, list[NDArray[np.generic]]] = {name: [] for name in _PLAN_COLUMNS}
+
+    def put(n: int, **values: NDArray[np.generic] | float) -> None:
+        for name, v in values.items():
+            cols[name].append(np.broadcast_to(np.asarray(v), (n,)))
+
     seg_end: list[int] = []
     labels: list[tuple[int, str]] = []
+    total = 0
     here = start_deg
     n_pos = len(spec.centers_deg)
     n_hold = round(spec.settle_s * rate)
@@ -1117,54 +1138,40 @@ def plan_program(spec: IdentifySpec, cfg: LoopConfig, start_deg: float) -> Progr
             n = shape.size
             labels.append(
                 (
-                    len(kind),
+                    total,
                     f"position {i + 1}/{n_pos}: "
                     + (f"moving to {c:g} deg" if k == 0 else "repositioning"),
                 )
             )
-            kind += [0] * n
-            a += shape.tolist()
-            b += slope.tolist()
-            target += [goal] * n
-            first += [True] + [False] * (n - 1)
-            center += [c] * n
-            window += [k > 0] * n
-            pos_index += [i] * n
-            exc_index += [-1] * n
-            labels.append((len(kind), _segment_label(exc, seg, i, n_pos, len(segments))))
+            first = np.zeros(n, dtype=np.int8)
+            first[0] = 1
+            put(n, kind=0, a=shape, b=slope, target=goal, first=first, center=c)
+            put(n, window=int(k > 0), pos_index=i, exc_index=-1)
+            total += n
+            labels.append((total, _segment_label(exc, seg, i, n_pos, len(segments))))
             m = seg.offset.size
-            kind += [1] * m
-            a += seg.offset.tolist()
-            b += seg.x.tolist()
-            target += [0.0] * m
-            first += [False] * m
-            center += [c] * m
-            window += [True] * m
-            pos_index += [i] * m
-            exc_index += seg.exc_index.tolist()
-            seg_end.append(len(kind))
+            put(m, kind=1, a=seg.offset, b=seg.x, target=0.0, first=0, center=c)
+            put(m, window=1, pos_index=i, exc_index=seg.exc_index)
+            total += m
+            seg_end.append(total)
             here = goal + seg.travel_deg
-    if len(kind) > spec.max_duration_s * rate:
+    if total > spec.max_duration_s * rate:
         raise ConfigError(
             "max_duration_s",
-            f"the plan takes {len(kind) / rate:.0f} s, more than {spec.max_duration_s:g} s",
+            f"the plan takes {total / rate:.0f} s, more than {spec.max_duration_s:g} s",
         )
+    arrays = {
+        name: _as_array(np.concatenate(chunks), code)
+        for (name, code), chunks in zip(_PLAN_COLUMNS.items(), cols.values(), strict=True)
+    }
     return ProgramPlan(
         spec=spec,
         config=cfg,
         excitation=exc,
         n_segments=len(segments),
-        kind=kind,
-        a=a,
-        b=b,
-        target=target,
-        first=first,
-        center=center,
-        window=window,
-        pos_index=pos_index,
-        exc_index=exc_index,
         seg_end=seg_end,
         labels=labels,
+        **arrays,  # type: ignore[arg-type]
     )
 
 
@@ -1204,15 +1211,15 @@ def result_from_program(
     spec, cfg, exc = plan.spec, plan.config, plan.excitation
     rate = cfg.rate_hz
     closed = spec.mode == "closed"
-    kind = np.asarray(plan.kind[:n_done], dtype=np.int8)
-    pidx = np.asarray(plan.pos_index[:n_done], dtype=np.int64)
-    a = np.asarray(plan.a[:n_done])
-    bx = np.asarray(plan.b[:n_done])
-    exc_i = np.asarray(plan.exc_index[:n_done], dtype=np.int64)
+    kind = np.frombuffer(plan.kind, dtype=np.int8)[:n_done].copy()
+    pidx = np.frombuffer(plan.pos_index, dtype=np.int64)[:n_done]
+    a = np.frombuffer(plan.a, dtype=np.float64)[:n_done]
+    bx = np.frombuffer(plan.b, dtype=np.float64)[:n_done]
+    exc_i = np.frombuffer(plan.exc_index, dtype=np.int64)[:n_done].copy()
     t = np.arange(n_done) * (1.0 / rate)
-    uu = np.asarray(u[:n_done], dtype=np.float64)
-    ww = np.asarray(w[:n_done], dtype=np.float64)
-    pp = np.asarray(pos[:n_done], dtype=np.float64)
+    uu = np.array(u[:n_done], dtype=np.float64)
+    ww = np.array(w[:n_done], dtype=np.float64)
+    pp = np.array(pos[:n_done], dtype=np.float64)
     excite = kind == PHASE_EXCITE
     records: list[PositionRecord] = []
     n_seg = plan.n_segments

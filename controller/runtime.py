@@ -128,7 +128,8 @@ class ApplyCoefficients:
 
 
 class ExcitationProgram:
-    """A preplanned per-tick program run inside the tick (identification); lists only.
+    """A preplanned per-tick program run inside the tick (identification); the columns are
+    sequences the tick only indexes (lists, or array.array: no Python object per element).
 
     Tick i of the program is either a *move* (``kind[i] == 0``: the position loop follows
     ``ref = start + (target[i] - start) * a[i]``, rate ``(target[i] - start) * b[i]``, where
@@ -145,13 +146,13 @@ class ExcitationProgram:
 
     def __init__(
         self,
-        kind: list[int],
-        a: list[float],
-        b: list[float],
-        target: list[float],
-        first: list[bool],
-        center: list[float],
-        window: list[bool],
+        kind: Sequence[int],
+        a: Sequence[float],
+        b: Sequence[float],
+        target: Sequence[float],
+        first: Sequence[int] | Sequence[bool],
+        center: Sequence[float],
+        window: Sequence[int] | Sequence[bool],
         *,
         closed: bool,
         window_deg: float,
