@@ -755,7 +755,7 @@ class Runtime:
         elif isinstance(b, Stop):
             if self.program is not None:
                 self._abort_program("stop command", "request")
-                self.program = None
+                self.loop.reset()  # the program may have left the position loop's states
             if self.mode == RUNNING:
                 self._enter_stopped(pos)
             t.ok = self.mode == STOPPED

@@ -18,6 +18,7 @@ from controller.runtime import (
     FAULT,
     RUNNING,
     STOPPED,
+    AbortProgram,
     ApplyCoefficients,
     ExcitationProgram,
     RunProgram,
@@ -482,3 +483,39 @@ def test_a_program_tick_allocates_nothing_that_stays() -> None:
         tracemalloc.stop()
     assert prog.state == "running" and prog.n_done == 5400
     assert after - before < 4096, after - before
+
+
+def test_program_abort_request_holds_and_stop_stops() -> None:
+    fc = FakeClock()
+    rig = FakeRig(fc)
+    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    prog = _program(n_exc=2000)
+    rt.submit(RunProgram(prog))
+    rt.run(max_ticks=100)
+    t = rt.submit(AbortProgram("test abort"))
+    rt._stop = False
+    rt.run(max_ticks=1)
+    assert t.ok and prog.state == "aborted" and prog.reason == "test abort"
+    assert rt.program is None and rt.mode == RUNNING and rt.trajectory.kind == "hold"
+    assert rt.trajectory.offset_deg == pytest.approx(rig.pos, abs=0.01)
+    # nothing to abort: ok, says so
+    t = rt.submit(AbortProgram())
+    rt._stop = False
+    rt.run(max_ticks=1)
+    assert t.ok and "no identification" in t.message
+    # Stop during a program: aborted, stopped (holding)
+    prog = _program(n_exc=2000)
+    rt.submit(RunProgram(prog))
+    rt._stop = False
+    rt.run(max_ticks=100)
+    t = rt.submit(Stop())
+    rt._stop = False
+    rt.run(max_ticks=1)
+    assert t.ok and prog.state == "aborted" and rt.mode == STOPPED and rt.program is None
+    # a program while one runs is refused
+    first = _program(n_exc=2000)
+    rt.submit(RunProgram(first))
+    second = rt.submit(RunProgram(_program()))
+    rt._stop = False
+    rt.run(max_ticks=2)
+    assert not second.ok and "already running" in second.message and rt.program is first
