@@ -48,13 +48,6 @@ _FLAGS = {
 }
 
 
-#: Obsolete (``--connect`` is implemented); kept so older imports keep working.
-NOT_IMPLEMENTED = (
-    "not implemented yet: identification through a running controller (issue 6 part 4); "
-    "use --plant sim"
-)
-
-
 def _finite(v: float | None) -> float | None:
     return v if v is not None and math.isfinite(v) else None
 

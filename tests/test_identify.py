@@ -34,7 +34,6 @@ from controller.identify_cmd import (
     EXIT_ABORTED,
     EXIT_BAD_INPUT,
     EXIT_OK,
-    NOT_IMPLEMENTED,
     identify_main,
 )
 from controller.sim_rig import SimRig
@@ -371,13 +370,19 @@ def test_cli_bad_input_names_the_field(tmp_path: Path, kw: dict[str, object], ne
     assert not (tmp_path / "id").exists()
 
 
-def test_cli_connect_is_not_implemented_yet(tmp_path: Path) -> None:
+def test_cli_connect_without_a_controller_is_a_clear_error(tmp_path: Path) -> None:
+    """--connect to an endpoint where no controller answers: exit 2 naming the option."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
     code, text, _ = _cli(
-        tmp_path, plant=None, connect="tcp/127.0.0.1:7447", rig_name="demo", as_json=True
+        tmp_path, plant=None, connect=f"tcp/127.0.0.1:{port}", rig_name="demo", as_json=True
     )
     assert code == EXIT_BAD_INPUT
-    assert json.loads(text) == {"error": NOT_IMPLEMENTED}
-    assert "issue 6 part 4" in NOT_IMPLEMENTED
+    error = json.loads(text)["error"]
+    assert error.startswith("--connect:") and "no reply" in error
 
 
 def test_identify_subcommand_is_registered() -> None:

@@ -1,6 +1,6 @@
 """The controller on the CAN path: CanRig + a simulated CiA 402 drive node on python-can's
 `virtual` bus (no hardware). The virtual bus lives inside one process, so the controller
-process runs the simulated node itself (ControllerOptions.sim_drive_node).
+process runs the simulated node itself (`--sim-drive-node`).
 """
 
 from __future__ import annotations
@@ -54,21 +54,6 @@ def virtual_rig_text(channel: str, enable_timeout_s: float = 3.0) -> str:
     return text
 
 
-CONTROLLER_WITH_SIM_NODE = """
-import argparse, sys
-from controller.__main__ import add_controller_arguments
-from controller.node import ControllerOptions, run_controller
-p = argparse.ArgumentParser()
-add_controller_arguments(p)
-p.add_argument("--sim-drive-node", action="store_true")
-a = p.parse_args()
-sys.exit(run_controller(ControllerOptions(
-    plant=a.plant, rig_file=a.rig, rig_name=a.rig_name, listen=tuple(a.listen),
-    state_dir=a.state_dir, seed=a.seed, sim_drive_node=a.sim_drive_node,
-    realtime_priority=a.realtime_priority)))
-"""
-
-
 def test_sine_through_can_tracks_like_the_simulated_plant(
     start_controller_factory: Callable[..., ControllerProcess], tmp_path: Path
 ) -> None:
@@ -76,7 +61,6 @@ def test_sine_through_can_tracks_like_the_simulated_plant(
     rig_path.write_text(virtual_rig_text(f"ctl-{uuid.uuid4().hex}"))
     proc = start_controller_factory(
         extra_args=("--plant", "can", "--rig", str(rig_path), "--sim-drive-node"),
-        python_code=CONTROLLER_WITH_SIM_NODE,
     )
     with Client(proc.endpoint, proc.rig) as c:
         c.wait_ready(proc)
