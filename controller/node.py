@@ -167,8 +167,17 @@ class GateRunner:
     rejected; the next check starts a fresh one.
     """
 
-    def __init__(self, *, subprocess: bool = True, timeout_s: float = 10.0) -> None:
+    def __init__(
+        self,
+        *,
+        subprocess: bool = True,
+        timeout_s: float = 10.0,
+        command_limit_max_deg_s: float | None = None,
+    ) -> None:
         self._subprocess = subprocess
+        #: The rig's own command limit (CAN rig file): a config may not exceed it, or the drive
+        #: would clamp commands the DOB believes were sent.
+        self.command_limit_max_deg_s = command_limit_max_deg_s
         self._timeout_s = timeout_s
         self._pool: Any = None
         self._lock = threading.Lock()
@@ -194,6 +203,18 @@ class GateRunner:
         self, cfg: LoopConfig, version: int, *, build: bool = True
     ) -> tuple[bool, tuple[str, ...], proto.Margins, LoopCoefficients | None]:
         """The gate's verdict and, if accepted and `build`, the coefficients to swap in."""
+        rig_max = self.command_limit_max_deg_s
+        if rig_max is not None and cfg.command_limit_deg_s > rig_max:
+            return (
+                False,
+                (
+                    f"command_limit_deg_s {cfg.command_limit_deg_s:g} deg/s > the rig's limit "
+                    f"{rig_max:g} deg/s (rig file limits.command_limit_deg_s): the drive would "
+                    "clamp commands the DOB believes were sent",
+                ),
+                _nan_margins(),
+                None,
+            )
         if not self._subprocess:
             return gate_and_build(cfg, version) if build else (*gate(cfg), None)
         import concurrent.futures
@@ -333,7 +354,10 @@ class StartupError(RuntimeError):
 
 
 def _initial_config(
-    opts: ControllerOptions, store: StateStore, check: Callable[[LoopConfig], GateResult]
+    opts: ControllerOptions,
+    store: StateStore,
+    check: Callable[[LoopConfig], GateResult],
+    rig_limit_deg_s: float | None = None,
 ) -> tuple[LoopConfig, int, proto.Margins]:
     """The configuration to start with: --config, else the saved one, else the default;
     --rate-hz overrides the rate. It must pass the gate; a change is saved and logged."""
@@ -353,6 +377,9 @@ def _initial_config(
     else:
         candidate = LoopConfig()
         source = "default"
+        if rig_limit_deg_s is not None and candidate.command_limit_deg_s > rig_limit_deg_s:
+            candidate = candidate.with_(command_limit_deg_s=rig_limit_deg_s)
+            source = "default, command limit from the rig file"
     if opts.rate_hz is not None:
         try:
             candidate = candidate.with_(rate_hz=opts.rate_hz)
@@ -374,6 +401,18 @@ def _initial_config(
         client=f"startup ({source})",
     )
     return candidate, version, margins
+
+
+def _rig_command_limit(opts: ControllerOptions) -> float | None:
+    """The CAN rig file's command limit (None for the simulated rig)."""
+    if opts.plant != "can" or opts.rig_file is None:
+        return None
+    from controller.rig_file import load_rig_file
+
+    try:
+        return float(load_rig_file(opts.rig_file).limits.command_limit_deg_s)
+    except (OSError, ValueError) as exc:
+        raise StartupError(f"--rig {opts.rig_file}: {exc}") from exc
 
 
 @contextlib.contextmanager
@@ -909,8 +948,11 @@ def _run(opts: ControllerOptions, runner: GateRunner, out: TextIO, stopper: _Sto
         _check_options(opts)
         state_dir = opts.state_dir if opts.state_dir is not None else Path("var") / opts.rig_name
         store = StateStore(state_dir)
+        runner.command_limit_max_deg_s = _rig_command_limit(opts)
         # The first check also starts the gate's worker process, before the loop runs.
-        cfg, version, margins = _initial_config(opts, store, runner.check)
+        cfg, version, margins = _initial_config(
+            opts, store, runner.check, runner.command_limit_max_deg_s
+        )
     except (StartupError, PersistenceError) as exc:
         print(f"dobtune controller: {exc}", file=out, flush=True)
         return 2

@@ -75,6 +75,12 @@ def test_sine_through_can_tracks_like_the_simulated_plant(
             assert col.wait_for_seq(s0 + n, PERIOD_S + 30.0), c.fresh_status()
         st = c.fresh_status()
         assert st.mode == "running" and not st.faults, st
+        # The rig file's command limit (60 deg/s) bounds the loop's: the default config starts
+        # with it, and a candidate above it is rejected (the drive would clamp behind the DOB).
+        assert st.config.command_limit_deg_s == 60.0
+        reply = c.apply(st.config.with_(command_limit_deg_s=100.0))
+        assert not reply.accepted and reply.reasons[0].startswith("command_limit_deg_s 100")
+        assert reply.config == st.config and reply.version == st.config_version
     samples = col.samples()
     seqs = range(s0, s0 + n)
     missing = [s for s in seqs if s not in samples]
