@@ -45,6 +45,7 @@ and raises `IdentifyAborted` carrying the partial result.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 from array import array
@@ -1253,3 +1254,82 @@ def result_from_program(
     if abort_reason is None and analyse_result:
         result = _analyse_result(spec, cfg, result)
     return result
+
+
+# ------------------------------------------------- live results of a program (off the loop)
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentData:
+    """One finished excitation segment of a program run, cut out of the records so it can be
+    estimated off the loop: only this segment's excitation ticks (small to pickle).
+
+    For a stepped sine `excitation` holds the segment's single point with indices relative to
+    its first sample (and no signal); a multisine segment is the whole excitation."""
+
+    excitation: SteppedSine | Multisine = field(repr=False)
+    closed: bool
+    rate_hz: float
+    position: int
+    point: int
+    exc_index: IntArray = field(repr=False)
+    """Excitation-sample index of each excitation tick (relative, see above)."""
+    u: FloatArray = field(repr=False)
+    w: FloatArray = field(repr=False)
+    x: FloatArray = field(repr=False)
+
+
+def segments_done(plan: ProgramPlan, n_done: int) -> int:
+    """How many segments (over all positions, in order) ended within the first `n_done` ticks."""
+    return bisect.bisect_right(plan.seg_end, n_done)
+
+
+def segment_data(
+    plan: ProgramPlan, k: int, u: Sequence[float] | array[float], w: Sequence[float] | array[float]
+) -> SegmentData:
+    """Segment `k` (over all positions) of `plan`, from the program's records `u`, `w` (which
+    must hold at least ``plan.seg_end[k]`` executed ticks). Only slices: cheap."""
+    n_seg = plan.n_segments
+    lo = plan.seg_end[k - 1] if k > 0 else 0
+    hi = plan.seg_end[k]
+    ei = np.frombuffer(plan.exc_index, dtype=np.int64)[lo:hi]
+    m = ei >= 0
+    exc = plan.excitation
+    base = 0
+    part: SteppedSine | Multisine = exc
+    if isinstance(exc, SteppedSine):
+        p = exc.points[k % n_seg]
+        base = p.start
+        part = SteppedSine(
+            spec=exc.spec, points=(dataclasses.replace(p, start=0),), signal=np.zeros(0)
+        )
+    return SegmentData(
+        excitation=part,
+        closed=plan.spec.mode == "closed",
+        rate_hz=plan.config.rate_hz,
+        position=k // n_seg,
+        point=k % n_seg,
+        exc_index=ei[m] - base,
+        u=np.asarray(u[lo:hi], dtype=np.float64)[m],
+        w=np.asarray(w[lo:hi], dtype=np.float64)[m],
+        x=np.frombuffer(plan.b, dtype=np.float64)[lo:hi][m],
+    )
+
+
+def estimate_segment(seg: SegmentData) -> FrdEstimate:
+    """The continuous-equivalent response of one finished segment: the same numbers as
+    `result_from_program` gives for its frequencies (each point is estimated on its own)."""
+    exc = seg.excitation
+    n = exc.points[0].stop if isinstance(exc, SteppedSine) else exc.signal.size
+
+    def aligned(v: FloatArray) -> FloatArray:
+        out = np.zeros(n)
+        out[seg.exc_index] = v
+        return out
+
+    x = aligned(seg.x) if seg.closed else None
+    if isinstance(exc, SteppedSine):
+        sampled = estimate_stepped_sine(exc, aligned(seg.u), aligned(seg.w), x)
+    else:
+        sampled = estimate_multisine(exc, aligned(seg.u), aligned(seg.w), x)
+    return _continuous(sampled, seg.rate_hz)

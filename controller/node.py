@@ -313,6 +313,8 @@ def identify_analysis(
                 mag_db=[] if est is None else (20.0 * np.log10(np.abs(est.response))).tolist(),
                 phase_deg=[] if est is None else np.degrees(np.angle(est.response)).tolist(),
                 coherence=[] if est is None else est.coherence.tolist(),
+                mag_std_db=[] if est is None else est.mag_std_db.tolist(),
+                phase_std_deg=[] if est is None else est.phase_std_deg.tolist(),
             )
         )
     summary = summary_json(result, files, wall_s)
@@ -332,6 +334,30 @@ def identify_analysis(
     }
 
 
+def identify_segments(segments: Sequence[Any]) -> list[tuple[list[float], ...]]:
+    """Estimate finished segments (`controller.identify.SegmentData`) of a running program:
+    per segment (freq_hz, mag_db, phase_deg, coherence, mag_std_db, phase_std_deg) lists.
+    Runs in the gate's worker process."""
+    import numpy as np
+
+    from controller.identify import estimate_segment
+
+    out: list[tuple[list[float], ...]] = []
+    for seg in segments:
+        est = estimate_segment(seg)
+        out.append(
+            (
+                est.freq_hz.tolist(),
+                (20.0 * np.log10(np.abs(est.response))).tolist(),
+                np.degrees(np.angle(est.response)).tolist(),
+                est.coherence.tolist(),
+                est.mag_std_db.tolist(),
+                est.phase_std_deg.tolist(),
+            )
+        )
+    return out
+
+
 class _IdentifyJob:
     """The latest identification run as the node sees it."""
 
@@ -344,6 +370,43 @@ class _IdentifyJob:
         self.results: dict[str, Any] = {}
         self.abort_reason = ""
         self.text = ""
+        #: live results: segments estimated so far, and per position the lists of
+        #: PositionResponse fields (replaced, never mutated, once published in `partial`)
+        self.segments_estimated = 0
+        self.columns: dict[int, tuple[list[float], ...]] = {}
+        self.partial: list[proto.PositionResponse] = []
+        self.partial_failed = False
+
+    def add_segments(self, first: int, estimates: list[tuple[list[float], ...]]) -> None:
+        """Append the estimates of segments first, first + 1, ... and publish `partial`."""
+        plan = self.plan
+        n_seg = plan.n_segments
+        for k, cols in enumerate(estimates, start=first):
+            i = k // n_seg
+            old = self.columns.get(i, ((),) * len(cols))
+            self.columns[i] = tuple([*a, *b] for a, b in zip(old, cols, strict=True))
+        self.segments_estimated = first + len(estimates)
+        centers = plan.spec.centers_deg
+        partial = []
+        for i, cols in sorted(self.columns.items()):
+            done = min(n_seg, self.segments_estimated - i * n_seg)
+            f, mag, ph, coh, mstd, pstd = cols
+            partial.append(
+                proto.PositionResponse(
+                    index=i,
+                    center_deg=float(centers[i]),
+                    complete=done == n_seg,
+                    points_done=done,
+                    points_total=n_seg,
+                    freq_hz=f,
+                    mag_db=mag,
+                    phase_deg=ph,
+                    coherence=coh,
+                    mag_std_db=mstd,
+                    phase_std_deg=pstd,
+                )
+            )
+        self.partial = partial
 
 
 # -- startup ----------------------------------------------------------------------------------
@@ -694,6 +757,8 @@ class _Node:
         else:
             progress = 1.0 if state == "done" else prog.n_done / prog.n
             text = job.text
+        fields = dict(job.results)
+        fields.setdefault("positions", job.partial)  # live: the segments finished so far
         return proto.IdentifyStatus(
             rig=self.rig_name,
             state=state,
@@ -701,7 +766,7 @@ class _Node:
             progress=progress,
             text=text,
             abort_reason=job.abort_reason,
-            **job.results,
+            **fields,
         )
 
     def start_identify(self, msg: proto.IdentifySpecMsg, client: str) -> proto.CommandReply:
@@ -749,6 +814,9 @@ class _Node:
             if self.stop_event.wait(0.05):
                 prog._abort("controller shutting down", "shutdown")  # the loop has ended
                 break
+            self._estimate_finished_segments(job)
+        if not self.stop_event.is_set():
+            self._estimate_finished_segments(job)  # those that ended with the run
         aborted = prog.state == "aborted"
         job.abort_reason = prog.reason if aborted else ""
         job.text = "analysing"
@@ -769,6 +837,26 @@ class _Node:
             self._warn(f"identification analysis failed: {type(exc).__name__}: {exc}")
             job.text = f"analysis failed: {type(exc).__name__}: {exc}"
         job.state = "aborted" if aborted else "done"
+
+    def _estimate_finished_segments(self, job: _IdentifyJob) -> None:
+        """Live results: estimate the segments that finished since the last call (in the gate's
+        worker; here only slices of their ticks are cut out). Nothing when none finished."""
+        from controller.identify import segment_data, segments_done
+
+        if job.partial_failed:
+            return
+        prog = job.program
+        first = job.segments_estimated
+        done = segments_done(job.plan, prog.n_done)
+        if done <= first:
+            return
+        try:
+            segs = [segment_data(job.plan, k, prog.rec_u, prog.rec_w) for k in range(first, done)]
+            estimates = self.gate.call(identify_segments, segs, timeout_s=30.0)
+            job.add_segments(first, estimates)
+        except Exception as exc:  # the run goes on; the results come at its end
+            job.partial_failed = True
+            self._warn(f"identification live results failed: {type(exc).__name__}: {exc}")
 
     def _config_reply(self, **kw: Any) -> bytes:
         active = self.rt.loop.active

@@ -243,7 +243,11 @@ class CommandReply(_Msg, frozen=True, kw_only=True):
 
 
 class PositionResponse(msgspec.Struct, frozen=True, kw_only=True):
-    """The response measured at one position (continuous equivalent, u -> w)."""
+    """The response measured at one position (continuous equivalent, u -> w).
+
+    While the run goes on, the frequencies measured so far (points_done of points_total;
+    complete False until the position is finished). The std lists are per point, on the same
+    grid as freq_hz; NaN where unknown (one period), empty from older senders."""
 
     index: int
     center_deg: float
@@ -254,6 +258,8 @@ class PositionResponse(msgspec.Struct, frozen=True, kw_only=True):
     mag_db: list[float] = []
     phase_deg: list[float] = []
     coherence: list[float] = []
+    mag_std_db: list[float] = []  # standard deviation of mag_db (dB)
+    phase_std_deg: list[float] = []  # standard deviation of phase_deg (deg)
 
 
 #: Values of IdentifyStatus.state.
@@ -269,7 +275,8 @@ class IdentifyStatus(_Msg, frozen=True, kw_only=True):
     progress: float = 0.0  # 0..1
     text: str = ""
     abort_reason: str = ""
-    positions: list[PositionResponse] = []  # after the run (partial after an abort)
+    # running/analysing: the segments finished so far; done: all; aborted: the partial data
+    positions: list[PositionResponse] = []
     natural_freq_hz: float | None = None  # fit of Mn Pn (done only)
     zeta: float | None = None
     agreement_freq_hz: float | None = None

@@ -5,8 +5,9 @@ Two places to run, chosen on the panel (and always named in the status line):
 * **on the controller** (default when connected): the IdentifyStart command carries the spec,
   the controller runs the excitation inside its loop; a worker thread polls the
   ``dobtune/<rig>/identify`` queryable (IdentifyStatus: progress, then the results) and Abort
-  sends IdentifyAbort (the controller holds the position and keeps the partial data). The
-  controller's status carries no per-point standard deviation, so those curves have no band.
+  sends IdentifyAbort (the controller holds the position and keeps the partial data). While
+  the run goes on, the status carries the frequencies finished so far with their per-point
+  standard deviation: the curves build up on the charts, with their band, as they arrive.
 * **offline on the simulated rig**, in a worker thread of the dashboard
   (`controller.identify.run_identification` against a `SimRig`).
 
@@ -261,8 +262,10 @@ def view_from_status(
 ) -> IdentifyView:
     """Adapter: the controller's IdentifyStatus (and its summary JSON) -> what the panel shows.
 
-    The status has no per-point standard deviation: the curves have no band. `base` supplies
-    Mn when the summary carries no nominal (the article form: Pn = Mn_den / fit_den)."""
+    Works for a running status too (the partial positions; nothing fitted). The band is the
+    per-point magnitude std (NaN, so no band, from a controller that sends none). `base`
+    supplies Mn when the summary carries no nominal (the article form: Pn = Mn_den / fit_den).
+    """
     summary: dict[str, Any] = {}
     if st.summary_json:
         with contextlib.suppress(ValueError):
@@ -276,9 +279,11 @@ def view_from_status(
         f = np.asarray(p.freq_hz, dtype=np.float64)
         mag = np.asarray(p.mag_db, dtype=np.float64)
         ph = np.degrees(np.unwrap(np.radians(np.asarray(p.phase_deg, dtype=np.float64))))
+        std = (np.asarray(p.mag_std_db, dtype=np.float64) if len(p.mag_std_db) == f.size
+               else np.full(f.size, np.nan))
         curves.append(charts.MeasuredCurve(
             label=f"pos {p.index + 1} ({p.center_deg:g} deg)", freq_hz=f, mag_db=mag,
-            phase_deg=ph, mag_std_db=np.full(f.size, np.nan),
+            phase_deg=ph, mag_std_db=std,
             coherence=np.asarray(p.coherence, dtype=np.float64), complete=p.complete,
         ))
         if p.complete and f.size >= 2:
@@ -753,6 +758,7 @@ class IdentifyPanel:
                 self._show_end(FAILED, None, f"refused by the controller: {reply.message}", n)
                 return
             sent_abort = False
+            drawn: tuple[int, ...] = ()
             while True:
                 if self._closing.is_set():
                     return  # the dashboard closes; the run goes on in the controller
@@ -767,6 +773,7 @@ class IdentifyPanel:
                     if st.state in ("done", "aborted"):
                         break
                     self._on_progress(st.progress, st.text or st.state)
+                    drawn = self.show_partial(st, n, cfg.nominal, drawn)
                 time.sleep(0.2)  # polling period of the status queryable
         except (ControllerUnavailable, proto.ProtocolError) as exc:
             self._show_end(FAILED, None, f"controller: {exc}", n)
@@ -775,6 +782,17 @@ class IdentifyPanel:
         aborted = st.state == "aborted" or not view.complete
         reason = st.abort_reason or (st.text if aborted else None)
         self._show_end(ABORTED if aborted else DONE, view, reason, n)
+
+    def show_partial(self, st: proto.IdentifyStatus, n: int, base: NominalModel,
+                     drawn: tuple[int, ...] = ()) -> tuple[int, ...]:
+        """Draw the partial responses of a running status (with their band) if they changed
+        since `drawn` (points per position, as returned here the previous time)."""
+        now = tuple(p.points_done for p in st.positions)
+        if now == drawn or not st.positions:
+            return drawn
+        self.curves = list(view_from_status(st, n, base).curves)
+        self._publish_charts(None)
+        return now
 
     def _on_progress(self, fraction: float, text: str) -> None:
         now = time.monotonic()
@@ -828,9 +846,7 @@ class IdentifyPanel:
                 f"<div class='dt-identify-charts dt-id-{state}' style='font-size:12px;"
                 f"color:{'#555' if done else '#d62728'}'>"
                 + ("Identification complete" if done else f"<b>INCOMPLETE</b> ({_esc(text)})")
-                + f" &middot; {_esc(self.where_note)}"
-                + ("" if self.where_note == OFFLINE_NOTE
-                   else " (its status has no per-point std: no band)") + "</div>")
+                + f" &middot; {_esc(self.where_note)}</div>")
         self.progress_bar.animated = False
         if state == DONE:
             self.progress_bar.value = 100.0

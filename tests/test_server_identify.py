@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from controller import protocol as proto
 from controller.config import LoopConfig
 from server import charts
 from server.app import Dashboard, DashboardOptions
@@ -187,6 +188,34 @@ def test_identify_chart_data_pure() -> None:
     for s in specs:
         assert len(s.series) == len(d[s.key])
     assert specs[0].extra["bands"][1]["series"] == (5, 6)
+
+
+def test_partial_controller_status_is_drawn_with_its_band(dash: Dashboard) -> None:
+    p = dash.identify
+    assert p is not None and p.state != "running"
+    n = p._chart_n
+    pos = proto.PositionResponse(
+        index=0, center_deg=0.0, complete=False, points_done=2, points_total=5,
+        freq_hz=[0.5, 1.0], mag_db=[-1.0, -3.0], phase_deg=[-20.0, -45.0],
+        coherence=[0.99, 0.98], mag_std_db=[0.2, 0.4], phase_std_deg=[1.0, 2.0],
+    )
+    st = proto.IdentifyStatus(rig="r", state="running", run_id=1, progress=0.3,
+                              positions=[pos])
+    st = proto.decode(proto.encode(st), proto.IdentifyStatus)  # as it comes over the wire
+    before = p.chart_updates
+    drawn = p.show_partial(st, n, LoopConfig().nominal)
+    assert drawn == (2,) and p.chart_updates == before + 1
+    mag = p.charts["identify_mag"].data
+    x = list(mag[0])
+    assert x == [0.5, 1.0]
+    np.testing.assert_allclose(mag[1], [-1.0, -3.0])  # the curve
+    np.testing.assert_allclose(mag[2], [-0.8, -2.6])  # band: + std
+    np.testing.assert_allclose(mag[3], [-1.2, -3.4])  # band: - std
+    assert charts.identify_chart_specs(n)[0].extra["bands"]  # drawn as a band
+    np.testing.assert_allclose(p.charts["identify_coherence"].data[1], [0.99, 0.98])
+    # the same status again: nothing redrawn
+    assert p.show_partial(st, n, LoopConfig().nominal, drawn) == drawn
+    assert p.chart_updates == before + 1
 
 
 # -- on the controller ----------------------------------------------------------------------------

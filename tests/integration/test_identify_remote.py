@@ -117,6 +117,40 @@ def _start(client: Client, spec: proto.IdentifySpecMsg) -> proto.CommandReply:
     return reply
 
 
+def test_status_carries_partial_response_with_std_while_running(
+    controller: ControllerProcess, client: Client
+) -> None:
+    # 3 stepped-sine points at one position: each finished frequency shows up while running
+    _start(client, SHORT)
+    seen: list[proto.IdentifyStatus] = []
+
+    def partial() -> bool:
+        st = _status(client)
+        if st.state == "running" and st.positions and st.positions[0].points_done >= 1:
+            seen.append(st)
+            return True
+        assert st.state == "running", f"run ended before a partial status ({st.state})"
+        return False
+
+    assert wait_until(partial, 30.0, poll_s=0.05)
+    st = seen[-1]
+    assert st.progress < 1.0 and not st.summary_json and st.natural_freq_hz is None
+    (pos,) = st.positions
+    k = pos.points_done
+    assert 1 <= k < pos.points_total == 3 and not pos.complete
+    for name in ("freq_hz", "mag_db", "phase_deg", "coherence", "mag_std_db", "phase_std_deg"):
+        assert len(getattr(pos, name)) == k, name
+    assert all(0.0 < s < 1.0 for s in pos.mag_std_db), pos.mag_std_db  # dB
+    assert all(0.0 < s < 5.0 for s in pos.phase_std_deg), pos.phase_std_deg  # deg
+    print(f"partial after {st.progress:.0%}: {k} point(s), mag std {pos.mag_std_db} dB")
+    final = _wait_state(client, ("done",), 60.0)
+    (done,) = final.positions
+    assert done.complete and len(done.mag_std_db) == len(done.phase_std_deg) == 3
+    # the live values are the final result's
+    for name in ("freq_hz", "mag_db", "phase_deg", "coherence", "mag_std_db", "phase_std_deg"):
+        np.testing.assert_allclose(getattr(pos, name), getattr(done, name)[:k], rtol=1e-9)
+
+
 def test_window_hit_aborts_back_to_hold_with_partial_data(
     controller: ControllerProcess, client: Client
 ) -> None:
