@@ -641,19 +641,12 @@ class _Node:
         put = self.state_pub.put
 
         def sink(seq0: int, version: int, mode: str, cols: Sequence[list[float]]) -> None:
-            msg = proto.StateBatch(
+            msg = proto.state_batch(
                 rig=rig,
                 seq0=seq0,
                 rate_hz=rate,
                 config_version=version,
-                t_s=cols[0],
-                ref_deg=cols[1],
-                pos_deg=cols[2],
-                speed_deg_s=cols[3],
-                speed_ref_deg_s=cols[4],
-                command_deg_s=cols[5],
-                d_hat_deg_s=cols[6],
-                error_deg=cols[7],
+                columns=cols,
                 epoch_s=rt.epoch_s,
                 mode=mode,
             )

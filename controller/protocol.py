@@ -7,6 +7,7 @@ a `type` field. Units are in the field names. See docs/protocol.md for the full 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any, TypeVar
 
 import msgspec
@@ -95,6 +96,29 @@ STATE_COLUMNS: tuple[str, ...] = (
     "d_hat_deg_s",
     "error_deg",
 )
+
+
+def state_batch(
+    *,
+    rig: str,
+    seq0: int,
+    rate_hz: float,
+    config_version: int,
+    columns: Sequence[list[float]],
+    epoch_s: float,
+    mode: str,
+) -> StateBatch:
+    """A StateBatch from the sample columns in STATE_COLUMNS order."""
+    named: dict[str, Any] = dict(zip(STATE_COLUMNS, columns, strict=True))
+    return StateBatch(
+        rig=rig,
+        seq0=seq0,
+        rate_hz=rate_hz,
+        config_version=config_version,
+        epoch_s=epoch_s,
+        mode=mode,
+        **named,
+    )
 
 
 # -- status -----------------------------------------------------------------------------------

@@ -41,19 +41,12 @@ def run(duration_s: float, realtime: bool, publish: bool) -> dict[str, float]:
 
         def sink(seq0: int, version: int, mode: str, cols: list[list[float]]) -> None:
             if publish:
-                msg = proto.StateBatch(
+                msg = proto.state_batch(
                     rig="bench",
                     seq0=seq0,
                     rate_hz=1000.0,
                     config_version=version,
-                    t_s=cols[0],
-                    ref_deg=cols[1],
-                    pos_deg=cols[2],
-                    speed_deg_s=cols[3],
-                    speed_ref_deg_s=cols[4],
-                    command_deg_s=cols[5],
-                    d_hat_deg_s=cols[6],
-                    error_deg=cols[7],
+                    columns=cols,
                     epoch_s=rt.epoch_s,
                     mode=mode,
                 )
