@@ -67,14 +67,14 @@ def test_identify_short_run_in_the_browser(
         "controller", "multisine", 1.0, 8.0, 1)
     before = probe.get_config()
     page.get_by_role("button", name="Start identification").click()
-    page.wait_for_selector(".dt-identify-status.dt-id-running", timeout=5_000)
+    page.wait_for_selector(".dt-identify-status.dt-id-running", timeout=15_000)
     page.wait_for_function(
         "() => /\\d+ %/.test(document.querySelector('.dt-identify-status').innerText)",
         timeout=10_000)  # progress from the controller's status
     assert "on the controller" in page.locator(".dt-identify-status").inner_text()
     page.screenshot(path=str(artifacts / "identify_1_running.png"))
     page.wait_for_selector(".dt-identify-status.dt-id-done", timeout=60_000)
-    page.wait_for_selector(".dt-id-fit", timeout=5_000)
+    page.wait_for_selector(".dt-id-fit", timeout=15_000)
     page.wait_for_function(f"() => ({FINITE_JS})('pos 1 |G|') >= 4", timeout=10_000)
     page.wait_for_function(f"() => ({FINITE_JS})('fit Mn Pn') >= 50", timeout=10_000)
     page.screenshot(path=str(artifacts / "identify_2_done.png"))
@@ -86,14 +86,14 @@ def test_identify_short_run_in_the_browser(
 
     # Use as nominal: the candidate changes, the controller's config does not.
     page.get_by_role("button", name="Use as nominal model").click()
-    page.wait_for_selector(".dt-id-used", timeout=5_000)
+    page.wait_for_selector(".dt-id-used", timeout=15_000)
     assert dashboard.tuning is not None and dashboard.tuning.wait_idle(5.0)
     view = ident.view  # what the controller reported
     assert view is not None and view.nominal is not None
     assert dashboard.tuning.candidate().nominal == view.nominal
     page.get_by_role("tab", name="Tune").click()
-    page.wait_for_selector(".dt-verdict", timeout=5_000)
-    page.wait_for_selector(".dt-nominal-fitted", timeout=5_000)
+    page.wait_for_selector(".dt-verdict", timeout=15_000)
+    page.wait_for_selector(".dt-nominal-fitted", timeout=15_000)
     page.screenshot(path=str(artifacts / "identify_3_used_as_nominal.png"))
     after = probe.get_config()
     assert after.version == before.version and after.config == before.config
