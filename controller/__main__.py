@@ -48,7 +48,7 @@ def add_controller_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_controller_args(args: argparse.Namespace) -> int:
-    from controller.node import ControllerOptions, run_controller
+    from controller.process.node import ControllerOptions, run_controller
 
     listen = args.listen if args.listen is not None else ["tcp/127.0.0.1:7447"]
     opts = ControllerOptions(
@@ -92,7 +92,7 @@ def add_experiment_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_experiment_args(args: argparse.Namespace) -> int:
-    from controller.experiment_cmd import experiment_main
+    from controller.cli.experiment import experiment_main
 
     return experiment_main(
         test=args.test,
@@ -125,7 +125,7 @@ def add_check_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_check_args(args: argparse.Namespace) -> int:
-    from controller.check_cmd import check_main
+    from controller.cli.check import check_main
 
     return check_main(args.config, args.q_type, args.cutoff_hz, args.frd, args.json, sys.stdout)
 
@@ -145,7 +145,7 @@ def add_identify_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_identify_args(args: argparse.Namespace) -> int:
-    from controller.identify_cmd import identify_main
+    from controller.cli.identify import identify_main
 
     return identify_main(
         plant=args.plant,

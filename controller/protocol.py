@@ -12,9 +12,9 @@ from typing import Any, TypeVar
 
 import msgspec
 
-from controller.config import LoopConfig
-from controller.trajectory import Trajectory
-from controller.validate import split_msgspec_error
+from controller.core.config import LoopConfig
+from controller.core.trajectory import Trajectory
+from controller.core.validate import split_msgspec_error
 
 PROTOCOL_VERSION = 1
 KEY_PREFIX = "dobtune"
@@ -206,7 +206,7 @@ class ResetFault(msgspec.Struct, frozen=True, kw_only=True, tag="reset"):
 
 
 class IdentifySpecMsg(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """The fields of `controller.identify.IdentifySpec` that a remote run may set (same names,
+    """The fields of `controller.ident.identify.IdentifySpec` that a remote run may set (same names,
     units and defaults; validated again by IdentifySpec, errors name `body.spec.<field>`)."""
 
     mode: str = "open"

@@ -17,13 +17,13 @@ from types import TracebackType
 from typing import Any
 
 from controller import protocol as proto
-from controller.analysis import MeasuredResponse
-from controller.config import LoopConfig
-from server.client import ClientOptions, ControllerClient, ControllerUnavailable
-from server.identify_panel import IdentifyPanel, NominalTuningPanel
-from server.live import LivePanel
+from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
+from controller.core.config import LoopConfig
+from controller.gate.analysis import MeasuredResponse
+from server.panels.identify import IdentifyPanel, NominalTuningPanel
+from server.panels.live import LivePanel
+from server.panels.tuning import TuningEngine
 from server.scene3d import TurntableScene
-from server.tuning import TuningEngine
 
 __all__ = ["Dashboard", "DashboardOptions", "run_dashboard"]
 
@@ -250,7 +250,7 @@ class Dashboard:
 
     def _load_measured(self, name: str, content: bytes) -> None:
         from server.measured import read_measured
-        from server.tuning import measured_from_csv
+        from server.panels.tuning import measured_from_csv
 
         try:
             measured = measured_from_csv(name, read_measured(name, content))

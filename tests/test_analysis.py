@@ -2,7 +2,7 @@
 
 References are built from python-control state-space blocks (series/parallel/feedback of the
 same discrete pieces: ZOH plant, Tustin PIs, the implemented SOS sections), never from the
-vectorised formulas of controller.analysis. Transfer-function products are avoided on purpose:
+vectorised formulas of controller.gate.analysis. Transfer-function products are avoided on purpose:
 with Q poles near z = 1 their polynomial coefficients lose all precision.
 """
 
@@ -15,7 +15,9 @@ import control as ct
 import numpy as np
 import pytest
 
-from controller.analysis import (
+from controller.core.config import LoopConfig
+from controller.core.dob import design_dob
+from controller.gate.analysis import (
     GateLimits,
     MeasuredResponse,
     PlantKnowledge,
@@ -27,10 +29,8 @@ from controller.analysis import (
     nominal_continuous_response,
     recommended_max_cutoff_hz,
 )
-from controller.config import LoopConfig
-from controller.dob import design_dob
-from controller.frd import load_measured
-from controller.frd_estimate import write_frd_csv
+from controller.gate.frd import load_measured
+from controller.ident.estimate import write_frd_csv
 
 # ----------------------------------------------------------------------------- references
 
@@ -61,7 +61,7 @@ def _theta_plant(cfg: LoopConfig, num: np.ndarray | None = None, den: np.ndarray
 
 
 class Ref:
-    """The loop of controller/loop.py assembled from python-control blocks."""
+    """The loop of controller/core/loop.py assembled from python-control blocks."""
 
     def __init__(self, cfg: LoopConfig, num=None, den=None) -> None:
         ts = cfg.period_s

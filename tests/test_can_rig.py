@@ -20,15 +20,15 @@ import can.interfaces.virtual
 import numpy as np
 import pytest
 
-from controller import cia402
-from controller.can_rig import CanRig, RigFault
-from controller.cia402 import State
-from controller.config import LoopConfig
-from controller.experiment import run_experiment
-from controller.rig_file import RigFile, load_rig_file, parse_rig_file
-from controller.sim_drive_node import SimDriveNode
-from controller.sim_rig import SimRig
-from controller.trajectory import default_trajectory
+from controller.core.config import LoopConfig
+from controller.core.trajectory import default_trajectory
+from controller.rig import cia402
+from controller.rig.can_rig import CanRig, RigFault
+from controller.rig.cia402 import State
+from controller.rig.rig_file import RigFile, load_rig_file, parse_rig_file
+from controller.rig.sim_drive_node import SimDriveNode
+from controller.sim.experiment import run_experiment
+from controller.sim.sim_rig import SimRig
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "rig_cia402.toml"
 WAIT_S = 0.1  # generous: only ever spent when a frame is really missing

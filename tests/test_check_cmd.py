@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controller.analysis import nominal_continuous_response
-from controller.check_cmd import check_main
-from controller.config import LoopConfig, config_to_builtins
-from controller.frd_estimate import write_frd_csv
+from controller.cli.check import check_main
+from controller.core.config import LoopConfig, config_to_builtins
+from controller.gate.analysis import nominal_continuous_response
+from controller.ident.estimate import write_frd_csv
 
 KEYS = {
     "verdict",

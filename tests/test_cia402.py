@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from controller import cia402
-from controller.cia402 import State
-from controller.errors import ConfigError
-from controller.rig_file import load_rig_file, parse_rig_file
+from controller.core.errors import ConfigError
+from controller.rig import cia402
+from controller.rig.cia402 import State
+from controller.rig.rig_file import load_rig_file, parse_rig_file
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "rig_cia402.toml"
 

@@ -5,8 +5,13 @@ from __future__ import annotations
 import msgspec
 import pytest
 
-from controller.config import LoopConfig, NominalModel, config_from_builtins, config_to_builtins
-from controller.errors import ConfigError
+from controller.core.config import (
+    LoopConfig,
+    NominalModel,
+    config_from_builtins,
+    config_to_builtins,
+)
+from controller.core.errors import ConfigError
 
 
 def test_defaults_are_the_article_rig_and_starting_controller() -> None:

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from controller.config import LoopConfig, NominalModel
-from controller.discrete import SosFilter, prewarped_fs, sos_dc_gain, sos_response, tustin_zpk
-from controller.dob import design_dob, f1_continuous_zpk
+from controller.core.config import LoopConfig, NominalModel
+from controller.core.discrete import SosFilter, prewarped_fs, sos_dc_gain, sos_response, tustin_zpk
+from controller.core.dob import design_dob, f1_continuous_zpk
 
 
 def test_sos_filter_step_matches_scipy_sosfilt() -> None:

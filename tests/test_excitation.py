@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from controller.errors import ConfigError
-from controller.excitation import (
+from controller.core.errors import ConfigError
+from controller.ident.excitation import (
     MultisineSpec,
     SteppedSineSpec,
     cap_speed_amplitude,

@@ -10,13 +10,13 @@ import sys
 import numpy as np
 import pytest
 
-from controller.config import LoopConfig
-from controller.disturbance import SineTorque
-from controller.errors import ConfigError
-from controller.experiment import run_experiment
-from controller.experiment_cmd import experiment_main
-from controller.sim_rig import RigParams
-from controller.trajectory import Trajectory, default_trajectory
+from controller.cli.experiment import experiment_main
+from controller.core.config import LoopConfig
+from controller.core.errors import ConfigError
+from controller.core.trajectory import Trajectory, default_trajectory
+from controller.sim.disturbance import SineTorque
+from controller.sim.experiment import run_experiment
+from controller.sim.sim_rig import RigParams
 
 
 def test_velocity_feedforward_cuts_sine_rmse_at_least_2x() -> None:
@@ -79,7 +79,7 @@ def test_dob_rejects_slow_load_torque_during_hold() -> None:
 
 
 def test_step_metrics_closed_form_on_a_synthetic_response() -> None:
-    from controller.experiment import compute_metrics
+    from controller.sim.experiment import compute_metrics
 
     t = np.arange(0, 5, 0.001)
     traj = Trajectory(kind="step", amplitude_deg=2.0, step_time_s=0.0)

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import scipy.signal as sig
 
-from controller.excitation import MultisineSpec, SteppedSineSpec, multisine, stepped_sine
-from controller.frd_estimate import (
+from controller.ident.estimate import (
     FrdData,
     agreement,
     coherence_std,
@@ -19,6 +18,7 @@ from controller.frd_estimate import (
     read_frd_csv,
     write_frd_csv,
 )
+from controller.ident.excitation import MultisineSpec, SteppedSineSpec, multisine, stepped_sine
 
 FS = 1000.0
 # M(s) P(s) of the article, 7.0 Hz, damping 0.707, ZOH-discretised at the loop rate

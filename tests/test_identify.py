@@ -18,11 +18,17 @@ import control
 import numpy as np
 import pytest
 
-from controller.check_cmd import check_main
-from controller.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM, LoopConfig
-from controller.errors import ConfigError
-from controller.frd_estimate import read_frd_csv
-from controller.identify import (
+from controller.cli.check import check_main
+from controller.cli.identify import (
+    EXIT_ABORTED,
+    EXIT_BAD_INPUT,
+    EXIT_OK,
+    identify_main,
+)
+from controller.core.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM, LoopConfig
+from controller.core.errors import ConfigError
+from controller.ident.estimate import read_frd_csv
+from controller.ident.identify import (
     PHASE_ABORT,
     PHASE_EXCITE,
     IdentifyAborted,
@@ -30,13 +36,7 @@ from controller.identify import (
     IdentifySpec,
     run_identification,
 )
-from controller.identify_cmd import (
-    EXIT_ABORTED,
-    EXIT_BAD_INPUT,
-    EXIT_OK,
-    identify_main,
-)
-from controller.sim_rig import SimRig
+from controller.sim.sim_rig import SimRig
 
 MP = control.tf([1.0], list(ARTICLE_MN_DEN)) * control.tf(
     list(ARTICLE_PN_NUM), list(ARTICLE_PN_DEN)

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from controller.config import LoopConfig
-from controller.discrete import SosFilter
-from controller.experiment import run_experiment
-from controller.loop import LoopCoefficients, ServoLoop
-from controller.sim_rig import SimRig
-from controller.trajectory import Trajectory
+from controller.core.config import LoopConfig
+from controller.core.discrete import SosFilter
+from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.core.trajectory import Trajectory
+from controller.sim.experiment import run_experiment
+from controller.sim.sim_rig import SimRig
 
 FREQS_HZ = np.array([0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0])
 RATE_HZ = 1000.0

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import scipy.signal as sig
 
-from controller.excitation import SteppedSineSpec, stepped_sine
-from controller.frd_estimate import FrdData, estimate_stepped_sine
-from controller.model_fit import (
+from controller.ident.estimate import FrdData, estimate_stepped_sine
+from controller.ident.excitation import SteppedSineSpec, stepped_sine
+from controller.ident.model_fit import (
     coherence_weights,
     fit_frd,
     fit_second_order,

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from controller.config import LoopConfig
-from controller.persistence import ACTIVE_FILE, PersistenceError, StateStore
+from controller.core.config import LoopConfig
+from controller.process.persistence import ACTIVE_FILE, PersistenceError, StateStore
 
 
 def test_nothing_saved_yet(tmp_path: Path) -> None:

@@ -6,8 +6,8 @@ import msgspec
 import pytest
 
 from controller import protocol as proto
-from controller.config import LoopConfig
-from controller.trajectory import Trajectory
+from controller.core.config import LoopConfig
+from controller.core.trajectory import Trajectory
 
 ENC = msgspec.msgpack.encode
 
@@ -62,11 +62,11 @@ def test_rejections_name_the_field(payload: bytes, kind: type, field: str) -> No
 
 
 def test_identify_spec_message_mirrors_identify_spec() -> None:
-    """protocol.IdentifySpecMsg repeats controller.identify.IdentifySpec (the protocol cannot
+    """protocol.IdentifySpecMsg repeats controller.ident.identify.IdentifySpec (the protocol cannot
     import identify: identify -> runtime -> protocol). Same fields and defaults, or drift."""
     import dataclasses
 
-    from controller.identify import IdentifySpec
+    from controller.ident.identify import IdentifySpec
 
     spec_defaults = {f.name: f.default for f in dataclasses.fields(IdentifySpec)}
     msg_defaults = msgspec.structs.asdict(proto.IdentifySpecMsg())

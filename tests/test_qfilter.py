@@ -8,11 +8,16 @@ import numpy as np
 import pytest
 from scipy import optimize, signal
 
-from controller.config import LoopConfig
-from controller.discrete import sos_response
-from controller.dob import design_dob
-from controller.errors import ConfigError
-from controller.qfilter import CUTOFF_TAU_PRODUCT, HALF_POWER_OMEGA_TAU, design_q, tau_from_cutoff
+from controller.core.config import LoopConfig
+from controller.core.discrete import sos_response
+from controller.core.dob import design_dob
+from controller.core.errors import ConfigError
+from controller.core.qfilter import (
+    CUTOFF_TAU_PRODUCT,
+    HALF_POWER_OMEGA_TAU,
+    design_q,
+    tau_from_cutoff,
+)
 
 
 def test_q31_at_article_tau_equals_eq35() -> None:

@@ -9,10 +9,10 @@ from collections.abc import Sequence
 
 import pytest
 
-from controller.config import LoopConfig
-from controller.loop import LoopCoefficients, ServoLoop
-from controller.protocol import EStop, ResetFault, SetTrajectory, Start, Stop
-from controller.runtime import (
+from controller.core.config import LoopConfig
+from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.core.trajectory import Trajectory
+from controller.process.runtime import (
     COLUMNS,
     ESTOP,
     FAULT,
@@ -25,8 +25,8 @@ from controller.runtime import (
     Runtime,
     RuntimeOptions,
 )
-from controller.sim_rig import SimRig
-from controller.trajectory import Trajectory
+from controller.protocol import EStop, ResetFault, SetTrajectory, Start, Stop
+from controller.sim.sim_rig import SimRig
 
 CMD = COLUMNS.index("command_deg_s")
 

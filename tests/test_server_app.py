@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controller.analysis import nominal_continuous_response
-from controller.config import NominalModel
-from controller.frd_estimate import write_frd_csv
+from controller.core.config import NominalModel
+from controller.gate.analysis import nominal_continuous_response
+from controller.ident.estimate import write_frd_csv
 from server.app import Dashboard, DashboardOptions
 from server.demo import stop_process
 
@@ -93,8 +93,8 @@ def test_bad_upload_is_reported_not_raised() -> None:
 
 def test_controller_never_imports_server_or_viser() -> None:
     code = (
-        "import sys, controller.loop, controller.protocol, controller.analysis, "
-        "controller.experiment; "
+        "import sys, controller.core.loop, controller.protocol, controller.gate.analysis, "
+        "controller.sim.experiment; "
         "bad = [m for m in sys.modules if m.split('.')[0] in ('server', 'viser')]; "
         "print(bad); sys.exit(1 if bad else 0)"
     )

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from controller.analysis import analyse
-from controller.config import LoopConfig
+from controller.core.config import LoopConfig
+from controller.gate.analysis import analyse
 from server import charts
-from server.tuning import curves_from_analysis, freq_grid_hz
+from server.panels.tuning import curves_from_analysis, freq_grid_hz
 
 
 def test_minmax_decimate_keeps_extremes_and_bounds_size() -> None:

@@ -22,11 +22,11 @@ import numpy as np
 import pytest
 
 from controller import protocol as proto
-from controller.config import LoopConfig
+from controller.core.config import LoopConfig
 from server import charts
 from server.app import Dashboard, DashboardOptions
 from server.demo import controller_command, stop_process
-from server.identify_panel import (
+from server.panels.identify import (
     ABORTED,
     DONE,
     WHERE_CONTROLLER,

@@ -14,10 +14,10 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from controller.config import LoopConfig
-from controller.trajectory import Trajectory
+from controller.core.config import LoopConfig
+from controller.core.trajectory import Trajectory
 from server.app import Dashboard, DashboardOptions
-from server.tuning import TuningEngine, format_gate_html
+from server.panels.tuning import TuningEngine, format_gate_html
 
 
 def free_port() -> int:

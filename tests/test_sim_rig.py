@@ -9,14 +9,14 @@ import control as ct
 import numpy as np
 import pytest
 
-from controller.disturbance import (
+from controller.sim.disturbance import (
     DISTURBANCES,
     NoDisturbance,
     SineTorque,
     StepTorque,
     disturbance_from_name,
 )
-from controller.sim_rig import RigParams, SimRig
+from controller.sim.sim_rig import RigParams, SimRig
 
 # control.md eqs. (33) and (34): the article's identified models, speed command -> load rate.
 M_ARTICLE = ct.tf([1.0], [1.013e-05, 0.004501, 1.0])

@@ -6,8 +6,8 @@ import math
 
 import pytest
 
-from controller.errors import ConfigError
-from controller.trajectory import Trajectory, default_trajectory
+from controller.core.errors import ConfigError
+from controller.core.trajectory import Trajectory, default_trajectory
 
 
 def test_default_is_the_article_sine() -> None:

@@ -19,7 +19,9 @@ from collections.abc import Callable
 import control as ct
 import numpy as np
 
-from controller.analysis import (
+from controller.core.config import LoopConfig
+from controller.core.dob import design_dob
+from controller.gate.analysis import (
     MeasuredResponse,
     PlantKnowledge,
     WeightBound,
@@ -29,8 +31,6 @@ from controller.analysis import (
     nominal_continuous_response,
     recommended_max_cutoff_hz,
 )
-from controller.config import LoopConfig
-from controller.dob import design_dob
 
 
 def _measured(cfg: LoopConfig) -> tuple[MeasuredResponse, ...]:

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
 
 from procs import Client, start_controller
 
-from controller.config import LoopConfig
+from controller.core.config import LoopConfig
 
 
 def _timed(n: int, fn: Callable[[int], bool]) -> np.ndarray:

@@ -20,10 +20,10 @@ from typing import Any
 
 import can
 
-from controller import cia402
-from controller.can_rig import CanRig
-from controller.rig_file import RigFile, load_rig_file
-from controller.sim_drive_node import SimDriveNode
+from controller.rig import cia402
+from controller.rig.can_rig import CanRig
+from controller.rig.rig_file import RigFile, load_rig_file
+from controller.rig.sim_drive_node import SimDriveNode
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "rig_cia402.toml"
 

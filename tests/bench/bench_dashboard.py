@@ -2,7 +2,7 @@
 the browser and the dashboard process's CPU while one headless browser watches the live tab.
 
 Run: .venv/bin/python tests/bench/bench_dashboard.py [--seconds 15]
-The controller is the real one (`python -m controller`) when controller.node exists, else the
+The controller is the real one (`python -m controller`) when it exists, else the
 stand-in tests/browser/fake_controller.py; the dashboard runs as its own process
 (`python -m server`) so its CPU time is measured alone.
 """
@@ -86,7 +86,7 @@ def bench_live(seconds: float) -> dict[str, float]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     port = free_port()
     with tempfile.TemporaryDirectory() as state:
-        if importlib.util.find_spec("controller.node") is not None:
+        if importlib.util.find_spec("controller.process.node") is not None:
             ctl_cmd = controller_command(endpoint, RIG, Path(state))
         else:
             ctl_cmd = [sys.executable, str(ROOT / "tests/browser/fake_controller.py"), endpoint,

@@ -17,8 +17,8 @@ import time
 
 import numpy as np
 
-from controller.config import LoopConfig
-from controller.identify import IdentifyResult, IdentifySpec, run_identification
+from controller.core.config import LoopConfig
+from controller.ident.identify import IdentifyResult, IdentifySpec, run_identification
 
 WN_TRUE = math.sqrt(1935.0)
 ZETA_TRUE = 62.2 / (2.0 * WN_TRUE)

@@ -19,9 +19,9 @@ import time
 import numpy as np
 import scipy.signal as sig
 
-from controller.excitation import SteppedSine, SteppedSineSpec, stepped_sine
-from controller.frd_estimate import FrdEstimate, agreement, estimate_stepped_sine
-from controller.model_fit import SecondOrderFit, fit_frd, uncertainty_bound
+from controller.ident.estimate import FrdEstimate, agreement, estimate_stepped_sine
+from controller.ident.excitation import SteppedSine, SteppedSineSpec, stepped_sine
+from controller.ident.model_fit import SecondOrderFit, fit_frd, uncertainty_bound
 
 FS = 1000.0
 #: (natural frequency Hz, damping) at the three positions; the middle one is the article's

@@ -21,10 +21,10 @@ import time
 import numpy as np
 
 from controller import protocol as proto
-from controller.config import LoopConfig
-from controller.loop import LoopCoefficients, ServoLoop
-from controller.runtime import Runtime, RuntimeOptions, try_realtime_priority
-from controller.sim_rig import SimRig
+from controller.core.config import LoopConfig
+from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.process.runtime import Runtime, RuntimeOptions, try_realtime_priority
+from controller.sim.sim_rig import SimRig
 from controller.zenoh_session import open_session
 
 

@@ -45,8 +45,8 @@ def main() -> None:
     t0 = time.perf_counter()
     import numba
 
-    import controller.sim_rig as sim_rig
-    from controller.sim_rig import SimRig
+    import controller.sim.sim_rig as sim_rig
+    from controller.sim.sim_rig import SimRig
 
     t_import = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -111,9 +111,9 @@ def main() -> None:
     _line("numpy discrete M P, stepped per tick", _best_of(numpy_per_tick), wall_rig)
 
     try:
-        from controller.config import LoopConfig
-        from controller.loop import LoopCoefficients, ServoLoop
-        from controller.trajectory import Trajectory
+        from controller.core.config import LoopConfig
+        from controller.core.loop import LoopCoefficients, ServoLoop
+        from controller.core.trajectory import Trajectory
     except ImportError as exc:  # the loop lives in another module; the rig bench stands alone
         print(f"\nclosed loop skipped: {exc}")
         return

@@ -15,10 +15,10 @@ import time
 import numpy as np
 from scipy import signal
 
-from controller.config import LoopConfig
-from controller.experiment import run_experiment
-from controller.loop import LoopCoefficients, ServoLoop
-from controller.trajectory import Trajectory
+from controller.core.config import LoopConfig
+from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.core.trajectory import Trajectory
+from controller.sim.experiment import run_experiment
 
 
 def _percentiles_us(samples_ns: list[int]) -> tuple[float, float, float]:

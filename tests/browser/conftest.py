@@ -1,6 +1,6 @@
 """Browser-test harness: a controller process, the dashboard in-process, headless Chromium.
 
-The controller is the real one (`python -m controller`) when controller.node exists, else the
+The controller is the real one (`python -m controller`) when it exists, else the
 stand-in of fake_controller.py (same Zenoh contract). A separate Zenoh client (`probe`) checks
 what the controller really runs, independently of the page.
 """
@@ -20,8 +20,8 @@ from typing import Any
 
 import pytest
 
+from controller.client import ClientOptions, ControllerClient
 from server.app import Dashboard, DashboardOptions
-from server.client import ClientOptions, ControllerClient
 from server.demo import controller_command, stop_process
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -62,7 +62,7 @@ def artifacts() -> Path:
 def controller_endpoint() -> Iterator[str]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory(prefix="dobtune-browser-") as state:
-        if importlib.util.find_spec("controller.node") is not None:
+        if importlib.util.find_spec("controller.process.node") is not None:
             cmd = controller_command(endpoint, RIG, Path(state))
         else:
             cmd = [sys.executable, str(Path(__file__).with_name("fake_controller.py")),

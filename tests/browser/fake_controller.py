@@ -1,7 +1,7 @@
-"""A stand-in controller speaking the Zenoh contract (used when controller.node is absent).
+"""A stand-in controller speaking the Zenoh contract (used when controller.process.node is absent).
 
 Runs ServoLoop + SimRig in real time (1 kHz, batches every 20 ms), publishes StateBatch and
-Status, answers ConfigRequest through the real gate (`controller.analysis.analyse`) and
+Status, answers ConfigRequest through the real gate (`controller.gate.analysis.analyse`) and
 Command, and stops on any put to the e-stop key. Run: python fake_controller.py ENDPOINT RIG
 """
 
@@ -16,11 +16,11 @@ import time
 import zenoh
 
 from controller import protocol as proto
-from controller.analysis import analyse
-from controller.config import LoopConfig
-from controller.loop import LoopCoefficients, ServoLoop
-from controller.sim_rig import RigParams, SimRig
-from controller.trajectory import Trajectory
+from controller.core.config import LoopConfig
+from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.core.trajectory import Trajectory
+from controller.gate.analysis import analyse
+from controller.sim.sim_rig import RigParams, SimRig
 
 
 def main(endpoint: str, rig: str) -> int:

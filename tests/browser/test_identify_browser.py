@@ -11,8 +11,8 @@ from typing import Any
 
 import pytest
 
+from controller.client import ControllerClient
 from server.app import Dashboard
-from server.client import ControllerClient
 
 pytestmark = pytest.mark.browser
 

@@ -22,7 +22,7 @@ from typing import Any
 import zenoh
 
 from controller import protocol as proto
-from controller.config import LoopConfig
+from controller.core.config import LoopConfig
 from controller.zenoh_session import open_session
 
 REPO = Path(__file__).resolve().parents[2]

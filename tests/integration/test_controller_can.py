@@ -17,16 +17,16 @@ import pytest
 from procs import Client, ControllerProcess, wait_until
 
 from controller import protocol as proto
-from controller.can_rig import CanRig
-from controller.cia402 import State
-from controller.config import LoopConfig
-from controller.experiment import run_experiment
-from controller.loop import LoopCoefficients, ServoLoop
-from controller.rig_file import RigFile, load_rig_file, parse_rig_file
-from controller.runtime import FAULT, Runtime
-from controller.sim_drive_node import SimDriveNode
-from controller.sim_rig import SimRig
-from controller.trajectory import Trajectory
+from controller.core.config import LoopConfig
+from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.core.trajectory import Trajectory
+from controller.process.runtime import FAULT, Runtime
+from controller.rig.can_rig import CanRig
+from controller.rig.cia402 import State
+from controller.rig.rig_file import RigFile, load_rig_file, parse_rig_file
+from controller.rig.sim_drive_node import SimDriveNode
+from controller.sim.experiment import run_experiment
+from controller.sim.sim_rig import SimRig
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 

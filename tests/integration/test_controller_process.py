@@ -20,8 +20,8 @@ import pytest
 from procs import Client, ControllerProcess, port_is_free, wait_until
 
 from controller import protocol as proto
-from controller.config import LoopConfig
-from controller.trajectory import Trajectory
+from controller.core.config import LoopConfig
+from controller.core.trajectory import Trajectory
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 

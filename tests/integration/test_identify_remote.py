@@ -18,9 +18,9 @@ import pytest
 from procs import Client, ControllerProcess, wait_until
 
 from controller import protocol as proto
-from controller.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM
-from controller.frd_estimate import read_frd_csv
-from controller.identify_cmd import EXIT_OK, identify_main
+from controller.cli.identify import EXIT_OK, identify_main
+from controller.core.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM
+from controller.ident.estimate import read_frd_csv
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 

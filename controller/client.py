@@ -1,0 +1,304 @@
+"""Zenoh client of one controller: state/status into ring buffers, config and command queries.
+
+Subscribers hand samples to Zenoh ring channels; one reader thread of ours drains them, decodes
+and appends to `StateRing` (never any work inside a Zenoh callback). Queries are blocking and
+meant for worker threads, not for GUI callbacks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+
+from controller import protocol as proto
+from controller.core.config import LoopConfig
+from controller.zenoh_session import open_session
+
+__all__ = ["ClientOptions", "ControllerClient", "ControllerUnavailable", "StateRing"]
+
+COLUMNS = proto.STATE_COLUMNS
+
+
+class ControllerUnavailable(RuntimeError):
+    """No reply from the controller (gone, or not started yet)."""
+
+
+class StateRing:
+    """The newest `capacity` loop samples, column-wise; appended by one thread, read by others."""
+
+    def __init__(self, capacity: int = 1 << 16) -> None:
+        self.capacity = capacity
+        self._cols = {c: np.zeros(capacity) for c in COLUMNS}
+        self._version = np.zeros(capacity)
+        self._n = 0  # total samples ever appended
+        self._next_seq: int | None = None
+        self.gaps = 0  # samples missing according to sequence numbers
+        self.batches = 0
+        self._lock = threading.Lock()
+
+    @property
+    def total(self) -> int:
+        return self._n
+
+    def append(self, b: proto.StateBatch) -> None:
+        k = len(b.t_s)
+        if k == 0:
+            return
+        if k > self.capacity:
+            raise ValueError("batch larger than the ring")
+        with self._lock:
+            if self._next_seq is not None and b.seq0 > self._next_seq:
+                self.gaps += b.seq0 - self._next_seq
+            self._next_seq = b.seq0 + k
+            i0 = self._n % self.capacity
+            first = min(k, self.capacity - i0)
+            for c in COLUMNS:
+                src = getattr(b, c)
+                col = self._cols[c]
+                col[i0 : i0 + first] = src[:first]
+                if first < k:
+                    col[: k - first] = src[first:]
+            self._version[i0 : i0 + first] = b.config_version
+            if first < k:
+                self._version[: k - first] = b.config_version
+            self._n += k
+            self.batches += 1
+
+    def reset(self) -> None:
+        with self._lock:
+            self._n = 0
+            self._next_seq = None
+
+    def window(self, window_s: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Copies of the samples of the last `window_s` seconds (oldest first), and versions."""
+        with self._lock:
+            n = min(self._n, self.capacity)
+            if n == 0:
+                return {c: np.zeros(0) for c in COLUMNS}, np.zeros(0)
+            end = self._n % self.capacity
+            idx = (np.arange(end - n, end)) % self.capacity
+            t = self._cols["t_s"]
+            t_last = t[(end - 1) % self.capacity]
+            # Binary search on the (monotonic) time column through the index map.
+            lo = int(np.searchsorted(t[idx], t_last - window_s, side="left"))
+            sel = idx[lo:]
+            out = {c: self._cols[c][sel] for c in COLUMNS}
+            ver = self._version[sel]
+        return out, ver
+
+    def latest(self) -> dict[str, float] | None:
+        with self._lock:
+            if self._n == 0:
+                return None
+            i = (self._n - 1) % self.capacity
+            return {c: float(self._cols[c][i]) for c in COLUMNS}
+
+
+@dataclass(frozen=True)
+class ClientOptions:
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    rig_name: str = "demo"
+    listen: tuple[str, ...] = ()
+    query_timeout_s: float = 3.0
+    #: The controller counts as gone when no status arrived for this long.
+    gone_after_s: float = 2.0
+    client_name: str = "dashboard"
+    ring_capacity: int = 1 << 16
+
+
+@dataclass
+class VersionMark:
+    t_s: float
+    version: int
+
+
+@dataclass
+class _Counters:
+    decode_errors: int = 0
+    last_decode_error: str = ""
+    status_count: int = 0
+    version_marks: list[VersionMark] = field(default_factory=list)
+
+
+class ControllerClient:
+    """One Zenoh session to one controller (context manager)."""
+
+    def __init__(self, opts: ClientOptions) -> None:
+        proto.check_rig_name(opts.rig_name)
+        self.opts = opts
+        self.ring = StateRing(opts.ring_capacity)
+        self.counters = _Counters()
+        self._status: proto.Status | None = None
+        self._status_at = -1e9
+        self._session: Any = None
+        self._subs: list[Any] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_version: int | None = None
+        self._status_listeners: list[Any] = []
+
+    # -- lifecycle -----------------------------------------------------------------------------
+
+    def __enter__(self) -> ControllerClient:
+        import zenoh
+
+        rig = self.opts.rig_name
+        self._session = open_session(self.opts.listen, self.opts.connect)
+        try:
+            self._state_sub = self._session.declare_subscriber(
+                proto.key_state(rig), zenoh.handlers.RingChannel(4096)
+            )
+            self._status_sub = self._session.declare_subscriber(
+                proto.key_status(rig), zenoh.handlers.RingChannel(64)
+            )
+            self._subs = [self._state_sub, self._status_sub]
+            self._thread = threading.Thread(target=self._reader, name="zenoh-reader", daemon=True)
+            self._thread.start()
+        except BaseException:
+            self._close()
+            raise
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self._close()
+
+    def _close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        for s in self._subs:
+            with contextlib.suppress(Exception):
+                s.undeclare()
+        self._subs = []
+        if self._session is not None:
+            with contextlib.suppress(Exception):
+                self._session.close()
+            self._session = None
+
+    # -- the reader thread ---------------------------------------------------------------------
+
+    def _reader(self) -> None:
+        while not self._stop.is_set():
+            got = False
+            while True:
+                sample = self._state_sub.try_recv()
+                if sample is None:
+                    break
+                got = True
+                self._on_state(sample.payload.to_bytes())
+            sample = self._status_sub.try_recv()
+            while sample is not None:
+                got = True
+                self._on_status(sample.payload.to_bytes())
+                sample = self._status_sub.try_recv()
+            if not got:
+                self._stop.wait(0.004)
+
+    def _on_state(self, data: bytes) -> None:
+        try:
+            b = proto.decode(data, proto.StateBatch)
+        except proto.ProtocolError as exc:
+            self.counters.decode_errors += 1
+            self.counters.last_decode_error = str(exc)
+            return
+        if b.rig != self.opts.rig_name:
+            return
+        if len(b.t_s) and (self._last_version is None or b.config_version != self._last_version):
+            if self._last_version is not None:
+                marks = self.counters.version_marks
+                marks.append(VersionMark(b.t_s[0], b.config_version))
+                del marks[:-20]
+            self._last_version = b.config_version
+        # A restarted controller starts again from small times: drop the old trace.
+        last = self.ring.latest()
+        if last is not None and len(b.t_s) and b.t_s[0] < last["t_s"] - 1.0:
+            self.ring.reset()
+        try:
+            self.ring.append(b)
+        except ValueError as exc:
+            self.counters.decode_errors += 1
+            self.counters.last_decode_error = str(exc)
+
+    def _on_status(self, data: bytes) -> None:
+        try:
+            st = proto.decode(data, proto.Status)
+        except proto.ProtocolError as exc:
+            self.counters.decode_errors += 1
+            self.counters.last_decode_error = str(exc)
+            return
+        self._status = st
+        self._status_at = time.monotonic()
+        self.counters.status_count += 1
+
+    # -- read side -----------------------------------------------------------------------------
+
+    @property
+    def status(self) -> proto.Status | None:
+        return self._status
+
+    @property
+    def status_age_s(self) -> float:
+        return time.monotonic() - self._status_at
+
+    @property
+    def connected(self) -> bool:
+        return self._status is not None and self.status_age_s < self.opts.gone_after_s
+
+    # -- queries (blocking: call from worker threads) ------------------------------------------
+
+    def _query(self, key: str, payload: bytes) -> bytes:
+        if self._session is None:
+            raise ControllerUnavailable("not connected")
+        replies = self._session.get(key, payload=payload, timeout=self.opts.query_timeout_s)
+        for reply in replies:
+            if reply.ok is not None:
+                data: bytes = reply.ok.payload.to_bytes()
+                return data
+            err = reply.err
+            text = err.payload.to_string() if err is not None else "error reply"
+            raise ControllerUnavailable(f"controller replied with an error: {text}")
+        raise ControllerUnavailable(
+            f"no reply from the controller on {key} within {self.opts.query_timeout_s:.1f} s"
+        )
+
+    def get_config(self) -> proto.ConfigReply:
+        req = proto.ConfigRequest(client=self.opts.client_name)
+        raw = self._query(proto.key_config(self.opts.rig_name), proto.encode(req))
+        return proto.decode(raw, proto.ConfigReply)
+
+    def apply(self, candidate: LoopConfig) -> proto.ConfigReply:
+        req = proto.ConfigRequest(candidate=candidate, client=self.opts.client_name)
+        raw = self._query(proto.key_config(self.opts.rig_name), proto.encode(req))
+        return proto.decode(raw, proto.ConfigReply)
+
+    def command(self, body: proto.CommandBody) -> proto.CommandReply:
+        msg = proto.Command(body=body, client=self.opts.client_name)
+        raw = self._query(proto.key_command(self.opts.rig_name), proto.encode(msg))
+        return proto.decode(raw, proto.CommandReply)
+
+    def put_estop(self) -> None:
+        """Fire-and-forget put on the e-stop key: any payload stops the loop, no reply needed."""
+        if self._session is None:
+            raise ControllerUnavailable("not connected")
+        msg = proto.Command(body=proto.EStop(), client=self.opts.client_name)
+        self._session.put(proto.key_estop(self.opts.rig_name), proto.encode(msg))
+
+    def estop(self) -> proto.CommandReply | None:
+        """The e-stop put first (always works), then the EStop command for a reply."""
+        self.put_estop()
+        try:
+            return self.command(proto.EStop())
+        except ControllerUnavailable:
+            return None

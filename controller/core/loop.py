@@ -1,0 +1,187 @@
+"""The three-loop servo tick: position loop -> speed loop Cv -> rate-difference DOB.
+
+Per tick (plain float arithmetic on preallocated state, no allocation, no I/O):
+
+    e_pos = theta_ref - theta
+    r     = Cp(e_pos) + ff_gain * dtheta_ref/dt          (feedforward only when ff_on)
+    e     = r - w
+    v     = Cv(e)
+    d_hat = F1(z) w[k] - F2(z) u[k-1]                    (0 when the DOB is off)
+    u     = sat(v - d_hat, +-command_limit_deg_s)         the DOB sees this saturated u
+
+Cp and Cv are PI controllers discretised by Tustin (trapezoidal integration); their integrators
+stop integrating while the command is saturated in the direction they push (anti-windup by
+conditional integration). New coefficients are built off the tick (`LoopCoefficients.build`)
+and swapped in by one reference assignment; at the next tick boundary the states are adjusted
+so that d_hat and u do not jump (bumpless transfer).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from controller.core.config import LoopConfig
+from controller.core.discrete import SosFilter
+from controller.core.dob import DobDesign, design_dob
+
+
+@dataclass(frozen=True)
+class LoopCoefficients:
+    """A validated configuration and the filters built from it, ready to swap in."""
+
+    config: LoopConfig
+    version: int
+    dob: DobDesign
+
+    @staticmethod
+    def build(config: LoopConfig, version: int = 0) -> LoopCoefficients:
+        return LoopCoefficients(config=config, version=version, dob=design_dob(config))
+
+
+class ServoLoop:
+    """The controller state; `tick` is the hot path, `request` swaps coefficients (any thread)."""
+
+    __slots__ = (
+        "_cv_half",
+        "_cv_kp",
+        "_dob_on",
+        "_f1",
+        "_f2",
+        "_ff",
+        "_limit",
+        "_pending",
+        "_pos_half",
+        "_pos_kp",
+        "active",
+        "cv_int",
+        "d_hat",
+        "e_pos_prev",
+        "e_speed_prev",
+        "pos_int",
+        "speed_error_deg_s",
+        "speed_ref_deg_s",
+        "u_prev",
+        "w_prev",
+    )
+
+    def __init__(self, coefficients: LoopCoefficients) -> None:
+        self._pending: LoopCoefficients | None = None
+        self.u_prev = 0.0
+        self.w_prev = 0.0
+        self.d_hat = 0.0
+        self.pos_int = 0.0
+        self.cv_int = 0.0
+        self.e_pos_prev = 0.0
+        self.e_speed_prev = 0.0
+        self.speed_ref_deg_s = 0.0
+        self.speed_error_deg_s = 0.0
+        self._load(coefficients)
+        self._f1.set_steady(0.0)
+        self._f2.set_steady(0.0)
+
+    # -- coefficient handling (off the hot path except the swap at the tick boundary) --------
+
+    def _load(self, k: LoopCoefficients) -> None:
+        c = k.config
+        ts = c.period_s
+        self.active = k
+        self._pos_kp = c.pos_kp_per_s
+        self._pos_half = c.pos_kp_per_s * c.pos_ki_per_s * ts * 0.5
+        self._cv_kp = c.cv_kp
+        self._cv_half = c.cv_kp * c.cv_ki_per_s * ts * 0.5
+        self._ff = c.ff_gain if c.ff_on else 0.0
+        self._limit = c.command_limit_deg_s
+        self._dob_on = c.dob_on
+        self._f1 = SosFilter(k.dob.f1_sos)
+        self._f2 = SosFilter(k.dob.f2_sos)
+
+    def request(self, coefficients: LoopCoefficients) -> None:
+        """Ask for `coefficients` to take effect at the next tick boundary (thread-safe)."""
+        self._pending = coefficients
+
+    def _swap(self, k: LoopCoefficients) -> None:
+        old_pos_kp, old_cv_kp, old_dob_on = self._pos_kp, self._cv_kp, self._dob_on
+        d_hat = self.d_hat if old_dob_on else 0.0
+        self._load(k)
+        # Proportional-gain changes: move the difference into the integrators so that the
+        # controller outputs are continuous for the error they last saw.
+        self.pos_int += (old_pos_kp - self._pos_kp) * self.e_pos_prev
+        self.cv_int += (old_cv_kp - self._cv_kp) * self.e_speed_prev
+        if self._dob_on:
+            # New DOB filters start in the steady state that reproduces the present estimate:
+            # F1 as if w had been constant, F2 with the constant input that gives d_hat.
+            target = d_hat
+            f1_out = self._f1.set_steady(self.w_prev)
+            self._f2.set_steady((f1_out - target) / self._f2.dc_gain())
+            self.d_hat = target
+        else:
+            # DOB switched off: its last correction moves into the speed integrator.
+            self.cv_int -= d_hat
+            self.d_hat = 0.0
+
+    def reset(self) -> None:
+        """Zero every state (e.g. after a fault, before re-enabling the drive)."""
+        self.u_prev = self.w_prev = self.d_hat = 0.0
+        self.pos_int = self.cv_int = self.e_pos_prev = self.e_speed_prev = 0.0
+        self._f1.set_steady(0.0)
+        self._f2.set_steady(0.0)
+
+    # -- the hot path --------------------------------------------------------------------------
+
+    def tick(
+        self, ref_deg: float, ref_rate_deg_s: float, pos_deg: float, speed_deg_s: float
+    ) -> float:
+        """One control period; returns the (saturated) load-side speed command in deg/s."""
+        pending = self._pending
+        if pending is not None:
+            self._pending = None
+            self._swap(pending)
+
+        e_pos = ref_deg - pos_deg
+        pos_int_new = self.pos_int + self._pos_half * (e_pos + self.e_pos_prev)
+        r = self._pos_kp * e_pos + pos_int_new + self._ff * ref_rate_deg_s
+        u = self._speed(r, speed_deg_s)
+        # Anti-windup: no integration further into a saturated command.
+        if (u >= self._limit and pos_int_new > self.pos_int) or (
+            u <= -self._limit and pos_int_new < self.pos_int
+        ):
+            pos_int_new = self.pos_int
+        self.pos_int = pos_int_new
+        self.e_pos_prev = e_pos
+        return u
+
+    def tick_speed(self, speed_ref_deg_s: float, speed_deg_s: float) -> float:
+        """One period with the position loop open: Cv + DOB track `speed_ref_deg_s` (used for
+        frequency-response measurement in closed loop and to check eqs. 15-18)."""
+        pending = self._pending
+        if pending is not None:
+            self._pending = None
+            self._swap(pending)
+        return self._speed(speed_ref_deg_s, speed_deg_s)
+
+    def _speed(self, r: float, speed_deg_s: float) -> float:
+        e = r - speed_deg_s
+        cv_int_new = self.cv_int + self._cv_half * (e + self.e_speed_prev)
+        v = self._cv_kp * e + cv_int_new
+        if self._dob_on:
+            d_hat = self._f1.step(speed_deg_s) - self._f2.step(self.u_prev)
+        else:
+            d_hat = 0.0
+        u = v - d_hat
+        limit = self._limit
+        if u > limit:
+            u = limit
+            if cv_int_new > self.cv_int:
+                cv_int_new = self.cv_int
+        elif u < -limit:
+            u = -limit
+            if cv_int_new < self.cv_int:
+                cv_int_new = self.cv_int
+        self.cv_int = cv_int_new
+        self.e_speed_prev = e
+        self.w_prev = speed_deg_s
+        self.u_prev = u
+        self.d_hat = d_hat
+        self.speed_ref_deg_s = r
+        self.speed_error_deg_s = e
+        return u

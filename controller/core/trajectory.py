@@ -1,0 +1,70 @@
+"""Reference trajectories (pure): position and its derivative at time t, load-side degrees."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import msgspec
+
+from controller.core.errors import ConfigError
+from controller.core.validate import in_range
+
+TrajectoryKind = Literal["sine", "step", "ramp", "hold"]
+TRAJECTORY_KINDS: tuple[str, ...] = ("sine", "step", "ramp", "hold")
+
+
+class Trajectory(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """sine: offset + amplitude sin(omega t); step: offset, then offset + amplitude at step_time_s;
+    ramp: offset + slope t; hold: offset. Default: the article's 5 sin(0.5 t) deg."""
+
+    kind: str = "sine"
+    amplitude_deg: float = 5.0
+    omega_rad_s: float = 0.5
+    offset_deg: float = 0.0
+    slope_deg_s: float = 1.0
+    step_time_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.kind not in TRAJECTORY_KINDS:
+            raise ConfigError(
+                "kind",
+                f"unknown trajectory {self.kind!r}; expected one of {', '.join(TRAJECTORY_KINDS)}",
+            )
+        limits = {
+            "amplitude_deg": (-3600.0, 3600.0),
+            "omega_rad_s": (0.0, 100.0),
+            "offset_deg": (-1e6, 1e6),
+            "slope_deg_s": (-1000.0, 1000.0),
+            "step_time_s": (0.0, 1e6),
+        }
+        for name, (lo, hi) in limits.items():
+            in_range(getattr(self, name), name, lo, hi)
+
+    @property
+    def period_s(self) -> float | None:
+        if self.kind == "sine" and self.omega_rad_s > 0:
+            return 2.0 * math.pi / self.omega_rad_s
+        return None
+
+    def at(self, t_s: float) -> tuple[float, float]:
+        """(position deg, rate deg/s) at time t_s."""
+        k = self.kind
+        if k == "sine":
+            wt = self.omega_rad_s * t_s
+            a = self.amplitude_deg
+            return self.offset_deg + a * math.sin(wt), a * self.omega_rad_s * math.cos(wt)
+        if k == "step":
+            return (self.offset_deg + (self.amplitude_deg if t_s >= self.step_time_s else 0.0), 0.0)
+        if k == "ramp":
+            return self.offset_deg + self.slope_deg_s * t_s, self.slope_deg_s
+        return self.offset_deg, 0.0
+
+
+def default_trajectory(kind: str) -> Trajectory:
+    """The article's tests: 5 sin(0.5 t), a 5 deg step, a 1 deg/s ramp, hold at 40 deg."""
+    if kind == "hold":
+        return Trajectory(kind="hold", offset_deg=40.0)
+    if kind == "step":
+        return Trajectory(kind="step", amplitude_deg=5.0)
+    return Trajectory(kind=kind)

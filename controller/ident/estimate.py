@@ -1,0 +1,432 @@
+"""Frequency-response estimation from periodic excitation (pure math plus a CSV codec).
+
+All estimators work on per-period Fourier coefficients: the excitation repeats exactly (a
+periodic multisine, or a stepped sine whose windows hold whole periods), so one DFT bin per
+period and per frequency is exact and the spread between periods measures the noise.
+
+* Open loop (H1): ``H = S_uw / S_uu``, coherence ``|S_uw|^2 / (S_uu S_ww)``.
+* Closed loop (joint input-output, "indirect"): the known excitation ``x`` is added to the
+  command; ``H = S_xw / S_xu``. Noise on the measured output feeds back into ``u``, so the
+  naive ``S_uw / S_uu`` is biased towards ``-1 / C`` wherever the noise dominates ``u``, while
+  ``x`` is uncorrelated with the noise. Coherence is ``gamma^2_xu * gamma^2_xw``.
+
+Spectra are averages over the measured periods (``n_averages`` of them). The confidence band is
+the standard deviation of the estimate from the spread between periods: with residuals
+``e_p = W_p - H U_p`` and ``s^2 = sum |e_p|^2 / (P - 1)``, ``var H = s^2 / sum_p |U_p|^2`` (H1) or
+``s^2 sum |X_p|^2 / |sum X_p^* U_p|^2`` (closed loop); a circular complex error splits evenly
+into magnitude and phase, so ``mag_std_db = 20 log10(e) sigma / (sqrt 2 |H|)`` and
+``phase_std_deg = deg(sigma / (sqrt 2 |H|))``. With one period they are NaN.
+
+CSV format (the project's measured-response files): header ``freq_hz,mag_db,phase_deg`` plus an
+optional ``coherence`` column; frequencies strictly increasing; phase unwrapped on write.
+:func:`read_frd_csv` is the single reader; errors name the file and the line.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Protocol
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from controller.ident.excitation import Multisine, SteppedSine
+
+__all__ = [
+    "Agreement",
+    "FrdData",
+    "FrdEstimate",
+    "FrdLike",
+    "agreement",
+    "coherence_std",
+    "estimate_from_coefficients",
+    "estimate_multisine",
+    "estimate_stepped_sine",
+    "multisine_coefficients",
+    "read_frd_csv",
+    "stepped_sine_coefficients",
+    "write_frd_csv",
+]
+
+FloatArray = NDArray[np.float64]
+ComplexArray = NDArray[np.complex128]
+IntArray = NDArray[np.int64]
+Method = Literal["open_loop_h1", "closed_loop_x"]
+
+_DB_PER_NEPER = 20.0 / math.log(10.0)
+CSV_COLUMNS = ("freq_hz", "mag_db", "phase_deg", "coherence")
+
+
+class FrdLike(Protocol):
+    """Anything with a frequency grid and a complex response on it."""
+
+    @property
+    def freq_hz(self) -> FloatArray: ...
+
+    @property
+    def response(self) -> ComplexArray: ...
+
+
+def _mag_db(h: ComplexArray) -> FloatArray:
+    return 20.0 * np.log10(np.abs(h))
+
+
+def _phase_deg(h: ComplexArray) -> FloatArray:
+    return np.degrees(np.unwrap(np.angle(h)))
+
+
+@dataclass(frozen=True, eq=False)
+class FrdEstimate:
+    """A measured frequency response with its quality figures (arrays share one grid)."""
+
+    freq_hz: FloatArray
+    """Frequencies, increasing."""
+    response: ComplexArray
+    """Complex response (output / input)."""
+    coherence: FloatArray
+    """Coherence in [0, 1] (see the module docstring for the closed-loop definition)."""
+    mag_std_db: FloatArray
+    """Standard deviation of the magnitude estimate (dB); NaN with one period."""
+    phase_std_deg: FloatArray
+    """Standard deviation of the phase estimate (deg); NaN with one period."""
+    n_averages: IntArray
+    """Periods averaged at each frequency."""
+    method: Method
+    """``open_loop_h1`` or ``closed_loop_x``."""
+
+    @property
+    def mag_db(self) -> FloatArray:
+        return _mag_db(self.response)
+
+    @property
+    def phase_deg(self) -> FloatArray:
+        """Unwrapped phase (deg), starting in (-180, 180] at the lowest frequency."""
+        return _phase_deg(self.response)
+
+
+@dataclass(frozen=True, eq=False)
+class FrdData:
+    """A response read from a CSV file."""
+
+    freq_hz: FloatArray
+    mag_db: FloatArray
+    phase_deg: FloatArray
+    coherence: FloatArray | None
+    """None when the file has no coherence column."""
+    source: str = field(default="")
+    """Where it came from (file name)."""
+
+    @property
+    def response(self) -> ComplexArray:
+        mag = 10.0 ** (self.mag_db / 20.0)
+        return (mag * np.exp(1j * np.radians(self.phase_deg))).astype(np.complex128)
+
+
+# ----------------------------------------------------------------------------- estimators
+
+
+def coherence_std(coherence: ArrayLike, n_averages: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Bendat & Piersol random error from coherence: ``(mag_std_db, phase_std_deg)``.
+
+    Normalised error of ``|H|`` and standard deviation of the phase (rad):
+    ``sqrt(1 - g^2) / (|g| sqrt(2 n))``. An alternative to the between-period spread when only
+    the coherence is known (for instance after reading a CSV file).
+    """
+    g2 = np.clip(np.asarray(coherence, dtype=np.float64), 1e-12, 1.0)
+    n = np.asarray(n_averages, dtype=np.float64)
+    eps = np.sqrt(1.0 - g2) / np.sqrt(g2 * 2.0 * n)
+    return _DB_PER_NEPER * eps, np.degrees(eps)
+
+
+def estimate_from_coefficients(
+    freq_hz: ArrayLike,
+    u: ArrayLike,
+    w: ArrayLike,
+    x: ArrayLike | None = None,
+) -> FrdEstimate:
+    """Estimate from per-period Fourier coefficients, arrays of shape (periods, frequencies).
+
+    ``x is None``: open-loop H1 from input ``u`` to output ``w``. Otherwise the closed-loop
+    estimate ``S_xw / S_xu`` with ``x`` the known excitation.
+    """
+    f = np.asarray(freq_hz, dtype=np.float64)
+    U = np.atleast_2d(np.asarray(u, dtype=np.complex128))
+    W = np.atleast_2d(np.asarray(w, dtype=np.complex128))
+    if U.shape != W.shape or U.shape[1] != f.size:
+        raise ValueError(f"shape mismatch: freq {f.shape}, u {U.shape}, w {W.shape}")
+    n = U.shape[0]
+    s_uu = np.mean(np.abs(U) ** 2, axis=0)
+    s_ww = np.mean(np.abs(W) ** 2, axis=0)
+    if x is None:
+        s_uw = np.mean(np.conj(U) * W, axis=0)
+        h = s_uw / s_uu
+        coh = np.abs(s_uw) ** 2 / (s_uu * s_ww)
+        gain_den = n * s_uu  # sum_p |U_p|^2
+        method: Method = "open_loop_h1"
+    else:
+        X = np.atleast_2d(np.asarray(x, dtype=np.complex128))
+        if X.shape != U.shape:
+            raise ValueError(f"shape mismatch: x {X.shape}, u {U.shape}")
+        s_xx = np.mean(np.abs(X) ** 2, axis=0)
+        s_xu = np.mean(np.conj(X) * U, axis=0)
+        s_xw = np.mean(np.conj(X) * W, axis=0)
+        h = s_xw / s_xu
+        coh = (np.abs(s_xu) ** 2 / (s_xx * s_uu)) * (np.abs(s_xw) ** 2 / (s_xx * s_ww))
+        gain_den = n * np.abs(s_xu) ** 2 / s_xx  # |sum X* U|^2 / sum |X|^2
+        method = "closed_loop_x"
+    if n >= 2:
+        resid = W - h[None, :] * U
+        s2 = np.sum(np.abs(resid) ** 2, axis=0) / (n - 1)
+        rel = np.sqrt(s2 / gain_den) / (math.sqrt(2.0) * np.abs(h))
+        mag_std = _DB_PER_NEPER * rel
+        phase_std = np.degrees(rel)
+    else:
+        mag_std = np.full(f.size, np.nan)
+        phase_std = np.full(f.size, np.nan)
+    return FrdEstimate(
+        freq_hz=f,
+        response=h,
+        coherence=np.clip(coh, 0.0, 1.0),
+        mag_std_db=mag_std,
+        phase_std_deg=phase_std,
+        n_averages=np.full(f.size, n, dtype=np.int64),
+        method=method,
+    )
+
+
+def _signal(name: str, y: ArrayLike, needed: int) -> FloatArray:
+    arr = np.asarray(y, dtype=np.float64)
+    if arr.ndim != 1:
+        raise ValueError(f"{name}: expected a 1-D signal (got shape {arr.shape})")
+    if arr.size < needed:
+        raise ValueError(f"{name}: {arr.size} samples, the excitation needs {needed}")
+    return arr
+
+
+def multisine_coefficients(excitation: Multisine, y: ArrayLike, name: str = "y") -> ComplexArray:
+    """Per-period coefficients of ``y`` at the excited bins, shape (n_periods, n_bins).
+
+    ``y`` is aligned with ``excitation.signal`` (same sample 0); the transient periods are
+    dropped. Coefficients are amplitudes: a cos(2 pi f t + phi) gives a e^{j phi}.
+    """
+    spec = excitation.spec
+    n = spec.period_samples
+    start = spec.transient_periods * n
+    arr = _signal(name, y, start + spec.n_periods * n)
+    periods = arr[start : start + spec.n_periods * n].reshape(spec.n_periods, n)
+    return np.fft.rfft(periods, axis=1)[:, excitation.bins] * (2.0 / n)
+
+
+def estimate_multisine(
+    excitation: Multisine, u: ArrayLike, w: ArrayLike, x: ArrayLike | None = None
+) -> FrdEstimate:
+    """Response from command ``u`` to output ``w`` under a periodic multisine.
+
+    Pass the excitation samples as ``x`` (usually ``excitation.signal``) when the loop is
+    closed; then the estimate is ``S_xw / S_xu``.
+    """
+    U = multisine_coefficients(excitation, u, "u")
+    W = multisine_coefficients(excitation, w, "w")
+    X = None if x is None else multisine_coefficients(excitation, x, "x")
+    return estimate_from_coefficients(excitation.freq_hz, U, W, X)
+
+
+def stepped_sine_coefficients(
+    excitation: SteppedSine, y: ArrayLike, name: str = "y"
+) -> list[ComplexArray]:
+    """Per point, the single-bin DFT of each measured period of ``y`` (length n_periods)."""
+    last = max((p.measure_start + p.measure_len for p in excitation.points), default=0)
+    arr = _signal(name, y, last)
+    out: list[ComplexArray] = []
+    for p in excitation.points:
+        big_l = p.period_samples
+        seg = arr[p.measure_start : p.measure_start + p.measure_len].reshape(p.n_periods, big_l)
+        kernel = np.exp(-2j * np.pi * np.arange(big_l) / big_l) * (2.0 / big_l)
+        out.append(seg @ kernel)
+    return out
+
+
+def estimate_stepped_sine(
+    excitation: SteppedSine, u: ArrayLike, w: ArrayLike, x: ArrayLike | None = None
+) -> FrdEstimate:
+    """Response from ``u`` to ``w`` under a stepped sine, one frequency per point.
+
+    Signals are aligned with ``excitation.signal``. Each point's measurement window is split
+    into whole periods; the per-period single-bin DFTs are averaged as in
+    :func:`estimate_from_coefficients` (``n_averages`` is each point's period count).
+    """
+    cu = stepped_sine_coefficients(excitation, u, "u")
+    cw = stepped_sine_coefficients(excitation, w, "w")
+    cx = None if x is None else stepped_sine_coefficients(excitation, x, "x")
+    parts = [
+        estimate_from_coefficients(
+            [p.freq_hz], cu[i][:, None], cw[i][:, None], None if cx is None else cx[i][:, None]
+        )
+        for i, p in enumerate(excitation.points)
+    ]
+    return FrdEstimate(
+        freq_hz=excitation.freq_hz,
+        response=np.concatenate([e.response for e in parts]),
+        coherence=np.concatenate([e.coherence for e in parts]),
+        mag_std_db=np.concatenate([e.mag_std_db for e in parts]),
+        phase_std_deg=np.concatenate([e.phase_std_deg for e in parts]),
+        n_averages=np.array([p.n_periods for p in excitation.points], dtype=np.int64),
+        method="open_loop_h1" if x is None else "closed_loop_x",
+    )
+
+
+# ---------------------------------------------------------------------------- agreement
+
+
+@dataclass(frozen=True, eq=False)
+class Agreement:
+    """How far several responses on one grid agree (e.g. measured at different positions)."""
+
+    freq_hz: FloatArray
+    spread_db: FloatArray
+    """max - min of the magnitudes (dB) at each frequency."""
+    spread_deg: FloatArray
+    """max - min of the phases (deg), phases taken relative to the first response."""
+    tol_db: float
+    tol_deg: float
+    agree_below_hz: float
+    """Highest grid frequency below which every point is within both tolerances (0.0 if the
+    lowest point already disagrees)."""
+    first_disagree_hz: float | None
+    """Lowest frequency out of tolerance, None if all agree."""
+
+
+def agreement(
+    responses: Sequence[FrdLike], tol_db: float = 1.0, tol_deg: float = 10.0
+) -> Agreement:
+    """Frequency up to which the responses agree within ``tol_db`` and ``tol_deg``.
+
+    This is the article's "the curves agree below about 1 Hz": the model is trusted below
+    ``agree_below_hz`` and not above.
+    """
+    if len(responses) < 2:
+        raise ValueError("responses: need at least two responses to compare")
+    if not (tol_db > 0 and tol_deg > 0):
+        raise ValueError(f"tol_db, tol_deg: must be > 0 (got {tol_db}, {tol_deg})")
+    f = np.asarray(responses[0].freq_hz, dtype=np.float64)
+    for i, r in enumerate(responses[1:], start=1):
+        fi = np.asarray(r.freq_hz, dtype=np.float64)
+        if fi.shape != f.shape or not np.allclose(fi, f, rtol=1e-9, atol=0.0):
+            raise ValueError(f"responses[{i}]: frequency grid differs from responses[0]")
+    h = np.array([np.asarray(r.response, dtype=np.complex128) for r in responses])
+    mag = _mag_db(h)
+    rel_phase = np.degrees(np.angle(h / h[0][None, :]))
+    spread_db = np.max(mag, axis=0) - np.min(mag, axis=0)
+    spread_deg = np.max(rel_phase, axis=0) - np.min(rel_phase, axis=0)
+    bad = np.flatnonzero((spread_db > tol_db) | (spread_deg > tol_deg))
+    if bad.size == 0:
+        below, first = float(f[-1]), None
+    else:
+        i0 = int(bad[0])
+        below, first = (float(f[i0 - 1]) if i0 > 0 else 0.0), float(f[i0])
+    return Agreement(
+        freq_hz=f,
+        spread_db=spread_db,
+        spread_deg=spread_deg,
+        tol_db=float(tol_db),
+        tol_deg=float(tol_deg),
+        agree_below_hz=below,
+        first_disagree_hz=first,
+    )
+
+
+# ---------------------------------------------------------------------------------- CSV
+
+
+def write_frd_csv(
+    path: str | Path,
+    freq_hz: ArrayLike,
+    response: ArrayLike,
+    coherence: ArrayLike | None = None,
+) -> None:
+    """Write ``freq_hz,mag_db,phase_deg[,coherence]`` with the phase unwrapped."""
+    f = np.asarray(freq_hz, dtype=np.float64)
+    h = np.asarray(response, dtype=np.complex128)
+    if f.ndim != 1 or h.shape != f.shape:
+        raise ValueError(f"freq_hz {f.shape} and response {h.shape} must be 1-D of equal size")
+    if not np.all(np.isfinite(f)) or np.any(f <= 0) or np.any(np.diff(f) <= 0):
+        raise ValueError("freq_hz: must be finite, > 0 and strictly increasing")
+    if not np.all(np.isfinite(h)) or np.any(h == 0):
+        raise ValueError("response: must be finite and non-zero")
+    cols = [f, _mag_db(h), _phase_deg(h)]
+    header = list(CSV_COLUMNS[:3])
+    if coherence is not None:
+        c = np.asarray(coherence, dtype=np.float64)
+        if c.shape != f.shape or not np.all((c >= 0) & (c <= 1)):
+            raise ValueError("coherence: must be in [0, 1], one value per frequency")
+        cols.append(c)
+        header.append("coherence")
+    lines = [",".join(header)]
+    lines += [",".join(f"{v:.10g}" for v in row) for row in zip(*cols, strict=True)]
+    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def read_frd_csv(path: str | Path) -> FrdData:
+    """Read a response written by :func:`write_frd_csv` (or by hand, same columns).
+
+    Blank lines and lines starting with ``#`` are skipped; extra columns are ignored. Any
+    problem raises ``ValueError("<file>:<line>: <what>")``.
+    """
+    name = str(path)
+    text = Path(path).read_text(encoding="utf-8-sig")
+    lines = text.splitlines()
+
+    def fail(line_no: int, msg: str) -> ValueError:
+        return ValueError(f"{name}:{line_no}: {msg}")
+
+    rows = [
+        (i + 1, ln) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")
+    ]
+    if not rows:
+        raise fail(1, "empty file, expected header freq_hz,mag_db,phase_deg[,coherence]")
+    header_no, header_line = rows[0]
+    header = [h.strip().lower() for h in header_line.split(",")]
+    for col in header:
+        if header.count(col) > 1:
+            raise fail(header_no, f"duplicate column {col!r}")
+    for col in CSV_COLUMNS[:3]:
+        if col not in header:
+            raise fail(header_no, f"missing column {col!r} (header: {header_line.strip()!r})")
+    wanted = [c for c in CSV_COLUMNS if c in header]
+    index = {c: header.index(c) for c in wanted}
+    data: dict[str, list[float]] = {c: [] for c in wanted}
+    if len(rows) < 2:
+        raise fail(header_no, "no data rows after the header")
+    for line_no, line in rows[1:]:
+        fields = line.split(",")
+        if len(fields) != len(header):
+            raise fail(line_no, f"expected {len(header)} fields, got {len(fields)}")
+        for col in wanted:
+            raw = fields[index[col]].strip()
+            try:
+                v = float(raw)
+            except ValueError:
+                raise fail(line_no, f"{col}: not a number: {raw!r}") from None
+            if not math.isfinite(v):
+                raise fail(line_no, f"{col}: not finite: {raw!r}")
+            if col == "freq_hz":
+                if v <= 0:
+                    raise fail(line_no, f"freq_hz: must be > 0 (got {v})")
+                if data["freq_hz"] and v <= data["freq_hz"][-1]:
+                    raise fail(
+                        line_no,
+                        f"freq_hz: not increasing ({v} after {data['freq_hz'][-1]})",
+                    )
+            if col == "coherence" and not 0.0 <= v <= 1.0:
+                raise fail(line_no, f"coherence: must be in [0, 1] (got {v})")
+            data[col].append(v)
+    return FrdData(
+        freq_hz=np.array(data["freq_hz"]),
+        mag_db=np.array(data["mag_db"]),
+        phase_deg=np.array(data["phase_deg"]),
+        coherence=np.array(data["coherence"]) if "coherence" in data else None,
+        source=name,
+    )

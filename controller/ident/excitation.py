@@ -1,0 +1,454 @@
+"""Excitation signals for frequency-response identification (pure math, no I/O).
+
+Two kinds, both sampled at the loop rate and expressed as a load-side speed in deg/s (the unit
+of the speed command u):
+
+* Stepped sine: one frequency at a time. Every frequency is snapped to ``fs / L`` with an
+  integer period of ``L`` samples, so each measurement window (and each single period in it)
+  holds whole periods and the single-bin DFT is exact. Per point: a linear amplitude ramp-in,
+  settling, the measurement window, a ramp-out; all whole periods.
+* Periodic multisine: whole periods of ``N`` samples, components on exact DFT bins
+  ``k fs / N`` in ``[f_min, f_max]``, Schroeder phases for a low crest factor, ``P`` measured
+  periods after ``transient_periods`` periods that the estimator discards.
+
+Amplitude shaping (position window). A speed sine ``A sin(2 pi f t)`` moves the position by
+``A / (2 pi f)`` deg (amplitude). With ``window_deg`` set, the stepped sine caps the speed
+amplitude at ``window_deg * 2 pi f``; the generator then integrates the actual samples and, if
+the ramps still push the excursion past the window, scales that point down so that
+``max |position - start position| <= window_deg`` holds exactly for the sampled signal. The
+multisine optionally gives components below ``position_knee_hz`` a speed amplitude proportional
+to ``f`` (constant position amplitude), then scales the whole signal so that both the peak speed
+``<= amplitude_deg_s`` and the peak excursion from the start ``<= window_deg`` hold.
+
+Invalid specifications raise :class:`controller.core.errors.ConfigError` (a ``ValueError``) whose
+message starts with the field name.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from controller.core.errors import ConfigError
+from controller.core.validate import nonnegative, positive
+
+__all__ = [
+    "Multisine",
+    "MultisineSpec",
+    "SteppedSine",
+    "SteppedSinePoint",
+    "SteppedSineSpec",
+    "cap_speed_amplitude",
+    "crest_factor",
+    "multisine",
+    "schroeder_phases",
+    "stepped_sine",
+]
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+# --------------------------------------------------------------------------- validation helpers
+
+
+def _integer(value: object, name: str, minimum: int) -> int:
+    """Whole numbers only: 3 and 3.0 pass, 2.5, NaN, True do not."""
+    if isinstance(value, bool):
+        raise ConfigError(name, f"must be an integer (got {value!r})")
+    whole_float = (
+        isinstance(value, (float, np.floating)) and math.isfinite(value) and value.is_integer()
+    )
+    if isinstance(value, (int, np.integer)) or whole_float:
+        v = int(value)  # type: ignore[call-overload]
+    else:
+        raise ConfigError(name, f"must be an integer (got {value!r})")
+    if v < minimum:
+        raise ConfigError(name, f"must be >= {minimum} (got {v})")
+    return v
+
+
+def _set(obj: object, name: str, value: object) -> None:
+    object.__setattr__(obj, name, value)
+
+
+def _check_band(spec: SteppedSineSpec | MultisineSpec) -> None:
+    fs = positive(spec.sample_rate_hz, "sample_rate_hz")
+    f_min = positive(spec.f_min_hz, "f_min_hz")
+    f_max = positive(spec.f_max_hz, "f_max_hz")
+    if f_min >= f_max:
+        raise ConfigError("f_min_hz", f"must be < f_max_hz (got {f_min} >= {f_max})")
+    if f_max >= fs / 2.0:
+        raise ConfigError("f_max_hz", f"must be below Nyquist {fs / 2.0} Hz (got {f_max})")
+    _set(spec, "sample_rate_hz", fs)
+    _set(spec, "f_min_hz", f_min)
+    _set(spec, "f_max_hz", f_max)
+
+
+# ----------------------------------------------------------------------------- shared helpers
+
+
+def cap_speed_amplitude(
+    amplitude_deg_s: float | FloatArray, freq_hz: float | FloatArray, window_deg: float | None
+) -> FloatArray:
+    """Speed amplitude capped so that a sine at ``freq_hz`` moves at most ``window_deg``.
+
+    The position amplitude of ``A sin(2 pi f t)`` deg/s is ``A / (2 pi f)`` deg, hence the cap
+    ``A <= window_deg * 2 pi f``. ``window_deg=None`` means no cap.
+    """
+    a = np.asarray(amplitude_deg_s, dtype=np.float64)
+    f = np.asarray(freq_hz, dtype=np.float64)
+    if window_deg is None:
+        return np.broadcast_to(a, np.broadcast(a, f).shape).astype(np.float64)
+    return np.minimum(a, window_deg * 2.0 * np.pi * f)
+
+
+def crest_factor(signal: FloatArray) -> float:
+    """Peak over RMS of a signal (sqrt 2 for a single sine)."""
+    x = np.asarray(signal, dtype=np.float64)
+    rms = float(np.sqrt(np.mean(x * x)))
+    return float(np.max(np.abs(x)) / rms) if rms > 0.0 else math.inf
+
+
+def schroeder_phases(bins: IntArray | FloatArray, amplitudes: FloatArray) -> FloatArray:
+    """Schroeder phases (rad) for harmonics ``bins`` of one period, any amplitudes.
+
+    The signal behaves like a chirp that visits harmonic ``k`` at the fraction of the period
+    equal to the power below it: ``phi_k = phi_{k-1} - 2 pi (k - k_prev) C_{k-1}`` with ``C``
+    the cumulative power fraction. For consecutive harmonics with equal amplitudes this is the
+    classical ``phi_k = -pi k (k - 1) / K``; it also works for sparse (log-spaced) bins.
+    """
+    k = np.asarray(bins, dtype=np.float64)
+    p = np.asarray(amplitudes, dtype=np.float64) ** 2
+    phases = np.zeros_like(k)
+    if k.size > 1:
+        cum = np.cumsum(p) / np.sum(p)
+        phases[1:] = -2.0 * np.pi * np.cumsum(np.diff(k) * cum[:-1])
+    return np.mod(phases, 2.0 * np.pi)
+
+
+# ------------------------------------------------------------------------------- stepped sine
+
+
+@dataclass(frozen=True, slots=True)
+class SteppedSineSpec:
+    """What to measure with a stepped sine; validated on construction."""
+
+    f_min_hz: float = 0.1
+    """Lowest frequency (before snapping to ``fs / L``)."""
+    f_max_hz: float = 20.0
+    """Highest frequency; below Nyquist."""
+    points_per_decade: int = 10
+    """Log spacing of the grid; points that snap to the same period are merged."""
+    amplitude_deg_s: float = 10.0
+    """Speed amplitude (load side) before the window cap."""
+    window_deg: float | None = None
+    """Largest allowed position excursion from the start of each point, or None."""
+    min_periods: int = 3
+    """At least this many whole periods in each measurement window (>= 2 for a variance)."""
+    min_measure_s: float = 2.0
+    """At least this long a measurement window (more periods at high frequency)."""
+    settle_periods: int = 2
+    """At least this many whole periods of settling before measuring (ramp-in included)."""
+    settle_s: float = 1.0
+    """At least this long a settling time."""
+    ramp_periods: int = 1
+    """Linear amplitude ramp-in and ramp-out, in periods (0: abrupt start and stop)."""
+    sample_rate_hz: float = 1000.0
+    """Loop rate."""
+
+    def __post_init__(self) -> None:
+        _check_band(self)
+        _set(self, "points_per_decade", _integer(self.points_per_decade, "points_per_decade", 1))
+        _set(self, "amplitude_deg_s", positive(self.amplitude_deg_s, "amplitude_deg_s"))
+        if self.window_deg is not None:
+            _set(self, "window_deg", positive(self.window_deg, "window_deg"))
+        _set(self, "min_periods", _integer(self.min_periods, "min_periods", 1))
+        _set(self, "min_measure_s", nonnegative(self.min_measure_s, "min_measure_s"))
+        _set(self, "settle_periods", _integer(self.settle_periods, "settle_periods", 0))
+        _set(self, "settle_s", nonnegative(self.settle_s, "settle_s"))
+        _set(self, "ramp_periods", _integer(self.ramp_periods, "ramp_periods", 0))
+
+
+@dataclass(frozen=True, slots=True)
+class SteppedSinePoint:
+    """One frequency of a stepped sine; indices refer to :attr:`SteppedSine.signal`."""
+
+    freq_hz: float
+    """Snapped frequency ``sample_rate_hz / period_samples``."""
+    amplitude_deg_s: float
+    """Speed amplitude actually used (after the window cap)."""
+    period_samples: int
+    """Samples per period ``L``."""
+    start: int
+    """First sample of this point (ramp-in starts here, at phase 0)."""
+    settle_periods: int
+    """Whole periods before the measurement window (ramp-in included)."""
+    n_periods: int
+    """Whole periods in the measurement window."""
+    ramp_periods: int
+    """Ramp-out periods after the window (equal to the ramp-in)."""
+    max_excursion_deg: float
+    """Largest position excursion from the start of the point, for the sampled signal."""
+
+    @property
+    def measure_start(self) -> int:
+        """First sample of the measurement window."""
+        return self.start + self.settle_periods * self.period_samples
+
+    @property
+    def measure_len(self) -> int:
+        """Samples in the measurement window (whole periods)."""
+        return self.n_periods * self.period_samples
+
+    @property
+    def stop(self) -> int:
+        """One past the last sample of this point."""
+        return self.measure_start + (self.n_periods + self.ramp_periods) * self.period_samples
+
+
+@dataclass(frozen=True, eq=False)
+class SteppedSine:
+    """A generated stepped sine: the points and the concatenated command samples."""
+
+    spec: SteppedSineSpec
+    points: tuple[SteppedSinePoint, ...]
+    signal: FloatArray = field(repr=False)
+    """Speed excitation in deg/s, one sample per loop tick."""
+
+    @property
+    def freq_hz(self) -> FloatArray:
+        return np.array([p.freq_hz for p in self.points])
+
+    @property
+    def duration_s(self) -> float:
+        return self.signal.size / self.spec.sample_rate_hz
+
+
+def _envelope(total: int, ramp: int) -> FloatArray:
+    """Linear ramp in and out over whole periods, symmetric: env[n] == env[total - n].
+
+    A linear ramp has a constant derivative, whose integral against cos(omega t) over whole
+    periods is zero: the position oscillates about the start point with no offset (a
+    raised-cosine ramp over one period would offset it by a third of the amplitude).
+    """
+    env = np.ones(total)
+    if ramp > 0:
+        rise = np.arange(ramp) / ramp
+        env[:ramp] = rise
+        # env[total - n] = rise[n] for n = 1 .. ramp-1 keeps the zero-drift symmetry
+        env[total - ramp + 1 :] = rise[1:][::-1]
+    return env
+
+
+def stepped_sine(spec: SteppedSineSpec) -> SteppedSine:
+    """Generate the stepped sine described by ``spec``.
+
+    Each point is ``a[n] sin(2 pi n / L)`` with a symmetric envelope over whole periods, so the
+    speed is continuous (zero at every boundary) and the net position drift of a point is zero
+    (the summand is antisymmetric about the middle of the point).
+    """
+    fs = spec.sample_rate_hz
+    decades = math.log10(spec.f_max_hz / spec.f_min_hz)
+    n_target = max(2, round(spec.points_per_decade * decades) + 1)
+    targets = np.logspace(math.log10(spec.f_min_hz), math.log10(spec.f_max_hz), n_target)
+    periods: list[int] = []
+    for f in targets:
+        period = max(3, round(fs / f))
+        if not periods or period != periods[-1]:
+            periods.append(period)
+    points: list[SteppedSinePoint] = []
+    chunks: list[FloatArray] = []
+    start = 0
+    for period in periods:
+        f = fs / period
+        n_meas = max(spec.min_periods, math.ceil(spec.min_measure_s * f - 1e-9))
+        n_settle = max(spec.settle_periods, spec.ramp_periods, math.ceil(spec.settle_s * f - 1e-9))
+        n_total = n_settle + n_meas + spec.ramp_periods
+        total = n_total * period
+        env = _envelope(total, spec.ramp_periods * period)
+        unit = env * np.sin(2.0 * np.pi * np.arange(total) / period)
+        amp = float(cap_speed_amplitude(spec.amplitude_deg_s, f, spec.window_deg))
+        # the excursion the loop will see: position integrated from the command samples
+        excursion = float(np.max(np.abs(np.cumsum(unit)))) / fs
+        if spec.window_deg is not None and amp * excursion > spec.window_deg:
+            amp = spec.window_deg / excursion
+        chunks.append(amp * unit)
+        points.append(
+            SteppedSinePoint(
+                freq_hz=f,
+                amplitude_deg_s=amp,
+                period_samples=period,
+                start=start,
+                settle_periods=n_settle,
+                n_periods=n_meas,
+                ramp_periods=spec.ramp_periods,
+                max_excursion_deg=amp * excursion,
+            )
+        )
+        start += total
+    signal = np.concatenate(chunks) if chunks else np.zeros(0)
+    return SteppedSine(spec=spec, points=tuple(points), signal=signal)
+
+
+# ---------------------------------------------------------------------------------- multisine
+
+
+@dataclass(frozen=True, slots=True)
+class MultisineSpec:
+    """A periodic multisine; validated on construction."""
+
+    f_min_hz: float = 0.1
+    """Lowest component; must be at least the resolution ``sample_rate_hz / period_samples``."""
+    f_max_hz: float = 20.0
+    """Highest component; below Nyquist."""
+    period_samples: int = 10000
+    """Period ``N`` in samples; the frequency resolution is ``sample_rate_hz / N``."""
+    n_periods: int = 4
+    """Measured periods ``P`` (>= 2 for a variance estimate)."""
+    transient_periods: int = 1
+    """Leading periods that the estimator discards (settling)."""
+    amplitude_deg_s: float = 10.0
+    """Peak speed of the whole signal."""
+    window_deg: float | None = None
+    """Largest allowed position excursion from the start, or None."""
+    points_per_decade: int | None = None
+    """Log-spaced subset of the bins; None uses every bin in the band."""
+    position_knee_hz: float | None = None
+    """Below this frequency component speed amplitudes fall as f (constant position)."""
+    crest_iterations: int = 100
+    """Clip-and-restore iterations after Schroeder phases (0: pure Schroeder)."""
+    sample_rate_hz: float = 1000.0
+    """Loop rate."""
+
+    def __post_init__(self) -> None:
+        _set(self, "period_samples", _integer(self.period_samples, "period_samples", 4))
+        _check_band(self)
+        resolution = self.sample_rate_hz / self.period_samples
+        if self.f_min_hz < resolution * (1.0 - 1e-9):
+            raise ConfigError(
+                "f_min_hz",
+                f"below the frequency resolution sample_rate_hz / period_samples = {resolution}"
+                f" Hz (got {self.f_min_hz})",
+            )
+        _set(self, "n_periods", _integer(self.n_periods, "n_periods", 1))
+        _set(self, "transient_periods", _integer(self.transient_periods, "transient_periods", 0))
+        _set(self, "amplitude_deg_s", positive(self.amplitude_deg_s, "amplitude_deg_s"))
+        if self.window_deg is not None:
+            _set(self, "window_deg", positive(self.window_deg, "window_deg"))
+        if self.points_per_decade is not None:
+            _set(
+                self,
+                "points_per_decade",
+                _integer(self.points_per_decade, "points_per_decade", 1),
+            )
+        if self.position_knee_hz is not None:
+            _set(
+                self,
+                "position_knee_hz",
+                positive(self.position_knee_hz, "position_knee_hz"),
+            )
+        _set(self, "crest_iterations", _integer(self.crest_iterations, "crest_iterations", 0))
+        if self.bins().size == 0:
+            raise ConfigError("f_min_hz", "no DFT bin between f_min_hz and f_max_hz")
+
+    def bins(self) -> IntArray:
+        """The excited DFT bins ``k`` (frequency ``k * sample_rate_hz / period_samples``)."""
+        res = self.sample_rate_hz / self.period_samples
+        k_lo = math.ceil(self.f_min_hz / res - 1e-9)
+        k_hi = math.floor(self.f_max_hz / res + 1e-9)
+        if k_hi < k_lo:
+            return np.zeros(0, dtype=np.int64)
+        if self.points_per_decade is None:
+            return np.arange(k_lo, k_hi + 1, dtype=np.int64)
+        decades = math.log10(k_hi / k_lo) if k_hi > k_lo else 0.0
+        n = max(1, round(self.points_per_decade * decades) + 1)
+        ks = np.round(np.logspace(math.log10(k_lo), math.log10(k_hi), n)).astype(np.int64)
+        return np.unique(ks)
+
+
+@dataclass(frozen=True, eq=False)
+class Multisine:
+    """A generated periodic multisine."""
+
+    spec: MultisineSpec
+    bins: IntArray
+    """Excited DFT bins of one period."""
+    amplitudes_deg_s: FloatArray
+    """Speed amplitude of each component."""
+    phases_rad: FloatArray
+    """Phase of each component: ``a cos(2 pi k n / N + phi)``."""
+    period: FloatArray = field(repr=False)
+    """One period, ``N`` samples (deg/s)."""
+    signal: FloatArray = field(repr=False)
+    """``transient_periods + n_periods`` periods back to back (deg/s)."""
+    crest_factor: float
+    """Peak / RMS of the speed signal."""
+    peak_speed_deg_s: float
+    """Largest |speed| in the signal."""
+    max_excursion_deg: float
+    """Largest position excursion from the start (exact periodic integral)."""
+
+    @property
+    def freq_hz(self) -> FloatArray:
+        return self.bins.astype(np.float64) * (self.spec.sample_rate_hz / self.spec.period_samples)
+
+    @property
+    def duration_s(self) -> float:
+        return self.signal.size / self.spec.sample_rate_hz
+
+
+def _synth(n: int, bins: IntArray, amps: FloatArray, phases: FloatArray) -> FloatArray:
+    spectrum = np.zeros(n // 2 + 1, dtype=np.complex128)
+    spectrum[bins] = amps * np.exp(1j * phases) * (n / 2.0)
+    return np.fft.irfft(spectrum, n)
+
+
+def multisine(spec: MultisineSpec) -> Multisine:
+    """Generate the periodic multisine described by ``spec`` (see the module docstring)."""
+    n = spec.period_samples
+    fs = spec.sample_rate_hz
+    bins = spec.bins()
+    freq = bins * (fs / n)
+    shape = np.ones(bins.size)
+    if spec.position_knee_hz is not None:
+        shape = np.minimum(1.0, freq / spec.position_knee_hz)
+    phases = schroeder_phases(bins, shape)
+    period = _synth(n, bins, shape, phases)
+    best = crest_factor(period)
+    trial = period
+    for _ in range(spec.crest_iterations):
+        # clip the peaks, keep the new phases of the excited bins, restore their amplitudes;
+        # keep the best period seen (the iteration is not monotonic)
+        limit = 0.85 * np.max(np.abs(trial))
+        trial_phases = np.angle(np.fft.rfft(np.clip(trial, -limit, limit))[bins])
+        trial = _synth(n, bins, shape, trial_phases)
+        cf = crest_factor(trial)
+        if cf < best:
+            best, period, phases = cf, trial, trial_phases
+    # exact periodic position (zero mean) of the continuous-time components, sampled
+    t = np.arange(n) / fs
+    omega = 2.0 * np.pi * freq
+    position = np.sum(
+        (shape / omega)[:, None] * np.sin(omega[:, None] * t[None, :] + phases[:, None]), axis=0
+    )
+    excursion = float(np.max(np.abs(position - position[0])))
+    scale = spec.amplitude_deg_s / float(np.max(np.abs(period)))
+    if spec.window_deg is not None:
+        scale = min(scale, spec.window_deg / excursion)
+    period = period * scale
+    signal = np.tile(period, spec.transient_periods + spec.n_periods)
+    return Multisine(
+        spec=spec,
+        bins=bins,
+        amplitudes_deg_s=shape * scale,
+        phases_rad=phases,
+        period=period,
+        signal=signal,
+        crest_factor=crest_factor(period),
+        peak_speed_deg_s=float(np.max(np.abs(period))),
+        max_excursion_deg=excursion * scale,
+    )

@@ -1,0 +1,190 @@
+"""The controller's state on disk: the active configuration and the applied-changes log.
+
+- `active_config.json`: {"version": N, "saved_at_s": UNIX time, "config": LoopConfig}, written
+  atomically (temporary file in the same directory, fsync, os.replace, fsync of the
+  directory) on every accepted change, so a crash leaves either the old or the new file.
+- `applied_changes.jsonl`: one JSON object per accepted change, appended and fsynced:
+  {"time_s", "version", "old_version", "old", "new", "margins", "client"}. Non-finite
+  numbers (an infinite gain margin) are written as null.
+
+Nothing here runs on the loop's thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from controller.core.config import LoopConfig, config_from_builtins, config_to_builtins
+from controller.core.errors import ConfigError
+
+__all__ = ["ACTIVE_FILE", "LOG_FILE", "PersistenceError", "SavedConfig", "StateStore"]
+
+ACTIVE_FILE = "active_config.json"
+LOG_FILE = "applied_changes.jsonl"
+
+_json = msgspec.json.Encoder()
+
+
+class PersistenceError(RuntimeError):
+    """The state directory cannot be read or written."""
+
+
+@dataclass(frozen=True)
+class SavedConfig:
+    config: LoopConfig
+    version: int
+    saved_at_s: float
+
+
+def _finite_or_none(value: Any) -> Any:
+    """JSON has no inf/nan: replace them by None, recursively."""
+    if isinstance(value, float):
+        return value if value == value and abs(value) != float("inf") else None
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+class StateStore:
+    """Active configuration + change log in one directory (created if missing)."""
+
+    def __init__(self, directory: str | os.PathLike[str]) -> None:
+        self.directory = Path(directory)
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise PersistenceError(f"state_dir: cannot create {self.directory}: {exc}") from exc
+
+    @property
+    def active_path(self) -> Path:
+        return self.directory / ACTIVE_FILE
+
+    @property
+    def log_path(self) -> Path:
+        return self.directory / LOG_FILE
+
+    # -- active configuration ----------------------------------------------------------------
+
+    def load(self) -> SavedConfig | None:
+        """The saved active configuration; None if there is none; PersistenceError if the file
+        is unreadable or invalid (the caller decides; it is never silently replaced)."""
+        path = self.active_path
+        try:
+            raw = path.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise PersistenceError(f"{path}: cannot read: {exc}") from exc
+        try:
+            data = msgspec.json.decode(raw)
+            if not isinstance(data, dict):
+                raise PersistenceError(f"{path}: expected a JSON object")
+            version = data.get("version")
+            if isinstance(version, bool) or not isinstance(version, int) or version < 0:
+                raise PersistenceError(f"{path}: version: expected an int >= 0, got {version!r}")
+            saved_at = data.get("saved_at_s", 0.0)
+            if isinstance(saved_at, bool) or not isinstance(saved_at, (int, float)):
+                raise PersistenceError(f"{path}: saved_at_s: expected a number")
+            cfg = config_from_builtins(data.get("config"))
+        except msgspec.DecodeError as exc:
+            raise PersistenceError(f"{path}: not valid JSON: {exc}") from exc
+        except ConfigError as exc:
+            raise PersistenceError(f"{path}: config.{exc}") from exc
+        return SavedConfig(config=cfg, version=version, saved_at_s=float(saved_at))
+
+    def save(self, config: LoopConfig, version: int) -> None:
+        """Atomically replace the active configuration file."""
+        doc = {"version": version, "saved_at_s": time.time(), "config": config_to_builtins(config)}
+        data = msgspec.json.format(_json.encode(doc), indent=2) + b"\n"
+        self._atomic_write(self.active_path, data)
+
+    def _atomic_write(self, path: Path, data: bytes) -> None:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=self.directory)
+        try:
+            try:
+                os.fchmod(fd, 0o644)  # mkstemp's 0600 would hide the file from other tools
+                view = memoryview(data)
+                while view:
+                    n = os.write(fd, view)
+                    view = view[n:]
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            os.replace(tmp, path)
+        except OSError as exc:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise PersistenceError(f"{path}: cannot write: {exc}") from exc
+        self._fsync_dir()
+
+    def _fsync_dir(self) -> None:
+        # The rename itself is durable only once the directory entry is on disk.
+        try:
+            dfd = os.open(self.directory, os.O_RDONLY)
+        except OSError:
+            return
+        try:
+            with contextlib.suppress(OSError):
+                os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+    # -- applied-changes log -----------------------------------------------------------------
+
+    def append_change(
+        self,
+        *,
+        old: LoopConfig | None,
+        old_version: int | None,
+        new: LoopConfig,
+        version: int,
+        margins: dict[str, float] | None,
+        client: str = "",
+        time_s: float | None = None,
+    ) -> None:
+        """Append one line to the applied-changes log (fsynced)."""
+        entry = {
+            "time_s": time.time() if time_s is None else time_s,
+            "version": version,
+            "old_version": old_version,
+            "old": None if old is None else config_to_builtins(old),
+            "new": config_to_builtins(new),
+            "margins": _finite_or_none(margins),
+            "client": client,
+        }
+        line = _json.encode(_finite_or_none(entry)) + b"\n"
+        try:
+            with open(self.log_path, "ab") as f:
+                f.write(line)
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError as exc:
+            raise PersistenceError(f"{self.log_path}: cannot append: {exc}") from exc
+
+    def read_changes(self) -> list[dict[str, Any]]:
+        """Every entry of the log, oldest first (a torn last line is skipped)."""
+        try:
+            lines = self.log_path.read_bytes().splitlines()
+        except FileNotFoundError:
+            return []
+        out: list[dict[str, Any]] = []
+        for line in lines:
+            if not line.strip():
+                continue
+            try:
+                item = msgspec.json.decode(line)
+            except msgspec.DecodeError:
+                continue
+            if isinstance(item, dict):
+                out.append(item)
+        return out

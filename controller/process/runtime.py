@@ -1,0 +1,791 @@
+"""The real-time loop: deadline scheduling, the tick, timing statistics and sample hand-off.
+
+Scheduling: tick k is due at t0 + k T. The thread sleeps until `spin_s` before the deadline,
+then spins on the clock. A tick that ends after the next deadline is an overrun; the next
+tick then starts at once (late, never early). If a whole period or more was lost, the missed
+deadlines are skipped (counted in `skipped_ticks`) instead of running ticks back to back to
+catch up: a burst would hand the plant a train of commands it cannot follow. The simulated
+plant advances one tick per executed tick (lockstep), so skipping never desynchronises it.
+
+The tick (`_tick`) reads the rig, runs the servo loop, writes the command and stores a sample
+in preallocated column buffers; no I/O, no logging, no locks, no containers created on the
+steady path. Requests from other threads (commands, new coefficients, e-stop) reach the tick
+through a deque and one flag and are honoured at the next tick boundary. Full blocks of
+`batch_size` samples (fewer when the configuration version or the mode changes, so a block
+is homogeneous) go to a publisher thread through a ring of blocks; if the publisher falls
+behind by the whole ring, samples are dropped and counted, and the sequence numbers show
+the gap.
+
+Modes: running (tracks the trajectory), stopped (holds the position where it stopped),
+estop (speed command 0, drive disabled, until reset), fault (the rig reported lost I/O:
+command 0, drive stopped, until reset). Only the tick changes the mode.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import threading
+import time
+from array import array
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.core.trajectory import Trajectory
+from controller.protocol import STATE_COLUMNS, EStop, ResetFault, SetTrajectory, Start, Stop
+
+__all__ = [
+    "COLUMNS",
+    "ESTOP",
+    "FAULT",
+    "RUNNING",
+    "STOPPED",
+    "AbortProgram",
+    "ApplyCoefficients",
+    "ExcitationProgram",
+    "Rig",
+    "RunProgram",
+    "Runtime",
+    "RuntimeOptions",
+    "Ticket",
+    "TimingSnapshot",
+    "try_realtime_priority",
+]
+
+RUNNING = "running"
+STOPPED = "stopped"
+ESTOP = "estop"
+FAULT = "fault"
+
+COLUMNS = STATE_COLUMNS
+
+
+class Rig(Protocol):
+    """What the loop needs of a plant (SimRig and CanRig fit). Optional extras, used when
+    present: `fault: str | None` (lost I/O), `start()` (enable the drive), `stop()` (safe
+    state: zero speed, drive disabled)."""
+
+    def read(self) -> tuple[float, float]: ...
+
+    def step(self, command_deg_s: float) -> None: ...
+
+
+@dataclass(frozen=True)
+class RuntimeOptions:
+    rate_hz: float = 1000.0
+    spin_s: float = 0.0002
+    """Sleep until this long before a deadline, then spin (absorbs the sleep's overshoot)."""
+    batch_size: int = 20
+    """Samples per StateBatch (20 ms at 1 kHz)."""
+    ring_blocks: int = 256
+    """Blocks buffered for the publisher (5 s at 1 kHz with batches of 20)."""
+    timing_capacity: int = 16384
+    """Ticks of period/compute history kept for statistics."""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.rate_hz) and 1.0 <= self.rate_hz <= 20000.0):
+            raise ValueError(f"rate_hz: {self.rate_hz!r} out of range [1, 20000]")
+        if not (0.0 <= self.spin_s < 1.0 / self.rate_hz):
+            raise ValueError(f"spin_s: {self.spin_s!r} must be in [0, period)")
+        if not 1 <= self.batch_size <= 1000:
+            raise ValueError(f"batch_size: {self.batch_size!r} out of range [1, 1000]")
+        if not 2 <= self.ring_blocks <= 1 << 16:
+            raise ValueError(f"ring_blocks: {self.ring_blocks!r} out of range [2, 65536]")
+        if not 16 <= self.timing_capacity <= 1 << 22:
+            raise ValueError(f"timing_capacity: {self.timing_capacity!r} out of range")
+
+
+@dataclass(frozen=True)
+class TimingSnapshot:
+    """Loop timing over the ticks since the previous snapshot (microseconds) + counters."""
+
+    period_p50_us: float
+    period_p99_us: float
+    period_max_us: float
+    compute_p50_us: float
+    compute_p99_us: float
+    compute_max_us: float
+    samples: int
+    ticks: int
+    overruns: int
+    skipped_ticks: int
+    dropped_samples: int
+
+
+class ApplyCoefficients:
+    """Request body: swap in these coefficients at the next tick boundary."""
+
+    __slots__ = ("coefficients",)
+
+    def __init__(self, coefficients: LoopCoefficients) -> None:
+        self.coefficients = coefficients
+
+
+class ExcitationProgram:
+    """A preplanned per-tick program run inside the tick (identification); the columns are
+    sequences the tick only indexes (lists, or array.array: no Python object per element).
+
+    Tick i of the program is either a *move* (``kind[i] == 0``: the position loop follows
+    ``ref = start + (target[i] - start) * a[i]``, rate ``(target[i] - start) * b[i]``, where
+    ``start`` is the position at the first tick of the move, ``first[i]``) or an *excitation*
+    tick (``kind[i] == 1``: offset ``a[i]``, excitation ``b[i]``; open mode ``u = a + b``,
+    closed mode ``u = loop.tick_speed(a, w) + b`` with ``loop.u_prev = u``). Limits checked
+    every tick: ``|b| <= amplitude_limit`` on excitation ticks, ``|pos - center[i]| <=
+    window_deg`` where ``window[i]``, elapsed time ``<= max_duration_s``. The records (u, w,
+    pos of every executed tick) are preallocated arrays; the tick only indexes.
+
+    State: ``pending`` -> ``running`` -> ``done`` | ``aborted`` (``reason``), written by the tick
+    only; ``n_done`` ticks were executed.
+    """
+
+    def __init__(
+        self,
+        kind: Sequence[int],
+        a: Sequence[float],
+        b: Sequence[float],
+        target: Sequence[float],
+        first: Sequence[int] | Sequence[bool],
+        center: Sequence[float],
+        window: Sequence[int] | Sequence[bool],
+        *,
+        closed: bool,
+        window_deg: float,
+        amplitude_limit: float,
+        max_duration_s: float,
+        command_limit: float,
+    ) -> None:
+        n = len(kind)
+        if n == 0 or any(len(c) != n for c in (a, b, target, first, center, window)):
+            raise ValueError("program: all columns must have the same, non-zero length")
+        self.n = n
+        self.kind, self.a, self.b, self.target = kind, a, b, target
+        self.first, self.center, self.window = first, center, window
+        self.closed = closed
+        self.window_deg = window_deg
+        self.amplitude_limit = amplitude_limit
+        self.max_duration_s = max_duration_s
+        self.command_limit = command_limit
+        # array('d'): storing a float keeps no object alive (a list slot would)
+        self.rec_u = array("d", bytes(8 * n))
+        self.rec_w = array("d", bytes(8 * n))
+        self.rec_pos = array("d", bytes(8 * n))
+        self.n_done = 0
+        self.state = "pending"
+        self.reason = ""
+        self.limit = ""
+        self.start_seq = -1
+        self.ref = 0.0
+        self.r = 0.0
+        self._t0 = -1.0
+        self._move_start = 0.0
+
+    def step(self, t_s: float, pos: float, w: float, loop: ServoLoop) -> float:
+        """One tick; returns the command. Sets state done/aborted (then the caller holds)."""
+        i = self.n_done
+        if self._t0 < 0.0:
+            self._t0 = t_s
+            self.state = "running"
+        if t_s - self._t0 > self.max_duration_s:
+            self._abort(f"maximum duration {self.max_duration_s:g} s reached", "duration")
+            return 0.0
+        c = self.center[i]
+        if self.window[i] and abs(pos - c) > self.window_deg:
+            self._abort(
+                f"position window: {pos:.3f} deg is outside {c:g} +- {self.window_deg:g} deg",
+                "window",
+            )
+            return 0.0
+        if self.kind[i] == 0:
+            if self.first[i]:
+                loop.reset()
+                self._move_start = pos
+            start = self._move_start
+            dist = self.target[i] - start
+            ref = start + dist * self.a[i]
+            u = loop.tick(ref, dist * self.b[i], pos, w)
+            self.ref = ref
+            self.r = loop.speed_ref_deg_s
+        else:
+            off = self.a[i]
+            x = self.b[i]
+            if x > self.amplitude_limit or x < -self.amplitude_limit:
+                self._abort(f"amplitude: |{x:.3g}| deg/s over the limit", "amplitude")
+                return 0.0
+            u = (loop.tick_speed(off, w) if self.closed else off) + x
+            limit = self.command_limit
+            if u > limit:
+                u = limit
+            elif u < -limit:
+                u = -limit
+            if self.closed:
+                loop.u_prev = u
+            self.ref = pos
+            self.r = off
+        self.rec_u[i] = u
+        self.rec_w[i] = w
+        self.rec_pos[i] = pos
+        i += 1
+        self.n_done = i
+        if i == self.n:
+            self.state = "done"
+        return u
+
+    def _abort(self, reason: str, limit: str) -> None:
+        self.reason = reason
+        self.limit = limit
+        self.state = "aborted"
+
+    @property
+    def over(self) -> bool:
+        return self.state in ("done", "aborted")
+
+
+class RunProgram:
+    """Request body: start an ExcitationProgram at the next tick (mode running or stopped)."""
+
+    __slots__ = ("program",)
+
+    def __init__(self, program: ExcitationProgram) -> None:
+        self.program = program
+
+
+class AbortProgram:
+    """Request body: abort the running program; the loop holds the present position."""
+
+    __slots__ = ("reason",)
+
+    def __init__(self, reason: str = "aborted by request") -> None:
+        self.reason = reason
+
+
+RequestBody = (
+    SetTrajectory
+    | Start
+    | Stop
+    | EStop
+    | ResetFault
+    | ApplyCoefficients
+    | RunProgram
+    | AbortProgram
+)
+
+
+class Ticket:
+    """One request to the tick; the tick fills the result and sets `done`."""
+
+    __slots__ = ("body", "done", "message", "mode", "ok", "received_seq", "seq")
+
+    def __init__(self, body: RequestBody, received_seq: int) -> None:
+        self.body = body
+        self.received_seq = received_seq
+        self.done = threading.Event()
+        self.ok = False
+        self.message = ""
+        self.mode = ""
+        self.seq = -1
+
+    def wait(self, timeout_s: float) -> bool:
+        return self.done.wait(timeout_s)
+
+
+def try_realtime_priority(priority: int = 50) -> str:
+    """Ask for SCHED_FIFO for the calling thread; returns what happened (never raises)."""
+    if not hasattr(os, "sched_setscheduler"):
+        return "realtime priority: not supported on this platform"
+    try:
+        lo = os.sched_get_priority_min(os.SCHED_FIFO)
+        hi = os.sched_get_priority_max(os.SCHED_FIFO)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(lo, min(hi, priority))))
+    except (PermissionError, OSError) as exc:
+        return f"realtime priority: not permitted ({exc.strerror or exc})"
+    return f"realtime priority: SCHED_FIFO {priority}"
+
+
+class _Ring:
+    """Blocks of column buffers shared by the loop (producer) and the publisher (consumer).
+
+    Only the loop writes `produced` and the block it fills; only the publisher writes
+    `consumed`. Block i is free for the loop while produced - consumed < blocks.
+    """
+
+    def __init__(self, batch: int, blocks: int, ncols: int) -> None:
+        self.batch = batch
+        self.blocks = blocks
+        self.cols = [[[0.0] * batch for _ in range(ncols)] for _ in range(blocks)]
+        self.seq0 = [0] * blocks
+        self.n = [0] * blocks
+        self.version = [0] * blocks
+        self.mode = [RUNNING] * blocks
+        self.produced = 0
+        self.consumed = 0
+        self.ready = threading.Event()
+
+
+BatchSink = Callable[[int, int, str, Sequence[list[float]]], None]
+"""sink(seq0, config_version, mode, columns): columns are lists of equal length, owned by the
+caller (copies)."""
+
+
+class Runtime:
+    """Runs the servo loop against a rig at a fixed rate until `stop()`."""
+
+    def __init__(
+        self,
+        loop: ServoLoop,
+        rig: Rig,
+        *,
+        options: RuntimeOptions | None = None,
+        trajectory: Trajectory | None = None,
+        mode: str = RUNNING,
+        clock: Callable[[], float] = time.perf_counter,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        if mode not in (RUNNING, STOPPED):
+            raise ValueError(f"mode: {mode!r} must be running or stopped")
+        self.options = opts = options if options is not None else RuntimeOptions()
+        self.loop = loop
+        self.rig = rig
+        self.period_s = 1.0 / opts.rate_hz
+        self._clock = clock
+        self._sleep = sleep
+        self._has_fault = hasattr(rig, "fault")
+        self._rig_start: Callable[[], None] | None = getattr(rig, "start", None)
+        self._rig_stop: Callable[[], None] | None = getattr(rig, "stop", None)
+        # Trajectory: `run_trajectory` is what Start resumes; `trajectory` is what the tick
+        # follows now (a hold while stopped). Trajectory time counts ticks since it was set.
+        self.run_trajectory = trajectory if trajectory is not None else Trajectory()
+        self.trajectory = self.run_trajectory
+        self._traj_at = self.trajectory.at
+        self._traj_k = 0
+        self.mode = RUNNING
+        self._initial_mode = mode
+        self.fault: str | None = None
+        self.estop_seq = -1
+        self.estop_source = ""
+        # Requests from other threads.
+        self._inbox: deque[Ticket] = deque()
+        self._estop_request: str | None = None
+        self._stop = False
+        # Counters (written by the tick only).
+        self.seq = -1  # sequence number of the last completed tick
+        self.ticks = 0
+        self.overruns = 0
+        self.skipped_ticks = 0
+        self.dropped_samples = 0
+        self.t0 = 0.0
+        self.epoch_s = 0.0  # UNIX time of t_s = 0
+        self.running = threading.Event()
+        self.finished = threading.Event()
+        # Timing history.
+        cap = opts.timing_capacity
+        self._period_us = [0.0] * cap
+        self._compute_us = [0.0] * cap
+        self._ti = 0  # total timing entries written
+        self._snap_i = 0
+        # Sample ring.
+        self._ring = _Ring(opts.batch_size, opts.ring_blocks, len(COLUMNS))
+        self._blk: list[list[float]] | None = None
+        self._blk_n = 0
+        self._blk_version = -1
+        self._blk_mode = ""
+        self.last_pos_deg = 0.0
+        self.program: ExcitationProgram | None = None
+
+    # -- requests (any thread) -----------------------------------------------------------------
+
+    def submit(self, body: RequestBody) -> Ticket:
+        """Queue a request for the next tick boundary; wait on the returned ticket."""
+        ticket = Ticket(body, self.seq)
+        if isinstance(body, EStop):
+            self._estop_request = "command"
+        self._inbox.append(ticket)
+        return ticket
+
+    def estop(self, source: str = "estop key") -> None:
+        """Emergency stop from any thread: command 0 from the next tick. Never blocks."""
+        self._estop_request = source
+
+    def stop(self) -> None:
+        """End `run()` after the current tick (any thread, signal handlers included)."""
+        self._stop = True
+
+    @property
+    def config_version(self) -> int:
+        return self.loop.active.version
+
+    # -- timing statistics (any thread) --------------------------------------------------------
+
+    def timing_snapshot(self) -> TimingSnapshot:
+        """Percentiles over the ticks since the previous snapshot (at most the history)."""
+        end = self._ti
+        cap = len(self._period_us)
+        start = max(self._snap_i, end - cap, 1 if end > 1 else 0)
+        self._snap_i = end
+        n = end - start
+        if n <= 0:
+            p = c = np.zeros(1)
+        else:
+            idx = np.arange(start, end) % cap
+            p = np.asarray(self._period_us)[idx]
+            c = np.asarray(self._compute_us)[idx]
+        pp = np.percentile(p, [50, 99])
+        cp = np.percentile(c, [50, 99])
+        return TimingSnapshot(
+            period_p50_us=float(pp[0]),
+            period_p99_us=float(pp[1]),
+            period_max_us=float(p.max()),
+            compute_p50_us=float(cp[0]),
+            compute_p99_us=float(cp[1]),
+            compute_max_us=float(c.max()),
+            samples=max(n, 0),
+            ticks=self.ticks,
+            overruns=self.overruns,
+            skipped_ticks=self.skipped_ticks,
+            dropped_samples=self.dropped_samples,
+        )
+
+    def timing_history(self) -> tuple[np.ndarray, np.ndarray]:
+        """(period_us, compute_us) of the last ticks, oldest first (benchmarks)."""
+        end = self._ti
+        cap = len(self._period_us)
+        start = max(0, end - cap, 1 if end > 1 else 0)
+        idx = np.arange(start, end) % cap
+        return np.asarray(self._period_us)[idx], np.asarray(self._compute_us)[idx]
+
+    # -- publisher side --------------------------------------------------------------------------
+
+    def publisher(self, sink: BatchSink, stop: threading.Event, poll_s: float = 0.05) -> None:
+        """Publisher thread body: hand every finished block to `sink`, in order, until `stop`
+        is set and the loop has finished (then the last blocks are flushed)."""
+        ring = self._ring
+        while True:
+            ring.ready.wait(poll_s)
+            ring.ready.clear()
+            while ring.consumed < ring.produced:
+                i = ring.consumed % ring.blocks
+                n = ring.n[i]
+                cols = [c[:n] for c in ring.cols[i]]
+                try:
+                    sink(ring.seq0[i], ring.version[i], ring.mode[i], cols)
+                finally:
+                    ring.consumed += 1
+            loop_done = self.finished.is_set() or not self.running.is_set()
+            if stop.is_set() and loop_done and ring.consumed >= ring.produced:
+                return
+
+    # -- the loop ------------------------------------------------------------------------------
+
+    def run(self, max_ticks: int | None = None) -> None:
+        """Run ticks until `stop()` (or `max_ticks`); then command 0 and stop the drive."""
+        clock = self._clock
+        sleep = self._sleep
+        period = self.period_s
+        spin = self.options.spin_s
+        cap = len(self._period_us)
+        period_us = self._period_us
+        compute_us = self._compute_us
+        tick = self._tick
+        self.t0 = t0 = clock()
+        self.epoch_s = time.time() - (clock() - t0)
+        if self._initial_mode == STOPPED:
+            self._enter_stopped(0.0)
+        self.running.set()
+        next_t = t0
+        prev_start = t0
+        remaining_ticks = -1 if max_ticks is None else max_ticks
+        try:
+            while not self._stop and remaining_ticks != 0:
+                remaining_ticks -= 1
+                now = clock()
+                wait = next_t - now
+                if wait > spin:
+                    sleep(wait - spin)
+                while clock() < next_t:
+                    pass
+                start = clock()
+                tick(start - t0)
+                end = clock()
+                i = self._ti % cap
+                period_us[i] = (start - prev_start) * 1e6
+                compute_us[i] = (end - start) * 1e6
+                self._ti += 1
+                prev_start = start
+                next_t += period
+                if end > next_t:
+                    self.overruns += 1
+                    late = end - next_t
+                    if late >= period:
+                        skip = int(late / period)
+                        self.skipped_ticks += skip
+                        next_t += skip * period
+        finally:
+            self._shutdown()
+
+    def _shutdown(self) -> None:
+        with contextlib.suppress(Exception):
+            self.rig.step(0.0)
+        if self._rig_stop is not None:
+            with contextlib.suppress(Exception):
+                self._rig_stop()
+        self._hand_off()
+        # Requests that arrived too late still get an answer.
+        while self._inbox:
+            t = self._inbox.popleft()
+            t.ok, t.message, t.mode = False, "controller is shutting down", self.mode
+            t.done.set()
+        self.finished.set()
+        self._ring.ready.set()
+
+    def _tick(self, t_s: float) -> None:
+        if self._estop_request is not None:
+            self._enter_estop(self._estop_request)
+        if self._inbox:
+            self._serve_requests()
+        rig = self.rig
+        try:
+            pos, w = rig.read()
+        except Exception as exc:
+            self._enter_fault(f"rig read failed: {exc}")
+            pos, w = self.last_pos_deg, 0.0
+        if self._has_fault and self.mode != FAULT and rig.fault is not None:  # type: ignore[attr-defined]
+            self._enter_fault(str(rig.fault))  # type: ignore[attr-defined]
+        self.last_pos_deg = pos
+        k = self._traj_k
+        self._traj_k = k + 1
+        ref, ref_rate = self._traj_at(k * self.period_s)
+        loop = self.loop
+        mode = self.mode
+        prog = self.program
+        if prog is not None:
+            if mode == RUNNING:
+                u = prog.step(t_s, pos, w, loop)
+                if prog.state == "aborted":
+                    self._end_program(pos)
+                    u = loop.tick(pos, 0.0, pos, w)
+                else:
+                    ref = prog.ref
+                    if prog.state == "done":
+                        self._end_program(pos)
+            else:  # e-stop or fault (engaged at the start of this tick): command 0
+                self._abort_program(f"{mode} ({self.fault or self.estop_source})", mode)
+                loop.tick(pos, 0.0, pos, w)
+                u = 0.0
+            d_hat = loop.d_hat
+        elif mode in (RUNNING, STOPPED):
+            u = loop.tick(ref, ref_rate, pos, w)
+            d_hat = loop.d_hat
+        else:
+            # Keep coefficient swaps flowing while disabled (the states are reset on leaving).
+            loop.tick(pos, 0.0, pos, w)
+            u = 0.0
+            d_hat = 0.0
+        try:
+            rig.step(u)
+        except Exception as exc:
+            self._enter_fault(f"rig write failed: {exc}")
+            u = 0.0
+        seq = self.seq + 1
+        self.seq = seq
+        self.ticks += 1
+        r = loop.speed_ref_deg_s if prog is None else prog.r
+        self._store(seq, t_s, ref, pos, w, r, u, d_hat, ref - pos)
+
+    def _store(
+        self,
+        seq: int,
+        t_s: float,
+        ref: float,
+        pos: float,
+        w: float,
+        r: float,
+        u: float,
+        d_hat: float,
+        err: float,
+    ) -> None:
+        blk = self._blk
+        version = self.loop.active.version
+        mode = self.mode
+        if blk is not None and (version != self._blk_version or mode != self._blk_mode):
+            self._hand_off()
+            blk = None
+        if blk is None:
+            ring = self._ring
+            if ring.produced - ring.consumed >= ring.blocks:
+                self.dropped_samples += 1
+                return
+            i = ring.produced % ring.blocks
+            blk = self._blk = ring.cols[i]
+            ring.seq0[i] = seq
+            ring.version[i] = self._blk_version = version
+            ring.mode[i] = self._blk_mode = mode
+            self._blk_n = 0
+        n = self._blk_n
+        blk[0][n] = t_s
+        blk[1][n] = ref
+        blk[2][n] = pos
+        blk[3][n] = w
+        blk[4][n] = r
+        blk[5][n] = u
+        blk[6][n] = d_hat
+        blk[7][n] = err
+        n += 1
+        self._blk_n = n
+        if n == self._ring.batch:
+            self._hand_off()
+
+    def _hand_off(self) -> None:
+        if self._blk is None:
+            return
+        ring = self._ring
+        ring.n[ring.produced % ring.blocks] = self._blk_n
+        ring.produced += 1
+        self._blk = None
+        ring.ready.set()
+
+    # -- the rare paths (mode changes, requests): may allocate --------------------------------
+
+    def _set_trajectory(self, traj: Trajectory) -> None:
+        self.trajectory = traj
+        self._traj_at = traj.at
+        self._traj_k = 0
+
+    def _end_program(self, pos: float) -> None:
+        """The program is over (done or aborted): the position loop holds `pos` (running)."""
+        self.program = None
+        self.loop.reset()
+        self._set_trajectory(Trajectory(kind="hold", offset_deg=pos))
+
+    def _abort_program(self, reason: str, limit: str) -> None:
+        prog = self.program
+        if prog is not None:
+            prog._abort(reason, limit)
+            self.program = None
+
+    def _enter_stopped(self, pos: float) -> None:
+        self.mode = STOPPED
+        self._set_trajectory(Trajectory(kind="hold", offset_deg=pos))
+
+    def _safe_state(self) -> None:
+        if self._rig_stop is not None:
+            try:
+                self._rig_stop()
+            except Exception as exc:
+                self.fault = self.fault or f"drive stop failed: {exc}"
+        self.loop.reset()
+
+    def _enter_estop(self, source: str) -> None:
+        self._estop_request = None
+        if self.mode == ESTOP:
+            return
+        self.mode = ESTOP
+        self.estop_seq = self.seq + 1
+        self.estop_source = source
+        self._safe_state()
+
+    def _enter_fault(self, reason: str) -> None:
+        if self.mode == FAULT:
+            return
+        self.fault = reason
+        if self.mode == ESTOP:
+            return  # already safe; the fault is reported, the e-stop latch stays
+        self.mode = FAULT
+        self._safe_state()
+
+    def _serve_requests(self) -> None:
+        while self._inbox:
+            t = self._inbox.popleft()
+            try:
+                self._serve(t)
+            except Exception as exc:  # a request must never end the loop
+                t.ok, t.message = False, f"internal error: {exc}"
+            t.mode = self.mode
+            t.done.set()
+
+    def _serve(self, t: Ticket) -> None:
+        b = t.body
+        next_seq = self.seq + 1
+        t.seq = next_seq
+        pos = self.last_pos_deg
+        if isinstance(b, ApplyCoefficients):
+            self.loop.request(b.coefficients)
+            t.ok = True
+        elif isinstance(b, RunProgram):
+            if self.program is not None:
+                t.ok, t.message = False, "an identification is already running"
+            elif self.mode not in (RUNNING, STOPPED):
+                t.ok, t.message = False, f"mode is {self.mode}: send reset and start first"
+            else:
+                self.mode = RUNNING
+                b.program.start_seq = next_seq
+                self.program = b.program
+                t.ok = True
+        elif isinstance(b, AbortProgram):
+            if self.program is None:
+                t.ok, t.message = True, "no identification running"
+            else:
+                self._abort_program(b.reason, "request")
+                self._end_program(pos)
+                t.ok = True
+        elif isinstance(b, EStop):
+            t.ok = self.mode == ESTOP
+            t.seq = self.estop_seq
+            t.message = "" if t.ok else "e-stop did not engage"
+        elif isinstance(b, SetTrajectory):
+            self.run_trajectory = b.trajectory
+            if self.program is not None:
+                t.ok, t.message = True, "trajectory set; it runs after the identification"
+            elif self.mode == RUNNING:
+                self._set_trajectory(b.trajectory)
+            t.ok = True
+            t.message = "" if self.mode == RUNNING else f"trajectory set; mode is {self.mode}"
+        elif isinstance(b, Start):
+            if self.mode in (ESTOP, FAULT):
+                t.ok, t.message = False, f"mode is {self.mode}: send reset first"
+            else:
+                if self.mode != RUNNING:
+                    self.mode = RUNNING
+                    self._set_trajectory(self.run_trajectory)
+                t.ok = True
+        elif isinstance(b, Stop):
+            if self.program is not None:
+                self._abort_program("stop command", "request")
+                self.loop.reset()  # the program may have left the position loop's states
+            if self.mode == RUNNING:
+                self._enter_stopped(pos)
+            t.ok = self.mode == STOPPED
+            t.message = "" if t.ok else f"mode is {self.mode}"
+        elif isinstance(b, ResetFault):
+            self._reset(t, pos)
+        else:
+            t.ok, t.message = False, f"unknown request {type(b).__name__}"
+
+    def _reset(self, t: Ticket, pos: float) -> None:
+        if self.mode not in (ESTOP, FAULT):
+            t.ok, t.message = True, f"nothing to reset (mode {self.mode})"
+            return
+        if self._rig_start is not None:
+            # Re-enabling a drive (CAN: NMT + enable state machine) blocks this tick; the
+            # drive is disabled meanwhile, and the timing statistics show the pause.
+            try:
+                self._rig_start()
+            except Exception as exc:
+                self.fault = str(exc)
+                self.mode = FAULT
+                t.ok, t.message = False, f"drive did not enable: {exc}"
+                return
+        # (An e-stop requested meanwhile stays pending: the next tick honours it.)
+        self.fault = None
+        self.loop.reset()
+        self._enter_stopped(pos)
+        t.ok = True
+
+    @property
+    def ring_depth(self) -> int:
+        """Blocks waiting for the publisher."""
+        return self._ring.produced - self._ring.consumed

@@ -1,0 +1,270 @@
+"""Live panel: rolling traces, metrics, loop health, connection banner, trajectory, e-stop.
+
+The GUI is built once; one thread (`LiveUpdater`) refreshes the charts at `rate_hz` from the
+client's ring buffer and the slower texts at a few Hz, assigning only changed properties.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from controller import protocol as proto
+from controller.client import ControllerClient
+from controller.core.trajectory import TRAJECTORY_KINDS, default_trajectory
+from server import charts
+
+__all__ = ["LivePanel", "LiveStats", "banner_html", "window_metrics"]
+
+
+def window_metrics(error_deg: np.ndarray) -> tuple[float, float]:
+    """(peak |error|, RMSE) in deg; NaN for an empty window."""
+    if len(error_deg) == 0:
+        return math.nan, math.nan
+    return float(np.max(np.abs(error_deg))), float(np.sqrt(np.mean(error_deg**2)))
+
+
+def banner_html(client: ControllerClient) -> str:
+    """The connection / mode banner: red when the controller is gone or e-stopped."""
+    st = client.status
+    if st is None or not client.connected:
+        age = client.status_age_s
+        since = "never heard from it" if st is None else f"no status for {age:.1f} s"
+        return _banner(
+            "#b71c1c", "white",
+            f"CONTROLLER NOT REACHABLE ({since}) &mdash; rig '{client.opts.rig_name}' on "
+            f"{', '.join(client.opts.connect)}. Traces are frozen; nothing can be applied.",
+            "dt-banner dt-gone",
+        )
+    if st.mode == "estop":
+        return _banner("#d62728", "white", "E-STOP ACTIVE: speed command 0, drive disabled. "
+                       "Reset fault, then Start.", "dt-banner dt-estop")
+    if st.mode == "fault" or st.faults:
+        faults = "; ".join(st.faults) or "fault"
+        return _banner("#e67e22", "white", f"FAULT: {faults}", "dt-banner dt-fault")
+    return _banner(
+        "#2e7d32", "white",
+        f"Connected: rig <b>{st.rig}</b> ({st.plant}), {st.mode}, config v{st.config_version}",
+        "dt-banner dt-ok",
+    )
+
+
+def _banner(bg: str, fg: str, html: str, cls: str) -> str:
+    return (f"<div class='{cls}' style='background:{bg};color:{fg};padding:6px 8px;"
+            f"border-radius:4px;font-size:13px;font-weight:600'>{html}</div>")
+
+
+@dataclass
+class LiveStats:
+    """Measured by the updater, for benchmarks and the health box."""
+
+    frames: int = 0
+    chart_pushes: int = 0
+    last_frame_s: float = 0.0
+    started_at: float = 0.0
+
+    def push_rate_hz(self) -> float:
+        dt = time.monotonic() - self.started_at
+        return self.chart_pushes / dt if dt > 0 else 0.0
+
+
+class LivePanel:
+    """Live controls and charts; `tick()` is called by the updater thread."""
+
+    def __init__(
+        self,
+        gui: Any,
+        client: ControllerClient,
+        send_command: Callable[[proto.CommandBody], None],
+        on_status: Callable[[proto.Status], None] | None = None,
+        on_frame: Callable[[dict[str, float] | None], None] | None = None,
+        rate_hz: float = 25.0,
+        max_points: int = 1000,
+    ) -> None:
+        self.gui = gui
+        self.client = client
+        self._send = send_command
+        self._on_status = on_status
+        self._on_frame = on_frame
+        self.rate_hz = rate_hz
+        self.max_points = max_points
+        self.stats = LiveStats()
+        self._charts: dict[str, Any] = {}
+        self._last_total = -1
+        self._last_window = -1.0
+        self._texts: dict[str, str] = {}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_status_seen: proto.Status | None = None
+
+    # -- building --------------------------------------------------------------------------
+
+    def build_banner(self) -> None:
+        self.banner = self.gui.add_html(banner_html(self.client))
+
+    def build_estop(self) -> None:
+        self.estop_button = self.gui.add_button(
+            "E-STOP", color="red", icon=None, hint="speed command 0 and drive disabled, at once"
+        )
+        self.estop_button.on_click(lambda _e: self._send(proto.EStop()))
+
+    def build_controls(self) -> None:
+        gui = self.gui
+        self.window_s = gui.add_slider("Window (s)", min=2.0, max=60.0, step=1.0,
+                                       initial_value=10.0)
+        self.trajectory = gui.add_dropdown("Trajectory", TRAJECTORY_KINDS, initial_value="sine",
+                                           hint="5 sin(0.5 t) deg, 5 deg step, 1 deg/s ramp, "
+                                                "hold at 40 deg")
+        self.set_traj = gui.add_button("Set trajectory")
+        self.run_buttons = gui.add_button_group("Run", ("Start", "Stop", "Reset fault"))
+        self.set_traj.on_click(
+            lambda _e: self._send(proto.SetTrajectory(
+                trajectory=default_trajectory(str(self.trajectory.value))))
+        )
+        self.run_buttons.on_click(self._on_run)
+        self.command_result = gui.add_html("<div class='dt-cmd'></div>")
+        self.metrics = gui.add_html("<div class='dt-metrics'>metrics: waiting for data</div>")
+        self.health = gui.add_html("<div class='dt-health'>loop health: waiting</div>")
+
+    def _on_run(self, event: Any) -> None:
+        v = event.target.value
+        body: proto.CommandBody = (
+            proto.Start() if v == "Start" else proto.Stop() if v == "Stop" else proto.ResetFault()
+        )
+        self._send(body)
+
+    def build_charts(self) -> None:
+        for spec in charts.LIVE_CHARTS:
+            n = len(spec.series)
+            self._charts[spec.key] = self.gui.add_uplot(
+                data=(np.array([-1.0, 0.0]), *([np.zeros(2)] * (n - 1))),
+                series=spec.series, scales=spec.scales, axes=spec.axes, title=spec.title,
+                height=spec.height, aspect=2.5,
+                cursor={"show": True, "drag": {"x": False, "y": False}},
+            )
+
+    # -- running -----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self.stats.started_at = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="live-updater", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+
+    def _run(self) -> None:
+        period = 1.0 / self.rate_hz
+        next_t = time.monotonic()
+        slow_every = max(1, int(self.rate_hz / 5))
+        k = 0
+        while not self._stop.is_set():
+            t0 = time.perf_counter()
+            try:
+                self.tick(slow=(k % slow_every == 0))
+            except Exception as exc:  # the updater must survive anything
+                import traceback
+
+                traceback.print_exception(exc)
+            self.stats.last_frame_s = time.perf_counter() - t0
+            k += 1
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay < -period:
+                next_t = time.monotonic()
+                delay = 0.0
+            self._stop.wait(max(delay, 0.0))
+
+    def _set_html(self, key: str, handle: Any, html: str) -> None:
+        if self._texts.get(key) != html:
+            self._texts[key] = html
+            handle.content = html
+
+    def tick(self, slow: bool = True) -> None:
+        """One refresh: charts when new samples arrived, texts when `slow`."""
+        self.stats.frames += 1
+        ring = self.client.ring
+        window = float(self.window_s.value)
+        total = ring.total
+        cols: dict[str, np.ndarray] | None = None
+        if total != self._last_total or window != self._last_window:
+            self._last_total = total
+            self._last_window = window
+            cols, version = ring.window(window)
+            data = charts.live_data(cols["t_s"], cols, version, self.max_points)
+            for key, handle in self._charts.items():
+                handle.data = data[key]
+            self.stats.chart_pushes += 1
+            if self._on_frame is not None:
+                self._on_frame(ring.latest())
+        if not slow:
+            return
+        self._set_html("banner", self.banner, banner_html(self.client))
+        st = self.client.status
+        if st is not None and st is not self._last_status_seen:
+            self._last_status_seen = st
+            if self._on_status is not None:
+                self._on_status(st)
+        if cols is None:
+            cols, _ = ring.window(window)
+        self._set_html("metrics", self.metrics, self._metrics_html(cols, window, st))
+        self._set_html("health", self.health, self._health_html(st))
+
+    def _metrics_html(self, cols: dict[str, np.ndarray], window: float,
+                      st: proto.Status | None) -> str:
+        err = cols["error_deg"]
+        peak, rmse = window_metrics(err)
+        rows = [f"<tr><td>window {window:.0f} s</td><td>{_num(peak)}</td><td>{_num(rmse)}</td>"
+                "</tr>"]
+        period = st.trajectory.period_s if st is not None else None
+        if period is not None and len(cols["t_s"]) and cols["t_s"][-1] - cols["t_s"][0] >= period:
+            t = cols["t_s"]
+            sel = t >= t[-1] - period
+            p_peak, p_rmse = window_metrics(err[sel])
+            rows.append(f"<tr><td>last period {period:.1f} s</td><td>{_num(p_peak)}</td>"
+                        f"<td>{_num(p_rmse)}</td></tr>")
+        marks = self.client.counters.version_marks
+        changes = ""
+        if marks and len(cols["t_s"]):
+            t_now = cols["t_s"][-1]
+            recent = [m for m in marks if t_now - m.t_s <= 60.0]
+            if recent:
+                changes = "<div style='color:#8e44ad'>config changes: " + ", ".join(
+                    f"v{m.version} at {m.t_s - t_now:+.1f} s" for m in recent[-4:]) + "</div>"
+        return (
+            "<div class='dt-metrics' style='font-size:12px'><table style='width:100%'>"
+            "<tr><th></th><th>peak |e| (deg)</th><th>RMSE (deg)</th></tr>"
+            + "".join(rows) + "</table>" + changes + "</div>"
+        )
+
+    def _health_html(self, st: proto.Status | None) -> str:
+        ring = self.client.ring
+        c = self.client.counters
+        stream = (f"stream: {ring.batches} batches, {ring.gaps} samples lost, "
+                  f"{c.decode_errors} bad messages; refresh {self.stats.push_rate_hz():.0f} Hz")
+        if st is None:
+            return f"<div class='dt-health' style='font-size:12px'>{stream}</div>"
+        tm = st.timing
+        faults = ", ".join(st.faults) if st.faults else "none"
+        jitter = tm.period_p99_us - tm.period_p50_us
+        style = "color:#d62728" if st.faults or tm.overruns else ""
+        return (
+            f"<div class='dt-health' style='font-size:12px;{style}'>"
+            f"mode <b>{st.mode}</b>, plant {st.plant}, trajectory {st.trajectory.kind}<br>"
+            f"period p50 {tm.period_p50_us:.0f} us, p99 {tm.period_p99_us:.0f} us "
+            f"(jitter {jitter:.0f} us), max {tm.period_max_us:.0f} us; compute p99 "
+            f"{tm.compute_p99_us:.0f} us<br>overruns {tm.overruns}, skipped {tm.skipped_ticks}, "
+            f"faults: {faults}<br>{stream}</div>"
+        )
+
+
+def _num(v: float) -> str:
+    return "n/a" if math.isnan(v) else f"{v:.4f}"
