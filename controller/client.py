@@ -7,12 +7,12 @@ meant for worker threads, not for GUI callbacks.
 
 from __future__ import annotations
 
-import contextlib
+import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -22,7 +22,10 @@ from controller.zenoh_session import open_session
 
 __all__ = ["ClientOptions", "ControllerClient", "ControllerUnavailable", "StateRing"]
 
+log = logging.getLogger(__name__)
+
 COLUMNS = proto.STATE_COLUMNS
+M = TypeVar("M")
 
 
 class ControllerUnavailable(RuntimeError):
@@ -165,12 +168,7 @@ class ControllerClient:
             raise
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self._close()
 
     def _close(self) -> None:
@@ -179,39 +177,54 @@ class ControllerClient:
             self._thread.join(timeout=5.0)
             self._thread = None
         for s in self._subs:
-            with contextlib.suppress(Exception):
-                s.undeclare()
+            _quietly("undeclaring a subscriber", s.undeclare)
         self._subs = []
         if self._session is not None:
-            with contextlib.suppress(Exception):
-                self._session.close()
+            _quietly("closing the Zenoh session", self._session.close)
             self._session = None
 
     # -- the reader thread ---------------------------------------------------------------------
 
     def _reader(self) -> None:
         while not self._stop.is_set():
-            got = False
-            while True:
-                sample = self._state_sub.try_recv()
-                if sample is None:
-                    break
-                got = True
-                self._on_state(sample.payload.to_bytes())
-            sample = self._status_sub.try_recv()
-            while sample is not None:
-                got = True
-                self._on_status(sample.payload.to_bytes())
-                sample = self._status_sub.try_recv()
+            try:
+                got = self._drain()
+            except Exception:  # the reader must outlive any one message
+                log.exception("zenoh reader: unexpected error; going on")
+                got = False
             if not got:
                 self._stop.wait(0.004)
 
-    def _on_state(self, data: bytes) -> None:
+    def _drain(self) -> bool:
+        """Handle every queued state batch and status; True if there was any."""
+        got = False
+        for sub, handle in ((self._state_sub, self._on_state), (self._status_sub, self._on_status)):
+            sample = sub.try_recv()
+            while sample is not None:
+                got = True
+                handle(sample.payload.to_bytes())
+                sample = sub.try_recv()
+        return got
+
+    def _bad_message(self, error: str) -> None:
+        """Count a message that could not be used; log the first and then every 100th."""
+        c = self.counters
+        c.decode_errors += 1
+        c.last_decode_error = error
+        if c.decode_errors % 100 == 1:
+            log.warning("bad message from the controller (%d so far): %s", c.decode_errors, error)
+
+    def _decoded(self, decode: Callable[[], M]) -> M | None:
+        """`decode()`, or None (counted and logged) when the message is invalid."""
         try:
-            b = proto.decode(data, proto.StateBatch)
+            return decode()
         except proto.ProtocolError as exc:
-            self.counters.decode_errors += 1
-            self.counters.last_decode_error = str(exc)
+            self._bad_message(str(exc))
+            return None
+
+    def _on_state(self, data: bytes) -> None:
+        b = self._decoded(lambda: proto.decode(data, proto.StateBatch))
+        if b is None:
             return
         if b.rig != self.opts.rig_name:
             return
@@ -228,16 +241,15 @@ class ControllerClient:
         try:
             self.ring.append(b)
         except ValueError as exc:
-            self.counters.decode_errors += 1
-            self.counters.last_decode_error = str(exc)
+            self._bad_message(str(exc))
 
     def _on_status(self, data: bytes) -> None:
-        try:
-            st = proto.decode(data, proto.Status)
-        except proto.ProtocolError as exc:
-            self.counters.decode_errors += 1
-            self.counters.last_decode_error = str(exc)
+        st = self._decoded(lambda: proto.decode(data, proto.Status))
+        if st is None:
             return
+        if self._status is None:
+            log.info("first status from rig '%s': %s, config v%d", st.rig, st.mode,
+                     st.config_version)
         self._status = st
         self._status_at = time.monotonic()
         self.counters.status_count += 1
@@ -300,5 +312,14 @@ class ControllerClient:
         self.put_estop()
         try:
             return self.command(proto.EStop())
-        except ControllerUnavailable:
+        except ControllerUnavailable as exc:
+            log.warning("e-stop put sent; no reply to the EStop command: %s", exc)
             return None
+
+
+def _quietly(what: str, fn: Callable[[], Any]) -> None:
+    """Teardown that must go on: a failure is logged, not raised."""
+    try:
+        fn()
+    except Exception:
+        log.warning("%s failed", what, exc_info=True)

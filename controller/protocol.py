@@ -13,8 +13,10 @@ from typing import Any, TypeVar
 import msgspec
 
 from controller.core.config import LoopConfig
+from controller.core.samples import STATE_COLUMNS
 from controller.core.trajectory import Trajectory
 from controller.core.validate import split_msgspec_error
+from controller.ident.spec import IdentifySpec
 
 PROTOCOL_VERSION = 1
 KEY_PREFIX = "dobtune"
@@ -85,17 +87,8 @@ class StateBatch(_Msg, frozen=True, kw_only=True):
     mode: str = ""  # the mode during every sample of this batch ("" from older senders)
 
 
-#: The per-sample columns of StateBatch, in order (one list each).
-STATE_COLUMNS: tuple[str, ...] = (
-    "t_s",
-    "ref_deg",
-    "pos_deg",
-    "speed_deg_s",
-    "speed_ref_deg_s",
-    "command_deg_s",
-    "d_hat_deg_s",
-    "error_deg",
-)
+#: The per-sample columns of StateBatch, in order (one list each): `STATE_COLUMNS`, defined
+#: in controller.core.samples (the runtime stores the same columns).
 
 
 def state_batch(
@@ -205,41 +198,12 @@ class ResetFault(msgspec.Struct, frozen=True, kw_only=True, tag="reset"):
     pass
 
 
-class IdentifySpecMsg(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """The fields of `controller.ident.identify.IdentifySpec` that a remote run may set (same names,
-    units and defaults; validated again by IdentifySpec, errors name `body.spec.<field>`)."""
-
-    mode: str = "open"
-    signal: str = "sine"
-    f_min_hz: float = 0.1
-    f_max_hz: float = 20.0
-    points_per_decade: int = 10
-    positions: int = 3
-    span_deg: float = 360.0
-    first_position_deg: float = 0.0
-    amplitude_deg_s: float = 10.0
-    window_deg: float = 60.0
-    max_duration_s: float = 3600.0
-    offset_ratio: float = 2.0
-    min_offset_deg_s: float = 0.5
-    travel_fraction: float = 0.8
-    min_periods: int = 2
-    min_measure_s: float = 2.0
-    multisine_periods: int = 3
-    fit_f_lo_hz: float | None = None
-    fit_f_hi_hz: float | None = 10.0
-    fit_error_floor: float = 0.01
-    periodic_pitch_deg: float | None = 12.0
-    agreement_tol_db: float = 1.0
-    agreement_tol_deg: float = 10.0
-    move_speed_deg_s: float = 30.0
-    settle_s: float = 0.5
-
-
 class IdentifyStart(msgspec.Struct, frozen=True, kw_only=True, tag="identify_start"):
-    """Run an identification inside the loop (mode must be running or stopped)."""
+    """Run an identification inside the loop (mode must be running or stopped). The spec is
+    `controller.ident.spec.IdentifySpec` itself (validated on decode: errors name
+    `body.spec.<field>`, unknown fields included)."""
 
-    spec: IdentifySpecMsg = IdentifySpecMsg()
+    spec: IdentifySpec = msgspec.field(default_factory=IdentifySpec)
 
 
 class IdentifyAbort(msgspec.Struct, frozen=True, kw_only=True, tag="identify_abort"):

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable
 
-from controller.__main__ import COMMANDS as CONTROLLER_COMMANDS
+from controller.cli import Command, add_log_level, build_parser, controller_commands
 
 
 def add_dashboard_arguments(p: argparse.ArgumentParser) -> None:
@@ -23,8 +22,10 @@ def add_dashboard_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_dashboard_args(args: argparse.Namespace) -> int:
+    from controller.logs import setup_logging
     from server.app import DashboardOptions, run_dashboard
 
+    setup_logging(args.log_level, args.rig_name)
     connect = args.connect if args.connect is not None else ["tcp/127.0.0.1:7447"]
     return run_dashboard(
         DashboardOptions(
@@ -41,35 +42,45 @@ def add_demo_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_demo_args(args: argparse.Namespace) -> int:
+    from controller.logs import setup_logging
     from server.demo import DemoOptions, run_demo
 
+    setup_logging(args.log_level, args.rig_name)
     return run_demo(
         DemoOptions(
-            host=args.host, port=args.port, zenoh_port=args.zenoh_port, rig_name=args.rig_name
+            host=args.host,
+            port=args.port,
+            zenoh_port=args.zenoh_port,
+            rig_name=args.rig_name,
+            log_level=args.log_level,
         )
     )
 
 
-Command = tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
-COMMANDS: dict[str, Command] = {
-    **CONTROLLER_COMMANDS,
-    "dashboard": ("run the dashboard (viser)", add_dashboard_arguments, run_dashboard_args),
-    "demo": ("simulated controller + dashboard, prints the URL", add_demo_arguments, run_demo_args),
-}
+DASHBOARD = Command(
+    "dashboard", "run the dashboard (viser)", add_dashboard_arguments, run_dashboard_args,
+    long_running=True,
+)
+DEMO = Command(
+    "demo", "simulated controller + dashboard, prints the URL", add_demo_arguments,
+    run_demo_args, long_running=True,
+)
+
+
+def commands() -> dict[str, Command]:
+    return {**controller_commands(), DASHBOARD.name: DASHBOARD, DEMO.name: DEMO}
 
 
 def dobtune_main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="dobtune", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-    for name, (help_text, add_args, _run) in COMMANDS.items():
-        add_args(sub.add_parser(name, help=help_text, description=help_text))
-    args = parser.parse_args(argv)
-    return COMMANDS[args.command][2](args)
+    cmds = commands()
+    args = build_parser("dobtune", __doc__, cmds).parse_args(argv)
+    return cmds[args.command].run(args)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m server", description="dobtune dashboard")
     add_dashboard_arguments(parser)
+    add_log_level(parser)
     return run_dashboard_args(parser.parse_args(argv))
 
 

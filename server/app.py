@@ -8,24 +8,29 @@ binds 127.0.0.1 unless told otherwise, and share tunnels are disabled.
 from __future__ import annotations
 
 import contextlib
+import logging
 import signal
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig
 from controller.gate.analysis import MeasuredResponse
+from server.engine import TuningEngine, measured_from_csv
+from server.measured import read_measured
 from server.panels.identify import IdentifyPanel, NominalTuningPanel
 from server.panels.live import LivePanel
-from server.panels.tuning import TuningEngine
+from server.panels.widgets import esc
 from server.scene3d import TurntableScene
+from server.workers import Requests, run_logged
 
-__all__ = ["Dashboard", "DashboardOptions", "run_dashboard"]
+__all__ = ["Dashboard", "DashboardOptions", "run_dashboard", "stop_requested"]
+
+log = logging.getLogger(__name__)
 
 WEB_ASSETS = Path(__file__).resolve().parent.parent / "web_assets"
 
@@ -46,8 +51,25 @@ class DashboardOptions:
 def _asset(name: str, default: str = "") -> str:
     try:
         return (WEB_ASSETS / name).read_text(encoding="utf-8")
-    except OSError:
+    except OSError as exc:
+        log.warning("web asset %s unreadable (%s); showing a placeholder", name, exc)
         return default
+
+
+@contextlib.contextmanager
+def stop_requested() -> Iterator[threading.Event]:
+    """An event set by SIGINT or SIGTERM while the block runs (the old handlers come back)."""
+    stop = threading.Event()
+
+    def _handler(signum: int, _frame: Any) -> None:
+        stop.set()  # nothing else here: a signal handler must not take locks (logging does)
+
+    old = {s: signal.signal(s, _handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 class Dashboard:
@@ -65,12 +87,11 @@ class Dashboard:
         )
         self.server: Any = None
         self.engine = TuningEngine()
-        self._requests = ThreadPoolExecutor(max_workers=2, thread_name_prefix="ctl-request")
+        self._requests = Requests(max_workers=2, name="ctl-request")
         self.tuning: NominalTuningPanel | None = None
         self.identify: IdentifyPanel | None = None
         self.live: LivePanel | None = None
         self.scene: TurntableScene | None = None
-        self._fetched_active = threading.Event()
 
     @property
     def url(self) -> str:
@@ -80,38 +101,28 @@ class Dashboard:
     def __enter__(self) -> Dashboard:
         import viser
 
-        self.client.__enter__()
-        try:
+        with contextlib.ExitStack() as undo:
+            self.client.__enter__()
+            undo.push(self)  # a failure below closes what is open so far
             server = viser.ViserServer(host=self.opts.host, port=self.opts.port,
                                        verbose=self.opts.verbose)
             # Never open a public share tunnel from this app.
             server.request_share_url = lambda *a, **k: None  # type: ignore[method-assign]
             self.server = server
             self._build(server)
-        except BaseException:
-            self._close()
-            raise
+            undo.pop_all()
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self._close()
 
     def _close(self) -> None:
-        if self.live is not None:
-            self.live.stop()
-        if self.tuning is not None:
-            self.tuning.stop()
-        if self.identify is not None:
-            self.identify.stop()
-        self._requests.shutdown(wait=False, cancel_futures=True)
+        for panel in (self.live, self.tuning, self.identify):
+            if panel is not None:
+                panel.stop()
+        self._requests.shutdown()
         if self.server is not None:
-            with contextlib.suppress(Exception):
-                self.server.stop()
+            run_logged(self.server.stop, what="stopping the viser server")
             self.server = None
         self.client.__exit__(None, None, None)
 
@@ -160,10 +171,8 @@ class Dashboard:
         with plots.add_tab("Identify"):
             self.identify.build_charts()
         plots.dock_right()
-        with contextlib.suppress(Exception):
-            gui.main_panel.dock_left()
-        with contextlib.suppress(Exception):
-            plots.set_width(620)
+        run_logged(lambda: gui.main_panel.dock_left(), what="docking the controls left")
+        run_logged(plots.set_width, 620, what="sizing the plots panel")
         self.plots = plots
 
         server.on_client_connect(self._on_client_connect)
@@ -181,12 +190,12 @@ class Dashboard:
     def _fetch_active(self) -> None:
         try:
             reply = self.client.get_config()
-        except (ControllerUnavailable, proto.ProtocolError):
+        except (ControllerUnavailable, proto.ProtocolError) as exc:
+            log.warning("active config not fetched (the first status will bring it): %s", exc)
             return
         if self.tuning is not None:
             self.tuning.set_active(reply.config, reply.version)
             self.tuning.revert()
-        self._fetched_active.set()
 
     def _on_status(self, st: proto.Status) -> None:
         t = self.tuning
@@ -197,7 +206,6 @@ class Dashboard:
         t.set_trajectory(st.trajectory)
         if first:
             t.revert()
-            self._fetched_active.set()
 
     def _on_frame(self, latest: dict[str, float] | None) -> None:
         if latest is not None and self.scene is not None:
@@ -212,76 +220,78 @@ class Dashboard:
         try:
             reply = self.client.apply(cand)
         except (ControllerUnavailable, proto.ProtocolError) as exc:
+            log.warning("apply failed: %s", exc)
             t.show_error(str(exc))
             return
+        log.info("apply: %s, version %d", "accepted" if reply.accepted else "rejected",
+                 reply.version)
         t.show_reply(reply.accepted, reply.version, list(reply.reasons))
         t.set_active(reply.config, reply.version)
 
     def _command_async(self, body: proto.CommandBody) -> None:
         if isinstance(body, proto.EStop):
             # The put goes out at once from the callback; the reply is shown when it comes.
-            with contextlib.suppress(Exception):
+            try:
                 self.client.put_estop()
+            except Exception:
+                log.exception("e-stop put failed; the EStop command follows")
         self._requests.submit(self._command, body)
 
     def _command(self, body: proto.CommandBody) -> None:
         live = self.live
         assert live is not None
+        name = type(body).__name__
         try:
             reply = self.client.command(body)
         except (ControllerUnavailable, proto.ProtocolError) as exc:
-            live.command_result.content = (
-                f"<div class='dt-cmd' style='color:#d62728'>{type(body).__name__}: {exc}</div>")
+            log.warning("command %s failed: %s", name, exc)
+            live.command_result.content = _command_html(f"{name}: {esc(str(exc))}", False)
             return
-        color = "#2e7d32" if reply.ok else "#d62728"
-        live.command_result.content = (
-            f"<div class='dt-cmd' style='color:{color};font-size:12px'>{type(body).__name__}: "
-            f"{'ok' if reply.ok else 'refused'} {reply.message} (mode {reply.mode})</div>")
+        if not reply.ok:
+            log.warning("command %s refused: %s", name, reply.message)
+        live.command_result.content = _command_html(
+            f"{name}: {'ok' if reply.ok else 'refused'} {esc(reply.message)} "
+            f"(mode {reply.mode})", reply.ok)
 
     def _on_upload(self, event: Any) -> None:
         f = event.target.value
         self._requests.submit(self._load_measured, f.name, f.content)
 
     def _add_identified(self, m: MeasuredResponse) -> None:
-        self.engine.add_measured(m)
-        self.measured_text.content = (
-            f"<div class='dt-measured' style='font-size:12px'>{len(self.engine.measured)} "
-            f"measured response(s); last: {m.name} (Identify). The verdict now uses them.</div>")
+        self._add_measured(m, "Identify")
 
     def _load_measured(self, name: str, content: bytes) -> None:
-        from server.measured import read_measured
-        from server.panels.tuning import measured_from_csv
-
         try:
             measured = measured_from_csv(name, read_measured(name, content))
         except ValueError as exc:
+            log.warning("measured response %s not used: %s", name, exc)
             self.measured_text.content = (
-                f"<div class='dt-measured' style='color:#d62728'>{name}: {exc}</div>")
+                f"<div class='dt-measured' style='color:#d62728'>{esc(name)}: "
+                f"{esc(str(exc))}</div>")
             return
-        self.engine.add_measured(measured)
-        n = len(self.engine.measured)
-        self.measured_text.content = (
-            f"<div class='dt-measured' style='font-size:12px'>{n} measured response(s) loaded; "
-            f"last: {name}. The verdict now uses them.</div>")
+        self._add_measured(measured, "CSV")
         if self.tuning is not None:
             self.tuning.request_update()
+
+    def _add_measured(self, m: MeasuredResponse, source: str) -> None:
+        self.engine.add_measured(m)
+        n = len(self.engine.measured)
+        log.info("measured response %s added (%s); %d in the plant knowledge", m.name, source, n)
+        self.measured_text.content = (
+            f"<div class='dt-measured' style='font-size:12px'>{n} measured response(s); last: "
+            f"{esc(m.name)} ({source}). The verdict now uses them.</div>")
+
+
+def _command_html(text: str, ok: bool) -> str:
+    color = "#2e7d32" if ok else "#d62728"
+    return f"<div class='dt-cmd' style='color:{color};font-size:12px'>{text}</div>"
 
 
 def run_dashboard(opts: DashboardOptions) -> int:
     """Run until SIGINT/SIGTERM; returns the exit code."""
-    stop = threading.Event()
-
-    def _handler(signum: int, _frame: Any) -> None:
-        stop.set()
-
-    old = {s: signal.signal(s, _handler) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        with Dashboard(opts) as dash:
-            print(f"dobtune dashboard: {dash.url}  (rig '{opts.rig_name}' via "
-                  f"{', '.join(opts.connect)})", flush=True)
-            while not stop.wait(0.5):
-                pass
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+    with stop_requested() as stop, Dashboard(opts) as dash:
+        print(f"dobtune dashboard: {dash.url}  (rig '{opts.rig_name}' via "
+              f"{', '.join(opts.connect)})", flush=True)
+        while not stop.wait(0.5):
+            pass
     return 0

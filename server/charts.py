@@ -75,6 +75,14 @@ class ChartSpec:
     axes: tuple[dict[str, Any], ...]
     height: int = 220
     extra: dict[str, Any] = field(default_factory=dict)
+    #: What each series after x draws, in series order: for a Bode chart "cand.<field>" or
+    #: "act.<field>" of BodeCurves; for a live chart the ring column.
+    columns: tuple[str, ...] = ()
+
+    def placeholder(self, x: npt.ArrayLike) -> tuple[FloatArray, ...]:
+        """Data to create the chart with: `x` and zeros for every series."""
+        xs = np.asarray(x, dtype=np.float64)
+        return (xs, *([np.zeros_like(xs)] * (len(self.series) - 1)))
 
 
 def _line(label: str, stroke: str, *, dash: Sequence[float] = (), width: float = 1.5,
@@ -89,17 +97,45 @@ _LOG_X: dict[str, dict[str, Any]] = {
     "x": {"time": False, "distr": 3, "log": 10},
     "y": {"auto": True},
 }
+_HZ_AXIS = {"label": "Hz", "scale": "x"}
+_DASH_ACTIVE = (6, 4)
+_DASH_NO_DOB = (4, 3)
 
 
-def _bode_spec(key: str, title: str, *series: dict[str, Any], y_label: str = "dB",
-               scales: dict[str, dict[str, Any]] | None = None,
-               axes: tuple[dict[str, Any], ...] | None = None) -> ChartSpec:
+def _freq_chart(key: str, title: str, series: Sequence[dict[str, Any]], *, y_label: str = "dB",
+                scales: dict[str, dict[str, Any]] | None = None,
+                axes: tuple[dict[str, Any], ...] | None = None, height: int = 220,
+                extra: dict[str, Any] | None = None, columns: tuple[str, ...] = ()) -> ChartSpec:
+    """A chart over a log frequency axis."""
     return ChartSpec(
         key=key,
         title=title,
         series=({"label": "f (Hz)"}, *series),
-        scales=scales or _LOG_X,
-        axes=axes or ({"label": "Hz", "scale": "x"}, {"label": y_label, "scale": "y"}),
+        scales=scales or dict(_LOG_X),
+        axes=axes or (_HZ_AXIS, {"label": y_label, "scale": "y"}),
+        height=height,
+        extra=extra or {},
+        columns=columns,
+    )
+
+
+def _bode_spec(key: str, title: str, *series: tuple[dict[str, Any], str],
+               **options: Any) -> ChartSpec:
+    """A Bode chart; each series comes with the BodeCurves column it draws."""
+    return _freq_chart(key, title, [s for s, _ in series], columns=tuple(c for _, c in series),
+                       **options)
+
+
+def _dob_spec(key: str, title: str, dob: str, no_dob: str, labels: tuple[str, str, str],
+              ) -> ChartSpec:
+    """Candidate with and without the DOB, and the active configuration with it."""
+    with_dob, without_dob, active = labels
+    return _bode_spec(
+        key,
+        title,
+        (_line(with_dob, CANDIDATE), f"cand.{dob}"),
+        (_line(without_dob, NO_DOB, dash=_DASH_NO_DOB), f"cand.{no_dob}"),
+        (_line(active, ACTIVE, dash=_DASH_ACTIVE), f"act.{dob}"),
     )
 
 
@@ -107,81 +143,55 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
     _bode_spec(
         "open_loop",
         "Open loop Cv M P (speed loop)",
-        _line("|L| candidate", CANDIDATE),
-        _line("|L| active", ACTIVE, dash=(6, 4)),
-        _line("phase candidate", CANDIDATE, dash=(2, 3), width=1.0, scale="deg"),
-        _line("phase active", ACTIVE, dash=(2, 3), width=1.0, scale="deg"),
+        (_line("|L| candidate", CANDIDATE), "cand.open_loop_db"),
+        (_line("|L| active", ACTIVE, dash=_DASH_ACTIVE), "act.open_loop_db"),
+        (_line("phase candidate", CANDIDATE, dash=(2, 3), width=1.0, scale="deg"),
+         "cand.open_loop_phase_deg"),
+        (_line("phase active", ACTIVE, dash=(2, 3), width=1.0, scale="deg"),
+         "act.open_loop_phase_deg"),
         scales={**_LOG_X, "deg": {"auto": True}},
         axes=(
-            {"label": "Hz", "scale": "x"},
+            _HZ_AXIS,
             {"label": "dB", "scale": "y"},
             {"label": "deg", "scale": "deg", "side": 1, "grid": {"show": False}},
         ),
     ),
-    _bode_spec(
-        "closed_loop",
-        "Closed loop r -> w (15) vs (18)",
-        _line("with DOB", CANDIDATE),
-        _line("without DOB", NO_DOB, dash=(4, 3)),
-        _line("active", ACTIVE, dash=(6, 4)),
-    ),
-    _bode_spec(
-        "disturbance",
-        "Disturbance d -> w: (16) with DOB vs (18) without",
-        _line("(16) with DOB", CANDIDATE),
-        _line("(18) without DOB", NO_DOB, dash=(4, 3)),
-        _line("(16) active", ACTIVE, dash=(6, 4)),
-    ),
-    _bode_spec(
-        "noise",
-        "Noise zeta -> w (17)",
-        _line("(17) with DOB", CANDIDATE),
-        _line("(18) without DOB", NO_DOB, dash=(4, 3)),
-        _line("(17) active", ACTIVE, dash=(6, 4)),
-    ),
+    _dob_spec("closed_loop", "Closed loop r -> w (15) vs (18)", "closed_dob_db",
+              "closed_nodob_db", ("with DOB", "without DOB", "active")),
+    _dob_spec("disturbance", "Disturbance d -> w: (16) with DOB vs (18) without", "dist_dob_db",
+              "dist_nodob_db", ("(16) with DOB", "(18) without DOB", "(16) active")),
+    _dob_spec("noise", "Noise zeta -> w (17)", "noise_dob_db", "noise_nodob_db",
+              ("(17) with DOB", "(18) without DOB", "(17) active")),
     _bode_spec(
         "rejection",
         "DOB rejection gain |E_without / E_with| (23): > 0 dB where the DOB helps",
-        _line("candidate", CANDIDATE),
-        _line("active", ACTIVE, dash=(6, 4)),
+        (_line("candidate", CANDIDATE), "cand.rejection_db"),
+        (_line("active", ACTIVE, dash=_DASH_ACTIVE), "act.rejection_db"),
     ),
     _bode_spec(
         "small_gain",
         "Small gain: |Q| vs 1/|Delta|",
-        _line("|Q| candidate", CANDIDATE),
-        _line("|Q| active", ACTIVE, dash=(6, 4)),
-        _line("1/|Delta| bound", BOUND, dash=(4, 3)),
-        _line("1/|Delta| measured", MEASURED, width=2.0),
+        (_line("|Q| candidate", CANDIDATE), "cand.q_db"),
+        (_line("|Q| active", ACTIVE, dash=_DASH_ACTIVE), "act.q_db"),
+        (_line("1/|Delta| bound", BOUND, dash=_DASH_NO_DOB), "cand.inv_delta_db"),
+        (_line("1/|Delta| measured", MEASURED, width=2.0), "cand.inv_delta_measured_db"),
     ),
 )
+_BODE_BY_KEY = {spec.key: spec for spec in BODE_CHARTS}
 
 
 def bode_data(key: str, cand: BodeCurves, active: BodeCurves | None) -> tuple[FloatArray, ...]:
-    """The uPlot data tuple of chart `key`; the active curves must share the candidate's grid."""
+    """The uPlot data tuple of chart `key`; the active curves must share the candidate's grid.
+    A curve the configuration does not have (no measured response, say) is all NaN."""
     act = active if active is not None and active.freq_hz.shape == cand.freq_hz.shape else cand
     nan = np.full_like(cand.freq_hz, np.nan)
-    cols: tuple[FloatArray, ...]
-    if key == "open_loop":
-        cols = (cand.open_loop_db, act.open_loop_db, cand.open_loop_phase_deg,
-                act.open_loop_phase_deg)
-    elif key == "closed_loop":
-        cols = (cand.closed_dob_db, cand.closed_nodob_db, act.closed_dob_db)
-    elif key == "disturbance":
-        cols = (cand.dist_dob_db, cand.dist_nodob_db, act.dist_dob_db)
-    elif key == "noise":
-        cols = (cand.noise_dob_db, cand.noise_nodob_db, act.noise_dob_db)
-    elif key == "rejection":
-        cols = (
-            cand.rejection_db if cand.rejection_db is not None else nan,
-            act.rejection_db if act.rejection_db is not None else nan,
-        )
-    elif key == "small_gain":
-        bound = cand.inv_delta_db if cand.inv_delta_db is not None else nan
-        meas = cand.inv_delta_measured_db if cand.inv_delta_measured_db is not None else nan
-        cols = (cand.q_db, act.q_db, bound, meas)
-    else:
-        raise KeyError(key)
-    return (cand.freq_hz, *(np.asarray(c, dtype=np.float64) for c in cols))
+    sources = {"cand": cand, "act": act}
+    cols = []
+    for column in _BODE_BY_KEY[key].columns:
+        which, name = column.split(".")
+        y = getattr(sources[which], name)
+        cols.append(nan if y is None else np.asarray(y, dtype=np.float64))
+    return (cand.freq_hz, *cols)
 
 
 # -- time domain --------------------------------------------------------------------------------
@@ -228,7 +238,7 @@ PREVIEW_CHART = ChartSpec(
     series=(
         {"label": "t (s)"},
         _line("candidate", CANDIDATE),
-        _line("active", ACTIVE, dash=(6, 4)),
+        _line("active", ACTIVE, dash=_DASH_ACTIVE),
     ),
     scales=_LIN_X,
     axes=(_T_AXIS, {"label": "deg", "scale": "y"}),
@@ -245,12 +255,18 @@ def preview_data(
     return (x, *ys)
 
 
-def _live_spec(key: str, title: str, unit: str, *series: dict[str, Any]) -> ChartSpec:
+#: The time axis of a live chart before any sample arrived, s.
+LIVE_EMPTY_T = (-1.0, 0.0)
+
+
+def _live_spec(key: str, title: str, unit: str, *series: tuple[dict[str, Any], str]
+               ) -> ChartSpec:
+    """A live chart; each series comes with its ring column; the config version comes last."""
+    version = _line("config v", "#8e44ad", width=1.0, scale="ver")
     return ChartSpec(
         key=key,
         title=title,
-        series=({"label": "t (s)"}, *series, _line("config v", "#8e44ad", width=1.0,
-                                                     scale="ver")),
+        series=({"label": "t (s)"}, *(s for s, _ in series), version),
         scales={**_LIN_X, "ver": {"auto": True}},
         axes=(
             _T_AXIS,
@@ -258,30 +274,27 @@ def _live_spec(key: str, title: str, unit: str, *series: dict[str, Any]) -> Char
             {"label": "config v", "scale": "ver", "side": 1, "grid": {"show": False}},
         ),
         height=170,
+        columns=tuple(c for _, c in series),
     )
 
 
 #: Live charts; the last series of each is the active config version (a step marks a change).
 LIVE_CHARTS: tuple[ChartSpec, ...] = (
-    _live_spec("error", "Position error", "deg", _line("error", "#c0392b")),
+    _live_spec("error", "Position error", "deg", (_line("error", "#c0392b"), "error_deg")),
     _live_spec(
         "speed",
         "Load speed vs speed reference",
         "deg/s",
-        _line("speed w", CANDIDATE),
-        _line("reference r", NO_DOB, dash=(4, 3)),
+        (_line("speed w", CANDIDATE), "speed_deg_s"),
+        (_line("reference r", NO_DOB, dash=_DASH_NO_DOB), "speed_ref_deg_s"),
     ),
-    _live_spec("d_hat", "Disturbance estimate d_hat", "deg/s", _line("d_hat", "#16a085")),
-    _live_spec("command", "Speed command u", "deg/s", _line("u", "#34495e")),
+    _live_spec("d_hat", "Disturbance estimate d_hat", "deg/s",
+               (_line("d_hat", "#16a085"), "d_hat_deg_s")),
+    _live_spec("command", "Speed command u", "deg/s", (_line("u", "#34495e"), "command_deg_s")),
 )
 
-#: Ring-buffer columns used by each live chart, in series order.
-LIVE_COLUMNS: dict[str, tuple[str, ...]] = {
-    "error": ("error_deg",),
-    "speed": ("speed_deg_s", "speed_ref_deg_s"),
-    "d_hat": ("d_hat_deg_s",),
-    "command": ("command_deg_s",),
-}
+#: Ring-buffer columns used by each live chart, in series order (before the version).
+LIVE_COLUMNS: dict[str, tuple[str, ...]] = {spec.key: spec.columns for spec in LIVE_CHARTS}
 
 
 def live_data(
@@ -289,11 +302,7 @@ def live_data(
 ) -> dict[str, tuple[FloatArray, ...]]:
     """Per live chart, its decimated data with time relative to the newest sample (<= 0)."""
     if len(t_s) == 0:
-        z = np.zeros(2)
-        empty: dict[str, tuple[FloatArray, ...]] = {}
-        for spec in LIVE_CHARTS:
-            empty[spec.key] = (np.array([-1.0, 0.0]), *([z] * (len(spec.series) - 1)))
-        return empty
+        return {spec.key: spec.placeholder(LIVE_EMPTY_T) for spec in LIVE_CHARTS}
     t_rel = t_s - t_s[-1]
     names = [c for cols in LIVE_COLUMNS.values() for c in cols]
     x, ys = minmax_decimate(t_rel, [columns[c] for c in names] + [version], max_points)
@@ -353,36 +362,17 @@ def identify_chart_specs(n_positions: int) -> tuple[ChartSpec, ...]:
         mag.append(_line(f"pos {k + 1} +std", _rgba(c, 0.35), width=0.5))
         mag.append(_line(f"pos {k + 1} -std", _rgba(c, 0.35), width=0.5))
         bands.append({"series": (i + 1, i + 2), "fill": _rgba(c, 0.15)})
-    fit = _line("fit Mn Pn", FIT, dash=(6, 4), width=1.5)
+    fit = _line("fit Mn Pn", FIT, dash=_DASH_ACTIVE, width=1.5)
     fit["spanGaps"] = True
     phase = [_points(f"pos {k + 1} phase", c) for k, c in enumerate(colors)]
     coh = [_points(f"pos {k + 1} coherence", c) for k, c in enumerate(colors)]
     return (
-        ChartSpec(
-            key="identify_mag",
-            title="Measured |G| = |w/u| with +-1 std band, and the fit",
-            series=({"label": "f (Hz)"}, *mag, fit),
-            scales=dict(_LOG_X),
-            axes=({"label": "Hz", "scale": "x"}, {"label": "dB", "scale": "y"}),
-            height=240,
-            extra={"bands": tuple(bands)},
-        ),
-        ChartSpec(
-            key="identify_phase",
-            title="Measured phase of w/u, and the fit",
-            series=({"label": "f (Hz)"}, *phase, dict(fit, label="fit phase")),
-            scales=dict(_LOG_X),
-            axes=({"label": "Hz", "scale": "x"}, {"label": "deg", "scale": "y"}),
-            height=200,
-        ),
-        ChartSpec(
-            key="identify_coherence",
-            title="Coherence",
-            series=({"label": "f (Hz)"}, *coh),
-            scales={"x": _LOG_X["x"], "y": {"auto": False, "range": (0.0, 1.05)}},
-            axes=({"label": "Hz", "scale": "x"}, {"label": "", "scale": "y"}),
-            height=150,
-        ),
+        _freq_chart("identify_mag", "Measured |G| = |w/u| with +-1 std band, and the fit",
+                    (*mag, fit), height=240, extra={"bands": tuple(bands)}),
+        _freq_chart("identify_phase", "Measured phase of w/u, and the fit",
+                    (*phase, dict(fit, label="fit phase")), y_label="deg", height=200),
+        _freq_chart("identify_coherence", "Coherence", coh, y_label="", height=150,
+                    scales={"x": _LOG_X["x"], "y": {"auto": False, "range": (0.0, 1.05)}}),
     )
 
 

@@ -42,6 +42,14 @@ def belt_path(n: int = 200) -> tuple[np.ndarray, float]:
     return pts, float(seg.sum())
 
 
+def _add_pulley(scene: Any, wheel: str, mark: str, radius: float, mark_width: float) -> None:
+    """A pulley at belt height in its parent frame, with a radial mark to see it turn."""
+    scene.add_cylinder(wheel, radius=radius, height=0.025, color=(180, 140, 60),
+                       position=(0.0, 0.0, BELT_Z))
+    scene.add_box(mark, dimensions=(radius, mark_width, 0.028), color=(90, 60, 20),
+                  position=(radius / 2, 0.0, BELT_Z))
+
+
 class TurntableScene:
     """Scene handles; `update(load_deg, ref_deg)` only moves existing nodes."""
 
@@ -63,15 +71,9 @@ class TurntableScene:
                            position=(0.0, 0.0, TABLE_Z))
         scene.add_box("/load/pointer", dimensions=(TABLE_R * 0.9, 0.02, 0.012),
                       color=(31, 119, 180), position=(TABLE_R * 0.45, 0.0, TABLE_Z + 0.016))
-        scene.add_cylinder("/load/pulley", radius=LOAD_PULLEY_R, height=0.025,
-                           color=(180, 140, 60), position=(0.0, 0.0, BELT_Z))
-        scene.add_box("/load/pulley_mark", dimensions=(LOAD_PULLEY_R, 0.008, 0.028),
-                      color=(90, 60, 20), position=(LOAD_PULLEY_R / 2, 0.0, BELT_Z))
+        _add_pulley(scene, "/load/pulley", "/load/pulley_mark", LOAD_PULLEY_R, 0.008)
         self.motor = scene.add_frame("/motor_pulley", show_axes=False, position=(MOTOR_X, 0, 0))
-        scene.add_cylinder("/motor_pulley/wheel", radius=MOTOR_PULLEY_R, height=0.025,
-                           color=(180, 140, 60), position=(0.0, 0.0, BELT_Z))
-        scene.add_box("/motor_pulley/mark", dimensions=(MOTOR_PULLEY_R, 0.006, 0.028),
-                      color=(90, 60, 20), position=(MOTOR_PULLEY_R / 2, 0.0, BELT_Z))
+        _add_pulley(scene, "/motor_pulley/wheel", "/motor_pulley/mark", MOTOR_PULLEY_R, 0.006)
         segs = np.stack([self._path[:-1], self._path[1:]], axis=1)
         scene.add_line_segments("/belt", points=segs, colors=(30, 30, 30), thickness=0.006)
         self.markers = scene.add_point_cloud(

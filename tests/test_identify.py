@@ -1,16 +1,14 @@
-"""Identification on the loop against the simulated rig, and the `dobtune identify` command.
+"""The `dobtune identify` command (offline on the simulated rig; `--connect` without a
+controller). Its runs through a controller are in tests/integration/test_identify_remote.py.
 
-Reference: the article's M(s)P(s) (control.md eqs. 33-34), built with python-control; the
-simulated rig's small-signal response is within 0.3 dB / 2.3 deg of it up to 5 Hz.
+Reference: the article's M(s)P(s) (control.md eqs. 33-34), built with python-control.
 """
 
 from __future__ import annotations
 
 import io
-import itertools
 import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,17 +23,9 @@ from controller.cli.identify import (
     EXIT_OK,
     identify_main,
 )
-from controller.core.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM, LoopConfig
-from controller.core.errors import ConfigError
+from controller.core.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM
 from controller.ident.estimate import read_frd_csv
-from controller.ident.identify import (
-    PHASE_ABORT,
-    PHASE_EXCITE,
-    IdentifyAborted,
-    IdentifyResult,
-    IdentifySpec,
-    run_identification,
-)
+from controller.ident.spec import IdentifySpec
 from controller.sim.sim_rig import SimRig
 
 MP = control.tf([1.0], list(ARTICLE_MN_DEN)) * control.tf(
@@ -44,241 +34,37 @@ MP = control.tf([1.0], list(ARTICLE_MN_DEN)) * control.tf(
 WN_TRUE = math.sqrt(1935.0)  # rad/s: M(s)P(s) = 1935 / (s^2 + 62.2 s + 1935)
 ZETA_TRUE = 62.2 / (2.0 * WN_TRUE)
 
-#: Shorter than the defaults (fewer frequencies and periods) but the same band shape.
-FAST: dict[str, Any] = {"points_per_decade": 6, "min_measure_s": 1.0}
-
 
 def _mp(freq_hz: np.ndarray) -> np.ndarray:
     resp = control.frequency_response(MP, 2.0 * np.pi * freq_hz)
     return np.asarray(resp.complex).ravel()
 
 
-def _errors(result: IdentifyResult, f_hi: float = 5.0) -> list[tuple[float, float]]:
-    """Max |dB| and |deg| error against M(s)P(s) from 0.1 Hz to f_hi, per position."""
-    out = []
-    for p in result.positions:
-        assert p.estimate is not None
-        f = p.estimate.freq_hz
-        m = (f >= 0.1 - 1e-9) & (f <= f_hi + 1e-9)
-        ratio = p.estimate.response[m] / _mp(f[m])
-        out.append(
-            (
-                float(np.max(np.abs(20.0 * np.log10(np.abs(ratio))))),
-                float(np.max(np.abs(np.degrees(np.angle(ratio))))),
-            )
-        )
-    return out
-
-
-@pytest.fixture(scope="module")
-def open_sine() -> IdentifyResult:
-    spec = IdentifySpec(mode="open", signal="sine", f_min_hz=0.1, f_max_hz=20.0, **FAST)
-    return run_identification(spec, LoopConfig())
-
-
-@pytest.fixture(scope="module")
-def closed_sine() -> IdentifyResult:
-    spec = IdentifySpec(
-        mode="closed", signal="sine", f_min_hz=0.1, f_max_hz=10.0, positions=2, **FAST
-    )
-    return run_identification(spec, LoopConfig())
-
-
-# ----------------------------------------------------------------------- simulated rig
-
-
-@pytest.mark.parametrize("which", ["open_sine", "closed_sine"])
-def test_response_matches_mp_within_1p5_db_and_10_deg(
-    which: str, request: pytest.FixtureRequest
-) -> None:
-    result: IdentifyResult = request.getfixturevalue(which)
-    assert result.complete
-    f = result.positions[0].estimate.freq_hz  # type: ignore[union-attr]
-    in_band = f[(f >= 0.1 - 1e-9) & (f <= 5.0)]
-    assert in_band[0] == pytest.approx(0.1) and in_band[-1] > 4.0 and in_band.size >= 10
-    for db, deg in _errors(result):
-        assert db < 1.5 and deg < 10.0  # observed: 0.27 dB, 1.3 deg
-        assert db < 0.5 and deg < 3.0  # tighter: what the simulated rig supports
-
-
-def test_multisine_open_and_closed_match_mp() -> None:
-    for mode in ("open", "closed"):
-        spec = IdentifySpec(
-            mode=mode, signal="multisine", f_max_hz=10.0, positions=1, points_per_decade=6
-        )
-        result = run_identification(spec, LoopConfig())
-        for db, deg in _errors(result):
-            assert db < 1.5 and deg < 10.0, mode
-
-
-def test_fit_recovers_natural_frequency_and_damping(
-    open_sine: IdentifyResult, closed_sine: IdentifyResult
-) -> None:
-    for result in (open_sine, closed_sine):
-        fit = result.fit
-        assert fit is not None and fit.converged
-        assert fit.wn_rad_s == pytest.approx(WN_TRUE, rel=0.10)
-        assert fit.zeta == pytest.approx(ZETA_TRUE, rel=0.10)
-        assert fit.dc_gain == pytest.approx(1.0)
-        # reported uncertainties are finite and small next to the 10 % tolerance
-        assert 0 < fit.wn_std_rad_s < 0.05 * WN_TRUE and 0 < fit.zeta_std < 0.05
-        assert result.nominal is not None
-        prod = np.polymul(result.nominal.mn_den, result.nominal.pn_den)
-        assert np.allclose(np.polydiv(prod, result.nominal.pn_num)[0], fit.den, rtol=1e-6)
-
-
-def test_agreement_and_uncertainty_are_reported(open_sine: IdentifyResult) -> None:
-    agree = open_sine.agreement
-    assert agree is not None
-    # the simulated rig's only position-dependent effects are the 30/rev belt teeth, the same
-    # at 0/120/240 deg: the curves agree over the whole band
-    assert agree.agree_below_hz == pytest.approx(open_sine.positions[0].estimate.freq_hz[-1])  # type: ignore[union-attr]
-    assert np.max(agree.spread_db) < 0.2
-    unc = open_sine.uncertainty
-    assert unc is not None and unc.delta.shape[0] == 3
-    f = unc.freq_hz
-    assert np.max(unc.bound[f <= 5.0]) < 0.1  # within 10 % of the fit below 5 Hz
-
-
-def test_recommended_q31_is_accepted_and_1p5x_is_rejected(open_sine: IdentifyResult) -> None:
-    rec = open_sine.recommended_cutoff_hz
-    assert set(rec) == {"q31", "q20"}
-    r31 = rec["q31"]
-    assert r31 is not None and 0.5 < r31 < 50.0
-    at, above = open_sine.gate_checks
-    assert at.cutoff_hz == pytest.approx(r31) and at.accepted and not at.reasons
-    assert above.cutoff_hz == pytest.approx(1.5 * r31)
-    assert not above.accepted and above.reasons  # rejected, with the reasons
-
-
-def test_limit_hit_aborts_cleanly_back_to_hold() -> None:
-    @dataclass
-    class Push:
-        """Someone shoves the table: a load torque beyond what the drive can hold, briefly."""
-
-        t0_s: float
-        duration_s: float = 0.15
-        amplitude_n_m: float = 40.0
-
-        def torque_n_m(self, time_s: float) -> float:
-            return self.amplitude_n_m if self.t0_s <= time_s < self.t0_s + self.duration_s else 0.0
-
-    spec = IdentifySpec(
-        f_min_hz=0.5, f_max_hz=5.0, points_per_decade=4, min_measure_s=1.0, positions=2,
-        window_deg=20.0, hold_s=3.0,
-    )  # fmt: skip
-    # an undisturbed run takes ~56 s; the shove comes during the second position's 2nd point
-    rig = SimRig(disturbance=Push(t0_s=42.0))
-    with pytest.raises(IdentifyAborted) as info:
-        run_identification(spec, LoopConfig(), rig_factory=lambda: rig)
-    err = info.value
-    assert err.limit == "window" and "position window" in str(err)
-    result = err.result
-    assert not result.complete and result.abort_reason == err.reason
-    first, second = result.positions
-    assert first.complete and first.estimate is not None
-    assert not second.complete and 0 < second.points_done < second.points_total
-    assert second.estimate is not None  # the frequencies completed are kept
-    assert second.estimate.freq_hz.size == second.points_done
-    assert result.fit is None and result.recommended_cutoff_hz == {}
-    raw = second.raw
-    abort = np.flatnonzero(raw.phase == PHASE_ABORT)
-    assert abort.size and abort[-1] == raw.phase.size - 1  # the run ends in the abort phase
-    start = abort[0]
-    assert np.all(raw.phase[:start] != PHASE_ABORT) and raw.phase[start - 1] == PHASE_EXCITE
-    assert abs(raw.pos_deg[start] - second.center_deg) > spec.window_deg
-    n_stop = round(spec.stop_s * 1000.0)
-    assert np.all(raw.u_deg_s[start : start + n_stop] == 0.0)  # command 0 first
-    hold = slice(start + n_stop, None)
-    assert np.all(raw.x_deg_s[hold] == 0.0) and np.all(raw.offset_deg_s[hold] == 0.0)
-    assert np.any(raw.u_deg_s[hold] != 0.0)  # the position loop is acting
-    # then the position loop holds where the load stopped: over the last second the speed
-    # averages ~0 and the position stays within the stiction limit cycle (control.md, 5.)
-    ref = raw.pos_deg[start + n_stop]
-    tail = slice(-1000, None)
-    assert abs(float(np.mean(raw.w_deg_s[tail]))) < 0.2
-    assert np.max(np.abs(raw.pos_deg[tail] - ref)) < 0.25
-    assert np.ptp(raw.pos_deg[tail]) < 0.25
-
-
-def test_duration_and_window_are_checked_before_anything_moves() -> None:
-    with pytest.raises(ConfigError, match=r"^max_duration_s"):
-        run_identification(IdentifySpec(max_duration_s=10.0), LoopConfig())
-    with pytest.raises(ConfigError, match=r"^window_deg"):
-        run_identification(IdentifySpec(window_deg=1.0), LoopConfig())
-    with pytest.raises(ConfigError, match=r"^amplitude_deg_s"):
-        run_identification(IdentifySpec(amplitude_deg_s=40.0), LoopConfig())
-    with pytest.raises(ConfigError, match=r"^f_max_hz"):
-        run_identification(IdentifySpec(f_max_hz=600.0), LoopConfig())
-
-
-@pytest.mark.parametrize(
-    ("field", "value"),
-    [
-        ("mode", "sideways"),
-        ("signal", "chirp"),
-        ("f_min_hz", -1.0),
-        ("f_max_hz", math.nan),
-        ("positions", 0),
-        ("positions", 2.5),
-        ("amplitude_deg_s", 0.0),
-        ("window_deg", "wide"),
-        ("offset_ratio", 1.0),
-        ("max_duration_s", -5.0),
-    ],
-)
-def test_spec_validation_names_the_field(field: str, value: object) -> None:
-    with pytest.raises(ConfigError, match=rf"^{field}:"):
-        IdentifySpec(**{field: value})  # type: ignore[arg-type]
-
-
-def test_spec_positions_are_evenly_spread() -> None:
-    assert IdentifySpec().centers_deg == (0.0, 120.0, 240.0)
-    assert IdentifySpec(positions=4, span_deg=90.0, first_position_deg=10.0).centers_deg == (
-        10.0,
-        32.5,
-        55.0,
-        77.5,
-    )
-    with pytest.raises(ConfigError, match=r"^f_min_hz"):
-        IdentifySpec(f_min_hz=5.0, f_max_hz=1.0)
-
-
-def test_progress_is_reported_and_reaches_one() -> None:
-    seen: list[tuple[float, str]] = []
-    spec = IdentifySpec(
-        f_min_hz=1.0, f_max_hz=10.0, points_per_decade=2, positions=2, min_measure_s=0.5
-    )
-    run_identification(spec, LoopConfig(), progress=lambda f, t: seen.append((f, t)))
-    fractions = [f for f, _ in seen]
-    assert fractions[-1] == 1.0 and all(0.0 <= f <= 1.0 for f in fractions)
-    assert all(b >= a for a, b in itertools.pairwise(fractions))
-    assert any("position 2/2" in t and "Hz" in t for _, t in seen)
-
-
-# ------------------------------------------------------------------------------- the CLI
-
 SHORT: dict[str, Any] = {"points_per_decade": 3, "min_measure_s": 1.0}
 
 
-def _cli(tmp_path: Path, **kw: object) -> tuple[int, str, str]:
+def _cli(tmp_path: Path, **kw: Any) -> tuple[int, str, str]:
+    """identify_main with the options of a short run; spec fields and options in `kw`."""
     out, err = io.StringIO(), io.StringIO()
-    args: dict[str, object] = {
-        "plant": "sim",
-        "connect": None,
-        "rig_name": None,
+    spec_fields: dict[str, Any] = {
         "mode": "open",
         "signal": "sine",
         "f_min_hz": 0.5,
         "f_max_hz": 12.0,
         "positions": 2,
         "amplitude_deg_s": 10.0,
+        **SHORT,
+    }
+    args: dict[str, Any] = {
+        "plant": "sim",
+        "connect": None,
+        "rig_name": None,
         "out_dir": tmp_path / "id",
         "as_json": False,
-        "spec_overrides": SHORT,
     }
-    args.update(kw)
-    code = identify_main(out=out, err=err, **args)  # type: ignore[arg-type]
+    for name, value in kw.items():
+        (spec_fields if name in spec_fields else args)[name] = value
+    code = identify_main(spec_fields=spec_fields, out=out, err=err, **args)
     return code, out.getvalue(), err.getvalue()
 
 
@@ -388,11 +174,10 @@ def test_cli_connect_without_a_controller_is_a_clear_error(tmp_path: Path) -> No
 def test_identify_subcommand_is_registered() -> None:
     import argparse
 
-    from controller.__main__ import COMMANDS
+    from controller.cli import controller_commands
 
-    _, add_args, _ = COMMANDS["identify"]
     p = argparse.ArgumentParser()
-    add_args(p)
+    controller_commands()["identify"].add_arguments(p)
     args = p.parse_args(
         [
             *("--plant", "sim", "--mode", "closed", "--signal", "multisine"),
@@ -410,10 +195,27 @@ def test_identify_subcommand_is_registered() -> None:
     assert (args.positions, args.amplitude_deg_s, args.out, args.json) == (2, 5.0, Path("x"), True)
 
 
-def test_fit_band_without_data_is_widened_and_noted() -> None:
-    spec = IdentifySpec(f_min_hz=12.0, f_max_hz=40.0, positions=1, min_measure_s=0.5)
-    result = run_identification(spec, LoopConfig())
-    assert result.complete and result.fit is not None
-    f = result.positions[0].estimate.freq_hz  # type: ignore[union-attr]
-    assert result.fit.f_lo_hz == f[0] and result.fit.n_points == f.size
-    assert any("fit band" in n for n in result.notes)
+def test_identify_options_are_the_specs_with_their_defaults() -> None:
+    """The options generated from the spec's metadata: the same flags, defaults and
+    placeholders as ever, and the spec's help text."""
+    import argparse
+
+    from controller.cli import controller_commands
+
+    p = argparse.ArgumentParser()
+    controller_commands()["identify"].add_arguments(p)
+    args = p.parse_args([])
+    assert (args.mode, args.signal, args.f_min_hz, args.f_max_hz) == ("open", "sine", 0.1, 20.0)
+    assert (args.positions, args.amplitude_deg_s) == (3, 10.0)
+    assert (args.plant, args.connect, args.out, args.json) == (None, None, Path("identify-out"),
+                                                               False)
+    usage = " ".join(p.format_usage().split())
+    for option in ("[--mode open|closed]", "[--signal sine|multisine]", "[--f-min HZ]",
+                   "[--f-max HZ]", "[--positions N]", "[--amplitude DEG_S]"):
+        assert option in usage, usage
+    assert "largest excitation amplitude" in p.format_help()
+    spec = IdentifySpec(**{f: getattr(args, f) for f in (
+        "mode", "signal", "f_min_hz", "f_max_hz", "positions", "amplitude_deg_s")})
+    assert spec == IdentifySpec()  # the command's defaults are the spec's
+
+

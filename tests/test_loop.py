@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
+from controller.core import loop as loop_module
 from controller.core.config import LoopConfig
 from controller.core.discrete import SosFilter
 from controller.core.loop import LoopCoefficients, ServoLoop
@@ -166,6 +167,16 @@ def test_dob_switched_on_mid_run_is_bumpless() -> None:
         rig.step(u[k])
     assert _jump_fraction(u, 10000) < 0.05
     assert loop.active.version == 2
+
+
+def test_the_swap_only_takes_prepared_filters(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Filters are built by `request` (the requesting thread), not by the tick that swaps."""
+    loop = ServoLoop(LoopCoefficients.build(LoopConfig()))
+    loop.request(LoopCoefficients.build(LoopConfig(q_cutoff_hz=1.0), version=1))
+    monkeypatch.setattr(loop_module, "SosFilter", None)  # building one now would fail
+    monkeypatch.setattr(loop_module, "design_dob", None)
+    assert math.isfinite(loop.tick(1.0, 0.0, 0.0, 0.0))
+    assert loop.active.version == 1
 
 
 def test_naive_filter_swap_would_jump() -> None:

@@ -59,21 +59,3 @@ def test_rejections_name_the_field(payload: bytes, kind: type, field: str) -> No
         proto.decode(payload, kind)
     assert info.value.field == field, str(info.value)
     assert str(info.value).startswith(f"{field}: ")
-
-
-def test_identify_spec_message_mirrors_identify_spec() -> None:
-    """protocol.IdentifySpecMsg repeats controller.ident.identify.IdentifySpec (the protocol cannot
-    import identify: identify -> runtime -> protocol). Same fields and defaults, or drift."""
-    import dataclasses
-
-    from controller.ident.identify import IdentifySpec
-
-    spec_defaults = {f.name: f.default for f in dataclasses.fields(IdentifySpec)}
-    msg_defaults = msgspec.structs.asdict(proto.IdentifySpecMsg())
-    for name, value in msg_defaults.items():
-        assert name in spec_defaults, f"IdentifySpecMsg.{name} is not an IdentifySpec field"
-        assert spec_defaults[name] == value, name
-    # Offline-only: the simulated rig's seed, and how an offline abort records its stop/hold
-    # (the controller stops and holds by itself).
-    missing = set(spec_defaults) - set(msg_defaults) - {"seed", "stop_s", "hold_s"}
-    assert not missing, f"IdentifySpec fields a remote run cannot set: {sorted(missing)}"

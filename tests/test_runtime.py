@@ -6,26 +6,33 @@ import itertools
 import threading
 import tracemalloc
 from collections.abc import Sequence
+from typing import Any
 
 import pytest
 
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
+from controller.ident.program import ExcitationProgram
+from controller.process.requests import (
+    AbortProgram,
+    ApplyCoefficients,
+    EStop,
+    ResetFault,
+    RunProgram,
+    SetTrajectory,
+    Start,
+    Stop,
+)
 from controller.process.runtime import (
     COLUMNS,
     ESTOP,
     FAULT,
     RUNNING,
     STOPPED,
-    AbortProgram,
-    ApplyCoefficients,
-    ExcitationProgram,
-    RunProgram,
     Runtime,
     RuntimeOptions,
 )
-from controller.protocol import EStop, ResetFault, SetTrajectory, Start, Stop
 from controller.sim.sim_rig import SimRig
 
 CMD = COLUMNS.index("command_deg_s")
@@ -83,6 +90,42 @@ def make_loop(version: int = 1, **cfg: object) -> ServoLoop:
     return ServoLoop(LoopCoefficients.build(LoopConfig(**cfg), version))  # type: ignore[arg-type]
 
 
+def fake_runtime(
+    rig_type: type[FakeRig] = FakeRig, cost_s: dict[int, float] | None = None, **kw: Any
+) -> tuple[Runtime, FakeRig]:
+    """A runtime on a fake clock (rig.clock) with a fake rig."""
+    fc = FakeClock()
+    rig = rig_type(fc, cost_s)
+    return Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep, **kw), rig
+
+
+def more(rt: Runtime, ticks: int) -> None:
+    """Run `ticks` more ticks after a previous run ended."""
+    rt._stop = False
+    rt.run(max_ticks=ticks)
+
+
+def retained_bytes(rt: Runtime, ticks: int = 5000) -> int:
+    """Memory still allocated after `ticks` ticks (after 400 ticks of warm-up: every block
+    of the ring written once); nobody publishes, the ring is emptied by hand."""
+    tick = rt._tick
+
+    def run(k0: int, k1: int) -> None:
+        for k in range(k0, k1):
+            tick(k * 1e-3)
+            rt._ring.consumed = rt._ring.produced
+
+    run(0, 400)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        run(400, 400 + ticks)
+        after = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    return after - before
+
+
 class Collector:
     def __init__(self) -> None:
         self.batches: list[tuple[int, int, str, list[list[float]]]] = []
@@ -116,22 +159,18 @@ def run_with_publisher(rt: Runtime, ticks: int) -> Collector:
 
 
 def test_ticks_start_on_the_deadline_grid() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc)
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, rig = fake_runtime()
     rt.run(max_ticks=50)
     starts = [t - rig.step_times[0] for t in rig.step_times[:50]]  # then the shutdown's 0
     for k, t in enumerate(starts):
         assert t == pytest.approx(k * 1e-3, abs=2e-5)
     assert rt.overruns == 0 and rt.skipped_ticks == 0
     # It slept most of each period and spun only the last `spin_s`.
-    assert all(s == pytest.approx(1e-3 - 2e-4, abs=5e-5) for s in fc.sleeps[1:])
+    assert all(s == pytest.approx(1e-3 - 2e-4, abs=5e-5) for s in rig.clock.sleeps[1:])  # type: ignore[union-attr]
 
 
 def test_overrun_skips_ahead_instead_of_bursting() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc, cost_s={5: 3.5e-3})  # tick 5 takes 3.5 periods
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, rig = fake_runtime(cost_s={5: 3.5e-3})  # tick 5 takes 3.5 periods
     rt.run(max_ticks=20)
     t = [x - rig.step_times[0] for x in rig.step_times]
     assert rt.overruns == 1
@@ -147,9 +186,7 @@ def test_overrun_skips_ahead_instead_of_bursting() -> None:
 
 
 def test_late_tick_within_a_period_runs_at_once_without_skipping() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc, cost_s={3: 1.4e-3})
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, rig = fake_runtime(cost_s={3: 1.4e-3})
     rt.run(max_ticks=10)
     assert rt.overruns == 1 and rt.skipped_ticks == 0
     t = [x - rig.step_times[0] for x in rig.step_times]
@@ -158,8 +195,7 @@ def test_late_tick_within_a_period_runs_at_once_without_skipping() -> None:
 
 
 def test_timing_snapshot_covers_ticks_since_the_previous_one() -> None:
-    fc = FakeClock()
-    rt = Runtime(make_loop(), FakeRig(fc), clock=fc.clock, sleep=fc.sleep)
+    rt, _ = fake_runtime()
     rt.run(max_ticks=100)
     a = rt.timing_snapshot()
     assert a.samples == 99 and a.ticks == 100
@@ -186,14 +222,7 @@ def test_every_sample_reaches_the_publisher_in_order() -> None:
 
 
 def test_a_stalled_publisher_makes_counted_gaps_not_a_stalled_loop() -> None:
-    fc = FakeClock()
-    rt = Runtime(
-        make_loop(),
-        FakeRig(fc),
-        options=RuntimeOptions(batch_size=10, ring_blocks=3),
-        clock=fc.clock,
-        sleep=fc.sleep,
-    )
+    rt, _ = fake_runtime(options=RuntimeOptions(batch_size=10, ring_blocks=3))
     rt.run(max_ticks=100)  # nobody consumes
     assert rt.ticks == 100
     assert rt.dropped_samples == 100 - 30
@@ -215,20 +244,8 @@ class NullRig:
 def test_the_tick_allocates_nothing_that_stays() -> None:
     # (SimRig refills its noise block every 4096 ticks, outside the loop's control.)
     rt = Runtime(make_loop(), NullRig(), options=RuntimeOptions(ring_blocks=8, batch_size=20))
-    tick = rt._tick
-    for k in range(400):  # warm up: every block of the ring written once
-        tick(k * 1e-3)
-        rt._ring.consumed = rt._ring.produced
-    tracemalloc.start()
-    try:
-        before = tracemalloc.get_traced_memory()[0]
-        for k in range(400, 5400):
-            tick(k * 1e-3)
-            rt._ring.consumed = rt._ring.produced
-        after = tracemalloc.get_traced_memory()[0]
-    finally:
-        tracemalloc.stop()
-    assert after - before < 4096, after - before
+    retained = retained_bytes(rt)
+    assert retained < 4096, retained
 
 
 # -- requests -------------------------------------------------------------------------------------
@@ -259,15 +276,12 @@ def test_new_coefficients_take_effect_at_a_tick_boundary_and_split_the_batch() -
 
 
 def test_estop_zeroes_the_command_from_the_next_tick_and_stops_the_drive() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc)
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, rig = fake_runtime()
     rt.run(max_ticks=200)
     assert abs(rig.commands[199]) > 0.0
     stops = rig.stops
     rt.estop("test")
-    rt._stop = False
-    rt.run(max_ticks=5)
+    more(rt, 5)
     assert rt.mode == ESTOP and rt.estop_seq == 200 and rt.estop_source == "test"
     assert rig.commands[201:206] == [0.0] * 5  # [200] is the first run's shutdown
     assert rig.stops > stops + 1
@@ -275,33 +289,26 @@ def test_estop_zeroes_the_command_from_the_next_tick_and_stops_the_drive() -> No
     t_start = rt.submit(Start())
     t_reset = rt.submit(ResetFault())
     t_start2 = rt.submit(Start())
-    rt._stop = False
-    rt.run(max_ticks=1)
+    more(rt, 1)
     assert not t_start.ok and "reset" in t_start.message
     assert t_reset.ok and rig.starts == 1
     assert t_start2.ok and t_start2.mode == RUNNING
 
 
 def test_estop_ticket_reports_the_tick_it_took_effect() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc)
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, rig = fake_runtime()
     rt.run(max_ticks=10)
     t = rt.submit(EStop())
-    rt._stop = False
-    rt.run(max_ticks=2)
+    more(rt, 2)
     assert t.ok and t.seq == 10 and t.received_seq == 9 and t.mode == ESTOP
     assert rig.commands[9] != 0.0 and rig.commands[11] == 0.0  # [10]: the shutdown
 
 
 def test_rig_fault_gives_command_zero_and_keeps_ticking() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc)
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, rig = fake_runtime()
     rt.run(max_ticks=100)
     rig.fault = "no complete feedback for 3 ticks"
-    rt._stop = False
-    rt.run(max_ticks=10)
+    more(rt, 10)
     assert rt.mode == FAULT and rt.fault == rig.fault
     assert rig.commands[101:] == [0.0] * 11 and rig.stops >= 1
     assert rt.ticks == 110
@@ -312,37 +319,28 @@ def test_rig_exception_is_a_fault_not_a_crash() -> None:
         def read(self) -> tuple[float, float]:
             raise OSError("bus gone")
 
-    fc = FakeClock()
-    rig = Broken(fc)
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, rig = fake_runtime(Broken)
     rt.run(max_ticks=5)
     assert rt.mode == FAULT and "bus gone" in (rt.fault or "")
     assert rig.commands == [0.0] * 6  # 5 ticks and the shutdown
 
 
 def test_stop_holds_position_and_start_resumes_the_trajectory() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc)
-    traj = Trajectory(kind="ramp", slope_deg_s=2.0)
-    rt = Runtime(make_loop(), rig, trajectory=traj, clock=fc.clock, sleep=fc.sleep)
+    rt, _ = fake_runtime(trajectory=Trajectory(kind="ramp", slope_deg_s=2.0))
     rt.run(max_ticks=50)
     t_stop = rt.submit(Stop())
-    rt._stop = False
-    rt.run(max_ticks=1)
+    more(rt, 1)
     assert t_stop.ok and rt.mode == STOPPED
     assert rt.trajectory.kind == "hold"
     new = Trajectory(kind="hold", offset_deg=1.0)
     t_set = rt.submit(SetTrajectory(trajectory=new))
     t_start = rt.submit(Start())
-    rt._stop = False
-    rt.run(max_ticks=1)
+    more(rt, 1)
     assert t_set.ok and t_start.ok and rt.mode == RUNNING and rt.trajectory == new
 
 
 def test_shutdown_commands_zero_and_answers_late_requests() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc)
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, rig = fake_runtime()
     rt.run(max_ticks=100)
     assert rig.commands[-1] == 0.0 and rig.stops == 1
     late = rt.submit(Start())
@@ -360,7 +358,6 @@ def test_options_are_validated() -> None:
 
 
 def test_an_estop_arriving_during_a_reset_is_not_lost() -> None:
-    fc = FakeClock()
     rt: Runtime
 
     class EstopOnStart(FakeRig):
@@ -368,14 +365,12 @@ def test_an_estop_arriving_during_a_reset_is_not_lost() -> None:
             super().start()
             rt.estop("during reset")  # another thread, while the tick re-enables the drive
 
-    rig = EstopOnStart(fc)
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, _ = fake_runtime(EstopOnStart)
     rt.estop("first")
     rt.run(max_ticks=3)
     assert rt.mode == ESTOP
     reset = rt.submit(ResetFault())
-    rt._stop = False
-    rt.run(max_ticks=2)
+    more(rt, 2)
     assert reset.ok
     assert rt.mode == ESTOP and rt.estop_source == "during reset"
 
@@ -409,9 +404,7 @@ def _program(n_move: int = 50, n_exc: int = 200, **kw: object) -> ExcitationProg
 
 
 def test_program_runs_in_the_tick_records_every_tick_then_holds() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc)
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, rig = fake_runtime()
     prog = _program()
     ticket = rt.submit(RunProgram(prog))
     rt.run(max_ticks=300)
@@ -425,9 +418,7 @@ def test_program_runs_in_the_tick_records_every_tick_then_holds() -> None:
 
 
 def test_program_window_hit_aborts_to_a_hold_of_the_present_position() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc)
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, _ = fake_runtime()
     prog = _program(n_exc=2000, window_deg=0.5)  # 1 deg/s leaves +-0.5 deg after ~0.5 s
     ticket = rt.submit(RunProgram(prog))
     rt.run(max_ticks=1500)
@@ -438,9 +429,7 @@ def test_program_window_hit_aborts_to_a_hold_of_the_present_position() -> None:
 
 
 def test_program_duration_limit_and_estop() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc)
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, rig = fake_runtime()
     prog = _program(max_duration_s=0.1)
     rt.submit(RunProgram(prog))
     rt.run(max_ticks=300)
@@ -459,8 +448,7 @@ def test_program_duration_limit_and_estop() -> None:
     assert rig.commands[n : n + 5] == [0.0] * 5
     # and a new program is refused until reset
     t = rt.submit(RunProgram(_program()))
-    rt._stop = False
-    rt.run(max_ticks=1)
+    more(rt, 1)
     assert not t.ok and "estop" in t.message
 
 
@@ -468,54 +456,35 @@ def test_a_program_tick_allocates_nothing_that_stays() -> None:
     rt = Runtime(make_loop(), NullRig(), options=RuntimeOptions(ring_blocks=8, batch_size=20))
     prog = _program(n_move=3000, n_exc=3000, window_deg=1e9)
     rt.submit(RunProgram(prog))
-    tick = rt._tick
-    for k in range(400):
-        tick(k * 1e-3)
-        rt._ring.consumed = rt._ring.produced
-    tracemalloc.start()
-    try:
-        before = tracemalloc.get_traced_memory()[0]
-        for k in range(400, 5400):
-            tick(k * 1e-3)
-            rt._ring.consumed = rt._ring.produced
-        after = tracemalloc.get_traced_memory()[0]
-    finally:
-        tracemalloc.stop()
+    retained = retained_bytes(rt)
     assert prog.state == "running" and prog.n_done == 5400
-    assert after - before < 4096, after - before
+    assert retained < 4096, retained
 
 
 def test_program_abort_request_holds_and_stop_stops() -> None:
-    fc = FakeClock()
-    rig = FakeRig(fc)
-    rt = Runtime(make_loop(), rig, clock=fc.clock, sleep=fc.sleep)
+    rt, rig = fake_runtime()
     prog = _program(n_exc=2000)
     rt.submit(RunProgram(prog))
     rt.run(max_ticks=100)
     t = rt.submit(AbortProgram("test abort"))
-    rt._stop = False
-    rt.run(max_ticks=1)
+    more(rt, 1)
     assert t.ok and prog.state == "aborted" and prog.reason == "test abort"
     assert rt.program is None and rt.mode == RUNNING and rt.trajectory.kind == "hold"
     assert rt.trajectory.offset_deg == pytest.approx(rig.pos, abs=0.01)
     # nothing to abort: ok, says so
     t = rt.submit(AbortProgram())
-    rt._stop = False
-    rt.run(max_ticks=1)
+    more(rt, 1)
     assert t.ok and "no identification" in t.message
     # Stop during a program: aborted, stopped (holding)
     prog = _program(n_exc=2000)
     rt.submit(RunProgram(prog))
-    rt._stop = False
-    rt.run(max_ticks=100)
+    more(rt, 100)
     t = rt.submit(Stop())
-    rt._stop = False
-    rt.run(max_ticks=1)
+    more(rt, 1)
     assert t.ok and prog.state == "aborted" and rt.mode == STOPPED and rt.program is None
     # a program while one runs is refused
     first = _program(n_exc=2000)
     rt.submit(RunProgram(first))
     second = rt.submit(RunProgram(_program()))
-    rt._stop = False
-    rt.run(max_ticks=2)
+    more(rt, 2)
     assert not second.ok and "already running" in second.message and rt.program is first

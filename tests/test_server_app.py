@@ -1,4 +1,4 @@
-"""Dashboard wiring without a browser: two dashboards on one controller, measured-response
+"""Dashboard wiring without a browser: two dashboards on one (real) controller, measured-response
 upload, the 'controller gone' banner, ports released on exit, dependency direction."""
 
 from __future__ import annotations
@@ -17,9 +17,10 @@ from controller.core.config import NominalModel
 from controller.gate.analysis import nominal_continuous_response
 from controller.ident.estimate import write_frd_csv
 from server.app import Dashboard, DashboardOptions
-from server.demo import stop_process
+from server.demo import controller_process, stop_process
 
-FAKE = Path(__file__).resolve().parent / "browser" / "fake_controller.py"
+#: The controller process's start (interpreter, imports, numba-compiled plant) on a cold machine.
+CONTROLLER_START_S = 60.0
 
 
 def free_port() -> int:
@@ -47,12 +48,12 @@ def port_is_free(port: int) -> bool:
 @pytest.mark.integration
 def test_two_dashboards_watch_one_controller_then_it_goes_away(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = subprocess.Popen([sys.executable, str(FAKE), endpoint, "apptest"])
     ports = [free_port(), free_port()]
-    try:
+    with controller_process(endpoint, "apptest", tmp_path / "state") as proc:
         opts = [DashboardOptions(connect=(endpoint,), rig_name="apptest", port=p, verbose=False,
                                  query_timeout_s=1.0) for p in ports]
         with Dashboard(opts[0]) as a, Dashboard(opts[1]) as b:
+            wait_for(lambda: a.client.connected, CONTROLLER_START_S)  # the process is up
             for d in (a, b):
                 wait_for(lambda d=d: d.client.connected and d.client.ring.total > 500)
                 assert d.live is not None
@@ -76,8 +77,6 @@ def test_two_dashboards_watch_one_controller_then_it_goes_away(tmp_path: Path) -
             for d in (a, b):
                 assert d.live is not None
                 wait_for(lambda d=d: "dt-gone" in d.live.banner.content, 10.0)
-    finally:
-        stop_process(proc)
     for p in ports:
         wait_for(lambda p=p: port_is_free(p), 10.0)
 

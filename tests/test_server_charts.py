@@ -8,7 +8,7 @@ import pytest
 from controller.core.config import LoopConfig
 from controller.gate.analysis import analyse
 from server import charts
-from server.panels.tuning import curves_from_analysis, freq_grid_hz
+from server.engine import curves_from_analysis, freq_grid_hz
 
 
 def test_minmax_decimate_keeps_extremes_and_bounds_size() -> None:

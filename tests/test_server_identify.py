@@ -11,6 +11,7 @@ IdentifyStart and the identify queryable; Abort through IdentifyAbort keeps the 
 
 from __future__ import annotations
 
+import dataclasses
 import socket
 import subprocess
 import tempfile
@@ -23,11 +24,13 @@ import pytest
 
 from controller import protocol as proto
 from controller.core.config import LoopConfig
+from controller.ident.spec import IdentifySpec
 from server import charts
 from server.app import Dashboard, DashboardOptions
 from server.demo import controller_command, stop_process
 from server.panels.identify import (
     ABORTED,
+    DASHBOARD_FIELDS,
     DONE,
     WHERE_CONTROLLER,
     IdentifyPanel,
@@ -35,8 +38,8 @@ from server.panels.identify import (
     NominalTuningPanel,
 )
 
-SHORT = IdentifySettings(mode="open", signal="multisine", f_min_hz=1.0, f_max_hz=8.0,
-                         points_per_decade=4, positions=1, amplitude_deg_s=10.0)
+SHORT = IdentifySettings(dict(mode="open", signal="multisine", f_min_hz=1.0, f_max_hz=8.0,
+                              points_per_decade=4, positions=1, amplitude_deg_s=10.0))
 
 
 def free_port() -> int:
@@ -144,8 +147,8 @@ def test_use_as_nominal_changes_candidate_and_reevaluates_without_apply(
 def test_abort_mid_run_keeps_partial_data_marked_incomplete(dash: Dashboard) -> None:
     p = dash.identify
     assert p is not None
-    slow = IdentifySettings(mode="open", signal="multisine", f_min_hz=1.0, f_max_hz=8.0,
-                            points_per_decade=4, positions=3, pace=4.0)
+    slow = IdentifySettings(dict(mode="open", signal="multisine", f_min_hz=1.0, f_max_hz=8.0,
+                                 points_per_decade=4, positions=3), pace=4.0)
     assert p.start(slow)
     assert not p.start(slow)  # a second start while running is refused (server-side check)
     assert "already" in p.status.content
@@ -170,8 +173,29 @@ def test_abort_mid_run_keeps_partial_data_marked_incomplete(dash: Dashboard) -> 
 def test_bad_settings_are_refused_before_anything_runs(dash: Dashboard) -> None:
     p = dash.identify
     assert p is not None
-    assert not p.start(IdentifySettings(f_min_hz=5.0, f_max_hz=2.0))
+    assert not p.start(IdentifySettings(dict(f_min_hz=5.0, f_max_hz=2.0)))
     assert "f_min_hz" in p.status.content and p.state != "running"
+    assert not p.start(IdentifySettings(dict(seed=3)))  # not a field of the panel's spec
+    assert "seed" in p.status.content and p.state != "running"
+
+
+def test_the_panels_fields_are_generated_from_the_spec(dash: Dashboard) -> None:
+    """Labels, units, ranges and defaults of the Identify fields come from IdentifySpec."""
+    shown = {f.name: (f.title, f.default, f.param.choices or f.limits) for f in DASHBOARD_FIELDS}
+    assert shown == {
+        "mode": ("Mode", "open", ("open", "closed")),
+        "signal": ("Signal", "sine", ("sine", "multisine")),
+        "f_min_hz": ("f min (Hz)", 0.1, (0.01, 200.0, 0.01)),
+        "f_max_hz": ("f max (Hz)", 20.0, (0.02, 400.0, 0.01)),
+        "points_per_decade": ("Points per decade", 10, (1, 200, 1.0)),
+        "positions": ("Positions", 3, (1, 36, 1.0)),
+        "amplitude_deg_s": ("Amplitude (deg/s)", 10.0, (0.1, 100.0, 0.1)),
+    }
+    p = dash.identify
+    assert p is not None
+    assert p.settings().spec() == IdentifySpec()  # the panel starts at the spec's defaults
+    for f in DASHBOARD_FIELDS:
+        assert p.fields[f.name].hint == f.param.help, f.name  # the spec's help text
 
 
 def test_identify_chart_data_pure() -> None:
@@ -249,7 +273,7 @@ def test_short_identification_on_the_controller(remote_dash: Dashboard) -> None:
     t._apply_fn = applied.append
     before = d.client.get_config()
     t0 = time.perf_counter()
-    assert p.start(SHORT.__class__(**{**SHORT.__dict__, "where": WHERE_CONTROLLER}))
+    assert p.start(dataclasses.replace(SHORT, where=WHERE_CONTROLLER))
     wait_for(lambda: p.progress > 0.1, 20.0)  # progress comes from the controller's status
     assert "on the controller" in p.status.content
     assert p.wait_done(90.0)
@@ -276,8 +300,8 @@ def test_short_identification_on_the_controller(remote_dash: Dashboard) -> None:
 def test_abort_on_the_controller_keeps_partial_data(remote_dash: Dashboard) -> None:
     p = remote_dash.identify
     assert p is not None
-    two = IdentifySettings(mode="open", signal="multisine", f_min_hz=1.0, f_max_hz=8.0,
-                           points_per_decade=4, positions=2, where=WHERE_CONTROLLER)
+    two = IdentifySettings(dict(mode="open", signal="multisine", f_min_hz=1.0, f_max_hz=8.0,
+                                points_per_decade=4, positions=2), where=WHERE_CONTROLLER)
     assert p.start(two)
     wait_for(lambda: p.progress > 0.6, 60.0)  # into the second position
     assert p.abort()

@@ -6,12 +6,15 @@ line, or the field).
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
+from controller.cli import Command
 from controller.core.config import LoopConfig, config_from_builtins, config_to_builtins
 from controller.core.errors import ConfigError
 from controller.gate.analysis import (
@@ -201,3 +204,25 @@ def check_main(
     else:
         out.write(report_text(a, rec))
     return EXIT_ACCEPT if a.accepted else EXIT_REJECT
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", nargs="?", type=Path, default=None, help="LoopConfig JSON file")
+    p.add_argument("--q", dest="q_type", default=None, metavar="q20|q31")
+    p.add_argument("--cutoff-hz", type=float, default=None)
+    p.add_argument(
+        "--frd",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="measured response CSV freq_hz,mag_db,phase_deg (repeatable)",
+    )
+    p.add_argument("--json", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    return check_main(args.config, args.q_type, args.cutoff_hz, args.frd, args.json, sys.stdout)
+
+
+COMMAND = Command("check", "stability check of a configuration", add_arguments, run)

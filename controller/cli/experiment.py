@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import argparse
 import json
+import sys
 import time
 from collections.abc import Callable
 from typing import Any, TextIO
 
+from controller.cli import Command, on_off
 from controller.core.config import LoopConfig, config_to_builtins
 from controller.core.errors import ConfigError
 from controller.core.trajectory import default_trajectory
@@ -161,3 +164,46 @@ def _print_table(
             art = ARTICLE_SINE[label]
             row += f" {_fmt(art['peak_error_deg']):>13} {_fmt(art['rmse_deg']):>13}"
         out.write(row + "\n")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "test",
+        nargs="?",
+        default="sine",
+        choices=("sine", "step", "ramp", "hold", "compare"),
+        help="trajectory, or compare: no DOB / DOB / DOB + feedforward (default sine)",
+    )
+    p.add_argument("--dob", type=on_off, default=True, metavar="on|off")
+    p.add_argument("--ff", type=on_off, default=False, metavar="on|off")
+    p.add_argument("--q", dest="q_type", default="q31", metavar="q20|q31")
+    p.add_argument("--cutoff-hz", type=float, default=0.5)
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="simulated seconds (default: 30 for sine/ramp, 10 otherwise)",
+    )
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--disturbance", default="none", metavar="NAME")
+    p.add_argument("--json", action="store_true", help="one JSON object on stdout")
+
+
+def run(args: argparse.Namespace) -> int:
+    return experiment_main(
+        test=args.test,
+        dob_on=args.dob,
+        ff_on=args.ff,
+        q_type=args.q_type,
+        cutoff_hz=args.cutoff_hz,
+        duration_s=args.duration,
+        seed=args.seed,
+        disturbance=args.disturbance,
+        as_json=args.json,
+        out=sys.stdout,
+        err=sys.stderr,
+    )
+
+
+COMMAND = Command("experiment", "offline experiment on the simulated rig", add_arguments, run)

@@ -11,9 +11,11 @@ Per tick (plain float arithmetic on preallocated state, no allocation, no I/O):
 
 Cp and Cv are PI controllers discretised by Tustin (trapezoidal integration); their integrators
 stop integrating while the command is saturated in the direction they push (anti-windup by
-conditional integration). New coefficients are built off the tick (`LoopCoefficients.build`)
-and swapped in by one reference assignment; at the next tick boundary the states are adjusted
-so that d_hat and u do not jump (bumpless transfer).
+conditional integration). New coefficients are designed off the tick (`LoopCoefficients.build`)
+and prepared off the tick (`PreparedCoefficients`: the tick's scalars and fresh filter objects,
+made in the requesting thread); the swap at the next tick boundary only takes the prepared
+objects and re-initialises the new DOB states from the present d_hat and speed (a few float
+operations per filter section), so that d_hat and u do not jump (bumpless transfer).
 """
 
 from __future__ import annotations
@@ -36,6 +38,43 @@ class LoopCoefficients:
     @staticmethod
     def build(config: LoopConfig, version: int = 0) -> LoopCoefficients:
         return LoopCoefficients(config=config, version=version, dob=design_dob(config))
+
+
+class PreparedCoefficients:
+    """`LoopCoefficients` in the form the tick uses: scalar gains and new filter objects.
+
+    Built off the tick (in the thread that requests the swap); the swap only takes these
+    objects over. Single use: the loop that swaps it in owns its filters.
+    """
+
+    __slots__ = (
+        "coefficients",
+        "cv_half",
+        "cv_kp",
+        "dob_on",
+        "f1",
+        "f2",
+        "f2_dc_gain",
+        "ff",
+        "limit",
+        "pos_half",
+        "pos_kp",
+    )
+
+    def __init__(self, coefficients: LoopCoefficients) -> None:
+        c = coefficients.config
+        ts = c.period_s
+        self.coefficients = coefficients
+        self.pos_kp = c.pos_kp_per_s
+        self.pos_half = c.pos_kp_per_s * c.pos_ki_per_s * ts * 0.5
+        self.cv_kp = c.cv_kp
+        self.cv_half = c.cv_kp * c.cv_ki_per_s * ts * 0.5
+        self.ff = c.ff_gain if c.ff_on else 0.0
+        self.limit = c.command_limit_deg_s
+        self.dob_on = c.dob_on
+        self.f1 = SosFilter(coefficients.dob.f1_sos)
+        self.f2 = SosFilter(coefficients.dob.f2_sos)
+        self.f2_dc_gain = self.f2.dc_gain()
 
 
 class ServoLoop:
@@ -65,7 +104,7 @@ class ServoLoop:
     )
 
     def __init__(self, coefficients: LoopCoefficients) -> None:
-        self._pending: LoopCoefficients | None = None
+        self._pending: PreparedCoefficients | None = None
         self.u_prev = 0.0
         self.w_prev = 0.0
         self.d_hat = 0.0
@@ -75,45 +114,46 @@ class ServoLoop:
         self.e_speed_prev = 0.0
         self.speed_ref_deg_s = 0.0
         self.speed_error_deg_s = 0.0
-        self._load(coefficients)
+        self._take(PreparedCoefficients(coefficients))
         self._f1.set_steady(0.0)
         self._f2.set_steady(0.0)
 
     # -- coefficient handling (off the hot path except the swap at the tick boundary) --------
 
-    def _load(self, k: LoopCoefficients) -> None:
-        c = k.config
-        ts = c.period_s
-        self.active = k
-        self._pos_kp = c.pos_kp_per_s
-        self._pos_half = c.pos_kp_per_s * c.pos_ki_per_s * ts * 0.5
-        self._cv_kp = c.cv_kp
-        self._cv_half = c.cv_kp * c.cv_ki_per_s * ts * 0.5
-        self._ff = c.ff_gain if c.ff_on else 0.0
-        self._limit = c.command_limit_deg_s
-        self._dob_on = c.dob_on
-        self._f1 = SosFilter(k.dob.f1_sos)
-        self._f2 = SosFilter(k.dob.f2_sos)
+    def _take(self, p: PreparedCoefficients) -> None:
+        """Take over prepared coefficients: assignments only."""
+        self.active = p.coefficients
+        self._pos_kp = p.pos_kp
+        self._pos_half = p.pos_half
+        self._cv_kp = p.cv_kp
+        self._cv_half = p.cv_half
+        self._ff = p.ff
+        self._limit = p.limit
+        self._dob_on = p.dob_on
+        self._f1 = p.f1
+        self._f2 = p.f2
 
-    def request(self, coefficients: LoopCoefficients) -> None:
-        """Ask for `coefficients` to take effect at the next tick boundary (thread-safe)."""
+    def request(self, coefficients: LoopCoefficients | PreparedCoefficients) -> None:
+        """Ask for `coefficients` to take effect at the next tick boundary (thread-safe).
+        Plain coefficients are prepared here, in the caller's thread."""
+        if isinstance(coefficients, LoopCoefficients):
+            coefficients = PreparedCoefficients(coefficients)
         self._pending = coefficients
 
-    def _swap(self, k: LoopCoefficients) -> None:
+    def _swap(self, p: PreparedCoefficients) -> None:
         old_pos_kp, old_cv_kp, old_dob_on = self._pos_kp, self._cv_kp, self._dob_on
         d_hat = self.d_hat if old_dob_on else 0.0
-        self._load(k)
+        self._take(p)
         # Proportional-gain changes: move the difference into the integrators so that the
         # controller outputs are continuous for the error they last saw.
-        self.pos_int += (old_pos_kp - self._pos_kp) * self.e_pos_prev
-        self.cv_int += (old_cv_kp - self._cv_kp) * self.e_speed_prev
-        if self._dob_on:
+        self.pos_int += (old_pos_kp - p.pos_kp) * self.e_pos_prev
+        self.cv_int += (old_cv_kp - p.cv_kp) * self.e_speed_prev
+        if p.dob_on:
             # New DOB filters start in the steady state that reproduces the present estimate:
             # F1 as if w had been constant, F2 with the constant input that gives d_hat.
-            target = d_hat
-            f1_out = self._f1.set_steady(self.w_prev)
-            self._f2.set_steady((f1_out - target) / self._f2.dc_gain())
-            self.d_hat = target
+            f1_out = p.f1.set_steady(self.w_prev)
+            p.f2.set_steady((f1_out - d_hat) / p.f2_dc_gain)
+            self.d_hat = d_hat
         else:
             # DOB switched off: its last correction moves into the speed integrator.
             self.cv_int -= d_hat

@@ -9,10 +9,14 @@ Two places to run, chosen on the panel (and always named in the status line):
   the run goes on, the status carries the frequencies finished so far with their per-point
   standard deviation: the curves build up on the charts, with their band, as they arrive.
 * **offline on the simulated rig**, in a worker thread of the dashboard
-  (`controller.ident.identify.run_identification` against a `SimRig`).
+  (`controller.ident.engine.run_identification` against a `SimRig`).
 
-Offline, it runs as one `run_identification` per measurement position on one simulated rig (the load
-moves on from where the previous position left it), so each position's response is drawn as
+The spec's fields on the panel (`DASHBOARD_FIELDS`) are generated from the metadata of
+`controller.ident.spec.IdentifySpec` (label, unit, range, help); what the panel shows of a run
+comes from `server.identify_view`.
+
+Offline, it runs as one `run_identification` per measurement position on one simulated rig (the
+load moves on from where the previous position left it), so each position's response is drawn as
 soon as it is measured; the positions are then fitted together (fit, Delta, agreement, the
 gate's recommended cut-offs). An optional pace ("x real time") slows the simulation down so a
 run can be watched and aborted. Abort stops the simulation at the next tick; the positions
@@ -30,10 +34,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -43,33 +46,33 @@ from controller.client import ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
 from controller.gate.analysis import MeasuredResponse
-from controller.ident.identify import (
-    IdentifyAborted,
-    IdentifyResult,
-    IdentifySpec,
-    PositionRecord,
-    RigLike,
-    run_identification,
-)
+from controller.ident.engine import RigLike, run_identification
+from controller.ident.plan import check_rate
+from controller.ident.result import IdentifyAborted, IdentifyResult, analyse_result
+from controller.ident.spec import IDENTIFY_FIELDS, IdentifySpec, OfflineOptions
 from server import charts
+from server.identify_view import (
+    FitView,
+    IdentifyView,
+    curve_of,
+    escape,
+    format_result_html,
+    view_from_result,
+    view_from_status,
+)
 from server.panels.tuning import TuningPanel
 
 __all__ = [
     "ABORTED",
+    "DASHBOARD_FIELDS",
     "DONE",
     "FAILED",
     "IDLE",
     "RUNNING",
-    "FitView",
     "IdentifyPanel",
     "IdentifySettings",
-    "IdentifyView",
     "NominalTuningPanel",
     "UserAbort",
-    "curve_of",
-    "format_result_html",
-    "view_from_result",
-    "view_from_status",
 ]
 
 IDLE, RUNNING, DONE, ABORTED, FAILED = "idle", "running", "done", "aborted", "failed"
@@ -128,17 +131,16 @@ class NominalTuningPanel(TuningPanel):
 # -- pure helpers -------------------------------------------------------------------------------
 
 
+#: The IdentifySpec fields on the panel (those with a `Param.label`), in order.
+DASHBOARD_FIELDS = tuple(f for f in IDENTIFY_FIELDS if f.param.label)
+
+
 @dataclasses.dataclass(frozen=True)
 class IdentifySettings:
     """What the panel's controls ask for."""
 
-    mode: str = "open"
-    signal: str = "sine"
-    f_min_hz: float = 0.1
-    f_max_hz: float = 20.0
-    points_per_decade: int = 10
-    positions: int = 3
-    amplitude_deg_s: float = 10.0
+    values: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    """IdentifySpec fields by name (`DASHBOARD_FIELDS`; a missing one takes its default)."""
     pace: float = 0.0
     """Simulated seconds per wall second (0: as fast as possible); offline only."""
     where: str = WHERE_OFFLINE
@@ -146,204 +148,10 @@ class IdentifySettings:
 
     def spec(self) -> IdentifySpec:
         """The validated spec; raises ConfigError naming the field."""
-        return IdentifySpec(
-            mode=self.mode,
-            signal=self.signal,
-            f_min_hz=float(self.f_min_hz),
-            f_max_hz=float(self.f_max_hz),
-            points_per_decade=int(self.points_per_decade),
-            positions=int(self.positions),
-            amplitude_deg_s=float(self.amplitude_deg_s),
-        )
-
-
-def curve_of(p: PositionRecord) -> charts.MeasuredCurve | None:
-    """A position's measured response for the charts (None if nothing was measured)."""
-    e = p.estimate
-    if e is None or e.freq_hz.size == 0:
-        return None
-    return charts.MeasuredCurve(
-        label=f"pos {p.index + 1} ({p.center_deg:g} deg)",
-        freq_hz=np.asarray(e.freq_hz, dtype=np.float64),
-        mag_db=np.asarray(e.mag_db, dtype=np.float64),
-        phase_deg=np.asarray(e.phase_deg, dtype=np.float64),
-        mag_std_db=np.asarray(e.mag_std_db, dtype=np.float64),
-        coherence=np.asarray(e.coherence, dtype=np.float64),
-        complete=p.complete,
-    )
-
-
-def _esc(text: str) -> str:
-    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
-
-
-def _hz(v: float | None) -> str:
-    return "none accepted" if v is None else f"{v:.3g} Hz"
-
-
-@dataclasses.dataclass(frozen=True)
-class FitView:
-    """The fitted Mn Pn = 1 / (a2 s^2 + a1 s + 1), as displayed."""
-
-    a2: float
-    a1: float
-    natural_freq_hz: float
-    natural_freq_std_hz: float
-    zeta: float
-    zeta_std: float
-    residual_rms_db: float
-    residual_rms_deg: float
-    f_lo_hz: float
-    f_hi_hz: float
-    n_points: int
-
-    def response(self, freq_hz: charts.FloatArray) -> Any:
-        s = 2j * np.pi * np.asarray(freq_hz, dtype=np.float64)
-        return 1.0 / (self.a2 * s * s + self.a1 * s + 1.0)
-
-
-@dataclasses.dataclass(frozen=True)
-class IdentifyView:
-    """What the panel shows of one run, wherever it ran."""
-
-    n_positions: int
-    complete: bool
-    abort_reason: str | None
-    positions_done: int
-    curves: tuple[charts.MeasuredCurve | None, ...]
-    fit: FitView | None = None
-    agreement_hz: float | None = None
-    agreement_tol: tuple[float, float] = (1.0, 10.0)
-    recommended_cutoff_hz: dict[str, float | None] = dataclasses.field(default_factory=dict)
-    checks: tuple[str, ...] = ()
-    notes: tuple[str, ...] = ()
-    simulated_s: float | None = None
-    nominal: NominalModel | None = None
-    measured: tuple[MeasuredResponse, ...] = ()
-
-
-def view_from_result(result: IdentifyResult, n_positions: int) -> IdentifyView:
-    """Adapter: an offline IdentifyResult -> what the panel shows."""
-    f = result.fit
-    fit = None if f is None else FitView(
-        a2=f.params["a2"], a1=f.params["a1"], natural_freq_hz=f.natural_freq_hz,
-        natural_freq_std_hz=f.natural_freq_std_hz, zeta=float(f.zeta),
-        zeta_std=float(f.zeta_std), residual_rms_db=f.residual_rms_db,
-        residual_rms_deg=f.residual_rms_deg, f_lo_hz=f.f_lo_hz, f_hi_hz=f.f_hi_hz,
-        n_points=f.n_points,
-    )
-    checks = []
-    for c in result.gate_checks:
-        why = "" if c.accepted or not c.reasons else f": {c.reasons[0]}"
-        checks.append(f"gate at {c.q_type.upper()} {c.cutoff_hz:.3g} Hz: "
-                      f"{'accept' if c.accepted else 'reject'} (small-gain peak "
-                      f"{c.small_gain_peak:.2f}){why}")
-    a = result.agreement
-    return IdentifyView(
-        n_positions=n_positions,
-        complete=result.complete,
-        abort_reason=result.abort_reason,
-        positions_done=sum(1 for p in result.positions if p.complete),
-        curves=tuple(curve_of(p) for p in result.positions),
-        fit=fit,
-        agreement_hz=None if a is None else a.agree_below_hz,
-        agreement_tol=(result.spec.agreement_tol_db, result.spec.agreement_tol_deg),
-        recommended_cutoff_hz=dict(result.recommended_cutoff_hz) if result.complete else {},
-        checks=tuple(checks),
-        notes=tuple(result.notes),
-        simulated_s=result.simulated_s,
-        nominal=result.nominal if result.complete else None,
-        measured=result.measured_responses(),
-    )
-
-
-def view_from_status(
-    st: proto.IdentifyStatus, n_positions: int, base: NominalModel
-) -> IdentifyView:
-    """Adapter: the controller's IdentifyStatus (and its summary JSON) -> what the panel shows.
-
-    Works for a running status too (the partial positions; nothing fitted). The band is the
-    per-point magnitude std (NaN, so no band, from a controller that sends none). `base`
-    supplies Mn when the summary carries no nominal (the article form: Pn = Mn_den / fit_den).
-    """
-    summary: dict[str, Any] = {}
-    if st.summary_json:
-        with contextlib.suppress(ValueError):
-            summary = json.loads(st.summary_json)
-    curves: list[charts.MeasuredCurve | None] = []
-    measured: list[MeasuredResponse] = []
-    for p in st.positions:
-        if not p.freq_hz:
-            curves.append(None)
-            continue
-        f = np.asarray(p.freq_hz, dtype=np.float64)
-        mag = np.asarray(p.mag_db, dtype=np.float64)
-        ph = np.degrees(np.unwrap(np.radians(np.asarray(p.phase_deg, dtype=np.float64))))
-        std = (np.asarray(p.mag_std_db, dtype=np.float64) if len(p.mag_std_db) == f.size
-               else np.full(f.size, np.nan))
-        curves.append(charts.MeasuredCurve(
-            label=f"pos {p.index + 1} ({p.center_deg:g} deg)", freq_hz=f, mag_db=mag,
-            phase_deg=ph, mag_std_db=std,
-            coherence=np.asarray(p.coherence, dtype=np.float64), complete=p.complete,
-        ))
-        if p.complete and f.size >= 2:
-            resp = (10.0 ** (mag / 20.0) * np.exp(1j * np.radians(ph))).astype(np.complex128)
-            measured.append(MeasuredResponse(
-                name=f"pos{p.index}_{p.center_deg:g}deg", freq_hz=f, response=resp))
-    complete = st.state == "done" and bool(st.positions) and all(
-        p.complete for p in st.positions) and len(st.positions) == n_positions
-    fit: FitView | None = None
-    fo = summary.get("fit")
-    if complete and isinstance(fo, dict):
-        with contextlib.suppress(KeyError, TypeError, ValueError):
-            band = fo.get("band_hz") or [float("nan"), float("nan")]
-            fit = FitView(
-                a2=float(fo["a2"]), a1=float(fo["a1"]),
-                natural_freq_hz=float(fo["natural_freq_hz"]),
-                natural_freq_std_hz=float(fo.get("natural_freq_std_hz") or float("nan")),
-                zeta=float(fo["zeta"]), zeta_std=float(fo.get("zeta_std") or float("nan")),
-                residual_rms_db=float(fo["residual_rms_db"]),
-                residual_rms_deg=float(fo["residual_rms_deg"]),
-                f_lo_hz=float(band[0]), f_hi_hz=float(band[1]), n_points=int(fo["n_points"]),
-            )
-    nominal: NominalModel | None = None
-    if fit is not None:
-        no = summary.get("nominal")
-        with contextlib.suppress(ConfigError, KeyError, TypeError, ValueError):
-            nominal = (
-                NominalModel(mn_den=tuple(no["mn_den"]), pn_num=tuple(no["pn_num"]),
-                             pn_den=tuple(no["pn_den"]))
-                if isinstance(no, dict)
-                else NominalModel(mn_den=base.mn_den, pn_num=base.mn_den,
-                                  pn_den=(fit.a2, fit.a1, 1.0))
-            )
-    agree = summary.get("agreement") or {}
-    checks = []
-    for g in summary.get("gate_checks") or []:
-        with contextlib.suppress(KeyError, TypeError, ValueError):
-            why = "" if g["accepted"] or not g.get("reasons") else f": {g['reasons'][0]}"
-            peak = g.get("small_gain_peak")
-            checks.append(
-                f"gate at {str(g['q_type']).upper()} {float(g['cutoff_hz']):.3g} Hz: "
-                f"{'accept' if g['accepted'] else 'reject'}"
-                + (f" (small-gain peak {float(peak):.2f})" if peak is not None else "") + why)
-    sim_s = summary.get("simulated_s")
-    return IdentifyView(
-        n_positions=n_positions,
-        complete=complete,
-        abort_reason=st.abort_reason or None,
-        positions_done=sum(1 for p in st.positions if p.complete),
-        curves=tuple(curves),
-        fit=fit,
-        agreement_hz=st.agreement_freq_hz,
-        agreement_tol=(float(agree.get("tol_db", 1.0)), float(agree.get("tol_deg", 10.0))),
-        recommended_cutoff_hz=dict(st.recommended_cutoff_hz) if complete else {},
-        checks=tuple(checks),
-        notes=tuple(str(x) for x in summary.get("notes") or ()),
-        simulated_s=float(sim_s) if isinstance(sim_s, (int, float)) else None,
-        nominal=nominal,
-        measured=tuple(measured),
-    )
+        try:
+            return IdentifySpec(**self.values)
+        except TypeError as exc:  # not a spec field
+            raise ConfigError("settings", str(exc)) from exc
 
 
 def _query_identify(client: ControllerClient) -> proto.IdentifyStatus:
@@ -352,67 +160,13 @@ def _query_identify(client: ControllerClient) -> proto.IdentifyStatus:
     return proto.decode(data, proto.IdentifyStatus)
 
 
-def format_result_html(view: IdentifyView | None) -> str:
-    """Fit, agreement, recommended cut-offs and notes as a small HTML block."""
-    if view is None:
-        return "<div class='dt-identify-result' style='font-size:12px;color:#555'>No result yet."\
-               "</div>"
-    rows: list[str] = []
-    if not view.complete:
-        rows.append(
-            "<div class='dt-id-incomplete' style='color:#d62728'><b>INCOMPLETE</b>: "
-            f"{view.positions_done} of {view.n_positions} position(s) measured"
-            + (f" ({_esc(view.abort_reason)})" if view.abort_reason else "")
-            + "; nothing fitted.</div>"
-        )
-    fit = view.fit
-    if fit is not None:
-        wn, wn_std = 2 * np.pi * fit.natural_freq_hz, 2 * np.pi * fit.natural_freq_std_hz
-        rows.append(
-            "<div class='dt-id-fit'><b>Fit Mn Pn</b> = 1/(a2 s&sup2; + a1 s + 1): "
-            f"f<sub>n</sub> = <b>{fit.natural_freq_hz:.3f} &plusmn; "
-            f"{fit.natural_freq_std_hz:.3f} Hz</b> "
-            f"(&omega;<sub>n</sub> {wn:.2f} &plusmn; {wn_std:.2f} rad/s), "
-            f"&zeta; = <b>{fit.zeta:.3f} &plusmn; {fit.zeta_std:.3f}</b>; residual "
-            f"{fit.residual_rms_db:.2f} dB / {fit.residual_rms_deg:.1f} deg rms over "
-            f"{fit.f_lo_hz:.3g}-{fit.f_hi_hz:.3g} Hz ({fit.n_points} points)</div>"
-        )
-    if view.complete:
-        if view.agreement_hz is not None:
-            tol_db, tol_deg = view.agreement_tol
-            rows.append(
-                f"<div class='dt-id-agree'>Positions agree (within {tol_db:g} dB / "
-                f"{tol_deg:g} deg) below <b>{view.agreement_hz:.3g} Hz</b></div>"
-            )
-        else:
-            rows.append("<div class='dt-id-agree'>Agreement across positions: needs at least "
-                        "two positions.</div>")
-        rec = view.recommended_cutoff_hz
-        if rec:
-            rows.append(
-                "<div class='dt-id-cutoff'>Gate's recommended max cut-off with the fitted "
-                f"nominal: <b>Q31 {_hz(rec.get('q31'))}</b>, <b>Q20 {_hz(rec.get('q20'))}</b>"
-                "</div>"
-            )
-        for c in view.checks:
-            rows.append(
-                f"<div class='dt-id-check' style='font-size:11px;color:#555'>{_esc(c)}</div>")
-    for note in view.notes:
-        rows.append(f"<div class='dt-id-note' style='color:#b36b00'>{_esc(note)}</div>")
-    if view.simulated_s is not None:
-        rows.append(
-            f"<div style='font-size:11px;color:#888'>{view.simulated_s:.1f} s on the rig</div>"
-        )
-    return "<div class='dt-identify-result' style='font-size:12px'>" + "".join(rows) + "</div>"
-
-
 def _status_html(state: str, text: str, where: str = OFFLINE_NOTE) -> str:
     color = {RUNNING: "#1f77b4", DONE: "#2e7d32", ABORTED: "#d62728", FAILED: "#d62728"}.get(
         state, "#555"
     )
     return (
         f"<div class='dt-identify-status dt-id-{state}' style='font-size:12px;color:{color}'>"
-        f"<b>{state}</b> &middot; {_esc(text)} <span style='color:#888'>({_esc(where)})"
+        f"<b>{state}</b> &middot; {escape(text)} <span style='color:#888'>({escape(where)})"
         "</span></div>"
     )
 
@@ -465,16 +219,10 @@ def _combine(spec: IdentifySpec, cfg: LoopConfig, results: list[IdentifyResult],
     if not complete:
         return base
     # The positions were measured in separate runs: fit them together as one run does.
-    from controller.ident.identify import _analyse_result
-
-    return _analyse_result(spec, cfg, base)
+    return analyse_result(base)
 
 
 # -- the panel ----------------------------------------------------------------------------------
-
-
-_MODES = ("open", "closed")
-_SIGNALS = ("sine", "multisine")
 
 
 class IdentifyPanel:
@@ -534,20 +282,16 @@ class IdentifyPanel:
                "duration; E-STOP aborts). " if self.client is not None else "")
             + f"Offline: <b>{OFFLINE_NOTE}</b>.</div>"
         )
-        self.mode = gui.add_dropdown("Mode", _MODES, initial_value=d.mode,
-                                     hint="open: u = offset + excitation; closed: speed loop "
-                                          "active, excitation added to its command")
-        self.signal = gui.add_dropdown("Signal", _SIGNALS, initial_value=d.signal,
-                                       hint="stepped sine or periodic multisine")
-        self.f_min = gui.add_number("f min (Hz)", d.f_min_hz, min=0.01, max=200.0, step=0.01)
-        self.f_max = gui.add_number("f max (Hz)", d.f_max_hz, min=0.02, max=400.0, step=0.01)
-        self.ppd = gui.add_number("Points per decade", d.points_per_decade, min=1, max=200,
-                                  step=1)
-        self.positions = gui.add_number("Positions", d.positions, min=1, max=36, step=1,
-                                        hint="evenly spread over a turn")
-        self.amplitude = gui.add_number("Amplitude (deg/s)", d.amplitude_deg_s, min=0.1,
-                                        max=100.0, step=0.1,
-                                        hint="largest excitation amplitude, load speed")
+        # the spec's fields, generated from their metadata (label, unit, range, help)
+        self.fields: dict[str, Any] = {}
+        for f in DASHBOARD_FIELDS:
+            if f.param.choices:
+                self.fields[f.name] = gui.add_dropdown(
+                    f.title, f.param.choices, initial_value=f.default, hint=f.param.help)
+            else:
+                lo, hi, step = f.limits
+                self.fields[f.name] = gui.add_number(
+                    f.title, f.default, min=lo, max=hi, step=step, hint=f.param.help)
         self.pace = gui.add_number("Pace (x real time, 0 = fastest)", d.pace, min=0.0,
                                    max=1000.0, step=0.5, hint="offline only")
         self.start_button = gui.add_button("Start identification", color="green")
@@ -599,14 +343,12 @@ class IdentifyPanel:
     # -- reading the controls ----------------------------------------------------------------
 
     def settings(self) -> IdentifySettings:
+        values: dict[str, Any] = {}
+        for f in DASHBOARD_FIELDS:
+            v = self.fields[f.name].value
+            values[f.name] = round(float(v)) if f.type is int else f.type(v)
         return IdentifySettings(
-            mode=str(self.mode.value),
-            signal=str(self.signal.value),
-            f_min_hz=float(self.f_min.value),
-            f_max_hz=float(self.f_max.value),
-            points_per_decade=round(float(self.ppd.value)),
-            positions=round(float(self.positions.value)),
-            amplitude_deg_s=float(self.amplitude.value),
+            values=values,
             pace=max(0.0, float(self.pace.value)),
             where=str(self.where.value) if self.client is not None else WHERE_OFFLINE,
         )
@@ -619,8 +361,7 @@ class IdentifyPanel:
         try:
             spec = s.spec()
             cfg = self._config_fn()
-            if spec.f_max_hz >= 0.5 * cfg.rate_hz:
-                raise ConfigError("f_max_hz", f"must be below Nyquist {0.5 * cfg.rate_hz} Hz")
+            check_rate(spec, cfg.rate_hz)
         except ConfigError as exc:
             self.status.content = _status_html(self.state, f"not started: {exc}")
             return False
@@ -704,7 +445,8 @@ class IdentifyPanel:
         if self._chart_n != n:
             self._make_charts(n)
         self._publish_charts(None)
-        sim = self._rig_factory(cfg, spec.seed)
+        offline = OfflineOptions()
+        sim = self._rig_factory(cfg, offline.seed)
         rig = _PacedRig(sim, cfg.rate_hz, self._abort, pace)
         results: list[IdentifyResult] = []
         reason: str | None = None
@@ -719,7 +461,7 @@ class IdentifyPanel:
                                       text.replace("position 1/1", f"position {k + 1}/{n}"))
 
                 try:
-                    r = run_identification(one, cfg, lambda: rig, progress)
+                    r = run_identification(one, cfg, lambda: rig, progress, offline)
                 except IdentifyAborted as exc:
                     # a limit: keep what was measured, the position is incomplete
                     results.append(exc.result)
@@ -748,12 +490,7 @@ class IdentifyPanel:
         self._publish_charts(None)
         try:
             prev = _query_identify(client).run_id
-            body = proto.IdentifyStart(spec=proto.IdentifySpecMsg(
-                mode=spec.mode, signal=spec.signal, f_min_hz=spec.f_min_hz,
-                f_max_hz=spec.f_max_hz, points_per_decade=spec.points_per_decade,
-                positions=spec.positions, amplitude_deg_s=spec.amplitude_deg_s,
-            ))
-            reply = client.command(body)
+            reply = client.command(proto.IdentifyStart(spec=spec))
             if not reply.ok:
                 self._show_end(FAILED, None, f"refused by the controller: {reply.message}", n)
                 return
@@ -845,8 +582,8 @@ class IdentifyPanel:
             self.chart_note.content = (
                 f"<div class='dt-identify-charts dt-id-{state}' style='font-size:12px;"
                 f"color:{'#555' if done else '#d62728'}'>"
-                + ("Identification complete" if done else f"<b>INCOMPLETE</b> ({_esc(text)})")
-                + f" &middot; {_esc(self.where_note)}</div>")
+                + ("Identification complete" if done else f"<b>INCOMPLETE</b> ({escape(text)})")
+                + f" &middot; {escape(self.where_note)}</div>")
         self.progress_bar.animated = False
         if state == DONE:
             self.progress_bar.value = 100.0

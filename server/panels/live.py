@@ -1,13 +1,13 @@
 """Live panel: rolling traces, metrics, loop health, connection banner, trajectory, e-stop.
 
-The GUI is built once; one thread (`LiveUpdater`) refreshes the charts at `rate_hz` from the
-client's ring buffer and the slower texts at a few Hz, assigning only changed properties.
+The GUI is built once; one thread (`server.workers.Periodic`) refreshes the charts at
+`rate_hz` from the client's ring buffer and the slower texts at a few Hz, assigning only
+changed properties.
 """
 
 from __future__ import annotations
 
 import math
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,6 +19,8 @@ from controller import protocol as proto
 from controller.client import ControllerClient
 from controller.core.trajectory import TRAJECTORY_KINDS, default_trajectory
 from server import charts
+from server.panels.widgets import add_chart, set_html
+from server.workers import Periodic
 
 __all__ = ["LivePanel", "LiveStats", "banner_html", "window_metrics"]
 
@@ -37,26 +39,26 @@ def banner_html(client: ControllerClient) -> str:
         age = client.status_age_s
         since = "never heard from it" if st is None else f"no status for {age:.1f} s"
         return _banner(
-            "#b71c1c", "white",
+            "#b71c1c",
             f"CONTROLLER NOT REACHABLE ({since}) &mdash; rig '{client.opts.rig_name}' on "
             f"{', '.join(client.opts.connect)}. Traces are frozen; nothing can be applied.",
             "dt-banner dt-gone",
         )
     if st.mode == "estop":
-        return _banner("#d62728", "white", "E-STOP ACTIVE: speed command 0, drive disabled. "
+        return _banner("#d62728", "E-STOP ACTIVE: speed command 0, drive disabled. "
                        "Reset fault, then Start.", "dt-banner dt-estop")
     if st.mode == "fault" or st.faults:
         faults = "; ".join(st.faults) or "fault"
-        return _banner("#e67e22", "white", f"FAULT: {faults}", "dt-banner dt-fault")
+        return _banner("#e67e22", f"FAULT: {faults}", "dt-banner dt-fault")
     return _banner(
-        "#2e7d32", "white",
+        "#2e7d32",
         f"Connected: rig <b>{st.rig}</b> ({st.plant}), {st.mode}, config v{st.config_version}",
         "dt-banner dt-ok",
     )
 
 
-def _banner(bg: str, fg: str, html: str, cls: str) -> str:
-    return (f"<div class='{cls}' style='background:{bg};color:{fg};padding:6px 8px;"
+def _banner(bg: str, html: str, cls: str) -> str:
+    return (f"<div class='{cls}' style='background:{bg};color:white;padding:6px 8px;"
             f"border-radius:4px;font-size:13px;font-weight:600'>{html}</div>")
 
 
@@ -98,10 +100,9 @@ class LivePanel:
         self._charts: dict[str, Any] = {}
         self._last_total = -1
         self._last_window = -1.0
-        self._texts: dict[str, str] = {}
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._last_status_seen: proto.Status | None = None
+        self._slow_every = max(1, int(rate_hz / 5))
+        self._updater = Periodic(self._refresh, 1.0 / rate_hz, name="live-updater")
 
     # -- building --------------------------------------------------------------------------
 
@@ -141,11 +142,8 @@ class LivePanel:
 
     def build_charts(self) -> None:
         for spec in charts.LIVE_CHARTS:
-            n = len(spec.series)
-            self._charts[spec.key] = self.gui.add_uplot(
-                data=(np.array([-1.0, 0.0]), *([np.zeros(2)] * (n - 1))),
-                series=spec.series, scales=spec.scales, axes=spec.axes, title=spec.title,
-                height=spec.height, aspect=2.5,
+            self._charts[spec.key] = add_chart(
+                self.gui, spec, spec.placeholder(charts.LIVE_EMPTY_T), aspect=2.5,
                 cursor={"show": True, "drag": {"x": False, "y": False}},
             )
 
@@ -153,40 +151,17 @@ class LivePanel:
 
     def start(self) -> None:
         self.stats.started_at = time.monotonic()
-        self._thread = threading.Thread(target=self._run, name="live-updater", daemon=True)
-        self._thread.start()
+        self._updater.start()
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        self._updater.stop()
 
-    def _run(self) -> None:
-        period = 1.0 / self.rate_hz
-        next_t = time.monotonic()
-        slow_every = max(1, int(self.rate_hz / 5))
-        k = 0
-        while not self._stop.is_set():
-            t0 = time.perf_counter()
-            try:
-                self.tick(slow=(k % slow_every == 0))
-            except Exception as exc:  # the updater must survive anything
-                import traceback
-
-                traceback.print_exception(exc)
+    def _refresh(self, k: int) -> None:
+        t0 = time.perf_counter()
+        try:
+            self.tick(slow=(k % self._slow_every == 0))
+        finally:
             self.stats.last_frame_s = time.perf_counter() - t0
-            k += 1
-            next_t += period
-            delay = next_t - time.monotonic()
-            if delay < -period:
-                next_t = time.monotonic()
-                delay = 0.0
-            self._stop.wait(max(delay, 0.0))
-
-    def _set_html(self, key: str, handle: Any, html: str) -> None:
-        if self._texts.get(key) != html:
-            self._texts[key] = html
-            handle.content = html
 
     def tick(self, slow: bool = True) -> None:
         """One refresh: charts when new samples arrived, texts when `slow`."""
@@ -207,7 +182,7 @@ class LivePanel:
                 self._on_frame(ring.latest())
         if not slow:
             return
-        self._set_html("banner", self.banner, banner_html(self.client))
+        set_html(self.banner, banner_html(self.client))
         st = self.client.status
         if st is not None and st is not self._last_status_seen:
             self._last_status_seen = st
@@ -215,8 +190,8 @@ class LivePanel:
                 self._on_status(st)
         if cols is None:
             cols, _ = ring.window(window)
-        self._set_html("metrics", self.metrics, self._metrics_html(cols, window, st))
-        self._set_html("health", self.health, self._health_html(st))
+        set_html(self.metrics, self._metrics_html(cols, window, st))
+        set_html(self.health, self._health_html(st))
 
     def _metrics_html(self, cols: dict[str, np.ndarray], window: float,
                       st: proto.Status | None) -> str:

@@ -2,21 +2,18 @@
 the browser and the dashboard process's CPU while one headless browser watches the live tab.
 
 Run: .venv/bin/python tests/bench/bench_dashboard.py [--seconds 15]
-The controller is the real one (`python -m controller`) when it exists, else the
-stand-in tests/browser/fake_controller.py; the dashboard runs as its own process
-(`python -m server`) so its CPU time is measured alone.
+The controller is the real one (`python -m controller`, simulated plant); the dashboard runs as
+its own process (`python -m server`) so its CPU time is measured alone.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -26,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from server.app import Dashboard, DashboardOptions  # noqa: E402
-from server.demo import controller_command, stop_process  # noqa: E402
+from server.demo import controller_process, stop_process  # noqa: E402
 
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", "--no-first-run"]
@@ -52,6 +49,18 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def wait_listening(port: int, timeout_s: float) -> None:
+    """Until the dashboard's HTTP port accepts a connection (its start takes seconds)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"nothing listens on port {port} after {timeout_s:.0f} s")
+        time.sleep(0.1)
 
 
 def cpu_seconds(pid: int) -> float:
@@ -85,18 +94,12 @@ def bench_live(seconds: float) -> dict[str, float]:
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     port = free_port()
-    with tempfile.TemporaryDirectory() as state:
-        if importlib.util.find_spec("controller.process.node") is not None:
-            ctl_cmd = controller_command(endpoint, RIG, Path(state))
-        else:
-            ctl_cmd = [sys.executable, str(ROOT / "tests/browser/fake_controller.py"), endpoint,
-                       RIG]
-        ctl = subprocess.Popen(ctl_cmd, cwd=ROOT)
+    with controller_process(endpoint, RIG):
         dash = subprocess.Popen(
             [sys.executable, "-m", "server", "--connect", endpoint, "--rig-name", RIG,
              "--port", str(port)], cwd=ROOT, stdout=subprocess.DEVNULL)
         try:
-            time.sleep(3.0)
+            wait_listening(port, 60.0)
             with sync_playwright() as p:
                 b = p.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
                 pg = b.new_page(viewport={"width": 1600, "height": 1000})
@@ -120,11 +123,9 @@ def bench_live(seconds: float) -> dict[str, float]:
                     "charts_applied_hz": float(applied_hz),
                     "browser_raf_fps": float(raf_hz),
                     "dashboard_cpu_pct": 100.0 * (c1 - c0) / (w1 - w0),
-                    "seconds": w1 - w0,
-                    "controller": "real" if "controller" in ctl_cmd else "stand-in"}
+                    "seconds": w1 - w0}
         finally:
             stop_process(dash)
-            stop_process(ctl)
 
 
 def main() -> int:

@@ -18,7 +18,9 @@ import time
 import numpy as np
 
 from controller.core.config import LoopConfig
-from controller.ident.identify import IdentifyResult, IdentifySpec, run_identification
+from controller.ident.engine import run_identification
+from controller.ident.result import IdentifyResult
+from controller.ident.spec import IdentifySpec
 
 WN_TRUE = math.sqrt(1935.0)
 ZETA_TRUE = 62.2 / (2.0 * WN_TRUE)

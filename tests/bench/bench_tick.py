@@ -1,5 +1,5 @@
-"""Benchmark: one control tick (position loop + Cv + DOB, no plant) and the closed-loop
-simulator speed. Prints figures; not a test.
+"""Benchmark: one control tick (position loop + Cv + DOB, no plant), the tick that swaps in new
+coefficients, and the closed-loop simulator speed. Prints figures; not a test.
 
     .venv/bin/python tests/bench/bench_tick.py [--ticks N]
 
@@ -41,6 +41,25 @@ def bench_tick(n: int) -> tuple[float, float, float]:
     return _percentiles_us(out)
 
 
+def bench_swap_tick(n: int, between: int = 5) -> tuple[float, float, float]:
+    """The tick that performs a coefficient swap (Q31 0.5 Hz <-> 1 Hz, gains changed): the
+    request is made before the timed tick, as the runtime does (in the requesting thread)."""
+    a = LoopCoefficients.build(LoopConfig(), 1)
+    b = LoopCoefficients.build(LoopConfig(q_cutoff_hz=1.0, cv_kp=0.6), 2)
+    loop = ServoLoop(a)
+    tick = loop.tick
+    pc = time.perf_counter_ns
+    out = [0] * n
+    for k in range(n):
+        for j in range(between):
+            tick(1.0, 0.5, 0.01 * j, 0.1)
+        loop.request(b if k % 2 == 0 else a)
+        t0 = pc()
+        tick(1.0, 0.5, 0.0, 0.1)
+        out[k] = pc() - t0
+    return _percentiles_us(out)
+
+
 def bench_numpy_baseline(n: int) -> tuple[float, float, float]:
     dob = LoopCoefficients.build(LoopConfig()).dob
     z1 = np.zeros((dob.f1_sos.shape[0], 2))
@@ -67,6 +86,8 @@ def main() -> None:
         f"tick (pos PI + Cv + DOB): p50 {p50:.2f} us  p99 {p99:.2f} us  max {mx:.1f} us"
         f"  (target p99 <= 15 us)"
     )
+    s50, s99, smx = bench_swap_tick(min(args.ticks, 20_000))
+    print(f"tick that swaps coefficients: p50 {s50:.2f} us  p99 {s99:.2f} us  max {smx:.1f} us")
     b50, b99, _ = bench_numpy_baseline(min(args.ticks, 50_000))
     print(
         f"baseline, DOB filters only via scipy sosfilt per sample: p50 {b50:.2f} us "

@@ -1,20 +1,18 @@
-"""Browser-test harness: a controller process, the dashboard in-process, headless Chromium.
-
-The controller is the real one (`python -m controller`) when it exists, else the
-stand-in of fake_controller.py (same Zenoh contract). A separate Zenoh client (`probe`) checks
+"""Browser-test harness: the real controller process (`python -m controller` on the simulated
+plant), the dashboard in-process, headless Chromium. A separate Zenoh client (`probe`) checks
 what the controller really runs, independently of the page.
+
+The `page` fixture hands the tests a page that is ready: the viser websocket is connected and
+the first controls are drawn. A cold Chromium on a fresh machine can take tens of seconds for
+that, so the first load has its own generous timeout instead of the tests' short waits.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import socket
-import subprocess
-import sys
-import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +20,7 @@ import pytest
 
 from controller.client import ClientOptions, ControllerClient
 from server.app import Dashboard, DashboardOptions
-from server.demo import controller_command, stop_process
+from server.demo import controller_process
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [
@@ -35,6 +33,10 @@ CHROMIUM_ARGS = [
 ]
 ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
 RIG = "browsertest"
+#: The first load of the page: Chromium's cold start, the viser client's bundle, the websocket.
+FIRST_LOAD_S = 60.0
+#: The controller process's start (interpreter, imports, numba-compiled plant) on a cold machine.
+CONTROLLER_START_S = 60.0
 
 
 def free_port() -> int:
@@ -61,17 +63,8 @@ def artifacts() -> Path:
 @pytest.fixture(scope="module")
 def controller_endpoint() -> Iterator[str]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with tempfile.TemporaryDirectory(prefix="dobtune-browser-") as state:
-        if importlib.util.find_spec("controller.process.node") is not None:
-            cmd = controller_command(endpoint, RIG, Path(state))
-        else:
-            cmd = [sys.executable, str(Path(__file__).with_name("fake_controller.py")),
-                   endpoint, RIG]
-        proc = subprocess.Popen(cmd)
-        try:
-            yield endpoint
-        finally:
-            stop_process(proc)
+    with controller_process(endpoint, RIG):
+        yield endpoint
 
 
 @pytest.fixture(scope="module")
@@ -80,10 +73,7 @@ def probe(controller_endpoint: str) -> Iterator[ControllerClient]:
     with ControllerClient(
         ClientOptions(connect=(controller_endpoint,), rig_name=RIG, client_name="probe")
     ) as c:
-        deadline = time.monotonic() + 30
-        while not c.connected:
-            assert time.monotonic() < deadline, "controller did not come up"
-            time.sleep(0.05)
+        _wait_until(lambda: c.connected, CONTROLLER_START_S, "the controller did not come up")
         yield c
 
 
@@ -101,10 +91,36 @@ def page(dashboard: Dashboard) -> Iterator[Any]:
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS,
+                                    timeout=FIRST_LOAD_S * 1000)
         try:
             pg = browser.new_page(viewport={"width": 1600, "height": 1000})
-            pg.goto(dashboard.url)
+            open_when_ready(pg, dashboard, FIRST_LOAD_S)
             yield pg
         finally:
             browser.close()
+
+
+def open_when_ready(page: Any, dashboard: Dashboard, timeout_s: float) -> None:
+    """Load the dashboard and return once it is usable: the page's viser websocket is connected
+    (the server counts it as a client) and the first controls are rendered."""
+    deadline = time.monotonic() + timeout_s
+
+    def left_ms() -> float:
+        return max(1.0, (deadline - time.monotonic()) * 1000)
+
+    assert dashboard.server is not None
+    before = set(dashboard.server.get_clients())
+    page.goto(dashboard.url, wait_until="domcontentloaded", timeout=left_ms())
+    _wait_until(lambda: set(dashboard.server.get_clients()) - before,
+                deadline - time.monotonic(), "the page's websocket never connected")
+    page.wait_for_selector("text=E-STOP", timeout=left_ms())
+    page.wait_for_selector(".dt-verdict", timeout=left_ms())
+    page.wait_for_selector(".dt-banner", timeout=left_ms())
+
+
+def _wait_until(cond: Callable[[], object], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.05)

@@ -99,6 +99,15 @@ def _wait(cond: Any, timeout_s: float = 10.0) -> None:
         time.sleep(0.05)
 
 
+def _apply(page: Any, verdict: str, answer: str, screenshot: Path) -> None:
+    """Once the page shows `verdict` (accept / reject), press Apply and wait for the controller's
+    `answer` (a selector)."""
+    page.wait_for_selector(f".dt-verdict.dt-{verdict}", timeout=15_000)
+    page.get_by_role("button", name="Apply candidate").click()
+    page.wait_for_selector(answer, timeout=10_000)
+    page.screenshot(path=str(screenshot))
+
+
 def test_apply_stable_candidate_changes_controller_config(
     page: Any, probe: ControllerClient, artifacts: Path
 ) -> None:
@@ -106,10 +115,7 @@ def test_apply_stable_candidate_changes_controller_config(
     _set_number(page, "Q cut-off (Hz)", 1.0)  # typed in Hz; the log slider follows
     page.wait_for_selector(".dt-cutoff >> text=1.000 Hz", timeout=15_000)
     _set_number(page, "Cv Kp", 0.5)
-    page.wait_for_selector(".dt-verdict.dt-accept", timeout=15_000)
-    page.get_by_role("button", name="Apply candidate").click()
-    page.wait_for_selector("text=Accepted", timeout=10_000)
-    page.screenshot(path=str(artifacts / "browser_3_apply_accepted.png"))
+    _apply(page, "accept", "text=Accepted", artifacts / "browser_3_apply_accepted.png")
     after = probe.get_config()  # through Zenoh, not through the page
     assert after.version > before.version
     assert math.isclose(after.config.q_cutoff_hz, 1.0, rel_tol=1e-3)
@@ -121,10 +127,7 @@ def test_apply_unstable_candidate_is_refused_and_config_unchanged(
 ) -> None:
     before = probe.get_config()
     _set_number(page, "Cv Kp", 3.0)
-    page.wait_for_selector(".dt-verdict.dt-reject", timeout=15_000)
-    page.get_by_role("button", name="Apply candidate").click()
-    page.wait_for_selector(".dt-apply-rejected", timeout=10_000)
-    page.screenshot(path=str(artifacts / "browser_4_apply_rejected.png"))
+    _apply(page, "reject", ".dt-apply-rejected", artifacts / "browser_4_apply_rejected.png")
     reasons = page.locator(".dt-reject-reason").all_inner_texts()
     assert reasons and all(r.strip() for r in reasons)
     after = probe.get_config()

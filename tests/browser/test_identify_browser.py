@@ -63,7 +63,8 @@ def test_identify_short_run_in_the_browser(
     ident = dashboard.identify
     assert ident is not None
     s = ident.settings()
-    assert (s.where, s.signal, s.f_min_hz, s.f_max_hz, s.positions) == (
+    v = s.values
+    assert (s.where, v["signal"], v["f_min_hz"], v["f_max_hz"], v["positions"]) == (
         "controller", "multisine", 1.0, 8.0, 1)
     before = probe.get_config()
     page.get_by_role("button", name="Start identification").click()

@@ -21,6 +21,7 @@ from controller import protocol as proto
 from controller.cli.identify import EXIT_OK, identify_main
 from controller.core.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM
 from controller.ident.estimate import read_frd_csv
+from controller.ident.spec import IdentifySpec
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 
@@ -29,7 +30,7 @@ MP = control.tf([1.0], list(ARTICLE_MN_DEN)) * control.tf(
 )
 
 #: A short run: 3 stepped sines 0.5-3 Hz at one position (~16 s in the loop).
-SHORT = proto.IdentifySpecMsg(
+SHORT = IdentifySpec(
     f_min_hz=0.5,
     f_max_hz=3.0,
     points_per_decade=3,
@@ -70,17 +71,11 @@ def test_remote_identification_matches_mp(
         None,
         controller.endpoint,
         controller.rig,
-        "open",
-        "sine",
-        SHORT.f_min_hz,
-        SHORT.f_max_hz,
-        SHORT.positions,
-        SHORT.amplitude_deg_s,
+        msgspec.structs.asdict(SHORT),
         out_dir,
         True,
         out,
         err,
-        spec_overrides={"points_per_decade": 3, "min_measure_s": 1.0},
     )
     assert code == EXIT_OK, err.getvalue()
     summary = json.loads(out.getvalue())
@@ -111,7 +106,7 @@ def test_remote_identification_matches_mp(
     assert status.mode == "running" and status.trajectory.kind == "hold"
 
 
-def _start(client: Client, spec: proto.IdentifySpecMsg) -> proto.CommandReply:
+def _start(client: Client, spec: IdentifySpec) -> proto.CommandReply:
     reply = client.command(proto.IdentifyStart(spec=spec))
     assert reply.ok, reply.message
     return reply

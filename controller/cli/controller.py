@@ -1,0 +1,75 @@
+"""`dobtune controller` / `python -m controller`: the controller process."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from controller.cli import Command
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--plant", choices=("sim", "can"), default="sim", help="default: sim")
+    p.add_argument("--rig", type=Path, default=None, help="rig file (TOML), required for can")
+    p.add_argument("--rig-name", default="demo", help="Zenoh key chunk (default: demo)")
+    p.add_argument(
+        "--listen",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="Zenoh listen endpoint (repeatable; default tcp/127.0.0.1:7447)",
+    )
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT")
+    p.add_argument("--config", type=Path, default=None, help="initial LoopConfig (JSON)")
+    p.add_argument(
+        "--state-dir",
+        type=Path,
+        default=None,
+        help="where the active config and the applied-changes log live (default ./var/<rig>)",
+    )
+    p.add_argument("--rate-hz", type=float, default=None, help="loop rate (default: config)")
+    p.add_argument("--seed", type=int, default=0, help="simulated plant noise seed")
+    p.add_argument("--realtime-priority", action="store_true", help="try SCHED_FIFO")
+    p.add_argument(
+        "--sim-drive-node",
+        action="store_true",
+        help="with --plant can: answer on the rig file's bus with a simulated CiA 402 drive "
+        "(python-can virtual bus) — rehearse the CAN path without hardware",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from controller.logs import setup_logging
+    from controller.process.main import StartupError, run_controller
+    from controller.process.options import ControllerOptions
+
+    setup_logging(args.log_level, args.rig_name)
+
+    def say(text: str) -> None:
+        print(f"dobtune controller: {text}", file=sys.stderr, flush=True)
+
+    listen = args.listen if args.listen is not None else ["tcp/127.0.0.1:7447"]
+    opts = ControllerOptions(
+        plant=args.plant,
+        rig_file=args.rig,
+        rig_name=args.rig_name,
+        listen=tuple(listen),
+        connect=tuple(args.connect),
+        config_path=args.config,
+        state_dir=args.state_dir,
+        rate_hz=args.rate_hz,
+        seed=args.seed,
+        realtime_priority=args.realtime_priority,
+        sim_drive_node=args.sim_drive_node,
+    )
+    try:
+        code = run_controller(opts, ready=say)
+    except StartupError as exc:
+        say(str(exc))
+        return 2
+    say("stopped")
+    return code
+
+
+COMMAND = Command("controller", "run the controller process", add_arguments, run, long_running=True)

@@ -1,0 +1,340 @@
+"""What an identification yields, and what is derived from its records: the response per
+position, the fit of Mn Pn, Delta, the agreement across positions and the gate's recommended
+Q cut-offs (no I/O).
+
+Responses are measured sample by sample, u[k] -> w[k]; the zero-order hold and the
+backward-difference rate add about one tick of delay
+(`controller.gate.analysis.discrete_equivalent`). The estimates reported, written to CSV and
+used for the fit and the gate are the continuous-equivalent responses (that factor divided
+out), the form `dobtune check --frd` expects; the raw sampled estimates are kept too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from controller.core.config import LoopConfig, NominalModel
+from controller.core.errors import ConfigError
+from controller.gate.analysis import (
+    MeasuredResponse,
+    PlantKnowledge,
+    analyse,
+    discrete_equivalent,
+    recommended_max_cutoff_hz,
+)
+from controller.ident.estimate import (
+    Agreement,
+    FrdEstimate,
+    agreement,
+    estimate_multisine,
+    estimate_stepped_sine,
+)
+from controller.ident.excitation import FloatArray, IntArray, SteppedSine
+from controller.ident.model_fit import (
+    ModelUncertainty,
+    SecondOrderFit,
+    fit_second_order,
+    frd_weights,
+    uncertainty_bound,
+)
+from controller.ident.plan import Excitation
+from controller.ident.spec import IdentifySpec
+
+__all__ = [
+    "PHASE_ABORT",
+    "PHASE_EXCITE",
+    "PHASE_MOVE",
+    "GateCheck",
+    "IdentifyAborted",
+    "IdentifyResult",
+    "PositionRecord",
+    "RawRecord",
+    "analyse_result",
+    "continuous_equivalent",
+    "estimate_signals",
+    "fitted_nominal",
+    "position_name",
+    "position_record",
+]
+
+#: Values of `RawRecord.phase`.
+PHASE_MOVE, PHASE_EXCITE, PHASE_ABORT = 0, 1, 2
+
+
+@dataclass(frozen=True, eq=False)
+class RawRecord:
+    """Every tick recorded at one position (moves, excitation and an abort's stop and hold)."""
+
+    t_s: FloatArray
+    """Time since the start of the run."""
+    u_deg_s: FloatArray
+    """Speed command actually sent (after saturation)."""
+    w_deg_s: FloatArray
+    """Measured load rate."""
+    x_deg_s: FloatArray
+    """Excitation part of the command (0 outside the excitation)."""
+    pos_deg: FloatArray
+    """Measured load position."""
+    offset_deg_s: FloatArray
+    """Speed offset (open mode: part of u; closed mode: the speed reference r)."""
+    phase: NDArray[np.int8]
+    """PHASE_MOVE (position loop), PHASE_EXCITE or PHASE_ABORT (stop, then hold)."""
+    exc_index: IntArray
+    """Sample index into the excitation signal, -1 where the excitation is not running."""
+
+    def aligned(self, name: str, length: int) -> FloatArray:
+        """Signal ``name`` (e.g. ``"u_deg_s"``) laid out on the excitation's sample grid."""
+        out = np.zeros(length)
+        m = self.exc_index >= 0
+        out[self.exc_index[m]] = getattr(self, name)[m]
+        return out
+
+    def as_arrays(self) -> dict[str, NDArray[np.generic]]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+def position_name(index: int, center_deg: float) -> str:
+    """The name of a measurement position in files and plant knowledge: "pos1_120deg"."""
+    return f"pos{index}_{center_deg:g}deg"
+
+
+@dataclass(frozen=True, eq=False)
+class PositionRecord:
+    """The measurement at one position."""
+
+    index: int
+    center_deg: float
+    raw: RawRecord
+    estimate: FrdEstimate | None
+    """Continuous-equivalent response u -> w (sampling factor removed); None if nothing was
+    measured. For an interrupted stepped sine: the frequencies completed."""
+    sampled: FrdEstimate | None
+    """The same as measured sample by sample, u[k] -> w[k]."""
+    points_done: int
+    points_total: int
+
+    @property
+    def complete(self) -> bool:
+        return self.points_done == self.points_total
+
+    @property
+    def name(self) -> str:
+        return position_name(self.index, self.center_deg)
+
+
+@dataclass(frozen=True)
+class GateCheck:
+    """The gate's verdict on one Q cut-off with the fitted nominal and the measured plants."""
+
+    q_type: str
+    cutoff_hz: float
+    accepted: bool
+    small_gain_peak: float
+    reasons: tuple[str, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class IdentifyResult:
+    """Everything measured and derived; partial (complete False) after an abort."""
+
+    spec: IdentifySpec
+    config: LoopConfig
+    """The loop configuration the run used (its nominal is the one before the fit)."""
+    excitation: Excitation = field(repr=False)
+    """Unit-amplitude excitation; segments scale it (see each raw record's x)."""
+    positions: tuple[PositionRecord, ...]
+    complete: bool
+    abort_reason: str | None
+    simulated_s: float
+    """Time the run took on the rig (simulated seconds offline)."""
+    agreement: Agreement | None = None
+    """Across positions (None with fewer than two complete positions)."""
+    fit: SecondOrderFit | None = None
+    """Mn Pn = 1 / (a2 s^2 + a1 s + 1) fitted to all complete positions together."""
+    uncertainty: ModelUncertainty | None = None
+    """Delta of every complete position against the fit."""
+    nominal: NominalModel | None = None
+    """The fit as a NominalModel (article form: Mn from the config, Pn = Mn_den / fit_den)."""
+    recommended_cutoff_hz: dict[str, float | None] = field(default_factory=dict)
+    """Gate's largest accepted cut-off per Q type, fitted nominal + measured responses (None:
+    even the lowest is rejected; the search stops at a tenth of the loop rate)."""
+    recommended_cutoff_hz_config: dict[str, float | None] = field(default_factory=dict)
+    """The same with the configuration's own nominal model (if the fit is not adopted)."""
+    gate_checks: tuple[GateCheck, ...] = ()
+    """Q31 at the recommended cut-off and at 1.5x it (fitted nominal)."""
+    notes: tuple[str, ...] = ()
+    """What could not be done as asked (fit band widened, no usable fit, ...)."""
+
+    @property
+    def fitted_config(self) -> LoopConfig | None:
+        """The run's configuration with the fitted nominal model (what "use as nominal" means)."""
+        return None if self.nominal is None else self.config.with_(nominal=self.nominal)
+
+    def measured_responses(self) -> tuple[MeasuredResponse, ...]:
+        """The complete positions' responses as the gate's plant knowledge."""
+        return tuple(
+            MeasuredResponse(name=p.name, freq_hz=p.estimate.freq_hz, response=p.estimate.response)
+            for p in self.positions
+            if p.complete and p.estimate is not None and p.estimate.freq_hz.size >= 2
+        )
+
+
+class IdentifyAborted(RuntimeError):
+    """A limit stopped the run; `result` holds the partial data (complete False)."""
+
+    def __init__(self, reason: str, limit: str, result: IdentifyResult) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.limit = limit
+        """``window`` or ``duration``."""
+        self.result = result
+
+
+# ------------------------------------------------------------------------------ estimation
+
+
+def continuous_equivalent(est: FrdEstimate, rate_hz: float) -> FrdEstimate:
+    """Divide out the ZOH + backward-difference factor of the sampled measurement."""
+    factor = discrete_equivalent(np.ones(est.freq_hz.size), est.freq_hz, rate_hz)
+    return dataclasses.replace(est, response=est.response / factor)
+
+
+def estimate_signals(
+    exc: Excitation, u: FloatArray, w: FloatArray, x: FloatArray | None
+) -> FrdEstimate:
+    """The sampled response u -> w from signals on the excitation's grid (`x` in closed mode:
+    the estimate is then S_xw / S_xu, unbiased under the feedback)."""
+    if isinstance(exc, SteppedSine):
+        return estimate_stepped_sine(exc, u, w, x)
+    return estimate_multisine(exc, u, w, x)
+
+
+def position_record(
+    exc: Excitation,
+    raw: RawRecord,
+    index: int,
+    center_deg: float,
+    points_done: int,
+    points_total: int,
+    closed: bool,
+    rate_hz: float,
+) -> PositionRecord:
+    """The measurement at one position with its response estimated from the first
+    `points_done` segments of `raw` (none if no segment finished)."""
+    cont: FrdEstimate | None = None
+    sampled: FrdEstimate | None = None
+    if points_done > 0:
+        n = exc.signal.size
+        u = raw.aligned("u_deg_s", n)
+        w = raw.aligned("w_deg_s", n)
+        x = raw.aligned("x_deg_s", n) if closed else None
+        if isinstance(exc, SteppedSine):
+            exc = dataclasses.replace(exc, points=exc.points[:points_done])
+        sampled = estimate_signals(exc, u, w, x)
+        cont = continuous_equivalent(sampled, rate_hz)
+    return PositionRecord(index, center_deg, raw, cont, sampled, points_done, points_total)
+
+
+# ---------------------------------------------------------------------- fit, Delta, the gate
+
+
+def _fit(spec: IdentifySpec, estimates: list[FrdEstimate], notes: list[str]) -> SecondOrderFit:
+    """Unit-DC second order on all positions together, inverse-variance weights with a floor.
+
+    The weights are ``1 / (var + floor^2)``: the between-period variance of each point plus
+    `fit_error_floor` squared, because a second order is never exact and a nearly noise-free
+    point would otherwise decide the fit on its own.
+    """
+    var = np.concatenate([1.0 / frd_weights(e) for e in estimates])
+    weights = 1.0 / (np.nan_to_num(var, nan=0.0, posinf=1e12) + spec.fit_error_floor**2)
+    f = np.concatenate([e.freq_hz for e in estimates])
+    lo, hi = spec.fit_f_lo_hz, spec.fit_f_hi_hz
+    in_band = np.unique(f[(f >= (lo or 0.0)) & (f <= (hi or math.inf))])
+    if in_band.size < 3:
+        notes.append(
+            f"only {in_band.size} measured frequencies in the fit band "
+            f"[{lo or 'min'}, {hi or 'max'}] Hz: fitted over the whole measured band instead"
+        )
+        lo = hi = None
+    return fit_second_order(
+        f,
+        np.concatenate([e.response for e in estimates]),
+        model="unit_dc",
+        f_lo_hz=lo,
+        f_hi_hz=hi,
+        weights=weights,
+    )
+
+
+def fitted_nominal(fit: SecondOrderFit, base: NominalModel) -> NominalModel:
+    """The fitted Mn Pn = 1/(a2 s^2 + a1 s + 1) in the article's form: Mn kept from `base`,
+    Pn = mn_den / fit_den, so the product is exactly the fit."""
+    a2, a1 = fit.params["a2"], fit.params["a1"]
+    return NominalModel(mn_den=base.mn_den, pn_num=base.mn_den, pn_den=(a2, a1, 1.0))
+
+
+def analyse_result(result: IdentifyResult) -> IdentifyResult:
+    """`result` with what its complete positions give: agreement, fit, Delta, the fitted
+    nominal and the gate's recommended cut-offs (each step that fails leaves a note)."""
+    spec, cfg = result.spec, result.config
+    done = [p for p in result.positions if p.complete and p.estimate is not None]
+    if not done:
+        return result
+    estimates = [p.estimate for p in done if p.estimate is not None]
+    agree = (
+        agreement(estimates, spec.agreement_tol_db, spec.agreement_tol_deg)
+        if len(estimates) >= 2
+        else None
+    )
+    notes: list[str] = []
+    fit: SecondOrderFit | None = None
+    unc: ModelUncertainty | None = None
+    nominal: NominalModel | None = None
+    try:
+        fit = _fit(spec, estimates, notes)
+    except ValueError as exc:
+        notes.append(f"no fit: {exc}")
+    if fit is not None:
+        unc = uncertainty_bound(fit, estimates)
+        try:
+            nominal = fitted_nominal(fit, cfg.nominal)
+        except ConfigError as exc:  # not a stable, damped second order
+            notes.append(f"the fit is not a usable nominal model ({exc})")
+    rec: dict[str, float | None] = {}
+    rec_config: dict[str, float | None] = {}
+    checks: list[GateCheck] = []
+    measured = result.measured_responses()
+    try:
+        if measured:
+            plant = PlantKnowledge(measured=measured)
+            for qt in ("q31", "q20"):
+                rec_config[qt] = recommended_max_cutoff_hz(cfg, plant, q_type=qt)
+        if nominal is not None and measured:
+            gate_cfg = cfg.with_(nominal=nominal, dob_on=True)
+            for qt in ("q31", "q20"):
+                rec[qt] = recommended_max_cutoff_hz(gate_cfg, plant, q_type=qt)
+            r31 = rec["q31"]
+            if r31 is not None:
+                for fc in (r31, 1.5 * r31):
+                    if fc >= 0.5 * cfg.rate_hz:
+                        continue
+                    a = analyse(gate_cfg.with_(q_type="q31", q_cutoff_hz=fc), plant)
+                    checks.append(GateCheck("q31", fc, a.accepted, a.small_gain_peak, a.reasons))
+    except ValueError as exc:
+        notes.append(f"the gate could not use the measured responses: {exc}")
+    return dataclasses.replace(
+        result,
+        agreement=agree,
+        fit=fit,
+        uncertainty=unc,
+        nominal=nominal,
+        recommended_cutoff_hz=rec,
+        recommended_cutoff_hz_config=rec_config,
+        gate_checks=tuple(checks),
+        notes=tuple(notes),
+    )

@@ -1,0 +1,199 @@
+"""The stability gate and the filter design, run off the loop in a niced worker process.
+
+`gate` is the one adapter to `controller.gate.analysis`; `GateRunner` runs it (and any other
+heavy computation: identification estimates) in a worker process of its own, so the
+analysis (NumPy + Python, ~10 ms) never competes with the loop's thread for this
+interpreter's lock: run in a thread of the controller it made the loop overrun on a busy
+machine. A worker that hangs is killed after its timeout; the next call starts a fresh one.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import logging
+import os
+import signal
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+
+from controller import protocol as proto
+from controller.core.config import LoopConfig
+from controller.core.loop import LoopCoefficients
+
+__all__ = ["GateRunner", "GateVerdict", "gate", "gate_and_build", "margins_dict", "nan_margins"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class GateVerdict:
+    """The gate's answer on one candidate."""
+
+    accepted: bool
+    reasons: tuple[str, ...]
+    """Why it was rejected (empty when accepted)."""
+    margins: proto.Margins
+    coefficients: LoopCoefficients | None = None
+    """The filters designed for the candidate (accepted, and only when asked for)."""
+
+
+def nan_margins() -> proto.Margins:
+    nan = float("nan")
+    return proto.Margins(
+        gain_margin_db=nan,
+        phase_margin_deg=nan,
+        peak_sensitivity_db=nan,
+        small_gain_peak=nan,
+        max_pole_radius=nan,
+    )
+
+
+def margins_dict(m: proto.Margins | None) -> dict[str, float] | None:
+    return None if m is None else msgspec.to_builtins(m)  # type: ignore[no-any-return]
+
+
+def gate(cfg: LoopConfig) -> GateVerdict:
+    """Run the stability analysis on `cfg`. Never raises."""
+    from controller.gate.analysis import analyse
+
+    try:
+        a = analyse(cfg)
+    except Exception as exc:
+        return GateVerdict(False, (f"analysis failed: {type(exc).__name__}: {exc}",), nan_margins())
+    margins = proto.Margins(
+        gain_margin_db=float(a.gain_margin_db),
+        phase_margin_deg=float(a.phase_margin_deg),
+        peak_sensitivity_db=float(a.peak_sensitivity_db),
+        small_gain_peak=float(a.small_gain_peak),
+        max_pole_radius=float(a.max_pole_radius),
+    )
+    if a.accepted:
+        return GateVerdict(True, (), margins)
+    return GateVerdict(False, tuple(a.reasons) or ("rejected by the stability analysis",), margins)
+
+
+def gate_and_build(cfg: LoopConfig, version: int) -> GateVerdict:
+    """`gate`, then (if accepted) the loop's filters for `version`. Never raises."""
+    verdict = gate(cfg)
+    if not verdict.accepted:
+        return verdict
+    try:
+        return GateVerdict(True, (), verdict.margins, LoopCoefficients.build(cfg, version))
+    except Exception as exc:
+        reason = f"candidate: filters could not be built: {exc}"
+        return GateVerdict(False, (reason,), verdict.margins)
+
+
+def _worker_init() -> None:
+    # Ctrl-C in a terminal reaches the whole process group: the parent decides, not us.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # The loop's process wins the CPU over an analysis on a busy machine.
+    with contextlib.suppress(OSError):
+        os.nice(10)
+
+
+def _warm_up() -> None:
+    """A new worker's first job: load the analysis code (seconds on a busy machine)."""
+    import controller.gate.analysis  # noqa: F401
+
+
+class GateRunner:
+    """Runs the gate and other heavy work in a worker process (default) or in the caller."""
+
+    def __init__(
+        self,
+        *,
+        subprocess: bool = True,
+        timeout_s: float = 10.0,
+        start_timeout_s: float = 60.0,
+        command_limit_max_deg_s: float | None = None,
+    ) -> None:
+        self._subprocess = subprocess
+        #: A new worker (the first call, or the next one after a worker was killed) gets this
+        #: long to start and load the analysis; the work itself gets the call's timeout.
+        self._start_timeout_s = start_timeout_s
+        #: The rig's own command limit (CAN rig file): a config may not exceed it, or the drive
+        #: would clamp commands the DOB believes were sent.
+        self.command_limit_max_deg_s = command_limit_max_deg_s
+        self._timeout_s = timeout_s
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self._lock = threading.Lock()
+
+    def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
+        if self._pool is None:
+            import multiprocessing
+
+            self._pool = concurrent.futures.ProcessPoolExecutor(
+                max_workers=1,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_worker_init,
+            )
+            self._pool.submit(_warm_up).result(timeout=self._start_timeout_s)
+        return self._pool
+
+    def check(self, cfg: LoopConfig) -> GateVerdict:
+        """The gate's verdict on `cfg` (no filters built)."""
+        return self.check_and_build(cfg, 0, build=False)
+
+    def check_and_build(self, cfg: LoopConfig, version: int, *, build: bool = True) -> GateVerdict:
+        """The gate's verdict and, if accepted and `build`, the coefficients to swap in."""
+        rig_max = self.command_limit_max_deg_s
+        if rig_max is not None and cfg.command_limit_deg_s > rig_max:
+            reason = (
+                f"command_limit_deg_s {cfg.command_limit_deg_s:g} deg/s > the rig's limit "
+                f"{rig_max:g} deg/s (rig file limits.command_limit_deg_s): the drive would "
+                "clamp commands the DOB believes were sent"
+            )
+            return GateVerdict(False, (reason,), nan_margins())
+        try:
+            if build:
+                verdict: GateVerdict = self.call(
+                    gate_and_build, cfg, version, timeout_s=self._timeout_s
+                )
+            else:
+                verdict = self.call(gate, cfg, timeout_s=self._timeout_s)
+            return verdict
+        except concurrent.futures.TimeoutError:
+            reason = f"analysis: no verdict within {self._timeout_s:g} s"
+        except Exception as exc:  # a dead worker (BrokenProcessPool), pickling, ...
+            reason = f"analysis worker failed: {type(exc).__name__}: {exc}"
+        return GateVerdict(False, (reason,), nan_margins())
+
+    def call(self, fn: Callable[..., Any], *args: Any, timeout_s: float = 120.0) -> Any:
+        """Run `fn(*args)` in the worker process (or here without one); raises on failure.
+        A worker that fails or does not answer within `timeout_s` is killed."""
+        if not self._subprocess:
+            return fn(*args)
+        with self._lock:
+            try:
+                return self._executor().submit(fn, *args).result(timeout=timeout_s)
+            except Exception as exc:
+                log.warning(
+                    "gate worker: %s failed (%s: %s); worker killed",
+                    getattr(fn, "__name__", fn),
+                    type(exc).__name__,
+                    exc,
+                )
+                self._kill()
+                raise
+
+    def _kill(self) -> None:
+        pool, self._pool = self._pool, None
+        if pool is None:
+            return
+        for proc in list(getattr(pool, "_processes", {}).values()):
+            with contextlib.suppress(Exception):
+                proc.kill()
+        with contextlib.suppress(Exception):
+            pool.shutdown(wait=False, cancel_futures=True)
+
+    def close(self) -> None:
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)

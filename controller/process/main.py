@@ -1,0 +1,255 @@
+"""The controller process: rig + servo loop + Zenoh node, from options to a clean stop.
+
+The loop's own thread is the main thread (`Runtime.run()`, optionally SCHED_FIFO), so signals
+stop it between ticks; the Zenoh side (`controller.process.node`) and the request handlers
+(`controller.process.service`) run in threads, the stability gate and the filter design in a
+worker process (`controller.process.gate_worker`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import logging
+import math
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from controller import protocol as proto
+from controller.core.config import LoopConfig, config_from_builtins
+from controller.core.errors import ConfigError
+from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.process.gate_worker import GateRunner, GateVerdict, margins_dict
+from controller.process.node import ZenohNode
+from controller.process.options import ControllerOptions
+from controller.process.persistence import PersistenceError, StateStore
+from controller.process.runtime import FAULT, Rig, Runtime, RuntimeOptions, try_realtime_priority
+from controller.process.service import ControllerService
+from controller.zenoh_session import check_endpoint, open_session
+
+__all__ = ["StartupError", "run_controller"]
+
+log = logging.getLogger(__name__)
+
+
+class StartupError(RuntimeError):
+    """The controller cannot start (bad options, a configuration the gate rejects, ...)."""
+
+
+def _check_options(opts: ControllerOptions) -> None:
+    if opts.plant not in ("sim", "can"):
+        raise StartupError(f"--plant: expected sim or can, got {opts.plant!r}")
+    try:
+        proto.check_rig_name(opts.rig_name)
+        for e in (*opts.listen, *opts.connect):
+            check_endpoint(e)
+    except ValueError as exc:
+        raise StartupError(str(exc)) from exc
+    if opts.rate_hz is not None and not math.isfinite(opts.rate_hz):
+        raise StartupError(f"--rate-hz: must be finite, got {opts.rate_hz}")
+    if not (0.01 <= opts.status_period_s <= 10.0):
+        raise StartupError(f"status_period_s: {opts.status_period_s} out of range [0.01, 10]")
+
+
+def _candidate(
+    opts: ControllerOptions, saved: LoopConfig | None, saved_from: Path, rig_limit: float | None
+) -> tuple[LoopConfig, str]:
+    """The configuration to start with and where it came from: --config, else the saved one,
+    else the default; --rate-hz overrides the rate."""
+    if opts.config_path is not None:
+        source = f"--config {opts.config_path}"
+        try:
+            candidate = config_from_builtins(
+                msgspec.json.decode(Path(opts.config_path).read_bytes())
+            )
+        except (OSError, msgspec.DecodeError, ConfigError) as exc:
+            raise StartupError(f"{source}: {exc}") from exc
+    elif saved is not None:
+        candidate, source = saved, f"saved {saved_from}"
+    else:
+        candidate, source = LoopConfig(), "default"
+        if rig_limit is not None and candidate.command_limit_deg_s > rig_limit:
+            candidate = candidate.with_(command_limit_deg_s=rig_limit)
+            source = "default, command limit from the rig file"
+    if opts.rate_hz is not None:
+        try:
+            candidate = candidate.with_(rate_hz=opts.rate_hz)
+        except ConfigError as exc:
+            raise StartupError(f"--rate-hz: {exc}") from exc
+    return candidate, source
+
+
+def _initial_config(
+    opts: ControllerOptions,
+    store: StateStore,
+    check: Callable[[LoopConfig], GateVerdict],
+    rig_limit_deg_s: float | None = None,
+) -> tuple[LoopConfig, int, proto.Margins]:
+    """The configuration to start with; it must pass the gate; a change is saved and logged."""
+    saved = store.load()
+    candidate, source = _candidate(
+        opts, None if saved is None else saved.config, store.active_path, rig_limit_deg_s
+    )
+    verdict = check(candidate)
+    if not verdict.accepted:
+        raise StartupError(
+            f"{source}: rejected by the stability gate: " + "; ".join(verdict.reasons)
+        )
+    if saved is not None and saved.config == candidate:
+        return candidate, saved.version, verdict.margins
+    version = (saved.version if saved is not None else 0) + 1
+    store.save(candidate, version)
+    store.append_change(
+        old=None if saved is None else saved.config,
+        old_version=None if saved is None else saved.version,
+        new=candidate,
+        version=version,
+        margins=margins_dict(verdict.margins),
+        client=f"startup ({source})",
+    )
+    log.info("config v%d from %s saved", version, source)
+    return candidate, version, verdict.margins
+
+
+def _rig_command_limit(opts: ControllerOptions) -> float | None:
+    """The CAN rig file's command limit (None for the simulated rig)."""
+    if opts.plant != "can" or opts.rig_file is None:
+        return None
+    from controller.rig.rig_file import load_rig_file
+
+    try:
+        return float(load_rig_file(opts.rig_file).limits.command_limit_deg_s)
+    except (OSError, ValueError) as exc:
+        raise StartupError(f"--rig {opts.rig_file}: {exc}") from exc
+
+
+@contextlib.contextmanager
+def _open_rig(opts: ControllerOptions, rate_hz: float) -> Iterator[tuple[Rig, list[str]]]:
+    """The plant, with anything it needs running; yields (rig, startup faults)."""
+    if opts.plant == "sim":
+        from controller.sim.sim_rig import SimRig
+
+        yield SimRig(rate_hz=rate_hz, seed=opts.seed), []
+        return
+    from controller.rig.can_rig import CanRig, RigFault
+    from controller.rig.rig_file import load_rig_file
+
+    if opts.rig_file is None:
+        raise StartupError("--plant can needs --rig FILE")
+    try:
+        rig_file = load_rig_file(opts.rig_file)
+    except (OSError, ValueError) as exc:
+        raise StartupError(f"--rig {opts.rig_file}: {exc}") from exc
+    with contextlib.ExitStack() as stack:
+        if opts.sim_drive_node:
+            from controller.rig.sim_drive_node import SimDriveNode
+            from controller.sim.sim_rig import SimRig
+
+            plant = SimRig(rate_hz=rate_hz, seed=opts.seed)
+            stack.enter_context(SimDriveNode(rig_file, plant, rate_hz=rate_hz))
+        rig = stack.enter_context(CanRig(rig_file, rate_hz=rate_hz))
+        faults: list[str] = []
+        try:
+            rig.start()
+        except RigFault as exc:
+            faults.append(f"drive did not start: {exc}")
+        yield rig, faults
+
+
+class _Stopper:
+    """SIGINT/SIGTERM: stop the loop (command 0) and let the process wind down."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.runtime: Runtime | None = None
+
+    def on_signal(self, signum: int, _frame: Any) -> None:
+        self.event.set()
+        runtime = self.runtime
+        if runtime is not None:
+            runtime.stop()
+
+
+def run_controller(opts: ControllerOptions, *, ready: Callable[[str], None] | None = None) -> int:
+    """Run the controller until SIGINT/SIGTERM; 0 on a clean stop. Raises StartupError if it
+    cannot start. `ready(text)` is called once the loop is about to run (the CLI prints it)."""
+    stopper = _Stopper()
+    # Our handlers stay installed until everything is shut down: a second Ctrl-C (a terminal
+    # signals the whole process group, then a launcher may signal again) never interrupts
+    # the shutdown half-way.
+    previous = {s: signal.signal(s, stopper.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    runner: GateRunner | None = None
+    try:
+        runner = GateRunner(subprocess=opts.gate_in_subprocess)
+        _run(opts, runner, stopper, ready)
+    finally:
+        if runner is not None:
+            runner.close()
+        for s, h in previous.items():
+            signal.signal(s, h)
+    return 0
+
+
+def _run(
+    opts: ControllerOptions,
+    runner: GateRunner,
+    stopper: _Stopper,
+    ready: Callable[[str], None] | None,
+) -> None:
+    _check_options(opts)
+    runner.command_limit_max_deg_s = _rig_command_limit(opts)
+    try:
+        store = StateStore(opts.state_path)
+        # The first check also starts the gate's worker process, before the loop runs.
+        cfg, version, margins = _initial_config(
+            opts, store, runner.check, runner.command_limit_max_deg_s
+        )
+    except PersistenceError as exc:
+        raise StartupError(str(exc)) from exc
+    previous_switch = sys.getswitchinterval()
+    sys.setswitchinterval(opts.switch_interval_s)
+    try:
+        with _open_rig(opts, cfg.rate_hz) as (rig, rig_faults):
+            loop = ServoLoop(LoopCoefficients.build(cfg, version))
+            runtime = Runtime(
+                loop,
+                rig,
+                options=RuntimeOptions(rate_hz=cfg.rate_hz, spin_s=opts.spin_s),
+                trajectory=opts.trajectory,
+            )
+            stopper.runtime = runtime
+            if rig_faults:
+                runtime.fault = rig_faults[0]
+                runtime.mode = FAULT
+                log.warning("fault at start: %s", rig_faults[0])
+            notes: list[str] = []
+            service = ControllerService(opts, runtime, store, runner, margins, notes)
+            with open_session(opts.listen, opts.connect) as session:
+                node = ZenohNode(service)
+                try:
+                    node.declare(session)
+                    node.start_threads()
+                    if opts.realtime_priority:
+                        notes.append(try_realtime_priority())
+                        log.info("%s", notes[-1])
+                    gc.collect()
+                    gc.freeze()  # what exists now is never scanned again (fewer GC pauses)
+                    text = (
+                        f"rig {opts.rig_name!r} plant {opts.plant} at {cfg.rate_hz:g} Hz, "
+                        f"config v{version}, listening on {', '.join(opts.listen) or '-'}"
+                    )
+                    if ready is not None:
+                        ready(text)
+                    if not stopper.event.is_set():
+                        runtime.run()
+                finally:
+                    runtime.stop()
+                    node.close()
+    finally:
+        sys.setswitchinterval(previous_switch)

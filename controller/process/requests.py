@@ -1,0 +1,96 @@
+"""What other threads may ask of the loop: the runtime's own request types (domain, not wire).
+
+The Zenoh edge (`controller.process.node`) converts the wire messages of `controller.protocol`
+into these; the runtime never sees a wire message. Each request is served by the tick at the
+next tick boundary (see `Runtime.submit`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from controller.core.loop import LoopCoefficients, PreparedCoefficients
+from controller.core.trajectory import Trajectory
+from controller.ident.program import ExcitationProgram
+
+__all__ = [
+    "AbortProgram",
+    "ApplyCoefficients",
+    "EStop",
+    "RequestBody",
+    "ResetFault",
+    "RunProgram",
+    "SetTrajectory",
+    "Start",
+    "Stop",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class SetTrajectory:
+    """Follow `trajectory` (at once when running; otherwise it is what Start resumes)."""
+
+    trajectory: Trajectory
+
+
+@dataclass(frozen=True, slots=True)
+class Start:
+    """Run the trajectory (from stopped; refused in e-stop or fault until reset)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Stop:
+    """Controlled stop: hold the present position."""
+
+
+@dataclass(frozen=True, slots=True)
+class EStop:
+    """Speed command 0 from the next tick, drive disabled, until ResetFault + Start."""
+
+
+@dataclass(frozen=True, slots=True)
+class ResetFault:
+    """Leave e-stop or fault: re-enable the drive, hold the present position (stopped)."""
+
+
+class ApplyCoefficients:
+    """Swap in these coefficients at the next tick boundary.
+
+    The filters are built here, in the thread that makes the request, so the tick that swaps
+    only takes prepared objects over (`PreparedCoefficients`). Single use.
+    """
+
+    __slots__ = ("prepared",)
+
+    def __init__(self, coefficients: LoopCoefficients) -> None:
+        self.prepared = PreparedCoefficients(coefficients)
+
+    @property
+    def coefficients(self) -> LoopCoefficients:
+        return self.prepared.coefficients
+
+
+@dataclass(frozen=True, slots=True)
+class RunProgram:
+    """Start an ExcitationProgram at the next tick (mode running or stopped)."""
+
+    program: ExcitationProgram
+
+
+@dataclass(frozen=True, slots=True)
+class AbortProgram:
+    """Abort the running program; the loop holds the present position."""
+
+    reason: str = "aborted by request"
+
+
+RequestBody = (
+    SetTrajectory
+    | Start
+    | Stop
+    | EStop
+    | ResetFault
+    | ApplyCoefficients
+    | RunProgram
+    | AbortProgram
+)

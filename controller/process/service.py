@@ -1,0 +1,306 @@
+"""What each request to the controller does: apply a candidate, run a command, start an
+identification, report the status; and the log records of what happened in the loop.
+
+The controller is the single authority: nothing but an accepted candidate changes what runs.
+Requests arrive here already decoded and converted to domain types (`controller.process.node`
+is the Zenoh edge); the replies are the wire's reply messages. Everything here runs in worker
+threads, never on the loop's thread: the loop only exchanges prepared objects.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+import msgspec
+
+from controller import protocol as proto
+from controller.core.config import LoopConfig
+from controller.process.gate_worker import GateRunner, margins_dict
+from controller.process.identify_runs import IdentifyRuns
+from controller.process.options import ControllerOptions
+from controller.process.persistence import PersistenceError, StateStore
+from controller.process.requests import ApplyCoefficients, RequestBody, RunProgram
+from controller.process.runtime import ESTOP, FAULT, Runtime, Ticket
+
+__all__ = ["ControllerService", "RuntimeEvents", "config_changes"]
+
+log = logging.getLogger(__name__)
+
+NOT_IN_TIME = "loop did not reach a tick boundary in time"
+#: Identical rejections within this time are counted, not logged one by one.
+REPEAT_LOG_S = 10.0
+
+
+def config_changes(old: LoopConfig, new: LoopConfig) -> str:
+    """The fields that differ, `name old -> new`, for the log."""
+    a, b = msgspec.structs.asdict(old), msgspec.structs.asdict(new)
+    diff = [f"{k} {a[k]} -> {b[k]}" for k in a if a[k] != b[k]]
+    return ", ".join(diff) or "no change"
+
+
+class ControllerService:
+    """The request handlers of one controller (any worker thread; applies one at a time)."""
+
+    def __init__(
+        self,
+        opts: ControllerOptions,
+        runtime: Runtime,
+        store: StateStore,
+        gate: GateRunner,
+        margins: proto.Margins,
+        notes: list[str],
+    ) -> None:
+        self.opts = opts
+        self.rt = runtime
+        self.store = store
+        self.gate = gate
+        self.margins = margins
+        self.notes = notes
+        self.errors: list[str] = []
+        self.stop_event = threading.Event()
+        self.identify = IdentifyRuns(opts.rig_name, gate, self.stop_event, self.warn)
+        self._apply_lock = threading.Lock()
+        self._identify_lock = threading.Lock()
+        # The last rejection logged, when, and how many identical ones followed unlogged.
+        self._last_rejection: tuple[str, tuple[str, ...]] | None = None
+        self._last_rejection_s = 0.0
+        self._unlogged_rejections = 0
+
+    def warn(self, text: str) -> None:
+        """A problem worth a WARNING record and a line in Status.notes (the last 8 are kept)."""
+        self.errors.append(text)
+        del self.errors[:-8]
+        log.warning("%s", text)
+
+    # -- configuration ---------------------------------------------------------------------------
+
+    def config_reply(self, **kw: Any) -> proto.ConfigReply:
+        """A ConfigReply; version and config default to the active ones."""
+        active = self.rt.loop.active
+        kw.setdefault("version", active.version)
+        kw.setdefault("config", active.config)
+        return proto.ConfigReply(**kw)
+
+    def active_config(self) -> proto.ConfigReply:
+        return self.config_reply(accepted=True, margins=self.margins)
+
+    def _rejected(self, client: str, reasons: list[str], **kw: Any) -> proto.ConfigReply:
+        """A rejection (under the apply lock). A client that repeats the same rejected
+        candidate (a flood) gets one record per REPEAT_LOG_S, with the count in between."""
+        key = (client, tuple(reasons))
+        now = time.monotonic()
+        if key == self._last_rejection and now - self._last_rejection_s < REPEAT_LOG_S:
+            self._unlogged_rejections += 1
+        else:
+            n, self._unlogged_rejections = self._unlogged_rejections, 0
+            self._last_rejection, self._last_rejection_s = key, now
+            log.info(
+                "candidate from %s rejected: %s%s",
+                client or "a client",
+                "; ".join(reasons),
+                f" ({n} identical rejections before this one not logged)" if n else "",
+            )
+        return self.config_reply(accepted=False, reasons=reasons, **kw)
+
+    def apply(self, candidate: LoopConfig, client: str) -> proto.ConfigReply:
+        """Gate, persist, swap at a tick boundary, log; one candidate at a time."""
+        with self._apply_lock:
+            active = self.rt.loop.active
+            if candidate.rate_hz != active.config.rate_hz:
+                reason = (
+                    f"candidate.rate_hz: {candidate.rate_hz} Hz differs from the running loop's "
+                    f"{active.config.rate_hz} Hz; the rate changes only on restart (--rate-hz)"
+                )
+                return self._rejected(client, [reason], field="candidate.rate_hz")
+            version = active.version + 1
+            same = candidate == active.config
+            # The analysis and the filter design run in the gate's worker process.
+            verdict = self.gate.check_and_build(candidate, version, build=not same)
+            margins = verdict.margins
+            if not verdict.accepted:
+                return self._rejected(client, list(verdict.reasons), margins=margins)
+            if same or verdict.coefficients is None:
+                return self.config_reply(accepted=True, margins=margins)
+            try:
+                self.store.save(candidate, version)
+            except PersistenceError as exc:
+                reason = f"state_dir: not applied, the configuration could not be saved: {exc}"
+                self.warn(reason)
+                return self.config_reply(accepted=False, reasons=[reason], margins=margins)
+            # The filters are built here (this thread); the tick only swaps them in.
+            ticket = self.rt.submit(ApplyCoefficients(verdict.coefficients))
+            if not ticket.wait(self.opts.apply_timeout_s) or not ticket.ok:
+                # Saved but not (yet) swapped: only while shutting down. Report it.
+                reason = f"loop: not applied at a tick boundary ({ticket.message or 'timeout'})"
+                self.warn(reason)
+                return self.config_reply(accepted=False, reasons=[reason], margins=margins)
+            self._wait_version(version)
+            self.margins = margins
+            log.info(
+                "config v%d applied at seq %d (from %s): %s",
+                version,
+                ticket.seq,
+                client or "a client",
+                config_changes(active.config, candidate),
+            )
+            try:
+                self.store.append_change(
+                    old=active.config,
+                    old_version=active.version,
+                    new=candidate,
+                    version=version,
+                    margins=margins_dict(margins),
+                    client=client,
+                )
+            except PersistenceError as exc:
+                self.warn(str(exc))
+            return self.config_reply(
+                accepted=True, version=version, config=candidate, margins=margins
+            )
+
+    def _wait_version(self, version: int) -> None:
+        # The loop swaps at the start of the tick that served the ticket; this returns at
+        # once unless that tick is still running.
+        deadline = time.monotonic() + self.opts.apply_timeout_s
+        while self.rt.loop.active.version < version and time.monotonic() < deadline:
+            time.sleep(0.0005)
+
+    # -- commands ----------------------------------------------------------------------------------
+
+    def refused(self, message: str, **kw: Any) -> proto.CommandReply:
+        return proto.CommandReply(ok=False, message=message, mode=self.rt.mode, **kw)
+
+    def command(self, request: RequestBody, client: str) -> proto.CommandReply:
+        """Hand `request` to the tick and wait for its answer (an EStop engages in `submit`)."""
+        ticket = self.rt.submit(request)
+        reply = self._ticket_reply(ticket, self.opts.command_timeout_s)
+        name = type(request).__name__
+        level = logging.INFO if reply.ok else logging.WARNING
+        log.log(
+            level,
+            "command %s from %s: %s%s (mode %s, seq %d)",
+            name,
+            client or "a client",
+            "ok" if reply.ok else "refused",
+            f": {reply.message}" if reply.message else "",
+            reply.mode,
+            reply.seq,
+        )
+        return reply
+
+    def _ticket_reply(self, ticket: Ticket, timeout_s: float) -> proto.CommandReply:
+        if not ticket.wait(timeout_s):
+            return self.refused(NOT_IN_TIME, received_seq=ticket.received_seq)
+        return proto.CommandReply(
+            ok=ticket.ok,
+            message=ticket.message,
+            mode=ticket.mode,
+            seq=ticket.seq,
+            received_seq=ticket.received_seq,
+        )
+
+    # -- identification --------------------------------------------------------------------------
+
+    def start_identify(self, spec: Any, client: str) -> proto.CommandReply:
+        """Plan `spec` (an IdentifySpec) here, off the loop, hand the program to the tick,
+        watch it in a thread. Raises ConfigError (naming the spec's field) for a bad plan."""
+        rt = self.rt
+        with self._identify_lock:
+            if self.identify.busy():
+                return self.refused("an identification is already running")
+            plan, program = self.identify.plan(spec, rt.loop.active.config, rt.last_pos_deg)
+            ticket = rt.submit(RunProgram(program))
+            if not ticket.wait(self.opts.command_timeout_s) or not ticket.ok:
+                reply = self.refused(
+                    ticket.message or NOT_IN_TIME, received_seq=ticket.received_seq
+                )
+                log.warning("identification from %s refused: %s", client, reply.message)
+                return reply
+            job = self.identify.begin(plan, program)
+        return proto.CommandReply(
+            ok=True,
+            message=f"identification {job.run_id}: {plan.n_ticks / plan.config.rate_hz:.1f} s "
+            "planned",
+            mode=ticket.mode,
+            seq=ticket.seq,
+            received_seq=ticket.received_seq,
+        )
+
+    # -- status ------------------------------------------------------------------------------------
+
+    def status(self, extra_notes: tuple[str, ...] = ()) -> proto.Status:
+        rt = self.rt
+        snap = rt.timing_snapshot()
+        # Timing carries the snapshot's fields under the same names (all but `samples`).
+        timing = proto.Timing(**{f: getattr(snap, f) for f in proto.Timing.__struct_fields__})
+        faults = [rt.fault] if rt.fault else []
+        if rt.mode == ESTOP:
+            faults.append(f"e-stop ({rt.estop_source}) at seq {rt.estop_seq}")
+        active = rt.loop.active
+        return proto.Status(
+            rig=self.opts.rig_name,
+            plant=self.opts.plant,
+            mode=rt.mode,
+            t_s=time.perf_counter() - rt.t0,
+            seq=rt.seq,
+            trajectory=rt.trajectory,
+            config_version=active.version,
+            config=active.config,
+            timing=timing,
+            faults=faults,
+            estop_seq=rt.estop_seq,
+            notes=[*self.notes, *self.errors, *extra_notes],
+        )
+
+
+class RuntimeEvents:
+    """Log records of what the tick did (it logs nothing itself): mode changes, e-stops,
+    faults, and a summary of lost ticks. `poll()` from any thread but the loop's."""
+
+    def __init__(self, runtime: Runtime, summary_period_s: float = 60.0) -> None:
+        self.rt = runtime
+        self.summary_period_s = summary_period_s
+        self._mode = runtime.mode
+        self._fault = runtime.fault
+        self._estop_seq = runtime.estop_seq
+        self._lost = self._lost_now()
+        self._next_summary = time.monotonic() + summary_period_s
+
+    def _lost_now(self) -> tuple[int, int, int]:
+        rt = self.rt
+        return rt.overruns, rt.skipped_ticks, rt.dropped_samples
+
+    def poll(self) -> None:
+        rt = self.rt
+        mode, fault, estop_seq = rt.mode, rt.fault, rt.estop_seq
+        if estop_seq != self._estop_seq:
+            log.warning("e-stop (%s) at seq %d", rt.estop_source, estop_seq)
+        if fault and (fault != self._fault or (mode == FAULT and self._mode != FAULT)):
+            log.warning("fault: %s (mode %s)", fault, mode)
+        if mode != self._mode and mode not in (ESTOP, FAULT):
+            log.info("mode %s -> %s", self._mode, mode)
+        self._mode, self._fault, self._estop_seq = mode, fault, estop_seq
+        if time.monotonic() >= self._next_summary:
+            self._next_summary += self.summary_period_s
+            self.summary(only_if_lost=True)
+
+    def summary(self, *, only_if_lost: bool = False) -> None:
+        """Log the ticks lost since the previous summary (WARNING if any, else INFO)."""
+        now = self._lost_now()
+        d_over, d_skip, d_drop = (b - a for a, b in zip(self._lost, now, strict=True))
+        self._lost = now
+        lost = d_over or d_skip or d_drop
+        if only_if_lost and not lost:
+            return
+        log.log(
+            logging.WARNING if lost else logging.INFO,
+            "loop: %d overruns, %d skipped ticks, %d dropped samples since the last summary "
+            "(%d ticks in all)",
+            d_over,
+            d_skip,
+            d_drop,
+            self.rt.ticks,
+        )

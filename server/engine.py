@@ -1,0 +1,290 @@
+"""The tuning engine: a candidate configuration -> Bode chart data, margins, verdict, and the
+time-domain preview. Pure computation (no viser): the panels display what it returns.
+
+It evaluates a candidate with the shared stability check (`controller.gate.analysis`), the
+same function the controller runs before it applies anything, and runs the offline experiment
+for the preview. Results are cached per configuration; the engine is thread-safe.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+
+from controller.core.config import LoopConfig
+from controller.core.errors import ConfigError
+from controller.core.trajectory import Trajectory
+from controller.gate.analysis import (
+    Analysis,
+    MeasuredResponse,
+    PlantKnowledge,
+    analyse,
+    default_grid,
+    recommended_max_cutoff_hz,
+)
+from server import charts
+from server.charts import BodeCurves, FloatArray
+
+__all__ = [
+    "CUTOFF_MAX_HZ",
+    "CUTOFF_MIN_HZ",
+    "Comparison",
+    "ConfigError",
+    "Evaluation",
+    "GateView",
+    "PreviewComparison",
+    "PreviewResult",
+    "TuningEngine",
+    "candidate_from_values",
+    "curves_from_analysis",
+    "freq_grid_hz",
+    "measured_from_csv",
+]
+
+#: Range of the Q cut-off the dashboard offers, Hz.
+CUTOFF_MIN_HZ = 0.05
+CUTOFF_MAX_HZ = 50.0
+
+
+@dataclass(frozen=True)
+class GateView:
+    """What the stability check says about one configuration, ready to display."""
+
+    verdict: str  # "accept" | "reject"
+    reasons: tuple[str, ...]
+    margins: dict[str, float]
+    recommended_max_cutoff_hz: float | None = None
+
+    @property
+    def accepted(self) -> bool:
+        return self.verdict == "accept"
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One configuration's curves and verdict, and how long the check took."""
+
+    config: LoopConfig
+    curves: BodeCurves
+    gate: GateView
+    elapsed_s: float
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A candidate against the active configuration, with the data of every Bode chart."""
+
+    candidate: Evaluation
+    active: Evaluation
+    #: Bode chart key -> its uPlot data tuple (candidate and active curves).
+    chart_data: dict[str, tuple[FloatArray, ...]]
+
+
+@dataclass(frozen=True)
+class PreviewResult:
+    """The offline experiment of one configuration on one trajectory."""
+
+    config: LoopConfig
+    trajectory: Trajectory
+    t_s: FloatArray
+    error_deg: FloatArray
+    peak_error_deg: float
+    rmse_deg: float
+    elapsed_s: float
+
+
+@dataclass(frozen=True)
+class PreviewComparison:
+    """The previews of the candidate and the active configuration, and the chart data."""
+
+    candidate: PreviewResult
+    active: PreviewResult
+    chart_data: tuple[FloatArray, ...]
+
+
+def freq_grid_hz(rate_hz: float = 1000.0, n: int = 240) -> FloatArray:
+    """Log grid of the Bode plots: 0.01 Hz to just under Nyquist (the gate's own grid)."""
+    return np.asarray(default_grid(rate_hz, n), dtype=np.float64)
+
+
+def candidate_from_values(base: LoopConfig, values: dict[str, Any]) -> LoopConfig:
+    """A validated candidate: `base` with the control values; raises ConfigError."""
+    return base.with_(**values)
+
+
+# -- the analysis adapter -------------------------------------------------------------------------
+
+
+def curves_from_analysis(a: Analysis) -> tuple[BodeCurves, GateView]:
+    """Adapter: the gate's Analysis -> what the charts draw and the verdict box shows."""
+    bound = [src.inv_delta_db for src in a.sources if src.kind == "bound"]
+    measured = [src.inv_delta_db for src in a.sources if src.kind == "measured"]
+    curves = BodeCurves(
+        freq_hz=a.freq_hz,
+        open_loop_db=a.open_loop_mag_db,
+        open_loop_phase_deg=_wrap_start(a.open_loop_phase_deg),
+        closed_dob_db=charts.db(a.closed_loop_dob),
+        closed_nodob_db=charts.db(a.closed_loop_no_dob),
+        dist_dob_db=charts.db(a.disturbance_dob),
+        dist_nodob_db=charts.db(a.disturbance_no_dob),
+        noise_dob_db=charts.db(a.noise_dob),
+        noise_nodob_db=charts.db(a.noise_no_dob),
+        q_db=a.q_mag_db,
+        rejection_db=a.rejection_db,
+        inv_delta_db=bound[0] if bound else None,
+        # The worst measured response at each frequency (smallest 1/|Delta|).
+        inv_delta_measured_db=np.min(np.stack(measured), axis=0) if measured else None,
+    )
+    margins = {
+        "gain_margin_db": a.gain_margin_db,
+        "phase_margin_deg": a.phase_margin_deg,
+        "peak_sensitivity_db": a.peak_sensitivity_db,
+        "small_gain_peak": a.small_gain_peak,
+        "max_pole_radius": a.max_pole_radius,
+        "noise_to_command_peak_db": a.noise_to_command_peak_db,
+    }
+    return curves, GateView(a.verdict, tuple(a.reasons), margins)
+
+
+def _wrap_start(phase_deg: FloatArray) -> FloatArray:
+    """Shift an unwrapped phase by whole turns so that it starts in (-270, 90] deg."""
+    if len(phase_deg) == 0:
+        return phase_deg
+    turns = math.floor((phase_deg[0] + 270.0) / 360.0)
+    return np.asarray(phase_deg - 360.0 * turns, dtype=np.float64)
+
+
+def measured_from_csv(name: str, data: Any) -> MeasuredResponse:
+    """A CSV response (FrdData) as the gate's plant knowledge: a continuous response u -> w."""
+    return MeasuredResponse(name=name, freq_hz=data.freq_hz, response=data.response)
+
+
+# -- the engine ---------------------------------------------------------------------------------
+
+K = TypeVar("K", bound=Hashable)
+V = TypeVar("V")
+
+
+class _Cache(Generic[K, V]):
+    """A small thread-safe memo, emptied when it grows past `size` (the keys seen recently are
+    what a slider revisits). Two threads may compute the same key once each: harmless."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._items: dict[K, V] = {}
+        self._lock = threading.Lock()
+
+    def lookup(self, key: K) -> tuple[bool, V | None]:
+        with self._lock:
+            if key in self._items:
+                return True, self._items[key]
+        return False, None
+
+    def get(self, key: K, compute: Callable[[], V]) -> V:
+        with self._lock:
+            if key in self._items:
+                return self._items[key]
+        value = compute()
+        with self._lock:
+            if len(self._items) > self.size:
+                self._items.clear()
+            self._items[key] = value
+        return value
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+
+
+def _recommendation_key(cfg: LoopConfig) -> LoopConfig:
+    """The recommendation depends on everything but the cut-off and the DOB switch."""
+    return cfg.with_(q_cutoff_hz=1.0, dob_on=True)
+
+
+class TuningEngine:
+    """Evaluates candidates; caches the evaluation of configurations seen before."""
+
+    def __init__(self, n_freq: int = 240, preview_duration_s: float = 12.6):
+        self.n_freq = n_freq
+        self.freq_hz = freq_grid_hz(1000.0, n_freq)
+        self.preview_duration_s = preview_duration_s
+        self.plant = PlantKnowledge()
+        self._plant_lock = threading.Lock()
+        self._evaluations: _Cache[LoopConfig, Evaluation] = _Cache(64)
+        self._recommendations: _Cache[LoopConfig, float | None] = _Cache(64)
+        self._previews: _Cache[tuple[LoopConfig, Trajectory], PreviewResult] = _Cache(16)
+
+    @property
+    def measured(self) -> tuple[MeasuredResponse, ...]:
+        return self.plant.measured
+
+    def add_measured(self, m: MeasuredResponse) -> None:
+        """A measured response (CSV upload; same name replaces); invalidates cached verdicts."""
+        with self._plant_lock:
+            kept = tuple(x for x in self.plant.measured if x.name != m.name)
+            self.plant = PlantKnowledge(measured=(*kept, m), bound=self.plant.bound)
+            self._evaluations.clear()
+            self._recommendations.clear()
+
+    def cached_recommendation(self, cfg: LoopConfig) -> tuple[bool, float | None]:
+        """(known, value) without computing."""
+        return self._recommendations.lookup(_recommendation_key(cfg))
+
+    def recommended_max_cutoff_hz(self, cfg: LoopConfig) -> float | None:
+        """The gate's largest accepted Q cut-off for this candidate's other settings (cached;
+        ~0.1 s, so call it off the slider path)."""
+        key = _recommendation_key(cfg)
+        plant = self.plant
+        return self._recommendations.get(
+            key, lambda: recommended_max_cutoff_hz(key, plant, highest_hz=CUTOFF_MAX_HZ)
+        )
+
+    def evaluate(self, cfg: LoopConfig) -> Evaluation:
+        """The gate's verdict and curves for `cfg` (cached)."""
+        return self._evaluations.get(cfg, lambda: self._evaluate(cfg, self.plant))
+
+    def _evaluate(self, cfg: LoopConfig, plant: PlantKnowledge) -> Evaluation:
+        t0 = time.perf_counter()
+        grid = freq_grid_hz(cfg.rate_hz, self.n_freq)
+        curves, gate = curves_from_analysis(analyse(cfg, plant, freq_hz=grid))
+        return Evaluation(cfg, curves, gate, time.perf_counter() - t0)
+
+    def compare(self, candidate: LoopConfig, active: LoopConfig) -> Comparison:
+        """Candidate and active evaluated, and the data of every Bode chart."""
+        cand, act = self.evaluate(candidate), self.evaluate(active)
+        data = {spec.key: charts.bode_data(spec.key, cand.curves, act.curves)
+                for spec in charts.BODE_CHARTS}
+        return Comparison(cand, act, data)
+
+    def preview(self, cfg: LoopConfig, trajectory: Trajectory) -> PreviewResult:
+        """The offline experiment over one sine period (12.6 s) or `preview_duration_s`."""
+        return self._previews.get((cfg, trajectory), lambda: self._preview(cfg, trajectory))
+
+    def _preview(self, cfg: LoopConfig, trajectory: Trajectory) -> PreviewResult:
+        from controller.sim.experiment import run_experiment
+
+        t0 = time.perf_counter()
+        duration = trajectory.period_s or self.preview_duration_s
+        res = run_experiment(cfg, trajectory, min(duration, 30.0), seed=0)
+        return PreviewResult(
+            config=cfg,
+            trajectory=trajectory,
+            t_s=np.asarray(res.t_s, dtype=np.float64),
+            error_deg=np.asarray(res.error_deg, dtype=np.float64),
+            peak_error_deg=float(res.peak_error_deg),
+            rmse_deg=float(res.rmse_deg),
+            elapsed_s=time.perf_counter() - t0,
+        )
+
+    def compare_preview(
+        self, candidate: LoopConfig, active: LoopConfig, trajectory: Trajectory
+    ) -> PreviewComparison:
+        """The previews of both configurations and the preview chart's data."""
+        pc, pa = self.preview(candidate, trajectory), self.preview(active, trajectory)
+        return PreviewComparison(pc, pa, charts.preview_data(pc.t_s, pc.error_deg, pa.error_deg))

@@ -1,0 +1,224 @@
+"""The dependency rules of the layout (docs/architecture.md), checked on the source (AST).
+
+Every import counts, also the ones inside functions: a lazy import is still a dependency.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("controller", "server")
+
+#: Pure packages: math and plain data, no I/O frameworks, no threads, no processes.
+PURE = ("controller.core", "controller.gate", "controller.sim", "controller.ident")
+#: What a pure package may not import (top-level module names).
+IMPURE_LIBS = {
+    "zenoh", "can", "viser", "threading", "multiprocessing", "subprocess", "socket",
+    "asyncio", "concurrent", "playwright", "signal", "logging",
+}
+#: Which project packages each pure package may import (besides itself).
+PURE_MAY_IMPORT = {
+    "controller.core": (),
+    "controller.gate": ("controller.core",),
+    "controller.sim": ("controller.core",),
+    "controller.ident": ("controller.core", "controller.gate", "controller.sim"),
+}
+#: The wire contract imports only plain data types.
+PROTOCOL_MAY_IMPORT = ("controller.core", "controller.ident.spec", "controller.gate.knowledge")
+#: What the dashboard may take from the controller side.
+SERVER_MAY_IMPORT = (
+    *PURE,
+    "controller.protocol", "controller.client", "controller.zenoh_session", "controller.logs",
+    "controller.cli",
+)
+
+
+def module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def modules() -> dict[str, Path]:
+    out = {}
+    for pkg in PACKAGES:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            out[module_name(path)] = path
+    return out
+
+
+MODULES = modules()
+
+
+def resolve(mod: str, node: ast.ImportFrom) -> str:
+    if node.level == 0:
+        return node.module or ""
+    is_pkg = MODULES[mod].name == "__init__.py"
+    base = mod.split(".")
+    base = base if is_pkg else base[:-1]
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def imports(mod: str) -> Iterator[tuple[str, int, list[str]]]:
+    """(imported module, line, names imported from it) for every import in `mod`."""
+    tree = ast.parse(MODULES[mod].read_text(), filename=str(MODULES[mod]))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                yield a.name, node.lineno, []
+        elif isinstance(node, ast.ImportFrom):
+            target = resolve(mod, node)
+            names = [a.name for a in node.names]
+            # `from pkg import module` imports the module
+            sub = [n for n in names if f"{target}.{n}" in MODULES]
+            for n in sub:
+                yield f"{target}.{n}", node.lineno, []
+            rest = [n for n in names if n not in sub]
+            if rest or not sub:
+                yield target, node.lineno, rest
+
+
+def project_target(name: str) -> str | None:
+    """The project module an import refers to (the longest known prefix)."""
+    parts = name.split(".")
+    for i in range(len(parts), 0, -1):
+        cand = ".".join(parts[:i])
+        if cand in MODULES:
+            return cand
+    return None
+
+
+def within(mod: str, prefixes: tuple[str, ...]) -> bool:
+    return any(mod == p or mod.startswith(p + ".") for p in prefixes)
+
+
+def test_the_layout_has_the_packages() -> None:
+    for pkg in (*PURE, "controller.rig", "controller.process", "controller.cli",
+                "controller.protocol", "controller.client", "server.panels"):
+        assert pkg in MODULES, f"{pkg} is missing"
+
+
+@pytest.mark.parametrize("mod", sorted(m for m in MODULES if within(m, PURE)))
+def test_pure_packages_import_no_io_and_point_one_way(mod: str) -> None:
+    own = next(p for p in PURE if within(mod, (p,)))
+    allowed = (own, *PURE_MAY_IMPORT[own])
+    bad = []
+    for name, line, _ in imports(mod):
+        top = name.split(".")[0]
+        outside = top in PACKAGES and not within(project_target(name) or name, allowed)
+        if top in IMPURE_LIBS or outside:
+            bad.append(f"line {line}: {name}")
+    assert not bad, f"{mod} imports {bad}"
+
+
+def test_protocol_imports_only_plain_data() -> None:
+    bad = [
+        f"line {line}: {name}"
+        for name, line, _ in imports("controller.protocol")
+        if name.split(".")[0] in PACKAGES
+        and not within(project_target(name) or name, PROTOCOL_MAY_IMPORT)
+    ]
+    assert not bad, bad
+
+
+def test_controller_never_imports_server() -> None:
+    bad = [
+        f"{mod} line {line}: {name}"
+        for mod in MODULES
+        if mod.startswith("controller")
+        for name, line, _ in imports(mod)
+        if name.split(".")[0] in ("server", "viser")
+    ]
+    assert not bad, bad
+
+
+def test_server_imports_only_the_controllers_public_side() -> None:
+    bad = [
+        f"{mod} line {line}: {name}"
+        for mod in MODULES
+        if mod.startswith("server")
+        for name, line, _ in imports(mod)
+        if name.startswith("controller")
+        and not within(project_target(name) or name, SERVER_MAY_IMPORT)
+    ]
+    assert not bad, bad
+
+
+def test_no_import_cycles() -> None:
+    graph: dict[str, set[str]] = {m: set() for m in MODULES}
+    for mod in MODULES:
+        for name, _, _ in imports(mod):
+            target = project_target(name)
+            if target and target != mod and not within(mod, (target,)):
+                graph[mod].add(target)
+    # Tarjan's strongly connected components
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    cycles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            visit(v)
+    assert not cycles, cycles
+
+
+def test_no_private_names_across_modules() -> None:
+    bad = []
+    for mod in MODULES:
+        tree = ast.parse(MODULES[mod].read_text())
+        aliases: dict[str, str] = {}
+        for name, line, names in imports(mod):
+            target = project_target(name)
+            if target is None or target == mod:
+                continue
+            bad += [f"{mod} line {line}: {target}.{n}" for n in names
+                    if n.startswith("_") and not n.startswith("__")]
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                for a in node.names:
+                    if project_target(a.name) == a.name:
+                        aliases[a.asname or a.name] = a.name
+            elif isinstance(node, ast.ImportFrom):
+                target = resolve(mod, node)
+                for a in node.names:
+                    if f"{target}.{a.name}" in MODULES:
+                        aliases[a.asname or a.name] = f"{target}.{a.name}"
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Attribute)
+                and isinstance(node.value, ast.Name)
+                and node.value.id in aliases
+                and node.attr.startswith("_")
+                and not node.attr.startswith("__")
+            ):
+                bad.append(f"{mod} line {node.lineno}: {aliases[node.value.id]}.{node.attr}")
+    assert not bad, bad

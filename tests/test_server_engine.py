@@ -1,0 +1,73 @@
+"""The tuning engine (pure computation): verdicts and chart data of a candidate against the
+active configuration, the recommended cut-off, the 12.6 s preview within 200 ms, measured
+responses changing the verdict."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from controller.core.config import LoopConfig, NominalModel
+from controller.core.trajectory import Trajectory
+from controller.gate.analysis import MeasuredResponse, nominal_continuous_response
+from server import charts
+from server.engine import TuningEngine
+
+
+def test_preview_of_one_sine_period_within_200_ms() -> None:
+    eng = TuningEngine()
+    cfg = LoopConfig()
+    traj = Trajectory()
+    eng.preview(cfg.with_(q_cutoff_hz=0.3), traj)  # warm-up (numba compile)
+    res = eng.preview(cfg, traj)
+    print(f"preview 12.6 s sine: {res.elapsed_s * 1e3:.0f} ms, peak {res.peak_error_deg:.4f}")
+    assert abs(res.t_s[-1] - 4 * math.pi) < 0.01
+    assert res.elapsed_s <= 0.2
+    assert 0.0 < res.rmse_deg < res.peak_error_deg
+
+
+def test_compare_gives_every_bode_chart_its_data() -> None:
+    eng = TuningEngine()
+    active = LoopConfig()
+    cmp = eng.compare(active.with_(q_cutoff_hz=2.0), active)
+    assert cmp.candidate.config.q_cutoff_hz == 2.0 and cmp.active.config == active
+    assert set(cmp.chart_data) == {spec.key for spec in charts.BODE_CHARTS}
+    for spec in charts.BODE_CHARTS:
+        assert len(cmp.chart_data[spec.key]) == len(spec.series)
+    # The candidate's |Q| and the active one's differ; the evaluation is cached.
+    _, q_cand, q_act, _, _ = cmp.chart_data["small_gain"]
+    assert not np.allclose(q_cand, q_act)
+    assert eng.evaluate(active) is cmp.active
+
+
+def test_compare_preview_draws_both_runs() -> None:
+    eng = TuningEngine()
+    active = LoopConfig()
+    p = eng.compare_preview(active.with_(dob_on=False), active, Trajectory())
+    x, cand, act = p.chart_data
+    assert len(x) == len(cand) == len(act) <= 1500
+    assert p.candidate.config.dob_on is False and p.active.config == active
+
+
+def test_recommendation_is_cached_per_gains() -> None:
+    eng = TuningEngine()
+    cfg = LoopConfig()
+    assert eng.cached_recommendation(cfg) == (False, None)
+    rec = eng.recommended_max_cutoff_hz(cfg)
+    assert rec is not None and rec > 0.0
+    # The cut-off and the DOB switch do not change the recommendation's key.
+    assert eng.cached_recommendation(cfg.with_(q_cutoff_hz=3.0, dob_on=False)) == (True, rec)
+
+
+def test_measured_response_enters_the_verdict() -> None:
+    eng = TuningEngine()
+    cfg = LoopConfig()
+    assert eng.evaluate(cfg).curves.inv_delta_measured_db is None
+    f = np.geomspace(0.1, 20, 40)
+    response = 1.1 * nominal_continuous_response(NominalModel(), f)
+    eng.add_measured(MeasuredResponse(name="m", freq_hz=f, response=response))
+    ev = eng.evaluate(cfg)
+    assert ev.curves.inv_delta_measured_db is not None
+    assert np.isfinite(ev.gate.margins["small_gain_peak"])
+    assert len(eng.measured) == 1
