@@ -19,7 +19,7 @@ from typing import Any
 from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig
-from controller.gate.analysis import MeasuredResponse
+from controller.gate.knowledge import MeasuredResponse
 from server.engine import TuningEngine, measured_from_csv
 from server.measured import read_measured
 from server.panels.identify import IdentifyPanel, NominalTuningPanel

@@ -20,14 +20,8 @@ import numpy as np
 from controller.core.config import LoopConfig
 from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
-from controller.gate.analysis import (
-    Analysis,
-    MeasuredResponse,
-    PlantKnowledge,
-    analyse,
-    default_grid,
-    recommended_max_cutoff_hz,
-)
+from controller.gate.analysis import Analysis, analyse, default_grid, recommended_max_cutoff_hz
+from controller.gate.knowledge import MeasuredResponse, PlantKnowledge
 from server import charts
 from server.charts import BodeCurves, FloatArray
 

@@ -16,7 +16,7 @@ import numpy as np
 from controller import protocol as proto
 from controller.core.config import NominalModel
 from controller.core.errors import ConfigError
-from controller.gate.analysis import MeasuredResponse
+from controller.gate.knowledge import MeasuredResponse
 from controller.ident.report import nominal_from_summary
 from controller.ident.result import IdentifyResult, PositionRecord, position_name
 from server import charts

@@ -27,6 +27,6 @@ def read_measured(name: str, content: bytes) -> Any:
 
 
 def _reader() -> Any:
-    from controller.ident.estimate import read_frd_csv
+    from controller.gate.frd_csv import read_frd_csv
 
     return read_frd_csv

@@ -19,10 +19,6 @@ from controller.core.config import LoopConfig
 from controller.core.dob import design_dob
 from controller.gate.analysis import (
     GateLimits,
-    MeasuredResponse,
-    PlantKnowledge,
-    SampledBound,
-    WeightBound,
     analyse,
     default_grid,
     discrete_equivalent,
@@ -30,7 +26,8 @@ from controller.gate.analysis import (
     recommended_max_cutoff_hz,
 )
 from controller.gate.frd import load_measured
-from controller.ident.estimate import write_frd_csv
+from controller.gate.frd_csv import write_frd_csv
+from controller.gate.knowledge import MeasuredResponse, PlantKnowledge, SampledBound, WeightBound
 
 # ----------------------------------------------------------------------------- references
 

@@ -8,15 +8,13 @@ import numpy as np
 import pytest
 import scipy.signal as sig
 
+from controller.gate.frd_csv import FrdData, read_frd_csv, write_frd_csv
 from controller.ident.estimate import (
-    FrdData,
     agreement,
     coherence_std,
     estimate_from_coefficients,
     estimate_multisine,
     estimate_stepped_sine,
-    read_frd_csv,
-    write_frd_csv,
 )
 from controller.ident.excitation import MultisineSpec, SteppedSineSpec, multisine, stepped_sine
 

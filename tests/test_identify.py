@@ -24,7 +24,7 @@ from controller.cli.identify import (
     identify_main,
 )
 from controller.core.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM
-from controller.ident.estimate import read_frd_csv
+from controller.gate.frd_csv import read_frd_csv
 from controller.ident.spec import IdentifySpec
 from controller.sim.sim_rig import SimRig
 

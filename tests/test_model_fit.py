@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import scipy.signal as sig
 
-from controller.ident.estimate import FrdData, estimate_stepped_sine
+from controller.gate.frd_csv import FrdData
+from controller.ident.estimate import estimate_stepped_sine
 from controller.ident.excitation import SteppedSineSpec, stepped_sine
 from controller.ident.model_fit import (
     coherence_weights,

@@ -15,7 +15,7 @@ import pytest
 
 from controller.core.config import NominalModel
 from controller.gate.analysis import nominal_continuous_response
-from controller.ident.estimate import write_frd_csv
+from controller.gate.frd_csv import write_frd_csv
 from server.app import Dashboard, DashboardOptions
 from server.demo import controller_process, stop_process
 

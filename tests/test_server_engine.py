@@ -10,7 +10,8 @@ import numpy as np
 
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.trajectory import Trajectory
-from controller.gate.analysis import MeasuredResponse, nominal_continuous_response
+from controller.gate.analysis import nominal_continuous_response
+from controller.gate.knowledge import MeasuredResponse
 from server import charts
 from server.engine import TuningEngine
 

@@ -25,8 +25,8 @@ import numpy as np
 from controller.cli import Command
 from controller.core.config import LoopConfig, config_from_builtins, config_to_builtins
 from controller.core.errors import ConfigError
+from controller.gate.frd_csv import write_frd_csv
 from controller.ident.engine import RigLike, run_identification
-from controller.ident.estimate import write_frd_csv
 from controller.ident.report import (
     FITTED_CONFIG_NAME,
     csv_name,

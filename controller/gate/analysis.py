@@ -51,8 +51,6 @@ where |L| << 1 (the default grid, 0.01 Hz to Nyquist, does); if not, it reports 
 from __future__ import annotations
 
 import math
-import threading
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
@@ -66,17 +64,17 @@ from controller.core.config import LoopConfig, NominalModel
 from controller.core.discrete import SosArray, sos_response
 from controller.core.dob import design_dob
 from controller.core.qfilter import Q_TYPES, QType, check_q_type
+from controller.gate.knowledge import (
+    MeasuredResponse,
+    PlantKnowledge,
+    readonly,
+)
 
 __all__ = [
     "Analysis",
     "GateLimits",
     "Margins",
-    "MeasuredResponse",
-    "PlantKnowledge",
-    "SampledBound",
     "SourceResult",
-    "UncertaintyBound",
-    "WeightBound",
     "analyse",
     "default_grid",
     "discrete_equivalent",
@@ -90,137 +88,6 @@ Verdict = Literal["accept", "reject"]
 
 _TWO_PI = 2.0 * math.pi
 _DB_3 = 10.0 ** (-3.0 / 20.0)  # -3 dB, as python-control's bandwidth()
-
-
-def _readonly(a: np.ndarray) -> np.ndarray:
-    a.setflags(write=False)
-    return a
-
-
-# --------------------------------------------------------------------------- plant knowledge
-
-
-@dataclass(frozen=True, eq=False)
-class MeasuredResponse:
-    """A measured (or model-variant) plant response from speed command u to load rate.
-
-    `response` is continuous, G_c(j 2 pi f), unless `sampled` is true: then it is already the
-    response of the sampled loop u[k] -> w[k] (what an FRF test run by the loop itself gives).
-    """
-
-    name: str
-    freq_hz: FloatArray
-    response: ComplexArray
-    sampled: bool = False
-
-    def __post_init__(self) -> None:
-        f = np.array(self.freq_hz, dtype=np.float64)
-        h = np.array(self.response, dtype=np.complex128)
-        if not isinstance(self.name, str) or not self.name:
-            raise ValueError("measured response: a non-empty name is required")
-        if f.ndim != 1 or f.size < 2 or h.shape != f.shape:
-            raise ValueError(f"measured response {self.name!r}: need >= 2 points, equal sizes")
-        if not (np.all(np.isfinite(f)) and np.all(f > 0) and np.all(np.diff(f) > 0)):
-            raise ValueError(
-                f"measured response {self.name!r}: freq_hz must be > 0 and strictly increasing"
-            )
-        if not np.all(np.isfinite(h)) or np.any(h == 0):
-            raise ValueError(f"measured response {self.name!r}: response must be finite, != 0")
-        object.__setattr__(self, "freq_hz", _readonly(f))
-        object.__setattr__(self, "response", _readonly(h))
-
-
-@dataclass(frozen=True, eq=False)
-class WeightBound:
-    """Multiplicative uncertainty bound |Delta(jw)| <= |W(jw)|, W first order plus a mode.
-
-    W1(s) = (tau s + r0) / (tau s / r_inf + 1): r0 = `low_freq_fraction` at DC, |W1| = 1 at
-    `unity_freq_hz`, r_inf = `high_freq_fraction` at high frequency. An optional unmodelled
-    mode (a resonance at `mode_hz` with damping `mode_damping` missing from the model) adds
-    its relative error |s^2 + 2 z wm s| / |s^2 + 2 z wm s + wm^2| to |W1|.
-    """
-
-    low_freq_fraction: float
-    unity_freq_hz: float
-    high_freq_fraction: float = 2.0
-    mode_hz: float | None = None
-    mode_damping: float = 0.05
-    name: str = "bound"
-
-    def __post_init__(self) -> None:
-        r0, rinf = self.low_freq_fraction, self.high_freq_fraction
-        if not (0.0 <= r0 < 1.0):
-            raise ValueError(f"low_freq_fraction must be in [0, 1), got {r0}")
-        if not (rinf > 1.0 and math.isfinite(rinf)):
-            raise ValueError(f"high_freq_fraction must be > 1, got {rinf}")
-        if not (self.unity_freq_hz > 0 and math.isfinite(self.unity_freq_hz)):
-            raise ValueError(f"unity_freq_hz must be > 0, got {self.unity_freq_hz}")
-        if self.mode_hz is not None and not (self.mode_hz > 0 and math.isfinite(self.mode_hz)):
-            raise ValueError(f"mode_hz must be > 0, got {self.mode_hz}")
-        if not (0.0 < self.mode_damping < 1.0):
-            raise ValueError(f"mode_damping must be in (0, 1), got {self.mode_damping}")
-
-    @property
-    def tau_s(self) -> float:
-        r0, rinf = self.low_freq_fraction, self.high_freq_fraction
-        w1 = _TWO_PI * self.unity_freq_hz
-        return math.sqrt((1.0 - r0 * r0) / (1.0 - 1.0 / (rinf * rinf))) / w1
-
-    def transfer_function(self) -> tuple[list[float], list[float]]:
-        """(num, den) of W1(s), highest power first."""
-        tau = self.tau_s
-        return [tau, self.low_freq_fraction], [tau / self.high_freq_fraction, 1.0]
-
-    def magnitude(self, freq_hz: ArrayLike) -> FloatArray:
-        s = 1j * _TWO_PI * np.asarray(freq_hz, dtype=np.float64)
-        tau = self.tau_s
-        mag = np.abs((tau * s + self.low_freq_fraction) / (tau / self.high_freq_fraction * s + 1))
-        if self.mode_hz is not None:
-            wm = _TWO_PI * self.mode_hz
-            a = s * s + 2.0 * self.mode_damping * wm * s
-            mag = mag + np.abs(a / (a + wm * wm))
-        return np.asarray(mag, dtype=np.float64)
-
-
-@dataclass(frozen=True, eq=False)
-class SampledBound:
-    """|W| given at frequencies (interpolated log-log; held constant outside the range)."""
-
-    freq_hz: FloatArray
-    mag: FloatArray
-    name: str = "bound"
-
-    def __post_init__(self) -> None:
-        f = np.array(self.freq_hz, dtype=np.float64)
-        m = np.array(self.mag, dtype=np.float64)
-        if f.ndim != 1 or f.size < 1 or m.shape != f.shape:
-            raise ValueError("sampled bound: freq_hz and mag must be 1-D of equal size")
-        if not (np.all(np.isfinite(f)) and np.all(f > 0) and np.all(np.diff(f) > 0)):
-            raise ValueError("sampled bound: freq_hz must be > 0 and strictly increasing")
-        if not (np.all(np.isfinite(m)) and np.all(m > 0)):
-            raise ValueError("sampled bound: mag must be finite and > 0")
-        object.__setattr__(self, "freq_hz", _readonly(f))
-        object.__setattr__(self, "mag", _readonly(m))
-
-    def magnitude(self, freq_hz: ArrayLike) -> FloatArray:
-        x = np.log(np.asarray(freq_hz, dtype=np.float64))
-        return np.exp(np.interp(x, np.log(self.freq_hz), np.log(self.mag)))
-
-
-UncertaintyBound = WeightBound | SampledBound
-
-
-@dataclass(frozen=True, eq=False)
-class PlantKnowledge:
-    """What is known of the real plant besides the nominal model (which is cfg.nominal)."""
-
-    measured: tuple[MeasuredResponse, ...] = ()
-    bound: UncertaintyBound | None = None
-
-    def __post_init__(self) -> None:
-        names = [m.name for m in self.measured]
-        if len(set(names)) != len(names):
-            raise ValueError(f"measured responses need distinct names, got {names}")
 
 
 @dataclass(frozen=True)
@@ -377,7 +244,7 @@ def default_grid(rate_hz: float, n: int = 500) -> FloatArray:
 
 @lru_cache(maxsize=32)
 def _default_grid(rate_hz: float, n: int) -> FloatArray:
-    return _readonly(np.geomspace(0.01, 0.4999 * rate_hz, n))
+    return readonly(np.geomspace(0.01, 0.4999 * rate_hz, n))
 
 
 def _poly_roots(p: tuple[float, float, float]) -> tuple[list[complex], float]:
@@ -464,14 +331,14 @@ def _plant(nominal: NominalModel, rate_hz: float) -> _Plant:
     num, den = signal.ss2tf(ag, bg[:, None], cg[None, :], np.zeros((1, 1)))
     # In z: num(z)/den(z) with equal lengths; as polynomials in z^-1 the same arrays apply.
     return _Plant(
-        a=_readonly(ax),
-        b=_readonly(bx),
-        cw=_readonly(cw),
-        ct=_readonly(ct),
-        ag=_readonly(ag),
-        bg=_readonly(bg),
-        num=_readonly(np.asarray(num[0], dtype=np.float64)),
-        den=_readonly(np.asarray(den, dtype=np.float64)),
+        a=readonly(ax),
+        b=readonly(bx),
+        cw=readonly(cw),
+        ct=readonly(ct),
+        ag=readonly(ag),
+        bg=readonly(bg),
+        num=readonly(np.asarray(num[0], dtype=np.float64)),
+        den=readonly(np.asarray(den, dtype=np.float64)),
     )
 
 
@@ -518,25 +385,19 @@ class _Dob:
     f2_ss: tuple[FloatArray, FloatArray, FloatArray, float]
 
 
-_DOB_CACHE: OrderedDict[tuple[object, ...], _Dob] = OrderedDict()
-_DOB_LOCK = threading.Lock()  # analyse() runs on GUI thread pools and in the controller
-
-
 def _dob(cfg: LoopConfig) -> _Dob:
     """The implemented DOB filters, cached per (Q type, cut-off, rate, nominal model)."""
-    key = (cfg.q_type, cfg.q_cutoff_hz, cfg.rate_hz, cfg.nominal)
-    with _DOB_LOCK:
-        hit = _DOB_CACHE.get(key)
-        if hit is not None:
-            _DOB_CACHE.move_to_end(key)
-            return hit
-    d = design_dob(cfg)
-    out = _Dob(d.q.tau_s, d.f1_sos, d.f2_sos, _sos_ss(d.f1_sos), _sos_ss(d.f2_sos))
-    with _DOB_LOCK:
-        _DOB_CACHE[key] = out
-        if len(_DOB_CACHE) > 256:
-            _DOB_CACHE.popitem(last=False)
-    return out
+    return _dob_cached(cfg.q_type, cfg.q_cutoff_hz, cfg.rate_hz, cfg.nominal)
+
+
+@lru_cache(maxsize=256)
+def _dob_cached(q_type: str, cutoff_hz: float, rate_hz: float, nominal: NominalModel) -> _Dob:
+    # lru_cache keeps its own lock (CPython), so concurrent analyse() calls from GUI thread
+    # pools share the cache safely; two callers may both compute a missing entry, which is
+    # harmless: the design is a pure function of the key.
+    d = design_dob(LoopConfig(q_type=q_type, q_cutoff_hz=cutoff_hz, rate_hz=rate_hz,
+                              nominal=nominal))
+    return _Dob(d.q.tau_s, d.f1_sos, d.f2_sos, _sos_ss(d.f1_sos), _sos_ss(d.f2_sos))
 
 
 def _pi(kp: float, ki: float, ts: float, zinv: ComplexArray) -> ComplexArray:
@@ -956,7 +817,7 @@ def analyse(
                 base_loop_stable=True,
                 full_loop_winding_ok=True,
                 margins=None,
-                inv_delta_db=_readonly(-20.0 * np.log10(wmag)),
+                inv_delta_db=readonly(-20.0 * np.log10(wmag)),
             )
         )
         for t, which in ((sp, "speed loop"), (fp, "with position loop")):
@@ -974,21 +835,21 @@ def analyse(
         config=cfg,
         tau_s=dob.tau_s,
         freq_hz=f,
-        open_loop=_readonly(loop),
-        open_loop_mag_db=_readonly(20.0 * np.log10(np.abs(loop))),
-        open_loop_phase_deg=_readonly(np.degrees(np.unwrap(np.angle(loop)))),
-        closed_loop=_readonly(gyw),
-        closed_loop_dob=_readonly(gyw_on),
-        closed_loop_no_dob=_readonly(gyw_off),
-        disturbance_dob=_readonly(pd * one_f2 / d_on),
-        disturbance_no_dob=_readonly(pd / d_off),
-        noise_dob=_readonly(g * (cv + f1) / d_on),
-        noise_no_dob=_readonly(gyw_off),
-        q_mag_db=_readonly(20.0 * np.log10(np.abs(f2d))),
-        rejection_db=_readonly(rejection),
+        open_loop=readonly(loop),
+        open_loop_mag_db=readonly(20.0 * np.log10(np.abs(loop))),
+        open_loop_phase_deg=readonly(np.degrees(np.unwrap(np.angle(loop)))),
+        closed_loop=readonly(gyw),
+        closed_loop_dob=readonly(gyw_on),
+        closed_loop_no_dob=readonly(gyw_off),
+        disturbance_dob=readonly(pd * one_f2 / d_on),
+        disturbance_no_dob=readonly(pd / d_off),
+        noise_dob=readonly(g * (cv + f1) / d_on),
+        noise_no_dob=readonly(gyw_off),
+        q_mag_db=readonly(20.0 * np.log10(np.abs(f2d))),
+        rejection_db=readonly(rejection),
         margins=margins,
         bandwidth_hz=bandwidth,
-        poles=_readonly(poles),
+        poles=readonly(poles),
         max_pole_radius=max_radius,
         sources=tuple(sources),
         small_gain_peak=max(peaks) if peaks else math.nan,
@@ -1097,7 +958,7 @@ def _measured_source(
         base_loop_stable=base_ok,
         full_loop_winding_ok=full_ok,
         margins=margins,
-        inv_delta_db=_readonly(inv_delta),
+        inv_delta_db=readonly(inv_delta),
     )
 
 

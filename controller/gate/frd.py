@@ -1,6 +1,6 @@
 """Measured plant responses for the stability check: CSV files -> `MeasuredResponse`.
 
-The CSV codec is `controller.ident.estimate.read_frd_csv` (format ``freq_hz,mag_db,phase_deg
+The CSV codec is `controller.gate.frd_csv.read_frd_csv` (format ``freq_hz,mag_db,phase_deg
 [,coherence]``; errors name the file and line); this module only turns its data into the
 analysis's plant knowledge and builds model variants.
 """
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from controller.gate.analysis import MeasuredResponse
-from controller.ident.estimate import read_frd_csv
+from controller.gate.frd_csv import read_frd_csv
+from controller.gate.knowledge import MeasuredResponse
 
 __all__ = ["load_measured", "measured_from_csv", "measured_from_model"]
 

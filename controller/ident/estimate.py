@@ -26,29 +26,25 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Literal, Protocol
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from controller.gate.frd_csv import FrdLike, mag_db_of, phase_deg_of
 from controller.ident.excitation import Multisine, SteppedSine
 
 __all__ = [
     "Agreement",
-    "FrdData",
     "FrdEstimate",
-    "FrdLike",
     "agreement",
     "coherence_std",
     "estimate_from_coefficients",
     "estimate_multisine",
     "estimate_stepped_sine",
     "multisine_coefficients",
-    "read_frd_csv",
     "stepped_sine_coefficients",
-    "write_frd_csv",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -57,25 +53,6 @@ IntArray = NDArray[np.int64]
 Method = Literal["open_loop_h1", "closed_loop_x"]
 
 _DB_PER_NEPER = 20.0 / math.log(10.0)
-CSV_COLUMNS = ("freq_hz", "mag_db", "phase_deg", "coherence")
-
-
-class FrdLike(Protocol):
-    """Anything with a frequency grid and a complex response on it."""
-
-    @property
-    def freq_hz(self) -> FloatArray: ...
-
-    @property
-    def response(self) -> ComplexArray: ...
-
-
-def _mag_db(h: ComplexArray) -> FloatArray:
-    return 20.0 * np.log10(np.abs(h))
-
-
-def _phase_deg(h: ComplexArray) -> FloatArray:
-    return np.degrees(np.unwrap(np.angle(h)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,30 +76,12 @@ class FrdEstimate:
 
     @property
     def mag_db(self) -> FloatArray:
-        return _mag_db(self.response)
+        return mag_db_of(self.response)
 
     @property
     def phase_deg(self) -> FloatArray:
         """Unwrapped phase (deg), starting in (-180, 180] at the lowest frequency."""
-        return _phase_deg(self.response)
-
-
-@dataclass(frozen=True, eq=False)
-class FrdData:
-    """A response read from a CSV file."""
-
-    freq_hz: FloatArray
-    mag_db: FloatArray
-    phase_deg: FloatArray
-    coherence: FloatArray | None
-    """None when the file has no coherence column."""
-    source: str = field(default="")
-    """Where it came from (file name)."""
-
-    @property
-    def response(self) -> ComplexArray:
-        mag = 10.0 ** (self.mag_db / 20.0)
-        return (mag * np.exp(1j * np.radians(self.phase_deg))).astype(np.complex128)
+        return phase_deg_of(self.response)
 
 
 # ----------------------------------------------------------------------------- estimators
@@ -317,7 +276,7 @@ def agreement(
         if fi.shape != f.shape or not np.allclose(fi, f, rtol=1e-9, atol=0.0):
             raise ValueError(f"responses[{i}]: frequency grid differs from responses[0]")
     h = np.array([np.asarray(r.response, dtype=np.complex128) for r in responses])
-    mag = _mag_db(h)
+    mag = mag_db_of(h)
     rel_phase = np.degrees(np.angle(h / h[0][None, :]))
     spread_db = np.max(mag, axis=0) - np.min(mag, axis=0)
     spread_deg = np.max(rel_phase, axis=0) - np.min(rel_phase, axis=0)
@@ -338,95 +297,3 @@ def agreement(
     )
 
 
-# ---------------------------------------------------------------------------------- CSV
-
-
-def write_frd_csv(
-    path: str | Path,
-    freq_hz: ArrayLike,
-    response: ArrayLike,
-    coherence: ArrayLike | None = None,
-) -> None:
-    """Write ``freq_hz,mag_db,phase_deg[,coherence]`` with the phase unwrapped."""
-    f = np.asarray(freq_hz, dtype=np.float64)
-    h = np.asarray(response, dtype=np.complex128)
-    if f.ndim != 1 or h.shape != f.shape:
-        raise ValueError(f"freq_hz {f.shape} and response {h.shape} must be 1-D of equal size")
-    if not np.all(np.isfinite(f)) or np.any(f <= 0) or np.any(np.diff(f) <= 0):
-        raise ValueError("freq_hz: must be finite, > 0 and strictly increasing")
-    if not np.all(np.isfinite(h)) or np.any(h == 0):
-        raise ValueError("response: must be finite and non-zero")
-    cols = [f, _mag_db(h), _phase_deg(h)]
-    header = list(CSV_COLUMNS[:3])
-    if coherence is not None:
-        c = np.asarray(coherence, dtype=np.float64)
-        if c.shape != f.shape or not np.all((c >= 0) & (c <= 1)):
-            raise ValueError("coherence: must be in [0, 1], one value per frequency")
-        cols.append(c)
-        header.append("coherence")
-    lines = [",".join(header)]
-    lines += [",".join(f"{v:.10g}" for v in row) for row in zip(*cols, strict=True)]
-    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
-
-
-def read_frd_csv(path: str | Path) -> FrdData:
-    """Read a response written by :func:`write_frd_csv` (or by hand, same columns).
-
-    Blank lines and lines starting with ``#`` are skipped; extra columns are ignored. Any
-    problem raises ``ValueError("<file>:<line>: <what>")``.
-    """
-    name = str(path)
-    text = Path(path).read_text(encoding="utf-8-sig")
-    lines = text.splitlines()
-
-    def fail(line_no: int, msg: str) -> ValueError:
-        return ValueError(f"{name}:{line_no}: {msg}")
-
-    rows = [
-        (i + 1, ln) for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")
-    ]
-    if not rows:
-        raise fail(1, "empty file, expected header freq_hz,mag_db,phase_deg[,coherence]")
-    header_no, header_line = rows[0]
-    header = [h.strip().lower() for h in header_line.split(",")]
-    for col in header:
-        if header.count(col) > 1:
-            raise fail(header_no, f"duplicate column {col!r}")
-    for col in CSV_COLUMNS[:3]:
-        if col not in header:
-            raise fail(header_no, f"missing column {col!r} (header: {header_line.strip()!r})")
-    wanted = [c for c in CSV_COLUMNS if c in header]
-    index = {c: header.index(c) for c in wanted}
-    data: dict[str, list[float]] = {c: [] for c in wanted}
-    if len(rows) < 2:
-        raise fail(header_no, "no data rows after the header")
-    for line_no, line in rows[1:]:
-        fields = line.split(",")
-        if len(fields) != len(header):
-            raise fail(line_no, f"expected {len(header)} fields, got {len(fields)}")
-        for col in wanted:
-            raw = fields[index[col]].strip()
-            try:
-                v = float(raw)
-            except ValueError:
-                raise fail(line_no, f"{col}: not a number: {raw!r}") from None
-            if not math.isfinite(v):
-                raise fail(line_no, f"{col}: not finite: {raw!r}")
-            if col == "freq_hz":
-                if v <= 0:
-                    raise fail(line_no, f"freq_hz: must be > 0 (got {v})")
-                if data["freq_hz"] and v <= data["freq_hz"][-1]:
-                    raise fail(
-                        line_no,
-                        f"freq_hz: not increasing ({v} after {data['freq_hz'][-1]})",
-                    )
-            if col == "coherence" and not 0.0 <= v <= 1.0:
-                raise fail(line_no, f"coherence: must be in [0, 1] (got {v})")
-            data[col].append(v)
-    return FrdData(
-        freq_hz=np.array(data["freq_hz"]),
-        mag_db=np.array(data["mag_db"]),
-        phase_deg=np.array(data["phase_deg"]),
-        coherence=np.array(data["coherence"]) if "coherence" in data else None,
-        source=name,
-    )

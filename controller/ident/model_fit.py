@@ -35,7 +35,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
-from controller.ident.estimate import FrdData, FrdEstimate, FrdLike
+from controller.gate.frd_csv import FrdData, FrdLike
+from controller.ident.estimate import FrdEstimate
 
 __all__ = [
     "MODELS",

@@ -20,13 +20,8 @@ from numpy.typing import NDArray
 
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
-from controller.gate.analysis import (
-    MeasuredResponse,
-    PlantKnowledge,
-    analyse,
-    discrete_equivalent,
-    recommended_max_cutoff_hz,
-)
+from controller.gate.analysis import analyse, discrete_equivalent, recommended_max_cutoff_hz
+from controller.gate.knowledge import MeasuredResponse, PlantKnowledge
 from controller.ident.estimate import (
     Agreement,
     FrdEstimate,

@@ -45,7 +45,7 @@ from controller import protocol as proto
 from controller.client import ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
-from controller.gate.analysis import MeasuredResponse
+from controller.gate.knowledge import MeasuredResponse
 from controller.ident.engine import RigLike, run_identification
 from controller.ident.plan import check_rate
 from controller.ident.result import IdentifyAborted, IdentifyResult, analyse_result

@@ -22,15 +22,13 @@ import numpy as np
 from controller.core.config import LoopConfig
 from controller.core.dob import design_dob
 from controller.gate.analysis import (
-    MeasuredResponse,
-    PlantKnowledge,
-    WeightBound,
     analyse,
     default_grid,
     discrete_equivalent,
     nominal_continuous_response,
     recommended_max_cutoff_hz,
 )
+from controller.gate.knowledge import MeasuredResponse, PlantKnowledge, WeightBound
 
 
 def _measured(cfg: LoopConfig) -> tuple[MeasuredResponse, ...]:
