@@ -9,6 +9,8 @@ import control as ct
 import numpy as np
 import pytest
 
+from controller.core.config import LoopConfig
+from controller.core.trajectory import default_trajectory
 from controller.sim.disturbance import (
     DISTURBANCES,
     NoDisturbance,
@@ -16,7 +18,8 @@ from controller.sim.disturbance import (
     StepTorque,
     disturbance_from_name,
 )
-from controller.sim.sim_rig import RigParams, SimRig
+from controller.sim.experiment import run_experiment
+from controller.sim.sim_rig import RigFaults, RigParams, SimRig
 
 # control.md eqs. (33) and (34): the article's identified models, speed command -> load rate.
 M_ARTICLE = ct.tf([1.0], [1.013e-05, 0.004501, 1.0])
@@ -276,3 +279,194 @@ def test_position_is_quantised_to_26_bits() -> None:
     counts = pos / lsb
     np.testing.assert_allclose(counts, np.round(counts), atol=1e-6)
     assert abs(rig.read()[0] - rig.true_position_deg) <= lsb / 2 + 1e-12
+
+
+# -- runtime fault injection ------------------------------------------------------------------
+
+
+def _faulted_sine_response(
+    freq_hz: float, faults: RigFaults, offset_deg_s: float = 20.0
+) -> complex:
+    """u -> w of the rig with `faults` set before the run, as `_sine_response` measures it."""
+    rig = SimRig()
+    rig.set_faults(faults)
+    period = rig.period_s
+    settle = round(2.0 / period)
+    window = round(max(1, math.ceil(5.0 * freq_hz)) / freq_hz / period)
+    k = np.arange(settle + window)
+    u = offset_deg_s + 2.0 * np.sin(2 * math.pi * freq_hz * k * period)
+    _, w = _run(rig, u)
+    return _phasor(w[settle:], freq_hz, period) / _phasor(u[settle:], freq_hz, period)
+
+
+@pytest.mark.parametrize("gain", [2.0, 0.5])
+def test_plant_gain_fault_scales_the_low_frequency_response(gain: float) -> None:
+    nominal = _faulted_sine_response(0.2, RigFaults(), offset_deg_s=10.0)
+    faulted = _faulted_sine_response(0.2, RigFaults(plant_gain=gain), offset_deg_s=10.0)
+    assert abs(faulted / nominal) == pytest.approx(gain, rel=0.02)
+    assert abs(math.degrees(np.angle(faulted / nominal))) < 2.0
+
+
+def test_plant_gain_fault_while_running_and_cleared() -> None:
+    rig = SimRig()
+    _run(rig, np.full(1500, 10.0))
+    rig.set_plant_gain(2.0)
+    assert rig.faults == RigFaults(plant_gain=2.0)
+    _run(rig, np.full(1500, 10.0))
+    assert rig.true_speed_deg_s == pytest.approx(20.0, rel=0.05)
+    rig.clear_faults()
+    assert not rig.faults.active
+    _run(rig, np.full(1500, 10.0))
+    assert rig.true_speed_deg_s == pytest.approx(10.0, rel=0.05)
+
+
+def _reversal_play_deg(rig: SimRig) -> float:
+    """The motor reaches the same angle twice, moving down then moving up (5 deg/s legs of 1 s):
+    the load ends apart by the backlash plus the belt's friction deflection, both ways."""
+    leg = np.full(1000, 5.0)
+    rest = np.zeros(500)
+    _run(rig, np.concatenate([leg, -leg, rest]))
+    down = rig.true_position_deg
+    _run(rig, np.concatenate([-leg, leg, rest]))
+    return down - rig.true_position_deg
+
+
+def test_loosened_belt_adds_its_backlash_to_the_play_at_reversal() -> None:
+    nominal = _reversal_play_deg(SimRig())
+    loose = SimRig()
+    loose.loosen_belt(0.3)
+    assert loose.faults.extra_backlash_deg == 0.3
+    assert _reversal_play_deg(loose) - nominal == pytest.approx(0.3, rel=0.03)
+
+
+def test_loosened_belt_raises_the_closed_loop_reversal_error() -> None:
+    # The article's sine: its error peaks at the reversals; 0.3 deg more play makes them worse.
+    cfg = LoopConfig()
+    traj = default_trajectory("sine")
+    nominal = run_experiment(cfg, traj, 12.0)
+    rig = SimRig()
+    rig.loosen_belt(0.3)
+    loose = run_experiment(cfg, traj, 12.0, rig=rig)
+    assert loose.peak_error_deg > 2.0 * nominal.peak_error_deg
+    t_peak = loose.t_s[np.argmax(np.abs(loose.error_deg) * (loose.t_s >= 2.0))]
+    print(
+        f"\n  peak |e| {nominal.peak_error_deg:.3f} -> {loose.peak_error_deg:.3f} deg, {t_peak} s"
+    )
+    # 5 sin(0.5 t): reversals at t = pi, 3 pi; the error peaks while the play is taken up.
+    since = t_peak - np.array([math.pi, 3 * math.pi])
+    assert np.any((since > 0.0) & (since < 1.0))
+
+
+def _linear_with_mode(p: RigParams, f: RigFaults) -> ct.StateSpace:
+    """`_linear_torque_to_load_angle` with a payload on a spring: torque on the hub -> angle of
+    the payload (where the encoder reads)."""
+    base = _linear_torque_to_load_angle(p)
+    jp = f.resonance_mass_fraction * p.load_inertia_kg_m2
+    jh = p.load_inertia_kg_m2 - jp
+    wr = 2 * math.pi * f.resonance_hz
+    kr, cr = jp * wr**2, 2 * f.resonance_damping * wr * jp
+    a = np.zeros((7, 7))
+    a[:5, :5] = base.A
+    a[3, :] *= p.load_inertia_kg_m2 / jh  # the hub alone takes the belt's torque
+    a[3, 5:] = [kr / jh, cr / jh]  # the spring pulls the hub
+    a[5, 6] = 1.0
+    a[6, :] = -a[3, :]  # relative deflection: minus the hub's acceleration...
+    a[6, 5:] -= [kr / jp, cr / jp]  # ...minus the spring's pull on the payload
+    b = np.zeros((7, 1))
+    b[3, 0] = 1.0 / jh
+    b[6, 0] = -1.0 / jh
+    c = np.zeros((1, 7))
+    c[0, 2] = c[0, 5] = 180.0 / math.pi
+    return ct.ss(a, b, c, 0.0)
+
+
+@pytest.mark.parametrize("freq_hz", [5.0, 15.0, 17.0])
+def test_added_resonance_moves_load_as_linear_model_predicts(freq_hz: float) -> None:
+    p = RigParams()
+    faults = RigFaults(resonance_hz=15.0, resonance_damping=0.05, resonance_mass_fraction=0.2)
+    settle = 2000
+    window = round(max(1, math.ceil(5 * freq_hz)) / freq_hz * 1000)
+    u = np.full(settle + window, 20.0)
+    runs = []
+    for d in (None, SineTorque(amplitude_n_m=0.2, freq_hz=freq_hz)):
+        rig = SimRig(p, disturbance=d)
+        rig.set_faults(faults)
+        runs.append(_run(rig, u)[0])
+    dpos = (runs[1] - runs[0])[settle:]
+    torque = 0.2 * np.sin(2 * math.pi * freq_hz * np.arange(settle + window) * 1e-3)[settle:]
+    g = _phasor(dpos, freq_hz, 1e-3) / _phasor(torque, freq_hz, 1e-3)
+    ref = complex(np.squeeze(_linear_with_mode(p, faults)(2j * math.pi * freq_hz)))
+    plain = complex(np.squeeze(_linear_torque_to_load_angle(p)(2j * math.pi * freq_hz)))
+    print(f"\n  {freq_hz} Hz: |dpos/T| {abs(g):.5f} linear {abs(ref):.5f} no mode {abs(plain):.5f}")
+    assert abs(g) == pytest.approx(abs(ref), rel=0.05)
+    assert math.degrees(abs(np.angle(g / ref))) < 5.0
+
+
+def test_added_resonance_shows_in_the_speed_response() -> None:
+    # Payload of 20 % at 15 Hz against a clamped hub: with the hub free the pair resonates near
+    # 15 / sqrt(0.8) = 16.8 Hz; the encoder reads the payload, so the phase falls through it.
+    faults = RigFaults(resonance_hz=15.0, resonance_damping=0.05, resonance_mass_fraction=0.2)
+    low = _faulted_sine_response(0.5, faults) / _faulted_sine_response(0.5, RigFaults())
+    assert abs(low) == pytest.approx(1.0, abs=0.02)
+    peak = _faulted_sine_response(16.0, faults) / _faulted_sine_response(16.0, RigFaults())
+    assert abs(peak) > 3.0
+    assert -110.0 < math.degrees(np.angle(peak)) < -50.0
+
+
+def test_adding_and_removing_the_mode_keeps_the_motion() -> None:
+    rig = SimRig(RigParams(position_noise_deg=0.0))
+    _run(rig, np.full(1000, 10.0))
+    before = rig.true_speed_deg_s
+    rig.add_resonance(20.0, resonance_damping=0.1)
+    rig.step(10.0)
+    assert rig.true_speed_deg_s == pytest.approx(before, rel=0.02)
+    _run(rig, np.full(500, 10.0))
+    pos, speed = rig.true_position_deg, rig.true_speed_deg_s
+    rig.clear_faults()
+    rig.step(10.0)
+    assert rig.true_position_deg == pytest.approx(pos + 1e-3 * speed, abs=2e-3)
+    assert rig.true_speed_deg_s == pytest.approx(speed, rel=0.05)
+    assert rig.faults == RigFaults()
+
+
+def test_faults_survive_reset() -> None:
+    rig = SimRig()
+    rig.set_faults(RigFaults(plant_gain=2.0, extra_backlash_deg=0.1, resonance_hz=30.0))
+    rig.reset(5.0)
+    assert rig.faults.plant_gain == 2.0
+    _run(rig, np.full(2000, 5.0))
+    assert rig.true_speed_deg_s == pytest.approx(10.0, rel=0.1)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("plant_gain", -0.1),
+        ("plant_gain", math.nan),
+        ("plant_gain", 1e3),
+        ("extra_backlash_deg", -0.01),
+        ("extra_backlash_deg", math.inf),
+        ("resonance_hz", -1.0),
+        ("resonance_damping", 0.0),
+        ("resonance_mass_fraction", 0.95),
+        ("resonance_mass_fraction", "0.1"),
+    ],
+)
+def test_fault_validation_names_the_field(field: str, value: object) -> None:
+    with pytest.raises(ValueError, match=field):
+        RigFaults(**{field: value})  # type: ignore[arg-type]
+
+
+def test_fault_methods_validate() -> None:
+    rig = SimRig()
+    with pytest.raises(ValueError, match=r"resonance_hz.*600"):
+        rig.add_resonance(600.0)  # 10 kHz integration: modes up to 500 Hz
+    with pytest.raises(ValueError, match="resonance_hz"):
+        rig.add_resonance(0.0)
+    with pytest.raises(ValueError, match="plant_gain"):
+        rig.set_plant_gain(-1.0)
+    with pytest.raises(ValueError, match="extra_backlash_deg"):
+        rig.loosen_belt(-0.5)
+    with pytest.raises(ValueError, match="faults"):
+        rig.set_faults({"plant_gain": 2.0})  # type: ignore[arg-type]
+    assert rig.faults == RigFaults()  # nothing half-applied

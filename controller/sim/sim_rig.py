@@ -35,21 +35,34 @@ from the backward-difference rate), i.e. -1.8 deg at 5 Hz.
 
 The kernel is compiled with numba and works on two preallocated float64 arrays (parameters and
 state); `SimRig` wraps it. The external disturbance is sampled once per tick and held.
+
+Runtime faults (`RigFaults`, `SimRig.set_faults` and its shortcuts), for testing what watches
+the loop: a plant-gain factor on the speed reference the drive receives (a wrong scaling in
+the drive: the u -> w gain at all frequencies times the factor), extra backlash (the belt
+loosens), and an extra mode: a payload of `resonance_mass_fraction` of the load inertia on a
+torsional spring (natural frequency `resonance_hz` against a clamped hub, damping ratio
+`resonance_damping`); friction, belt and ripple act on the hub, the load encoder reads the
+payload (non-collocated: past the resonance the phase drops by 180 deg). With the belt the
+pair resonates slightly above `resonance_hz` (about resonance_hz / sqrt(1 - mass fraction)
+for a stiff hub). A fault is staged in the parameter array and taken over by the kernel at the
+start of the next tick (a flag the kernel tests: no Python cost per tick, with or without
+faults); adding or removing the mode conserves momentum. Faults survive `reset()`.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numba
 import numpy as np
 import numpy.typing as npt
 
 from controller.core.errors import ConfigError
+from controller.core.validate import in_range
 from controller.sim.disturbance import Disturbance, NoDisturbance
 
-__all__ = ["RigParams", "SimRig"]
+__all__ = ["RigFaults", "RigParams", "SimRig"]
 
 _DEG = math.pi / 180.0
 _TWO_PI = 2.0 * math.pi
@@ -156,14 +169,51 @@ class RigParams:
             )
 
 
-# Parameter array layout (SI, load side unless noted).
+@dataclass(frozen=True, slots=True)
+class RigFaults:
+    """Faults injected into a running simulated rig; the defaults are "no fault"."""
+
+    plant_gain: float = 1.0
+    """Factor on the speed reference the drive receives (1 = nominal, 0 = drive not moving)."""
+    extra_backlash_deg: float = 0.0
+    """Backlash added to `RigParams.backlash_deg` (the belt loosens), load side."""
+    resonance_hz: float = 0.0
+    """Natural frequency of an extra mode (payload on a spring, hub clamped); 0 = none."""
+    resonance_damping: float = 0.02
+    """Damping ratio of the extra mode."""
+    resonance_mass_fraction: float = 0.2
+    """Share of the load inertia that sits on the spring (the encoder reads it)."""
+
+    def __post_init__(self) -> None:
+        in_range(self.plant_gain, "plant_gain", 0.0, 100.0)
+        in_range(self.extra_backlash_deg, "extra_backlash_deg", 0.0, 10.0)
+        in_range(self.resonance_hz, "resonance_hz", 0.0, 1e4)
+        in_range(self.resonance_damping, "resonance_damping", 0.0, 1.0, lo_open=True)
+        in_range(self.resonance_mass_fraction, "resonance_mass_fraction", 0.0, 0.9, lo_open=True)
+
+    @property
+    def active(self) -> bool:
+        return self != _NO_FAULTS
+
+
+_NO_FAULTS = RigFaults()
+
+# Parameter array layout (SI, load side unless noted). _P_JL is the hub's inertia (the whole
+# load's without an extra mode); _P_RES_JP the payload's (0 = no extra mode). A fault change is
+# staged at _P_NEW.. (the values for _FAULT_SLOTS, in order); the kernel takes it over when
+# _P_PENDING is set.
 _P_N, _P_JM, _P_BM, _P_KP, _P_KI, _P_TLIM, _P_CPR, _P_K, _P_C, _P_HALF_BL = range(10)
 _P_JL, _P_BL, _P_FC, _P_FS, _P_WS, _P_BIAS, _P_Z, _P_TE, _P_RIP, _P_QDEG = range(10, 20)
 _P_DT, _P_NSUB, _P_NWIN, _P_RATE = range(20, 24)
-_P_LEN = 24
+_P_GAIN, _P_RES_JP, _P_RES_W2, _P_RES_2ZW = range(24, 28)  # active fault values
+_FAULT_SLOTS = (_P_GAIN, _P_HALF_BL, _P_JL, _P_RES_JP, _P_RES_W2, _P_RES_2ZW)
+_P_NEW = 28
+_P_PENDING = _P_NEW + len(_FAULT_SLOTS)
+_P_LEN = _P_PENDING + 1
 
-# State array layout; the motor-encoder ring buffer (counts) follows _X_RING.
-_X_THM, _X_WM, _X_THL, _X_WL, _X_XI, _X_TAU, _X_POSM, _X_RIDX, _X_RING = range(9)
+# State array layout; the motor-encoder ring buffer (counts) follows _X_RING. _X_Q / _X_QD:
+# deflection of the extra mode's payload relative to the hub, and its rate.
+_X_THM, _X_WM, _X_THL, _X_WL, _X_XI, _X_TAU, _X_POSM, _X_RIDX, _X_Q, _X_QD, _X_RING = range(11)
 
 
 def _param_array(
@@ -196,13 +246,51 @@ def _param_array(
     a[_P_NSUB] = substeps
     a[_P_NWIN] = nwin
     a[_P_RATE] = rate_hz
+    a[_P_GAIN] = 1.0
     return a, nwin
+
+
+def _fault_values(p: RigParams, f: RigFaults, substep_hz: float) -> tuple[float, ...]:
+    """The kernel's values for `f`, in the order of _FAULT_SLOTS."""
+    jp = w2 = zw2 = 0.0
+    if f.resonance_hz > 0.0:
+        if f.resonance_hz > substep_hz / 20.0:
+            raise ConfigError(
+                "resonance_hz",
+                f"{f.resonance_hz} Hz is above {substep_hz / 20.0:g} Hz, the highest mode the "
+                f"{substep_hz:g} Hz integration resolves",
+            )
+        w = _TWO_PI * f.resonance_hz
+        jp = f.resonance_mass_fraction * p.load_inertia_kg_m2
+        w2 = w * w
+        zw2 = 2.0 * f.resonance_damping * w
+    half = 0.5 * (p.backlash_deg + f.extra_backlash_deg) * _DEG
+    return (f.plant_gain, half, p.load_inertia_kg_m2 - jp, jp, w2, zw2)
 
 
 @numba.njit(cache=True)
 def _measure_deg(x: np.ndarray, p: np.ndarray, noise_deg: float) -> float:
     q = p[_P_QDEG]
-    return math.floor((x[_X_THL] / _DEG + noise_deg) / q + 0.5) * q
+    return math.floor(((x[_X_THL] + x[_X_Q]) / _DEG + noise_deg) / q + 0.5) * q
+
+
+@numba.njit(cache=True)
+def _take_faults(x: np.ndarray, p: np.ndarray) -> None:
+    """Take over the staged fault values. A changed extra mode first merges into the hub
+    (momentum and centre of inertia kept), a new one starts at rest relative to the hub."""
+    jp = p[_P_RES_JP]
+    same_mode = True
+    for i in range(3, len(_FAULT_SLOTS)):  # payload inertia, w^2, 2 zeta w
+        same_mode = same_mode and p[_P_NEW + i] == p[_FAULT_SLOTS[i]]
+    if jp > 0.0 and not same_mode:
+        mu = jp / (p[_P_JL] + jp)
+        x[_X_WL] += mu * x[_X_QD]
+        x[_X_THL] += mu * x[_X_Q]
+        x[_X_Q] = 0.0
+        x[_X_QD] = 0.0
+    for i in range(len(_FAULT_SLOTS)):
+        p[_FAULT_SLOTS[i]] = p[_P_NEW + i]
+    p[_P_PENDING] = 0.0
 
 
 @numba.njit(cache=True)
@@ -227,6 +315,8 @@ def _advance(
         raise ValueError("command_deg_s must be finite")
     if not math.isfinite(torque_n_m):
         raise ValueError("disturbance torque must be finite")
+    if p[_P_PENDING] != 0.0:
+        _take_faults(x, p)
     n = p[_P_N]
     jm = p[_P_JM]
     bm = p[_P_BM]
@@ -249,14 +339,19 @@ def _advance(
     nsub = int(p[_P_NSUB])
     nwin = int(p[_P_NWIN])
     count_to_speed = _TWO_PI / cpr / (nwin * dt)
-    ref = command_deg_s * n * _DEG
+    ref = command_deg_s * n * _DEG * p[_P_GAIN]
     t_ext = p[_P_BIAS] + torque_n_m
+    jp = p[_P_RES_JP]
+    res_w2 = p[_P_RES_W2]
+    res_zw2 = p[_P_RES_2ZW]
 
     thm = x[_X_THM]
     wm = x[_X_WM]
     thl = x[_X_THL]
     wl = x[_X_WL]
     xi = x[_X_XI]
+    q = x[_X_Q]
+    qd = x[_X_QD]
     ridx = int(x[_X_RIDX])
     tau = 0.0
     for _ in range(nsub):
@@ -294,14 +389,22 @@ def _advance(
 
         wm_new = wm + dt / jm * (tau - bm * wm - tb / n)
 
-        # Load: friction at the velocity level; stick when friction can absorb the momentum.
-        mom = jl * wl + dt * (tb + t_ext + rip * math.sin(z * thl))
+        # Load (hub): friction at the velocity level; stick when friction can absorb the
+        # momentum. An extra mode's payload pulls through its spring; the payload's deflection
+        # follows the hub's acceleration (semi-implicit, like the rest).
+        t_mode = 0.0
+        if jp > 0.0:
+            t_mode = jp * (res_w2 * q + res_zw2 * qd)
+        mom = jl * wl + dt * (tb + t_ext + t_mode + rip * math.sin(z * thl))
         r2 = (wl / ws) ** 2
         fmax = fc + dfs * math.exp(-r2) if r2 < 50.0 else fc
         if abs(mom) <= dt * fmax:
             wl_new = 0.0
         else:
             wl_new = (mom - math.copysign(dt * fmax, mom)) / (jl + dt * bl)
+        if jp > 0.0:
+            qd -= dt * t_mode / jp + (wl_new - wl)
+            q += dt * qd
 
         wm = wm_new
         wl = wl_new
@@ -313,6 +416,8 @@ def _advance(
     x[_X_THL] = thl
     x[_X_WL] = wl
     x[_X_XI] = xi
+    x[_X_Q] = q
+    x[_X_QD] = qd
     x[_X_TAU] = tau
     x[_X_RIDX] = ridx
     pos = _measure_deg(x, p, noise_deg)
@@ -326,6 +431,7 @@ class SimRig:
 
     __slots__ = (
         "_disturbance",
+        "_faults",
         "_noise",
         "_noise_i",
         "_p",
@@ -364,6 +470,7 @@ class SimRig:
         self._params = params
         self._p, nwin = _param_array(params, rate_hz, substeps)
         self._x = np.zeros(_X_RING + nwin)
+        self._faults = _NO_FAULTS
         self._period_s = 1.0 / rate_hz
         self._seed = seed
         self._disturbance: Disturbance | None = None
@@ -408,6 +515,56 @@ class SimRig:
             raise ConfigError("disturbance", f"must have torque_n_m(time_s), got {d!r}")
         self._disturbance = None if isinstance(d, NoDisturbance) else d
 
+    # -- runtime faults (take effect at the start of the next step) ---------------------------
+
+    def set_faults(self, faults: RigFaults) -> None:
+        """Replace every fault at once (RigFaults() clears them); effective from the next step.
+
+        Staged in the parameter array and taken over by the kernel: safe to call between ticks
+        from another thread than the one stepping (one caller at a time)."""
+        if not isinstance(faults, RigFaults):
+            raise ConfigError("faults", f"must be RigFaults, got {type(faults).__name__}")
+        values = _fault_values(self._params, faults, 1.0 / float(self._p[_P_DT]))
+        p = self._p
+        p[_P_PENDING] = 0.0  # the kernel ignores the block while it is being written
+        p[_P_NEW:_P_PENDING] = values
+        p[_P_PENDING] = 1.0
+        self._faults = faults
+
+    def set_plant_gain(self, plant_gain: float) -> None:
+        """Scale the speed reference the drive receives (drive/belt gain fault); 1 = nominal."""
+        self.set_faults(replace(self._faults, plant_gain=plant_gain))
+
+    def loosen_belt(self, extra_backlash_deg: float) -> None:
+        """Backlash becomes `RigParams.backlash_deg + extra_backlash_deg` (not cumulative)."""
+        self.set_faults(replace(self._faults, extra_backlash_deg=extra_backlash_deg))
+
+    def add_resonance(
+        self,
+        resonance_hz: float,
+        resonance_damping: float = 0.02,
+        resonance_mass_fraction: float = 0.2,
+    ) -> None:
+        """Add (or replace) the extra mode: see `RigFaults.resonance_*`."""
+        if resonance_hz == 0.0:
+            raise ConfigError("resonance_hz", "must be > 0 (clear_faults removes the mode)")
+        self.set_faults(
+            replace(
+                self._faults,
+                resonance_hz=resonance_hz,
+                resonance_damping=resonance_damping,
+                resonance_mass_fraction=resonance_mass_fraction,
+            )
+        )
+
+    def clear_faults(self) -> None:
+        self.set_faults(_NO_FAULTS)
+
+    @property
+    def faults(self) -> RigFaults:
+        """The faults set last (the kernel takes them over at the next step)."""
+        return self._faults
+
     @property
     def params(self) -> RigParams:
         return self._params
@@ -423,13 +580,14 @@ class SimRig:
 
     @property
     def true_position_deg(self) -> float:
-        """Load angle, noise- and quantisation-free."""
-        return float(self._x[_X_THL]) / _DEG
+        """Load angle where the encoder reads it (the payload, with an extra mode), noise- and
+        quantisation-free."""
+        return float(self._x[_X_THL] + self._x[_X_Q]) / _DEG
 
     @property
     def true_speed_deg_s(self) -> float:
-        """Load speed, noise-free."""
-        return float(self._x[_X_WL]) / _DEG
+        """Load speed where the encoder reads it, noise-free."""
+        return float(self._x[_X_WL] + self._x[_X_QD]) / _DEG
 
     @property
     def motor_speed_deg_s(self) -> float:

@@ -1,0 +1,489 @@
+"""The audit trail: every action the controller accepted or refused, as a hash chain on disk.
+
+`<state-dir>/audit.jsonl` holds one JSON object per line in canonical form (msgspec, keys
+sorted, no spaces), appended and fsynced one record at a time:
+
+- `seq` (0, 1, 2 ... along the file), `time` (UTC ISO 8601), `rig`, `action`, `user`,
+  `outcome`, `version_before` / `version_after` (active configuration versions, null when
+  unknown), then the action's own fields (verdict, margins, reason ...);
+- `prev`: hex SHA-256 of the previous line's bytes (the previous record's canonical bytes,
+  its `hash` included); the first record's `prev` is `GENESIS`;
+- `hash`: hex SHA-256 of this record's canonical bytes without `hash`.
+
+What the chain shows: an edited field, a deleted, inserted or moved line, a truncated hash
+breaks it at the first altered line. It holds no secret: whoever can write the file can
+recompute the whole chain, and cutting lines off the end leaves a shorter valid chain. Both
+are caught against an anchor kept elsewhere (a record's `hash` published or noted earlier:
+`verify(path, anchor=...)`).
+
+Crash policy, applied when the log is opened (only the end of the file is read):
+- last line complete and consistent: the chain continues from it (a missing final newline is
+  added: the record itself was complete);
+- last line torn (no final newline, not a record) and the line before it fine (or no line
+  before it): what a crash during a write leaves. The damaged bytes stay in the file,
+  terminated by a newline, and an `audit.recovered` record follows that names them (length,
+  SHA-256, the seq they follow) and chains from the last good record. `verify` accepts exactly
+  that acknowledged damage and reports it;
+- anything else (a complete last line that is not a consistent record, or two bad lines: not
+  what a crash leaves): the file is kept under a new name `audit.damaged-<UTC>.jsonl` and a
+  new chain starts whose first record names it; `dobtune audit verify` fails while such a file
+  sits next to the log.
+Nothing is silently chained over. `AuditLog.recovered` says what was found (for the logs and
+the Status notes).
+
+Thread-safe (one lock). A record is a write plus an fsync: never call `record` on the loop's
+tick; the process queues actions and records them from another thread.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import re
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import msgspec
+
+__all__ = [
+    "ACTIONS",
+    "AUDIT_FILE",
+    "CORE_KEYS",
+    "GENESIS",
+    "OUTCOMES",
+    "RECOVERED",
+    "AuditError",
+    "AuditLog",
+    "VerifyResult",
+    "audit_path",
+    "iter_lines",
+    "parse_record",
+    "verify",
+]
+
+log = logging.getLogger(__name__)
+
+AUDIT_FILE = "audit.jsonl"
+#: `prev` of the first record of a chain.
+GENESIS = "0" * 64
+#: The record written after damage found on open.
+RECOVERED = "audit.recovered"
+
+#: What can be recorded (a typo is an error, not a new kind of record).
+ACTIONS = frozenset({
+    "apply",             # a configuration candidate: verdict, margins, versions
+    "command",           # start / stop / trajectory ...
+    "estop",
+    "reset",
+    "lease.acquire",
+    "lease.renew",
+    "lease.release",
+    "lease.takeover",
+    "lease.expire",
+    "identify",          # identification started, finished, cancelled
+    "knowledge",         # plant knowledge adopted or changed
+    "rollback",          # watchdog or operator rollback to an earlier configuration
+    "fault",
+    "controller.start",
+    "controller.stop",
+    RECOVERED,
+})
+#: accepted / refused: a request's fate; failed: accepted but could not be carried out;
+#: noted: something that happened without a request (fault, expiry, recovery).
+OUTCOMES = ("accepted", "refused", "failed", "noted")
+#: Keys every record has; `record(**fields)` may not use them.
+CORE_KEYS = (
+    "seq", "time", "rig", "action", "user", "outcome", "version_before", "version_after",
+    "prev", "hash",
+)
+
+
+
+def _enc_hook(obj: Any) -> Any:
+    """numpy scalars and arrays (margins, responses) as plain numbers and lists."""
+    tolist = getattr(obj, "tolist", None)
+    if callable(tolist):
+        return tolist()
+    raise TypeError(f"cannot record a {type(obj).__name__} in the audit log")
+
+
+_encoder = msgspec.json.Encoder(order="sorted", enc_hook=_enc_hook)
+_HEX64 = re.compile(r"[0-9a-f]{64}")
+_TAIL_BLOCK = 8192
+
+
+class AuditError(RuntimeError):
+    """The audit log cannot be opened or written."""
+
+
+def audit_path(state_dir: str | os.PathLike[str]) -> Path:
+    """The audit log of a state directory."""
+    return Path(state_dir) / AUDIT_FILE
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _record_hash(record: Mapping[str, Any]) -> str:
+    return _sha256(_encoder.encode({k: v for k, v in record.items() if k != "hash"}))
+
+
+def _utc_iso(time_s: float) -> str:
+    return datetime.fromtimestamp(time_s, UTC).isoformat(timespec="microseconds")[:-6] + "Z"
+
+
+_TYPES: dict[str, tuple[type, ...]] = {
+    "seq": (int,), "time": (str,), "rig": (str,), "action": (str,), "user": (str,),
+    "outcome": (str,), "version_before": (int, type(None)), "version_after": (int, type(None)),
+    "prev": (str,), "hash": (str,),
+}
+
+
+def parse_record(line: bytes) -> tuple[dict[str, Any] | None, str]:
+    """(record, "") when `line` (no newline) is a self-consistent record, else (None, why).
+
+    Checks the form and the record's own hash, not its place in the chain."""
+    try:
+        rec = msgspec.json.decode(line)
+    except msgspec.DecodeError:
+        return None, "not JSON (torn or edited line)"
+    if not isinstance(rec, dict):
+        return None, "not a JSON object"
+    for key, types in _TYPES.items():
+        value = rec.get(key, ...)
+        if value is ... or isinstance(value, bool) or not isinstance(value, types):
+            return None, f"field {key!r} missing or of the wrong type"
+    if _encoder.encode(rec) != line:
+        return None, "not in canonical form (edited by hand?)"
+    if not _HEX64.fullmatch(rec["hash"]):
+        return None, "hash is not 64 hex digits (truncated or edited)"
+    if _record_hash(rec) != rec["hash"]:
+        return None, "hash does not match the record (a field was edited)"
+    return rec, ""
+
+
+def iter_lines(path: Path) -> Iterator[tuple[int, bytes, bool]]:
+    """(line number from 1, bytes without the newline, whether it ended with a newline)."""
+    with open(path, "rb") as f:
+        for n, raw in enumerate(f, start=1):
+            complete = raw.endswith(b"\n")
+            yield n, raw[:-1] if complete else raw, complete
+
+
+# -- verification ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class VerifyResult:
+    """What `verify` found."""
+
+    ok: bool
+    #: records that verified (before the first bad line, if any)
+    records: int
+    #: first bad line (from 1); None when ok, or when only the anchor is missing
+    bad_line: int | None
+    #: why the log is not intact ("" when ok)
+    reason: str
+    #: `hash` of the last verified record (GENESIS if none)
+    head: str
+    #: crash damage the controller found and acknowledged in the log, human-readable
+    damaged: tuple[str, ...] = ()
+
+
+@dataclass
+class _Chain:
+    """Where the chain stands while reading a file."""
+
+    prev: str = GENESIS
+    seq: int = 0
+    records: int = 0
+    head: str = GENESIS
+
+    def link_error(self, rec: Mapping[str, Any]) -> str:
+        if rec["prev"] != self.prev:
+            where = "the genesis value" if self.prev == GENESIS else "the line before"
+            return f"prev does not chain to {where} (a line deleted, inserted or moved)"
+        if rec["seq"] != self.seq:
+            return f"seq {rec['seq']}, expected {self.seq} (a line deleted, inserted or moved)"
+        return ""
+
+    def advance(self, line: bytes, rec: Mapping[str, Any]) -> None:
+        self.prev, self.seq, self.head = _sha256(line), rec["seq"] + 1, rec["hash"]
+        self.records += 1
+
+
+def _acknowledges(rec: Mapping[str, Any], damaged: bytes, after_seq: int) -> bool:
+    return (
+        rec["action"] == RECOVERED
+        and rec.get("damaged_after_seq") == after_seq
+        and rec.get("damaged_bytes") == len(damaged)
+        and rec.get("damaged_sha256") == _sha256(damaged)
+    )
+
+
+def verify(path: str | os.PathLike[str], anchor: str | None = None) -> VerifyResult:
+    """Check the whole chain of the audit log at `path` (a file).
+
+    `anchor`: a record `hash` known from elsewhere that must be in the chain (detects lines
+    cut off the end, or a rewritten chain). OSError if the file cannot be read."""
+    chain = _Chain()
+    notes: list[str] = []
+    pending: tuple[int, bytes, str] | None = None  # a bad line: acknowledged by the next one?
+    anchor_seen = anchor is None
+
+    def bad(line_no: int, why: str) -> VerifyResult:
+        return VerifyResult(False, chain.records, line_no, why, chain.head, tuple(notes))
+
+    for n, line, complete in iter_lines(Path(path)):
+        rec, why = parse_record(line)
+        if pending is not None:
+            bad_no, bad_bytes, bad_why = pending
+            if rec is None or not _acknowledges(rec, bad_bytes, chain.seq - 1):
+                return bad(bad_no, bad_why)
+            notes.append(
+                f"line {bad_no}: {len(bad_bytes)} damaged bytes after seq {chain.seq - 1}, "
+                f"acknowledged by the controller at {rec['time']}"
+            )
+            pending = None
+        elif rec is None:
+            pending = (n, line, why)
+            continue
+        elif rec["action"] == RECOVERED and "damaged_after_seq" in rec:
+            return bad(n, "acknowledges a damaged line that is not there")
+        link = chain.link_error(rec)
+        if link:
+            return bad(n, link)
+        if rec["action"] == RECOVERED and "moved_to" in rec:
+            notes.append(f"line {n}: the earlier log was damaged, kept as {rec['moved_to']}")
+        if not complete:
+            notes.append(f"line {n}: last record complete but without its final newline")
+        chain.advance(line, rec)
+        anchor_seen = anchor_seen or rec["hash"] == anchor
+    if pending is not None:
+        return bad(pending[0], pending[2] + "; unacknowledged (a crash while writing? the "
+                   "controller acknowledges a torn last line when it next starts)")
+    if not anchor_seen:
+        return VerifyResult(
+            False, chain.records, None,
+            f"anchor {anchor} is not in the chain (lines cut off the end, or a rewritten log)",
+            chain.head, tuple(notes),
+        )
+    return VerifyResult(True, chain.records, None, "", chain.head, tuple(notes))
+
+
+# -- writing ---------------------------------------------------------------------------------
+
+
+def _read_tail(f: BinaryIO, size: int) -> tuple[list[bytes], bool]:
+    """The file's last two lines (fewer if it has fewer), newest last, without newlines, and
+    whether the file ends with a newline."""
+    data = b""
+    pos = size
+    while pos > 0:
+        step = min(_TAIL_BLOCK, pos)
+        pos -= step
+        f.seek(pos)
+        data = f.read(step) + data
+        if data.count(b"\n") >= 3:  # two complete lines after a (maybe partial) first piece
+            break
+    ends_nl = data.endswith(b"\n")
+    parts = (data[:-1] if ends_nl else data).split(b"\n")
+    if pos > 0:
+        parts = parts[1:]
+    return parts[-2:], ends_nl
+
+
+class AuditLog:
+    """The controller's audit log (append-only, fsynced, hash-chained, thread-safe)."""
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        rig: str = "",
+        clock: Callable[[], float] | None = None,
+    ) -> None:
+        """Open (or create) the log at `path` and recover the chain's tail (see the module's
+        crash policy); `clock` returns UNIX seconds (default `time.time`)."""
+        self.path = Path(path)
+        self.rig = rig
+        self._clock = clock if clock is not None else time.time
+        self._lock = threading.Lock()
+        self._fd = -1
+        self._prev = GENESIS
+        self._seq = 0
+        self._head = GENESIS
+        #: what the open (or a failed write) found and did; None when the tail was intact
+        self.recovered: str | None = None
+        self._suspect = False
+        with self._lock:
+            self._open()
+
+    # -- public ------------------------------------------------------------------------------
+
+    @property
+    def head(self) -> tuple[int, str]:
+        """(seq, hash) of the newest record; (-1, GENESIS) for an empty log. Publish it to
+        anchor the log (see `verify`)."""
+        with self._lock:
+            return self._seq - 1, self._head
+
+    def record(
+        self,
+        action: str,
+        user: str,
+        outcome: str,
+        *,
+        version_before: int | None = None,
+        version_after: int | None = None,
+        **fields: Any,
+    ) -> dict[str, Any]:
+        """Append one record and fsync it; return it as stored (non-finite floats are null).
+
+        ValueError for an unknown action or outcome or a reserved field name; AuditError if the
+        file cannot be written (the next call checks the tail again before writing)."""
+        if action not in ACTIONS:
+            raise ValueError(f"unknown audit action {action!r}")
+        if outcome not in OUTCOMES:
+            raise ValueError(f"outcome must be one of {OUTCOMES}, got {outcome!r}")
+        reserved = sorted(set(fields) & set(CORE_KEYS))
+        if reserved:
+            raise ValueError(f"reserved audit field names: {reserved}")
+        if not isinstance(user, str):
+            raise ValueError(f"user must be a str, got {user!r}")
+        for v in (version_before, version_after):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int)):
+                raise ValueError(f"config versions are ints or None, got {v!r}")
+        with self._lock:
+            if self._fd < 0:
+                raise AuditError(f"{self.path}: closed")
+            if self._suspect:
+                self._recover_tail()
+            return self._append(
+                {
+                    **fields,
+                    "action": action,
+                    "user": user,
+                    "outcome": outcome,
+                    "version_before": version_before,
+                    "version_after": version_after,
+                }
+            )
+
+    def close(self) -> None:
+        with self._lock:
+            if self._fd >= 0:
+                os.close(self._fd)
+                self._fd = -1
+
+    def __enter__(self) -> AuditLog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- internals (called with the lock held) -----------------------------------------------
+
+    def _open(self) -> None:
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise AuditError(f"{self.path}: cannot open: {exc}") from exc
+        self._recover_tail()
+
+    def _recover_tail(self) -> None:
+        self._suspect = False
+        try:
+            with open(self.path, "rb") as f:
+                size = os.fstat(f.fileno()).st_size
+                lines, ends_nl = _read_tail(f, size) if size else ([], True)
+        except OSError as exc:
+            raise AuditError(f"{self.path}: cannot read: {exc}") from exc
+        self._prev, self._seq, self._head = GENESIS, 0, GENESIS
+        if not lines:
+            return
+        last = lines[-1]
+        rec, why = parse_record(last)
+        if rec is not None:
+            if not ends_nl:
+                self._write(b"\n")
+            self._prev, self._seq, self._head = _sha256(last), rec["seq"] + 1, rec["hash"]
+            return
+        before = parse_record(lines[0])[0] if len(lines) == 2 else None
+        if ends_nl or (len(lines) == 2 and before is None):
+            # Not what a crash leaves: it tears the final write, whose last byte is the newline.
+            self._start_new_segment(why)
+            return
+        if before is not None:
+            self._prev, self._seq, self._head = _sha256(lines[0]), before["seq"] + 1, before["hash"]
+        self._write(b"\n")
+        self.recovered = (
+            f"{self.path}: the last line ({len(last)} bytes) is torn ({why}); kept and "
+            f"acknowledged, the chain continues from seq {self._seq - 1}"
+        )
+        log.warning("audit log: %s", self.recovered)
+        self._append_recovered(
+            damaged_after_seq=self._seq - 1,
+            damaged_bytes=len(last),
+            damaged_sha256=_sha256(last),
+            note=why,
+        )
+
+    def _start_new_segment(self, why: str) -> None:
+        stamp = datetime.fromtimestamp(self._clock(), UTC).strftime("%Y%m%dT%H%M%SZ")
+        moved = self.path.with_name(f"audit.damaged-{stamp}.jsonl")
+        k = 1
+        while moved.exists():
+            k += 1
+            moved = self.path.with_name(f"audit.damaged-{stamp}-{k}.jsonl")
+        os.close(self._fd)
+        self._fd = -1
+        try:
+            digest = _sha256(self.path.read_bytes())
+            os.replace(self.path, moved)
+        except OSError as exc:
+            raise AuditError(f"{self.path}: cannot set the damaged log aside: {exc}") from exc
+        self._open()  # a new, empty file: the chain starts at GENESIS
+        self.recovered = (
+            f"{self.path}: the end of the log is not what a crash leaves ({why}); the log is "
+            f"kept as {moved.name} and a new chain starts"
+        )
+        log.warning("audit log: %s", self.recovered)
+        self._append_recovered(moved_to=moved.name, moved_sha256=digest, note=why)
+
+    def _append_recovered(self, **fields: Any) -> None:
+        self._append({
+            **fields, "action": RECOVERED, "user": "controller", "outcome": "noted",
+            "version_before": None, "version_after": None,
+        })
+
+    def _append(self, body: dict[str, Any]) -> dict[str, Any]:
+        body.update(
+            seq=self._seq, time=_utc_iso(self._clock()), rig=self.rig, prev=self._prev
+        )
+        # Round trip first, so the hash covers exactly what a reader decodes (inf -> null,
+        # tuples -> lists, structs -> objects).
+        rec: dict[str, Any] = msgspec.json.decode(_encoder.encode(body))
+        rec["hash"] = _record_hash(rec)
+        line = _encoder.encode(rec)
+        self._write(line + b"\n")
+        self._prev, self._seq, self._head = _sha256(line), self._seq + 1, rec["hash"]
+        return rec
+
+    def _write(self, data: bytes) -> None:
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(self._fd, view):]
+            os.fsync(self._fd)
+        except OSError as exc:
+            self._suspect = True  # maybe a partial line: check the tail before the next write
+            raise AuditError(f"{self.path}: cannot append: {exc}") from exc
