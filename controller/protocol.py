@@ -178,27 +178,33 @@ class ConfigReply(_Msg, frozen=True, kw_only=True):
 # -- commands ---------------------------------------------------------------------------------
 
 
-class SetTrajectory(msgspec.Struct, frozen=True, kw_only=True, tag="trajectory"):
+class SetTrajectory(
+    msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="trajectory"
+):
     trajectory: Trajectory
 
 
-class Start(msgspec.Struct, frozen=True, kw_only=True, tag="start"):
+class Start(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="start"):
     pass
 
 
-class Stop(msgspec.Struct, frozen=True, kw_only=True, tag="stop"):
+class Stop(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="stop"):
     """Controlled stop: hold the present position."""
 
 
-class EStop(msgspec.Struct, frozen=True, kw_only=True, tag="estop"):
+class EStop(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="estop"):
     """Speed command 0 from the next tick, drive disabled, until ResetFault + Start."""
 
 
-class ResetFault(msgspec.Struct, frozen=True, kw_only=True, tag="reset"):
+class ResetFault(
+    msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="reset"
+):
     pass
 
 
-class IdentifyStart(msgspec.Struct, frozen=True, kw_only=True, tag="identify_start"):
+class IdentifyStart(
+    msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="identify_start"
+):
     """Run an identification inside the loop (mode must be running or stopped). The spec is
     `controller.ident.spec.IdentifySpec` itself (validated on decode: errors name
     `body.spec.<field>`, unknown fields included)."""
@@ -206,7 +212,9 @@ class IdentifyStart(msgspec.Struct, frozen=True, kw_only=True, tag="identify_sta
     spec: IdentifySpec = msgspec.field(default_factory=IdentifySpec)
 
 
-class IdentifyAbort(msgspec.Struct, frozen=True, kw_only=True, tag="identify_abort"):
+class IdentifyAbort(
+    msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="identify_abort"
+):
     """Abort the running identification: the loop holds the present position."""
 
 
@@ -315,6 +323,8 @@ def decode(data: bytes | bytearray | memoryview, kind: type[M]) -> M:
         raise ProtocolError(f"payload: not a MessagePack map ({exc})", "payload") from exc
     except RecursionError as exc:
         raise ProtocolError("payload: nested too deeply", "payload") from exc
+    except UnicodeDecodeError as exc:
+        raise ProtocolError("payload: a string is not valid UTF-8", "payload") from exc
     if head.v != PROTOCOL_VERSION or isinstance(head.v, bool):
         shown = repr(head.v)
         shown = shown if len(shown) <= 40 else shown[:37] + "..."
@@ -333,3 +343,6 @@ def decode(data: bytes | bytearray | memoryview, kind: type[M]) -> M:
         raise ProtocolError(f"payload: {exc}", "payload") from exc
     except RecursionError as exc:
         raise ProtocolError("payload: nested too deeply", "payload") from exc
+    except UnicodeDecodeError as exc:
+        # msgspec reports no path for it: name the payload, never the exception.
+        raise ProtocolError("payload: a string is not valid UTF-8", "payload") from exc

@@ -433,3 +433,26 @@ def test_raw_profile_moves_the_load() -> None:
         assert rig.fault is not None and "feedback" in rig.fault
         assert [d for i, d in listener.drain() if i == 0x120][-1] == bytes(8)
     listener.bus.shutdown()
+
+
+def test_a_reset_without_a_live_heartbeat_never_enables_the_drive(setup: Setup) -> None:
+    """The re-enable after a fault (the runtime's reset calls start()) waits for an
+    operational heartbeat sent after the NMT start: with none, the drive stays disabled."""
+    rig = setup.rig
+    rig.start()
+    run(rig, 10, 5.0)
+    setup.node.inject("no_heartbeat")
+    deadline = time.monotonic() + 2.0  # the heartbeat timeout is 250 ms
+    while rig.fault is None and time.monotonic() < deadline:
+        run(rig, 1, 5.0)
+        time.sleep(0.002)
+    assert rig.fault is not None
+    before = len(setup.listener.commands())
+    with pytest.raises(RigFault, match="heartbeat"):
+        rig.start()
+    after = setup.listener.commands()[before:]
+    assert all(cw != cia402.CW_ENABLE_OPERATION for cw, _ in after), after
+    assert all(v == 0 for _, v in after)
+    run(rig, 5, 5.0)  # the loop goes on commanding: still disabled, speed 0
+    assert setup.listener.commands()[-1] == (cia402.CW_DISABLE_OPERATION, 0)
+    assert rig.fault is not None and "heartbeat" in rig.fault

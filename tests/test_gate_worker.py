@@ -4,8 +4,14 @@ from __future__ import annotations
 
 import concurrent.futures
 import math
+import os
+import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from controller.core.config import LoopConfig
@@ -31,9 +37,75 @@ def test_the_rigs_command_limit_is_checked_first() -> None:
 def test_a_hanging_worker_is_killed_and_the_next_call_gets_a_fresh_one() -> None:
     runner = GateRunner(subprocess=True)
     try:
+        assert runner.check(LoopConfig()).accepted  # (a fresh worker's first job may be slow)
         with pytest.raises(concurrent.futures.TimeoutError):
             runner.call(time.sleep, 30.0, timeout_s=0.5)
         verdict = runner.check_and_build(LoopConfig(), 3)
         assert verdict.accepted and verdict.coefficients is not None
     finally:
         runner.close()
+
+
+def test_a_slow_start_of_the_worker_is_not_a_rejection() -> None:
+    """A fresh worker's first job gets the start-up time (a loaded machine), later jobs only
+    their own timeout."""
+    runner = GateRunner(subprocess=True, timeout_s=0.3, start_timeout_s=30.0)
+    try:
+        runner.call(time.sleep, 1.0, timeout_s=0.3)  # the first job: slow, still served
+        assert runner.check(LoopConfig()).accepted
+        with pytest.raises(concurrent.futures.TimeoutError):
+            runner.call(time.sleep, 1.0, timeout_s=0.3)
+    finally:
+        runner.close()
+
+
+def test_analysis_failures_carry_no_internal_text(monkeypatch: pytest.MonkeyPatch) -> None:
+    import controller.gate.analysis as analysis
+
+    def broken(_cfg: LoopConfig) -> None:
+        raise np.linalg.LinAlgError("Array must not contain infs or NaNs")
+
+    monkeypatch.setattr(analysis, "analyse", broken)
+    verdict = gate(LoopConfig())
+    assert not verdict.accepted
+    assert verdict.reasons[0].startswith("candidate: ")
+    assert "LinAlgError" not in verdict.reasons[0] and "NaN" not in verdict.reasons[0]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (ended, not yet reaped by whoever adopted it) counts as ended
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def test_the_worker_ends_when_the_controller_is_killed(tmp_path: Path) -> None:
+    code = (
+        "import os, sys, time\n"
+        "from controller.process.gate_worker import GateRunner\n"
+        "r = GateRunner(subprocess=True)\n"
+        "print(r.call(os.getpid), flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, cwd=Path(__file__).parents[1]
+    )
+    try:
+        assert proc.stdout is not None
+        worker = int(proc.stdout.readline())
+        assert _alive(worker)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10.0)
+        deadline = time.monotonic() + 10.0
+        while _alive(worker) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert not _alive(worker), "the gate worker outlived the killed controller"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10.0)

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import pytest
@@ -17,7 +19,7 @@ from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
 from controller.process import requests as rq
 from controller.process.gate_worker import GateRunner
-from controller.process.node import ZenohNode, to_request
+from controller.process.node import SHUTDOWN, ZenohNode, to_request
 from controller.process.options import ControllerOptions
 from controller.process.persistence import StateStore
 from controller.process.runtime import Runtime
@@ -120,3 +122,128 @@ def test_malformed_payloads_name_the_field(node: ZenohNode) -> None:
     start = {"v": 1, "body": {"type": "identify_start", "spec": {"f_min_hz": -1.0}}}
     reply = proto.decode(node.handle_command(msgspec.msgpack.encode(start)), proto.CommandReply)
     assert not reply.ok and reply.field == "body.spec.f_min_hz"
+
+
+# -- bad input, the latch, and the order of arrival ------------------------------------------------
+
+
+def test_invalid_utf8_is_a_rejection_naming_the_payload(node: ZenohNode) -> None:
+    bad_string = b"\x82\xa1v\x01\xa4body\x81\xa4type\xa2\xff\xfe"
+    reply = proto.decode(node.handle_command(bad_string), proto.CommandReply)
+    assert not reply.ok and reply.field == "payload" and "UTF-8" in reply.message
+    assert "UnicodeDecodeError" not in reply.message
+    bad_client = b"\x82\xa1v\x01\xa6client\xa2\xff\xfe"
+    cfg = proto.decode(node.handle_config(bad_client), proto.ConfigReply)
+    assert not cfg.accepted and cfg.field == "payload"
+
+
+@pytest.mark.parametrize("body_type", ["start", "stop", "estop", "reset", "identify_abort"])
+def test_unknown_fields_in_command_bodies_are_rejected(node: ZenohNode, body_type: str) -> None:
+    data = msgspec.msgpack.encode({"v": 1, "body": {"type": body_type, "spce": 3}})
+    reply = proto.decode(node.handle_command(data), proto.CommandReply)
+    assert not reply.ok and reply.field == "body.spce"
+    assert node.rt.mode == "running"
+
+
+@pytest.mark.parametrize("value", [1e300, 1e-300])
+@pytest.mark.parametrize("name", ["mn_den", "pn_num", "pn_den"])
+def test_absurd_model_coefficients_are_rejected_naming_the_field(
+    node: ZenohNode, name: str, value: float
+) -> None:
+    for i in range(3):
+        cfg = msgspec.to_builtins(LoopConfig())
+        poly = list(cfg["nominal"][name])
+        poly[i] = value
+        cfg["nominal"][name] = poly
+        data = msgspec.msgpack.encode({"v": 1, "candidate": cfg})
+        reply = proto.decode(node.handle_config(data), proto.ConfigReply)
+        assert "Error" not in " ".join(reply.reasons), reply.reasons
+        if value > 1.0 or i == 2:  # out of range: named
+            assert not reply.accepted and reply.field.startswith(f"candidate.nominal.{name}")
+        # (A negligible 1e-300 s term is a valid model: the gate judges it.)
+
+
+class FakeQuery:
+    def __init__(self, data: bytes) -> None:
+        self.payload = self
+        self.key_expr = "k"
+        self.data = data
+        self.replies: list[bytes] = []
+        self.errors: list[bytes] = []
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+    def reply(self, _key: object, data: bytes) -> None:
+        self.replies.append(data)
+
+    def reply_err(self, data: bytes) -> None:
+        self.errors.append(data)
+
+    def drop(self) -> None:
+        pass
+
+
+def serve_one(node: ZenohNode, query: FakeQuery, arrival: int, handle: Any) -> None:
+    import queue
+
+    q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+    q.put((query, arrival))
+    q.put(SHUTDOWN)
+    node.serve_queue(q, handle)
+
+
+def test_a_reset_that_arrived_before_an_estop_is_refused(node: ZenohNode) -> None:
+    assert command(node, proto.EStop()).ok
+    reset_arrival = node.rt.next_arrival()  # the reset's query arrives first ...
+    node.rt.estop("estop key", node.rt.next_arrival())  # ... then an e-stop on the key
+    query = FakeQuery(proto.encode(proto.Command(body=proto.ResetFault(), client="unit")))
+    serve_one(node, query, reset_arrival, node.handle_command)
+    reply = proto.decode(query.replies[0], proto.CommandReply)
+    assert not reply.ok and "e-stop arrived after this reset" in reply.message
+    assert node.rt.mode == "estop"
+
+
+def test_handler_errors_never_reach_the_client_as_text(node: ZenohNode) -> None:
+    def broken(_data: bytes) -> bytes:
+        raise KeyError("secret internal detail")
+
+    query = FakeQuery(b"")
+    serve_one(node, query, node.rt.next_arrival(), broken)
+    assert query.errors and b"secret" not in query.errors[0] and b"KeyError" not in query.errors[0]
+
+
+def test_the_latch_is_written_and_cleared(node: ZenohNode) -> None:
+    store = node.service.store
+    assert command(node, proto.EStop()).ok
+    node.write_latch()
+    latch = store.load_latch()
+    assert latch is not None and latch.mode == "estop" and latch.reason == "command"
+    assert command(node, proto.ResetFault()).ok
+    node.write_latch()
+    assert store.load_latch() is None
+
+
+def test_a_failing_state_dir_is_reported_and_the_loop_runs_on(
+    node: ZenohNode, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import errno
+    import tempfile
+
+    def read_only(*_a: object, **_k: object) -> None:
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)
+    reply = apply(node, LoopConfig(q_cutoff_hz=1.0))
+    assert not reply.accepted and reply.version == 1
+    assert any("state_dir" in r and "OSError" not in r for r in reply.reasons)
+    assert command(node, proto.EStop()).ok
+    node.write_latch()
+    status = node.status()
+    assert any("latch was not saved" in n for n in status.notes)
+    assert any("state_dir" in n for n in status.notes)
+    seq = node.rt.seq
+    deadline = time.monotonic() + 5.0
+    while node.rt.seq < seq + 20 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert node.rt.seq >= seq + 20  # the loop runs on

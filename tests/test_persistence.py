@@ -2,14 +2,24 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
 
 from controller.core.config import LoopConfig
-from controller.process.persistence import ACTIVE_FILE, PersistenceError, StateStore
+from controller.process.persistence import (
+    ACTIVE_FILE,
+    LATCH_FILE,
+    MAX_VERSION,
+    Latch,
+    PersistenceError,
+    StateStore,
+)
 
 
 def test_nothing_saved_yet(tmp_path: Path) -> None:
@@ -121,3 +131,76 @@ def test_unwritable_directory_is_reported(tmp_path: Path) -> None:
     blocker.write_text("x")
     with pytest.raises(PersistenceError, match="state_dir"):
         StateStore(blocker / "sub")
+
+
+# -- the e-stop / fault latch, bounds, stale files, a directory that fails -----------------------
+
+
+def test_latch_round_trips_and_is_removed_on_reset(tmp_path: Path) -> None:
+    store = StateStore(tmp_path)
+    assert store.load_latch() is None
+    store.save_latch(Latch("estop", "estop key"))
+    assert StateStore(tmp_path).load_latch() == Latch("estop", "estop key")
+    store.save_latch(Latch("fault", "heartbeat lost", ""))
+    assert store.load_latch() == Latch("fault", "heartbeat lost", "")
+    store.save_latch(None)
+    assert store.load_latch() is None and not (tmp_path / LATCH_FILE).exists()
+    store.save_latch(None)  # idempotent
+
+
+def test_an_unreadable_latch_is_an_error_never_not_latched(tmp_path: Path) -> None:
+    store = StateStore(tmp_path)
+    (tmp_path / LATCH_FILE).write_bytes(b"\xff{garbage")
+    with pytest.raises(PersistenceError, match="latch"):
+        store.load_latch()
+    (tmp_path / LATCH_FILE).write_text('{"mode": "running"}')
+    with pytest.raises(PersistenceError, match="mode"):
+        store.load_latch()
+
+
+def test_stale_temporary_files_are_removed_at_start(tmp_path: Path) -> None:
+    (tmp_path / f".{ACTIVE_FILE}.abc123.tmp").write_text("{")
+    (tmp_path / f".{LATCH_FILE}.zz.tmp").write_text("{")
+    keep = tmp_path / "notes.tmp"
+    keep.write_text("someone else's")
+    store = StateStore(tmp_path)
+    assert sorted(store.removed_tmp) == sorted(
+        [f".{ACTIVE_FILE}.abc123.tmp", f".{LATCH_FILE}.zz.tmp"]
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.tmp"]
+
+
+def test_versions_are_bounded(tmp_path: Path) -> None:
+    store = StateStore(tmp_path)
+    store.save(LoopConfig(), MAX_VERSION)
+    assert store.load() is not None
+    with pytest.raises(PersistenceError, match="version"):
+        store.save(LoopConfig(), MAX_VERSION + 1)
+    doc = json.loads((tmp_path / ACTIVE_FILE).read_text())
+    doc["version"] = 2**64 - 2
+    (tmp_path / ACTIVE_FILE).write_text(json.dumps(doc))
+    with pytest.raises(PersistenceError, match=r"version: .* above the limit"):
+        store.load()
+
+
+def test_a_read_only_directory_is_a_persistence_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    store = StateStore(tmp_path)
+
+    def read_only(*_a: object, **_k: object) -> None:
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)
+    with pytest.raises(PersistenceError, match="cannot write"):
+        store.save(LoopConfig(), 2)
+    with pytest.raises(PersistenceError, match="cannot write"):
+        store.save_latch(Latch("estop", "x"))
+
+
+def test_a_vanished_directory_is_made_again(tmp_path: Path) -> None:
+    store = StateStore(tmp_path / "state")
+    shutil.rmtree(tmp_path / "state")
+    store.save(LoopConfig(), 3)
+    loaded = store.load()
+    assert loaded is not None and loaded.version == 3

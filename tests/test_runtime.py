@@ -488,3 +488,103 @@ def test_program_abort_request_holds_and_stop_stops() -> None:
     second = rt.submit(RunProgram(_program()))
     more(rt, 2)
     assert not second.ok and "already running" in second.message and rt.program is first
+
+
+# -- e-stop ordering, latch, approach after a reset ---------------------------------------------
+
+
+def test_a_reset_that_arrived_before_an_estop_never_clears_it() -> None:
+    rt, _ = fake_runtime()
+    rt.estop("first")
+    rt.run(max_ticks=2)
+    # The reset arrives, then an e-stop; the reset reaches the tick only after the e-stop
+    # engaged (the e-stop needs no queue): it is refused and the e-stop holds.
+    reset_arrival = rt.next_arrival()
+    rt.estop("second", rt.next_arrival())
+    with rt.arrival_scope(reset_arrival):
+        late_reset = rt.submit(ResetFault())
+    more(rt, 2)
+    assert not late_reset.ok and "e-stop arrived after this reset" in late_reset.message
+    assert rt.mode == ESTOP and rt.estop_source == "first"
+    # A reset that arrived after the e-stop works.
+    reset = rt.submit(ResetFault())
+    more(rt, 2)
+    assert reset.ok and rt.mode == STOPPED
+
+
+def test_a_reset_stamped_before_a_pending_estop_is_refused() -> None:
+    rt, _ = fake_runtime()
+    rt.estop("first")
+    rt.run(max_ticks=2)
+    with rt.arrival_scope(rt.next_arrival()):
+        reset = rt.submit(ResetFault())
+    rt.estop("second")  # pending when the tick serves the reset
+    more(rt, 1)
+    assert not reset.ok and rt.mode == ESTOP
+
+
+def test_latch_changes_are_signalled_and_a_restored_latch_holds() -> None:
+    rt, rig = fake_runtime()
+    rt.restore_latch(ESTOP, "estop key")
+    rt.run(max_ticks=5)
+    assert rt.mode == ESTOP and rig.stops >= 1 and set(rig.commands) == {0.0}
+    assert not rt.submit(Start()).wait(0.0)
+    rt.latch_changed.clear()
+    reset = rt.submit(ResetFault())
+    more(rt, 1)
+    assert reset.ok and rt.mode == STOPPED and rt.latch_changed.is_set()
+    rt.latch_changed.clear()
+    rt.estop("again")
+    more(rt, 1)
+    assert rt.latch_changed.is_set()
+    with pytest.raises(ValueError, match="mode"):
+        rt.restore_latch(RUNNING, "x")
+
+
+def test_start_after_a_reset_far_from_the_trajectory_approaches_with_bounded_speed() -> None:
+    opts = RuntimeOptions(approach_speed_deg_s=20.0, approach_accel_deg_s2=40.0)
+    rig = SimRig(seed=3)
+    fc = FakeClock()
+    rt = Runtime(make_loop(), rig, options=opts, clock=fc.clock, sleep=fc.sleep)
+    col = Collector()
+    stop = threading.Event()
+    th = threading.Thread(target=rt.publisher, args=(col, stop, 0.001))
+    th.start()
+    try:
+        rt.run(max_ticks=100)
+        rt.estop("test")
+        more(rt, 10)
+        # While e-stopped the load is moved far away (by hand): 150 deg off the trajectory.
+        rig.reset(position_deg=150.0)
+        more(rt, 5)
+        reset = rt.submit(ResetFault())
+        start = rt.submit(Start())
+        more(rt, 12000)
+    finally:
+        stop.set()
+        th.join(10.0)
+    assert reset.ok and start.ok and rt.mode == RUNNING
+    ref = col.column("ref_deg")
+    cmd = col.column("command_deg_s")
+    k0 = start.seq
+    # The first reference after Start is where the rig was held (no jump), ...
+    assert abs(ref[k0] - 150.0) < 0.1
+    speeds = [(b - a) * 1000.0 for a, b in zip(ref[k0:], ref[k0 + 1 :], strict=False)]
+    accels = [(b - a) * 1000.0 for a, b in itertools.pairwise(speeds)]
+    # ... then it moves at no more than the bounds, ...
+    assert max(abs(v) for v in speeds) <= 20.0 + 1e-6
+    assert max(abs(a) for a in accels) <= 40.0 + 1e-3
+    # ... and the speed command never saturates.
+    limit = LoopConfig().command_limit_deg_s
+    assert max(abs(u) for u in cmd[k0:]) < 0.9 * limit
+    # ... and it ends on the trajectory (5 sin(0.5 t)), in 150/20 s plus braking.
+    assert not rt.approaching
+    assert abs(ref[-1]) <= 5.0 + 1e-9
+
+
+def test_the_approach_allocates_nothing_that_stays() -> None:
+    rt = Runtime(make_loop(), NullRig(), options=RuntimeOptions(ring_blocks=8, batch_size=20))
+    rt.approach_from(1000.0)
+    retained = retained_bytes(rt)
+    assert rt.approaching  # still approaching during the measurement
+    assert retained < 4096, retained

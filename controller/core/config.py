@@ -8,6 +8,7 @@ r = Cp e_pos + ff_gain * d(theta_ref)/dt (feedforward only when ff_on).
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import msgspec
@@ -28,6 +29,13 @@ def _poly_degree(p: Poly2) -> int:
     return 2 if p[0] != 0.0 else (1 if p[1] != 0.0 else 0)
 
 
+#: Bounds on the nominal model's polynomials: each coefficient, the constant term, and the
+#: magnitude of the roots (rad/s).
+POLY_COEFF_MAX = 1e9
+POLY_CONST_MIN = 1e-9
+ROOT_RAD_S_RANGE = (1e-6, 1e7)
+
+
 def _check_poly(p: Any, field: str) -> None:
     if not isinstance(p, tuple) or len(p) != 3:
         raise ConfigError(field, "expected 3 coefficients (s^2, s, 1)")
@@ -38,6 +46,29 @@ def _check_poly(p: Any, field: str) -> None:
         raise ConfigError(field, f"coefficients must be >= 0 (stable, minimum phase), got {p}")
     if a2 > 0.0 and a1 == 0.0:
         raise ConfigError(f"{field}[1]", "an undamped second-order factor is not allowed")
+    for i, c in enumerate((a2, a1, a0)):
+        if c > POLY_COEFF_MAX:
+            raise ConfigError(f"{field}[{i}]", f"{c:g} is above the limit {POLY_COEFF_MAX:g}")
+    if a0 < POLY_CONST_MIN:
+        raise ConfigError(f"{field}[2]", f"{a0:g} is below the limit {POLY_CONST_MIN:g}")
+    # The roots (poles or zeros) must lie where the gate's frequency grid and the filter
+    # design can represent them; a model of 1e300 or 1e-300 would only give non-finite numbers.
+    roots: tuple[float, ...]
+    if a2 > 0.0:
+        disc = a1 * a1 - 4.0 * a2 * a0
+        if disc < 0.0:
+            roots = (math.sqrt(a0 / a2),)
+        else:
+            q = 0.5 * (a1 + math.sqrt(disc))
+            roots = (q / a2, a0 / q)
+    else:
+        roots = (a0 / a1,) if a1 > 0.0 else ()
+    lo, hi = ROOT_RAD_S_RANGE
+    for w in roots:
+        if not lo <= w <= hi:
+            raise ConfigError(
+                field, f"a root at {w:.3g} rad/s is outside [{lo:g}, {hi:g}] rad/s (units?)"
+            )
 
 
 class NominalModel(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

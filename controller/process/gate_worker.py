@@ -15,6 +15,7 @@ import logging
 import os
 import signal
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -63,8 +64,10 @@ def gate(cfg: LoopConfig) -> GateVerdict:
 
     try:
         a = analyse(cfg)
-    except Exception as exc:
-        return GateVerdict(False, (f"analysis failed: {type(exc).__name__}: {exc}",), nan_margins())
+    except Exception as exc:  # the details go to the log, never to the client
+        log.warning("analysis failed on %r: %s: %s", cfg, type(exc).__name__, exc)
+        reason = "candidate: the stability analysis cannot evaluate this configuration"
+        return GateVerdict(False, (reason,), nan_margins())
     margins = proto.Margins(
         gain_margin_db=float(a.gain_margin_db),
         phase_margin_deg=float(a.phase_margin_deg),
@@ -89,9 +92,39 @@ def gate_and_build(cfg: LoopConfig, version: int) -> GateVerdict:
         return GateVerdict(False, (reason,), verdict.margins)
 
 
-def _worker_init() -> None:
+PR_SET_PDEATHSIG = 1
+
+
+def _end_with_parent(parent_pid: int, death_signal: bool, poll_s: float = 0.5) -> None:
+    """This worker ends when the controller does, even if it was SIGKILLed: a thread watches
+    the parent's pid (the worker is re-parented when the parent dies), and with
+    `death_signal` the kernel also sends SIGKILL at once (Linux prctl PR_SET_PDEATHSIG; only
+    for a worker started by the main thread: the signal follows the thread that started it)."""
+    if death_signal:
+        _set_death_signal()
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != parent_pid:
+                os._exit(1)
+            time.sleep(poll_s)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def _set_death_signal() -> None:
+    with contextlib.suppress(Exception):
+        import ctypes
+        import ctypes.util
+
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+
+
+def _worker_init(parent_pid: int, death_signal: bool) -> None:
     # Ctrl-C in a terminal reaches the whole process group: the parent decides, not us.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _end_with_parent(parent_pid, death_signal)
     # The loop's process wins the CPU over an analysis on a busy machine.
     with contextlib.suppress(OSError):
         os.nice(10)
@@ -122,6 +155,9 @@ class GateRunner:
         self.command_limit_max_deg_s = command_limit_max_deg_s
         self._timeout_s = timeout_s
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+        #: The worker has not finished a job yet: its first job also gets the start-up time
+        #: (a slow start on a loaded machine is not a rejection).
+        self._fresh = True
         self._lock = threading.Lock()
 
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
@@ -132,7 +168,9 @@ class GateRunner:
                 max_workers=1,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=_worker_init,
+                initargs=(os.getpid(), threading.current_thread() is threading.main_thread()),
             )
+            self._fresh = True
             self._pool.submit(_warm_up).result(timeout=self._start_timeout_s)
         return self._pool
 
@@ -171,7 +209,14 @@ class GateRunner:
             return fn(*args)
         with self._lock:
             try:
-                return self._executor().submit(fn, *args).result(timeout=timeout_s)
+                pool = self._executor()
+                if self._fresh:
+                    # The first real job pays for the imports and caches the warm-up did not
+                    # touch: it gets the start-up time too, not just the job's timeout.
+                    timeout_s = max(timeout_s, self._start_timeout_s)
+                result = pool.submit(fn, *args).result(timeout=timeout_s)
+                self._fresh = False
+                return result
             except Exception as exc:
                 log.warning(
                     "gate worker: %s failed (%s: %s); worker killed",

@@ -29,7 +29,14 @@ from controller.process.gate_worker import GateRunner, GateVerdict, margins_dict
 from controller.process.node import ZenohNode
 from controller.process.options import ControllerOptions
 from controller.process.persistence import PersistenceError, StateStore
-from controller.process.runtime import FAULT, Rig, Runtime, RuntimeOptions, try_realtime_priority
+from controller.process.runtime import (
+    ESTOP,
+    FAULT,
+    Rig,
+    Runtime,
+    RuntimeOptions,
+    try_realtime_priority,
+)
 from controller.process.service import ControllerService
 from controller.zenoh_session import check_endpoint, open_session
 
@@ -162,6 +169,24 @@ def _open_rig(opts: ControllerOptions, rate_hz: float) -> Iterator[tuple[Rig, li
         yield rig, faults
 
 
+def _restore_latch(store: StateStore, runtime: Runtime, notes: list[str]) -> None:
+    """Come back in the e-stop or fault the previous run was latched in (until a reset)."""
+    try:
+        latch = store.load_latch()
+    except PersistenceError as exc:
+        reason = f"state_dir: the e-stop/fault latch is unreadable ({exc}); send reset"
+        runtime.restore_latch(FAULT, reason)
+        log.warning("%s", reason)
+        return
+    if latch is None:
+        return
+    runtime.restore_latch(latch.mode, latch.reason)
+    if latch.fault:
+        runtime.fault = latch.fault
+    notes.append(f"{latch.mode} latched before the restart ({latch.reason}): send reset")
+    log.warning("%s", notes[-1])
+
+
 class _Stopper:
     """SIGINT/SIGTERM: stop the loop (command 0) and let the process wind down."""
 
@@ -224,11 +249,13 @@ def _run(
                 trajectory=opts.trajectory,
             )
             stopper.runtime = runtime
+            notes: list[str] = []
+            _restore_latch(store, runtime, notes)
             if rig_faults:
                 runtime.fault = rig_faults[0]
-                runtime.mode = FAULT
+                if runtime.mode != ESTOP:
+                    runtime.mode = FAULT
                 log.warning("fault at start: %s", rig_faults[0])
-            notes: list[str] = []
             service = ControllerService(opts, runtime, store, runner, margins, notes)
             with open_session(opts.listen, opts.connect) as session:
                 node = ZenohNode(service)

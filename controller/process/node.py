@@ -6,8 +6,17 @@ Threads (the loop's own thread is the main thread, see `controller.process.main`
 - config, command, identify workers: decode a query, convert the wire message to the
   runtime's domain request (`controller.process.requests`), let the service
   (`controller.process.service`) do it, encode and send its reply.
+- latch: writes the e-stop/fault latch to the state directory whenever the mode enters or
+  leaves estop/fault (`StateStore.save_latch`), so a restart comes back latched.
 Zenoh callbacks only hand the query to a worker's queue (or, for the e-stop key, set the
 loop's flag); they never decode, block or call Zenoh.
+
+Order: the callbacks run on Zenoh's own receiving thread (`Callback(f, indirect=False)`: by
+default zenoh-python runs each callback on a thread of its own, and an e-stop sent after a
+reset overtook it in 43 of 200 pairs), and each stamps its query or e-stop with the runtime's
+arrival counter. The runtime refuses a reset stamped before the latest e-stop, so a reset sent
+before an e-stop never clears it, while the e-stop itself needs no queue: it takes effect at
+the next tick, whatever a worker is busy with.
 
 An operator lease (`dobtune/<rig>/lease`) is not implemented yet: any peer that can reach
 the endpoints may apply configurations and commands (Status.operator stays "").
@@ -25,13 +34,16 @@ from typing import Any
 from controller import protocol as proto
 from controller.core.errors import ConfigError
 from controller.process import requests as rq
+from controller.process.persistence import Latch, PersistenceError
+from controller.process.runtime import ESTOP, FAULT
 from controller.process.service import ControllerService, RuntimeEvents
 
-__all__ = ["ZenohNode", "to_request"]
+__all__ = ["SHUTDOWN", "ZenohNode", "to_request"]
 
 log = logging.getLogger(__name__)
 
-_SHUTDOWN = object()
+SHUTDOWN = object()
+"""Put on a worker queue: the worker ends."""
 
 _PLAIN_COMMANDS: dict[type, Callable[[], rq.RequestBody]] = {
     proto.Start: rq.Start,
@@ -71,6 +83,9 @@ class ZenohNode:
         self.state_pub: Any = None
         self.status_pub: Any = None
         self.shed_queries = 0
+        #: The latch as last written (the store's view at start).
+        self._latch_written: Latch | None = service.store.load_latch_or_none()
+        self._latch_error = ""
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -93,20 +108,28 @@ class ZenohNode:
             (proto.key_command(rig), self.command_q),
             (proto.key_identify(rig), self.identify_q),
         ):
-            self._entities.append(session.declare_queryable(key, self._enqueue(q)))
+            handler = zenoh.handlers.Callback(self._enqueue(q), indirect=False)
+            self._entities.append(session.declare_queryable(key, handler))
         rt = self.rt
+
+        def estop(_sample: Any) -> None:
+            rt.estop("estop key", rt.next_arrival())
+
         self._entities.append(
-            session.declare_subscriber(proto.key_estop(rig), lambda _s: rt.estop("estop key"))
+            session.declare_subscriber(
+                proto.key_estop(rig), zenoh.handlers.Callback(estop, indirect=False)
+            )
         )
 
     def _enqueue(self, q: queue.SimpleQueue[Any]) -> Callable[[Any], None]:
         limit = self.opts.max_pending_queries
+        arrival = self.rt.next_arrival
 
         def put(query: Any) -> None:
             # A flood beyond the bound is shed: the query is released unanswered (the client
             # times out) instead of growing memory without limit.
             if q.qsize() < limit:
-                q.put(query)
+                q.put((query, arrival()))
             else:
                 self.shed_queries += 1
 
@@ -116,9 +139,10 @@ class ZenohNode:
         for name, target in (
             ("state-publisher", self._publish_state),
             ("status", self._publish_status),
-            ("config-worker", lambda: self._serve(self.config_q, self.handle_config)),
-            ("command-worker", lambda: self._serve(self.command_q, self.handle_command)),
-            ("identify-worker", lambda: self._serve(self.identify_q, self.handle_identify)),
+            ("latch", self._persist_latch),
+            ("config-worker", lambda: self.serve_queue(self.config_q, self.handle_config)),
+            ("command-worker", lambda: self.serve_queue(self.command_q, self.handle_command)),
+            ("identify-worker", lambda: self.serve_queue(self.identify_q, self.handle_identify)),
         ):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -129,7 +153,7 @@ class ZenohNode:
         self.stop_event.set()
         queues = (self.config_q, self.command_q, self.identify_q)
         for q in queues:
-            q.put(_SHUTDOWN)
+            q.put(SHUTDOWN)
         for t in self._threads:
             t.join(timeout=5.0)
         for e in reversed(self._entities):
@@ -141,9 +165,10 @@ class ZenohNode:
             with contextlib.suppress(queue.Empty):
                 while True:
                     item = q.get_nowait()
-                    if item is not _SHUTDOWN:
+                    if item is not SHUTDOWN:
                         with contextlib.suppress(Exception):
-                            item.drop()
+                            item[0].drop()
+        self.write_latch()  # the mode the loop ended in
         self.events.poll()
         self.events.summary()
         if self.shed_queries:
@@ -188,22 +213,63 @@ class ZenohNode:
             except Exception as exc:
                 self.service.warn(f"status put failed: {exc}")
 
+    # -- the e-stop / fault latch -------------------------------------------------------------
+
+    def write_latch(self) -> None:
+        """Persist the latch if it differs from what was written last (any thread but the
+        loop's). A state directory that cannot be written is reported; the loop runs on."""
+        rt = self.rt
+        mode = rt.mode
+        if mode == ESTOP:
+            latch: Latch | None = Latch(mode, rt.estop_source or "e-stop", rt.fault or "")
+        elif mode == FAULT:
+            latch = Latch(mode, rt.fault or "fault", "")
+        else:
+            latch = None
+        if latch == self._latch_written:
+            return
+        try:
+            self.service.store.save_latch(latch)
+        except PersistenceError as exc:
+            if self._latch_error != str(exc):
+                self._latch_error = str(exc)
+                self.service.warn(f"state_dir: the e-stop/fault latch was not saved: {exc}")
+            return
+        self._latch_written = latch
+        self._latch_error = ""
+
+    def _persist_latch(self) -> None:
+        changed = self.rt.latch_changed
+        while not self.stop_event.is_set():
+            # A failed write is retried every second until it succeeds.
+            changed.wait(1.0)
+            changed.clear()
+            try:
+                self.write_latch()
+            except Exception as exc:  # never end this thread
+                self.service.warn(f"latch writer: {type(exc).__name__}: {exc}")
+
     # -- queries -----------------------------------------------------------------------------
 
-    def _serve(self, q: queue.SimpleQueue[Any], handle: Callable[[bytes], bytes]) -> None:
+    def serve_queue(self, q: queue.SimpleQueue[Any], handle: Callable[[bytes], bytes]) -> None:
+        """Worker body: serve (query, arrival) items from `q` until SHUTDOWN."""
+        rt = self.rt
         while True:
-            query = q.get()
-            if query is _SHUTDOWN:
+            item = q.get()
+            if item is SHUTDOWN:
                 return
+            query, arrival = item
             try:
                 payload = query.payload
                 data = b"" if payload is None else payload.to_bytes()
-                reply = handle(data)
+                with rt.arrival_scope(arrival):
+                    reply = handle(data)
                 query.reply(query.key_expr, reply)
             except Exception as exc:  # never let a query end the worker
+                # The details go to the log; the client gets no internal text.
                 self.service.warn(f"query handler error: {type(exc).__name__}: {exc}")
                 with contextlib.suppress(Exception):
-                    query.reply_err(f"internal error: {type(exc).__name__}: {exc}".encode())
+                    query.reply_err(b"internal error: the request was not served (see the log)")
             finally:
                 with contextlib.suppress(Exception):
                     query.drop()

@@ -6,6 +6,15 @@
 - `applied_changes.jsonl`: one JSON object per accepted change, appended and fsynced:
   {"time_s", "version", "old_version", "old", "new", "margins", "client"}. Non-finite
   numbers (an infinite gain margin) are written as null.
+- `latch.json`: {"mode": "estop" | "fault", "reason", "fault", "saved_at_s"} while the loop is
+  latched in e-stop or fault (written atomically, removed on reset): a restart comes back in
+  that mode until an explicit reset.
+
+Versions are bounded by MAX_VERSION (2**53 - 1: exact in every JSON reader, a browser's
+included, and far inside MessagePack's integers): a saved file above it is refused on load, and
+a version above it is never saved, so the active version can never stop the publishing. Stale
+temporary files (`.<name>.*.tmp`, left by a crash between write and rename) are removed when the
+store opens.
 
 Nothing here runs on the loop's thread.
 """
@@ -25,16 +34,39 @@ import msgspec
 from controller.core.config import LoopConfig, config_from_builtins, config_to_builtins
 from controller.core.errors import ConfigError
 
-__all__ = ["ACTIVE_FILE", "LOG_FILE", "PersistenceError", "SavedConfig", "StateStore"]
+__all__ = [
+    "ACTIVE_FILE",
+    "LATCH_FILE",
+    "LOG_FILE",
+    "MAX_VERSION",
+    "Latch",
+    "PersistenceError",
+    "SavedConfig",
+    "StateStore",
+]
 
 ACTIVE_FILE = "active_config.json"
 LOG_FILE = "applied_changes.jsonl"
+LATCH_FILE = "latch.json"
+MAX_VERSION = 2**53 - 1
 
 _json = msgspec.json.Encoder()
 
 
 class PersistenceError(RuntimeError):
     """The state directory cannot be read or written."""
+
+
+@dataclass(frozen=True)
+class Latch:
+    """An e-stop or fault the loop is latched in (persisted until reset)."""
+
+    mode: str
+    """estop or fault."""
+    reason: str
+    """The e-stop's source, or the fault."""
+    fault: str = ""
+    """A fault reported while already in e-stop."""
 
 
 @dataclass(frozen=True)
@@ -64,6 +96,23 @@ class StateStore:
             self.directory.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise PersistenceError(f"state_dir: cannot create {self.directory}: {exc}") from exc
+        self.removed_tmp = self._remove_stale_tmp()
+        """Names of the stale temporary files removed when the store opened."""
+
+    def _remove_stale_tmp(self) -> list[str]:
+        removed: list[str] = []
+        names = (ACTIVE_FILE, LATCH_FILE)
+        try:
+            entries = list(self.directory.iterdir())
+        except OSError:
+            return removed
+        for p in entries:
+            n = p.name
+            if n.endswith(".tmp") and any(n.startswith(f".{name}.") for name in names):
+                with contextlib.suppress(OSError):
+                    p.unlink()
+                    removed.append(n)
+        return removed
 
     @property
     def active_path(self) -> Path:
@@ -92,6 +141,11 @@ class StateStore:
             version = data.get("version")
             if isinstance(version, bool) or not isinstance(version, int) or version < 0:
                 raise PersistenceError(f"{path}: version: expected an int >= 0, got {version!r}")
+            if version > MAX_VERSION:
+                raise PersistenceError(
+                    f"{path}: version: {version} is above the limit {MAX_VERSION}; "
+                    "restart with --config FILE (or edit the version) to start a new count"
+                )
             saved_at = data.get("saved_at_s", 0.0)
             if isinstance(saved_at, bool) or not isinstance(saved_at, (int, float)):
                 raise PersistenceError(f"{path}: saved_at_s: expected a number")
@@ -104,12 +158,25 @@ class StateStore:
 
     def save(self, config: LoopConfig, version: int) -> None:
         """Atomically replace the active configuration file."""
+        if isinstance(version, bool) or not 0 <= version <= MAX_VERSION:
+            raise PersistenceError(f"version: {version} is outside [0, {MAX_VERSION}]")
         doc = {"version": version, "saved_at_s": time.time(), "config": config_to_builtins(config)}
         data = msgspec.json.format(_json.encode(doc), indent=2) + b"\n"
         self._atomic_write(self.active_path, data)
 
     def _atomic_write(self, path: Path, data: bytes) -> None:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=self.directory)
+        try:
+            try:
+                fd, tmp = tempfile.mkstemp(
+                    prefix=f".{path.name}.", suffix=".tmp", dir=self.directory
+                )
+            except FileNotFoundError:  # the directory vanished: make it again, once
+                self.directory.mkdir(parents=True, exist_ok=True)
+                fd, tmp = tempfile.mkstemp(
+                    prefix=f".{path.name}.", suffix=".tmp", dir=self.directory
+                )
+        except OSError as exc:
+            raise PersistenceError(f"{path}: cannot write: {exc}") from exc
         try:
             try:
                 os.fchmod(fd, 0o644)  # mkstemp's 0600 would hide the file from other tools
@@ -138,6 +205,60 @@ class StateStore:
                 os.fsync(dfd)
         finally:
             os.close(dfd)
+
+    # -- the e-stop / fault latch -------------------------------------------------------------
+
+    @property
+    def latch_path(self) -> Path:
+        return self.directory / LATCH_FILE
+
+    def save_latch(self, latch: Latch | None) -> None:
+        """Write the latch atomically, or remove it (None: not latched)."""
+        if latch is None:
+            try:
+                self.latch_path.unlink()
+            except FileNotFoundError:
+                return
+            except OSError as exc:
+                raise PersistenceError(f"{self.latch_path}: cannot remove: {exc}") from exc
+            self._fsync_dir()
+            return
+        doc = {
+            "mode": latch.mode,
+            "reason": latch.reason,
+            "fault": latch.fault,
+            "saved_at_s": time.time(),
+        }
+        self._atomic_write(self.latch_path, _json.encode(doc) + b"\n")
+
+    def load_latch(self) -> Latch | None:
+        """The persisted latch; None if there is none. A file that cannot be read or makes no
+        sense counts as a fault (never as "not latched"): PersistenceError is for the caller
+        to turn into one."""
+        path = self.latch_path
+        try:
+            raw = path.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise PersistenceError(f"{path}: cannot read: {exc}") from exc
+        try:
+            data = msgspec.json.decode(raw)
+        except msgspec.DecodeError as exc:
+            raise PersistenceError(f"{path}: not valid JSON: {exc}") from exc
+        if not isinstance(data, dict) or data.get("mode") not in ("estop", "fault"):
+            raise PersistenceError(f"{path}: mode: expected estop or fault")
+        reason, fault = data.get("reason", ""), data.get("fault", "")
+        if not isinstance(reason, str) or not isinstance(fault, str):
+            raise PersistenceError(f"{path}: reason/fault: expected strings")
+        return Latch(str(data["mode"]), reason[:500], fault[:500])
+
+    def load_latch_or_none(self) -> Latch | None:
+        """`load_latch`, with an unreadable file as None (the writer then rewrites it)."""
+        try:
+            return self.load_latch()
+        except PersistenceError:
+            return None
 
     # -- applied-changes log -----------------------------------------------------------------
 

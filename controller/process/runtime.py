@@ -25,18 +25,20 @@ command 0, drive stopped, until reset). Only the tick changes the mode.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import os
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
 from controller.core.loop import ServoLoop
+from controller.core.ramp import Ramp
 from controller.core.samples import STATE_COLUMNS
 from controller.core.trajectory import Trajectory
 from controller.ident.program import ExcitationProgram
@@ -95,6 +97,10 @@ class RuntimeOptions:
     """Blocks buffered for the publisher (5 s at 1 kHz with batches of 20)."""
     timing_capacity: int = 16384
     """Ticks of period/compute history kept for statistics."""
+    approach_speed_deg_s: float = 20.0
+    """Start (and a new trajectory while running) moves onto the trajectory at most this fast
+    (`controller.core.ramp`): no jump of the reference after a reset far from it."""
+    approach_accel_deg_s2: float = 40.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.rate_hz) and 1.0 <= self.rate_hz <= 20000.0):
@@ -107,6 +113,10 @@ class RuntimeOptions:
             raise ValueError(f"ring_blocks: {self.ring_blocks!r} out of range [2, 65536]")
         if not 16 <= self.timing_capacity <= 1 << 22:
             raise ValueError(f"timing_capacity: {self.timing_capacity!r} out of range")
+        for name in ("approach_speed_deg_s", "approach_accel_deg_s2"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.0 < value <= 1e4):
+                raise ValueError(f"{name}: {value!r} out of range (0, 1e4]")
 
 
 @dataclass(frozen=True)
@@ -129,11 +139,13 @@ class TimingSnapshot:
 class Ticket:
     """One request to the tick; the tick fills the result and sets `done`."""
 
-    __slots__ = ("body", "done", "message", "mode", "ok", "received_seq", "seq")
+    __slots__ = ("arrival", "body", "done", "message", "mode", "ok", "received_seq", "seq")
 
-    def __init__(self, body: RequestBody, received_seq: int) -> None:
+    def __init__(self, body: RequestBody, received_seq: int, arrival: int = -1) -> None:
         self.body = body
         self.received_seq = received_seq
+        self.arrival = arrival
+        """Order of arrival at the controller (`Runtime.next_arrival`), shared with e-stops."""
         self.done = threading.Event()
         self.ok = False
         self.message = ""
@@ -213,14 +225,24 @@ class Runtime:
         self.trajectory = self.run_trajectory
         self._traj_at = self.trajectory.at
         self._traj_k = 0
+        self._ramp = Ramp(self.period_s, opts.approach_speed_deg_s, opts.approach_accel_deg_s2)
+        self.last_ref_deg = 0.0
+        self.last_ref_rate_deg_s = 0.0
         self.mode = RUNNING
         self._initial_mode = mode
         self.fault: str | None = None
         self.estop_seq = -1
         self.estop_source = ""
-        # Requests from other threads.
+        # Requests from other threads. Every request and e-stop is stamped with its order of
+        # arrival (`next_arrival`): a reset that arrived before an e-stop never clears it.
         self._inbox: deque[Ticket] = deque()
         self._estop_request: str | None = None
+        self._arrivals = itertools.count()
+        self._arrival_local = threading.local()
+        self._estop_lock = threading.Lock()
+        self._estop_arrival = -1
+        self.latch_changed = threading.Event()
+        """Set whenever the mode enters or leaves estop/fault (the latch is persisted)."""
         self._stop = False
         # Counters (written by the tick only).
         self.seq = -1  # sequence number of the last completed tick
@@ -249,21 +271,69 @@ class Runtime:
 
     # -- requests (any thread) -----------------------------------------------------------------
 
+    def next_arrival(self) -> int:
+        """A new arrival stamp (any thread; increasing): the edge stamps each request when it
+        arrives, in the order the transport delivered it."""
+        return next(self._arrivals)
+
+    @contextlib.contextmanager
+    def arrival_scope(self, arrival: int) -> Iterator[None]:
+        """Requests submitted by this thread inside the block carry `arrival` (the stamp the
+        edge gave the query when it arrived), not the time they reach `submit`."""
+        local = self._arrival_local
+        previous = getattr(local, "arrival", None)
+        local.arrival = arrival
+        try:
+            yield
+        finally:
+            local.arrival = previous
+
     def submit(self, body: RequestBody) -> Ticket:
         """Queue a request for the next tick boundary; wait on the returned ticket."""
-        ticket = Ticket(body, self.seq)
+        arrival = getattr(self._arrival_local, "arrival", None)
+        if arrival is None:
+            arrival = self.next_arrival()
+        ticket = Ticket(body, self.seq, arrival)
         if isinstance(body, EStop):
-            self._estop_request = "command"
+            self.estop("command", arrival)
         self._inbox.append(ticket)
         return ticket
 
-    def estop(self, source: str = "estop key") -> None:
-        """Emergency stop from any thread: command 0 from the next tick. Never blocks."""
-        self._estop_request = source
+    def estop(self, source: str = "estop key", arrival: int | None = None) -> None:
+        """Emergency stop from any thread: command 0 from the next tick. Never blocks on the
+        loop. Requests that arrived before `arrival` (default: now) can no longer reset it."""
+        with self._estop_lock:
+            if arrival is None:
+                arrival = self.next_arrival()
+            if arrival > self._estop_arrival:
+                self._estop_arrival = arrival
+            self._estop_request = source
+
+    def restore_latch(self, mode: str, reason: str) -> None:
+        """Before `run()`: come back in the e-stop or fault a previous run left latched
+        (persisted); only an explicit reset leaves it."""
+        if mode == ESTOP:
+            self.mode = ESTOP
+            self.estop_source = reason
+        elif mode == FAULT:
+            self.mode = FAULT
+            self.fault = reason
+        else:
+            raise ValueError(f"mode: {mode!r} is not estop or fault")
 
     def stop(self) -> None:
         """End `run()` after the current tick (any thread, signal handlers included)."""
         self._stop = True
+
+    @property
+    def approaching(self) -> bool:
+        """True while the reference approaches the trajectory (after Start or a new
+        trajectory) instead of following it."""
+        return self._ramp.active
+
+    def approach_from(self, pos_deg: float, speed_deg_s: float = 0.0) -> None:
+        """Approach the trajectory from `pos_deg` (what Start does; tests, benchmarks)."""
+        self._ramp.begin(pos_deg, speed_deg_s)
 
     @property
     def config_version(self) -> int:
@@ -343,7 +413,9 @@ class Runtime:
         tick = self._tick
         self.t0 = t0 = clock()
         self.epoch_s = time.time() - (clock() - t0)
-        if self._initial_mode == STOPPED:
+        if self.mode in (ESTOP, FAULT):
+            self._safe_state()  # a latch restored from the state directory
+        elif self._initial_mode == STOPPED:
             self._enter_stopped(0.0)
         self.running.set()
         next_t = t0
@@ -409,6 +481,12 @@ class Runtime:
         k = self._traj_k
         self._traj_k = k + 1
         ref, ref_rate = self._traj_at(k * self.period_s)
+        ramp = self._ramp
+        if ramp.active:
+            ref = ramp.step(ref, ref_rate)
+            ref_rate = ramp.speed_deg_s
+        self.last_ref_deg = ref
+        self.last_ref_rate_deg_s = ref_rate
         loop = self.loop
         mode = self.mode
         prog = self.program
@@ -519,6 +597,7 @@ class Runtime:
 
     def _enter_stopped(self, pos: float) -> None:
         self.mode = STOPPED
+        self._ramp.cancel()
         self._set_trajectory(Trajectory(kind="hold", offset_deg=pos))
 
     def _safe_state(self) -> None:
@@ -536,15 +615,19 @@ class Runtime:
         self.mode = ESTOP
         self.estop_seq = self.seq + 1
         self.estop_source = source
+        self._ramp.cancel()
         self._safe_state()
+        self.latch_changed.set()
 
     def _enter_fault(self, reason: str) -> None:
         if self.mode == FAULT:
             return
         self.fault = reason
+        self.latch_changed.set()
         if self.mode == ESTOP:
             return  # already safe; the fault is reported, the e-stop latch stays
         self.mode = FAULT
+        self._ramp.cancel()
         self._safe_state()
 
     def _serve_requests(self) -> None:
@@ -572,6 +655,7 @@ class Runtime:
                 t.ok, t.message = False, f"mode is {self.mode}: send reset and start first"
             else:
                 self.mode = RUNNING
+                self._ramp.cancel()
                 b.program.start_seq = next_seq
                 self.program = b.program
                 t.ok = True
@@ -591,6 +675,8 @@ class Runtime:
             if self.program is not None:
                 t.ok, t.message = True, "trajectory set; it runs after the identification"
             elif self.mode == RUNNING:
+                # From the present reference onto the new trajectory: no jump.
+                self._ramp.begin(self.last_ref_deg, self.last_ref_rate_deg_s)
                 self._set_trajectory(b.trajectory)
             t.ok = True
             t.message = "" if self.mode == RUNNING else f"trajectory set; mode is {self.mode}"
@@ -599,7 +685,12 @@ class Runtime:
                 t.ok, t.message = False, f"mode is {self.mode}: send reset first"
             else:
                 if self.mode != RUNNING:
+                    # From the reference the loop holds now (stopped: the hold set when it
+                    # stopped or was reset) onto the trajectory, bounded speed and
+                    # acceleration (after a reset it may be far from it).
+                    held_deg = self._traj_at(self._traj_k * self.period_s)[0]
                     self.mode = RUNNING
+                    self._ramp.begin(held_deg)
                     self._set_trajectory(self.run_trajectory)
                 t.ok = True
         elif isinstance(b, Stop):
@@ -616,6 +707,12 @@ class Runtime:
             t.ok, t.message = False, f"unknown request {type(b).__name__}"
 
     def _reset(self, t: Ticket, pos: float) -> None:
+        if t.arrival < self._estop_arrival:
+            # Sent before the latest e-stop (served late only because the e-stop needs no
+            # queue): it must not undo it. Also when that e-stop is still pending.
+            t.ok = False
+            t.message = "e-stop: an e-stop arrived after this reset; send reset again"
+            return
         if self.mode not in (ESTOP, FAULT):
             t.ok, t.message = True, f"nothing to reset (mode {self.mode})"
             return
@@ -633,6 +730,7 @@ class Runtime:
         self.fault = None
         self.loop.reset()
         self._enter_stopped(pos)
+        self.latch_changed.set()
         t.ok = True
 
     @property

@@ -288,6 +288,7 @@ class CanRig:
         self._enabled = False
         self._stopped = False
         self._missed = 0
+        self._hb_state = None  # only a heartbeat received during this start counts
         deadline = self._clock() + self.rig_file.drive.enable_timeout_s
         try:
             self._collect(0.0)
@@ -301,7 +302,9 @@ class CanRig:
             self._fail_start(str(exc))
         if self._enc_sync < 0:
             self._fail_start("no load encoder frame during start")
-        self._hb_time = self._clock()
+        if self._hb_supervised and self._clock() - self._hb_time > self._hb_timeout_s:
+            # The heartbeat is never assumed: it must have come during this start.
+            self._fail_start("heartbeat lost during start: the drive is not enabled")
         self._sync_pending = False
         self._missed = 0
         self._enabled = True
@@ -497,6 +500,30 @@ class CanRig:
                 f"SDO write 0x{index:04X}:{subindex} = {value} aborted (0x{reply.abort_code:08X})"
             )
 
+    def _wait_heartbeat(self, since: float, deadline: float) -> None:
+        """Setup only: wait for an operational heartbeat received after `since`."""
+        bus = self._bus
+        while not (self._hb_state == NmtState.OPERATIONAL and self._hb_time >= since):
+            remaining = deadline - self._clock()
+            frame = bus.recv(remaining) if remaining > 0.0 else None
+            if frame is None:
+                seen = "none" if self._hb_state is None else f"NMT state 0x{self._hb_state:02X}"
+                raise RigFault(
+                    "no operational heartbeat from the drive after NMT start (last: "
+                    f"{seen}): the drive is not enabled"
+                )
+            self._handle(frame[0], frame[1])
+            if self.fault is not None:
+                raise RigFault(self.fault)
+
+    def _check_heartbeat_live(self) -> None:
+        age = self._clock() - self._hb_time
+        if age > self._hb_timeout_s:
+            raise RigFault(
+                f"heartbeat lost during start ({age * 1000.0:.0f} ms since the last): "
+                "the drive is not enabled"
+            )
+
     def _start_cia402(self, deadline: float) -> None:
         drive = self.rig_file.drive
         self._sdo_write(cia402.MODES_OF_OPERATION, 0, cia402.PROFILE_VELOCITY_MODE, 1, deadline)
@@ -504,11 +531,18 @@ class CanRig:
             self._sdo_write(
                 cia402.PRODUCER_HEARTBEAT_TIME, 0, drive.heartbeat_period_ms, 2, deadline
             )
+        nmt_sent = self._clock()
         self._bus.send(drive.cob_ids.nmt, cia402.make_nmt(cia402.NmtCommand.START, drive.node_id))
+        if self._hb_supervised:
+            # Never enable a drive whose heartbeat is not live: wait for an "operational" one
+            # sent after the NMT start (a reset with a dead heartbeat stays disabled).
+            self._wait_heartbeat(nmt_sent, deadline)
         # Disable voltage first: a known starting point, and the low edge a fault reset needs.
         controlword = cia402.CW_DISABLE_VOLTAGE
         resets = 0
         while True:
+            if self._hb_supervised and controlword != cia402.CW_DISABLE_VOLTAGE:
+                self._check_heartbeat_live()
             self._exchange(controlword, deadline)
             state = self._drive_state
             if state is State.OPERATION_ENABLED:

@@ -14,6 +14,7 @@ import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import pytest
@@ -311,11 +312,24 @@ def test_a_config_the_gate_rejects_does_not_start(
 
 
 def test_a_flood_of_queries_does_not_stall_the_loop_or_the_stream(
-    controller: ControllerProcess, client: Client
+    start_controller_factory: Callable[..., ControllerProcess],
 ) -> None:
     """Four threads of another peer hammer both queryables with GETs, rejected candidates
-    and garbage for 3 s, while this peer checks the stream stays whole."""
+    and garbage for 3 s, while this peer checks the stream stays whole.
+
+    The controller runs as on a rig (--realtime-priority: SCHED_FIFO for the loop's thread);
+    at normal priority, on this 2-core machine shared with the flooding peer, the kernel's
+    wake-up of the loop is what fails, not the controller (measured 5-9 % late ticks both
+    before and after the layout change)."""
     import threading
+
+    controller = start_controller_factory(extra_args=("--realtime-priority",))
+    with Client(controller.endpoint, controller.rig) as client:
+        client.wait_ready(controller)
+        _flood(controller, client, threading)
+
+
+def _flood(controller: ControllerProcess, client: Client, threading: Any) -> None:
 
     stop = threading.Event()
     counts = [0] * 4
@@ -327,6 +341,10 @@ def test_a_flood_of_queries_does_not_stall_the_loop_or_the_stream(
     ]
 
     def hammer(i: int) -> None:
+        # The flooding clients stand for other machines: on this shared 2-core box their own
+        # Python work must not take the controller's CPU (that would measure the test, not the
+        # controller), so their threads run at the lowest priority.
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
         with Client(controller.endpoint, controller.rig) as c:
             while not stop.is_set():
                 if i == 3:
@@ -361,3 +379,19 @@ def test_a_flood_of_queries_does_not_stall_the_loop_or_the_stream(
     assert st1.timing.overruns - st0.timing.overruns <= 5 + ticks // 10, (st0.timing, st1.timing)
     assert st1.timing.skipped_ticks - st0.timing.skipped_ticks <= 5 + ticks // 50
     assert st1.timing.dropped_samples == 0
+
+
+def test_a_saved_version_beyond_the_limit_is_refused_at_start(
+    start_controller_factory: Callable[..., ControllerProcess], tmp_path: Path
+) -> None:
+    """A version counter near 2**64 would stop the publishing after one apply: the controller
+    refuses the file at start (exit 2, naming the version) instead of running with it."""
+    state = tmp_path / "big-version"
+    state.mkdir()
+    doc = {"version": 2**64 - 2, "saved_at_s": 0.0, "config": msgspec.to_builtins(LoopConfig())}
+    (state / "active_config.json").write_text(json.dumps(doc))
+    (state / ".active_config.json.stale.tmp").write_text("{")
+    proc = start_controller_factory(state)
+    assert proc.proc.wait(timeout=60) == 2
+    assert "version" in proc.log() and "above the limit" in proc.log()
+    assert not (state / ".active_config.json.stale.tmp").exists()  # cleaned at start
