@@ -20,8 +20,10 @@ import numpy as np
 from controller.core.config import LoopConfig
 from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
-from controller.gate.analysis import Analysis, analyse, default_grid, recommended_max_cutoff_hz
+from controller.gate.analysis import Analysis, analyse
 from controller.gate.knowledge import MeasuredResponse, PlantKnowledge
+from controller.gate.loop_model import default_grid
+from controller.gate.search import recommended_max_cutoff_hz
 from server import charts
 from server.charts import BodeCurves, FloatArray
 

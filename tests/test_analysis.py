@@ -17,17 +17,16 @@ import pytest
 
 from controller.core.config import LoopConfig
 from controller.core.dob import design_dob
-from controller.gate.analysis import (
-    GateLimits,
-    analyse,
-    default_grid,
-    discrete_equivalent,
-    nominal_continuous_response,
-    recommended_max_cutoff_hz,
-)
+from controller.gate.analysis import GateLimits, analyse
 from controller.gate.frd import load_measured
 from controller.gate.frd_csv import write_frd_csv
 from controller.gate.knowledge import MeasuredResponse, PlantKnowledge, SampledBound, WeightBound
+from controller.gate.loop_model import (
+    default_grid,
+    discrete_equivalent,
+    nominal_continuous_response,
+)
+from controller.gate.search import recommended_max_cutoff_hz
 
 # ----------------------------------------------------------------------------- references
 

@@ -11,8 +11,8 @@ import pytest
 
 from controller.cli.check import check_main
 from controller.core.config import LoopConfig, config_to_builtins
-from controller.gate.analysis import nominal_continuous_response
 from controller.gate.frd_csv import write_frd_csv
+from controller.gate.loop_model import nominal_continuous_response
 
 KEYS = {
     "verdict",

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from controller.core.config import NominalModel
-from controller.gate.analysis import nominal_continuous_response
 from controller.gate.frd_csv import write_frd_csv
+from controller.gate.loop_model import nominal_continuous_response
 from server.app import Dashboard, DashboardOptions
 from server.demo import controller_process, stop_process
 

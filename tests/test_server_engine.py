@@ -10,8 +10,8 @@ import numpy as np
 
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.trajectory import Trajectory
-from controller.gate.analysis import nominal_continuous_response
 from controller.gate.knowledge import MeasuredResponse
+from controller.gate.loop_model import nominal_continuous_response
 from server import charts
 from server.engine import TuningEngine
 

@@ -17,9 +17,11 @@ from typing import Any, TextIO
 from controller.cli import Command
 from controller.core.config import LoopConfig, config_from_builtins, config_to_builtins
 from controller.core.errors import ConfigError
-from controller.gate.analysis import Analysis, Margins, analyse, recommended_max_cutoff_hz
+from controller.gate.analysis import Analysis, analyse
 from controller.gate.frd import load_measured
 from controller.gate.knowledge import PlantKnowledge
+from controller.gate.margins import Margins
+from controller.gate.search import recommended_max_cutoff_hz
 
 __all__ = ["check_main"]
 

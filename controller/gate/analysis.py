@@ -51,43 +51,49 @@ where |L| << 1 (the default grid, 0.01 Hz to Nyquist, does); if not, it reports 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import linalg, signal
 
-from controller.core.config import LoopConfig, NominalModel
-from controller.core.discrete import SosArray, sos_response
-from controller.core.dob import design_dob
-from controller.core.qfilter import Q_TYPES, QType, check_q_type
+from controller.core.config import LoopConfig
 from controller.gate.knowledge import (
     MeasuredResponse,
     PlantKnowledge,
     readonly,
 )
+from controller.gate.loop_model import (
+    DB_3,
+    TWO_PI,
+    DobFilters,
+    LoopBlocks,
+    closed_loop_matrix,
+    default_grid,
+    discrete_equivalent,
+    discrete_plant,
+    dob_filters,
+    loop_blocks,
+    nominal_continuous_response,
+    plant_response,
+)
+from controller.gate.margins import (
+    Margins,
+    Outputs,
+    RefineTask,
+    bandwidth_of,
+    loop_tasks,
+    margins_of,
+    peak_task,
+    solve,
+    winding_ok,
+)
 
-__all__ = [
-    "Analysis",
-    "GateLimits",
-    "Margins",
-    "SourceResult",
-    "analyse",
-    "default_grid",
-    "discrete_equivalent",
-    "nominal_continuous_response",
-    "recommended_max_cutoff_hz",
-]
+__all__ = ["Analysis", "GateLimits", "SourceResult", "analyse"]
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
 Verdict = Literal["accept", "reject"]
-
-_TWO_PI = 2.0 * math.pi
-_DB_3 = 10.0 ** (-3.0 / 20.0)  # -3 dB, as python-control's bandwidth()
 
 
 @dataclass(frozen=True)
@@ -122,24 +128,6 @@ class GateLimits:
 
 
 # --------------------------------------------------------------------------- result objects
-
-
-@dataclass(frozen=True)
-class Margins:
-    """Classical margins of a loop transfer function (python-control's selection rules)."""
-
-    gain_margin_db: float
-    """At the phase crossover whose |L| is closest to 1 (negative: a gain-reduction margin);
-    inf when the phase never crosses -180 deg."""
-    phase_crossover_hz: float
-    phase_margin_deg: float
-    """Smallest |PM| over the gain crossovers, in (-180, 180]; inf without a crossover."""
-    gain_crossover_hz: float
-    delay_margin_s: float
-    """Smallest PM/omega over the gain crossovers (0 if a PM is <= 0)."""
-    peak_sensitivity_db: float
-    """max |1/(1 + L)| in dB (-20 log10 of python-control's stability margin sm)."""
-    peak_sensitivity_hz: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -234,436 +222,6 @@ class Analysis:
         return self.margins.delay_margin_s
 
 
-# --------------------------------------------------------------------------- building blocks
-
-
-def default_grid(rate_hz: float, n: int = 500) -> FloatArray:
-    """`n` log-spaced frequencies from 0.01 Hz to just below Nyquist."""
-    return _default_grid(float(rate_hz), int(n))
-
-
-@lru_cache(maxsize=32)
-def _default_grid(rate_hz: float, n: int) -> FloatArray:
-    return readonly(np.geomspace(0.01, 0.4999 * rate_hz, n))
-
-
-def _poly_roots(p: tuple[float, float, float]) -> tuple[list[complex], float]:
-    c = np.trim_zeros(np.asarray(p, dtype=np.float64), "f")
-    return [complex(r) for r in np.roots(c)], float(c[0])
-
-
-def _mp_zpk(nominal: NominalModel) -> tuple[list[complex], list[complex], float]:
-    """Mn(s) Pn(s) as zeros, poles, gain; common roots cancelled."""
-    zeros, kn = _poly_roots(nominal.pn_num)
-    pm, km = _poly_roots(nominal.mn_den)
-    pd, kd = _poly_roots(nominal.pn_den)
-    poles = pm + pd
-    for z in list(zeros):
-        for i, p in enumerate(poles):
-            if abs(z - p) <= 1e-9 * max(1.0, abs(p)):
-                zeros.remove(z)
-                del poles[i]
-                break
-    return zeros, poles, kn / (km * kd)
-
-
-def nominal_continuous_response(nominal: NominalModel, freq_hz: ArrayLike) -> ComplexArray:
-    """Mn(jw) Pn(jw) (continuous, u -> load rate)."""
-    s = 1j * _TWO_PI * np.asarray(freq_hz, dtype=np.float64)
-    num = np.polyval(nominal.pn_num, s)
-    den = np.polyval(nominal.mn_den, s) * np.polyval(nominal.pn_den, s)
-    return np.asarray(num / den, dtype=np.complex128)
-
-
-def discrete_equivalent(response: ArrayLike, freq_hz: ArrayLike, rate_hz: float) -> ComplexArray:
-    """G_c(jw) e^{-jwTs} sinc^2(w Ts/2): ZOH + backward-difference rate, aliasing neglected.
-
-    The k = 0 term of the exact sampled response; accurate well below Nyquist.
-    """
-    x = np.pi * np.asarray(freq_hz, dtype=np.float64) / rate_hz  # w Ts / 2
-    sinc = np.sinc(x / np.pi)
-    return np.asarray(response, dtype=np.complex128) * np.exp(-2j * x) * sinc * sinc
-
-
-@dataclass(frozen=True, eq=False)
-class _Plant:
-    """Exact sampled plant, states [x; w; theta]: A, B; w = cw @ X, theta = ct @ X."""
-
-    a: FloatArray
-    b: FloatArray
-    cw: FloatArray
-    ct: FloatArray
-    ag: FloatArray  # states [x; w] only: G(z) = cg (zI - ag)^-1 bg
-    bg: FloatArray
-    num: FloatArray  # G(z) = num(z^-1) / den(z^-1), ascending powers of z^-1
-    den: FloatArray
-
-
-@lru_cache(maxsize=64)
-def _plant(nominal: NominalModel, rate_hz: float) -> _Plant:
-    ts = 1.0 / rate_hz
-    z, p, k = _mp_zpk(nominal)
-    a, b, c, d = signal.zpk2ss(np.array(z), np.array(p), k)
-    a, b, c, d = (np.real(np.atleast_2d(m)).astype(np.float64) for m in (a, b, c, d))
-    n = a.shape[0]
-    # Augment with theta' = C x + D u, then ZOH over one period (matrix exponential).
-    big = np.zeros((n + 2, n + 2))
-    big[:n, :n] = a
-    big[:n, n + 1 :] = b
-    big[n, :n] = c[0]
-    big[n, n + 1] = d[0, 0]
-    e = linalg.expm(big * ts)
-    phi, gam = e[:n, :n], e[:n, n + 1]
-    dth_x, dth_u = e[n, :n], e[n, n + 1]
-    # X = [x; w; theta]: w[k+1] = (theta[k+1] - theta[k]) / Ts.
-    ax = np.zeros((n + 2, n + 2))
-    ax[:n, :n] = phi
-    ax[n, :n] = dth_x / ts
-    ax[n + 1, :n] = dth_x
-    ax[n + 1, n + 1] = 1.0
-    bx = np.concatenate([gam, [dth_u / ts, dth_u]])
-    cw = np.zeros(n + 2)
-    cw[n] = 1.0
-    ct = np.zeros(n + 2)
-    ct[n + 1] = 1.0
-    ag, bg = ax[: n + 1, : n + 1], bx[: n + 1]
-    cg = cw[: n + 1]
-    num, den = signal.ss2tf(ag, bg[:, None], cg[None, :], np.zeros((1, 1)))
-    # In z: num(z)/den(z) with equal lengths; as polynomials in z^-1 the same arrays apply.
-    return _Plant(
-        a=readonly(ax),
-        b=readonly(bx),
-        cw=readonly(cw),
-        ct=readonly(ct),
-        ag=readonly(ag),
-        bg=readonly(bg),
-        num=readonly(np.asarray(num[0], dtype=np.float64)),
-        den=readonly(np.asarray(den, dtype=np.float64)),
-    )
-
-
-def _poly_zinv(coeffs: FloatArray, zinv: ComplexArray) -> ComplexArray:
-    """sum_k c_k z^-k by Horner (coeffs in ascending powers of z^-1)."""
-    out = np.full(zinv.shape, coeffs[-1], dtype=np.complex128)
-    for c in coeffs[-2::-1]:
-        out = out * zinv + c
-    return out
-
-
-def _plant_response(pl: _Plant, zinv: ComplexArray) -> ComplexArray:
-    return _poly_zinv(pl.num, zinv) / _poly_zinv(pl.den, zinv)
-
-
-def _sos_ss(sos: SosArray) -> tuple[FloatArray, FloatArray, FloatArray, float]:
-    """State space of the SOS cascade exactly as `SosFilter` runs it (TDF-II per section)."""
-    a = np.zeros((0, 0))
-    b = np.zeros(0)
-    c = np.zeros(0)
-    d = 1.0
-    for b0, b1, b2, _a0, a1, a2 in np.asarray(sos, dtype=np.float64):
-        ai = np.array([[-a1, 1.0], [-a2, 0.0]])
-        bi = np.array([b1 - a1 * b0, b2 - a2 * b0])
-        ci = np.array([1.0, 0.0])
-        n = a.shape[0]
-        an = np.zeros((n + 2, n + 2))
-        an[:n, :n] = a
-        an[n:, :n] = np.outer(bi, c)
-        an[n:, n:] = ai
-        b = np.concatenate([b, bi * d])
-        c = np.concatenate([b0 * c, ci])
-        a = an
-        d = b0 * d
-    return a, b, c, float(d)
-
-
-@dataclass(frozen=True, eq=False)
-class _Dob:
-    tau_s: float
-    f1_sos: SosArray
-    f2_sos: SosArray
-    f1_ss: tuple[FloatArray, FloatArray, FloatArray, float]
-    f2_ss: tuple[FloatArray, FloatArray, FloatArray, float]
-
-
-def _dob(cfg: LoopConfig) -> _Dob:
-    """The implemented DOB filters, cached per (Q type, cut-off, rate, nominal model)."""
-    return _dob_cached(cfg.q_type, cfg.q_cutoff_hz, cfg.rate_hz, cfg.nominal)
-
-
-@lru_cache(maxsize=256)
-def _dob_cached(q_type: str, cutoff_hz: float, rate_hz: float, nominal: NominalModel) -> _Dob:
-    # lru_cache keeps its own lock (CPython), so concurrent analyse() calls from GUI thread
-    # pools share the cache safely; two callers may both compute a missing entry, which is
-    # harmless: the design is a pure function of the key.
-    d = design_dob(LoopConfig(q_type=q_type, q_cutoff_hz=cutoff_hz, rate_hz=rate_hz,
-                              nominal=nominal))
-    return _Dob(d.q.tau_s, d.f1_sos, d.f2_sos, _sos_ss(d.f1_sos), _sos_ss(d.f2_sos))
-
-
-def _pi(kp: float, ki: float, ts: float, zinv: ComplexArray) -> ComplexArray:
-    """Tustin PI kp (1 + ki Ts/2 (1 + z^-1)/(1 - z^-1)), as loop.py integrates."""
-    return kp * (1.0 + ki * ts * 0.5 * (1.0 + zinv) / (1.0 - zinv))
-
-
-@dataclass(frozen=True, eq=False)
-class _Blocks:
-    """Frequency responses of the loop pieces at some frequencies."""
-
-    zinv: ComplexArray
-    g: ComplexArray
-    cv: ComplexArray
-    ctot: ComplexArray
-    f1: ComplexArray
-    f2d: ComplexArray  # F2 z^-1
-
-
-def _blocks(cfg: LoopConfig, dob: _Dob | None, f: FloatArray) -> _Blocks:
-    ts = cfg.period_s
-    zinv = np.exp(-1j * _TWO_PI * ts * f)
-    g = _plant_response(_plant(cfg.nominal, cfg.rate_hz), zinv)
-    cv = _pi(cfg.cv_kp, cfg.cv_ki_per_s, ts, zinv)
-    cp = _pi(cfg.pos_kp_per_s, cfg.pos_ki_per_s, ts, zinv)
-    ctot = cv * (1.0 + cp * ts / (1.0 - zinv))
-    if dob is None:
-        zero = np.zeros_like(zinv)
-        return _Blocks(zinv, g, cv, ctot, zero, zero)
-    f1 = sos_response(dob.f1_sos, f, cfg.rate_hz)
-    f2d = sos_response(dob.f2_sos, f, cfg.rate_hz) * zinv
-    return _Blocks(zinv, g, cv, ctot, f1, f2d)
-
-
-# --------------------------------------------------------------------------- closed-loop poles
-
-
-def _closed_loop_matrix(cfg: LoopConfig, dob: _Dob | None) -> FloatArray:
-    """State matrix of the whole loop (references and disturbances zero)."""
-    ts = cfg.period_s
-    pl = _plant(cfg.nominal, cfg.rate_hz)
-    npl = pl.a.shape[0]
-    if dob is not None:
-        a1, b1, c1, d1 = dob.f1_ss
-        a2, b2, c2, d2 = dob.f2_ss
-        n1, n2 = a1.shape[0], a2.shape[0]
-    else:
-        n1 = n2 = 0
-    # State layout: plant | Cp integrator | Cv integrator | F1 | F2 | u[k-1] (if DOB).
-    ip, icp, icv = 0, npl, npl + 1
-    i1 = npl + 2
-    i2 = i1 + n1
-    idu = i2 + n2
-    n = idu + (1 if dob is not None else 0)
-    hp = cfg.pos_kp_per_s * cfg.pos_ki_per_s * ts * 0.5
-    hv = cfg.cv_kp * cfg.cv_ki_per_s * ts * 0.5
-    # Outputs as rows over the state vector (the plant has no feedthrough).
-    w = np.zeros(n)
-    w[ip:npl] = pl.cw
-    th = np.zeros(n)
-    th[ip:npl] = pl.ct
-    # r = xcp + (kp + hp) e_pos with e_pos = -theta;  xcp+ = xcp + 2 hp e_pos.
-    e_pos = -th
-    r = (cfg.pos_kp_per_s + hp) * e_pos
-    r[icp] += 1.0
-    e = r - w
-    v = (cfg.cv_kp + hv) * e
-    v[icv] += 1.0
-    u = v.copy()
-    if dob is not None:
-        y1 = d1 * w
-        y1[i1:i2] += c1
-        y2 = np.zeros(n)
-        y2[i2:idu] = c2
-        y2[idu] += d2
-        u = v - y1 + y2
-    a = np.zeros((n, n))
-    a[ip:npl, ip:npl] = pl.a
-    a[ip:npl] += np.outer(pl.b, u)
-    a[icp] = 2.0 * hp * e_pos
-    a[icp, icp] += 1.0
-    a[icv] = 2.0 * hv * e
-    a[icv, icv] += 1.0
-    if dob is not None:
-        a[i1:i2, i1:i2] += a1
-        a[i1:i2] += np.outer(b1, w)
-        a[i2:idu, i2:idu] += a2
-        a[i2:idu, idu] += b2
-        a[idu] = u
-    return a
-
-
-# --------------------------------------------------------------------------- refinement
-
-Outputs = dict[str, ComplexArray]
-Evaluator = Callable[[FloatArray], Outputs]
-
-
-@dataclass(eq=False)
-class _Task:
-    """One feature to refine in log frequency: a root (kind 0), a minimum (-1), a maximum (+1)
-    of fn(outputs[key]) inside [lo, hi]."""
-
-    key: str
-    kind: int
-    fn: Callable[[ComplexArray], FloatArray]
-    lo: float
-    hi: float
-    x: float = math.nan
-    best_x: float = math.nan
-    best_v: float = math.nan
-    out: complex = complex(math.nan)
-    value: float = math.nan
-
-    @property
-    def freq_hz(self) -> float:
-        return math.exp(self.x)
-
-
-def _solve(tasks: list[_Task], ev: Evaluator, n: int = 9, rounds: int = 2) -> None:
-    """Refine all tasks together: each round evaluates n points per bracket in one batched
-    call and shrinks every bracket n/2-fold; a final secant (roots) or parabola (extrema)
-    step and one more batched evaluation give the values at the refined frequencies."""
-    if not tasks:
-        return
-    for _ in range(rounds):
-        pts = np.concatenate([np.linspace(t.lo, t.hi, n) for t in tasks])
-        outs = ev(np.exp(pts))
-        for j, t in enumerate(tasks):
-            p = pts[j * n : (j + 1) * n]
-            v = t.fn(outs[t.key][j * n : (j + 1) * n])
-            if t.kind == 0:
-                s = np.sign(v)
-                k = np.nonzero(s[:-1] != s[1:])[0]
-                if k.size:
-                    i = int(k[0])
-                    t.lo, t.hi = float(p[i]), float(p[i + 1])
-                    a, b = float(v[i]), float(v[i + 1])
-                    t.x = t.lo if a == b else (t.lo * b - t.hi * a) / (b - a)
-                else:
-                    t.x = float(p[int(np.argmin(np.abs(v)))])
-                continue
-            sv = np.where(np.isfinite(v), -t.kind * v, np.inf)
-            i = int(np.argmin(sv))
-            if not sv[i] >= -t.kind * t.best_v:  # also true while best_v is nan
-                t.best_x, t.best_v = float(p[i]), float(v[i])
-            i0, i1 = max(i - 1, 0), min(i + 1, n - 1)
-            t.lo, t.hi = float(p[i0]), float(p[i1])
-            t.x = float(p[i])
-            if 0 < i < n - 1:
-                den = sv[i - 1] - 2.0 * sv[i] + sv[i + 1]
-                if den > 0:
-                    t.x = float(p[i] + 0.5 * (p[1] - p[0]) * (sv[i - 1] - sv[i + 1]) / den)
-    final = ev(np.exp(np.array([t.x for t in tasks])))
-    for j, t in enumerate(tasks):
-        t.out = complex(final[t.key][j])
-        t.value = float(t.fn(final[t.key][j : j + 1])[0])
-        if t.kind != 0 and not (-t.kind * t.value <= -t.kind * t.best_v):
-            t.x, t.value = t.best_x, t.best_v
-
-
-def _log_mag(h: ComplexArray) -> FloatArray:
-    return np.log(np.abs(h))
-
-
-def _neg_arg(h: ComplexArray) -> FloatArray:
-    return np.angle(-h)
-
-
-def _dist(h: ComplexArray) -> FloatArray:
-    return np.abs(1.0 + h)
-
-
-def _abs(h: ComplexArray) -> FloatArray:
-    return np.abs(h)
-
-
-def _bw_fn(h: ComplexArray) -> FloatArray:
-    return np.log(np.abs(h) / _DB_3)
-
-
-@dataclass(eq=False)
-class _LoopTasks:
-    gain: list[_Task]
-    phase: list[_Task]
-    ms: _Task
-
-    def all(self) -> list[_Task]:
-        return [*self.gain, *self.phase, self.ms]
-
-
-def _loop_tasks(x: FloatArray, loop: ComplexArray, key: str) -> _LoopTasks:
-    """Brackets of every gain crossover, every negative-real-axis crossing and min |1 + L|."""
-    logm = np.log(np.abs(loop))
-    ok = np.isfinite(logm[:-1]) & np.isfinite(logm[1:])
-    gi = np.nonzero(ok & (np.sign(logm[:-1]) != np.sign(logm[1:])))[0]
-    arg = np.angle(-loop)
-    pi_ = np.nonzero(
-        (np.sign(arg[:-1]) != np.sign(arg[1:]))
-        & (np.abs(arg[:-1]) < 0.5 * np.pi)
-        & (np.abs(arg[1:]) < 0.5 * np.pi)
-    )[0]
-    dist = np.abs(1.0 + loop)
-    i = int(np.argmin(np.where(np.isfinite(dist), dist, np.inf)))
-    return _LoopTasks(
-        gain=[_Task(key, 0, _log_mag, float(x[k]), float(x[k + 1])) for k in gi],
-        phase=[_Task(key, 0, _neg_arg, float(x[k]), float(x[k + 1])) for k in pi_],
-        ms=_Task(key, -1, _dist, float(x[max(i - 1, 0)]), float(x[min(i + 1, x.size - 1)])),
-    )
-
-
-def _margins(t: _LoopTasks) -> Margins:
-    """python-control's choice: the PM of smallest |PM|, the GM closest to 0 dB."""
-    pm_deg, gm_db = math.inf, math.inf
-    wgc, wpc = math.nan, math.nan
-    delay = math.inf
-    for g in t.gain:
-        pm = (math.degrees(np.angle(g.out)) % 360.0) - 180.0
-        if abs(pm) < abs(pm_deg):
-            pm_deg, wgc = pm, g.freq_hz
-        delay = min(delay, math.radians(pm) / (_TWO_PI * g.freq_hz) if pm > 0 else 0.0)
-    for p in t.phase:
-        if p.out.real <= 0 and abs(p.out) > 0:
-            gm = -20.0 * math.log10(abs(p.out))
-            if abs(gm) < abs(gm_db):
-                gm_db, wpc = gm, p.freq_hz
-    sm = t.ms.value
-    return Margins(
-        gain_margin_db=gm_db,
-        phase_crossover_hz=wpc,
-        phase_margin_deg=pm_deg,
-        gain_crossover_hz=wgc,
-        delay_margin_s=delay,
-        peak_sensitivity_db=-20.0 * math.log10(sm) if sm > 0 else math.inf,
-        peak_sensitivity_hz=t.ms.freq_hz,
-    )
-
-
-def _peak_task(x: FloatArray, vals: FloatArray, key: str) -> _Task:
-    i = int(np.argmax(np.where(np.isfinite(vals), vals, -np.inf)))
-    t = _Task(key, 1, _abs, float(x[max(i - 1, 0)]), float(x[min(i + 1, x.size - 1)]))
-    t.best_x, t.best_v = float(x[i]), float(vals[i])
-    return t
-
-
-def _winding_ok(one_plus_l: ComplexArray, m_integrators: int) -> bool:
-    """Argument principle for 1 + L with L = (stable) x (m poles at z = 1) x (k > 0).
-
-    Stable iff arg(1 + L) turns by m*90 deg from 0+ (where it is -m*90 deg) to Nyquist (0).
-    The grid must start where the integrators dominate (|L| >> 1) and end where |L| << 1;
-    otherwise the loop is reported as not proven stable.
-    """
-    if not np.all(np.isfinite(one_plus_l)) or np.any(one_plus_l == 0):
-        return False
-    if m_integrators > 0 and abs(one_plus_l[0]) < 2.0:
-        return False
-    if abs(one_plus_l[-1] - 1.0) > 0.5:
-        return False
-    ph = np.unwrap(np.angle(one_plus_l))
-    start = -0.5 * np.pi * m_integrators
-    ph = ph - _TWO_PI * np.round((ph[0] - start) / _TWO_PI)
-    if abs(ph[0] - start) > np.radians(60.0):
-        return False
-    return bool(abs(ph[-1]) < 0.5 * np.pi)
-
-
 # --------------------------------------------------------------------------- analyse
 
 
@@ -674,8 +232,8 @@ class _MeasuredModel:
         self.sampled = m.sampled
         self.cfg = cfg
         if m.sampled:
-            zinv = np.exp(-1j * _TWO_PI * m.freq_hz / cfg.rate_hz)
-            nom = _plant_response(_plant(cfg.nominal, cfg.rate_hz), zinv)
+            zinv = np.exp(-1j * TWO_PI * m.freq_hz / cfg.rate_hz)
+            nom = plant_response(discrete_plant(cfg.nominal, cfg.rate_hz), zinv)
         else:
             nom = nominal_continuous_response(cfg.nominal, m.freq_hz)
         ratio = m.response / nom
@@ -725,16 +283,16 @@ def analyse(
         if f[-1] >= cfg.rate_hz / 2:
             raise ValueError(f"freq_hz: must stay below Nyquist {cfg.rate_hz / 2} Hz")
     x = np.log(f)
-    dob = _dob(cfg)
+    dob = dob_filters(cfg)
     on = cfg.dob_on
     used = dob if on else None
-    bk = _blocks(cfg, dob, f)
+    bk = loop_blocks(cfg, dob, f)
     g, cv, ctot, f1, f2d = bk.g, bk.cv, bk.ctot, bk.f1, bk.f2d
     one_f2 = 1.0 - f2d
     gcv = g * cv
     d_on = one_f2 + g * (cv + f1)
     d_off = 1.0 + gcv
-    mn = 1.0 / np.polyval(cfg.nominal.mn_den, 1j * _TWO_PI * f)
+    mn = 1.0 / np.polyval(cfg.nominal.mn_den, 1j * TWO_PI * f)
     pd = g / mn
     gyw_on = gcv / d_on
     gyw_off = gcv / d_off
@@ -743,7 +301,7 @@ def analyse(
     bound = plant.bound
 
     def ev(ff: FloatArray) -> Outputs:
-        b = _blocks(cfg, used, ff)
+        b = loop_blocks(cfg, used, ff)
         k_speed = b.cv + b.f1
         one = 1.0 - b.f2d
         out = {"L": b.g * k_speed / one, "gyw": b.g * b.cv / (one + b.g * k_speed)}
@@ -754,30 +312,30 @@ def analyse(
             out["wtf"] = w * b.g * k_full / (one + b.g * k_full)
         return out
 
-    lt = _loop_tasks(x, loop, "L")
+    lt = loop_tasks(x, loop, "L")
     tasks = lt.all()
-    below = np.nonzero(np.abs(gyw) < _DB_3)[0]
+    below = np.nonzero(np.abs(gyw) < DB_3)[0]
     bw_task = None
     if below.size and below[0] > 0:
         i = int(below[0])
-        bw_task = _Task("gyw", 0, _bw_fn, float(x[i - 1]), float(x[i]))
+        bw_task = RefineTask("gyw", 0, bandwidth_of, float(x[i - 1]), float(x[i]))
         tasks.append(bw_task)
-    bound_tasks: list[_Task] = []
+    bound_tasks: list[RefineTask] = []
     if bound is not None:
         wmag = bound.magnitude(f)
         d_full = one_f2 + g * (ctot + f1) if on else 1.0 + g * ctot
         t_speed = g * (cv + f1) / d_on if on else gyw_off
         t_full = g * (ctot + f1) / d_full
         bound_tasks = [
-            _peak_task(x, wmag * np.abs(t_speed), "wts"),
-            _peak_task(x, wmag * np.abs(t_full), "wtf"),
+            peak_task(x, wmag * np.abs(t_speed), "wts"),
+            peak_task(x, wmag * np.abs(t_full), "wtf"),
         ]
         tasks += bound_tasks
-    _solve(tasks, ev)
-    margins = _margins(lt)
+    solve(tasks, ev)
+    margins = margins_of(lt)
     bandwidth = bw_task.freq_hz if bw_task is not None else math.nan
 
-    poles = np.linalg.eigvals(_closed_loop_matrix(cfg, used))
+    poles = np.linalg.eigvals(closed_loop_matrix(cfg, used))
     max_radius = float(np.max(np.abs(poles)))
 
     reasons: list[str] = []
@@ -879,12 +437,12 @@ def _margin_reasons(m: Margins, limits: GateLimits, suffix: str, reasons: list[s
 
 def _measured_source(
     cfg: LoopConfig,
-    dob: _Dob,
+    dob: DobFilters,
     on: bool,
     model: _MeasuredModel,
     name: str,
     f: FloatArray,
-    bk: _Blocks,
+    bk: LoopBlocks,
     limits: GateLimits,
     reasons: list[str],
 ) -> SourceResult:
@@ -894,7 +452,7 @@ def _measured_source(
     used = dob if on else None
 
     # The loops without DOB must be stable with this plant (base of the small-gain test).
-    base_ok = _winding_ok(1.0 + gm * bk.cv, _integrators(cfg, False)) and _winding_ok(
+    base_ok = winding_ok(1.0 + gm * bk.cv, _integrators(cfg, False)) and winding_ok(
         1.0 + gm * bk.ctot, _integrators(cfg, True)
     )
     if not base_ok:
@@ -903,10 +461,10 @@ def _measured_source(
         )
 
     d_full = 1.0 - bk.f2d + gm * (bk.ctot + bk.f1) if on else 1.0 + gm * bk.ctot
-    full_ok = _winding_ok(d_full, _integrators(cfg, True))
+    full_ok = winding_ok(d_full, _integrators(cfg, True))
 
     def ev(ff: FloatArray) -> Outputs:
-        b = _blocks(cfg, used, ff)
+        b = loop_blocks(cfg, used, ff)
         g2 = model.discrete(ff, b.g)[0]
         num = g2 * b.f1 - b.f2d
         return {
@@ -916,16 +474,16 @@ def _measured_source(
         }
 
     loop = gm * (bk.cv + bk.f1) / (1.0 - bk.f2d) if on else gm * bk.cv
-    lt = _loop_tasks(x, loop, "L")
+    lt = loop_tasks(x, loop, "L")
     tasks = lt.all()
     num = gm * bk.f1 - bk.f2d
     if on:
         sg = [
-            _peak_task(x, np.abs(num / (1.0 + gm * bk.cv)), "xs"),
-            _peak_task(x, np.abs(num / (1.0 + gm * bk.ctot)), "xf"),
+            peak_task(x, np.abs(num / (1.0 + gm * bk.cv)), "xs"),
+            peak_task(x, np.abs(num / (1.0 + gm * bk.ctot)), "xf"),
         ]
         tasks += sg
-    _solve(tasks, ev)
+    solve(tasks, ev)
     if on:
         sp, fp = sg
         dq = np.abs(delta * bk.f2d)
@@ -941,7 +499,7 @@ def _measured_source(
     else:
         dq_peak = dq_f = math.nan
         peaks = (math.nan,) * 4
-    margins = _margins(lt)
+    margins = margins_of(lt)
     if limits.check_measured_margins:
         _margin_reasons(margins, limits, suffix, reasons)
     with np.errstate(divide="ignore"):
@@ -962,54 +520,3 @@ def _measured_source(
     )
 
 
-# --------------------------------------------------------------------------- recommendation
-
-
-def recommended_max_cutoff_hz(
-    cfg: LoopConfig,
-    plant: PlantKnowledge | None = None,
-    limits: GateLimits | None = None,
-    q_type: str | None = None,
-    *,
-    lowest_hz: float = 0.02,
-    highest_hz: float | None = None,
-    coarse_points: int = 16,
-    rel_tol: float = 0.01,
-) -> float | None:
-    """Largest Q cut-off (Hz) the gate accepts for `q_type` (default cfg.q_type), DOB on.
-
-    Acceptance is assumed to hold on an interval from low cut-offs up to a limit (robustness
-    and margins degrade as the Q bandwidth grows), though not strictly monotone. Guard: scan
-    `coarse_points` log-spaced cut-offs from `lowest_hz` to `highest_hz` (default: a tenth of
-    the loop rate), take the first accept -> reject transition from below, then bisect it in
-    log cut-off to `rel_tol`. None if `lowest_hz` is already rejected.
-    """
-    qt: QType = check_q_type(q_type if q_type is not None else cfg.q_type)
-    assert qt in Q_TYPES
-    top = highest_hz if highest_hz is not None else 0.1 * cfg.rate_hz
-    top = min(top, 0.45 * cfg.rate_hz)
-    base = cfg.with_(dob_on=True, q_type=qt)
-
-    def ok(fc: float) -> bool:
-        return analyse(base.with_(q_cutoff_hz=fc), plant, limits).accepted
-
-    grid = np.geomspace(lowest_hz, top, coarse_points)
-    if not ok(float(grid[0])):
-        return None
-    lo = float(grid[0])
-    hi: float | None = None
-    for fc in grid[1:]:
-        if ok(float(fc)):
-            lo = float(fc)
-        else:
-            hi = float(fc)
-            break
-    if hi is None:
-        return lo
-    while hi / lo > 1.0 + rel_tol:
-        mid = math.sqrt(lo * hi)
-        if ok(mid):
-            lo = mid
-        else:
-            hi = mid
-    return lo

@@ -4,7 +4,7 @@ Q cut-offs (no I/O).
 
 Responses are measured sample by sample, u[k] -> w[k]; the zero-order hold and the
 backward-difference rate add about one tick of delay
-(`controller.gate.analysis.discrete_equivalent`). The estimates reported, written to CSV and
+(`controller.gate.loop_model.discrete_equivalent`). The estimates reported, written to CSV and
 used for the fit and the gate are the continuous-equivalent responses (that factor divided
 out), the form `dobtune check --frd` expects; the raw sampled estimates are kept too.
 """
@@ -20,8 +20,10 @@ from numpy.typing import NDArray
 
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
-from controller.gate.analysis import analyse, discrete_equivalent, recommended_max_cutoff_hz
+from controller.gate.analysis import analyse
 from controller.gate.knowledge import MeasuredResponse, PlantKnowledge
+from controller.gate.loop_model import discrete_equivalent
+from controller.gate.search import recommended_max_cutoff_hz
 from controller.ident.estimate import (
     Agreement,
     FrdEstimate,

@@ -21,14 +21,14 @@ import numpy as np
 
 from controller.core.config import LoopConfig
 from controller.core.dob import design_dob
-from controller.gate.analysis import (
-    analyse,
+from controller.gate.analysis import analyse
+from controller.gate.knowledge import MeasuredResponse, PlantKnowledge, WeightBound
+from controller.gate.loop_model import (
     default_grid,
     discrete_equivalent,
     nominal_continuous_response,
-    recommended_max_cutoff_hz,
 )
-from controller.gate.knowledge import MeasuredResponse, PlantKnowledge, WeightBound
+from controller.gate.search import recommended_max_cutoff_hz
 
 
 def _measured(cfg: LoopConfig) -> tuple[MeasuredResponse, ...]:
