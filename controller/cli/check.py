@@ -1,7 +1,12 @@
-"""`dobtune check`: run the stability check on a configuration file (command body, no argv).
+"""`dobtune check`: the gate's verdict on a configuration file (command body, no argv).
 
-Exit codes: 0 the gate accepts, 1 it rejects, 2 bad input (the message names the file and
-line, or the field).
+The same function as the controller's gate (`controller.gate.verdict.judge`), judged on plant
+knowledge: `--knowledge FILE` (the record a controller keeps, `dobtune ctl knowledge --json`
+or its state directory's knowledge.json), else the simulated rig's model with the
+commissioning bound; `--frd FILE` adds measured responses. Every reason names its evidence.
+
+Exit codes: 0 accept, 3 caution (applies only with confirmation), 1 reject, 2 bad input (the
+message names the file and line, or the field).
 """
 
 from __future__ import annotations
@@ -14,18 +19,37 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
+import msgspec
+
 from controller.cli import Command
 from controller.core.config import LoopConfig, config_from_builtins, config_to_builtins
 from controller.core.errors import ConfigError
-from controller.gate.analysis import Analysis, analyse
 from controller.gate.frd import load_measured
-from controller.gate.knowledge import PlantKnowledge
+from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
 from controller.gate.margins import Margins
-from controller.gate.search import recommended_max_cutoff_hz
+from controller.gate.verdict import EXIT_CODES, Judgement, judge
 
-__all__ = ["check_main"]
+__all__ = ["check_main", "load_knowledge"]
 
-EXIT_ACCEPT, EXIT_REJECT, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_BAD_INPUT = 2
+
+
+def load_knowledge(path: Path | None) -> PlantKnowledge:
+    """The plant knowledge in `path` (a KnowledgeRecord as JSON), or the simulated rig's model
+    with the commissioning bound. Raises _BadInput naming the file and the field."""
+    if path is None:
+        return PlantKnowledge(bound=COMMISSIONING_BOUND, source="simulated rig model")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise _BadInput(f"{path}: cannot read plant knowledge: {exc}") from exc
+    try:
+        rec = msgspec.json.decode(data, type=KnowledgeRecord)
+        return rec.to_knowledge()
+    except msgspec.ValidationError as exc:
+        raise _BadInput(f"{path}: plant knowledge: {exc}") from exc
+    except (msgspec.DecodeError, ValueError) as exc:
+        raise _BadInput(f"{path}: plant knowledge: {exc}") from exc
 
 
 class _BadInput(Exception):
@@ -77,13 +101,17 @@ def _margins_json(m: Margins) -> dict[str, float | None]:
     }
 
 
-def report_json(a: Analysis, recommended_hz: float | None) -> dict[str, Any]:
+def report_json(j: Judgement) -> dict[str, Any]:
     """The JSON object printed by `dobtune check --json`."""
+    a, recommended_hz = j.analysis, j.recommended_max_cutoff_hz
     config = config_to_builtins(a.config)
     config["q_tau_s"] = a.tau_s  # derived from q_type and q_cutoff_hz (not a LoopConfig field)
     return {
-        "verdict": a.verdict,
-        "reasons": list(a.reasons),
+        "verdict": j.verdict,
+        "reasons": list(j.reasons),
+        "rejections": list(j.rejections),
+        "cautions": list(j.cautions),
+        "knowledge": a.knowledge,
         **_margins_json(a.margins),
         "bandwidth_hz": _finite(a.bandwidth_hz),
         "small_gain_peak": _finite(a.small_gain_peak),
@@ -102,6 +130,10 @@ def report_json(a: Analysis, recommended_hz: float | None) -> dict[str, Any]:
                 "delta_q_peak": _finite(s.delta_q_peak),
                 "base_loop_stable": s.base_loop_stable,
                 "margins": _margins_json(s.margins) if s.margins is not None else None,
+                "margins_whole_servo": (
+                    _margins_json(s.margins_full) if s.margins_full is not None else None
+                ),
+                "band_hz": list(s.band_hz) if s.band_hz is not None else None,
             }
             for s in a.sources
         ],
@@ -113,8 +145,9 @@ def _fmt(v: float, unit: str, spec: str = ".1f") -> str:
     return f"{v:{spec}} {unit}" if math.isfinite(v) else "none"
 
 
-def report_text(a: Analysis, recommended_hz: float | None) -> str:
+def report_text(j: Judgement) -> str:
     """The readable table printed by `dobtune check`."""
+    a, recommended_hz = j.analysis, j.recommended_max_cutoff_hz
     c, m = a.config, a.margins
     dob = f"{c.q_type} at {c.q_cutoff_hz:g} Hz (tau {a.tau_s:.4g} s)" if c.dob_on else "off"
 
@@ -125,6 +158,7 @@ def report_text(a: Analysis, recommended_hz: float | None) -> str:
     lines = [
         f"dobtune check: DOB {dob}, Cv {c.cv_kp:g} (1 + {c.cv_ki_per_s:g}/s), "
         f"Cp {c.pos_kp_per_s:g} (1 + {c.pos_ki_per_s:g}/s), {c.rate_hz:g} Hz loop",
+        f"  judged on {a.knowledge}",
         row("gain margin", _fmt(m.gain_margin_db, "dB"), m.phase_crossover_hz),
         row("phase margin", _fmt(m.phase_margin_deg, "deg"), m.gain_crossover_hz),
         row("delay margin", _fmt(m.delay_margin_s * 1e3, "ms")),
@@ -134,22 +168,24 @@ def report_text(a: Analysis, recommended_hz: float | None) -> str:
         row("noise -> command peak", _fmt(a.noise_to_command_peak_db, "dB")),
     ]
     for s in a.sources:
-        if s.kind == "bound":
+        if s.kind in ("bound", "model"):
             lines.append(
-                f"  bound {s.name!r}: ||W T|| {s.small_gain_peak:.3g} at "
-                f"{s.small_gain_freq_hz:.3g} Hz, with position loop {s.small_gain_full_peak:.3g}; "
-                f"||W Q|| {s.delta_q_peak:.3g}"
+                f"  plant model, {s.name}: |W T| {_fmt(s.small_gain_peak, '', '.3g').strip()} at "
+                f"{_fmt(s.small_gain_freq_hz, 'Hz', '.3g')}, whole servo "
+                f"{_fmt(s.small_gain_full_peak, '', '.3g').strip()}"
+                + ("" if s.base_loop_stable else "; UNSTABLE")
             )
             continue
-        sm = s.margins
-        assert sm is not None
+        sm, sf = s.margins, s.margins_full
+        assert sm is not None and sf is not None
+        band = f" ({s.band_hz[0]:.3g}-{s.band_hz[1]:.3g} Hz)" if s.band_hz else ""
         lines.append(
-            f"  response {s.name!r}: eq. 21 {_fmt(s.small_gain_peak, '', '.3g').strip()} at "
-            f"{_fmt(s.small_gain_freq_hz, 'Hz', '.3g')}, with position loop "
-            f"{_fmt(s.small_gain_full_peak, '', '.3g').strip()}; ||Delta Q|| "
-            f"{_fmt(s.delta_q_peak, '', '.3g').strip()}; PM {_fmt(sm.phase_margin_deg, 'deg')}, "
-            f"GM {_fmt(sm.gain_margin_db, 'dB')}, Ms {_fmt(sm.peak_sensitivity_db, 'dB')}"
-            + ("" if s.base_loop_stable else "; loop without DOB NOT proven stable")
+            f"  response {s.name!r}{band}: |a T| {_fmt(s.small_gain_peak, '', '.3g').strip()} at "
+            f"{_fmt(s.small_gain_freq_hz, 'Hz', '.3g')}, whole servo "
+            f"{_fmt(s.small_gain_full_peak, '', '.3g').strip()}; PM "
+            f"{_fmt(sm.phase_margin_deg, 'deg')} / {_fmt(sf.phase_margin_deg, 'deg')}, GM "
+            f"{_fmt(sm.gain_margin_db, 'dB')} / {_fmt(sf.gain_margin_db, 'dB')} (speed / whole)"
+            + ("" if s.base_loop_stable else "; NOT proven stable")
         )
     rec = (
         f"{recommended_hz:.3g} Hz"
@@ -157,8 +193,9 @@ def report_text(a: Analysis, recommended_hz: float | None) -> str:
         else "none (even the lowest is rejected)"
     )
     lines.append(f"  recommended max cut-off ({c.q_type}): {rec}")
-    lines.append(f"verdict: {a.verdict.upper()}")
-    lines += [f"  - {r}" for r in a.reasons]
+    lines.append(f"verdict: {j.verdict.upper()}")
+    lines += [f"  - reject: {r}" for r in j.rejections]
+    lines += [f"  - caution: {r}" for r in j.cautions]
     return "\n".join(lines) + "\n"
 
 
@@ -169,6 +206,7 @@ def check_main(
     frd_paths: Sequence[Path],
     as_json: bool,
     out: TextIO,
+    knowledge_path: Path | None = None,
 ) -> int:
     """Load, override, check; print a table (or one JSON object). Returns the exit code."""
     try:
@@ -187,9 +225,17 @@ def check_main(
             raise _BadInput(f"cannot read response file: {exc}") from exc
         except ValueError as exc:
             raise _BadInput(str(exc)) from exc
-        plant = PlantKnowledge(measured=measured)
-        a = analyse(cfg, plant)
-        rec = recommended_max_cutoff_hz(cfg, plant, q_type=cfg.q_type)
+        plant = load_knowledge(knowledge_path)
+        if measured:
+            names = {m.name for m in plant.measured}
+            clash = [m.name for m in measured if m.name in names]
+            if clash:
+                raise _BadInput(f"--frd: response {clash[0]!r} is already in the knowledge")
+            plant = PlantKnowledge(
+                (*plant.measured, *measured), plant.bound, plant.model, plant.version,
+                f"{plant.source} + --frd",
+            )
+        j = judge(cfg, plant)
     except _BadInput as exc:
         if as_json:
             out.write(json.dumps({"error": str(exc)}) + "\n")
@@ -197,10 +243,10 @@ def check_main(
             out.write(f"error: {exc}\n")
         return EXIT_BAD_INPUT
     if as_json:
-        out.write(json.dumps(report_json(a, rec), allow_nan=False) + "\n")
+        out.write(json.dumps(report_json(j), allow_nan=False) + "\n")
     else:
-        out.write(report_text(a, rec))
-    return EXIT_ACCEPT if a.accepted else EXIT_REJECT
+        out.write(report_text(j))
+    return EXIT_CODES[j.verdict]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -215,11 +261,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="measured response CSV freq_hz,mag_db,phase_deg (repeatable)",
     )
+    p.add_argument(
+        "--knowledge",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="plant knowledge record (JSON; default: the simulated rig's model with the "
+        "commissioning bound)",
+    )
     p.add_argument("--json", action="store_true")
 
 
 def run(args: argparse.Namespace) -> int:
-    return check_main(args.config, args.q_type, args.cutoff_hz, args.frd, args.json, sys.stdout)
+    return check_main(
+        args.config, args.q_type, args.cutoff_hz, args.frd, args.json, sys.stdout, args.knowledge
+    )
 
 
-COMMAND = Command("check", "stability check of a configuration", add_arguments, run)
+COMMAND = Command(
+    "check",
+    "the gate's verdict on a configuration: exit 0 accept, 3 caution, 1 reject, 2 bad input",
+    add_arguments,
+    run,
+)

@@ -7,66 +7,74 @@ The loop analysed is exactly the one `controller.core.loop` runs at fs = cfg.rat
     u     = Cv(z) (r - w) - d_hat                 Cv = cv_kp (1 + cv_ki Ts/2 (z+1)/(z-1))
     d_hat = F1(z) w - F2(z) z^-1 u                F1, F2: the implemented SOS of `design_dob`
 
-and u is held (ZOH) until the next tick. The nominal plant from u to w is therefore
+and u is held (ZOH) until the next tick. F1 and F2 are designed from the candidate's
+`nominal` (the DOB's internal model); the plant G they act on is never taken from the
+candidate: it comes from the plant knowledge (`PlantKnowledge`), the evidence the controller
+owns. With the model, G(z) = (1 - z^-1)/Ts * ZOH{ M(s) P(s) / s } (exact, matrix exponential;
+it holds the one-sample delay of a sampled loop). With C = Cv (speed loop alone) or
+C_tot = Cv (1 + Cp Ts/(1 - z^-1)) (the whole servo: theta = Ts/(1 - z^-1) w exactly):
 
-    G(z) = (1 - z^-1)/Ts * ZOH{ Mn(s) Pn(s) / s }
+    characteristic  D = 1 - F2 z^-1 + G (C + F1)          (DOB off: 1 + G C)
+    loop at u       L = G (C + F1) / (1 - F2 z^-1),   T = G (C + F1) / D
+    speed loop      Gyw = G Cv / D  (eq. 15; eq. 18 without DOB),  Gdw, Gzw: eqs. 16-17
+    eq. 23          E_without / E_with = D / ((1 - F2 z^-1)(1 + G Cv))   (> 1: DOB helps)
 
-(exact, built once per (nominal, rate) from a matrix exponential); it holds the one-sample
-delay of a sampled loop. With C = Cv, and D = 1 - F2 z^-1 + G (Cv + F1) (DOB off: 1 + G Cv):
+Every loop (the speed loop alone, the whole servo, the DOB's inner loop inside D) is judged on
+every piece of evidence:
 
-    speed closed loop   Gyw = G Cv / D                       (eq. 15; DOB off eq. 18)
-    disturbance         Gdw = Pd (1 - F2 z^-1) / D           (eq. 16; DOB off Pd/(1 + G Cv))
-    noise               Gzw = G (Cv + F1) / D                (eq. 17)
-    loop at plant input L_u = G (Cv + F1) / (1 - F2 z^-1),   S = 1/(1 + L_u) = (1 - F2 z^-1)/D
-    eq. 23              E_without / E_with = D / ((1 - F2 z^-1)(1 + G Cv))   (> 1: DOB helps)
-    eq. 21              X = (G_m F1 - F2 z^-1) / (1 + G_m Cv)  for a measured plant G_m
-
-Pd, the path of a load-side rate disturbance (d enters at the input of P), is taken as
-G(z) / Mn(j w): the sampled plant without the drive's speed loop.
-
-With the position loop closed the controller seen from w is C_tot = Cv (1 + Cp Ts/(1 - z^-1))
-(theta = Ts/(1 - z^-1) w exactly). The gate checks the loop the controller really runs, so the
-small-gain tests are evaluated twice: with the speed loop alone (the article's eq. 21, reported)
-and with C_tot in place of Cv (what makes the verdict sound for the full three-loop servo).
-
-Why the gate is sound, and what it assumes:
-* nominal plant: exact closed-loop eigenvalues of the whole discrete loop (plant, w and theta,
-  Cp, Cv, F1, F2 and the one-sample delay), all strictly inside the unit circle;
-* measured plant G_m (no poles known): D_m = (1 + G_m C)(1 + X). If the loop without DOB,
-  1 + G_m C, is stable (checked from the data by the argument principle: the phase of
-  1 + G_m C must turn by m*90 deg from 0+ to Nyquist, m = integrators of C) and |X| < 1 on the
-  whole unit circle, then D_m has no zero outside the circle (small-gain theorem, eq. 21-22);
-* uncertainty bound |Delta| <= |W|: D_Delta = D (1 + Delta T), T = G (C + F1) / D, so
-  ||W T||_inf < 1 is the exact robust-stability test for all such Delta. ||Delta Q|| < 1
-  alone is not sufficient (control.md) and is only reported.
+* the plant model: exact closed-loop eigenvalues of the whole discrete loop (plant, w and
+  theta, Cp, Cv, F1, F2, the one-sample delay; PIs with a zero integral gain are plain gains),
+  speed loop alone and whole servo, all strictly inside the unit circle; without measured
+  responses also robust stability over the stated bound |Delta| <= |W|: D_Delta = D (1 +
+  Delta T), so max |W T| < 1 is the exact test for every such plant.
+* each measured response G_m (one per position): interpolated as its ratio R = G_m / G_model
+  (log magnitude and unwrapped phase, linear in log f; a response equal to the model gives
+  R = 1). Stability of the loop with the interpolated response by the argument principle on
+  D_m, on a grid refined until the phase of D_m moves less than 20 deg between neighbours.
+  Then robust stability over the allowance a(f) around it, max |a T_m| < 1:
+    - at a measured point a = max(spread, MIN_ALLOWANCE);
+    - between two points a = the larger point allowance + |ln R_(i+1) - ln R_i| (the
+      assumption: between two points the plant departs from the interpolation by no more than
+      it changes across the interval); an interval across which R changes by more than
+      UNRESOLVED_CHANGE holds a mode the points do not resolve: a = UNRESOLVED_ALLOWANCE
+      there, and a loop with gain there is rejected with "measure denser";
+    - beyond the band R is held at the edge and a = the edge allowance + |W| (the plant is
+      known there only within the bound; unknown without one): a loop that needs more is
+      rejected with "measure up to X Hz first".
+  With measured responses the model is the interpolation's reference; its own instability is
+  then a caution, not the verdict.
 Measured continuous responses G_c(jw) become discrete by the ZOH + backward-difference
 equivalent G_c(jw) e^{-jwTs} sinc^2(w Ts/2), valid well below Nyquist (aliasing neglected).
-Measured data are interpolated as their ratio R = G_c / (Mn Pn) to the nominal model (log
-magnitude and unwrapped phase, linear in log f), so a response equal to the model gives
-Delta = 0 exactly; outside the measured band Delta is held at its value at the nearest end.
-The argument-principle test assumes the grid starts where the integrators dominate and ends
-where |L| << 1 (the default grid, 0.01 Hz to Nyquist, does); if not, it reports "not proven".
+
+Verdicts: `reject` (unstable or not proven stable on some evidence, or a robust-stability
+figure >= 1), `caution` (stable on all evidence but a gain margin < 6 dB, a phase margin
+< 30 deg, peak sensitivity > 6 dB in any loop on any evidence, conditionally stable within
+6 dB of gain reduction, a robust figure >= 0.8, noise to command > 20 dB: applied only with
+confirmation), `accept` otherwise. The controller adds the nonlinear check and the recommended
+cut-off (`controller.gate.verdict`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from controller.core.config import LoopConfig
+from controller.core.config import LoopConfig, NominalModel
 from controller.gate.knowledge import (
+    MIN_ALLOWANCE,
     MeasuredResponse,
     PlantKnowledge,
+    UncertaintyBound,
     readonly,
 )
 from controller.gate.loop_model import (
     DB_3,
     TWO_PI,
-    DobFilters,
     LoopBlocks,
     closed_loop_matrix,
     default_grid,
@@ -89,27 +97,51 @@ from controller.gate.margins import (
     winding_ok,
 )
 
-__all__ = ["Analysis", "GateLimits", "SourceResult", "analyse"]
+__all__ = [
+    "UNRESOLVED_ALLOWANCE",
+    "UNRESOLVED_CHANGE",
+    "Analysis",
+    "GateLimits",
+    "SourceResult",
+    "Verdict",
+    "analyse",
+]
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
-Verdict = Literal["accept", "reject"]
+Verdict = Literal["accept", "caution", "reject"]
+
+#: Between two measured points the plant's ratio to the model is assumed to change by no more
+#: than it changes across the interval. When it changes by more than this (natural log units:
+#: a factor e in magnitude, or 57 deg), the interval does not resolve the plant (a mode sits
+#: in it) and the plant there is taken as unknown up to `UNRESOLVED_ALLOWANCE`.
+UNRESOLVED_CHANGE = 1.0
+UNRESOLVED_ALLOWANCE = 100.0
+#: Winding-number refinement: adjacent points whose phase differs by more than this are split.
+_MAX_PHASE_STEP_RAD = math.radians(20.0)
+_MAX_WINDING_POINTS = 40000
 
 
 @dataclass(frozen=True)
 class GateLimits:
-    """Acceptance limits of the apply gate (validated on construction)."""
+    """Limits of the apply gate (validated on construction).
+
+    Below a margin limit the verdict is `caution` (stable on all evidence, applied only with
+    confirmation); instability on any evidence, or a robust-stability test at or above 1, is
+    `reject`.
+    """
 
     phase_margin_min_deg: float = 30.0
     gain_margin_min_db: float = 6.0
     """Applies to |GM| in dB: an upper margin must exceed it, a gain-reduction margin too."""
     peak_sensitivity_max_db: float = 6.0
     small_gain_max: float = 0.8
-    """Limit for eq. 21 (measured responses) and ||W T|| (uncertainty bound); < 1 is proof."""
+    """Caution at or above this robust-stability figure (max |a T| over the evidence's
+    allowance a); at or above 1 the loop is not proven stable: reject."""
     pole_radius_max: float = 1.0
-    """Strict: every closed-loop pole radius must be < this."""
+    """Strict: every closed-loop pole radius with the plant model must be < this."""
     check_measured_margins: bool = True
-    """Also hold the margins of L_u computed with each measured response to the limits."""
+    """Also hold the margins computed with each measured response to the limits."""
     noise_to_command_max_db: float = 20.0
     """Peak gain from speed-measurement noise to the command, |(Cv + F1) / D|: a high Q
     cut-off makes F1 ~ Q (Mn Pn)^-1 differentiate twice and floods the drive with noise."""
@@ -132,30 +164,35 @@ class GateLimits:
 
 @dataclass(frozen=True, eq=False)
 class SourceResult:
-    """Robustness figures for one source of plant knowledge (a measured response or a bound)."""
+    """What one piece of evidence says about the candidate.
+
+    kind "model": the plant model (exact closed-loop poles) with its stated bound as the
+    allowance; "measured": a measured response (winding number on a refined grid) with the
+    allowance between its points and the bound beyond its band.
+    """
 
     name: str
-    kind: Literal["measured", "bound"]
+    kind: Literal["model", "measured", "bound"]
     small_gain_peak: float
-    """Measured: max |X| of eq. 21 (speed loop); bound: ||W T||_inf with the speed loop."""
+    """Robust-stability figure max |a T| with the speed loop alone (nan: no allowance)."""
     small_gain_freq_hz: float
     small_gain_full_peak: float
-    """The same with the position loop closed (C_tot in place of Cv)."""
+    """The same with the position loop closed."""
     small_gain_full_freq_hz: float
     delta_q_peak: float
-    """||Delta Q||_inf (display only; not a sufficient condition)."""
+    """max |a Q| (display only; not a sufficient condition)."""
     delta_q_freq_hz: float
     base_loop_stable: bool
-    """Measured: the loop without DOB, with and without the position loop, passes the
-    argument-principle test (always True for a bound: the nominal poles cover it)."""
-    full_loop_winding_ok: bool
-    """Measured: the whole loop (DOB and position loop as configured) passes the argument-
-    principle test on D_m = 1 - F2 z^-1 + G_m (C_tot + F1) itself. Exact where the grid is
-    adequate, unlike the sufficient eq. 21; reported only, not part of the verdict."""
+    """The loop with this evidence's plant (model: exact poles; measured: the interpolated
+    response, argument principle), speed loop alone and whole servo."""
     margins: Margins | None
-    """Margins of L_u computed with this response (None for a bound)."""
+    """Margins of the speed loop at the plant input with this evidence's plant."""
     inv_delta_db: FloatArray
-    """20 log10 (1/|Delta|) on the analysis grid (for a bound: 1/|W|)."""
+    """20 log10 (1 / a) on the analysis grid: the plant change this evidence allows."""
+    margins_full: Margins | None = None
+    """Margins of the whole servo (position loop closed) at the plant input."""
+    band_hz: tuple[float, float] | None = None
+    """The measured band (measured responses only)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -166,7 +203,7 @@ class Analysis:
     tau_s: float
     freq_hz: FloatArray
     open_loop: ComplexArray
-    """L_u on the grid (nominal plant; DOB off: G Cv)."""
+    """L_u on the grid (plant model; DOB off: G Cv)."""
     open_loop_mag_db: FloatArray
     open_loop_phase_deg: FloatArray
     """Unwrapped."""
@@ -188,22 +225,37 @@ class Analysis:
     rejection_db: FloatArray
     """eq. 23: 20 log10 |E_without / E_with|; > 0 where the DOB helps."""
     margins: Margins
+    """Speed loop at the plant input, plant model."""
     bandwidth_hz: float
     """-3 dB bandwidth of the speed closed loop Gyw (configured DOB state)."""
     poles: ComplexArray
-    """Closed-loop eigenvalues of the whole discrete loop with the nominal plant."""
+    """Closed-loop eigenvalues of the whole discrete servo with the plant model."""
     max_pole_radius: float
+    """Over the whole servo and the speed loop alone."""
     sources: tuple[SourceResult, ...]
     small_gain_peak: float
-    """Largest small-gain value over all sources and both loops (nan without sources)."""
+    """Largest robust-stability figure over all evidence and both loops (nan without)."""
     verdict: Verdict
     reasons: tuple[str, ...]
+    """Rejections first, then cautions."""
     noise_to_command_peak_db: float = math.nan
     """max |(Cv + F1)/D| in dB: how much speed-measurement noise reaches the command."""
+    rejections: tuple[str, ...] = ()
+    cautions: tuple[str, ...] = ()
+    margins_full: Margins | None = None
+    """The whole servo (position loop closed) at the plant input, plant model."""
+    knowledge: str = ""
+    """Which plant knowledge the verdict used (`PlantKnowledge.describe`)."""
 
     @property
     def accepted(self) -> bool:
+        """Accepted without reservation."""
         return self.verdict == "accept"
+
+    @property
+    def applicable(self) -> bool:
+        """Accepted, or `caution` (applied only with confirmation)."""
+        return self.verdict != "reject"
 
     @property
     def gain_margin_db(self) -> float:
@@ -222,36 +274,78 @@ class Analysis:
         return self.margins.delay_margin_s
 
 
-# --------------------------------------------------------------------------- analyse
+# --------------------------------------------------------------------------- evidence
 
 
 class _MeasuredModel:
-    """A measured response as a function of frequency: nominal x interpolated ratio R."""
+    """A measured response as a function of frequency: model x interpolated ratio R, and the
+    allowance a(f) the gate grants around it (relative plant error |G/G_c - 1| <= a)."""
 
-    def __init__(self, m: MeasuredResponse, cfg: LoopConfig) -> None:
+    def __init__(
+        self, m: MeasuredResponse, cfg: LoopConfig, model: NominalModel,
+        bound: UncertaintyBound | None,
+    ) -> None:
+        self.name = m.name
         self.sampled = m.sampled
         self.cfg = cfg
+        self.model = model
+        self.bound = bound
         if m.sampled:
             zinv = np.exp(-1j * TWO_PI * m.freq_hz / cfg.rate_hz)
-            nom = plant_response(discrete_plant(cfg.nominal, cfg.rate_hz), zinv)
+            nom = plant_response(discrete_plant(model, cfg.rate_hz), zinv)
         else:
-            nom = nominal_continuous_response(cfg.nominal, m.freq_hz)
+            nom = nominal_continuous_response(model, m.freq_hz)
         ratio = m.response / nom
+        self.fm = m.freq_hz
         self.xm = np.log(m.freq_hz)
         self.logmag = np.log(np.abs(ratio))
         self.phase = np.unwrap(np.angle(ratio))
+        spread = m.spread if m.spread is not None else np.zeros_like(self.fm)
+        self.point = np.maximum(spread, MIN_ALLOWANCE)
+        change = np.abs(np.diff(self.logmag + 1j * self.phase))
+        seg = np.maximum(self.point[:-1], self.point[1:]) + change
+        self.segment = np.where(change > UNRESOLVED_CHANGE, UNRESOLVED_ALLOWANCE, seg)
+        self.unresolved = [
+            (float(self.fm[i]), float(self.fm[i + 1]), float(change[i]))
+            for i in np.nonzero(change > UNRESOLVED_CHANGE)[0]
+        ]
+
+    @property
+    def band_hz(self) -> tuple[float, float]:
+        return float(self.fm[0]), float(self.fm[-1])
 
     def ratio(self, f: FloatArray) -> ComplexArray:
         xf = np.log(f)
         return np.exp(np.interp(xf, self.xm, self.logmag) + 1j * np.interp(xf, self.xm, self.phase))
 
-    def discrete(self, f: FloatArray, g_nominal: ComplexArray) -> tuple[ComplexArray, ComplexArray]:
-        """(G_m, Delta) at f given the exact nominal G at f."""
+    def plant(self, f: FloatArray, g_model: ComplexArray) -> ComplexArray:
+        """G_m at f (discrete), given the exact model G at f."""
         r = self.ratio(f)
         if self.sampled:
-            return g_nominal * r, r - 1.0
-        gc = nominal_continuous_response(self.cfg.nominal, f) * r
-        return discrete_equivalent(gc, f, self.cfg.rate_hz), r - 1.0
+            return g_model * r
+        gc = nominal_continuous_response(self.model, f) * r
+        return discrete_equivalent(gc, f, self.cfg.rate_hz)
+
+    def allowance(self, f: FloatArray) -> FloatArray:
+        """a(f): the point allowance at measured points, the segment's between them, and
+        beyond the band the edge's allowance plus the bound (unknown without a bound)."""
+        f = np.asarray(f, dtype=np.float64)
+        i = np.searchsorted(self.fm, f, side="right") - 1
+        inside = (i >= 0) & (i < self.fm.size - 1)
+        a = np.empty_like(f)
+        ii = np.clip(i, 0, self.fm.size - 2)
+        a[inside] = self.segment[ii[inside]]
+        exact = np.isin(f, self.fm)
+        if np.any(exact):
+            a[exact] = self.point[np.searchsorted(self.fm, f[exact])]
+        if self.bound is not None:
+            w = self.bound.magnitude(f)
+        else:
+            w = np.full_like(f, UNRESOLVED_ALLOWANCE)
+        below, above = f < self.fm[0], f > self.fm[-1]
+        a[below] = self.point[0] + w[below]
+        a[above] = self.point[-1] + w[above]
+        return a
 
 
 def _integrators(cfg: LoopConfig, with_position: bool) -> int:
@@ -265,13 +359,45 @@ def _fmt_hz(f: float) -> str:
     return f"{f:.3g} Hz"
 
 
+def _controller_parts(b: LoopBlocks, on: bool) -> tuple[ComplexArray, ComplexArray, ComplexArray]:
+    """(1 - F2 z^-1, Cv + F1, C_tot + F1) (DOB off: 1, Cv, C_tot)."""
+    return 1.0 - b.f2d, b.cv + b.f1, b.ctot + b.f1
+
+
+def refined_winding_ok(
+    d_of: Callable[[FloatArray], ComplexArray], f: FloatArray, m_integrators: int
+) -> bool:
+    """The argument-principle test (`winding_ok`) on a grid refined until the phase of D moves
+    less than 20 deg between neighbours (a curve passing close to 0 is resolved, not stepped
+    over); False (not proven) if that takes more than a bounded number of points."""
+    f = np.asarray(f, dtype=np.float64)
+    d = d_of(f)
+    while True:
+        if not np.all(np.isfinite(d)) or np.any(d == 0):
+            return False
+        step = np.abs(np.angle(d[1:] / d[:-1]))
+        bad = np.nonzero(step > _MAX_PHASE_STEP_RAD)[0]
+        if bad.size == 0:
+            return winding_ok(d, m_integrators)
+        if f.size + bad.size > _MAX_WINDING_POINTS:
+            return False
+        fm = np.sqrt(f[bad] * f[bad + 1])
+        if np.any(fm <= f[bad]) or np.any(fm >= f[bad + 1]):
+            return False  # no resolution left between two floats
+        f = np.insert(f, bad + 1, fm)
+        d = np.insert(d, bad + 1, d_of(fm))
+
+
+# --------------------------------------------------------------------------- analyse
+
+
 def analyse(
     cfg: LoopConfig,
     plant: PlantKnowledge | None = None,
     limits: GateLimits | None = None,
     freq_hz: ArrayLike | None = None,
 ) -> Analysis:
-    """Analyse a candidate configuration and decide whether it may be applied."""
+    """Judge a candidate on all the plant knowledge: accept, caution or reject."""
     plant = plant if plant is not None else PlantKnowledge()
     limits = limits if limits is not None else GateLimits()
     if freq_hz is None:
@@ -282,113 +408,56 @@ def analyse(
             raise ValueError("freq_hz: need >= 8 increasing positive frequencies")
         if f[-1] >= cfg.rate_hz / 2:
             raise ValueError(f"freq_hz: must stay below Nyquist {cfg.rate_hz / 2} Hz")
+    model = plant.model
     x = np.log(f)
     dob = dob_filters(cfg)
     on = cfg.dob_on
     used = dob if on else None
-    bk = loop_blocks(cfg, dob, f)
-    g, cv, ctot, f1, f2d = bk.g, bk.cv, bk.ctot, bk.f1, bk.f2d
-    one_f2 = 1.0 - f2d
+    bk = loop_blocks(cfg, used, f, model)
+    bk_on = bk if on else loop_blocks(cfg, dob, f, model)
+    g, cv = bk.g, bk.cv
+    one_on = 1.0 - bk_on.f2d
     gcv = g * cv
-    d_on = one_f2 + g * (cv + f1)
+    d_on = one_on + g * (cv + bk_on.f1)
     d_off = 1.0 + gcv
     mn = 1.0 / np.polyval(cfg.nominal.mn_den, 1j * TWO_PI * f)
     pd = g / mn
     gyw_on = gcv / d_on
     gyw_off = gcv / d_off
-    loop = g * (cv + f1) / one_f2 if on else gcv
+    one, ks, _ = _controller_parts(bk, on)
+    loop = g * ks / one
     gyw = gyw_on if on else gyw_off
-    bound = plant.bound
+    rejections: list[str] = []
+    cautions: list[str] = []
 
-    def ev(ff: FloatArray) -> Outputs:
-        b = loop_blocks(cfg, used, ff)
-        k_speed = b.cv + b.f1
-        one = 1.0 - b.f2d
-        out = {"L": b.g * k_speed / one, "gyw": b.g * b.cv / (one + b.g * k_speed)}
-        if bound is not None:
-            w = bound.magnitude(ff)
-            k_full = b.ctot + b.f1
-            out["wts"] = w * b.g * k_speed / (one + b.g * k_speed)
-            out["wtf"] = w * b.g * k_full / (one + b.g * k_full)
-        return out
+    # -- the plant model: exact poles, margins, the bound as allowance (decisive only
+    # -- without measurements: measured responses supersede the model in their band).
+    poles = np.linalg.eigvals(closed_loop_matrix(cfg, used, model))
+    poles_speed = np.linalg.eigvals(closed_loop_matrix(cfg, used, model, position=False))
+    max_radius = float(max(np.max(np.abs(poles)), np.max(np.abs(poles_speed))))
+    model_src, margins, margins_full, bw = _model_evidence(
+        cfg, used, plant, f, x, bk, limits, max_radius, on, gyw, rejections, cautions
+    )
 
-    lt = loop_tasks(x, loop, "L")
-    tasks = lt.all()
-    below = np.nonzero(np.abs(gyw) < DB_3)[0]
-    bw_task = None
-    if below.size and below[0] > 0:
-        i = int(below[0])
-        bw_task = RefineTask("gyw", 0, bandwidth_of, float(x[i - 1]), float(x[i]))
-        tasks.append(bw_task)
-    bound_tasks: list[RefineTask] = []
-    if bound is not None:
-        wmag = bound.magnitude(f)
-        d_full = one_f2 + g * (ctot + f1) if on else 1.0 + g * ctot
-        t_speed = g * (cv + f1) / d_on if on else gyw_off
-        t_full = g * (ctot + f1) / d_full
-        bound_tasks = [
-            peak_task(x, wmag * np.abs(t_speed), "wts"),
-            peak_task(x, wmag * np.abs(t_full), "wtf"),
-        ]
-        tasks += bound_tasks
-    solve(tasks, ev)
-    margins = margins_of(lt)
-    bandwidth = bw_task.freq_hz if bw_task is not None else math.nan
+    sources: list[SourceResult] = [model_src]
+    for m in plant.measured:
+        mm = _MeasuredModel(m, cfg, model, plant.bound)
+        sources.append(_measured_evidence(cfg, used, mm, f, bk, limits, rejections, cautions))
 
-    poles = np.linalg.eigvals(closed_loop_matrix(cfg, used))
-    max_radius = float(np.max(np.abs(poles)))
-
-    reasons: list[str] = []
-    if not max_radius < limits.pole_radius_max:
-        reasons.append(
-            f"closed-loop pole radius {max_radius:.5f} >= {limits.pole_radius_max:g}"
-            + (" (unstable)" if max_radius >= 1.0 else "")
-        )
-    _margin_reasons(margins, limits, "", reasons)
-    noise_cmd = np.abs((cv + f1) / d_on) if on else np.abs(cv / d_off)
+    noise_cmd = np.abs(ks / (one + g * ks))
     k_noise = int(np.argmax(noise_cmd))
     noise_cmd_db = float(20.0 * np.log10(noise_cmd[k_noise]))
     if not noise_cmd_db <= limits.noise_to_command_max_db:
-        reasons.append(
+        cautions.append(
             f"noise to command gain {noise_cmd_db:.1f} dB > {limits.noise_to_command_max_db:g} dB"
-            f" (at {_fmt_hz(float(f[k_noise]))})"
+            f" (at {_fmt_hz(float(f[k_noise]))}; plant model)"
         )
-
-    sources: list[SourceResult] = []
-    for m in plant.measured:
-        model = _MeasuredModel(m, cfg)
-        sources.append(_measured_source(cfg, dob, on, model, m.name, f, bk, limits, reasons))
-    if bound is not None:
-        sp, fp = bound_tasks
-        dq = wmag * np.abs(f2d) if on else np.zeros_like(wmag)
-        j = int(np.argmax(dq))
-        sources.append(
-            SourceResult(
-                name=bound.name,
-                kind="bound",
-                small_gain_peak=sp.value,
-                small_gain_freq_hz=sp.freq_hz,
-                small_gain_full_peak=fp.value,
-                small_gain_full_freq_hz=fp.freq_hz,
-                delta_q_peak=float(dq[j]),
-                delta_q_freq_hz=float(f[j]),
-                base_loop_stable=True,
-                full_loop_winding_ok=True,
-                margins=None,
-                inv_delta_db=readonly(-20.0 * np.log10(wmag)),
-            )
-        )
-        for t, which in ((sp, "speed loop"), (fp, "with position loop")):
-            if not t.value < limits.small_gain_max:
-                reasons.append(
-                    f"||W T|| ({which}) peaks at {t.value:.3g} at {_fmt_hz(t.freq_hz)} for bound "
-                    f"{bound.name!r} >= {limits.small_gain_max:g}"
-                )
 
     peaks = [s.small_gain_peak for s in sources] + [s.small_gain_full_peak for s in sources]
     peaks = [p for p in peaks if math.isfinite(p)]
     with np.errstate(divide="ignore"):
-        rejection = 20.0 * np.log10(np.abs(d_on / (one_f2 * d_off)))
+        rejection = 20.0 * np.log10(np.abs(d_on / (one_on * d_off)))
+    verdict: Verdict = "reject" if rejections else ("caution" if cautions else "accept")
     return Analysis(
         config=cfg,
         tau_s=dob.tau_s,
@@ -399,124 +468,289 @@ def analyse(
         closed_loop=readonly(gyw),
         closed_loop_dob=readonly(gyw_on),
         closed_loop_no_dob=readonly(gyw_off),
-        disturbance_dob=readonly(pd * one_f2 / d_on),
+        disturbance_dob=readonly(pd * one_on / d_on),
         disturbance_no_dob=readonly(pd / d_off),
-        noise_dob=readonly(g * (cv + f1) / d_on),
+        noise_dob=readonly(g * (cv + bk_on.f1) / d_on),
         noise_no_dob=readonly(gyw_off),
-        q_mag_db=readonly(20.0 * np.log10(np.abs(f2d))),
+        q_mag_db=readonly(20.0 * np.log10(np.abs(bk_on.f2d))),
         rejection_db=readonly(rejection),
         margins=margins,
-        bandwidth_hz=bandwidth,
+        bandwidth_hz=bw,
         poles=readonly(poles),
         max_pole_radius=max_radius,
         sources=tuple(sources),
         small_gain_peak=max(peaks) if peaks else math.nan,
-        verdict="accept" if not reasons else "reject",
-        reasons=tuple(reasons),
+        verdict=verdict,
+        reasons=tuple(rejections + cautions),
         noise_to_command_peak_db=noise_cmd_db,
+        rejections=tuple(rejections),
+        cautions=tuple(cautions),
+        margins_full=margins_full,
+        knowledge=plant.describe(),
     )
 
 
-def _margin_reasons(m: Margins, limits: GateLimits, suffix: str, reasons: list[str]) -> None:
+def _margin_reasons(m: Margins, limits: GateLimits, where: str, out: list[str]) -> None:
+    """Cautions for margins below the limits (`where` names the loop and the evidence)."""
     if not m.phase_margin_deg >= limits.phase_margin_min_deg:
-        reasons.append(
+        out.append(
             f"phase margin {m.phase_margin_deg:.1f} deg < {limits.phase_margin_min_deg:g} deg"
-            f" (at {_fmt_hz(m.gain_crossover_hz)}){suffix}"
+            f" (at {_fmt_hz(m.gain_crossover_hz)}; {where})"
         )
     if not abs(m.gain_margin_db) >= limits.gain_margin_min_db:
-        reasons.append(
-            f"gain margin {m.gain_margin_db:.1f} dB, |GM| < {limits.gain_margin_min_db:g} dB"
-            f" (at {_fmt_hz(m.phase_crossover_hz)}){suffix}"
-        )
+        if m.gain_margin_db < 0:
+            out.append(
+                f"conditionally stable: a gain reduction of {-m.gain_margin_db:.1f} dB "
+                f"(< {limits.gain_margin_min_db:g} dB, as a saturating command gives) "
+                f"destabilises it (at {_fmt_hz(m.phase_crossover_hz)}; {where})"
+            )
+        else:
+            out.append(
+                f"gain margin {m.gain_margin_db:.1f} dB < {limits.gain_margin_min_db:g} dB"
+                f" (at {_fmt_hz(m.phase_crossover_hz)}; {where})"
+            )
     if not m.peak_sensitivity_db <= limits.peak_sensitivity_max_db:
-        reasons.append(
+        out.append(
             f"peak sensitivity {m.peak_sensitivity_db:.1f} dB > "
-            f"{limits.peak_sensitivity_max_db:g} dB (at {_fmt_hz(m.peak_sensitivity_hz)}){suffix}"
+            f"{limits.peak_sensitivity_max_db:g} dB (at {_fmt_hz(m.peak_sensitivity_hz)}; {where})"
         )
 
 
-def _measured_source(
-    cfg: LoopConfig,
-    dob: DobFilters,
-    on: bool,
-    model: _MeasuredModel,
-    name: str,
-    f: FloatArray,
-    bk: LoopBlocks,
-    limits: GateLimits,
-    reasons: list[str],
-) -> SourceResult:
-    x = np.log(f)
-    gm, delta = model.discrete(f, bk.g)
-    suffix = f" for response {name!r}"
-    used = dob if on else None
-
-    # The loops without DOB must be stable with this plant (base of the small-gain test).
-    base_ok = winding_ok(1.0 + gm * bk.cv, _integrators(cfg, False)) and winding_ok(
-        1.0 + gm * bk.ctot, _integrators(cfg, True)
+def _robust_reasons(
+    task: RefineTask, which: str, evidence: str, limits: GateLimits,
+    band_top_hz: float | None, a_of: Callable[[FloatArray], FloatArray],
+    t_of: Callable[[FloatArray], FloatArray], f: FloatArray,
+    rejections: list[str], cautions: list[str], symbol: str = "|a T|",
+) -> None:
+    """Reject when max |a T| >= 1 (not proven stable for every plant the evidence allows),
+    caution at >= small_gain_max. Beyond a measured band the reason says how far to measure."""
+    v = task.value
+    if v < limits.small_gain_max:
+        return
+    text = (
+        f"robust stability ({which}): {symbol} peaks at {v:.3g} at {_fmt_hz(task.freq_hz)}"
+        f" for {evidence}"
     )
-    if not base_ok:
-        reasons.append(
-            f"the loop without DOB is not proven stable{suffix} (argument principle on 1 + G C)"
+    if v < 1.0:
+        cautions.append(text + f" (>= {limits.small_gain_max:g}: little room for plant error)")
+        return
+    if band_top_hz is not None and task.freq_hz > band_top_hz:
+        # Where does the loop stop depending on the unmeasured plant?
+        fine = np.geomspace(band_top_hz, f[-1], 400)
+        over = fine[a_of(fine) * t_of(fine) >= 1.0]
+        top = float(over[-1]) if over.size else task.freq_hz
+        rejections.append(
+            text + f": the loop depends on the plant above the measured band "
+            f"({_fmt_hz(band_top_hz)}), known there only within the bound; "
+            f"measure up to {_round_up(top)} Hz first"
         )
+        return
+    rejections.append(text + " >= 1: not proven stable for every plant this evidence allows")
 
-    d_full = 1.0 - bk.f2d + gm * (bk.ctot + bk.f1) if on else 1.0 + gm * bk.ctot
-    full_ok = winding_ok(d_full, _integrators(cfg, True))
+
+def _on_grid(x: FloatArray, vals: FloatArray) -> Callable[[FloatArray], FloatArray]:
+    """vals (given at log frequencies x) as a function of frequency, linear in log f."""
+
+    def at(ff: FloatArray) -> FloatArray:
+        return np.asarray(np.interp(np.log(ff), x, vals), dtype=np.float64)
+
+    return at
+
+
+def _round_up(f: float) -> str:
+    """A frequency rounded up to two significant digits."""
+    e = 10.0 ** (math.floor(math.log10(f)) - 1)
+    return f"{math.ceil(f / e) * e:.3g}"
+
+
+def _model_evidence(
+    cfg: LoopConfig, used: object, plant: PlantKnowledge, f: FloatArray, x: FloatArray,
+    bk: LoopBlocks, limits: GateLimits, max_radius: float, on: bool, gyw: ComplexArray,
+    rejections: list[str], cautions: list[str],
+) -> tuple[SourceResult, Margins, Margins, float]:
+    dob = used if on else None
+    model = plant.model
+    bound = plant.bound
+    has_measured = bool(plant.measured)
+    one, ks, kf = _controller_parts(bk, on)
+    g = bk.g
 
     def ev(ff: FloatArray) -> Outputs:
-        b = loop_blocks(cfg, used, ff)
-        g2 = model.discrete(ff, b.g)[0]
-        num = g2 * b.f1 - b.f2d
-        return {
-            "L": g2 * (b.cv + b.f1) / (1.0 - b.f2d),
-            "xs": num / (1.0 + g2 * b.cv),
-            "xf": num / (1.0 + g2 * b.ctot),
+        b = loop_blocks(cfg, dob, ff, model)  # type: ignore[arg-type]
+        o, s_, f_ = _controller_parts(b, on)
+        out = {
+            "L": b.g * s_ / o,
+            "Lf": b.g * f_ / o,
+            "gyw": b.g * b.cv / (o + b.g * s_),
         }
+        if bound is not None:
+            w = bound.magnitude(ff)
+            out["wts"] = w * b.g * s_ / (o + b.g * s_)
+            out["wtf"] = w * b.g * f_ / (o + b.g * f_)
+        return out
 
-    loop = gm * (bk.cv + bk.f1) / (1.0 - bk.f2d) if on else gm * bk.cv
-    lt = loop_tasks(x, loop, "L")
-    tasks = lt.all()
-    num = gm * bk.f1 - bk.f2d
-    if on:
-        sg = [
-            peak_task(x, np.abs(num / (1.0 + gm * bk.cv)), "xs"),
-            peak_task(x, np.abs(num / (1.0 + gm * bk.ctot)), "xf"),
+    lt = loop_tasks(x, g * ks / one, "L")
+    ltf = loop_tasks(x, g * kf / one, "Lf")
+    tasks = lt.all() + ltf.all()
+    below = np.nonzero(np.abs(gyw) < DB_3)[0]
+    bw_task = None
+    if below.size and below[0] > 0:
+        i = int(below[0])
+        bw_task = RefineTask("gyw", 0, bandwidth_of, float(x[i - 1]), float(x[i]))
+        tasks.append(bw_task)
+    bound_tasks: list[RefineTask] = []
+    t_speed = g * ks / (one + g * ks)
+    t_full = g * kf / (one + g * kf)
+    if bound is not None:
+        wmag = bound.magnitude(f)
+        bound_tasks = [
+            peak_task(x, wmag * np.abs(t_speed), "wts"),
+            peak_task(x, wmag * np.abs(t_full), "wtf"),
         ]
-        tasks += sg
+        tasks += bound_tasks
     solve(tasks, ev)
-    if on:
-        sp, fp = sg
-        dq = np.abs(delta * bk.f2d)
+    margins, margins_full = margins_of(lt), margins_of(ltf)
+    bw = bw_task.freq_hz if bw_task is not None else math.nan
+    where = f"plant model ({plant.source})"
+    unstable = not max_radius < limits.pole_radius_max
+    if unstable:
+        text = (
+            f"closed-loop pole radius {max_radius:.5f} >= {limits.pole_radius_max:g}"
+            + (" (unstable)" if max_radius >= 1.0 else "")
+            + f" with the {where}"
+        )
+        # Measured responses supersede the model in their band: then the model's own
+        # instability is a caution (the model is wrong), not the verdict.
+        (cautions if has_measured else rejections).append(text)
+    else:
+        _margin_reasons(margins, limits, f"speed loop, {where}", cautions)
+        _margin_reasons(margins_full, limits, f"whole servo, {where}", cautions)
+    nan = math.nan
+    sg = (nan, nan, nan, nan)
+    dq_peak = dq_f = nan
+    if bound is not None:
+        sp, fp = bound_tasks
+        sg = (sp.value, sp.freq_hz, fp.value, fp.freq_hz)
+        dq = wmag * np.abs(bk.f2d) if on else np.zeros_like(wmag)
         j = int(np.argmax(dq))
         dq_peak, dq_f = float(dq[j]), float(f[j])
-        for t, which in ((sp, ""), (fp, " (with position loop)")):
-            if not t.value < limits.small_gain_max:
-                reasons.append(
-                    f"eq. 21{which} peaks at {t.value:.3g} at {_fmt_hz(t.freq_hz)}{suffix} "
-                    f">= {limits.small_gain_max:g}"
+        if not has_measured:
+            evidence = f"the {where} within {bound.name!r}"
+            for t, which, tt in ((sp, "speed loop", t_speed), (fp, "whole servo", t_full)):
+                _robust_reasons(
+                    t, which, evidence, limits, None, bound.magnitude,
+                    _on_grid(x, np.abs(tt)), f, rejections, cautions, "||W T||",
                 )
-        peaks = (sp.value, sp.freq_hz, fp.value, fp.freq_hz)
+        inv = -20.0 * np.log10(wmag)
     else:
-        dq_peak = dq_f = math.nan
-        peaks = (math.nan,) * 4
-    margins = margins_of(lt)
-    if limits.check_measured_margins:
-        _margin_reasons(margins, limits, suffix, reasons)
-    with np.errstate(divide="ignore"):
-        inv_delta = -20.0 * np.log10(np.abs(delta))
-    return SourceResult(
-        name=name,
-        kind="measured",
-        small_gain_peak=peaks[0],
-        small_gain_freq_hz=peaks[1],
-        small_gain_full_peak=peaks[2],
-        small_gain_full_freq_hz=peaks[3],
+        inv = np.full_like(f, np.inf)
+    src = SourceResult(
+        name=bound.name if bound is not None else "plant model",
+        kind="bound" if bound is not None else "model",
+        small_gain_peak=sg[0],
+        small_gain_freq_hz=sg[1],
+        small_gain_full_peak=sg[2],
+        small_gain_full_freq_hz=sg[3],
         delta_q_peak=dq_peak,
         delta_q_freq_hz=dq_f,
-        base_loop_stable=base_ok,
-        full_loop_winding_ok=full_ok,
+        base_loop_stable=not unstable,
         margins=margins,
-        inv_delta_db=readonly(inv_delta),
+        inv_delta_db=readonly(inv),
+        margins_full=margins_full,
     )
+    return src, margins, margins_full, bw
 
 
+def _measured_evidence(
+    cfg: LoopConfig, used: object, mm: _MeasuredModel, f0: FloatArray, bk0: LoopBlocks,
+    limits: GateLimits, rejections: list[str], cautions: list[str],
+) -> SourceResult:
+    on = cfg.dob_on
+    dob = used if on else None
+    model = mm.model
+    # The grid: the analysis grid plus every measured point (the allowance jumps there).
+    f = np.union1d(f0, mm.fm[(mm.fm > f0[0]) & (mm.fm < f0[-1])])
+    x = np.log(f)
+    bk = loop_blocks(cfg, dob, f, model)  # type: ignore[arg-type]
+    one, ks, kf = _controller_parts(bk, on)
+    gm = mm.plant(f, bk.g)
+    where = f"measured response {mm.name!r}"
+
+    def blocks(ff: FloatArray) -> tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray]:
+        b = loop_blocks(cfg, dob, ff, model)  # type: ignore[arg-type]
+        o, s_, f_ = _controller_parts(b, on)
+        return mm.plant(ff, b.g), o, s_, f_
+
+    def d_speed(ff: FloatArray) -> ComplexArray:
+        g2, o, s_, _ = blocks(ff)
+        return o + g2 * s_
+
+    def d_full(ff: FloatArray) -> ComplexArray:
+        g2, o, _, f_ = blocks(ff)
+        return o + g2 * f_
+
+    stable = refined_winding_ok(d_speed, f, _integrators(cfg, False)) and refined_winding_ok(
+        d_full, f, _integrators(cfg, True)
+    )
+    if not stable:
+        rejections.append(f"unstable or not proven stable with the {where} (argument principle)")
+
+    def ev(ff: FloatArray) -> Outputs:
+        g2, o, s_, f_ = blocks(ff)
+        a = mm.allowance(ff)
+        return {
+            "L": g2 * s_ / o,
+            "Lf": g2 * f_ / o,
+            "ts": a * g2 * s_ / (o + g2 * s_),
+            "tf": a * g2 * f_ / (o + g2 * f_),
+        }
+
+    a = mm.allowance(f)
+    t_speed = np.abs(gm * ks / (one + gm * ks))
+    t_full = np.abs(gm * kf / (one + gm * kf))
+    lt = loop_tasks(x, gm * ks / one, "L")
+    ltf = loop_tasks(x, gm * kf / one, "Lf")
+    sp = peak_task(x, a * t_speed, "ts")
+    fp = peak_task(x, a * t_full, "tf")
+    solve([*lt.all(), *ltf.all(), sp, fp], ev)
+    margins, margins_full = margins_of(lt), margins_of(ltf)
+    if stable:
+        if limits.check_measured_margins:
+            _margin_reasons(margins, limits, f"speed loop, {where}", cautions)
+            _margin_reasons(margins_full, limits, f"whole servo, {where}", cautions)
+        hi = mm.band_hz[1]
+        for t, which, tt in ((sp, "speed loop", t_speed), (fp, "whole servo", t_full)):
+            unresolved = [u for u in mm.unresolved if u[0] <= t.freq_hz <= u[1]]
+            if unresolved and t.value >= 1.0:
+                u = unresolved[0]
+                rejections.append(
+                    f"robust stability ({which}): the {where} changes by a factor "
+                    f"{math.exp(u[2]):.3g} between {_fmt_hz(u[0])} and {_fmt_hz(u[1])} (a mode "
+                    f"between the points) where the loop has gain |T| = "
+                    f"{t.value / UNRESOLVED_ALLOWANCE:.3g}:"
+                    f" measure denser between {_fmt_hz(u[0])} and {_fmt_hz(u[1])} first"
+                )
+                continue
+            _robust_reasons(
+                t, which, where, limits, hi, mm.allowance,
+                _on_grid(x, tt), f, rejections, cautions,
+            )
+    dq = a * np.abs(bk.f2d)
+    j = int(np.argmax(dq))
+    with np.errstate(divide="ignore"):
+        inv = -20.0 * np.log10(np.interp(np.log(f0), x, a))
+    return SourceResult(
+        name=mm.name,
+        kind="measured",
+        small_gain_peak=sp.value,
+        small_gain_freq_hz=sp.freq_hz,
+        small_gain_full_peak=fp.value,
+        small_gain_full_freq_hz=fp.freq_hz,
+        delta_q_peak=float(dq[j]) if on else math.nan,
+        delta_q_freq_hz=float(f[j]) if on else math.nan,
+        base_loop_stable=stable,
+        margins=margins,
+        inv_delta_db=readonly(inv),
+        margins_full=margins_full,
+        band_hz=mm.band_hz,
+    )

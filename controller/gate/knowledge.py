@@ -7,10 +7,13 @@ judges a candidate against a `PlantKnowledge`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+import msgspec
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from controller.core.config import NominalModel
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
@@ -18,6 +21,11 @@ ComplexArray = NDArray[np.complex128]
 TWO_PI = 2.0 * math.pi
 
 __all__ = [
+    "COMMISSIONING_BOUND",
+    "MIN_ALLOWANCE",
+    "BoundRecord",
+    "KnowledgeRecord",
+    "MeasuredRecord",
     "MeasuredResponse",
     "PlantKnowledge",
     "SampledBound",
@@ -45,10 +53,20 @@ class MeasuredResponse:
     freq_hz: FloatArray
     response: ComplexArray
     sampled: bool = False
+    spread: FloatArray | None = None
+    """Relative spread per point (|dH| / |H|: repeats, positions, noise), or None: then the
+    gate allows `MIN_ALLOWANCE` at every point."""
 
     def __post_init__(self) -> None:
         f = np.array(self.freq_hz, dtype=np.float64)
         h = np.array(self.response, dtype=np.complex128)
+        if self.spread is not None:
+            sp = np.array(self.spread, dtype=np.float64)
+            if sp.shape != f.shape or not np.all(np.isfinite(sp)) or np.any(sp < 0):
+                raise ValueError(
+                    f"measured response {self.name!r}: spread must be finite, >= 0, one per point"
+                )
+            object.__setattr__(self, "spread", readonly(sp))
         if not isinstance(self.name, str) or not self.name:
             raise ValueError("measured response: a non-empty name is required")
         if f.ndim != 1 or f.size < 2 or h.shape != f.shape:
@@ -143,16 +161,158 @@ class SampledBound:
 UncertaintyBound = WeightBound | SampledBound
 
 
+#: The smallest relative error the gate allows at a measured point (noise, drift, the
+#: response's own estimation error), whatever spread the measurement states.
+MIN_ALLOWANCE = 0.05
+
+#: The commissioning model's stated uncertainty when a rig states none: 20 % at low
+#: frequency (within 1.6 dB), 100 % at 40 Hz, up to 300 % above (the belt's unmodelled modes).
+COMMISSIONING_BOUND = WeightBound(
+    low_freq_fraction=0.2, unity_freq_hz=40.0, high_freq_fraction=4.0, name="commissioning bound"
+)
+
+
 @dataclass(frozen=True, eq=False)
 class PlantKnowledge:
-    """What is known of the real plant besides the nominal model (which is cfg.nominal)."""
+    """What is known of the real plant: the evidence every candidate is judged against.
+
+    `model` is the plant model M(s) P(s) from speed command to load rate (the rig's
+    commissioning model; never a candidate's `nominal`, which is only the DOB's internal
+    model); `bound` its stated uncertainty |Delta| <= |W| (None: the model is taken as exact,
+    for analyses of a model alone); `measured` the responses measured on the rig (one per
+    position), trusted inside their band with an allowance between the points; beyond the
+    band the plant is known only as the response at the band's edge within `bound`.
+    `version` and `source` name the record (the controller's state directory keeps it).
+    """
 
     measured: tuple[MeasuredResponse, ...] = ()
     bound: UncertaintyBound | None = None
+    model: NominalModel = field(default_factory=NominalModel)
+    version: int = 0
+    source: str = "model"
 
     def __post_init__(self) -> None:
         names = [m.name for m in self.measured]
         if len(set(names)) != len(names):
             raise ValueError(f"measured responses need distinct names, got {names}")
+        if not isinstance(self.model, NominalModel):
+            raise ValueError("plant knowledge: model must be a NominalModel")
+
+    @property
+    def band_hz(self) -> tuple[float, float] | None:
+        """The measured band (lowest, highest measured frequency), None without measurements."""
+        if not self.measured:
+            return None
+        return (
+            min(float(m.freq_hz[0]) for m in self.measured),
+            max(float(m.freq_hz[-1]) for m in self.measured),
+        )
+
+    def describe(self) -> str:
+        """One line: version, source, band (for reasons and status)."""
+        band = self.band_hz
+        measured = (
+            f"{len(self.measured)} measured response(s) {band[0]:.3g}-{band[1]:.3g} Hz"
+            if band
+            else "no measured response"
+        )
+        bound = self.bound.name if self.bound is not None else "no bound"
+        return f"plant knowledge v{self.version} ({self.source}: model, {bound}, {measured})"
+
+
+# --------------------------------------------------------------------------- wire/persisted form
+
+
+class _Rec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    pass
+
+
+class MeasuredRecord(_Rec, frozen=True, kw_only=True):
+    name: str
+    freq_hz: list[float]
+    re: list[float]
+    im: list[float]
+    sampled: bool = False
+    spread: list[float] | None = None
+
+
+class BoundRecord(_Rec, frozen=True, kw_only=True):
+    """Either a weight (low_freq_fraction, unity_freq_hz, high_freq_fraction, mode) or
+    sampled magnitudes (freq_hz, mag)."""
+
+    name: str = "bound"
+    low_freq_fraction: float | None = None
+    unity_freq_hz: float | None = None
+    high_freq_fraction: float = 2.0
+    mode_hz: float | None = None
+    mode_damping: float = 0.05
+    freq_hz: list[float] | None = None
+    mag: list[float] | None = None
+
+
+class KnowledgeRecord(_Rec, frozen=True, kw_only=True):
+    """`PlantKnowledge` as plain data (persisted in the state directory, sent on the wire)."""
+
+    version: int = 0
+    source: str = "model"
+    model: NominalModel = msgspec.field(default_factory=NominalModel)
+    bound: BoundRecord | None = None
+    measured: list[MeasuredRecord] = []
+
+    def to_knowledge(self) -> PlantKnowledge:
+        """Raises ValueError naming the offending part."""
+        bound: UncertaintyBound | None = None
+        b = self.bound
+        if b is not None:
+            if b.freq_hz is not None or b.mag is not None:
+                if b.freq_hz is None or b.mag is None:
+                    raise ValueError("bound: freq_hz and mag go together")
+                bound = SampledBound(np.array(b.freq_hz), np.array(b.mag), name=b.name)
+            else:
+                if b.low_freq_fraction is None or b.unity_freq_hz is None:
+                    raise ValueError("bound: low_freq_fraction and unity_freq_hz are required")
+                bound = WeightBound(
+                    b.low_freq_fraction, b.unity_freq_hz, b.high_freq_fraction,
+                    b.mode_hz, b.mode_damping, b.name,
+                )
+        measured = []
+        for i, m in enumerate(self.measured):
+            if not (len(m.freq_hz) == len(m.re) == len(m.im)):
+                raise ValueError(f"measured[{i}]: freq_hz, re and im need equal lengths")
+            try:
+                measured.append(
+                    MeasuredResponse(
+                        m.name, np.array(m.freq_hz), np.array(m.re) + 1j * np.array(m.im),
+                        m.sampled, None if m.spread is None else np.array(m.spread),
+                    )
+                )
+            except ValueError as exc:
+                raise ValueError(f"measured[{i}]: {exc}") from None
+        return PlantKnowledge(tuple(measured), bound, self.model, self.version, self.source)
+
+    @classmethod
+    def of(cls, k: PlantKnowledge) -> KnowledgeRecord:
+        b = k.bound
+        bound: BoundRecord | None
+        if b is None:
+            bound = None
+        elif isinstance(b, WeightBound):
+            bound = BoundRecord(
+                name=b.name, low_freq_fraction=b.low_freq_fraction,
+                unity_freq_hz=b.unity_freq_hz, high_freq_fraction=b.high_freq_fraction,
+                mode_hz=b.mode_hz, mode_damping=b.mode_damping,
+            )
+        else:
+            bound = BoundRecord(name=b.name, freq_hz=b.freq_hz.tolist(), mag=b.mag.tolist())
+        measured = [
+            MeasuredRecord(
+                name=m.name, freq_hz=m.freq_hz.tolist(), re=m.response.real.tolist(),
+                im=m.response.imag.tolist(), sampled=m.sampled,
+                spread=None if m.spread is None else m.spread.tolist(),
+            )
+            for m in k.measured
+        ]
+        return cls(version=k.version, source=k.source, model=k.model, bound=bound,
+                   measured=measured)
 
 

@@ -208,10 +208,14 @@ class LoopBlocks:
     f2d: ComplexArray  # F2 z^-1
 
 
-def loop_blocks(cfg: LoopConfig, dob: DobFilters | None, f: FloatArray) -> LoopBlocks:
+def loop_blocks(
+    cfg: LoopConfig, dob: DobFilters | None, f: FloatArray, plant: NominalModel
+) -> LoopBlocks:
+    """The blocks at `f` with `plant` (the plant model: never the candidate's own `nominal`,
+    which is only the DOB's internal model) as G."""
     ts = cfg.period_s
     zinv = np.exp(-1j * TWO_PI * ts * f)
-    g = plant_response(discrete_plant(cfg.nominal, cfg.rate_hz), zinv)
+    g = plant_response(discrete_plant(plant, cfg.rate_hz), zinv)
     cv = tustin_pi(cfg.cv_kp, cfg.cv_ki_per_s, ts, zinv)
     cp = tustin_pi(cfg.pos_kp_per_s, cfg.pos_ki_per_s, ts, zinv)
     ctot = cv * (1.0 + cp * ts / (1.0 - zinv))
@@ -226,10 +230,17 @@ def loop_blocks(cfg: LoopConfig, dob: DobFilters | None, f: FloatArray) -> LoopB
 # --------------------------------------------------------------------------- closed-loop poles
 
 
-def closed_loop_matrix(cfg: LoopConfig, dob: DobFilters | None) -> FloatArray:
-    """State matrix of the whole loop (references and disturbances zero)."""
+def closed_loop_matrix(
+    cfg: LoopConfig, dob: DobFilters | None, plant: NominalModel, *, position: bool = True
+) -> FloatArray:
+    """State matrix of the loop with plant model `plant` (references and disturbances zero):
+    the whole servo, or with `position` false the speed loop alone (`ServoLoop.tick_speed`).
+
+    A PI with a zero integral gain is a plain gain: its integrator state is left out (the tick
+    integrates nothing then), so it adds no spurious pole at z = 1.
+    """
     ts = cfg.period_s
-    pl = discrete_plant(cfg.nominal, cfg.rate_hz)
+    pl = discrete_plant(plant, cfg.rate_hz)
     npl = pl.a.shape[0]
     if dob is not None:
         a1, b1, c1, d1 = dob.f1_ss
@@ -278,6 +289,19 @@ def closed_loop_matrix(cfg: LoopConfig, dob: DobFilters | None) -> FloatArray:
         a[i2:idu, i2:idu] += a2
         a[i2:idu, idu] += b2
         a[idu] = u
+    # Without the position loop theta is fed back nowhere and r = 0; states that are not
+    # integrators of the running loop are removed (rows and columns: they feed nothing).
+    drop = []
+    if not position:
+        drop += [npl - 1, icp]  # theta (the last plant state) and Cp's integrator
+    else:
+        if hp == 0.0:
+            drop.append(icp)
+    if hv == 0.0:
+        drop.append(icv)
+    if drop:
+        keep = np.setdiff1d(np.arange(n), drop)
+        a = a[np.ix_(keep, keep)]
     return a
 
 

@@ -1,0 +1,92 @@
+"""The gate's one verdict: the analysis on all the plant knowledge, the recommended cut-off and
+the nonlinear check, combined into accept / caution / reject with reasons that name their
+evidence. The controller (its gate worker), `dobtune check` and the dashboard all call
+`judge`, so a verdict is the same wherever it is computed from the same knowledge.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import lru_cache
+
+from controller.core.config import LoopConfig
+from controller.gate.analysis import Analysis, GateLimits, Verdict, analyse
+from controller.gate.knowledge import PlantKnowledge
+from controller.gate.search import recommended_max_cutoff_hz
+
+__all__ = ["EXIT_CODES", "Judgement", "NonlinearCheck", "judge", "recommended_cutoff_hz"]
+
+#: `dobtune check` exit codes per verdict (2 is bad input).
+EXIT_CODES: dict[str, int] = {"accept": 0, "caution": 3, "reject": 1}
+
+NonlinearCheck = Callable[[LoopConfig, PlantKnowledge], tuple[str, ...]]
+"""Runs a candidate on a nonlinear model of the rig; returns the findings (empty: none)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Judgement:
+    analysis: Analysis
+    verdict: Verdict
+    rejections: tuple[str, ...]
+    cautions: tuple[str, ...]
+    recommended_max_cutoff_hz: float | None
+    """For the candidate's Q type (None: even the lowest cut-off is not accepted, or the
+    candidate was rejected before the search was worth running)."""
+
+    @property
+    def reasons(self) -> tuple[str, ...]:
+        return self.rejections + self.cautions
+
+    @property
+    def applicable(self) -> bool:
+        return self.verdict != "reject"
+
+
+@lru_cache(maxsize=64)
+def _recommended(base: LoopConfig, plant: PlantKnowledge, limits: GateLimits) -> float | None:
+    return recommended_max_cutoff_hz(base, plant, limits)
+
+
+def recommended_cutoff_hz(
+    cfg: LoopConfig, plant: PlantKnowledge, limits: GateLimits | None = None
+) -> float | None:
+    """`recommended_max_cutoff_hz` for cfg's Q type, cached per (configuration without the
+    cut-off, plant knowledge object, limits): moving the cut-off slider costs one search."""
+    base = cfg.with_(q_cutoff_hz=1.0, dob_on=True)
+    return _recommended(base, plant, limits if limits is not None else GateLimits())
+
+
+def judge(
+    cfg: LoopConfig,
+    plant: PlantKnowledge,
+    limits: GateLimits | None = None,
+    *,
+    nonlinear: NonlinearCheck | None = None,
+) -> Judgement:
+    """The verdict on `cfg` against `plant`: reject on any rejection of the analysis; else
+    caution for any caution of the analysis, a Q cut-off above the recommended maximum (the top
+    of the continuous accepted region from the lowest cut-off) or a finding of the nonlinear
+    check; else accept."""
+    limits = limits if limits is not None else GateLimits()
+    a = analyse(cfg, plant, limits)
+    if a.verdict == "reject":
+        return Judgement(a, "reject", a.rejections, a.cautions, None)
+    cautions = list(a.cautions)
+    rec = recommended_cutoff_hz(cfg, plant, limits)
+    if cfg.dob_on:
+        if rec is None:
+            cautions.append(
+                f"Q cut-off {cfg.q_cutoff_hz:g} Hz: no {cfg.q_type} cut-off is accepted without "
+                f"reservation on {plant.describe()}"
+            )
+        elif cfg.q_cutoff_hz > rec * 1.0001:
+            cautions.append(
+                f"Q cut-off {cfg.q_cutoff_hz:g} Hz is above the recommended maximum "
+                f"{rec:.3g} Hz for {cfg.q_type} (the top of the accepted region from the lowest "
+                f"cut-off, {plant.describe()})"
+            )
+    if nonlinear is not None:
+        cautions += [f"nonlinear check: {r}" for r in nonlinear(cfg, plant)]
+    verdict: Verdict = "caution" if cautions else "accept"
+    return Judgement(a, verdict, (), tuple(cautions), rec)
