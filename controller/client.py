@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+import msgspec
 import numpy as np
 
 from controller import protocol as proto
@@ -290,10 +291,20 @@ class ControllerClient:
         raw = self._query(proto.key_config(self.opts.rig_name), proto.encode(req))
         return proto.decode(raw, proto.ConfigReply)
 
-    def apply(self, candidate: LoopConfig) -> proto.ConfigReply:
-        req = proto.ConfigRequest(candidate=candidate, client=self.opts.client_name)
+    def apply(self, candidate: LoopConfig, *, confirm: bool = False) -> proto.ConfigReply:
+        """Apply `candidate` through the controller's gate; a `caution` needs `confirm`."""
+        req = proto.ConfigRequest(
+            candidate=candidate, client=self.opts.client_name, confirm=confirm
+        )
         raw = self._query(proto.key_config(self.opts.rig_name), proto.encode(req))
         return proto.decode(raw, proto.ConfigReply)
+
+    def knowledge(self, request: proto.KnowledgeRequest | None = None) -> proto.KnowledgeReply:
+        """The controller's plant knowledge, or (with a request) adopt new knowledge."""
+        req = request if request is not None else proto.KnowledgeRequest()
+        req = msgspec.structs.replace(req, client=self.opts.client_name)
+        raw = self._query(proto.key_knowledge(self.opts.rig_name), proto.encode(req))
+        return proto.decode(raw, proto.KnowledgeReply)
 
     def command(self, body: proto.CommandBody) -> proto.CommandReply:
         msg = proto.Command(body=body, client=self.opts.client_name)

@@ -16,6 +16,7 @@ from controller.core.config import LoopConfig
 from controller.core.samples import STATE_COLUMNS
 from controller.core.trajectory import Trajectory
 from controller.core.validate import split_msgspec_error
+from controller.gate.knowledge import KnowledgeRecord
 from controller.ident.spec import IdentifySpec
 
 PROTOCOL_VERSION = 1
@@ -50,6 +51,11 @@ def key_estop(rig: str) -> str:
 def key_identify(rig: str) -> str:
     """Queryable: any payload (or none) -> IdentifyStatus."""
     return f"{KEY_PREFIX}/{rig}/identify"
+
+
+def key_knowledge(rig: str) -> str:
+    """Queryable: KnowledgeRequest -> KnowledgeReply (the plant knowledge the gate uses)."""
+    return f"{KEY_PREFIX}/{rig}/knowledge"
 
 
 def check_rig_name(rig: str) -> str:
@@ -146,6 +152,10 @@ class Status(_Msg, frozen=True, kw_only=True):
     operator: str = ""
     estop_seq: int = -1  # sequence number of the first tick of the latest e-stop
     notes: list[str] = []  # non-fault information (e.g. real-time priority refused)
+    knowledge_version: int = 0  # the plant knowledge every verdict is judged on
+    knowledge: str = ""  # its one-line description (version, source, band)
+    margins: Margins | None = None  # the running configuration's, on that knowledge
+    verdict: str = ""  # the gate's verdict on the running configuration, on that knowledge
 
 
 # -- config queryable -------------------------------------------------------------------------
@@ -160,10 +170,12 @@ class Margins(msgspec.Struct, frozen=True, kw_only=True):
 
 
 class ConfigRequest(_Msg, frozen=True, kw_only=True):
-    """candidate None: just return the active configuration."""
+    """candidate None: just return the active configuration. A candidate with the verdict
+    `caution` is applied only with `confirm` true."""
 
     candidate: LoopConfig | None = None
     client: str = ""
+    confirm: bool = False
 
 
 class ConfigReply(_Msg, frozen=True, kw_only=True):
@@ -173,6 +185,28 @@ class ConfigReply(_Msg, frozen=True, kw_only=True):
     reasons: list[str] = []
     margins: Margins | None = None
     field: str = ""  # for a malformed request: the offending field ("payload", "candidate.x")
+    verdict: str = ""  # the gate's verdict on the candidate: accept | caution | reject
+    knowledge_version: int = 0  # the plant knowledge it was judged on
+
+
+# -- plant knowledge ----------------------------------------------------------------------------
+
+
+class KnowledgeRequest(_Msg, frozen=True, kw_only=True):
+    """Neither set: return the plant knowledge. `record`: adopt it (measured responses, the
+    model and its bound; its version is ignored: the controller numbers versions).
+    `adopt_run`: adopt the measured responses of this controller's identification run."""
+
+    record: KnowledgeRecord | None = None
+    adopt_run: int | None = None
+    client: str = ""
+
+
+class KnowledgeReply(_Msg, frozen=True, kw_only=True):
+    ok: bool
+    record: KnowledgeRecord  # the plant knowledge after this request
+    message: str = ""
+    field: str = ""
 
 
 # -- commands ---------------------------------------------------------------------------------

@@ -87,6 +87,7 @@ class Dashboard:
         )
         self.server: Any = None
         self.engine = TuningEngine()
+        self._knowledge_version = -1  # the plant knowledge fetched from the controller
         self._requests = Requests(max_workers=2, name="ctl-request")
         self.tuning: NominalTuningPanel | None = None
         self.identify: IdentifyPanel | None = None
@@ -198,6 +199,9 @@ class Dashboard:
             self.tuning.revert()
 
     def _on_status(self, st: proto.Status) -> None:
+        if st.knowledge_version != self._knowledge_version:
+            self._knowledge_version = st.knowledge_version
+            self._requests.submit(self._fetch_knowledge)
         t = self.tuning
         if t is None:
             return
@@ -211,14 +215,27 @@ class Dashboard:
         if latest is not None and self.scene is not None:
             self.scene.update(latest["pos_deg"], latest["ref_deg"])
 
-    def _apply_async(self, cand: LoopConfig) -> None:
-        self._requests.submit(self._apply, cand)
+    def _apply_async(self, cand: LoopConfig, confirm: bool = False) -> None:
+        self._requests.submit(self._apply, cand, confirm)
 
-    def _apply(self, cand: LoopConfig) -> None:
+    def _fetch_knowledge(self) -> None:
+        """The controller's plant knowledge: the dashboard judges on nothing else."""
+        try:
+            reply = self.client.knowledge()
+            self.engine.set_knowledge(reply.record)
+        except (ControllerUnavailable, proto.ProtocolError, ValueError) as exc:
+            log.warning("plant knowledge not fetched: %s", exc)
+            self._knowledge_version = -1  # try again with the next status
+            return
+        log.info("plant knowledge v%d fetched (%s)", reply.record.version, reply.record.source)
+        if self.tuning is not None:
+            self.tuning.request_update()
+
+    def _apply(self, cand: LoopConfig, confirm: bool = False) -> None:
         t = self.tuning
         assert t is not None
         try:
-            reply = self.client.apply(cand)
+            reply = self.client.apply(cand, confirm=confirm)
         except (ControllerUnavailable, proto.ProtocolError) as exc:
             log.warning("apply failed: %s", exc)
             t.show_error(str(exc))
@@ -274,12 +291,32 @@ class Dashboard:
             self.tuning.request_update()
 
     def _add_measured(self, m: MeasuredResponse, source: str) -> None:
-        self.engine.add_measured(m)
-        n = len(self.engine.measured)
-        log.info("measured response %s added (%s); %d in the plant knowledge", m.name, source, n)
+        """Send the response to the controller for adoption into its plant knowledge: the
+        verdicts (the controller's and this dashboard's) use it once the controller has it."""
+        try:
+            reply = self.client.knowledge(
+                proto.KnowledgeRequest(record=self.engine.with_measured(m))
+            )
+        except (ControllerUnavailable, proto.ProtocolError) as exc:
+            log.warning("measured response %s not adopted: %s", m.name, exc)
+            self.measured_text.content = (
+                f"<div class='dt-measured' style='color:#d62728'>{esc(m.name)}: not adopted "
+                f"by the controller: {esc(str(exc))}</div>")
+            return
+        if not reply.ok:
+            self.measured_text.content = (
+                f"<div class='dt-measured' style='color:#d62728'>{esc(m.name)}: refused by the "
+                f"controller: {esc(reply.message)}</div>")
+            return
+        self.engine.set_knowledge(reply.record)
+        self._knowledge_version = reply.record.version
+        n = len(reply.record.measured)
+        log.info("measured response %s adopted (%s); plant knowledge v%d has %d", m.name,
+                 source, reply.record.version, n)
         self.measured_text.content = (
-            f"<div class='dt-measured' style='font-size:12px'>{n} measured response(s); last: "
-            f"{esc(m.name)} ({source}). The verdict now uses them.</div>")
+            f"<div class='dt-measured' style='font-size:12px'>plant knowledge "
+            f"v{reply.record.version}: {n} measured response(s); last: {esc(m.name)} "
+            f"({esc(source)}). The verdicts (here and in the controller) use them.</div>")
 
 
 def _command_html(text: str, ok: bool) -> str:

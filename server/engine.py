@@ -8,6 +8,7 @@ for the preview. Results are cached per configuration; the engine is thread-safe
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
@@ -21,9 +22,14 @@ from controller.core.config import LoopConfig
 from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
 from controller.gate.analysis import Analysis, analyse
-from controller.gate.knowledge import MeasuredResponse, PlantKnowledge
+from controller.gate.knowledge import (
+    COMMISSIONING_BOUND,
+    KnowledgeRecord,
+    MeasuredResponse,
+    PlantKnowledge,
+)
 from controller.gate.loop_model import default_grid
-from controller.gate.search import recommended_max_cutoff_hz
+from controller.gate.verdict import judge, recommended_cutoff_hz
 from server import charts
 from server.charts import BodeCurves, FloatArray
 
@@ -52,14 +58,20 @@ CUTOFF_MAX_HZ = 50.0
 class GateView:
     """What the stability check says about one configuration, ready to display."""
 
-    verdict: str  # "accept" | "reject"
+    verdict: str  # "accept" | "caution" | "reject"
     reasons: tuple[str, ...]
     margins: dict[str, float]
     recommended_max_cutoff_hz: float | None = None
+    knowledge: str = ""  # the plant knowledge the verdict was judged on
 
     @property
     def accepted(self) -> bool:
         return self.verdict == "accept"
+
+    @property
+    def applicable(self) -> bool:
+        """accept, or caution (applied only after the user confirms the reasons)."""
+        return self.verdict != "reject"
 
 
 @dataclass(frozen=True)
@@ -210,7 +222,10 @@ class TuningEngine:
         self.n_freq = n_freq
         self.freq_hz = freq_grid_hz(1000.0, n_freq)
         self.preview_duration_s = preview_duration_s
-        self.plant = PlantKnowledge()
+        #: The controller's plant knowledge (`set_knowledge`), the same record its gate
+        #: judges on; until it is fetched, the simulated rig's model with the commissioning
+        #: bound (what a fresh controller starts with).
+        self.plant = PlantKnowledge(bound=COMMISSIONING_BOUND, source="not yet fetched")
         self._plant_lock = threading.Lock()
         self._evaluations: _Cache[LoopConfig, Evaluation] = _Cache(64)
         self._recommendations: _Cache[LoopConfig, float | None] = _Cache(64)
@@ -220,13 +235,23 @@ class TuningEngine:
     def measured(self) -> tuple[MeasuredResponse, ...]:
         return self.plant.measured
 
-    def add_measured(self, m: MeasuredResponse) -> None:
-        """A measured response (CSV upload; same name replaces); invalidates cached verdicts."""
+    def set_knowledge(self, record: KnowledgeRecord) -> None:
+        """Judge on `record` (the controller's plant knowledge); invalidates cached verdicts.
+        Raises ValueError for a record that does not validate."""
+        plant = record.to_knowledge()
         with self._plant_lock:
-            kept = tuple(x for x in self.plant.measured if x.name != m.name)
-            self.plant = PlantKnowledge(measured=(*kept, m), bound=self.plant.bound)
+            self.plant = plant
             self._evaluations.clear()
             self._recommendations.clear()
+
+    def with_measured(self, m: MeasuredResponse) -> KnowledgeRecord:
+        """The present knowledge plus `m` (same name replaces), as a record to send to the
+        controller for adoption (only the controller's knowledge is ever judged on)."""
+        p = self.plant
+        kept = tuple(x for x in p.measured if x.name != m.name)
+        return KnowledgeRecord.of(
+            PlantKnowledge((*kept, m), p.bound, p.model, p.version, f"{p.source} + {m.name}")
+        )
 
     def cached_recommendation(self, cfg: LoopConfig) -> tuple[bool, float | None]:
         """(known, value) without computing."""
@@ -237,9 +262,7 @@ class TuningEngine:
         ~0.1 s, so call it off the slider path)."""
         key = _recommendation_key(cfg)
         plant = self.plant
-        return self._recommendations.get(
-            key, lambda: recommended_max_cutoff_hz(key, plant, highest_hz=CUTOFF_MAX_HZ)
-        )
+        return self._recommendations.get(key, lambda: recommended_cutoff_hz(key, plant))
 
     def evaluate(self, cfg: LoopConfig) -> Evaluation:
         """The gate's verdict and curves for `cfg` (cached)."""
@@ -248,7 +271,15 @@ class TuningEngine:
     def _evaluate(self, cfg: LoopConfig, plant: PlantKnowledge) -> Evaluation:
         t0 = time.perf_counter()
         grid = freq_grid_hz(cfg.rate_hz, self.n_freq)
-        curves, gate = curves_from_analysis(analyse(cfg, plant, freq_hz=grid))
+        curves, view = curves_from_analysis(analyse(cfg, plant, freq_hz=grid))
+        # The verdict: the controller's own function on the controller's knowledge (its
+        # default grid, not the charts'), so both sides say the same.
+        j = judge(cfg, plant)
+        gate = dataclasses.replace(
+            view, verdict=j.verdict, reasons=j.reasons,
+            recommended_max_cutoff_hz=j.recommended_max_cutoff_hz,
+            knowledge=j.analysis.knowledge,
+        )
         return Evaluation(cfg, curves, gate, time.perf_counter() - t0)
 
     def compare(self, candidate: LoopConfig, active: LoopConfig) -> Comparison:

@@ -15,21 +15,32 @@ import numpy as np
 import pytest
 
 from controller.core.config import LoopConfig
+from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
 from controller.process.gate_worker import GateRunner, gate, gate_and_build
+
+K = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=3, source="test"))
 
 
 def test_gate_accepts_the_default_and_rejects_an_unstable_candidate() -> None:
-    ok = gate(LoopConfig())
+    ok = gate(LoopConfig(), K)
     assert ok.accepted and ok.reasons == () and ok.margins.phase_margin_deg > 30.0
-    bad = gate(LoopConfig(cv_kp=20.0))
+    assert ok.verdict == "accept" and ok.knowledge_version == 3
+    bad = gate(LoopConfig(cv_kp=20.0), K)
     assert not bad.accepted and bad.reasons and bad.coefficients is None
-    built = gate_and_build(LoopConfig(q_cutoff_hz=1.0), 7)
+    assert bad.verdict == "reject"
+    built = gate_and_build(LoopConfig(q_cutoff_hz=1.0), 7, K)
     assert built.coefficients is not None and built.coefficients.version == 7
+
+
+def test_a_caution_may_be_applied_and_says_why() -> None:
+    v = gate(LoopConfig(q_cutoff_hz=5.0), K)
+    assert v.accepted and v.verdict == "caution"
+    assert any("whole servo" in r for r in v.reasons)
 
 
 def test_the_rigs_command_limit_is_checked_first() -> None:
     runner = GateRunner(subprocess=False, command_limit_max_deg_s=30.0)
-    verdict = runner.check(LoopConfig(command_limit_deg_s=40.0))
+    verdict = runner.check(LoopConfig(command_limit_deg_s=40.0), K)
     assert not verdict.accepted and "rig's limit" in verdict.reasons[0]
     assert math.isnan(verdict.margins.gain_margin_db)
 
@@ -37,10 +48,10 @@ def test_the_rigs_command_limit_is_checked_first() -> None:
 def test_a_hanging_worker_is_killed_and_the_next_call_gets_a_fresh_one() -> None:
     runner = GateRunner(subprocess=True)
     try:
-        assert runner.check(LoopConfig()).accepted  # (a fresh worker's first job may be slow)
+        assert runner.check(LoopConfig(), K).accepted  # (a fresh worker's first job may be slow)
         with pytest.raises(concurrent.futures.TimeoutError):
             runner.call(time.sleep, 30.0, timeout_s=0.5)
-        verdict = runner.check_and_build(LoopConfig(), 3)
+        verdict = runner.check_and_build(LoopConfig(), 3, K)
         assert verdict.accepted and verdict.coefficients is not None
     finally:
         runner.close()
@@ -49,24 +60,24 @@ def test_a_hanging_worker_is_killed_and_the_next_call_gets_a_fresh_one() -> None
 def test_a_slow_start_of_the_worker_is_not_a_rejection() -> None:
     """A fresh worker's first job gets the start-up time (a loaded machine), later jobs only
     their own timeout."""
-    runner = GateRunner(subprocess=True, timeout_s=0.3, start_timeout_s=30.0)
+    runner = GateRunner(subprocess=True, timeout_s=1.5, start_timeout_s=30.0)
     try:
-        runner.call(time.sleep, 1.0, timeout_s=0.3)  # the first job: slow, still served
-        assert runner.check(LoopConfig()).accepted
+        runner.call(time.sleep, 2.0, timeout_s=1.5)  # the first job: slow, still served
+        assert runner.check(LoopConfig(), K).accepted  # a verdict takes ~0.1 s (1.5 s here)
         with pytest.raises(concurrent.futures.TimeoutError):
-            runner.call(time.sleep, 1.0, timeout_s=0.3)
+            runner.call(time.sleep, 2.0, timeout_s=1.5)
     finally:
         runner.close()
 
 
 def test_analysis_failures_carry_no_internal_text(monkeypatch: pytest.MonkeyPatch) -> None:
-    import controller.gate.analysis as analysis
+    import controller.gate.verdict as verdict_module
 
-    def broken(_cfg: LoopConfig) -> None:
+    def broken(*_args: object, **_kw: object) -> None:
         raise np.linalg.LinAlgError("Array must not contain infs or NaNs")
 
-    monkeypatch.setattr(analysis, "analyse", broken)
-    verdict = gate(LoopConfig())
+    monkeypatch.setattr(verdict_module, "analyse", broken)
+    verdict = gate(LoopConfig(), K)
     assert not verdict.accepted
     assert verdict.reasons[0].startswith("candidate: ")
     assert "LinAlgError" not in verdict.reasons[0] and "NaN" not in verdict.reasons[0]

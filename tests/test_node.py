@@ -17,6 +17,7 @@ from controller import protocol as proto
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
+from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
 from controller.process import requests as rq
 from controller.process.gate_worker import GateRunner
 from controller.process.node import SHUTDOWN, ZenohNode, to_request
@@ -42,8 +43,9 @@ def node(tmp_path: Path) -> Iterator[ZenohNode]:
     rt = Runtime(ServoLoop(LoopCoefficients.build(cfg, 1)), NullRig())
     runner = GateRunner(subprocess=False)
     opts = ControllerOptions(rig_name="unit", state_dir=tmp_path, gate_in_subprocess=False)
-    margins = runner.check(cfg).margins
-    service = ControllerService(opts, rt, store, runner, margins, [])
+    k = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=1))
+    margins = runner.check(cfg, k).margins
+    service = ControllerService(opts, rt, store, runner, margins, [], k)
     loop = threading.Thread(target=rt.run, daemon=True)
     loop.start()
     assert rt.running.wait(5.0)

@@ -67,8 +67,40 @@ def test_measured_response_enters_the_verdict() -> None:
     assert eng.evaluate(cfg).curves.inv_delta_measured_db is None
     f = np.geomspace(0.1, 20, 40)
     response = 1.1 * nominal_continuous_response(NominalModel(), f)
-    eng.add_measured(MeasuredResponse(name="m", freq_hz=f, response=response))
+    eng.set_knowledge(eng.with_measured(MeasuredResponse(name="m", freq_hz=f, response=response)))
     ev = eng.evaluate(cfg)
     assert ev.curves.inv_delta_measured_db is not None
     assert np.isfinite(ev.gate.margins["small_gain_peak"])
     assert len(eng.measured) == 1
+    assert "1 measured response(s) 0.1-20 Hz" in ev.gate.knowledge
+
+
+def test_the_dashboard_verdict_is_the_controllers() -> None:
+    """The dashboard's verdict equals the controller's gate (`gate_worker.gate`, what the
+    controller runs before applying) on the same plant knowledge, for random candidates."""
+    from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
+    from controller.process.gate_worker import gate
+
+    f = np.geomspace(0.1, 20, 31)
+    h = 1.3 * nominal_continuous_response(NominalModel(), f) * np.exp(-2j * np.pi * f * 0.002)
+    record = KnowledgeRecord.of(PlantKnowledge(
+        (MeasuredResponse("pos0", f, h),), COMMISSIONING_BOUND, version=4, source="test"))
+    eng = TuningEngine()
+    eng.set_knowledge(record)
+    rng = np.random.default_rng(7)
+    bases = [LoopConfig(cv_kp=kp, pos_kp_per_s=pk) for kp, pk in
+             ((0.3, 5.0), (0.5, 9.0), (0.8, 15.0), (1.2, 20.0), (0.45, 0.0 + 3.0))]
+    seen = {"accept": 0, "caution": 0, "reject": 0}
+    for _ in range(200):
+        base = bases[int(rng.integers(len(bases)))]
+        cfg = base.with_(
+            q_type=str(rng.choice(["q20", "q31"])),
+            q_cutoff_hz=float(np.exp(rng.uniform(np.log(0.05), np.log(50.0)))),
+            dob_on=bool(rng.uniform() < 0.85),
+        )
+        mine = eng.evaluate(cfg).gate
+        theirs = gate(cfg, record)
+        assert mine.verdict == theirs.verdict, cfg
+        assert mine.reasons == theirs.reasons or mine.verdict == "accept"
+        seen[mine.verdict] += 1
+    assert min(seen.values()) > 0, seen  # all three verdicts were exercised

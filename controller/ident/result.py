@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
 from controller.gate.analysis import analyse
-from controller.gate.knowledge import MeasuredResponse, PlantKnowledge
+from controller.gate.knowledge import COMMISSIONING_BOUND, MeasuredResponse, PlantKnowledge
 from controller.gate.loop_model import discrete_equivalent
 from controller.gate.search import recommended_max_cutoff_hz
 from controller.ident.estimate import (
@@ -308,7 +308,10 @@ def analyse_result(result: IdentifyResult) -> IdentifyResult:
     measured = result.measured_responses()
     try:
         if measured:
-            plant = PlantKnowledge(measured=measured)
+            # The responses with the commissioning bound beyond their band (the controller's
+            # own knowledge once adopted), never the responses alone: beyond the band the
+            # plant would be unknown and every loop "depends" on it.
+            plant = PlantKnowledge(measured=measured, bound=COMMISSIONING_BOUND)
             for qt in ("q31", "q20"):
                 rec_config[qt] = recommended_max_cutoff_hz(cfg, plant, q_type=qt)
         if nominal is not None and measured:

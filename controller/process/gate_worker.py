@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
+import dataclasses
 import logging
 import os
 import signal
@@ -25,6 +26,7 @@ import msgspec
 from controller import protocol as proto
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients
+from controller.gate.knowledge import KnowledgeRecord
 
 __all__ = ["GateRunner", "GateVerdict", "gate", "gate_and_build", "margins_dict", "nan_margins"]
 
@@ -36,11 +38,15 @@ class GateVerdict:
     """The gate's answer on one candidate."""
 
     accepted: bool
+    """May be applied: the verdict is accept, or caution (then only with confirmation)."""
     reasons: tuple[str, ...]
-    """Why it was rejected (empty when accepted)."""
+    """Why it was rejected, or the cautions (empty when accepted without reservation)."""
     margins: proto.Margins
     coefficients: LoopCoefficients | None = None
     """The filters designed for the candidate (accepted, and only when asked for)."""
+    verdict: str = "reject"
+    """accept | caution | reject."""
+    knowledge_version: int = 0
 
 
 def nan_margins() -> proto.Margins:
@@ -58,16 +64,32 @@ def margins_dict(m: proto.Margins | None) -> dict[str, float] | None:
     return None if m is None else msgspec.to_builtins(m)  # type: ignore[no-any-return]
 
 
-def gate(cfg: LoopConfig) -> GateVerdict:
-    """Run the stability analysis on `cfg`. Never raises."""
-    from controller.gate.analysis import analyse
+#: The worker's converted plant knowledge, per record version (one at a time): the
+#: recommended cut-off's cache is keyed on the knowledge object, so it must stay the same.
+_knowledge: dict[tuple[int, str], Any] = {}
+
+
+def _plant(record: KnowledgeRecord) -> Any:
+    key = (record.version, record.source)
+    k = _knowledge.get(key)
+    if k is None:
+        _knowledge.clear()
+        k = _knowledge[key] = record.to_knowledge()
+    return k
+
+
+def gate(cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
+    """The gate's verdict (`controller.gate.verdict.judge`) on `cfg` against the plant
+    knowledge `record`. Never raises."""
+    from controller.gate.verdict import judge
 
     try:
-        a = analyse(cfg)
+        j = judge(cfg, _plant(record))
     except Exception as exc:  # the details go to the log, never to the client
         log.warning("analysis failed on %r: %s: %s", cfg, type(exc).__name__, exc)
         reason = "candidate: the stability analysis cannot evaluate this configuration"
-        return GateVerdict(False, (reason,), nan_margins())
+        return GateVerdict(False, (reason,), nan_margins(), knowledge_version=record.version)
+    a = j.analysis
     margins = proto.Margins(
         gain_margin_db=float(a.gain_margin_db),
         phase_margin_deg=float(a.phase_margin_deg),
@@ -75,21 +97,23 @@ def gate(cfg: LoopConfig) -> GateVerdict:
         small_gain_peak=float(a.small_gain_peak),
         max_pole_radius=float(a.max_pole_radius),
     )
-    if a.accepted:
-        return GateVerdict(True, (), margins)
-    return GateVerdict(False, tuple(a.reasons) or ("rejected by the stability analysis",), margins)
+    kv = record.version
+    if j.verdict == "reject":
+        reasons = j.reasons or ("rejected by the stability analysis",)
+        return GateVerdict(False, reasons, margins, verdict="reject", knowledge_version=kv)
+    return GateVerdict(True, j.cautions, margins, verdict=j.verdict, knowledge_version=kv)
 
 
-def gate_and_build(cfg: LoopConfig, version: int) -> GateVerdict:
-    """`gate`, then (if accepted) the loop's filters for `version`. Never raises."""
-    verdict = gate(cfg)
+def gate_and_build(cfg: LoopConfig, version: int, record: KnowledgeRecord) -> GateVerdict:
+    """`gate`, then (if it may be applied) the loop's filters for `version`. Never raises."""
+    verdict = gate(cfg, record)
     if not verdict.accepted:
         return verdict
     try:
-        return GateVerdict(True, (), verdict.margins, LoopCoefficients.build(cfg, version))
+        return dataclasses.replace(verdict, coefficients=LoopCoefficients.build(cfg, version))
     except Exception as exc:
         reason = f"candidate: filters could not be built: {exc}"
-        return GateVerdict(False, (reason,), verdict.margins)
+        return GateVerdict(False, (reason,), verdict.margins, knowledge_version=record.version)
 
 
 PR_SET_PDEATHSIG = 1
@@ -132,7 +156,7 @@ def _worker_init(parent_pid: int, death_signal: bool) -> None:
 
 def _warm_up() -> None:
     """A new worker's first job: load the analysis code (seconds on a busy machine)."""
-    import controller.gate.analysis  # noqa: F401
+    import controller.gate.verdict  # noqa: F401
 
 
 class GateRunner:
@@ -174,12 +198,14 @@ class GateRunner:
             self._pool.submit(_warm_up).result(timeout=self._start_timeout_s)
         return self._pool
 
-    def check(self, cfg: LoopConfig) -> GateVerdict:
-        """The gate's verdict on `cfg` (no filters built)."""
-        return self.check_and_build(cfg, 0, build=False)
+    def check(self, cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
+        """The gate's verdict on `cfg` against the plant knowledge (no filters built)."""
+        return self.check_and_build(cfg, 0, record, build=False)
 
-    def check_and_build(self, cfg: LoopConfig, version: int, *, build: bool = True) -> GateVerdict:
-        """The gate's verdict and, if accepted and `build`, the coefficients to swap in."""
+    def check_and_build(
+        self, cfg: LoopConfig, version: int, record: KnowledgeRecord, *, build: bool = True
+    ) -> GateVerdict:
+        """The gate's verdict and, if it may be applied and `build`, the coefficients."""
         rig_max = self.command_limit_max_deg_s
         if rig_max is not None and cfg.command_limit_deg_s > rig_max:
             reason = (
@@ -191,10 +217,10 @@ class GateRunner:
         try:
             if build:
                 verdict: GateVerdict = self.call(
-                    gate_and_build, cfg, version, timeout_s=self._timeout_s
+                    gate_and_build, cfg, version, record, timeout_s=self._timeout_s
                 )
             else:
-                verdict = self.call(gate, cfg, timeout_s=self._timeout_s)
+                verdict = self.call(gate, cfg, record, timeout_s=self._timeout_s)
             return verdict
         except concurrent.futures.TimeoutError:
             reason = f"analysis: no verdict within {self._timeout_s:g} s"

@@ -14,8 +14,11 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
+
 from controller import protocol as proto
 from controller.core.config import LoopConfig
+from controller.gate.knowledge import MeasuredRecord
 from controller.ident.program import ExcitationProgram
 from controller.process.gate_worker import GateRunner
 
@@ -215,6 +218,37 @@ class IdentifyRuns:
             abort_reason=job.abort_reason,
             **fields,
         )
+
+    def adoptable(self, run_id: int | None) -> list[MeasuredRecord]:
+        """The measured responses of finished run `run_id`, one per complete position, as
+        plant knowledge (spread: twice the per-point standard deviation, relative). Raises
+        ValueError saying why there is nothing to adopt."""
+        job = self.job
+        if job is None or job.run_id != run_id:
+            latest = job.run_id if job is not None else "none"
+            raise ValueError(f"run {run_id} is not this controller's latest run ({latest})")
+        if job.state != "done":
+            raise ValueError(f"run {run_id} is {job.state}, not done")
+        out = []
+        for p in self.status().positions:
+            if not p.complete or len(p.freq_hz) < 2:
+                continue
+            mag = 10.0 ** (np.asarray(p.mag_db) / 20.0)
+            ph = np.radians(np.asarray(p.phase_deg))
+            h = mag * np.exp(1j * ph)
+            spread = None
+            if len(p.mag_std_db) == len(p.freq_hz) and len(p.phase_std_deg) == len(p.freq_hz):
+                rel = np.hypot(np.log(10.0) / 20.0 * np.asarray(p.mag_std_db),
+                               np.radians(np.asarray(p.phase_std_deg)))
+                spread = np.where(np.isfinite(rel), 2.0 * rel, 0.0).tolist()
+            out.append(MeasuredRecord(
+                name=f"run {run_id} position {p.index} ({p.center_deg:.4g} deg)",
+                freq_hz=list(p.freq_hz), re=h.real.tolist(), im=h.imag.tolist(),
+                sampled=False, spread=spread,
+            ))
+        if not out:
+            raise ValueError(f"run {run_id} has no complete position")
+        return out
 
     def _watch(self, job: IdentifyJob) -> None:
         prog = job.program

@@ -22,9 +22,10 @@ from typing import Any
 import msgspec
 
 from controller import protocol as proto
-from controller.core.config import LoopConfig, config_from_builtins
+from controller.core.config import LoopConfig, NominalModel, config_from_builtins
 from controller.core.errors import ConfigError
 from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
 from controller.process.gate_worker import GateRunner, GateVerdict, margins_dict
 from controller.process.node import ZenohNode
 from controller.process.options import ControllerOptions
@@ -92,13 +93,33 @@ def _candidate(
     return candidate, source
 
 
+def initial_knowledge(opts: ControllerOptions, store: StateStore) -> KnowledgeRecord:
+    """The plant knowledge to judge on: the saved record, else the rig's commissioning model
+    with its stated bound (saved as version 1). Raises PersistenceError for a saved record
+    that cannot be read: the controller never judges on a silent default."""
+    saved = store.load_knowledge()
+    if saved is not None:
+        return saved
+    if opts.plant == "sim":
+        source = "simulated rig model"
+    else:
+        source = "default model (the rig file states none: identify and adopt a measurement)"
+    rec = KnowledgeRecord.of(
+        PlantKnowledge(bound=COMMISSIONING_BOUND, model=NominalModel(), version=1, source=source)
+    )
+    store.save_knowledge(rec)
+    log.info("plant knowledge v1 (%s) saved", source)
+    return rec
+
+
 def _initial_config(
     opts: ControllerOptions,
     store: StateStore,
     check: Callable[[LoopConfig], GateVerdict],
     rig_limit_deg_s: float | None = None,
 ) -> tuple[LoopConfig, int, proto.Margins]:
-    """The configuration to start with; it must pass the gate; a change is saved and logged."""
+    """The configuration to start with; the gate must not reject it (a caution is started
+    with and reported); a change is saved and logged."""
     saved = store.load()
     candidate, source = _candidate(
         opts, None if saved is None else saved.config, store.active_path, rig_limit_deg_s
@@ -108,6 +129,8 @@ def _initial_config(
         raise StartupError(
             f"{source}: rejected by the stability gate: " + "; ".join(verdict.reasons)
         )
+    if verdict.verdict == "caution":
+        log.warning("%s: the gate's verdict is caution: %s", source, "; ".join(verdict.reasons))
     if saved is not None and saved.config == candidate:
         return candidate, saved.version, verdict.margins
     version = (saved.version if saved is not None else 0) + 1
@@ -231,9 +254,13 @@ def _run(
     runner.command_limit_max_deg_s = _rig_command_limit(opts)
     try:
         store = StateStore(opts.state_path)
+        knowledge = initial_knowledge(opts, store)
         # The first check also starts the gate's worker process, before the loop runs.
         cfg, version, margins = _initial_config(
-            opts, store, runner.check, runner.command_limit_max_deg_s
+            opts,
+            store,
+            lambda c: runner.check(c, knowledge),
+            runner.command_limit_max_deg_s,
         )
     except PersistenceError as exc:
         raise StartupError(str(exc)) from exc
@@ -256,7 +283,7 @@ def _run(
                 if runtime.mode != ESTOP:
                     runtime.mode = FAULT
                 log.warning("fault at start: %s", rig_faults[0])
-            service = ControllerService(opts, runtime, store, runner, margins, notes)
+            service = ControllerService(opts, runtime, store, runner, margins, notes, knowledge)
             with open_session(opts.listen, opts.connect) as session:
                 node = ZenohNode(service)
                 try:

@@ -78,6 +78,7 @@ class ZenohNode:
         self.config_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.command_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.identify_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.knowledge_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._threads: list[threading.Thread] = []
         self._entities: list[Any] = []
         self.state_pub: Any = None
@@ -107,6 +108,7 @@ class ZenohNode:
             (proto.key_config(rig), self.config_q),
             (proto.key_command(rig), self.command_q),
             (proto.key_identify(rig), self.identify_q),
+            (proto.key_knowledge(rig), self.knowledge_q),
         ):
             handler = zenoh.handlers.Callback(self._enqueue(q), indirect=False)
             self._entities.append(session.declare_queryable(key, handler))
@@ -143,6 +145,10 @@ class ZenohNode:
             ("config-worker", lambda: self.serve_queue(self.config_q, self.handle_config)),
             ("command-worker", lambda: self.serve_queue(self.command_q, self.handle_command)),
             ("identify-worker", lambda: self.serve_queue(self.identify_q, self.handle_identify)),
+            (
+                "knowledge-worker",
+                lambda: self.serve_queue(self.knowledge_q, self.handle_knowledge),
+            ),
         ):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -151,7 +157,7 @@ class ZenohNode:
     def close(self) -> None:
         """Stop the threads (after the loop has finished), then undeclare everything."""
         self.stop_event.set()
-        queues = (self.config_q, self.command_q, self.identify_q)
+        queues = (self.config_q, self.command_q, self.identify_q, self.knowledge_q)
         for q in queues:
             q.put(SHUTDOWN)
         for t in self._threads:
@@ -296,7 +302,7 @@ class ZenohNode:
             )
         if req.candidate is None:
             return proto.encode(svc.active_config())
-        return proto.encode(svc.apply(req.candidate, req.client))
+        return proto.encode(svc.apply(req.candidate, req.client, confirm=req.confirm))
 
     def handle_command(self, data: bytes) -> bytes:
         """Command -> CommandReply. An EStop engages before the payload is even validated
@@ -318,6 +324,20 @@ class ZenohNode:
         except ConfigError as exc:
             name = f"body.spec.{exc.field}"
             return proto.encode(svc.refused(f"{name}: {exc}", field=name))
+
+    def handle_knowledge(self, data: bytes) -> bytes:
+        """KnowledgeRequest (or nothing) -> KnowledgeReply."""
+        svc = self.service
+        big = self._too_large(data)
+        if big is not None:
+            return proto.encode(svc.knowledge_reply(False, big, field="payload"))
+        if not data:
+            return proto.encode(svc.knowledge_reply(True))
+        try:
+            req = proto.decode(data, proto.KnowledgeRequest)
+        except proto.ProtocolError as exc:
+            return proto.encode(svc.knowledge_reply(False, str(exc), field=exc.field))
+        return proto.encode(svc.handle_knowledge(req))
 
     def handle_identify(self, data: bytes) -> bytes:
         """Any payload -> IdentifyStatus of the latest run."""

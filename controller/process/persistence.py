@@ -9,6 +9,9 @@
 - `latch.json`: {"mode": "estop" | "fault", "reason", "fault", "saved_at_s"} while the loop is
   latched in e-stop or fault (written atomically, removed on reset): a restart comes back in
   that mode until an explicit reset.
+- `plant_knowledge.json`: the plant knowledge every candidate is judged on (a
+  `controller.gate.knowledge.KnowledgeRecord`: model, bound, measured responses, version,
+  source), written atomically whenever an operator adopts new knowledge.
 
 Versions are bounded by MAX_VERSION (2**53 - 1: exact in every JSON reader, a browser's
 included, and far inside MessagePack's integers): a saved file above it is refused on load, and
@@ -33,9 +36,11 @@ import msgspec
 
 from controller.core.config import LoopConfig, config_from_builtins, config_to_builtins
 from controller.core.errors import ConfigError
+from controller.gate.knowledge import KnowledgeRecord
 
 __all__ = [
     "ACTIVE_FILE",
+    "KNOWLEDGE_FILE",
     "LATCH_FILE",
     "LOG_FILE",
     "MAX_VERSION",
@@ -48,6 +53,7 @@ __all__ = [
 ACTIVE_FILE = "active_config.json"
 LOG_FILE = "applied_changes.jsonl"
 LATCH_FILE = "latch.json"
+KNOWLEDGE_FILE = "plant_knowledge.json"
 MAX_VERSION = 2**53 - 1
 
 _json = msgspec.json.Encoder()
@@ -101,7 +107,7 @@ class StateStore:
 
     def _remove_stale_tmp(self) -> list[str]:
         removed: list[str] = []
-        names = (ACTIVE_FILE, LATCH_FILE)
+        names = (ACTIVE_FILE, LATCH_FILE, KNOWLEDGE_FILE)
         try:
             entries = list(self.directory.iterdir())
         except OSError:
@@ -252,6 +258,36 @@ class StateStore:
         if not isinstance(reason, str) or not isinstance(fault, str):
             raise PersistenceError(f"{path}: reason/fault: expected strings")
         return Latch(str(data["mode"]), reason[:500], fault[:500])
+
+    @property
+    def knowledge_path(self) -> Path:
+        return self.directory / KNOWLEDGE_FILE
+
+    def save_knowledge(self, record: KnowledgeRecord) -> None:
+        if not 0 <= record.version <= MAX_VERSION:
+            raise PersistenceError(f"knowledge version: {record.version} is outside the range")
+        data = msgspec.json.format(msgspec.json.encode(record), indent=1) + b"\n"
+        self._atomic_write(self.knowledge_path, data)
+
+    def load_knowledge(self) -> KnowledgeRecord | None:
+        """The saved plant knowledge (None if there is none). A file that cannot be read or
+        validated raises PersistenceError naming the field: the controller never judges on
+        knowledge it cannot read (nor silently on a default)."""
+        path = self.knowledge_path
+        try:
+            raw = path.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise PersistenceError(f"{path}: cannot read: {exc}") from exc
+        try:
+            rec = msgspec.json.decode(raw, type=KnowledgeRecord)
+            if not 0 <= rec.version <= MAX_VERSION:
+                raise ValueError(f"version: {rec.version} is outside [0, {MAX_VERSION}]")
+            rec.to_knowledge()
+        except (msgspec.DecodeError, msgspec.ValidationError, ValueError) as exc:
+            raise PersistenceError(f"{path}: {exc}") from exc
+        return rec
 
     def load_latch_or_none(self) -> Latch | None:
         """`load_latch`, with an unreadable file as None (the writer then rewrites it)."""

@@ -18,6 +18,7 @@ import msgspec
 
 from controller import protocol as proto
 from controller.core.config import LoopConfig
+from controller.gate.knowledge import KnowledgeRecord
 from controller.process.gate_worker import GateRunner, margins_dict
 from controller.process.identify_runs import IdentifyRuns
 from controller.process.options import ControllerOptions
@@ -52,6 +53,7 @@ class ControllerService:
         gate: GateRunner,
         margins: proto.Margins,
         notes: list[str],
+        knowledge: KnowledgeRecord | None = None,
     ) -> None:
         self.opts = opts
         self.rt = runtime
@@ -63,6 +65,11 @@ class ControllerService:
         self.stop_event = threading.Event()
         self.identify = IdentifyRuns(opts.rig_name, gate, self.stop_event, self.warn)
         self._apply_lock = threading.Lock()
+        #: The plant knowledge every candidate is judged on (the controller owns it; replaced
+        #: whole under the apply lock, so an apply and a change of knowledge never interleave).
+        self.knowledge = knowledge if knowledge is not None else KnowledgeRecord()
+        #: The gate's verdict on the running configuration, on that knowledge.
+        self.running_verdict = "accept"
         self._identify_lock = threading.Lock()
         # The last rejection logged, when, and how many identical ones followed unlogged.
         self._last_rejection: tuple[str, tuple[str, ...]] | None = None
@@ -105,8 +112,11 @@ class ControllerService:
             )
         return self.config_reply(accepted=False, reasons=reasons, **kw)
 
-    def apply(self, candidate: LoopConfig, client: str) -> proto.ConfigReply:
-        """Gate, persist, swap at a tick boundary, log; one candidate at a time."""
+    def apply(
+        self, candidate: LoopConfig, client: str, *, confirm: bool = False
+    ) -> proto.ConfigReply:
+        """Gate, persist, swap at a tick boundary, log; one candidate at a time. A `caution`
+        verdict is applied only with `confirm`."""
         with self._apply_lock:
             active = self.rt.loop.active
             if candidate.rate_hz != active.config.rate_hz:
@@ -118,12 +128,18 @@ class ControllerService:
             version = active.version + 1
             same = candidate == active.config
             # The analysis and the filter design run in the gate's worker process.
-            verdict = self.gate.check_and_build(candidate, version, build=not same)
+            record = self.knowledge
+            verdict = self.gate.check_and_build(candidate, version, record, build=not same)
             margins = verdict.margins
+            judged = {"verdict": verdict.verdict, "knowledge_version": record.version}
             if not verdict.accepted:
-                return self._rejected(client, list(verdict.reasons), margins=margins)
+                return self._rejected(client, list(verdict.reasons), margins=margins, **judged)
+            if verdict.verdict == "caution" and not confirm:
+                reasons = [*verdict.reasons, "confirm: the verdict is caution; send the request "
+                           "again with confirm true to apply it anyway"]
+                return self._rejected(client, reasons, margins=margins, field="confirm", **judged)
             if same or verdict.coefficients is None:
-                return self.config_reply(accepted=True, margins=margins)
+                return self.config_reply(accepted=True, margins=margins, **judged)
             try:
                 self.store.save(candidate, version)
             except PersistenceError as exc:
@@ -139,6 +155,7 @@ class ControllerService:
                 return self.config_reply(accepted=False, reasons=[reason], margins=margins)
             self._wait_version(version)
             self.margins = margins
+            self.running_verdict = verdict.verdict
             log.info(
                 "config v%d applied at seq %d (from %s): %s",
                 version,
@@ -158,8 +175,67 @@ class ControllerService:
             except PersistenceError as exc:
                 self.warn(str(exc))
             return self.config_reply(
-                accepted=True, version=version, config=candidate, margins=margins
+                accepted=True, version=version, config=candidate, margins=margins,
+                reasons=list(verdict.reasons), **judged,
             )
+
+    # -- plant knowledge -------------------------------------------------------------------------
+
+    def knowledge_reply(self, ok: bool, message: str = "", field: str = "") -> proto.KnowledgeReply:
+        return proto.KnowledgeReply(ok=ok, record=self.knowledge, message=message, field=field)
+
+    def handle_knowledge(self, req: proto.KnowledgeRequest) -> proto.KnowledgeReply:
+        """Return the plant knowledge, or adopt new knowledge (a record, or the measured
+        responses of an identification run of this controller)."""
+        if req.record is None and req.adopt_run is None:
+            return self.knowledge_reply(True)
+        if req.record is not None and req.adopt_run is not None:
+            return self.knowledge_reply(False, "adopt_run: give a record or a run, not both",
+                                        field="adopt_run")
+        if req.record is not None:
+            rec, source = req.record, req.record.source or "uploaded"
+        else:
+            try:
+                measured = self.identify.adoptable(req.adopt_run)
+            except ValueError as exc:
+                return self.knowledge_reply(False, f"adopt_run: {exc}", field="adopt_run")
+            cur = self.knowledge
+            rec = KnowledgeRecord(model=cur.model, bound=cur.bound, measured=measured)
+            source = f"identification run {req.adopt_run}"
+        try:
+            rec.to_knowledge()  # validate: every field, every response
+        except ValueError as exc:
+            return self.knowledge_reply(False, f"record: {exc}", field="record")
+        return self.adopt_knowledge(rec, source, req.client)
+
+    def adopt_knowledge(
+        self, rec: KnowledgeRecord, source: str, client: str
+    ) -> proto.KnowledgeReply:
+        """Number, persist and use `rec`; re-judge the running configuration on it."""
+        with self._apply_lock:
+            version = self.knowledge.version + 1
+            new = msgspec.structs.replace(rec, version=version, source=source[:200])
+            try:
+                self.store.save_knowledge(new)
+            except PersistenceError as exc:
+                reason = f"state_dir: not adopted, the plant knowledge could not be saved: {exc}"
+                self.warn(reason)
+                return self.knowledge_reply(False, reason, field="state_dir")
+            self.knowledge = new
+            log.info("plant knowledge v%d adopted (%s) from %s", version, source,
+                     client or "a client")
+            active = self.rt.loop.active
+            verdict = self.gate.check(active.config, new)
+            self.margins = verdict.margins
+            self.running_verdict = verdict.verdict
+            message = f"plant knowledge v{version} adopted"
+            if verdict.verdict != "accept":
+                message += (
+                    f"; the running configuration v{active.version} is now judged "
+                    f"{verdict.verdict}: " + "; ".join(verdict.reasons)
+                )
+                self.warn(message)
+            return self.knowledge_reply(True, message)
 
     def _wait_version(self, version: int) -> None:
         # The loop swaps at the start of the tick that served the ticket; this returns at
@@ -253,7 +329,20 @@ class ControllerService:
             faults=faults,
             estop_seq=rt.estop_seq,
             notes=[*self.notes, *self.errors, *extra_notes],
+            knowledge_version=self.knowledge.version,
+            knowledge=self.knowledge_description(),
+            margins=self.margins,
+            verdict=self.running_verdict,
         )
+
+    def knowledge_description(self) -> str:
+        k = self.knowledge
+        n = len(k.measured)
+        band = ""
+        if n:
+            band = (f", {n} measured response(s) {min(m.freq_hz[0] for m in k.measured):.3g}-"
+                    f"{max(m.freq_hz[-1] for m in k.measured):.3g} Hz")
+        return f"v{k.version} {k.source}{band}"
 
 
 class RuntimeEvents:

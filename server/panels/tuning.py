@@ -28,7 +28,16 @@ from server.engine import (
     TuningEngine,
     candidate_from_values,
 )
-from server.panels.widgets import ACCEPT, NEUTRAL, REJECT, add_chart, box, esc, set_html
+from server.panels.widgets import (
+    ACCEPT,
+    CAUTION,
+    NEUTRAL,
+    REJECT,
+    add_chart,
+    box,
+    esc,
+    set_html,
+)
 from server.workers import LatestWins
 
 __all__ = ["TuningPanel", "cutoff_marks", "format_gate_html"]
@@ -69,12 +78,18 @@ def format_gate_html(ev: Evaluation | None, error: str | None = None) -> str:
         if key in g.margins
     )
     table = f"<table style='width:100%;font-size:12px'>{rows}</table>"
+    judged = (f"<div class='dt-knowledge' style='font-size:11px;color:#555'>judged on "
+              f"{esc(g.knowledge)}</div>" if g.knowledge else "")
     if g.accepted:
-        return box("dt-verdict dt-accept", ACCEPT, f"<b>Verdict: accept</b>{table}",
+        return box("dt-verdict dt-accept", ACCEPT, f"<b>Verdict: accept</b>{table}{judged}",
                    font_px=None)
     reasons = _reason_list(g.reasons, "dt-reason")
-    return box("dt-verdict dt-reject", REJECT, f"<b>Verdict: REJECT</b>{table}{reasons}",
-               font_px=None)
+    if g.verdict == "caution":
+        return box("dt-verdict dt-caution", CAUTION,
+                   f"<b>Verdict: CAUTION</b> (applies only after you confirm){table}{reasons}"
+                   f"{judged}", font_px=None)
+    return box("dt-verdict dt-reject", REJECT,
+               f"<b>Verdict: REJECT</b> (cannot be sent){table}{reasons}{judged}", font_px=None)
 
 
 def _reason_list(reasons: tuple[str, ...] | list[str], cls: str) -> str:
@@ -157,7 +172,7 @@ class TuningPanel:
         self,
         gui: Any,
         engine: TuningEngine,
-        apply_fn: Callable[[LoopConfig], None],
+        apply_fn: Callable[[LoopConfig, bool], None],
         initial: LoopConfig | None = None,
     ) -> None:
         self.gui = gui
@@ -310,8 +325,40 @@ class TuningPanel:
             log.info("candidate not sent: %s", exc)
             self.apply_result.content = box("dt-apply", REJECT, f"Not sent: {esc(str(exc))}")
             return
+        ev = self.engine.evaluate(cand)
+        if ev.gate.verdict == "reject":
+            # Checked here, on the server, whatever the browser's button showed.
+            self.apply_result.content = box(
+                "dt-apply dt-apply-rejected", REJECT,
+                "<b>Not sent</b>: the gate rejects this candidate"
+                f"{_reason_list(ev.gate.reasons, 'dt-reject-reason')}")
+            return
+        if ev.gate.verdict == "caution":
+            self._confirm_caution(cand, ev.gate.reasons)
+            return
         self.apply_result.content = box("dt-apply", NEUTRAL, "Sending the candidate...")
-        self._apply_fn(cand)
+        self._apply_fn(cand, False)
+
+    def _confirm_caution(self, cand: LoopConfig, reasons: tuple[str, ...]) -> None:
+        """A dialog listing the reasons; only "Apply anyway" sends (with confirm)."""
+        with self.gui.add_modal("Apply with caution?") as modal:
+            self.gui.add_html(
+                "<div class='dt-confirm'>The gate's verdict is <b>caution</b>:"
+                f"{_reason_list(reasons, 'dt-caution-reason')}</div>")
+            go = self.gui.add_button("Apply anyway", color="orange")
+            cancel = self.gui.add_button("Cancel")
+
+            @go.on_click
+            def _go(_e: Any) -> None:
+                modal.close()
+                self.apply_result.content = box("dt-apply", NEUTRAL,
+                                                "Sending the candidate (confirmed)...")
+                self._apply_fn(cand, True)
+
+            @cancel.on_click
+            def _cancel(_e: Any) -> None:
+                modal.close()
+                self.apply_result.content = box("dt-apply", NEUTRAL, "Not sent (cancelled).")
 
     def show_reply(self, accepted: bool, version: int, reasons: list[str], note: str = "") -> None:
         if accepted:
@@ -363,7 +410,8 @@ class TuningPanel:
         set_html(self.cutoff_text, self._cutoff_html(cand.q_cutoff_hz, rec, known))
         if known:
             self._update_marks(rec)
-        self.apply_button.color = "green" if ev.gate.accepted else "orange"
+        self.apply_button.color = {"accept": "green", "caution": "orange"}.get(
+            ev.gate.verdict, "red")
         self.last_evaluation = ev
         self.last_update_s = time.perf_counter() - t0
         self.update_count += 1

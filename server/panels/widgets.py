@@ -14,6 +14,7 @@ __all__ = ["ACCEPT", "NEUTRAL", "REJECT", "add_chart", "box", "esc", "set_html"]
 ACCEPT = ("#2ca02c", "#eaf7ea")
 REJECT = ("#d62728", "#fdecea")
 NEUTRAL = ("#888", "#f4f4f4")
+CAUTION = ("#b26a00", "#fff4e0")
 
 
 def add_chart(
