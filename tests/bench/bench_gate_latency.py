@@ -1,0 +1,80 @@
+"""Gate latency as the controller pays it: `GateRunner.check_and_build` in the niced worker
+process (the verdict: analysis on all evidence, recommended cut-off, nonlinear check when
+wired; then the filter design), p50/p99 over candidates like a tuning session sends them.
+
+    .venv/bin/python tests/bench/bench_gate_latency.py [--n 100]
+
+Two plant knowledges: the commissioning model with its bound, and the same plus three
+measured responses as identification hands them over (0.1-20 Hz, 10 points per decade).
+"Same base" candidates change only the Q cut-off (the recommended cut-off's search is cached
+per base), "new base" candidates change the gains too (a new search each time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+from controller.core.config import LoopConfig, NominalModel
+from controller.gate.knowledge import (
+    COMMISSIONING_BOUND,
+    KnowledgeRecord,
+    MeasuredResponse,
+    PlantKnowledge,
+)
+from controller.gate.loop_model import nominal_continuous_response
+from controller.process.gate_worker import GateRunner
+
+
+def _ident_knowledge() -> KnowledgeRecord:
+    f = np.logspace(-1.0, np.log10(20.0), 24)
+    h = nominal_continuous_response(NominalModel(), f)
+    rng = np.random.default_rng(0)
+    measured = tuple(
+        MeasuredResponse(f"pos{i}", f, h * (1.0 + 0.02 * rng.standard_normal(f.size)),
+                         spread=np.full(f.size, 0.04))
+        for i in range(3)
+    )
+    return KnowledgeRecord.of(PlantKnowledge(measured, COMMISSIONING_BOUND, version=2,
+                                             source="bench: 3 positions"))
+
+
+def _percentiles(xs: list[float]) -> str:
+    xs = sorted(xs)
+    p99 = xs[min(len(xs) - 1, int(0.99 * len(xs)))]
+    return f"p50 {1e3 * statistics.median(xs):7.1f} ms   p99 {1e3 * p99:7.1f} ms"
+
+
+def main(n: int) -> None:
+    model = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=1,
+                                              source="bench: model"))
+    runner = GateRunner(subprocess=True)
+    rng = np.random.default_rng(1)
+    try:
+        runner.check(LoopConfig(), model)  # start the worker
+        for name, record in (("model + bound", model), ("3 measured (ident)", _ident_knowledge())):
+            runner.check(LoopConfig(), record)
+            for label, new_base in (("same base", False), ("new base", True)):
+                times: list[float] = []
+                verdicts: dict[str, int] = {}
+                for k in range(n):
+                    cfg = LoopConfig(q_cutoff_hz=float(np.exp(rng.uniform(-2.3, 2.3))))
+                    if new_base:
+                        cfg = cfg.with_(cv_kp=float(rng.uniform(0.2, 0.7)),
+                                        pos_kp_per_s=float(rng.uniform(3.0, 12.0)))
+                    t0 = time.perf_counter()
+                    v = runner.check_and_build(cfg, k + 10, record)
+                    times.append(time.perf_counter() - t0)
+                    verdicts[v.verdict] = verdicts.get(v.verdict, 0) + 1
+                print(f"{name:<20} {label:<10} {_percentiles(times)}   verdicts {verdicts}")
+    finally:
+        runner.close()
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--n", type=int, default=100)
+    main(ap.parse_args().n)
