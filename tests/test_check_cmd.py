@@ -91,10 +91,10 @@ def test_knowledge_file_is_the_evidence(tmp_path: Path) -> None:
     from controller.gate.knowledge import BoundRecord, KnowledgeRecord
 
     n = NominalModel()
+    a, b, c = n.pn_num
     k = KnowledgeRecord(
         version=7, source="rig file",
-        model=NominalModel(mn_den=n.mn_den, pn_num=tuple(15.0 * c for c in n.pn_num),
-                           pn_den=n.pn_den),
+        model=NominalModel(mn_den=n.mn_den, pn_num=(15 * a, 15 * b, 15 * c), pn_den=n.pn_den),
         bound=BoundRecord(low_freq_fraction=0.2, unity_freq_hz=40.0, high_freq_fraction=4.0),
     )
     path = tmp_path / "knowledge.json"

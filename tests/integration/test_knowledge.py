@@ -47,8 +47,8 @@ def test_a_lying_nominal_is_judged_on_the_controllers_model(
     """The issue's case: `nominal` with the gain x0.11 makes F1 ~ 9x too large; on the real
     (simulated) rig that loop is unstable, and the controller must say so."""
     n = ARTICLE
-    lie = NominalModel(mn_den=n.mn_den, pn_num=tuple(0.11 * c for c in n.pn_num),
-                       pn_den=n.pn_den)
+    a, b, c = n.pn_num
+    lie = NominalModel(mn_den=n.mn_den, pn_num=(0.11 * a, 0.11 * b, 0.11 * c), pn_den=n.pn_den)
     cand = LoopConfig(nominal=lie, q_cutoff_hz=4.0)
     assert not truth(TruePlant(), cand).stable  # the independent truth: unstable
     before = client.get_config()
