@@ -156,6 +156,8 @@ class Status(_Msg, frozen=True, kw_only=True):
     knowledge: str = ""  # its one-line description (version, source, band)
     margins: Margins | None = None  # the running configuration's, on that knowledge
     verdict: str = ""  # the gate's verdict on the running configuration, on that knowledge
+    watchdog: str = ""  # the latest watchdog trip and what was done (rollback or fault)
+    rollbacks: int = 0  # watchdog rollbacks since the controller started
 
 
 # -- config queryable -------------------------------------------------------------------------
@@ -246,13 +248,29 @@ class IdentifyStart(
     spec: IdentifySpec = msgspec.field(default_factory=IdentifySpec)
 
 
+class SimFault(
+    msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="sim_fault"
+):
+    """Simulated rig only: replace the injected faults (all defaults: clear them), to rehearse
+    and test the watchdog. `plant_gain` scales what the drive does, `extra_backlash_deg`
+    loosens the belt, `resonance_hz` (> 0) adds a mode. Refused on a CAN rig."""
+
+    plant_gain: float = 1.0
+    extra_backlash_deg: float = 0.0
+    resonance_hz: float = 0.0
+    resonance_damping: float = 0.02
+    resonance_mass_fraction: float = 0.2
+
+
 class IdentifyAbort(
     msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="identify_abort"
 ):
     """Abort the running identification: the loop holds the present position."""
 
 
-CommandBody = SetTrajectory | Start | Stop | EStop | ResetFault | IdentifyStart | IdentifyAbort
+CommandBody = (
+    SetTrajectory | Start | Stop | EStop | ResetFault | IdentifyStart | IdentifyAbort | SimFault
+)
 
 
 class Command(_Msg, frozen=True, kw_only=True):

@@ -13,6 +13,7 @@ import pytest
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
+from controller.core.watchdog import WatchdogLimits
 from controller.ident.program import ExcitationProgram
 from controller.process.requests import (
     AbortProgram,
@@ -583,7 +584,11 @@ def test_start_after_a_reset_far_from_the_trajectory_approaches_with_bounded_spe
 
 
 def test_the_approach_allocates_nothing_that_stays() -> None:
-    rt = Runtime(make_loop(), NullRig(), options=RuntimeOptions(ring_blocks=8, batch_size=20))
+    # The null rig never moves: the watchdog's tracking and saturation detectors would
+    # (rightly) fault it; this test measures the approach's memory only.
+    dead_rig_ok = WatchdogLimits(error_limit_deg=1e9, saturation_duration_s=1e9)
+    rt = Runtime(make_loop(), NullRig(),
+                 options=RuntimeOptions(ring_blocks=8, batch_size=20, watchdog=dead_rig_ok))
     rt.approach_from(1000.0)
     retained = retained_bytes(rt)
     assert rt.approaching  # still approaching during the measurement

@@ -31,6 +31,8 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import msgspec
+
 from controller import protocol as proto
 from controller.core.errors import ConfigError
 from controller.process import requests as rq
@@ -63,6 +65,11 @@ def to_request(body: proto.CommandBody, client: str) -> rq.RequestBody:
         return rq.SetTrajectory(body.trajectory)
     if isinstance(body, proto.IdentifyAbort):
         return rq.AbortProgram(f"aborted by {client or 'a client'}")
+    if isinstance(body, proto.SimFault):
+        from controller.sim.sim_rig import RigFaults
+
+        # Raises ConfigError naming the field (the caller names it body.<field>).
+        return rq.InjectFault(RigFaults(**msgspec.structs.asdict(body)))
     raise TypeError(f"no runtime request for {type(body).__name__}")
 
 
@@ -215,6 +222,7 @@ class ZenohNode:
         while not self.stop_event.wait(period):
             try:
                 self.events.poll()
+                self.service.poll_rollback()
                 self.status_pub.put(proto.encode(self.status()))
             except Exception as exc:
                 self.service.warn(f"status put failed: {exc}")
@@ -318,7 +326,12 @@ class ZenohNode:
             return proto.encode(svc.refused(str(exc), field=exc.field))
         body = cmd.body
         if not isinstance(body, proto.IdentifyStart):
-            return proto.encode(svc.command(to_request(body, cmd.client), cmd.client))
+            try:
+                request = to_request(body, cmd.client)
+            except ConfigError as exc:
+                name = f"body.{exc.field}"
+                return proto.encode(svc.refused(f"{name}: {exc}", field=name))
+            return proto.encode(svc.command(request, cmd.client))
         try:
             return proto.encode(svc.start_identify(body.spec, cmd.client))
         except ConfigError as exc:

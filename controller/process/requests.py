@@ -8,6 +8,7 @@ next tick boundary (see `Runtime.submit`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from controller.core.loop import LoopCoefficients, PreparedCoefficients
 from controller.core.trajectory import Trajectory
@@ -17,6 +18,7 @@ __all__ = [
     "AbortProgram",
     "ApplyCoefficients",
     "EStop",
+    "InjectFault",
     "RequestBody",
     "ResetFault",
     "RunProgram",
@@ -60,10 +62,15 @@ class ApplyCoefficients:
     only takes prepared objects over (`PreparedCoefficients`). Single use.
     """
 
-    __slots__ = ("prepared",)
+    __slots__ = ("fallback", "prepared")
 
-    def __init__(self, coefficients: LoopCoefficients) -> None:
+    def __init__(
+        self, coefficients: LoopCoefficients, fallback: LoopCoefficients | None = None
+    ) -> None:
         self.prepared = PreparedCoefficients(coefficients)
+        #: The configuration the watchdog rolls back to if these coefficients misbehave
+        #: (the one running before, under the next version number), prepared here too.
+        self.fallback = PreparedCoefficients(fallback) if fallback is not None else None
 
     @property
     def coefficients(self) -> LoopCoefficients:
@@ -75,6 +82,13 @@ class RunProgram:
     """Start an ExcitationProgram at the next tick (mode running or stopped)."""
 
     program: ExcitationProgram
+
+
+@dataclass(frozen=True, slots=True)
+class InjectFault:
+    """Simulated rig only: replace its injected faults (`RigFaults`; all defaults clear)."""
+
+    faults: Any
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,4 +107,5 @@ RequestBody = (
     | ApplyCoefficients
     | RunProgram
     | AbortProgram
+    | InjectFault
 )

@@ -37,15 +37,17 @@ from typing import Protocol
 
 import numpy as np
 
-from controller.core.loop import ServoLoop
+from controller.core.loop import PreparedCoefficients, ServoLoop
 from controller.core.ramp import Ramp
 from controller.core.samples import STATE_COLUMNS
 from controller.core.trajectory import Trajectory
+from controller.core.watchdog import Watchdog, WatchdogLimits, WatchdogTrip
 from controller.ident.program import ExcitationProgram
 from controller.process.requests import (
     AbortProgram,
     ApplyCoefficients,
     EStop,
+    InjectFault,
     RequestBody,
     ResetFault,
     RunProgram,
@@ -101,6 +103,12 @@ class RuntimeOptions:
     """Start (and a new trajectory while running) moves onto the trajectory at most this fast
     (`controller.core.ramp`): no jump of the reference after a reset far from it."""
     approach_accel_deg_s2: float = 40.0
+    watchdog: WatchdogLimits | None = None
+    """The loop watchdog's limits (None: `WatchdogLimits()`); it is always on while the loop
+    runs a configuration (not during an identification program, which has its own limits)."""
+    rollback_guard_s: float = 10.0
+    """A watchdog trip within this time after a rollback (the previous configuration
+    misbehaves too), or with no previous configuration to go back to, is a fault."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.rate_hz) and 1.0 <= self.rate_hz <= 20000.0):
@@ -113,6 +121,8 @@ class RuntimeOptions:
             raise ValueError(f"ring_blocks: {self.ring_blocks!r} out of range [2, 65536]")
         if not 16 <= self.timing_capacity <= 1 << 22:
             raise ValueError(f"timing_capacity: {self.timing_capacity!r} out of range")
+        if not (math.isfinite(self.rollback_guard_s) and 0.0 <= self.rollback_guard_s <= 3600):
+            raise ValueError(f"rollback_guard_s: {self.rollback_guard_s!r} out of range [0, 3600]")
         for name in ("approach_speed_deg_s", "approach_accel_deg_s2"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 < value <= 1e4):
@@ -268,6 +278,22 @@ class Runtime:
         self._blk_mode = ""
         self.last_pos_deg = 0.0
         self.program: ExcitationProgram | None = None
+        # The watchdog and the configuration it rolls back to.
+        self.watchdog = Watchdog(
+            opts.watchdog,
+            rate_hz=opts.rate_hz,
+            command_limit_deg_s=loop.active.config.command_limit_deg_s,
+        )
+        self._wd_step = self.watchdog.step
+        self._fallback: PreparedCoefficients | None = None
+        self._guard_ticks = round(opts.rollback_guard_s * opts.rate_hz)
+        self._rollback_seq = -(1 << 62)
+        self.rollbacks = 0
+        """Rollbacks done (the service persists each; `last_rollback` describes the latest)."""
+        self.last_rollback: tuple[int, int, int, WatchdogTrip] | None = None
+        """(seq of the first tick with the previous configuration, version from, version to,
+        the trip)."""
+        self.last_trip: WatchdogTrip | None = None
 
     # -- requests (any thread) -----------------------------------------------------------------
 
@@ -508,6 +534,8 @@ class Runtime:
         elif mode in (RUNNING, STOPPED):
             u = loop.tick(ref, ref_rate, pos, w)
             d_hat = loop.d_hat
+            if self._wd_step(u, ref - pos):
+                self._on_trip(u)
         else:
             # Keep coefficient swaps flowing while disabled (the states are reset on leaving).
             loop.tick(pos, 0.0, pos, w)
@@ -583,10 +611,37 @@ class Runtime:
         self._traj_at = traj.at
         self._traj_k = 0
 
+    def _on_trip(self, u: float) -> None:
+        """The watchdog tripped: roll back to the previous configuration (swapped at the next
+        tick, bumpless), or, with none or again soon after a rollback, fault (command 0)."""
+        wd = self.watchdog
+        trip = wd.trip
+        assert trip is not None
+        self.last_trip = trip
+        seq = self.seq + 1
+        fallback = self._fallback
+        if fallback is not None and seq - self._rollback_seq > self._guard_ticks:
+            self._fallback = None
+            from_version = self.loop.active.version
+            self.loop.request(fallback)
+            self._rollback_seq = seq + 1
+            self.last_rollback = (seq + 1, from_version, fallback.coefficients.version, trip)
+            self.rollbacks += 1
+            wd.command_limit_deg_s = fallback.limit
+            wd.reset(u)
+            return
+        why = (
+            "no previous configuration to roll back to"
+            if fallback is None and self.rollbacks == 0
+            else "again after a rollback"
+        )
+        self._enter_fault(f"watchdog: {trip.reason} ({why})")
+
     def _end_program(self, pos: float) -> None:
         """The program is over (done or aborted): the position loop holds `pos` (running)."""
         self.program = None
         self.loop.reset()
+        self.watchdog.reset()
         self._set_trajectory(Trajectory(kind="hold", offset_deg=pos))
 
     def _abort_program(self, reason: str, limit: str) -> None:
@@ -647,7 +702,17 @@ class Runtime:
         pos = self.last_pos_deg
         if isinstance(b, ApplyCoefficients):
             self.loop.request(b.prepared)  # prepared by the requesting thread
+            self._fallback = b.fallback
+            self.watchdog.command_limit_deg_s = b.prepared.limit
+            self.watchdog.reset(self.loop.u_prev)
             t.ok = True
+        elif isinstance(b, InjectFault):
+            set_faults = getattr(self.rig, "set_faults", None)
+            if set_faults is None:
+                t.ok, t.message = False, "sim_fault: only the simulated rig takes injected faults"
+            else:
+                set_faults(b.faults)  # between ticks, in the tick's own thread: no race
+                t.ok = True
         elif isinstance(b, RunProgram):
             if self.program is not None:
                 t.ok, t.message = False, "an identification is already running"
@@ -729,6 +794,7 @@ class Runtime:
         # (An e-stop requested meanwhile stays pending: the next tick honours it.)
         self.fault = None
         self.loop.reset()
+        self.watchdog.reset()
         self._enter_stopped(pos)
         self.latch_changed.set()
         t.ok = True

@@ -9,6 +9,7 @@ threads, never on the loop's thread: the loop only exchanges prepared objects.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -70,6 +71,10 @@ class ControllerService:
         self.knowledge = knowledge if knowledge is not None else KnowledgeRecord()
         #: The gate's verdict on the running configuration, on that knowledge.
         self.running_verdict = "accept"
+        #: Margins and verdict of the configuration the watchdog would roll back to.
+        self._fallback_state: tuple[proto.Margins, str, LoopConfig] | None = None
+        self._rollbacks_seen = 0
+        self.watchdog_text = ""
         self._identify_lock = threading.Lock()
         # The last rejection logged, when, and how many identical ones followed unlogged.
         self._last_rejection: tuple[str, tuple[str, ...]] | None = None
@@ -146,14 +151,18 @@ class ControllerService:
                 reason = f"state_dir: not applied, the configuration could not be saved: {exc}"
                 self.warn(reason)
                 return self.config_reply(accepted=False, reasons=[reason], margins=margins)
-            # The filters are built here (this thread); the tick only swaps them in.
-            ticket = self.rt.submit(ApplyCoefficients(verdict.coefficients))
+            # The filters are built here (this thread); the tick only swaps them in. The
+            # configuration running now goes with them, under the next version, as the
+            # watchdog's rollback target (its filters are designed already: no design work).
+            fallback = dataclasses.replace(active, version=version + 1)
+            ticket = self.rt.submit(ApplyCoefficients(verdict.coefficients, fallback))
             if not ticket.wait(self.opts.apply_timeout_s) or not ticket.ok:
                 # Saved but not (yet) swapped: only while shutting down. Report it.
                 reason = f"loop: not applied at a tick boundary ({ticket.message or 'timeout'})"
                 self.warn(reason)
                 return self.config_reply(accepted=False, reasons=[reason], margins=margins)
             self._wait_version(version)
+            self._fallback_state = (self.margins, self.running_verdict, candidate)
             self.margins = margins
             self.running_verdict = verdict.verdict
             log.info(
@@ -178,6 +187,42 @@ class ControllerService:
                 accepted=True, version=version, config=candidate, margins=margins,
                 reasons=list(verdict.reasons), **judged,
             )
+
+    # -- watchdog ------------------------------------------------------------------------------
+
+    def poll_rollback(self) -> None:
+        """Persist and report what the watchdog did (status thread; the tick only counts)."""
+        rt = self.rt
+        trip = rt.last_trip
+        if trip is not None and rt.mode == FAULT and rt.fault and rt.fault.startswith("watchdog"):
+            self.watchdog_text = rt.fault
+        if rt.rollbacks == self._rollbacks_seen or rt.last_rollback is None:
+            return
+        with self._apply_lock:
+            self._rollbacks_seen = rt.rollbacks
+            seq, from_v, to_v, trip = rt.last_rollback
+            self._wait_version(to_v)
+            active = rt.loop.active
+            text = (
+                f"watchdog: {trip.reason}; rolled back from v{from_v} to the previous "
+                f"configuration as v{to_v} at seq {seq}"
+            )
+            self.watchdog_text = text
+            self.warn(text)
+            bad: LoopConfig | None = None
+            if self._fallback_state is not None:
+                self.margins, self.running_verdict, bad = self._fallback_state
+                self._fallback_state = None
+            if active.version != to_v:
+                return  # another change came first; it is logged on its own
+            try:
+                self.store.save(active.config, to_v)
+                self.store.append_change(
+                    old=bad, old_version=from_v, new=active.config, version=to_v,
+                    margins=margins_dict(self.margins), client=f"watchdog rollback: {trip.kind}",
+                )
+            except PersistenceError as exc:
+                self.warn(str(exc))
 
     # -- plant knowledge -------------------------------------------------------------------------
 
@@ -333,6 +378,8 @@ class ControllerService:
             knowledge=self.knowledge_description(),
             margins=self.margins,
             verdict=self.running_verdict,
+            watchdog=self.watchdog_text,
+            rollbacks=rt.rollbacks,
         )
 
     def knowledge_description(self) -> str:

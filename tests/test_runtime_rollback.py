@@ -1,0 +1,133 @@
+"""The watchdog in the runtime: a trip rolls back to the previous configuration at the next
+tick (bumpless), a second trip soon after (or with nothing to go back to) is a fault with
+command 0; fault injection reaches only the simulated rig. Runs the real loop on the
+simulated rig against a fake clock (faster than real time)."""
+
+from __future__ import annotations
+
+import math
+import statistics
+
+from controller.core.config import LoopConfig
+from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.core.trajectory import Trajectory
+from controller.process.requests import ApplyCoefficients, InjectFault
+from controller.process.runtime import FAULT, RUNNING, Runtime, RuntimeOptions
+from controller.sim.sim_rig import RigFaults, SimRig
+
+GOOD = LoopConfig()
+BAD = LoopConfig(q_cutoff_hz=10.0)  # chatters against stick-slip at standstill (watchdog tests)
+HOLD = Trajectory(kind="hold", offset_deg=10.0)
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def clock(self) -> float:
+        self.now += 1e-6
+        return self.now
+
+    def sleep(self, s: float) -> None:
+        self.now += s
+
+
+class Recorded(SimRig):
+    """The simulated rig, recording the commands it receives."""
+
+    def __init__(self) -> None:
+        super().__init__(initial_position_deg=10.0)
+        self.commands: list[float] = []
+
+    def step(self, command_deg_s: float) -> None:
+        self.commands.append(command_deg_s)
+        super().step(command_deg_s)
+
+
+def _runtime(first: LoopConfig = GOOD, **opts: float) -> tuple[Runtime, Recorded]:
+    c = Clock()
+    rig = Recorded()
+    rt = Runtime(
+        ServoLoop(LoopCoefficients.build(first, 1)), rig, trajectory=HOLD,
+        options=RuntimeOptions(**opts), clock=c.clock, sleep=c.sleep,  # type: ignore[arg-type]
+    )
+    return rt, rig
+
+
+def _more(rt: Runtime, ticks: int) -> None:
+    rt._stop = False
+    rt.run(max_ticks=ticks)
+
+
+def _apply(rt: Runtime, cfg: LoopConfig, fallback: LoopConfig | None) -> None:
+    v = rt.loop.active.version + 1
+    fb = None if fallback is None else LoopCoefficients.build(fallback, v + 1)
+    t = rt.submit(ApplyCoefficients(LoopCoefficients.build(cfg, v), fb))
+    _more(rt, 2)
+    assert t.ok and rt.loop.active.version == v
+
+
+def test_a_trip_rolls_back_at_the_next_tick_and_the_oscillation_dies() -> None:
+    rt, rig = _runtime()
+    _more(rt, 1000)
+    _apply(rt, BAD, GOOD)
+    for _ in range(20):  # until the trip (at most 10 s)
+        _more(rt, 500)
+        if rt.rollbacks:
+            break
+    assert rt.rollbacks == 1 and rt.mode == RUNNING
+    seq, from_v, to_v, trip = rt.last_rollback  # type: ignore[misc]
+    assert (from_v, to_v) == (2, 3) and trip.kind in ("oscillation", "growing oscillation")
+    assert rt.loop.active.version == 3 and rt.loop.active.config == GOOD
+    trip_seq = seq - 1  # the tick that tripped; the previous configuration ran from the next
+    print(f"\n  trip-to-rollback: 1 tick; trip after {trip.duration_s:.2f} s of {trip.reason}")
+    # Bumpless: no jump in the command at the swap beyond what the oscillation itself made.
+    before = rig.commands[trip_seq - 200 : trip_seq + 1]
+    jump = abs(rig.commands[seq] - rig.commands[seq - 1])
+    assert jump <= max(abs(a - b) for a, b in zip(before[1:], before[:-1], strict=True))
+    # The oscillation dies: the command's spread in the last second is a fraction of before.
+    _more(rt, 4000)
+    late = rig.commands[-1000:]
+    assert statistics.pstdev(late) < 0.3 * statistics.pstdev(before)
+    assert rt.rollbacks == 1 and rt.mode == RUNNING
+
+
+def test_a_trip_with_nothing_to_roll_back_to_is_a_fault_with_command_0() -> None:
+    rt, rig = _runtime(BAD)
+    _more(rt, 10_000)
+    assert rt.mode == FAULT and rt.fault is not None
+    assert rt.fault.startswith("watchdog:") and "no previous configuration" in rt.fault
+    n = len(rig.commands)
+    _more(rt, 50)
+    assert all(u == 0.0 for u in rig.commands[n:])
+
+
+def test_a_second_trip_soon_after_a_rollback_is_a_fault() -> None:
+    rt, rig = _runtime()
+    _more(rt, 500)
+    _apply(rt, BAD, BAD)  # the "previous" configuration misbehaves too
+    _more(rt, 12_000)
+    assert rt.rollbacks == 1 and rt.mode == FAULT
+    assert rt.fault is not None and "again after a rollback" in rt.fault
+
+
+def test_fault_injection_reaches_only_the_simulated_rig() -> None:
+    rt, rig = _runtime()
+    t = rt.submit(InjectFault(RigFaults(plant_gain=0.5)))
+    _more(rt, 2)
+    assert t.ok and rig.faults.plant_gain == 0.5
+
+    class Plain:
+        def read(self) -> tuple[float, float]:
+            return 0.0, 0.0
+
+        def step(self, command_deg_s: float) -> None:
+            pass
+
+    c = Clock()
+    plain = Runtime(ServoLoop(LoopCoefficients.build(GOOD)), Plain(), clock=c.clock,
+                    sleep=c.sleep)
+    t = plain.submit(InjectFault(RigFaults()))
+    plain.run(max_ticks=2)
+    assert not t.ok and "only the simulated rig" in t.message
+    assert math.isfinite(rt.last_pos_deg)
