@@ -30,6 +30,7 @@ from controller.gate.knowledge import (
 )
 from controller.gate.loop_model import default_grid
 from controller.gate.verdict import judge, recommended_cutoff_hz
+from controller.sim.nonlinear_check import findings
 from server import charts
 from server.charts import BodeCurves, FloatArray
 
@@ -274,7 +275,7 @@ class TuningEngine:
         curves, view = curves_from_analysis(analyse(cfg, plant, freq_hz=grid))
         # The verdict: the controller's own function on the controller's knowledge (its
         # default grid, not the charts'), so both sides say the same.
-        j = judge(cfg, plant)
+        j = judge(cfg, plant, nonlinear=findings)
         gate = dataclasses.replace(
             view, verdict=j.verdict, reasons=j.reasons,
             recommended_max_cutoff_hz=j.recommended_max_cutoff_hz,

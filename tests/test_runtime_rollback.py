@@ -103,7 +103,7 @@ def test_a_trip_with_nothing_to_roll_back_to_is_a_fault_with_command_0() -> None
 
 
 def test_a_second_trip_soon_after_a_rollback_is_a_fault() -> None:
-    rt, rig = _runtime()
+    rt, _rig = _runtime()
     _more(rt, 500)
     _apply(rt, BAD, BAD)  # the "previous" configuration misbehaves too
     _more(rt, 12_000)

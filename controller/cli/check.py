@@ -28,6 +28,7 @@ from controller.gate.frd import load_measured
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
 from controller.gate.margins import Margins
 from controller.gate.verdict import EXIT_CODES, Judgement, judge
+from controller.sim.nonlinear_check import findings
 
 __all__ = ["check_main", "load_knowledge"]
 
@@ -235,7 +236,7 @@ def check_main(
                 (*plant.measured, *measured), plant.bound, plant.model, plant.version,
                 f"{plant.source} + --frd",
             )
-        j = judge(cfg, plant)
+        j = judge(cfg, plant, nonlinear=findings)
     except _BadInput as exc:
         if as_json:
             out.write(json.dumps({"error": str(exc)}) + "\n")

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
-from controller.core.config import LoopConfig
+from controller.core.config import LoopConfig, NominalModel
 from controller.gate.analysis import Analysis, GateLimits, Verdict, analyse
 from controller.gate.knowledge import PlantKnowledge
 from controller.gate.search import recommended_max_cutoff_hz
@@ -20,8 +20,9 @@ __all__ = ["EXIT_CODES", "Judgement", "NonlinearCheck", "judge", "recommended_cu
 #: `dobtune check` exit codes per verdict (2 is bad input).
 EXIT_CODES: dict[str, int] = {"accept": 0, "caution": 3, "reject": 1}
 
-NonlinearCheck = Callable[[LoopConfig, PlantKnowledge], tuple[str, ...]]
-"""Runs a candidate on a nonlinear model of the rig; returns the findings (empty: none)."""
+NonlinearCheck = Callable[[LoopConfig, NominalModel], tuple[str, ...]]
+"""Runs a candidate on a nonlinear model of the rig with the knowledge's plant model; returns
+the findings (empty: none). `controller.sim.nonlinear_check.findings` is the one in use."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,6 +88,6 @@ def judge(
                 f"cut-off, {plant.describe()})"
             )
     if nonlinear is not None:
-        cautions += [f"nonlinear check: {r}" for r in nonlinear(cfg, plant)]
+        cautions += [f"nonlinear check: {r}" for r in nonlinear(cfg, plant.model)]
     verdict: Verdict = "caution" if cautions else "accept"
     return Judgement(a, verdict, (), tuple(cautions), rec)

@@ -82,9 +82,10 @@ def gate(cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
     """The gate's verdict (`controller.gate.verdict.judge`) on `cfg` against the plant
     knowledge `record`. Never raises."""
     from controller.gate.verdict import judge
+    from controller.sim.nonlinear_check import findings
 
     try:
-        j = judge(cfg, _plant(record))
+        j = judge(cfg, _plant(record), nonlinear=findings)
     except Exception as exc:  # the details go to the log, never to the client
         log.warning("analysis failed on %r: %s: %s", cfg, type(exc).__name__, exc)
         reason = "candidate: the stability analysis cannot evaluate this configuration"
@@ -157,6 +158,10 @@ def _worker_init(parent_pid: int, death_signal: bool) -> None:
 def _warm_up() -> None:
     """A new worker's first job: load the analysis code (seconds on a busy machine)."""
     import controller.gate.verdict  # noqa: F401
+    from controller.core.config import LoopConfig
+    from controller.sim.nonlinear_check import nonlinear_check
+
+    nonlinear_check(LoopConfig())  # compiles the simulated rig's kernel (numba) once
 
 
 class GateRunner:
