@@ -39,6 +39,7 @@ from typing import Any
 import zenoh
 
 from controller import protocol as proto
+from controller.protocol import USER_CHUNK, any_user_key, user_key, user_of_key
 from controller.zenoh_session import DEFAULT_LISTEN, zenoh_config
 
 __all__ = [
@@ -76,8 +77,6 @@ DICTIONARY_FILE = "zenoh-usrpwd.txt"
 ROLES = ("operator", "viewer", "controller")
 #: `rigs = ["*"]`: every rig the server serves.
 ALL_RIGS = "*"
-#: The verbatim key chunk before a user name: `dobtune/<rig>/@user/<name>/<what>`.
-USER_CHUNK = "@user"
 MIN_PASSWORD_LEN = 12
 
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
@@ -134,33 +133,6 @@ class Users:
 
 
 # -- keys: the user's own request scope ----------------------------------------------------------
-
-
-def _split_rig_key(key: str) -> tuple[str, str]:
-    prefix, rig, rest = [*key.split("/", 2), "", ""][:3]
-    if prefix != proto.KEY_PREFIX or not rig or not rest:
-        raise ValueError(f"{key!r} is not a {proto.KEY_PREFIX}/<rig>/<what> key")
-    return rig, rest
-
-
-def user_key(key: str, user: str) -> str:
-    """`dobtune/<rig>/<what>` as sent by `user`: `dobtune/<rig>/@user/<user>/<what>`."""
-    rig, rest = _split_rig_key(key)
-    return f"{proto.KEY_PREFIX}/{rig}/{USER_CHUNK}/{check_name(user, 'user')}/{rest}"
-
-
-def any_user_key(key: str) -> str:
-    """The key expression a controller declares to serve `key` for every user."""
-    rig, rest = _split_rig_key(key)
-    return f"{proto.KEY_PREFIX}/{rig}/{USER_CHUNK}/*/{rest}"
-
-
-def user_of_key(key_expr: object) -> str | None:
-    """The user a request key names (`str(query.key_expr)`), None if it names no valid user."""
-    parts = str(key_expr).split("/")
-    if len(parts) < 5 or parts[0] != proto.KEY_PREFIX or parts[2] != USER_CHUNK:
-        return None
-    return parts[3] if _NAME.fullmatch(parts[3]) else None
 
 
 def requester(users: Users, key_expr: object) -> User | None:
@@ -379,7 +351,10 @@ def _declared(keys: Iterable[str]) -> tuple[str, ...]:
 def _viewer(rig: str, user: str) -> list[_Grant]:
     """Receive state and status, read config and identification, put e-stop."""
     streams = (proto.key_state(rig), proto.key_status(rig))
-    reads = (proto.key_config(rig), proto.key_identify(rig))
+    reads = (
+        proto.key_config(rig), proto.key_identify(rig), proto.key_knowledge(rig),
+        proto.key_lease(rig),
+    )
     estop = (proto.key_estop(rig),)
     return [
         _Grant(("ingress",), ("declare_subscriber",), streams),

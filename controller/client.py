@@ -12,6 +12,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, TypeVar
 
 import msgspec
@@ -27,6 +28,7 @@ log = logging.getLogger(__name__)
 
 COLUMNS = proto.STATE_COLUMNS
 M = TypeVar("M")
+R = TypeVar("R", bound=proto.Message)
 
 
 class ControllerUnavailable(RuntimeError):
@@ -114,6 +116,13 @@ class ClientOptions:
     gone_after_s: float = 2.0
     client_name: str = "dashboard"
     ring_capacity: int = 1 << 16
+    #: With authentication: the `dobtune auth init` directory (or a password file) and the
+    #: user to log in as; requests then go to that user's key scope.
+    auth: Path | None = None
+    user: str = ""
+    #: With `auth`: opening fails (ControllerUnavailable) if no connection is made in this
+    #: long: wrong credentials and an unreachable controller look the same to Zenoh.
+    connect_timeout_s: float = 5.0
 
 
 @dataclass
@@ -146,6 +155,8 @@ class ControllerClient:
         self._thread: threading.Thread | None = None
         self._last_version: int | None = None
         self._status_listeners: list[Any] = []
+        #: The operator lease token this client holds ("" none).
+        self.lease_token = ""
 
     # -- lifecycle -----------------------------------------------------------------------------
 
@@ -153,7 +164,7 @@ class ControllerClient:
         import zenoh
 
         rig = self.opts.rig_name
-        self._session = open_session(self.opts.listen, self.opts.connect)
+        self._session = self._open()
         try:
             self._state_sub = self._session.declare_subscriber(
                 proto.key_state(rig), zenoh.handlers.RingChannel(4096)
@@ -171,6 +182,36 @@ class ControllerClient:
 
     def __exit__(self, *exc: object) -> None:
         self._close()
+
+    def _open(self) -> Any:
+        o = self.opts
+        if o.auth is None:
+            if o.user:
+                raise ValueError("user: needs auth (the credentials of that user)")
+            return open_session(o.listen, o.connect)
+        import zenoh
+
+        from controller.auth import AuthError, client_config
+
+        if not o.user:
+            raise ValueError("user: required with auth")
+        try:
+            conf = client_config(o.auth, o.user, o.connect, o.listen,
+                                 fail_after_s=o.connect_timeout_s)
+        except (AuthError, KeyError, OSError) as exc:
+            raise ControllerUnavailable(f"credentials of {o.user!r}: {exc}") from exc
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError as exc:
+            raise ControllerUnavailable(
+                f"no connection to {', '.join(o.connect)} as {o.user!r} within "
+                f"{o.connect_timeout_s:g} s: wrong credentials, or the controller is not "
+                f"reachable ({exc})"
+            ) from exc
+
+    def key(self, key: str) -> str:
+        """`key` as this client sends on it: its user's scope with authentication."""
+        return proto.user_key(key, self.opts.user) if self.opts.user else key
 
     def _close(self) -> None:
         self._stop.set()
@@ -286,37 +327,54 @@ class ControllerClient:
             f"no reply from the controller on {key} within {self.opts.query_timeout_s:.1f} s"
         )
 
+    def query(self, key: str, msg: msgspec.Struct, reply_type: type[R]) -> R:
+        """Send `msg` on `key` (this client's scope of it) and decode the reply as
+        `reply_type`. Raises ControllerUnavailable (no reply, an error reply) or ProtocolError."""
+        return proto.decode(self._query(self.key(key), proto.encode(msg)), reply_type)
+
     def get_config(self) -> proto.ConfigReply:
         req = proto.ConfigRequest(client=self.opts.client_name)
-        raw = self._query(proto.key_config(self.opts.rig_name), proto.encode(req))
-        return proto.decode(raw, proto.ConfigReply)
+        return self.query(proto.key_config(self.opts.rig_name), req, proto.ConfigReply)
 
-    def apply(self, candidate: LoopConfig, *, confirm: bool = False) -> proto.ConfigReply:
-        """Apply `candidate` through the controller's gate; a `caution` needs `confirm`."""
+    def apply(
+        self, candidate: LoopConfig, *, confirm: bool = False, expect_version: int | None = None
+    ) -> proto.ConfigReply:
+        """Apply `candidate` through the controller's gate; a `caution` needs `confirm`;
+        `expect_version`: only if that is still the active version."""
         req = proto.ConfigRequest(
-            candidate=candidate, client=self.opts.client_name, confirm=confirm
+            candidate=candidate, client=self.opts.client_name, confirm=confirm,
+            expect_version=expect_version, lease=self.lease_token,
         )
-        raw = self._query(proto.key_config(self.opts.rig_name), proto.encode(req))
-        return proto.decode(raw, proto.ConfigReply)
+        return self.query(proto.key_config(self.opts.rig_name), req, proto.ConfigReply)
 
     def knowledge(self, request: proto.KnowledgeRequest | None = None) -> proto.KnowledgeReply:
         """The controller's plant knowledge, or (with a request) adopt new knowledge."""
         req = request if request is not None else proto.KnowledgeRequest()
-        req = msgspec.structs.replace(req, client=self.opts.client_name)
-        raw = self._query(proto.key_knowledge(self.opts.rig_name), proto.encode(req))
-        return proto.decode(raw, proto.KnowledgeReply)
+        req = msgspec.structs.replace(req, client=self.opts.client_name, lease=self.lease_token)
+        return self.query(proto.key_knowledge(self.opts.rig_name), req, proto.KnowledgeReply)
 
     def command(self, body: proto.CommandBody) -> proto.CommandReply:
-        msg = proto.Command(body=body, client=self.opts.client_name)
-        raw = self._query(proto.key_command(self.opts.rig_name), proto.encode(msg))
-        return proto.decode(raw, proto.CommandReply)
+        msg = proto.Command(body=body, client=self.opts.client_name, lease=self.lease_token)
+        return self.query(proto.key_command(self.opts.rig_name), msg, proto.CommandReply)
+
+    def lease(self, action: str = "status", duration_s: float = 60.0) -> proto.LeaseReply:
+        """The operator lease: acquire / renew / release / takeover / status. A granted or
+        renewed lease's token is kept and sent with every change from this client."""
+        req = proto.LeaseRequest(action=action, token=self.lease_token, duration_s=duration_s,
+                                 client=self.opts.client_name)
+        reply = self.query(proto.key_lease(self.opts.rig_name), req, proto.LeaseReply)
+        if reply.ok and reply.token:
+            self.lease_token = reply.token
+        elif action == "release" and reply.ok:
+            self.lease_token = ""
+        return reply
 
     def put_estop(self) -> None:
         """Fire-and-forget put on the e-stop key: any payload stops the loop, no reply needed."""
         if self._session is None:
             raise ControllerUnavailable("not connected")
         msg = proto.Command(body=proto.EStop(), client=self.opts.client_name)
-        self._session.put(proto.key_estop(self.opts.rig_name), proto.encode(msg))
+        self._session.put(self.key(proto.key_estop(self.opts.rig_name)), proto.encode(msg))
 
     def estop(self) -> proto.CommandReply | None:
         """The e-stop put first (always works), then the EStop command for a reply."""

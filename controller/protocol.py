@@ -7,6 +7,7 @@ a `type` field. Units are in the field names. See docs/protocol.md for the full 
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from typing import Any, TypeVar
 
@@ -56,6 +57,54 @@ def key_identify(rig: str) -> str:
 def key_knowledge(rig: str) -> str:
     """Queryable: KnowledgeRequest -> KnowledgeReply (the plant knowledge the gate uses)."""
     return f"{KEY_PREFIX}/{rig}/knowledge"
+
+
+def key_lease(rig: str) -> str:
+    """Queryable: LeaseRequest -> LeaseReply (the operator lease of the rig)."""
+    return f"{KEY_PREFIX}/{rig}/lease"
+
+
+#: With authentication (`dobtune controller --auth`), requests go to per-user scopes:
+#: `dobtune/<rig>/@user/<name>/<what>`, which the access control lets only <name> reach
+#: (`@user` is a verbatim chunk: `*` and `**` never match it). The controller knows who sent a
+#: request from the key it arrived on: zenoh gives no authenticated identity on a query.
+USER_CHUNK = "@user"
+USER_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+
+
+def check_user_name(name: str, what: str = "user") -> str:
+    if not isinstance(name, str) or not USER_NAME.fullmatch(name):
+        raise ValueError(
+            f"{what} {name!r}: 1-64 letters, digits, '_', '.', '-', starting with a letter or digit"
+        )
+    return name
+
+
+def _split_rig_key(key: str) -> tuple[str, str]:
+    prefix, rig, rest = [*key.split("/", 2), "", ""][:3]
+    if prefix != KEY_PREFIX or not rig or not rest:
+        raise ValueError(f"{key!r} is not a {KEY_PREFIX}/<rig>/<what> key")
+    return rig, rest
+
+
+def user_key(key: str, user: str) -> str:
+    """`dobtune/<rig>/<what>` as sent by `user`: `dobtune/<rig>/@user/<user>/<what>`."""
+    rig, rest = _split_rig_key(key)
+    return f"{KEY_PREFIX}/{rig}/{USER_CHUNK}/{check_user_name(user)}/{rest}"
+
+
+def any_user_key(key: str) -> str:
+    """The key expression a controller declares to serve `key` for every user."""
+    rig, rest = _split_rig_key(key)
+    return f"{KEY_PREFIX}/{rig}/{USER_CHUNK}/*/{rest}"
+
+
+def user_of_key(key_expr: object) -> str | None:
+    """The user a request key names (`str(query.key_expr)`), None if it names no valid user."""
+    parts = str(key_expr).split("/")
+    if len(parts) < 5 or parts[0] != KEY_PREFIX or parts[2] != USER_CHUNK:
+        return None
+    return parts[3] if USER_NAME.fullmatch(parts[3]) else None
 
 
 def check_rig_name(rig: str) -> str:
@@ -157,6 +206,8 @@ class Status(_Msg, frozen=True, kw_only=True):
     margins: Margins | None = None  # the running configuration's, on that knowledge
     verdict: str = ""  # the gate's verdict on the running configuration, on that knowledge
     watchdog: str = ""  # the latest watchdog trip and what was done (rollback or fault)
+    audit_head: str = ""  # "<seq>:<sha256>" of the newest audit record (anchors the log)
+    auth: bool = False  # requests are authenticated (per-user key scopes, access control)
     rollbacks: int = 0  # watchdog rollbacks since the controller started
 
 
@@ -173,11 +224,14 @@ class Margins(msgspec.Struct, frozen=True, kw_only=True):
 
 class ConfigRequest(_Msg, frozen=True, kw_only=True):
     """candidate None: just return the active configuration. A candidate with the verdict
-    `caution` is applied only with `confirm` true."""
+    `caution` is applied only with `confirm` true; with `expect_version` only if that is still
+    the active version (compare-and-set); `lease`: the operator lease token (see LeaseRequest)."""
 
     candidate: LoopConfig | None = None
     client: str = ""
     confirm: bool = False
+    expect_version: int | None = None
+    lease: str = ""
 
 
 class ConfigReply(_Msg, frozen=True, kw_only=True):
@@ -191,6 +245,32 @@ class ConfigReply(_Msg, frozen=True, kw_only=True):
     knowledge_version: int = 0  # the plant knowledge it was judged on
 
 
+# -- the operator lease -------------------------------------------------------------------------
+
+#: LeaseRequest.action values.
+LEASE_ACTIONS: tuple[str, ...] = ("status", "acquire", "renew", "release", "takeover")
+
+
+class LeaseRequest(_Msg, frozen=True, kw_only=True):
+    """`acquire` (nobody holds the lease), `takeover` (whoever holds it), `renew` and `release`
+    (with the `token` acquire gave), `status`. Only operators hold the lease; the token is
+    bound to the user the request came from."""
+
+    action: str = "status"
+    token: str = ""
+    duration_s: float = 60.0
+    client: str = ""
+
+
+class LeaseReply(_Msg, frozen=True, kw_only=True):
+    ok: bool
+    holder: str = ""  # who holds the lease after this request ("" nobody)
+    expires_in_s: float = 0.0
+    token: str = ""  # granted or renewed: the token to send with every change
+    message: str = ""
+    field: str = ""
+
+
 # -- plant knowledge ----------------------------------------------------------------------------
 
 
@@ -202,6 +282,7 @@ class KnowledgeRequest(_Msg, frozen=True, kw_only=True):
     record: KnowledgeRecord | None = None
     adopt_run: int | None = None
     client: str = ""
+    lease: str = ""
 
 
 class KnowledgeReply(_Msg, frozen=True, kw_only=True):
@@ -276,6 +357,7 @@ CommandBody = (
 class Command(_Msg, frozen=True, kw_only=True):
     body: CommandBody
     client: str = ""
+    lease: str = ""  # the operator lease token (every command but estop needs the lease)
 
 
 class CommandReply(_Msg, frozen=True, kw_only=True):
@@ -335,6 +417,8 @@ class IdentifyStatus(_Msg, frozen=True, kw_only=True):
 # -- encoding ---------------------------------------------------------------------------------
 
 _encoder = msgspec.msgpack.Encoder()
+Message = _Msg
+"""The base of every versioned wire message (what `decode` decodes)."""
 M = TypeVar("M", bound=_Msg)
 
 

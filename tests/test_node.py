@@ -97,8 +97,8 @@ def test_commands_reach_the_tick_and_are_logged(
     assert reset.ok and reset.mode == "stopped"
     node.events.poll()
     text = caplog.text
-    assert "command EStop from unit: ok (mode estop" in text
-    assert "command Start from unit: refused: mode is estop" in text
+    assert "command EStop from local: ok (mode estop" in text
+    assert "command Start from local: refused: mode is estop" in text
     assert "e-stop (command) at seq" in text
 
 
@@ -115,7 +115,7 @@ def test_apply_swaps_at_a_tick_boundary_and_logs_the_change(
         assert not rejected.accepted and rejected.version == 2
     assert "config v2 applied at seq" in caplog.text
     assert "q_cutoff_hz 0.5 -> 1.0" in caplog.text
-    assert caplog.text.count("candidate from unit rejected") == 1
+    assert caplog.text.count("candidate from local rejected") == 1
 
 
 def test_malformed_payloads_name_the_field(node: ZenohNode) -> None:

@@ -32,6 +32,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="simulated plant noise seed")
     p.add_argument("--realtime-priority", action="store_true", help="try SCHED_FIFO")
     p.add_argument(
+        "--auth",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="authenticate every client with the users of DIR (`dobtune auth init DIR`): "
+        "access control per role, the operator lease per user",
+    )
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="allow a non-loopback --listen without --auth (anyone who reaches it may act)",
+    )
+    p.add_argument(
         "--sim-drive-node",
         action="store_true",
         help="with --plant can: answer on the rig file's bus with a simulated CiA 402 drive "
@@ -62,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         realtime_priority=args.realtime_priority,
         sim_drive_node=args.sim_drive_node,
+        auth_dir=args.auth,
+        insecure=args.insecure,
     )
     try:
         code = run_controller(opts, ready=say)

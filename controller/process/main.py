@@ -26,6 +26,8 @@ from controller.core.config import LoopConfig, NominalModel, config_from_builtin
 from controller.core.errors import ConfigError
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
+from controller.process.access import Access
+from controller.process.audit import AuditError, AuditLog, audit_path
 from controller.process.gate_worker import GateRunner, GateVerdict, margins_dict
 from controller.process.node import ZenohNode
 from controller.process.options import ControllerOptions
@@ -63,6 +65,58 @@ def _check_options(opts: ControllerOptions) -> None:
         raise StartupError(f"--rate-hz: must be finite, got {opts.rate_hz}")
     if not (0.01 <= opts.status_period_s <= 10.0):
         raise StartupError(f"status_period_s: {opts.status_period_s} out of range [0.01, 10]")
+    exposed = [e for e in opts.listen if not _loopback(e)]
+    if exposed and opts.auth_dir is None and not opts.insecure:
+        raise StartupError(
+            f"--listen {exposed[0]}: not loopback; without --auth DIR (see `dobtune auth init`) "
+            "anyone who reaches it could move the rig. Give --auth, or --insecure to accept that"
+        )
+    if opts.auth_dir is not None and opts.connect:
+        raise StartupError(
+            "--connect with --auth: a controller with access control cannot dial out (the "
+            "remote would be unauthenticated); let the clients connect to it"
+        )
+
+
+def _loopback(endpoint: str) -> bool:
+    """tcp/127.0.0.1:7447, tcp/localhost:7447, tcp/[::1]:7447, unixsock-stream/...: local."""
+    proto_, _, addr = endpoint.partition("/")
+    if proto_ == "unixsock-stream":
+        return True
+    host = addr.rsplit(":", 1)[0].strip("[]").split("#", 1)[0]
+    return host == "localhost" or host == "::1" or host.startswith("127.")
+
+
+def _open_access(opts: ControllerOptions, warn: Callable[[str], None]) -> Access:
+    """Users (with --auth) and the audit log of the state directory."""
+    users = None
+    if opts.auth_dir is not None:
+        from controller.auth import AuthError, load_users
+
+        try:
+            users = load_users(opts.auth_dir)
+        except (AuthError, OSError) as exc:
+            raise StartupError(f"--auth {opts.auth_dir}: {exc}") from exc
+    try:
+        audit = AuditLog(audit_path(opts.state_path), rig=opts.rig_name)
+    except (AuditError, OSError) as exc:
+        raise StartupError(f"state_dir: the audit log cannot be opened: {exc}") from exc
+    if audit.recovered:
+        log.warning("audit log: %s", audit.recovered)
+    return Access(users, opts.rig_name, audit, warn)
+
+
+def _session(opts: ControllerOptions) -> Any:
+    if opts.auth_dir is None:
+        return open_session(opts.listen, opts.connect)
+    import zenoh
+
+    from controller.auth import AuthError, server_config
+
+    try:
+        return zenoh.open(server_config(opts.auth_dir, [opts.rig_name], opts.listen))
+    except (AuthError, OSError, ValueError) as exc:
+        raise StartupError(f"--auth {opts.auth_dir}: {exc}") from exc
 
 
 def _candidate(
@@ -283,8 +337,23 @@ def _run(
                 if runtime.mode != ESTOP:
                     runtime.mode = FAULT
                 log.warning("fault at start: %s", rig_faults[0])
-            service = ControllerService(opts, runtime, store, runner, margins, notes, knowledge)
-            with open_session(opts.listen, opts.connect) as session:
+            access = _open_access(opts, lambda text: log.warning("%s", text))
+            service = ControllerService(
+                opts, runtime, store, runner, margins, notes, knowledge, access
+            )
+            access.warn = service.warn
+            access.start()
+            access.record("controller.start", "controller", "noted", version_after=version,
+                          auth=access.auth, listen=list(opts.listen))
+            if access.auth:
+                notes.append(f"authentication on ({opts.auth_dir}): requests on per-user scopes")
+            with contextlib.ExitStack() as closing:
+                closing.callback(access.close)
+                closing.callback(
+                    lambda: access.record("controller.stop", "controller", "noted",
+                                          version_before=runtime.loop.active.version)
+                )
+                session = closing.enter_context(_session(opts))
                 node = ZenohNode(service)
                 try:
                     node.declare(session)

@@ -36,6 +36,7 @@ import msgspec
 from controller import protocol as proto
 from controller.core.errors import ConfigError
 from controller.process import requests as rq
+from controller.process.access import LOCAL, Who
 from controller.process.persistence import Latch, PersistenceError
 from controller.process.runtime import ESTOP, FAULT
 from controller.process.service import ControllerService, RuntimeEvents
@@ -86,6 +87,8 @@ class ZenohNode:
         self.command_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.identify_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.knowledge_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.lease_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.access = service.access
         self._threads: list[threading.Thread] = []
         self._entities: list[Any] = []
         self.state_pub: Any = None
@@ -110,25 +113,36 @@ class ZenohNode:
             proto.key_status(rig), congestion_control=zenoh.CongestionControl.DROP
         )
         self._entities += [self.state_pub, self.status_pub]
-        # Callbacks: hand over and return (no decoding, no Zenoh calls, no blocking).
+        # Callbacks: hand over and return (no decoding, no Zenoh calls, no blocking). With
+        # authentication the requests arrive on per-user scopes only (the key names the user).
+        scoped = proto.any_user_key if self.access.auth else (lambda k: k)
         for key, q in (
             (proto.key_config(rig), self.config_q),
             (proto.key_command(rig), self.command_q),
             (proto.key_identify(rig), self.identify_q),
             (proto.key_knowledge(rig), self.knowledge_q),
+            (proto.key_lease(rig), self.lease_q),
         ):
             handler = zenoh.handlers.Callback(self._enqueue(q), indirect=False)
-            self._entities.append(session.declare_queryable(key, handler))
+            self._entities.append(session.declare_queryable(scoped(key), handler))
         rt = self.rt
+        access = self.access
 
-        def estop(_sample: Any) -> None:
+        def estop(sample: Any) -> None:
             rt.estop("estop key", rt.next_arrival())
+            key = str(sample.key_expr)
+            who = proto.user_of_key(key) or ("local" if not access.auth else "unnamed")
+            access.record("estop", who, "accepted", source="estop key", key=key)
 
-        self._entities.append(
-            session.declare_subscriber(
-                proto.key_estop(rig), zenoh.handlers.Callback(estop, indirect=False)
+        # Anyone who reaches the rig stops it: the public key, and (with authentication) every
+        # user's own scope.
+        estop_keys = [proto.key_estop(rig)]
+        if self.access.auth:
+            estop_keys.append(proto.any_user_key(proto.key_estop(rig)))
+        for key in estop_keys:
+            self._entities.append(
+                session.declare_subscriber(key, zenoh.handlers.Callback(estop, indirect=False))
             )
-        )
 
     def _enqueue(self, q: queue.SimpleQueue[Any]) -> Callable[[Any], None]:
         limit = self.opts.max_pending_queries
@@ -156,6 +170,7 @@ class ZenohNode:
                 "knowledge-worker",
                 lambda: self.serve_queue(self.knowledge_q, self.handle_knowledge),
             ),
+            ("lease-worker", lambda: self.serve_queue(self.lease_q, self.handle_lease)),
         ):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -164,7 +179,7 @@ class ZenohNode:
     def close(self) -> None:
         """Stop the threads (after the loop has finished), then undeclare everything."""
         self.stop_event.set()
-        queues = (self.config_q, self.command_q, self.identify_q, self.knowledge_q)
+        queues = (self.config_q, self.command_q, self.identify_q, self.knowledge_q, self.lease_q)
         for q in queues:
             q.put(SHUTDOWN)
         for t in self._threads:
@@ -223,6 +238,7 @@ class ZenohNode:
             try:
                 self.events.poll()
                 self.service.poll_rollback()
+                self.access.poll()
                 self.status_pub.put(proto.encode(self.status()))
             except Exception as exc:
                 self.service.warn(f"status put failed: {exc}")
@@ -265,8 +281,11 @@ class ZenohNode:
 
     # -- queries -----------------------------------------------------------------------------
 
-    def serve_queue(self, q: queue.SimpleQueue[Any], handle: Callable[[bytes], bytes]) -> None:
-        """Worker body: serve (query, arrival) items from `q` until SHUTDOWN."""
+    def serve_queue(
+        self, q: queue.SimpleQueue[Any], handle: Callable[[bytes, Who], bytes]
+    ) -> None:
+        """Worker body: serve (query, arrival) items from `q` until SHUTDOWN. The sender is
+        who the key it arrived on names (with authentication), never what it claims."""
         rt = self.rt
         while True:
             item = q.get()
@@ -276,8 +295,9 @@ class ZenohNode:
             try:
                 payload = query.payload
                 data = b"" if payload is None else payload.to_bytes()
+                who = self.access.who(query.key_expr)
                 with rt.arrival_scope(arrival):
-                    reply = handle(data)
+                    reply = handle(data, who)
                 query.reply(query.key_expr, reply)
             except Exception as exc:  # never let a query end the worker
                 # The details go to the log; the client gets no internal text.
@@ -293,8 +313,9 @@ class ZenohNode:
             return f"payload: {len(data)} bytes is over the limit of {self.opts.max_payload_bytes}"
         return None
 
-    def handle_config(self, data: bytes) -> bytes:
-        """ConfigRequest -> ConfigReply (always a ConfigReply, also for a malformed request)."""
+    def handle_config(self, data: bytes, who: Who = LOCAL) -> bytes:
+        """ConfigRequest -> ConfigReply (always a ConfigReply, also for a malformed request).
+        A GET is for anyone; a candidate needs the lease (`controller.process.access`)."""
         svc = self.service
         big = self._too_large(data)
         if big is not None:
@@ -310,36 +331,69 @@ class ZenohNode:
             )
         if req.candidate is None:
             return proto.encode(svc.active_config())
-        return proto.encode(svc.apply(req.candidate, req.client, confirm=req.confirm))
+        before = svc.rt.loop.active.version
+        why = self.access.may_change(who, req.lease)
+        if why:
+            reply = svc.config_reply(accepted=False, reasons=[why], field="lease")
+        else:
+            reply = svc.apply(
+                req.candidate, who.user, confirm=req.confirm, expect_version=req.expect_version
+            )
+        self.access.record(
+            "apply", who, "accepted" if reply.accepted else "refused",
+            version_before=before, version_after=reply.version, verdict=reply.verdict,
+            margins=msgspec.to_builtins(reply.margins) if reply.margins else None,
+            reasons=list(reply.reasons), field=reply.field, confirm=req.confirm,
+            expect_version=req.expect_version, client=req.client[:100],
+        )
+        return proto.encode(reply)
 
-    def handle_command(self, data: bytes) -> bytes:
+    def handle_command(self, data: bytes, who: Who = LOCAL) -> bytes:
         """Command -> CommandReply. An EStop engages before the payload is even validated
-        further than its type."""
+        further than its type, from anyone; every other command needs the lease."""
+        reply = self._command(data, who)
+        body_type = ""
+        with contextlib.suppress(Exception):
+            body = msgspec.msgpack.decode(data)["body"]["type"]
+            body_type = body if isinstance(body, str) else ""
+        action = {"estop": "estop", "reset": "reset", "identify_start": "identify",
+                  "identify_abort": "identify"}.get(body_type, "command")
+        self.access.record(
+            action, who, "accepted" if reply.ok else "refused", command=body_type[:40],
+            message=reply.message, field=reply.field, mode=reply.mode, seq=reply.seq,
+        )
+        return proto.encode(reply)
+
+    def _command(self, data: bytes, who: Who) -> proto.CommandReply:
         svc = self.service
         big = self._too_large(data)
         if big is not None:
-            return proto.encode(svc.refused(big, field="payload"))
+            return svc.refused(big, field="payload")
         try:
             cmd = proto.decode(data, proto.Command)
         except proto.ProtocolError as exc:
             log.debug("malformed command: %s", exc)
-            return proto.encode(svc.refused(str(exc), field=exc.field))
+            return svc.refused(str(exc), field=exc.field)
         body = cmd.body
+        if not isinstance(body, proto.EStop):
+            why = self.access.may_change(who, cmd.lease)
+            if why:
+                return svc.refused(why, field="lease")
         if not isinstance(body, proto.IdentifyStart):
             try:
                 request = to_request(body, cmd.client)
             except ConfigError as exc:
                 name = f"body.{exc.field}"
-                return proto.encode(svc.refused(f"{name}: {exc}", field=name))
-            return proto.encode(svc.command(request, cmd.client))
+                return svc.refused(f"{name}: {exc}", field=name)
+            return svc.command(request, who.user)
         try:
-            return proto.encode(svc.start_identify(body.spec, cmd.client))
+            return svc.start_identify(body.spec, who.user)
         except ConfigError as exc:
             name = f"body.spec.{exc.field}"
-            return proto.encode(svc.refused(f"{name}: {exc}", field=name))
+            return svc.refused(f"{name}: {exc}", field=name)
 
-    def handle_knowledge(self, data: bytes) -> bytes:
-        """KnowledgeRequest (or nothing) -> KnowledgeReply."""
+    def handle_knowledge(self, data: bytes, who: Who = LOCAL) -> bytes:
+        """KnowledgeRequest (or nothing) -> KnowledgeReply. Adopting needs the lease."""
         svc = self.service
         big = self._too_large(data)
         if big is not None:
@@ -350,8 +404,31 @@ class ZenohNode:
             req = proto.decode(data, proto.KnowledgeRequest)
         except proto.ProtocolError as exc:
             return proto.encode(svc.knowledge_reply(False, str(exc), field=exc.field))
-        return proto.encode(svc.handle_knowledge(req))
+        if req.record is None and req.adopt_run is None:
+            return proto.encode(svc.knowledge_reply(True))
+        before = svc.knowledge.version
+        why = self.access.may_change(who, req.lease)
+        reply = svc.knowledge_reply(False, why, field="lease") if why else svc.handle_knowledge(
+            msgspec.structs.replace(req, client=who.user)
+        )
+        self.access.record(
+            "knowledge", who, "accepted" if reply.ok else "refused",
+            knowledge_before=before, knowledge_after=reply.record.version,
+            message=reply.message, field=reply.field, adopt_run=req.adopt_run,
+        )
+        return proto.encode(reply)
 
-    def handle_identify(self, data: bytes) -> bytes:
+    def handle_lease(self, data: bytes, who: Who = LOCAL) -> bytes:
+        """LeaseRequest (or nothing: status) -> LeaseReply (recorded in the audit trail)."""
+        big = self._too_large(data)
+        if big is not None:
+            return proto.encode(proto.LeaseReply(ok=False, message=big, field="payload"))
+        try:
+            req = proto.decode(data, proto.LeaseRequest) if data else proto.LeaseRequest()
+        except proto.ProtocolError as exc:
+            return proto.encode(proto.LeaseReply(ok=False, message=str(exc), field=exc.field))
+        return proto.encode(self.access.lease_request(who, req))
+
+    def handle_identify(self, data: bytes, who: Who = LOCAL) -> bytes:
         """Any payload -> IdentifyStatus of the latest run."""
         return proto.encode(self.service.identify.status())

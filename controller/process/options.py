@@ -49,6 +49,12 @@ class ControllerOptions:
     keep the loop's thread waiting for the interpreter lock."""
     gate_in_subprocess: bool = True
     """Run the stability analysis in a worker process (see GateRunner)."""
+    auth_dir: Path | None = None
+    """`dobtune auth init` directory: user/password authentication, access control per role,
+    requests on per-user key scopes, the operator lease enforced for every user."""
+    insecure: bool = False
+    """Allow a non-loopback listen endpoint without `auth_dir` (anyone who reaches it can
+    change the rig while nobody holds the lease)."""
     sim_drive_node: bool = False
     """plant="can" only: run a simulated CiA 402 drive node in this process on the rig
     file's bus (python-can `virtual`): the whole CAN path without hardware."""

@@ -20,6 +20,7 @@ import msgspec
 from controller import protocol as proto
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import KnowledgeRecord
+from controller.process.access import Access
 from controller.process.gate_worker import GateRunner, margins_dict
 from controller.process.identify_runs import IdentifyRuns
 from controller.process.options import ControllerOptions
@@ -55,6 +56,7 @@ class ControllerService:
         margins: proto.Margins,
         notes: list[str],
         knowledge: KnowledgeRecord | None = None,
+        access: Access | None = None,
     ) -> None:
         self.opts = opts
         self.rt = runtime
@@ -63,6 +65,8 @@ class ControllerService:
         self.margins = margins
         self.notes = notes
         self.errors: list[str] = []
+        #: Roles, the operator lease and the audit trail (no users, no audit: local use).
+        self.access = access if access is not None else Access(None, opts.rig_name, None, self.warn)
         self.stop_event = threading.Event()
         self.identify = IdentifyRuns(opts.rig_name, gate, self.stop_event, self.warn)
         self._apply_lock = threading.Lock()
@@ -118,12 +122,25 @@ class ControllerService:
         return self.config_reply(accepted=False, reasons=reasons, **kw)
 
     def apply(
-        self, candidate: LoopConfig, client: str, *, confirm: bool = False
+        self,
+        candidate: LoopConfig,
+        client: str,
+        *,
+        confirm: bool = False,
+        expect_version: int | None = None,
     ) -> proto.ConfigReply:
         """Gate, persist, swap at a tick boundary, log; one candidate at a time. A `caution`
-        verdict is applied only with `confirm`."""
+        verdict is applied only with `confirm`; with `expect_version`, only if that is still
+        the active version (compare-and-set, checked under the apply lock)."""
         with self._apply_lock:
             active = self.rt.loop.active
+            if expect_version is not None and expect_version != active.version:
+                reason = (
+                    f"expect_version: the candidate is based on version {expect_version}, the "
+                    f"active version is {active.version} (changed meanwhile): fetch it, review, "
+                    "send again"
+                )
+                return self._rejected(client, [reason], field="expect_version")
             if candidate.rate_hz != active.config.rate_hz:
                 reason = (
                     f"candidate.rate_hz: {candidate.rate_hz} Hz differs from the running loop's "
@@ -380,6 +397,9 @@ class ControllerService:
             verdict=self.running_verdict,
             watchdog=self.watchdog_text,
             rollbacks=rt.rollbacks,
+            operator=self.access.holder,
+            audit_head=self.access.head,
+            auth=self.access.auth,
         )
 
     def knowledge_description(self) -> str:

@@ -1,0 +1,264 @@
+"""`dobtune ctl`: every controller action from the command line (command body, no argv).
+
+    dobtune ctl --connect EP --rig-name R [--auth DIR --user NAME] ACTION [ARGS] [--json]
+
+Actions: `status`, `config`, `apply key=value ...` (`--expect-version N`, `--confirm`),
+`start`, `stop`, `estop`, `reset`, `lease acquire|renew|release|takeover|show`,
+`identify [key=value ...]` (IdentifySpec fields), `knowledge`. An action that changes the rig
+takes the operator lease for its duration when nobody holds it (and releases it after).
+Values are JSON where they parse as JSON (`q_cutoff_hz=1.5`, `dob_on=false`), else strings.
+
+Exit codes: 0 done (apply: applied), 1 refused or rejected (the reasons are printed),
+3 the verdict is caution and `--confirm` was not given, 2 bad input, 4 the controller is not
+reachable or the credentials reach nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any, TextIO
+
+import msgspec
+
+from controller.cli import Command
+
+__all__ = ["ACTIONS", "ctl_main"]
+
+EXIT_OK, EXIT_REFUSED, EXIT_BAD_INPUT, EXIT_CAUTION, EXIT_UNREACHABLE = 0, 1, 2, 3, 4
+ACTIONS = (
+    "status",
+    "config",
+    "apply",
+    "start",
+    "stop",
+    "estop",
+    "reset",
+    "lease",
+    "identify",
+    "knowledge",
+)
+CHANGES = ("apply", "start", "stop", "reset", "identify")
+
+
+class _BadInput(Exception):
+    pass
+
+
+def parse_assignments(items: list[str]) -> dict[str, Any]:
+    """`key=value` pairs; a value is JSON if it parses as JSON, else a string."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, eq, raw = item.partition("=")
+        if not eq or not key:
+            raise _BadInput(f"{item!r}: expected key=value")
+        try:
+            out[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            out[key] = raw
+    return out
+
+
+def _emit(out: TextIO, as_json: bool, reply: Any, text: str) -> None:
+    if as_json:
+        out.write(json.dumps(msgspec.to_builtins(reply), allow_nan=False, default=str) + "\n")
+    else:
+        out.write(text + "\n")
+
+
+def ctl_main(args: argparse.Namespace, out: TextIO) -> int:
+    from controller import protocol as proto
+    from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
+
+    try:
+        if args.action not in ACTIONS:
+            raise _BadInput(f"action {args.action!r}: one of {', '.join(ACTIONS)}")
+        opts = ClientOptions(
+            connect=tuple(args.connect),
+            rig_name=args.rig_name,
+            client_name="ctl",
+            auth=args.auth,
+            user=args.user or "",
+            query_timeout_s=args.timeout_s,
+            connect_timeout_s=args.timeout_s,
+        )
+        with ControllerClient(opts) as c:
+            return _run(c, args, out, proto)
+    except _BadInput as exc:
+        out.write(json.dumps({"error": str(exc)}) + "\n" if args.json else f"error: {exc}\n")
+        return EXIT_BAD_INPUT
+    except ValueError as exc:
+        out.write(f"error: {exc}\n")
+        return EXIT_BAD_INPUT
+    except ControllerUnavailable as exc:
+        out.write(json.dumps({"error": str(exc)}) + "\n" if args.json else f"error: {exc}\n")
+        return EXIT_UNREACHABLE
+
+
+def _run(c: Any, args: argparse.Namespace, out: TextIO, proto: Any) -> int:
+    action = args.action
+    rest: list[str] = args.args
+    # The first query also tells whether the credentials reach anything (a denied query gets
+    # no reply: the client times out and says so).
+    cfg = c.get_config()
+    if action == "config":
+        _emit(
+            out,
+            args.json,
+            cfg,
+            f"version {cfg.version}: {json.dumps(msgspec.to_builtins(cfg.config))}",
+        )
+        return EXIT_OK
+    if action == "status":
+        st = c.status or _wait_status(c)
+        _emit(
+            out,
+            args.json,
+            st,
+            f"{st.rig}: {st.mode}, config v{st.config_version}, verdict {st.verdict or '-'}, "
+            f"operator {st.operator or '-'}, knowledge {st.knowledge}, faults "
+            f"{'; '.join(st.faults) or '-'}",
+        )
+        return EXIT_OK
+    if action == "estop":
+        c.put_estop()
+        r = c.command(proto.EStop())
+        _emit(
+            out, args.json, r, f"estop: {'ok' if r.ok else 'refused'} (mode {r.mode}, seq {r.seq})"
+        )
+        return EXIT_OK if r.ok else EXIT_REFUSED
+    if action == "lease":
+        what = rest[0] if rest else "show"
+        r = c.lease("status" if what == "show" else what, args.duration_s)
+        _emit(
+            out,
+            args.json,
+            r,
+            f"lease {what}: {'ok' if r.ok else 'refused'}; holder {r.holder or '-'} "
+            f"({r.expires_in_s:.0f} s left)" + (f": {r.message}" if r.message else ""),
+        )
+        return EXIT_OK if r.ok else EXIT_REFUSED
+    if action == "knowledge":
+        r = c.knowledge()
+        _emit(
+            out,
+            args.json,
+            r.record,
+            f"plant knowledge v{r.record.version} ({r.record.source}): "
+            f"{len(r.record.measured)} measured response(s)",
+        )
+        return EXIT_OK
+    took = False
+    if action in CHANGES:
+        held = c.lease("status")
+        if not held.holder:
+            got = c.lease("acquire", args.duration_s)
+            took = got.ok
+    try:
+        return _change(c, action, rest, cfg, args, out, proto)
+    finally:
+        if took:
+            c.lease("release")
+
+
+def _change(
+    c: Any,
+    action: str,
+    rest: list[str],
+    cfg: Any,
+    args: argparse.Namespace,
+    out: TextIO,
+    proto: Any,
+) -> int:
+    from controller.core.config import config_from_builtins, config_to_builtins
+    from controller.core.errors import ConfigError
+
+    if action == "apply":
+        changes = parse_assignments(rest)
+        if not changes:
+            raise _BadInput("apply: give key=value pairs (LoopConfig fields)")
+        try:
+            cand = config_from_builtins({**config_to_builtins(cfg.config), **changes})
+        except ConfigError as exc:
+            raise _BadInput(f"{exc.field}: {exc}") from exc
+        expect = args.expect_version
+        r = c.apply(cand, confirm=args.confirm, expect_version=expect)
+        reasons = "".join(f"\n  - {x}" for x in r.reasons)
+        _emit(
+            out,
+            args.json,
+            r,
+            f"{'applied' if r.accepted else 'not applied'}: version "
+            f"{r.version}, verdict {r.verdict or '-'}{reasons}",
+        )
+        if r.accepted:
+            return EXIT_OK
+        return EXIT_CAUTION if r.field == "confirm" else EXIT_REFUSED
+    if action == "identify":
+        from controller.ident.spec import IdentifySpec
+
+        try:
+            spec = msgspec.convert(parse_assignments(rest), IdentifySpec)
+        except msgspec.ValidationError as exc:
+            raise _BadInput(f"identify: {exc}") from exc
+        body: Any = proto.IdentifyStart(spec=spec)
+    else:
+        body = {"start": proto.Start(), "stop": proto.Stop(), "reset": proto.ResetFault()}[action]
+    r = c.command(body)
+    _emit(
+        out,
+        args.json,
+        r,
+        f"{action}: {'ok' if r.ok else 'refused'} (mode {r.mode})"
+        f"{': ' + r.message if r.message else ''}",
+    )
+    return EXIT_OK if r.ok else EXIT_REFUSED
+
+
+def _wait_status(c: Any, timeout_s: float = 3.0) -> Any:
+    import time
+
+    from controller.client import ControllerUnavailable
+
+    deadline = time.monotonic() + timeout_s
+    while c.status is None:
+        if time.monotonic() > deadline:
+            raise ControllerUnavailable(f"no status within {timeout_s:g} s")
+        time.sleep(0.02)
+    return c.status
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT")
+    p.add_argument("--rig-name", default="demo")
+    p.add_argument(
+        "--auth",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="credentials: an auth directory or a password file",
+    )
+    p.add_argument("--user", default=None, help="the user to log in as (with --auth)")
+    p.add_argument("--json", action="store_true")
+    p.add_argument(
+        "--expect-version",
+        type=int,
+        default=None,
+        help="apply: only if this is still the active version",
+    )
+    p.add_argument(
+        "--confirm", action="store_true", help="apply: apply a candidate whose verdict is caution"
+    )
+    p.add_argument("--duration-s", type=float, default=60.0, help="lease duration")
+    p.add_argument("--timeout-s", type=float, default=5.0, help="reply / connection timeout")
+    p.add_argument("action", help=" | ".join(ACTIONS))
+    p.add_argument("args", nargs="*", help="key=value pairs (apply, identify) or a lease action")
+
+
+def run(args: argparse.Namespace) -> int:
+    return ctl_main(args, sys.stdout)
+
+
+COMMAND = Command("ctl", "every controller action from the command line", add_arguments, run)
