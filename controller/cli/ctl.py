@@ -85,6 +85,7 @@ def ctl_main(args: argparse.Namespace, out: TextIO) -> int:
             connect_timeout_s=args.timeout_s,
         )
         with ControllerClient(opts) as c:
+            c.lease_token = args.lease
             return _run(c, args, out, proto)
     except _BadInput as exc:
         out.write(json.dumps({"error": str(exc)}) + "\n" if args.json else f"error: {exc}\n")
@@ -123,12 +124,13 @@ def _run(c: Any, args: argparse.Namespace, out: TextIO, proto: Any) -> int:
         )
         return EXIT_OK
     if action == "estop":
+        # The put is what stops (any user, viewers included: no reply needed); the status
+        # confirms it.
+        before = (c.status or _wait_status(c)).estop_seq
         c.put_estop()
-        r = c.command(proto.EStop())
-        _emit(
-            out, args.json, r, f"estop: {'ok' if r.ok else 'refused'} (mode {r.mode}, seq {r.seq})"
-        )
-        return EXIT_OK if r.ok else EXIT_REFUSED
+        st = _wait_status_until(c, lambda s: s.mode == "estop" and s.estop_seq != before)
+        _emit(out, args.json, st, f"estop: mode {st.mode} from seq {st.estop_seq}")
+        return EXIT_OK if st.mode == "estop" else EXIT_REFUSED
     if action == "lease":
         what = rest[0] if rest else "show"
         r = c.lease("status" if what == "show" else what, args.duration_s)
@@ -137,7 +139,9 @@ def _run(c: Any, args: argparse.Namespace, out: TextIO, proto: Any) -> int:
             args.json,
             r,
             f"lease {what}: {'ok' if r.ok else 'refused'}; holder {r.holder or '-'} "
-            f"({r.expires_in_s:.0f} s left)" + (f": {r.message}" if r.message else ""),
+            f"({r.expires_in_s:.0f} s left)"
+            + (f"; token {r.token}" if r.token else "")
+            + (f": {r.message}" if r.message else ""),
         )
         return EXIT_OK if r.ok else EXIT_REFUSED
     if action == "knowledge":
@@ -182,7 +186,7 @@ def _change(
         try:
             cand = config_from_builtins({**config_to_builtins(cfg.config), **changes})
         except ConfigError as exc:
-            raise _BadInput(f"{exc.field}: {exc}") from exc
+            raise _BadInput(str(exc)) from exc
         expect = args.expect_version
         r = c.apply(cand, confirm=args.confirm, expect_version=expect)
         reasons = "".join(f"\n  - {x}" for x in r.reasons)
@@ -215,6 +219,18 @@ def _change(
         f"{': ' + r.message if r.message else ''}",
     )
     return EXIT_OK if r.ok else EXIT_REFUSED
+
+
+def _wait_status_until(c: Any, pred: Any, timeout_s: float = 3.0) -> Any:
+    """The first status that satisfies `pred` (or the latest when the time is up)."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    st = _wait_status(c)
+    while not pred(st) and time.monotonic() < deadline:
+        time.sleep(0.02)
+        st = c.status
+    return st
 
 
 def _wait_status(c: Any, timeout_s: float = 3.0) -> Any:
@@ -252,6 +268,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--confirm", action="store_true", help="apply: apply a candidate whose verdict is caution"
     )
     p.add_argument("--duration-s", type=float, default=60.0, help="lease duration")
+    p.add_argument("--lease", default="", metavar="TOKEN",
+                   help="the lease token `lease acquire` printed (to act under a held lease)")
     p.add_argument("--timeout-s", type=float, default=5.0, help="reply / connection timeout")
     p.add_argument("action", help=" | ".join(ACTIONS))
     p.add_argument("args", nargs="*", help="key=value pairs (apply, identify) or a lease action")

@@ -319,6 +319,7 @@ class ZenohNode:
         svc = self.service
         big = self._too_large(data)
         if big is not None:
+            self.access.record("apply", who, "refused", field="payload", reason=big)
             return proto.encode(svc.config_reply(accepted=False, reasons=[big], field="payload"))
         if not data:
             return proto.encode(svc.active_config())
@@ -326,6 +327,7 @@ class ZenohNode:
             req = proto.decode(data, proto.ConfigRequest)
         except proto.ProtocolError as exc:
             log.debug("malformed config request: %s", exc)
+            self.access.record("apply", who, "refused", field=exc.field, reason=str(exc)[:300])
             return proto.encode(
                 svc.config_reply(accepted=False, reasons=[str(exc)], field=exc.field)
             )
@@ -403,6 +405,7 @@ class ZenohNode:
         try:
             req = proto.decode(data, proto.KnowledgeRequest)
         except proto.ProtocolError as exc:
+            self.access.record("knowledge", who, "refused", field=exc.field, reason=str(exc)[:300])
             return proto.encode(svc.knowledge_reply(False, str(exc), field=exc.field))
         if req.record is None and req.adopt_run is None:
             return proto.encode(svc.knowledge_reply(True))

@@ -1,0 +1,379 @@
+"""Hostile clients against a controller with authentication (`--auth`), over real Zenoh.
+
+One controller with three users (operators op1 and op2, viewer view) serves every case. Each
+case asserts that nothing changed that should not have (configuration version, mode, plant
+knowledge), and that a refusal names its field or reason; the audit trail must record the
+refusals and stay intact. Users are whoever the key scope says (the access control lets only
+<name> reach `dobtune/<rig>/@user/<name>/...`), never what a request claims.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import pytest
+import zenoh
+from procs import ControllerProcess, start_controller, wait_until
+
+from controller import protocol as proto
+from controller.auth import client_config, init_auth_dir, new_users
+from controller.cli.audit import verify_main
+from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
+from controller.core.config import LoopConfig
+from controller.core.trajectory import Trajectory
+from controller.gate.knowledge import KnowledgeRecord
+
+RIG = "hostile"
+ENC = msgspec.msgpack.encode
+XSS = '<script>alert("x")</script><img src=x onerror=alert(1)>'
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    base = tmp_path_factory.mktemp("hostile")
+    auth = base / "auth"
+    init_auth_dir(auth, new_users([("op1", "operator"), ("op2", "operator"), ("view", "viewer")]))
+    proc = start_controller(base / "state", rig=RIG, extra_args=("--auth", str(auth)))
+    try:
+        with _client(auth, proc, "op1") as c:  # ready: the first query gets a reply
+            assert wait_until(lambda: _answers(c), 60.0), proc.log()
+        yield {"auth": auth, "proc": proc}
+    finally:
+        proc.stop()
+
+
+def _answers(c: ControllerClient) -> bool:
+    try:
+        c.get_config()
+        return True
+    except ControllerUnavailable:
+        return False
+
+
+@contextlib.contextmanager
+def _client(auth: Path, proc: ControllerProcess, user: str, timeout_s: float = 2.0,
+            ) -> Iterator[ControllerClient]:
+    opts = ClientOptions(connect=(proc.endpoint,), rig_name=RIG, auth=auth, user=user,
+                         client_name=user, query_timeout_s=timeout_s, connect_timeout_s=10.0)
+    with ControllerClient(opts) as c:
+        yield c
+
+
+@pytest.fixture
+def op1(env: dict[str, Any]) -> Iterator[ControllerClient]:
+    with _client(env["auth"], env["proc"], "op1") as c:
+        yield c
+
+
+@pytest.fixture
+def op2(env: dict[str, Any]) -> Iterator[ControllerClient]:
+    with _client(env["auth"], env["proc"], "op2") as c:
+        yield c
+
+
+@pytest.fixture
+def view(env: dict[str, Any]) -> Iterator[ControllerClient]:
+    with _client(env["auth"], env["proc"], "view") as c:
+        yield c
+
+
+def _state(c: ControllerClient) -> tuple[int, str, int]:
+    """(config version, mode, knowledge version): what no refused request may change."""
+    cfg = c.get_config()
+    st = _status(c)
+    return cfg.version, st.mode, c.knowledge().record.version
+
+
+def _status(c: ControllerClient) -> proto.Status:
+    assert wait_until(lambda: c.status is not None, 5.0)
+    st = c.status
+    assert st is not None
+    return st
+
+
+@pytest.fixture(autouse=True)
+def _clean_lease(env: dict[str, Any]) -> Iterator[None]:
+    """Every case starts with nobody holding the lease and the rig running."""
+    yield
+    with _client(env["auth"], env["proc"], "op1") as c:
+        c.lease("takeover", 5.0)
+        if _status(c).mode != "running":
+            c.command(proto.ResetFault())
+            c.command(proto.Start())
+        c.lease("release")
+
+
+# -- who may connect at all ------------------------------------------------------------------
+
+
+def test_anonymous_client_reaches_nothing(env: dict[str, Any]) -> None:
+    opts = ClientOptions(connect=(env["proc"].endpoint,), rig_name=RIG, query_timeout_s=1.0)
+    with ControllerClient(opts) as c, pytest.raises(ControllerUnavailable, match="no reply"):
+        c.get_config()
+
+
+@pytest.mark.parametrize("user, password", [("op1", "wrong-password-0123456789"),
+                                            ("nobody", "some-password-0123456789")])
+def test_wrong_password_or_unknown_user_cannot_connect(
+    env: dict[str, Any], user: str, password: str, tmp_path: Path
+) -> None:
+    pw = tmp_path / "pw"
+    pw.write_text(password)
+    pw.chmod(0o600)
+    opts = ClientOptions(connect=(env["proc"].endpoint,), rig_name=RIG, auth=pw, user=user,
+                         connect_timeout_s=2.0)
+    with pytest.raises(ControllerUnavailable, match="wrong credentials"):
+        ControllerClient(opts).__enter__()
+
+
+# -- viewers watch and e-stop, never change ----------------------------------------------------
+
+VIEWER_CHANGES: list[tuple[str, Callable[[ControllerClient], Any]]] = [
+    ("apply", lambda c: c.apply(LoopConfig(q_cutoff_hz=0.7))),
+    ("apply confirmed", lambda c: c.apply(LoopConfig(q_cutoff_hz=5.0), confirm=True)),
+    ("start", lambda c: c.command(proto.Start())),
+    ("stop", lambda c: c.command(proto.Stop())),
+    ("reset", lambda c: c.command(proto.ResetFault())),
+    ("trajectory", lambda c: c.command(proto.SetTrajectory(
+        trajectory=Trajectory(kind="step", amplitude_deg=3000.0)))),
+    ("identify", lambda c: c.command(proto.IdentifyStart())),
+    ("sim fault", lambda c: c.command(proto.SimFault(plant_gain=5.0))),
+    ("knowledge", lambda c: c.knowledge(proto.KnowledgeRequest(record=KnowledgeRecord()))),
+]
+
+
+def _refused(reply: Any) -> bool:
+    if isinstance(reply, proto.ConfigReply):
+        return not reply.accepted
+    return not reply.ok
+
+
+@pytest.mark.parametrize("name, act", VIEWER_CHANGES, ids=[n for n, _ in VIEWER_CHANGES])
+def test_a_viewer_changes_nothing(view: ControllerClient, name: str, act: Callable) -> None:
+    before = _state(view)
+    try:
+        reply = act(view)
+    except ControllerUnavailable:
+        reply = None  # the access control dropped it (commands are not a viewer's key)
+    if reply is not None:
+        assert _refused(reply) and reply.field == "lease", reply
+    assert _state(view) == before
+
+
+@pytest.mark.parametrize("action", ["acquire", "takeover"])
+def test_a_viewer_cannot_hold_the_lease(view: ControllerClient, action: str) -> None:
+    r = view.lease(action)
+    assert not r.ok and r.holder == "" and not view.lease_token
+
+
+def test_a_viewer_reads_config_knowledge_and_lease(view: ControllerClient) -> None:
+    assert view.get_config().version >= 1
+    assert view.knowledge().record.version >= 1
+    assert view.lease("status").ok
+
+
+def test_a_viewer_can_estop(view: ControllerClient) -> None:
+    seq = _status(view).estop_seq
+    view.put_estop()
+    assert wait_until(lambda: view.status is not None and view.status.mode == "estop"
+                      and view.status.estop_seq != seq, 5.0)
+
+
+# -- the lease ------------------------------------------------------------------------------
+
+
+def test_no_change_without_the_lease_even_when_nobody_holds_it(op1: ControllerClient) -> None:
+    before = _state(op1)
+    r = op1.apply(LoopConfig(q_cutoff_hz=0.7))
+    assert not r.accepted and r.field == "lease" and "acquire" in r.reasons[0]
+    assert _state(op1) == before
+
+
+def test_the_holder_applies_another_operator_does_not(
+    op1: ControllerClient, op2: ControllerClient
+) -> None:
+    assert op1.lease("acquire").ok
+    before = _state(op2)
+    r = op2.apply(LoopConfig(q_cutoff_hz=0.7))
+    assert not r.accepted and "held by op1" in r.reasons[0]
+    assert not op2.command(proto.Stop()).ok
+    assert _state(op2) == before
+    assert _status(op2).operator == "op1" or wait_until(
+        lambda: op2.status is not None and op2.status.operator == "op1", 2.0)
+    v = op1.get_config().version
+    r = op1.apply(op1.get_config().config.with_(q_cutoff_hz=0.6 + 0.01 * (v % 10)),
+                  expect_version=v)
+    assert r.accepted and r.version == v + 1
+
+
+def test_a_stolen_token_is_refused(op1: ControllerClient, op2: ControllerClient) -> None:
+    assert op1.lease("acquire").ok
+    op2.lease_token = op1.lease_token  # replayed from another user's scope
+    before = _state(op2)
+    r = op2.apply(LoopConfig(q_cutoff_hz=0.7))
+    assert not r.accepted and r.field == "lease"
+    assert _state(op2) == before
+
+
+def test_a_stale_version_is_refused(op1: ControllerClient) -> None:
+    assert op1.lease("acquire").ok
+    v = op1.get_config().version
+    r = op1.apply(op1.get_config().config.with_(q_cutoff_hz=0.55), expect_version=v - 1)
+    assert not r.accepted and r.field == "expect_version" and r.version == v
+
+
+def test_takeover_invalidates_the_old_token(op1: ControllerClient, op2: ControllerClient) -> None:
+    assert op1.lease("acquire").ok
+    old = op1.lease_token
+    t = op2.lease("takeover")
+    assert t.ok and t.holder == "op2"
+    before = _state(op1)
+    assert not op1.apply(LoopConfig(q_cutoff_hz=0.7)).accepted
+    op1.lease_token = old
+    assert not op1.lease("renew").ok
+    assert _state(op1) == before
+
+
+def test_an_expired_lease_is_refused(op1: ControllerClient) -> None:
+    assert op1.lease("acquire", 0.3).ok
+    time.sleep(0.5)  # the lease's own duration: expiry is the behaviour under test
+    r = op1.apply(LoopConfig(q_cutoff_hz=0.7))
+    assert not r.accepted and r.field == "lease"
+
+
+def test_a_released_lease_is_refused(op1: ControllerClient) -> None:
+    assert op1.lease("acquire").ok
+    token = op1.lease_token
+    assert op1.lease("release").ok
+    op1.lease_token = token
+    assert not op1.apply(LoopConfig(q_cutoff_hz=0.7)).accepted
+
+
+@pytest.mark.parametrize("req, field", [
+    (proto.LeaseRequest(action="steal"), "action"),
+    (proto.LeaseRequest(action="acquire", duration_s=-1.0), "duration_s"),
+    (proto.LeaseRequest(action="acquire", duration_s=math.nan), "duration_s"),
+    (proto.LeaseRequest(action="acquire", duration_s=1e9), "duration_s"),
+])
+def test_bad_lease_requests_name_the_field(
+    op1: ControllerClient, req: proto.LeaseRequest, field: str
+) -> None:
+    r = op1.query(proto.key_lease(RIG), req, proto.LeaseReply)
+    assert not r.ok and r.field == field and r.holder == ""
+
+
+# -- garbage on an operator's own scope -------------------------------------------------------
+
+
+def _raw(env: dict[str, Any], user: str, key: str, payload: bytes, timeout_s: float = 2.0,
+         ) -> bytes | None:
+    conf = client_config(env["auth"], user, [env["proc"].endpoint], fail_after_s=10.0)
+    with zenoh.open(conf) as s:
+        for r in s.get(key, payload=payload, timeout=timeout_s):
+            if r.ok is not None:
+                data: bytes = r.ok.payload.to_bytes()
+                return data
+            return b"ERR:" + r.err.payload.to_bytes()
+    return None
+
+
+GARBAGE: list[tuple[str, str, bytes, str]] = [
+    ("config garbage", "config", b"\xc1\xff\x00", "payload"),
+    ("config oversized", "config", ENC({"v": 1, "client": "x" * 200_000}), "payload"),
+    ("config unknown field", "config", ENC({"v": 1, "candidate": {}, "sudo": True}), "sudo"),
+    ("config NaN", "config", ENC({"v": 1, "candidate": {"cv_kp": math.nan}}), "candidate.cv_kp"),
+    ("config bad utf-8", "config", b"\x82\xa1v\x01\xa6client\xa2\xff\xfe", "payload"),
+    ("config deep nesting", "config", b"\x81\xa1v" + b"\x91" * 5000 + b"\x01", "payload"),
+    ("config wrong version", "config", ENC({"v": 2}), "v"),
+    ("cmd unknown body", "cmd", ENC({"v": 1, "body": {"type": "self_destruct"}}), "body.type"),
+    ("cmd unknown field", "cmd", ENC({"v": 1, "body": {"type": "start", "now": 1}}), "body.now"),
+    ("knowledge garbage", "knowledge", b"\x00\x01", "payload"),
+    ("lease garbage", "lease", b"\x93\x01", "payload"),
+]
+
+
+@pytest.mark.parametrize("name, what, payload, field", GARBAGE, ids=[g[0] for g in GARBAGE])
+def test_garbage_is_refused_naming_the_field(
+    env: dict[str, Any], op1: ControllerClient, name: str, what: str, payload: bytes, field: str
+) -> None:
+    assert op1.lease("acquire").ok
+    before = _state(op1)
+    key = proto.user_key(f"{proto.KEY_PREFIX}/{RIG}/{what}", "op1")
+    raw = _raw(env, "op1", key, payload)
+    assert raw is not None and not raw.startswith(b"ERR:"), raw
+    reply = msgspec.msgpack.decode(raw)
+    assert reply.get("ok", reply.get("accepted")) is False
+    assert field in reply["field"], reply
+    assert b"Traceback" not in raw and b"Error:" not in raw
+    assert _state(op1) == before
+
+
+# -- scopes and wildcards ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("user, key", [
+    ("op2", proto.user_key(proto.key_config(RIG), "op1")),  # another user's scope
+    ("view", proto.user_key(proto.key_command(RIG), "view")),  # a viewer's own cmd scope
+    ("op1", f"{proto.KEY_PREFIX}/**"),  # wildcard over every rig
+    ("op1", proto.key_config(RIG)),  # the public key: no queryable there with --auth
+])
+def test_requests_outside_the_own_scope_get_no_reply(
+    env: dict[str, Any], op1: ControllerClient, user: str, key: str
+) -> None:
+    before = _state(op1)
+    payload = ENC({"v": 1, "candidate": {"q_cutoff_hz": 0.7}})
+    assert _raw(env, user, key, payload, timeout_s=1.0) is None
+    assert _state(op1) == before
+
+
+def test_a_wildcard_put_changes_nothing(env: dict[str, Any], op1: ControllerClient) -> None:
+    before = _state(op1)
+    conf = client_config(env["auth"], "op2", [env["proc"].endpoint], fail_after_s=10.0)
+    with zenoh.open(conf) as s:
+        s.put(f"{proto.KEY_PREFIX}/**", ENC({"v": 1, "body": {"type": "stop"}}))
+    time.sleep(0.3)  # nothing to wait for: the assertion is that nothing happens
+    assert _state(op1) == before
+
+
+# -- text from the network is data -------------------------------------------------------------
+
+
+def test_xss_in_every_text_field_is_stored_as_data(
+    env: dict[str, Any], op1: ControllerClient
+) -> None:
+    assert op1.lease("acquire").ok
+    req = proto.ConfigRequest(candidate=LoopConfig(q_cutoff_hz=0.65), client=XSS,
+                              lease=op1.lease_token)
+    r = op1.query(proto.key_config(RIG), req, proto.ConfigReply)
+    assert r.accepted
+    rec = KnowledgeRecord(source=XSS)
+    k = op1.knowledge(proto.KnowledgeRequest(record=rec))
+    assert k.ok and XSS in k.record.source
+    st = _status(op1)
+    assert st.knowledge_version == k.record.version or wait_until(
+        lambda: op1.status is not None and op1.status.knowledge_version == k.record.version, 3)
+
+
+def test_the_audit_trail_recorded_the_refusals_and_is_intact(
+    env: dict[str, Any], op1: ControllerClient
+) -> None:
+    import io
+    import json
+
+    op1.lease("status")
+    time.sleep(0.2)  # the writer thread catches up (a queue; nothing else to wait on)
+    path = env["proc"].state_dir / "audit.jsonl"
+    records = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+    refused = [r for r in records if r["outcome"] == "refused"]
+    users = {r["user"] for r in refused}
+    assert len(refused) >= 20 and {"view", "op1", "op2"} <= users
+    assert any(r["action"] == "estop" and r["user"] == "view" for r in records)
+    assert any(r["action"] == "lease.takeover" for r in records)
+    out = io.StringIO()
+    assert verify_main(path, None, False, out) == 0, out.getvalue()
