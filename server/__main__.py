@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from controller.cli import Command, add_log_level, build_parser, controller_commands
 
@@ -19,6 +20,10 @@ def add_dashboard_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig-name", default="demo")
     p.add_argument("--host", default="127.0.0.1", help="HTTP bind address (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080)
+    p.add_argument("--auth", type=Path, default=None, metavar="DIR",
+                   help="credentials for a controller with --auth: an auth directory or a "
+                   "password file (with --user)")
+    p.add_argument("--user", default="", help="the user to connect as (with --auth)")
 
 
 def run_dashboard_args(args: argparse.Namespace) -> int:
@@ -29,7 +34,8 @@ def run_dashboard_args(args: argparse.Namespace) -> int:
     connect = args.connect if args.connect is not None else ["tcp/127.0.0.1:7447"]
     return run_dashboard(
         DashboardOptions(
-            connect=tuple(connect), rig_name=args.rig_name, host=args.host, port=args.port
+            connect=tuple(connect), rig_name=args.rig_name, host=args.host, port=args.port,
+            auth=args.auth, user=args.user,
         )
     )
 

@@ -21,6 +21,7 @@ from controller.client import ClientOptions, ControllerClient, ControllerUnavail
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import MeasuredResponse
 from server.engine import TuningEngine, measured_from_csv
+from server.gate import Gate
 from server.measured import read_measured
 from server.panels.identify import IdentifyPanel, NominalTuningPanel
 from server.panels.live import LivePanel
@@ -33,6 +34,8 @@ __all__ = ["Dashboard", "DashboardOptions", "run_dashboard", "stop_requested"]
 log = logging.getLogger(__name__)
 
 WEB_ASSETS = Path(__file__).resolve().parent.parent / "web_assets"
+#: How long a lease the dashboard takes for its user's changes (renewed on the next change).
+LEASE_S = 300.0
 
 
 @dataclass(frozen=True)
@@ -46,6 +49,12 @@ class DashboardOptions:
     query_timeout_s: float = 3.0
     verbose: bool = True
     client_name: str = "dashboard"
+    token: str | None = None
+    """The browser access token (None: a random one, in the printed URL)."""
+    auth: Path | None = None
+    """With a controller that authenticates: the `dobtune auth init` directory or a password
+    file, and `user`, whose role and lease the controller enforces."""
+    user: str = ""
 
 
 def _asset(name: str, default: str = "") -> str:
@@ -83,8 +92,11 @@ class Dashboard:
                 rig_name=opts.rig_name,
                 query_timeout_s=opts.query_timeout_s,
                 client_name=opts.client_name,
+                auth=opts.auth,
+                user=opts.user,
             )
         )
+        self.gate = Gate(opts.host) if opts.token is None else Gate(opts.host, opts.token)
         self.server: Any = None
         self.engine = TuningEngine()
         self._knowledge_version = -1  # the plant knowledge fetched from the controller
@@ -96,8 +108,9 @@ class Dashboard:
 
     @property
     def url(self) -> str:
+        """The address to open: it carries the access token (keep it private)."""
         assert self.server is not None
-        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+        return f"http://{self.server.get_host()}:{self.server.get_port()}/?token={self.gate.token}"
 
     def __enter__(self) -> Dashboard:
         import viser
@@ -105,8 +118,10 @@ class Dashboard:
         with contextlib.ExitStack() as undo:
             self.client.__enter__()
             undo.push(self)  # a failure below closes what is open so far
-            server = viser.ViserServer(host=self.opts.host, port=self.opts.port,
-                                       verbose=self.opts.verbose)
+            with self.gate.serving():
+                server = viser.ViserServer(host=self.opts.host, port=self.opts.port,
+                                           verbose=self.opts.verbose)
+            self.gate.port = server.get_port()
             # Never open a public share tunnel from this app.
             server.request_share_url = lambda *a, **k: None  # type: ignore[method-assign]
             self.server = server
@@ -231,11 +246,28 @@ class Dashboard:
         if self.tuning is not None:
             self.tuning.request_update()
 
+    def _leased(self, act: Any) -> Any:
+        """`act()`, under the operator lease when the controller authenticates: taken when
+        this dashboard holds none (the controller refuses it if someone else holds it: the
+        reply says so), renewed once if the controller says the lease lapsed."""
+        if not self.opts.user:
+            return act()
+        if not self.client.lease_token:
+            self.client.lease("acquire", LEASE_S)
+        reply = act()
+        if getattr(reply, "field", "") == "lease":
+            got = self.client.lease("renew" if self.client.lease_token else "acquire", LEASE_S)
+            if not got.ok:
+                got = self.client.lease("acquire", LEASE_S)
+            if got.ok:
+                reply = act()
+        return reply
+
     def _apply(self, cand: LoopConfig, confirm: bool = False) -> None:
         t = self.tuning
         assert t is not None
         try:
-            reply = self.client.apply(cand, confirm=confirm)
+            reply = self._leased(lambda: self.client.apply(cand, confirm=confirm))
         except (ControllerUnavailable, proto.ProtocolError) as exc:
             log.warning("apply failed: %s", exc)
             t.show_error(str(exc))
@@ -259,7 +291,11 @@ class Dashboard:
         assert live is not None
         name = type(body).__name__
         try:
-            reply = self.client.command(body)
+            reply = (
+                self.client.command(body)
+                if isinstance(body, proto.EStop)
+                else self._leased(lambda: self.client.command(body))
+            )
         except (ControllerUnavailable, proto.ProtocolError) as exc:
             log.warning("command %s failed: %s", name, exc)
             live.command_result.content = _command_html(f"{name}: {esc(str(exc))}", False)
@@ -294,9 +330,8 @@ class Dashboard:
         """Send the response to the controller for adoption into its plant knowledge: the
         verdicts (the controller's and this dashboard's) use it once the controller has it."""
         try:
-            reply = self.client.knowledge(
-                proto.KnowledgeRequest(record=self.engine.with_measured(m))
-            )
+            req = proto.KnowledgeRequest(record=self.engine.with_measured(m))
+            reply = self._leased(lambda: self.client.knowledge(req))
         except (ControllerUnavailable, proto.ProtocolError) as exc:
             log.warning("measured response %s not adopted: %s", m.name, exc)
             self.measured_text.content = (

@@ -19,7 +19,7 @@ from controller import protocol as proto
 from controller.client import ControllerClient
 from controller.core.trajectory import TRAJECTORY_KINDS, default_trajectory
 from server import charts
-from server.panels.widgets import add_chart, set_html
+from server.panels.widgets import add_chart, esc, set_html
 from server.workers import Periodic
 
 __all__ = ["LivePanel", "LiveStats", "banner_html", "window_metrics"]
@@ -40,8 +40,11 @@ def banner_html(client: ControllerClient) -> str:
         since = "never heard from it" if st is None else f"no status for {age:.1f} s"
         return _banner(
             "#b71c1c",
-            f"CONTROLLER NOT REACHABLE ({since}) &mdash; rig '{client.opts.rig_name}' on "
-            f"{', '.join(client.opts.connect)}. Traces are frozen; nothing can be applied.",
+            f"CONTROLLER NOT REACHABLE ({since}) &mdash; rig '{esc(client.opts.rig_name)}' on "
+            f"{esc(', '.join(client.opts.connect))}"
+            + (f" as user {esc(client.opts.user)} (wrong credentials look the same)"
+               if client.opts.user else "")
+            + ". Traces are frozen; nothing can be applied.",
             "dt-banner dt-gone",
         )
     if st.mode == "estop":
@@ -49,10 +52,16 @@ def banner_html(client: ControllerClient) -> str:
                        "Reset fault, then Start.", "dt-banner dt-estop")
     if st.mode == "fault" or st.faults:
         faults = "; ".join(st.faults) or "fault"
-        return _banner("#e67e22", f"FAULT: {faults}", "dt-banner dt-fault")
+        return _banner("#e67e22", f"FAULT: {esc(faults)}. Reset fault, then Start.",
+                       "dt-banner dt-fault")
+    auth = f"authenticated as {esc(client.opts.user)}" if st.auth else "no authentication"
+    lease = f", lease: {esc(st.operator)}" if st.operator else ""
+    watchdog = f"<br>{esc(st.watchdog)}" if st.watchdog else ""
     return _banner(
         "#2e7d32",
-        f"Connected: rig <b>{st.rig}</b> ({st.plant}), {st.mode}, config v{st.config_version}",
+        f"Connected: rig <b>{esc(st.rig)}</b> ({esc(st.plant)}), {esc(st.mode)}, config "
+        f"v{st.config_version} ({esc(st.verdict or '-')} on knowledge "
+        f"{esc(st.knowledge or '-')}); {auth}{lease}{watchdog}",
         "dt-banner dt-ok",
     )
 
@@ -228,12 +237,13 @@ class LivePanel:
         if st is None:
             return f"<div class='dt-health' style='font-size:12px'>{stream}</div>"
         tm = st.timing
-        faults = ", ".join(st.faults) if st.faults else "none"
+        faults = esc(", ".join(st.faults)) if st.faults else "none"
         jitter = tm.period_p99_us - tm.period_p50_us
         style = "color:#d62728" if st.faults or tm.overruns else ""
         return (
             f"<div class='dt-health' style='font-size:12px;{style}'>"
-            f"mode <b>{st.mode}</b>, plant {st.plant}, trajectory {st.trajectory.kind}<br>"
+            f"mode <b>{esc(st.mode)}</b>, plant {esc(st.plant)}, trajectory "
+            f"{esc(st.trajectory.kind)}<br>"
             f"period p50 {tm.period_p50_us:.0f} us, p99 {tm.period_p99_us:.0f} us "
             f"(jitter {jitter:.0f} us), max {tm.period_max_us:.0f} us; compute p99 "
             f"{tm.compute_p99_us:.0f} us<br>overruns {tm.overruns}, skipped {tm.skipped_ticks}, "

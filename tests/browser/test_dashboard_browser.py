@@ -136,6 +136,29 @@ def test_apply_unstable_candidate_is_refused_and_config_unchanged(
     assert after.config.cv_kp != 3.0
 
 
+def test_a_caution_applies_only_after_the_dialog(
+    page: Any, probe: ControllerClient, artifacts: Path
+) -> None:
+    before = probe.get_config()
+    _set_number(page, "Cv Kp", before.config.cv_kp)
+    _set_number(page, "Q cut-off (Hz)", 5.0)  # stable; thin margins, chatter at standstill
+    page.wait_for_selector(".dt-verdict.dt-caution", timeout=15_000)
+    assert "nonlinear check" in _text(page, ".dt-verdict")
+    page.get_by_role("button", name="Apply candidate").click()
+    page.wait_for_selector("text=Apply with caution?", timeout=10_000)
+    reasons = page.locator(".dt-caution-reason").all_inner_texts()
+    assert any("recommended maximum" in r for r in reasons)
+    page.screenshot(path=str(artifacts / "browser_4b_caution_dialog.png"))
+    assert probe.get_config().version == before.version  # nothing sent yet
+    page.get_by_role("button", name="Apply anyway").click()
+    page.wait_for_selector("text=Accepted", timeout=10_000)
+    after = probe.get_config()
+    assert after.version == before.version + 1 and math.isclose(after.config.q_cutoff_hz, 5.0)
+    # Back to a calm configuration for the tests that follow.
+    _set_number(page, "Q cut-off (Hz)", 0.5)
+    _apply(page, "accept", "text=Accepted", artifacts / "browser_4c_back.png")
+
+
 LIVE_X_JS = """() => {
   const ups = Object.values(window.__viserTestpoints?.uplots || {});
   for (const u of ups) {
@@ -178,3 +201,27 @@ def test_estop_from_page_stops_the_controller(
     assert all(u == 0.0 for u in cols["command_deg_s"])
     page.wait_for_selector(".dt-banner.dt-estop", timeout=15_000)
     page.screenshot(path=str(artifacts / "browser_6_estop.png"))
+
+
+XSS = '<img src=x onerror="window.__xss=1">'
+
+
+def test_text_from_the_network_is_shown_not_run(
+    page: Any, probe: ControllerClient, artifacts: Path
+) -> None:
+    """A plant-knowledge source with markup (any operator can name it): the dashboard shows it
+    as text in the verdict box and the banner; nothing runs."""
+    import msgspec
+
+    from controller import protocol as proto
+
+    rec = probe.knowledge().record
+    got = probe.knowledge(proto.KnowledgeRequest(record=msgspec.structs.replace(rec, source=XSS)))
+    assert got.ok, got.message
+    page.wait_for_function(
+        "(t) => document.querySelector('.dt-verdict').innerText.includes(t)", arg=XSS,
+        timeout=15_000,
+    )
+    assert page.evaluate("() => window.__xss") is None
+    assert page.locator(".dt-verdict img").count() == 0
+    page.screenshot(path=str(artifacts / "browser_9_xss_as_text.png"))

@@ -1,0 +1,151 @@
+"""Who may open the dashboard: a token in the URL (as Jupyter does), Origin and Host checks.
+
+viser has no authentication and accepts any Origin: anyone who reaches the port could press any
+control (a raw websocket client can press a hidden or disabled one). The dashboard therefore
+checks every HTTP request and the websocket handshake before viser sees them:
+
+- The printed URL carries `?token=<random>`. A request with the right token gets the page and
+  a cookie (HttpOnly, SameSite=Strict) that the page's own requests and its websocket then
+  carry; a request with neither gets 401 and a short page that says how to get in.
+- The websocket handshake needs the cookie, an allowed Host (the configured host, localhost
+  and 127.0.0.1 at the dashboard's port) and, when the client sends one (browsers always do),
+  an Origin of that same host: a page on another site cannot drive the dashboard from the
+  user's browser (cross-site websocket hijacking), and a raw client without the token cannot
+  connect at all.
+
+How: viser starts its server with `websockets.asyncio.server.serve(..., process_request=...)`;
+`install` wraps that function once per process so that the `process_request` of a server
+started while a `Gate` is being installed runs the gate's check first (`Gate.serving`). The
+comparison of tokens is constant-time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hmac
+import http
+import secrets
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+__all__ = ["COOKIE", "Gate", "install"]
+
+COOKIE = "dobtune_token"
+_lock = threading.Lock()
+#: One server start at a time: the gate a starting server takes is the one being installed.
+_starting = threading.Lock()
+_pending: list[Gate] = []
+_installed = False
+
+_DENIED_PAGE = (
+    "<!doctype html><meta charset=utf-8><title>dobtune: token required</title>"
+    "<p style='font:16px sans-serif;margin:2em'>This dashboard needs its access token: open "
+    "the URL the dashboard printed when it started (it ends in <code>?token=...</code>).</p>"
+)
+
+
+@dataclass
+class Gate:
+    """The access check of one dashboard."""
+
+    host: str
+    token: str = field(default_factory=lambda: secrets.token_urlsafe(24))
+    port: int = 0
+    refused: int = 0
+    """Requests refused so far (HTTP and websocket)."""
+
+    def allowed_hosts(self) -> set[str]:
+        hosts = {self.host, "localhost", "127.0.0.1"}
+        return {f"{h}:{self.port}" for h in hosts} | ({*hosts} if self.port == 80 else set())
+
+    def _token_ok(self, value: str | None) -> bool:
+        return value is not None and hmac.compare_digest(value.encode(), self.token.encode())
+
+    def check(self, path: str, headers: Any) -> tuple[str, bool]:
+        """("", set_cookie) when the request may go on, else why not."""
+        query = parse_qs(urlsplit(path).query)
+        by_query = self._token_ok(query["token"][0] if query.get("token") else None)
+        by_cookie = self._token_ok(_cookie(headers.get("Cookie", ""), COOKIE))
+        if headers.get("Upgrade", "").lower() == "websocket":
+            host = headers.get("Host", "")
+            if self.port and host not in self.allowed_hosts():
+                return f"host {host!r} is not this dashboard", False
+            origin = headers.get("Origin")
+            if origin is not None and urlsplit(origin).netloc != host:
+                return f"origin {origin!r} is not this dashboard ({host})", False
+            if not (by_cookie or by_query):
+                return "no valid token", False
+            return "", False
+        if not (by_cookie or by_query):
+            return "no valid token", False
+        return "", by_query
+
+    def wrap(self, process_request: Callable[..., Any] | None) -> Callable[..., Any]:
+        from websockets.datastructures import Headers
+        from websockets.http11 import Response
+
+        def gated(connection: Any, request: Any) -> Any:
+            why, set_cookie = self.check(request.path, request.headers)
+            if why:
+                self.refused += 1
+                status = http.HTTPStatus.FORBIDDEN if "Upgrade" in request.headers else (
+                    http.HTTPStatus.UNAUTHORIZED)
+                body = _DENIED_PAGE.encode()
+                return Response(status.value, status.phrase, Headers(**{
+                    "Content-Type": "text/html; charset=utf-8",
+                    "Content-Length": str(len(body)),
+                }), body)
+            response = process_request(connection, request) if process_request else None
+            if set_cookie and response is not None:
+                response.headers["Set-Cookie"] = (
+                    f"{COOKIE}={self.token}; HttpOnly; SameSite=Strict; Path=/"
+                )
+            return response
+
+        return gated
+
+    @contextlib.contextmanager
+    def serving(self) -> Iterator[None]:
+        """Servers started (by viser) inside this block are gated by this gate."""
+        install()
+        with _starting:
+            with _lock:
+                _pending.append(self)
+            try:
+                yield
+            finally:
+                with _lock, contextlib.suppress(ValueError):
+                    _pending.remove(self)
+
+
+def _cookie(header: str, name: str) -> str | None:
+    for part in header.split(";"):
+        k, eq, v = part.strip().partition("=")
+        if eq and k == name:
+            return v
+    return None
+
+
+def install() -> None:
+    """Wrap `websockets.asyncio.server.serve` once: a server started while a gate is pending
+    gets that gate in front of its `process_request`."""
+    global _installed
+    with _lock:
+        if _installed:
+            return
+        import websockets.asyncio.server as ws_server
+
+        original = ws_server.serve
+
+        def serve(*args: Any, **kwargs: Any) -> Any:
+            with _lock:
+                gate = _pending[-1] if _pending else None
+            if gate is not None:
+                kwargs["process_request"] = gate.wrap(kwargs.get("process_request"))
+            return original(*args, **kwargs)
+
+        ws_server.serve = serve  # type: ignore[misc,assignment]
+        _installed = True

@@ -1,0 +1,88 @@
+"""The dashboard's door: a token in the URL, Origin and Host checks, no share tunnel. A real
+dashboard (no controller needed) and raw HTTP / websocket clients, as an attacker would use."""
+
+from __future__ import annotations
+
+import socket
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+
+import pytest
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
+
+from server.app import Dashboard, DashboardOptions
+from server.gate import COOKIE, Gate
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def dash() -> Iterator[Dashboard]:
+    opts = DashboardOptions(connect=(f"tcp/127.0.0.1:{_free_port()}",), rig_name="gate",
+                            port=_free_port(), verbose=False, query_timeout_s=0.5)
+    with Dashboard(opts) as d:
+        yield d
+
+
+def _base(d: Dashboard) -> str:
+    return f"127.0.0.1:{d.gate.port}"
+
+
+def test_the_page_needs_the_token_and_sets_a_cookie(dash: Dashboard) -> None:
+    with pytest.raises(urllib.error.HTTPError) as err:
+        urllib.request.urlopen(f"http://{_base(dash)}/", timeout=5)
+    assert err.value.code == 401 and b"token" in err.value.read()
+    with pytest.raises(urllib.error.HTTPError) as err:
+        urllib.request.urlopen(f"http://{_base(dash)}/?token=wrong", timeout=5)
+    assert err.value.code == 401
+    with urllib.request.urlopen(dash.url, timeout=5) as r:
+        assert r.status == 200
+        cookie = r.headers["Set-Cookie"]
+    assert cookie.startswith(f"{COOKIE}={dash.gate.token};") and "HttpOnly" in cookie
+    assert "SameSite=Strict" in cookie
+
+
+@pytest.mark.parametrize("headers, why", [
+    ({}, "no cookie, no token"),
+    ({"Cookie": f"{COOKIE}=wrong"}, "a wrong token"),
+    ({"Cookie": "COOKIE", "Origin": "http://evil.example"}, "another site"),
+])
+def test_a_websocket_without_the_token_or_from_another_site_is_refused(
+    dash: Dashboard, headers: dict[str, str], why: str
+) -> None:
+    if headers.get("Cookie") == "COOKIE":
+        headers = {**headers, "Cookie": f"{COOKIE}={dash.gate.token}"}
+    before = dash.gate.refused
+    with pytest.raises(InvalidStatus) as err:
+        connect(f"ws://{_base(dash)}/", additional_headers=headers, open_timeout=5,
+                subprotocols=["viser-v1"])  # type: ignore[list-item]
+    assert err.value.response.status_code == 403, why
+    assert dash.gate.refused == before + 1
+    assert not dash.server.get_clients()  # viser never saw it
+
+
+def test_the_page_origin_with_the_cookie_connects(dash: Dashboard) -> None:
+    headers = {"Cookie": f"{COOKIE}={dash.gate.token}", "Origin": f"http://{_base(dash)}"}
+    with connect(f"ws://{_base(dash)}/", additional_headers=headers, open_timeout=5) as ws:
+        assert ws.protocol.state.name == "OPEN"
+
+
+def test_gate_checks_host_and_origin() -> None:
+    g = Gate("127.0.0.1", token="t" * 32, port=8080)
+    ok = {"Upgrade": "websocket", "Host": "127.0.0.1:8080", "Cookie": f"{COOKIE}={'t' * 32}",
+          "Origin": "http://127.0.0.1:8080"}
+    assert g.check("/", ok) == ("", False)
+    assert g.check("/", {**ok, "Host": "evil:8080"})[0].startswith("host")
+    assert g.check("/", {**ok, "Origin": "http://localhost:8080"})[0].startswith("origin")
+    assert g.check("/?token=" + "t" * 32, {}) == ("", True)
+    assert g.check("/?token=" + "t" * 31 + "u", {})[0] == "no valid token"
+
+
+def test_the_share_tunnel_is_never_opened(dash: Dashboard) -> None:
+    assert dash.server.request_share_url() is None
