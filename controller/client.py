@@ -332,6 +332,11 @@ class ControllerClient:
         `reply_type`. Raises ControllerUnavailable (no reply, an error reply) or ProtocolError."""
         return proto.decode(self._query(self.key(key), proto.encode(msg)), reply_type)
 
+    def identify_status(self) -> proto.IdentifyStatus:
+        """The controller's latest identification run."""
+        raw = self._query(self.key(proto.key_identify(self.opts.rig_name)), b"")
+        return proto.decode(raw, proto.IdentifyStatus)
+
     def get_config(self) -> proto.ConfigReply:
         req = proto.ConfigRequest(client=self.opts.client_name)
         return self.query(proto.key_config(self.opts.rig_name), req, proto.ConfigReply)

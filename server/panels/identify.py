@@ -155,9 +155,8 @@ class IdentifySettings:
 
 
 def _query_identify(client: ControllerClient) -> proto.IdentifyStatus:
-    """The controller's latest identification (raises ControllerUnavailable/ProtocolError)."""
-    data = client._query(proto.key_identify(client.opts.rig_name), b"")
-    return proto.decode(data, proto.IdentifyStatus)
+    """The controller's identification status (raises ControllerUnavailable, ProtocolError)."""
+    return client.identify_status()
 
 
 def _status_html(state: str, text: str, where: str = OFFLINE_NOTE) -> str:
