@@ -446,6 +446,13 @@ _version_decoder = msgspec.msgpack.Decoder(_Versioned)
 _decoders: dict[type, msgspec.msgpack.Decoder[Any]] = {}
 
 
+def encoding(kind: type[msgspec.Struct] | str) -> str:
+    """The Zenoh encoding every put and reply carries: `application/msgpack;<MessageName>`, so
+    that generic Zenoh tools and bridges can tell what they receive."""
+    name = kind if isinstance(kind, str) else kind.__name__
+    return f"application/msgpack;{name}"
+
+
 def encode(msg: msgspec.Struct) -> bytes:
     return _encoder.encode(msg)
 

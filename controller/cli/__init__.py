@@ -55,7 +55,18 @@ def build_parser(
 
 def controller_commands() -> dict[str, Command]:
     """The controller side's commands (imports are light: each module imports its work lazily)."""
-    from controller.cli import audit, auth, check, controller, ctl, experiment, identify
+    from controller.cli import (
+        audit,
+        auth,
+        check,
+        controller,
+        ctl,
+        experiment,
+        identify,
+        record,
+        report,
+    )
 
     return {c.name: c for c in (experiment.COMMAND, check.COMMAND, controller.COMMAND,
-                                identify.COMMAND, audit.COMMAND, auth.COMMAND, ctl.COMMAND)}
+                                identify.COMMAND, audit.COMMAND, auth.COMMAND, ctl.COMMAND,
+                                record.COMMAND, report.COMMAND)}

@@ -37,6 +37,7 @@ from controller import protocol as proto
 from controller.core.errors import ConfigError
 from controller.process import requests as rq
 from controller.process.access import LOCAL, Who
+from controller.process.blackbox import BlackBox
 from controller.process.persistence import Latch, PersistenceError
 from controller.process.runtime import ESTOP, FAULT
 from controller.process.service import ControllerService, RuntimeEvents
@@ -89,6 +90,18 @@ class ZenohNode:
         self.knowledge_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.lease_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.access = service.access
+        self._reply_encoding = {
+            id(self.config_q): proto.encoding(proto.ConfigReply),
+            id(self.command_q): proto.encoding(proto.CommandReply),
+            id(self.identify_q): proto.encoding(proto.IdentifyStatus),
+            id(self.knowledge_q): proto.encoding(proto.KnowledgeReply),
+            id(self.lease_q): proto.encoding(proto.LeaseReply),
+        }
+        self.blackbox = BlackBox(
+            service.store.directory / "blackbox", opts.rig_name, service.warn
+        )
+        self._bb_mode = service.rt.mode
+        self._bb_rollbacks = 0
         self._threads: list[threading.Thread] = []
         self._entities: list[Any] = []
         self.state_pub: Any = None
@@ -210,6 +223,7 @@ class ZenohNode:
         rate = rt.options.rate_hz
         encode = proto.encode
         put = self.state_pub.put
+        state_encoding = proto.encoding(proto.StateBatch)
 
         def sink(seq0: int, version: int, mode: str, cols: Sequence[list[float]]) -> None:
             msg = proto.state_batch(
@@ -221,12 +235,24 @@ class ZenohNode:
                 epoch_s=rt.epoch_s,
                 mode=mode,
             )
+            self.blackbox.add(msg)
             try:
-                put(encode(msg))
+                put(encode(msg), encoding=state_encoding)
             except Exception as exc:
                 self.service.warn(f"state put failed: {exc}")
 
         rt.publisher(sink, self.stop_event)
+
+    def _black_box(self) -> None:
+        """Write the black box on entering estop or fault, and on a watchdog rollback."""
+        rt = self.rt
+        mode, rollbacks = rt.mode, rt.rollbacks
+        if mode != self._bb_mode and mode in (ESTOP, FAULT):
+            why = rt.estop_source if mode == ESTOP else (rt.fault or "fault")
+            self.blackbox.trigger(mode, f"{mode}: {why} (seq {rt.seq})")
+        if rollbacks != self._bb_rollbacks:
+            self.blackbox.trigger("rollback", self.service.watchdog_text or "watchdog rollback")
+        self._bb_mode, self._bb_rollbacks = mode, rollbacks
 
     def status(self) -> proto.Status:
         shed = self.shed_queries
@@ -239,7 +265,10 @@ class ZenohNode:
                 self.events.poll()
                 self.service.poll_rollback()
                 self.access.poll()
-                self.status_pub.put(proto.encode(self.status()))
+                self._black_box()
+                self.status_pub.put(
+                    proto.encode(self.status()), encoding=proto.encoding(proto.Status)
+                )
             except Exception as exc:
                 self.service.warn(f"status put failed: {exc}")
 
@@ -298,7 +327,7 @@ class ZenohNode:
                 who = self.access.who(query.key_expr)
                 with rt.arrival_scope(arrival):
                     reply = handle(data, who)
-                query.reply(query.key_expr, reply)
+                query.reply(query.key_expr, reply, encoding=self._reply_encoding.get(id(q)))
             except Exception as exc:  # never let a query end the worker
                 # The details go to the log; the client gets no internal text.
                 self.service.warn(f"query handler error: {type(exc).__name__}: {exc}")

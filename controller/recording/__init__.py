@@ -1,0 +1,1 @@
+"""Recordings (MCAP): writing, reading, reports."""

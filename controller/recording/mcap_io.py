@@ -1,0 +1,231 @@
+"""Recordings as MCAP files (the robotics log format Foxglove and PlotJuggler open directly),
+written and read with the `mcap` library.
+
+Channels (message encoding "json", schemas embedded as JSON Schema, zstd-compressed chunks):
+
+- `/state`: one message per loop tick, log time = the sample's time (`epoch_s + t_s`): seq,
+  t_s, ref_deg, pos_deg, speed_deg_s, speed_ref_deg_s, command_deg_s, d_hat_deg_s, error_deg,
+  config_version, mode.
+- `/status`: every controller Status received (as its JSON form).
+- `/config`: each configuration version the first time it is seen (version, config).
+- `/events`: what happened: `gap` (samples lost: from_seq, to_seq), `mode` (estop, fault,
+  running...), `config` (a new version), `watchdog`, `note`, and whatever a caller adds
+  (e-stop, rollback, the black box's reason).
+
+Pure I/O on files: no Zenoh here (`dobtune record` and the controller's black box feed it).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import msgspec
+import numpy as np
+
+from controller.core.samples import STATE_COLUMNS
+
+__all__ = ["SCHEMAS", "Recorder", "Recording", "read_recording"]
+
+_NUM = {"type": "number"}
+SCHEMAS: dict[str, dict[str, Any]] = {
+    "/state": {
+        "title": "dobtune.State",
+        "description": "one loop tick (load-side degrees and deg/s)",
+        "type": "object",
+        "properties": {
+            "seq": {"type": "integer"},
+            **{c: _NUM for c in STATE_COLUMNS},
+            "config_version": {"type": "integer"},
+            "mode": {"type": "string"},
+        },
+    },
+    "/status": {"title": "dobtune.Status", "type": "object",
+                "description": "the controller's Status message (docs/protocol.md)"},
+    "/config": {"title": "dobtune.Config", "type": "object",
+                "properties": {"version": {"type": "integer"}, "config": {"type": "object"}}},
+    "/events": {"title": "dobtune.Event", "type": "object",
+                "properties": {"kind": {"type": "string"}, "text": {"type": "string"},
+                               "seq": {"type": "integer"}}},
+}
+_enc = msgspec.json.Encoder()
+
+
+def _ns(t_s: float) -> int:
+    return max(0, round(t_s * 1e9))
+
+
+class Recorder:
+    """Writes one recording (context manager). Not thread-safe: one writer thread."""
+
+    def __init__(self, out: str | Path | IO[bytes], *, rig: str = "", profile: str = "") -> None:
+        from mcap.writer import CompressionType, Writer
+
+        self._own = isinstance(out, (str, Path))
+        self._f: IO[bytes] = open(out, "wb") if isinstance(out, (str, Path)) else out  # noqa: SIM115
+        self._w = Writer(self._f, compression=CompressionType.ZSTD)
+        self._w.start(profile=profile, library="dobtune")
+        self._chan: dict[str, int] = {}
+        for topic, schema in SCHEMAS.items():
+            sid = self._w.register_schema(
+                name=schema["title"], encoding="jsonschema", data=json.dumps(schema).encode()
+            )
+            self._chan[topic] = self._w.register_channel(
+                topic=topic, message_encoding="json", schema_id=sid, metadata={"rig": rig}
+            )
+        self._seq = 0
+        self.next_seq: int | None = None
+        """The sample sequence number expected next (gaps are recorded as events)."""
+        self.samples = 0
+        self.gaps = 0
+        self._versions: set[int] = set()
+        self._mode = ""
+        self._last_ns = 0
+        self._closed = False
+
+    def _put(self, topic: str, t_ns: int, data: bytes) -> None:
+        self._w.add_message(channel_id=self._chan[topic], log_time=t_ns, data=data,
+                            publish_time=t_ns, sequence=self._seq)
+        self._seq += 1
+        self._last_ns = max(self._last_ns, t_ns)
+
+    def event(self, kind: str, text: str = "", t_s: float | None = None, **fields: Any) -> None:
+        t_ns = _ns(t_s) if t_s is not None else self._last_ns
+        self._put("/events", t_ns, _enc.encode({"kind": kind, "text": text, **fields}))
+
+    def config(self, version: int, config: Any, t_s: float | None = None) -> None:
+        if version in self._versions:
+            return
+        self._versions.add(version)
+        t_ns = _ns(t_s) if t_s is not None else self._last_ns
+        self._put("/config", t_ns, _enc.encode({"version": version,
+                                                "config": msgspec.to_builtins(config)}))
+
+    def state(self, batch: Any) -> None:
+        """A `StateBatch`: one message per sample; a jump in seq is recorded as a gap."""
+        n = len(batch.t_s)
+        if n == 0:
+            return
+        t0 = batch.epoch_s
+        if self.next_seq is not None and batch.seq0 != self.next_seq:
+            lost = batch.seq0 - self.next_seq
+            self.gaps += max(lost, 0)
+            self.event("gap", f"{lost} sample(s) lost", t0 + batch.t_s[0],
+                       from_seq=self.next_seq, to_seq=batch.seq0 - 1)
+        if batch.mode != self._mode:
+            if self._mode:
+                self.event("mode", f"{self._mode} -> {batch.mode}", t0 + batch.t_s[0],
+                           seq=batch.seq0)
+            self._mode = batch.mode
+        cols = [getattr(batch, c) for c in STATE_COLUMNS]
+        for i in range(n):
+            rec = {"seq": batch.seq0 + i}
+            for name, col in zip(STATE_COLUMNS, cols, strict=True):
+                v = col[i]
+                rec[name] = v if math.isfinite(v) else None
+            rec["config_version"] = batch.config_version
+            rec["mode"] = batch.mode
+            self._put("/state", _ns(t0 + batch.t_s[i]), _enc.encode(rec))
+        self.samples += n
+        self.next_seq = batch.seq0 + n
+
+    def status(self, st: Any, t_s: float) -> None:
+        """A `Status` (also records its configuration version the first time)."""
+        self.config(st.config_version, st.config, t_s)
+        self._put("/status", _ns(t_s), msgspec.json.encode(st))
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._w.finish()
+        if self._own:
+            self._f.close()
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@dataclass
+class Recording:
+    """A recording read back: the state columns as arrays (sorted by seq), the rest as dicts."""
+
+    state: dict[str, np.ndarray]
+    log_time_s: np.ndarray
+    configs: dict[int, dict[str, Any]] = field(default_factory=dict)
+    events: list[dict[str, Any]] = field(default_factory=list)
+    statuses: list[dict[str, Any]] = field(default_factory=list)
+    channels: dict[str, str] = field(default_factory=dict)
+    """topic -> schema name."""
+
+    @property
+    def n(self) -> int:
+        return int(self.state["seq"].size)
+
+
+def _messages(path: Path) -> Iterator[tuple[str, str, int, bytes]]:
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            yield channel.topic, schema.name if schema else "", message.log_time, message.data
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Read a dobtune MCAP file. Raises ValueError naming the file for anything else."""
+    path = Path(path)
+    cols: dict[str, list[Any]] = {c: [] for c in ("seq", *STATE_COLUMNS, "config_version")}
+    modes: list[str] = []
+    times: list[int] = []
+    rec = Recording(state={}, log_time_s=np.empty(0))
+    try:
+        for topic, schema, t_ns, data in _messages(path):
+            rec.channels[topic] = schema
+            obj = json.loads(data)
+            if topic == "/state":
+                for k in cols:
+                    v = obj.get(k)
+                    cols[k].append(math.nan if v is None else v)
+                modes.append(obj.get("mode", ""))
+                times.append(t_ns)
+            elif topic == "/config":
+                rec.configs[int(obj["version"])] = obj["config"]
+            elif topic == "/events":
+                rec.events.append({**obj, "log_time_s": t_ns / 1e9})
+            elif topic == "/status":
+                rec.statuses.append(obj)
+    except Exception as exc:  # mcap raises its own types for damaged files
+        raise ValueError(f"{path}: not a readable dobtune recording: {exc}") from exc
+    if "/state" not in rec.channels:
+        raise ValueError(f"{path}: no /state channel (not a dobtune recording)")
+    order = np.argsort(np.asarray(cols["seq"], dtype=np.int64), kind="stable")
+    rec.state = {k: np.asarray(v, dtype=np.float64)[order] for k, v in cols.items()}
+    rec.state["seq"] = rec.state["seq"].astype(np.int64)
+    rec.state["config_version"] = rec.state["config_version"].astype(np.int64)
+    rec.state["mode"] = np.asarray(modes, dtype=object)[order]
+    rec.log_time_s = np.asarray(times, dtype=np.float64)[order] / 1e9
+    return rec
+
+
+def write_batches(path: str | Path, batches: Iterable[Any], *, rig: str = "",
+                  events: Iterable[tuple[str, str]] = ()) -> Path:
+    """A whole recording from StateBatches (the black box), with events first."""
+    path = Path(path)
+    with Recorder(path, rig=rig) as r:
+        first = True
+        for b in batches:
+            if first:
+                t0 = b.epoch_s + (b.t_s[0] if b.t_s else 0.0)
+                for kind, text in events:
+                    r.event(kind, text, t0)
+                first = False
+            r.state(b)
+    return path

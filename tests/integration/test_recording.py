@@ -1,0 +1,102 @@
+"""Recording a real controller into MCAP, the black box on an e-stop, the report, the Zenoh
+encodings: a real controller process over Zenoh on loopback; files read back with the `mcap`
+library and metrics recomputed with numpy."""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import zenoh
+from procs import Client, ControllerProcess, wait_until
+
+from controller import protocol as proto
+from controller.cli.record import record_main
+from controller.cli.report import report_main
+from controller.recording.mcap_io import read_recording
+from controller.zenoh_session import open_session
+
+
+def _record(controller: ControllerProcess, out: Path, seconds: float) -> tuple[int, str]:
+    args = argparse.Namespace(connect=[controller.endpoint], rig_name=controller.rig, out=out,
+                              duration=seconds, auth=None, user="", timeout_s=10.0)
+    buf = io.StringIO()
+    return record_main(args, buf, threading.Event()), buf.getvalue()
+
+
+def test_record_read_back_and_report(
+    controller: ControllerProcess, client: Client, tmp_path: Path
+) -> None:
+    out = tmp_path / "run.mcap"
+    code, text = _record(controller, out, 3.0)
+    assert code == 0, text
+    rec = read_recording(out)
+    assert rec.channels == {"/state": "dobtune.State", "/status": "dobtune.Status",
+                            "/config": "dobtune.Config", "/events": "dobtune.Event"} or (
+        set(rec.channels) >= {"/state", "/status", "/config"})
+    seq = rec.state["seq"]
+    assert rec.n >= 2000  # ~3 s at 1 kHz
+    assert np.all(np.diff(seq) == 1), "one message per tick, no sequence gap"
+    assert np.all(np.diff(rec.log_time_s) > 0)  # log time = the sample's time
+    assert 0.9e-3 < float(np.median(np.diff(rec.log_time_s))) < 1.1e-3
+    assert rec.configs and 1 in rec.configs
+    # The report's metrics are numpy's on the same samples.
+    html_path = tmp_path / "report.html"
+    csv_path = tmp_path / "run.csv"
+    buf = io.StringIO()
+    assert report_main([out], html_path, csv_path, buf) == 0, buf.getvalue()
+    e = rec.state["error_deg"]
+    peak, rmse = float(np.max(np.abs(e))), float(np.sqrt(np.mean(e**2)))
+    page = html_path.read_text()
+    assert f"{peak:.4g} deg" in page and f"{rmse:.4g} deg" in page
+    assert "orders of rotation" in page and "<svg" in page
+    data = np.loadtxt(csv_path, delimiter=",", skiprows=1)
+    assert data.shape[0] == rec.n and np.allclose(data[:, 8], e, atol=1e-9)
+    # Two recordings compared.
+    out2 = tmp_path / "run2.mcap"
+    assert _record(controller, out2, 1.0)[0] == 0
+    assert report_main([out, out2], tmp_path / "cmp.html", None, io.StringIO()) == 0
+    assert "Configuration difference" in (tmp_path / "cmp.html").read_text()
+
+
+def test_the_black_box_is_written_on_an_estop(
+    controller: ControllerProcess, client: Client
+) -> None:
+    with client.state() as col:
+        assert wait_until(lambda: col.last_seq() > 3000, 15.0)  # 3 s of history
+    client.put_estop()
+    box = controller.state_dir / "blackbox"
+    assert wait_until(lambda: any(box.glob("*estop*.mcap")), 10.0)
+    path = next(box.glob("*estop*.mcap"))
+    rec = read_recording(path)
+    assert rec.n >= 2500 and np.all(np.diff(rec.state["seq"]) == 1)
+    assert rec.events[0]["kind"] == "estop" and "estop key" in rec.events[0]["text"]
+
+
+def test_zenoh_samples_carry_their_encoding(
+    controller: ControllerProcess, client: Client
+) -> None:
+    got: dict[str, str] = {}
+    with open_session(listen=(), connect=[controller.endpoint]) as s:
+        sub = s.declare_subscriber(proto.key_state(controller.rig),
+                                   zenoh.handlers.FifoChannel(64))
+        sub2 = s.declare_subscriber(proto.key_status(controller.rig),
+                                    zenoh.handlers.FifoChannel(64))
+        deadline = time.monotonic() + 10
+        while len(got) < 2 and time.monotonic() < deadline:
+            for sample in iter(sub.try_recv, None):
+                got["state"] = str(sample.encoding)
+            for sample in iter(sub2.try_recv, None):
+                got["status"] = str(sample.encoding)
+            time.sleep(0.02)
+        replies = list(s.get(proto.key_config(controller.rig), timeout=5.0))
+        got["config"] = str(replies[0].ok.encoding)
+    assert got == {"state": "application/msgpack;StateBatch",
+                   "status": "application/msgpack;Status",
+                   "config": "application/msgpack;ConfigReply"}
+    json.dumps(got)
