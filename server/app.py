@@ -29,7 +29,14 @@ from server.panels.widgets import esc
 from server.scene3d import TurntableScene
 from server.workers import Requests, run_logged
 
-__all__ = ["Dashboard", "DashboardOptions", "run_dashboard", "stop_requested"]
+__all__ = [
+    "Dashboard",
+    "DashboardOptions",
+    "PortBusy",
+    "check_port_free",
+    "run_dashboard",
+    "stop_requested",
+]
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +122,7 @@ class Dashboard:
     def __enter__(self) -> Dashboard:
         import viser
 
+        check_port_free(self.opts.host, self.opts.port)
         with contextlib.ExitStack() as undo:
             self.client.__enter__()
             undo.push(self)  # a failure below closes what is open so far
@@ -359,8 +367,33 @@ def _command_html(text: str, ok: bool) -> str:
     return f"<div class='dt-cmd' style='color:{color};font-size:12px'>{text}</div>"
 
 
+class PortBusy(RuntimeError):
+    pass
+
+
+def check_port_free(host: str, port: int, what: str = "--port") -> None:
+    """viser moves to the next free port on its own; a dashboard must not silently appear
+    elsewhere than asked: a busy port is an error that says so."""
+    import socket
+
+    if port == 0:
+        return
+    with socket.socket() as s:
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise PortBusy(
+                f"{what} {port}: {host}:{port} is in use ({exc.strerror}); choose another {what}"
+            ) from None
+
+
 def run_dashboard(opts: DashboardOptions) -> int:
-    """Run until SIGINT/SIGTERM; returns the exit code."""
+    """Run until SIGINT/SIGTERM; returns the exit code (2: the port is busy)."""
+    try:
+        check_port_free(opts.host, opts.port)
+    except PortBusy as exc:
+        print(f"dobtune dashboard: {exc}", flush=True)
+        return 2
     with stop_requested() as stop, Dashboard(opts) as dash:
         print(f"dobtune dashboard: {dash.url}  (rig '{opts.rig_name}' via "
               f"{', '.join(opts.connect)})", flush=True)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from server.app import Dashboard, DashboardOptions, stop_requested
+from server.app import Dashboard, DashboardOptions, PortBusy, check_port_free, stop_requested
 
 __all__ = ["DemoOptions", "controller_command", "controller_process", "run_demo", "stop_process"]
 
@@ -91,6 +91,13 @@ def run_demo(opts: DemoOptions) -> int:
     """Start both, print the URL, run until Ctrl-C / SIGTERM; returns the exit code."""
     endpoint = f"tcp/127.0.0.1:{opts.zenoh_port}"
     code = 0
+    for what, host, port in (("--port", opts.host, opts.port),
+                             ("--zenoh-port", "127.0.0.1", opts.zenoh_port)):
+        try:
+            check_port_free(host, port, what)
+        except PortBusy as exc:
+            print(f"dobtune demo: {exc}", flush=True)
+            return 2
     with stop_requested() as stop, controller_process(
         endpoint, opts.rig_name, opts.state_dir, opts.log_level
     ) as proc, Dashboard(

@@ -70,7 +70,7 @@ def test_a_websocket_without_the_token_or_from_another_site_is_refused(
 def test_the_page_origin_with_the_cookie_connects(dash: Dashboard) -> None:
     headers = {"Cookie": f"{COOKIE}={dash.gate.token}", "Origin": f"http://{_base(dash)}"}
     with connect(f"ws://{_base(dash)}/", additional_headers=headers, open_timeout=5) as ws:
-        assert ws.protocol.state.name == "OPEN"
+        assert ws.response is not None and ws.response.status_code == 101  # handshake passed
 
 
 def test_gate_checks_host_and_origin() -> None:
@@ -86,3 +86,18 @@ def test_gate_checks_host_and_origin() -> None:
 
 def test_the_share_tunnel_is_never_opened(dash: Dashboard) -> None:
     assert dash.server.request_share_url() is None
+
+
+def test_a_busy_http_port_is_an_error_not_another_port(capsys: pytest.CaptureFixture) -> None:
+    from server.app import PortBusy, run_dashboard
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        opts = DashboardOptions(connect=("tcp/127.0.0.1:1",), rig_name="busy", port=port,
+                                verbose=False)
+        assert run_dashboard(opts) == 2
+        assert f"--port {port}" in capsys.readouterr().out
+        with pytest.raises(PortBusy, match="in use"):
+            Dashboard(opts).__enter__()

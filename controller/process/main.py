@@ -107,16 +107,27 @@ def _open_access(opts: ControllerOptions, warn: Callable[[str], None]) -> Access
 
 
 def _session(opts: ControllerOptions) -> Any:
-    if opts.auth_dir is None:
-        return open_session(opts.listen, opts.connect)
     import zenoh
 
+    if opts.auth_dir is None:
+        try:
+            return open_session(opts.listen, opts.connect)
+        except zenoh.ZError as exc:
+            raise StartupError(
+                f"--listen {', '.join(opts.listen)}: cannot open the Zenoh session (is the "
+                f"port in use by another controller? choose another with --listen): {exc}"
+            ) from exc
     from controller.auth import AuthError, server_config
 
     try:
         return zenoh.open(server_config(opts.auth_dir, [opts.rig_name], opts.listen))
     except (AuthError, OSError, ValueError) as exc:
         raise StartupError(f"--auth {opts.auth_dir}: {exc}") from exc
+    except zenoh.ZError as exc:
+        raise StartupError(
+            f"--listen {', '.join(opts.listen)}: cannot open the Zenoh session (port in use?): "
+            f"{exc}"
+        ) from exc
 
 
 def _candidate(
