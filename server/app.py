@@ -219,7 +219,7 @@ class Dashboard:
             return
         if self.tuning is not None:
             self.tuning.set_active(reply.config, reply.version)
-            self.tuning.revert()
+            self.tuning.revert(say=False)
 
     def _on_status(self, st: proto.Status) -> None:
         if st.knowledge_version != self._knowledge_version:
@@ -232,7 +232,7 @@ class Dashboard:
         t.set_active(st.config, st.config_version)
         t.set_trajectory(st.trajectory)
         if first:
-            t.revert()
+            t.revert(say=False)
 
     def _on_frame(self, latest: dict[str, float] | None) -> None:
         if latest is not None and self.scene is not None:

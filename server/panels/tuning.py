@@ -108,6 +108,11 @@ def cutoff_marks(rec_hz: float | None) -> tuple[tuple[float, str], ...]:
     return _BASE_MARKS
 
 
+def _fmt_hz_value(hz: float) -> str:
+    """A cut-off as the Hz field shows it (up to 6 significant digits, no trailing zeros)."""
+    return f"{hz:.6g}"
+
+
 def _cutoff_log(hz: float) -> float:
     """The log slider's position of a cut-off in Hz (clamped to the slider)."""
     return _clamp(math.log10(max(hz, CUTOFF_MIN_HZ)), _LOG_LO, _LOG_HI)
@@ -204,14 +209,21 @@ class TuningPanel:
             hint="Q31: 3rd-order Q-filter (3 tau s + 1)/(tau s + 1)^3; Q20: 1/(tau s + 1)^2",
         )
         self.cutoff_log = gui.add_slider(
-            "Q cut-off (log10 Hz)", min=round(_LOG_LO, 3), max=round(_LOG_HI, 3), step=0.005,
+            "Q cut-off, log scale", min=round(_LOG_LO, 3), max=round(_LOG_HI, 3), step=0.005,
             initial_value=_cutoff_log(a.q_cutoff_hz), marks=_BASE_MARKS,
-            hint="-3 dB cut-off of Q, log scale. The mark 'max' is the gate's recommendation.",
+            hint="-3 dB cut-off of Q: drag on a log scale (the box shows log10 of the Hz; the "
+            "Hz field below is the value). The mark 'max' is the gate's recommendation.",
         )
-        self.cutoff_hz_input = gui.add_number(
-            "Q cut-off (Hz)", initial_value=round(a.q_cutoff_hz, 4), min=CUTOFF_MIN_HZ,
-            max=CUTOFF_MAX_HZ, step=0.001, hint="type the -3 dB cut-off in Hz; the slider follows",
+        # A text field, not a number field: the server never writes into it while the user
+        # types (a number field's limits made the server clamp the first typed "0" and send
+        # it back), and "1e-1" or "2.5" parse as typed.
+        self.cutoff_hz_input = gui.add_text(
+            "Q cut-off (Hz)", initial_value=_fmt_hz_value(a.q_cutoff_hz),
+            hint=f"type the -3 dB cut-off in Hz ({CUTOFF_MIN_HZ:g} to {CUTOFF_MAX_HZ:g}); "
+            "the slider follows",
         )
+        self._cutoff_hz = float(a.q_cutoff_hz)
+        self._cutoff_error = ""
         self.cutoff_hz_input.on_update(self._on_cutoff_hz_typed)
         self.cutoff_log.on_update(self._on_cutoff_slider)
         self.cutoff_text = gui.add_html(self._cutoff_html(a.q_cutoff_hz, None))
@@ -255,12 +267,16 @@ class TuningPanel:
 
     @property
     def cutoff_hz(self) -> float:
-        return float(10.0 ** float(self.cutoff_log.value))
+        """The candidate's cut-off: as typed in the Hz field, or where the slider was dragged
+        (rounded to 3 significant digits)."""
+        return self._cutoff_hz
 
     def control_values(self) -> dict[str, Any]:
+        if self._cutoff_error:
+            raise ConfigError("q_cutoff_hz", self._cutoff_error)
         values: dict[str, Any] = {
             "q_type": _Q_LABELS.get(self.q_type.value, "q31"),
-            "q_cutoff_hz": round(self.cutoff_hz, 4),
+            "q_cutoff_hz": self._cutoff_hz,
         }
         for attr, _label in _SWITCHES:
             values[attr] = bool(getattr(self, attr).value)
@@ -275,21 +291,39 @@ class TuningPanel:
     # -- events (GUI thread pool: short) -----------------------------------------------------
 
     def _on_cutoff_hz_typed(self, _event: Any) -> None:
-        """The Hz box drives the log slider (the slider's own callback then re-evaluates)."""
+        """The Hz field is the value (never written back while typed); the slider follows."""
         if self._suppress:
             return
-        target = _cutoff_log(float(self.cutoff_hz_input.value))
-        if abs(float(self.cutoff_log.value) - target) > 1e-9:
-            self.cutoff_log.value = target  # its callback re-evaluates the candidate
-
-    def _on_cutoff_slider(self, _event: Any) -> None:
-        hz = round(self.cutoff_hz, 4)
-        if abs(float(self.cutoff_hz_input.value) - hz) > 1e-9:
+        text = str(self.cutoff_hz_input.value).strip()
+        try:
+            hz = float(text)
+        except ValueError:
+            hz = math.nan
+        if not (math.isfinite(hz) and CUTOFF_MIN_HZ <= hz <= CUTOFF_MAX_HZ):
+            self._cutoff_error = (
+                f"{text!r} is not a cut-off in Hz between {CUTOFF_MIN_HZ:g} and {CUTOFF_MAX_HZ:g}"
+            )
+        else:
+            self._cutoff_error = ""
+            self._cutoff_hz = hz
             prev, self._suppress = self._suppress, True
             try:
-                self.cutoff_hz_input.value = hz
+                self.cutoff_log.value = _cutoff_log(hz)
             finally:
                 self._suppress = prev
+        self.request_update()
+
+    def _on_cutoff_slider(self, _event: Any) -> None:
+        """A drag of the slider: the cut-off (3 significant digits) and the Hz field follow."""
+        if self._suppress:
+            return
+        self._cutoff_hz = float(f"{10.0 ** float(self.cutoff_log.value):.3g}")
+        self._cutoff_error = ""
+        prev, self._suppress = self._suppress, True
+        try:
+            self.cutoff_hz_input.value = _fmt_hz_value(self._cutoff_hz)
+        finally:
+            self._suppress = prev
 
     def _on_control(self, _event: Any) -> None:
         if not self._suppress:
@@ -375,14 +409,19 @@ class TuningPanel:
     def show_error(self, text: str) -> None:
         self.apply_result.content = box("dt-apply", REJECT, f"<b>Error</b>: {esc(text)}")
 
-    def revert(self) -> None:
+    def revert(self, say: bool = True) -> None:
         """Set every control to the active configuration (no re-evaluation per control)."""
         a = self.active
         self._suppress = True
         try:
             self.q_type.value = _label_of(a.q_type)
             self.cutoff_log.value = _cutoff_log(a.q_cutoff_hz)
-            self.cutoff_hz_input.value = round(a.q_cutoff_hz, 4)
+            self.cutoff_hz_input.value = _fmt_hz_value(a.q_cutoff_hz)
+            self._cutoff_hz = float(a.q_cutoff_hz)
+            self._cutoff_error = ""
+            if say:  # (a reply box from an earlier candidate no longer applies)
+                self.apply_result.content = box("dt-apply", NEUTRAL, "Reverted to the active "
+                                                "configuration.")
             for attr, _label in _SWITCHES:
                 getattr(self, attr).value = bool(getattr(a, attr))
             for g in _GAINS:
