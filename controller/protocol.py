@@ -59,6 +59,11 @@ def key_knowledge(rig: str) -> str:
     return f"{KEY_PREFIX}/{rig}/knowledge"
 
 
+def key_alive(rig: str) -> str:
+    """Liveliness token of a running controller (`dobtune ctl rigs` lists them)."""
+    return f"{KEY_PREFIX}/{rig}/alive"
+
+
 def key_lease(rig: str) -> str:
     """Queryable: LeaseRequest -> LeaseReply (the operator lease of the rig)."""
     return f"{KEY_PREFIX}/{rig}/lease"

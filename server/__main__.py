@@ -45,6 +45,8 @@ def add_demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=8080)
     p.add_argument("--zenoh-port", type=int, default=7447)
     p.add_argument("--rig-name", default="demo")
+    p.add_argument("--rigs", type=int, default=1,
+                   help="more than 1: a router on --zenoh-port and this many simulated rigs")
 
 
 def run_demo_args(args: argparse.Namespace) -> int:
@@ -59,6 +61,7 @@ def run_demo_args(args: argparse.Namespace) -> int:
             zenoh_port=args.zenoh_port,
             rig_name=args.rig_name,
             log_level=args.log_level,
+            rigs=args.rigs,
         )
     )
 

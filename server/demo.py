@@ -39,10 +39,15 @@ class DemoOptions:
     verbose: bool = True
     #: The controller's --log-level.
     log_level: str = "info"
+    #: More than 1: a Zenoh router on `zenoh_port` and this many simulated rigs (rig1..rigN,
+    #: each listening on zenoh_port + i, different noise seeds and drive gains) behind it; the
+    #: dashboard shows rig1 through the router (`dobtune ctl --connect ... rigs` lists all).
+    rigs: int = 1
 
 
 def controller_command(
-    endpoint: str, rig_name: str, state_dir: Path, log_level: str = "info"
+    endpoint: str, rig_name: str, state_dir: Path, log_level: str = "info",
+    extra: tuple[str, ...] = (),
 ) -> list[str]:
     return [
         sys.executable, "-m", "controller",
@@ -51,7 +56,33 @@ def controller_command(
         "--rig-name", rig_name,
         "--state-dir", str(state_dir),
         "--log-level", log_level,
+        *extra,
     ]
+
+
+def router_command(endpoint: str, log_level: str = "info") -> list[str]:
+    code = ("import sys; from server.__main__ import dobtune_main; "
+            "sys.exit(dobtune_main(['router', *sys.argv[1:]]))")
+    return [sys.executable, "-c", code, "--listen", endpoint, "--log-level", log_level]
+
+
+@contextlib.contextmanager
+def fleet_processes(opts: DemoOptions, state_root: Path) -> Iterator[list[subprocess.Popen[Any]]]:
+    """A router on zenoh_port and opts.rigs controllers behind it; stopped on exit."""
+    router_ep = f"tcp/127.0.0.1:{opts.zenoh_port}"
+    procs: list[subprocess.Popen[Any]] = []
+    try:
+        procs.append(subprocess.Popen(router_command(router_ep, opts.log_level)))
+        for i in range(1, opts.rigs + 1):
+            ep = f"tcp/127.0.0.1:{opts.zenoh_port + i}"
+            procs.append(subprocess.Popen(controller_command(
+                ep, f"rig{i}", state_root / f"rig{i}", opts.log_level,
+                ("--connect", router_ep, "--seed", str(i)),
+            )))
+        yield procs
+    finally:
+        for p in reversed(procs):
+            stop_process(p)
 
 
 def stop_process(proc: subprocess.Popen[Any], timeout_s: float = 5.0) -> int:
@@ -91,13 +122,17 @@ def run_demo(opts: DemoOptions) -> int:
     """Start both, print the URL, run until Ctrl-C / SIGTERM; returns the exit code."""
     endpoint = f"tcp/127.0.0.1:{opts.zenoh_port}"
     code = 0
-    for what, host, port in (("--port", opts.host, opts.port),
-                             ("--zenoh-port", "127.0.0.1", opts.zenoh_port)):
+    ports = [("--port", opts.host, opts.port), ("--zenoh-port", "127.0.0.1", opts.zenoh_port)]
+    ports += [("--zenoh-port", "127.0.0.1", opts.zenoh_port + i)
+              for i in range(1, opts.rigs + 1) if opts.rigs > 1]
+    for what, host, port in ports:
         try:
             check_port_free(host, port, what)
         except PortBusy as exc:
             print(f"dobtune demo: {exc}", flush=True)
             return 2
+    if opts.rigs > 1:
+        return _run_fleet(opts, endpoint)
     with stop_requested() as stop, controller_process(
         endpoint, opts.rig_name, opts.state_dir, opts.log_level
     ) as proc, Dashboard(
@@ -125,3 +160,22 @@ def run_demo(opts: DemoOptions) -> int:
                 break
     print("dobtune demo: stopped", flush=True)
     return code
+
+
+def _run_fleet(opts: DemoOptions, router_ep: str) -> int:
+    with contextlib.ExitStack() as stack:
+        root = opts.state_dir or Path(stack.enter_context(
+            tempfile.TemporaryDirectory(prefix="dobtune-fleet-")))
+        stop = stack.enter_context(stop_requested())
+        procs = stack.enter_context(fleet_processes(opts, root))
+        dash = stack.enter_context(Dashboard(DashboardOptions(
+            connect=(router_ep,), rig_name="rig1", host=opts.host, port=opts.port,
+            verbose=opts.verbose)))
+        print(f"dobtune demo: {opts.rigs} rigs behind the router {router_ep}; dashboard of rig1: "
+              f"{dash.url}; list them with: dobtune ctl --connect {router_ep} rigs", flush=True)
+        while not stop.wait(0.5):
+            dead = [p for p in procs if p.poll() is not None]
+            if dead:
+                log.error("a fleet process exited with code %s", dead[0].returncode)
+                return 1
+    return 0

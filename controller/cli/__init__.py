@@ -65,8 +65,9 @@ def controller_commands() -> dict[str, Command]:
         identify,
         record,
         report,
+        router,
     )
 
     return {c.name: c for c in (experiment.COMMAND, check.COMMAND, controller.COMMAND,
                                 identify.COMMAND, audit.COMMAND, auth.COMMAND, ctl.COMMAND,
-                                record.COMMAND, report.COMMAND)}
+                                record.COMMAND, report.COMMAND, router.COMMAND)}

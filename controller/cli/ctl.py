@@ -16,6 +16,7 @@ reachable or the credentials reach nothing.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -39,6 +40,7 @@ ACTIONS = (
     "lease",
     "identify",
     "knowledge",
+    "rigs",
 )
 CHANGES = ("apply", "start", "stop", "reset", "identify")
 
@@ -75,6 +77,8 @@ def ctl_main(args: argparse.Namespace, out: TextIO) -> int:
     try:
         if args.action not in ACTIONS:
             raise _BadInput(f"action {args.action!r}: one of {', '.join(ACTIONS)}")
+        if args.action == "rigs":
+            return _rigs(args, out)
         opts = ClientOptions(
             connect=tuple(args.connect),
             rig_name=args.rig_name,
@@ -221,6 +225,84 @@ def _change(
     return EXIT_OK if r.ok else EXIT_REFUSED
 
 
+def _rigs(args: argparse.Namespace, out: TextIO) -> int:
+    """The rigs reachable through the endpoints (their liveliness tokens), with the state each
+    publishes: mode, configuration version, error RMS over the listening time, faults, lease."""
+    import math
+    import time
+
+    import numpy as np
+    import zenoh
+
+    from controller import protocol as proto
+    from controller.client import ControllerUnavailable
+
+    if args.auth is not None:
+        from controller.auth import client_config
+
+        conf = client_config(args.auth, args.user, args.connect, fail_after_s=args.timeout_s)
+    else:
+        from controller.zenoh_session import zenoh_config
+
+        conf = zenoh_config((), args.connect)
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as exc:
+        raise ControllerUnavailable(f"no connection to {', '.join(args.connect)}: {exc}") from exc
+    prefix = proto.KEY_PREFIX
+    statuses: dict[str, Any] = {}
+    errors: dict[str, list[float]] = {}
+    with session:
+        alive = sorted({
+            str(r.ok.key_expr).split("/")[1]
+            for r in session.liveliness().get(f"{prefix}/*/alive", timeout=args.timeout_s)
+            if r.ok is not None
+        })
+        st_sub = session.declare_subscriber(f"{prefix}/*/status", zenoh.handlers.FifoChannel(256))
+        sa_sub = session.declare_subscriber(f"{prefix}/*/state", zenoh.handlers.FifoChannel(4096))
+        deadline = time.monotonic() + args.listen_s
+        while time.monotonic() < deadline:
+            got = False
+            for s in iter(st_sub.try_recv, None):
+                got = True
+                with contextlib.suppress(proto.ProtocolError):
+                    st = proto.decode(s.payload.to_bytes(), proto.Status)
+                    statuses[st.rig] = st
+            for s in iter(sa_sub.try_recv, None):
+                got = True
+                with contextlib.suppress(proto.ProtocolError):
+                    b = proto.decode(s.payload.to_bytes(), proto.StateBatch)
+                    errors.setdefault(b.rig, []).extend(b.error_deg)
+            if not got:
+                time.sleep(0.02)
+        st_sub.undeclare()
+        sa_sub.undeclare()
+    rows: list[dict[str, Any]] = []
+    for rig in alive:
+        st_rig = statuses.get(rig)
+        e = np.asarray(errors.get(rig, []), dtype=float)
+        rms = float(np.sqrt(np.mean(e**2))) if e.size else math.nan
+        rows.append({
+            "rig": rig, "mode": st_rig.mode if st_rig else "",
+            "plant": st_rig.plant if st_rig else "",
+            "config_version": st_rig.config_version if st_rig else None,
+            "error_rms_deg": rms if math.isfinite(rms) else None,
+            "faults": list(st_rig.faults) if st_rig else [],
+            "operator": st_rig.operator if st_rig else "",
+        })
+    if args.json:
+        out.write(json.dumps(rows) + "\n")
+    else:
+        for r in rows:
+            err = "-" if r["error_rms_deg"] is None else f"{r['error_rms_deg']:.4f} deg"
+            out.write(f"{r['rig']}: {r['mode'] or '?'} ({r['plant'] or '?'}), config "
+                      f"v{r['config_version']}, error RMS {err}, lease {r['operator'] or '-'}, "
+                      f"faults {'; '.join(r['faults']) or '-'}\n")
+        if not rows:
+            out.write("no rig reachable\n")
+    return EXIT_OK
+
+
 def _wait_status_until(c: Any, pred: Any, timeout_s: float = 3.0) -> Any:
     """The first status that satisfies `pred` (or the latest when the time is up)."""
     import time
@@ -271,6 +353,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lease", default="", metavar="TOKEN",
                    help="the lease token `lease acquire` printed (to act under a held lease)")
     p.add_argument("--timeout-s", type=float, default=5.0, help="reply / connection timeout")
+    p.add_argument("--listen-s", type=float, default=1.0,
+                   help="rigs: how long to listen to the rigs' status and state")
     p.add_argument("action", help=" | ".join(ACTIONS))
     p.add_argument("args", nargs="*", help="key=value pairs (apply, identify) or a lease action")
 

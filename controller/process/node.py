@@ -126,6 +126,9 @@ class ZenohNode:
             proto.key_status(rig), congestion_control=zenoh.CongestionControl.DROP
         )
         self._entities += [self.state_pub, self.status_pub]
+        # Announce the rig (routers carry it to every site): it leaves the list when this
+        # session ends or is lost.
+        self._entities.append(session.liveliness().declare_token(proto.key_alive(rig)))
         # Callbacks: hand over and return (no decoding, no Zenoh calls, no blocking). With
         # authentication the requests arrive on per-user scopes only (the key names the user).
         scoped = proto.any_user_key if self.access.auth else (lambda k: k)

@@ -111,9 +111,9 @@ class NominalTuningPanel(TuningPanel):
         self.nominal_override = nominal
         self.request_update()
 
-    def revert(self) -> None:
+    def revert(self, say: bool = True) -> None:
         self.nominal_override = None
-        super().revert()
+        super().revert(say)
 
     def _cutoff_html(self, cutoff_hz: float, rec: float | None, known: bool = True) -> str:
         html = super()._cutoff_html(cutoff_hz, rec, known)

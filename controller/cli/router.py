@@ -1,0 +1,89 @@
+"""`dobtune router`: a Zenoh router (Zenoh's own router mode) for a lab or a site (command body).
+
+    dobtune router [--listen EP ...] [--connect EP ...] [--auth DIR --rig-name R ...]
+
+Controllers connect to it (`dobtune controller --connect ROUTER_EP`, each still listening on its
+own endpoint), clients too (`dobtune ctl --connect ROUTER_EP rigs`, the dashboard); routers link
+sites with `--connect` to each other. With `--auth`, the router enforces the users and access
+control of DIR for the rigs named (then it cannot dial out: the sites' routers connect to it).
+Exit codes: 0 stopped (Ctrl-C / SIGTERM), 2 bad input or the endpoint is busy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from controller.cli import Command
+
+__all__ = ["router_config"]
+
+DEFAULT_ROUTER_LISTEN = ("tcp/127.0.0.1:7446",)
+
+
+def router_config(listen: list[str], connect: list[str], auth: Path | None,
+                  rigs: list[str]) -> Any:
+    if auth is not None:
+        from controller.auth import server_config
+
+        if not rigs:
+            raise ValueError("--rig-name: name the rigs the router serves (with --auth)")
+        return server_config(auth, rigs, listen, connect, mode="router")
+    from controller.zenoh_session import zenoh_config
+
+    conf = zenoh_config(listen, connect)
+    conf.insert_json5("mode", json.dumps("router"))
+    return conf
+
+
+def run(args: argparse.Namespace) -> int:
+    import zenoh
+
+    from controller.logs import setup_logging
+
+    setup_logging(args.log_level, "router")
+    listen = args.listen or list(DEFAULT_ROUTER_LISTEN)
+    try:
+        conf = router_config(listen, args.connect, args.auth, args.rig_name)
+        session = zenoh.open(conf)
+    except (ValueError, OSError) as exc:
+        print(f"dobtune router: {exc}", file=sys.stderr, flush=True)
+        return 2
+    except zenoh.ZError as exc:
+        print(f"dobtune router: --listen {', '.join(listen)}: cannot open (port in use?): {exc}",
+              file=sys.stderr, flush=True)
+        return 2
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT,
+                                                                      signal.SIGTERM)}
+    try:
+        with session:
+            print(f"dobtune router: listening on {', '.join(listen)}"
+                  + (f", linked to {', '.join(args.connect)}" if args.connect else ""),
+                  file=sys.stderr, flush=True)
+            while not stop.wait(0.5):
+                pass
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    print("dobtune router: stopped", file=sys.stderr, flush=True)
+    return 0
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help=f"default {DEFAULT_ROUTER_LISTEN[0]}")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="another site's router")
+    p.add_argument("--auth", type=Path, default=None, metavar="DIR")
+    p.add_argument("--rig-name", action="append", default=[], metavar="R",
+                   help="with --auth: a rig the router serves (repeatable)")
+
+
+COMMAND = Command("router", "a Zenoh router for many rigs and sites", add_arguments, run,
+                  long_running=True)
