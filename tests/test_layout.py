@@ -15,7 +15,9 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("controller", "server")
 
 #: Pure packages: math and plain data, no I/O frameworks, no threads, no processes.
-PURE = ("controller.core", "controller.gate", "controller.sim", "controller.ident")
+PURE = (
+    "controller.core", "controller.gate", "controller.sim", "controller.ident", "controller.tune",
+)
 #: What a pure package may not import (top-level module names).
 IMPURE_LIBS = {
     "zenoh", "can", "viser", "threading", "multiprocessing", "subprocess", "socket",
@@ -27,6 +29,7 @@ PURE_MAY_IMPORT = {
     "controller.gate": ("controller.core",),
     "controller.sim": ("controller.core",),
     "controller.ident": ("controller.core", "controller.gate", "controller.sim"),
+    "controller.tune": ("controller.core", "controller.gate", "controller.sim"),
 }
 #: The wire contract imports only plain data types.
 PROTOCOL_MAY_IMPORT = ("controller.core", "controller.ident.spec", "controller.gate.knowledge")

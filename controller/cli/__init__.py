@@ -58,6 +58,7 @@ def controller_commands() -> dict[str, Command]:
     from controller.cli import (
         audit,
         auth,
+        autotune,
         check,
         controller,
         ctl,
@@ -70,4 +71,5 @@ def controller_commands() -> dict[str, Command]:
 
     return {c.name: c for c in (experiment.COMMAND, check.COMMAND, controller.COMMAND,
                                 identify.COMMAND, audit.COMMAND, auth.COMMAND, ctl.COMMAND,
-                                record.COMMAND, report.COMMAND, router.COMMAND)}
+                                record.COMMAND, report.COMMAND, router.COMMAND,
+                                autotune.COMMAND)}

@@ -30,30 +30,30 @@ from controller.gate.margins import Margins
 from controller.gate.verdict import EXIT_CODES, Judgement, judge
 from controller.sim.nonlinear_check import findings
 
-__all__ = ["check_main", "load_knowledge"]
+__all__ = ["BadInput", "check_main", "load_config", "load_knowledge"]
 
 EXIT_BAD_INPUT = 2
 
 
 def load_knowledge(path: Path | None) -> PlantKnowledge:
     """The plant knowledge in `path` (a KnowledgeRecord as JSON), or the simulated rig's model
-    with the commissioning bound. Raises _BadInput naming the file and the field."""
+    with the commissioning bound. Raises BadInput naming the file and the field."""
     if path is None:
         return PlantKnowledge(bound=COMMISSIONING_BOUND, source="simulated rig model")
     try:
         data = path.read_bytes()
     except OSError as exc:
-        raise _BadInput(f"{path}: cannot read plant knowledge: {exc}") from exc
+        raise BadInput(f"{path}: cannot read plant knowledge: {exc}") from exc
     try:
         rec = msgspec.json.decode(data, type=KnowledgeRecord)
         return rec.to_knowledge()
     except msgspec.ValidationError as exc:
-        raise _BadInput(f"{path}: plant knowledge: {exc}") from exc
+        raise BadInput(f"{path}: plant knowledge: {exc}") from exc
     except (msgspec.DecodeError, ValueError) as exc:
-        raise _BadInput(f"{path}: plant knowledge: {exc}") from exc
+        raise BadInput(f"{path}: plant knowledge: {exc}") from exc
 
 
-class _BadInput(Exception):
+class BadInput(Exception):
     pass
 
 
@@ -67,23 +67,23 @@ def _field_line(text: str, field: str) -> int | None:
     return None
 
 
-def _load_config(path: Path | None) -> LoopConfig:
+def load_config(path: Path | None) -> LoopConfig:
     if path is None:
         return LoopConfig()
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
-        raise _BadInput(f"{path}: cannot read config: {exc}") from exc
+        raise BadInput(f"{path}: cannot read config: {exc}") from exc
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise _BadInput(f"{path}:{exc.lineno}: invalid JSON: {exc.msg}") from exc
+        raise BadInput(f"{path}:{exc.lineno}: invalid JSON: {exc.msg}") from exc
     try:
         return config_from_builtins(data)
     except ConfigError as exc:
         line = _field_line(text, exc.field)
         where = f"{path}:{line}" if line is not None else str(path)
-        raise _BadInput(f"{where}: field {exc.field!r}: {exc}") from exc
+        raise BadInput(f"{where}: field {exc.field!r}: {exc}") from exc
 
 
 def _finite(v: float) -> float | None:
@@ -211,7 +211,7 @@ def check_main(
 ) -> int:
     """Load, override, check; print a table (or one JSON object). Returns the exit code."""
     try:
-        cfg = _load_config(config_path)
+        cfg = load_config(config_path)
         try:
             if q_type is not None:
                 cfg = cfg.with_(q_type=q_type)
@@ -219,25 +219,25 @@ def check_main(
                 cfg = cfg.with_(q_cutoff_hz=cutoff_hz)
         except ConfigError as exc:
             flag = "--q" if exc.field == "q_type" else "--cutoff-hz"
-            raise _BadInput(f"{flag}: {exc}") from exc
+            raise BadInput(f"{flag}: {exc}") from exc
         try:
             measured = load_measured(list(frd_paths))
         except OSError as exc:
-            raise _BadInput(f"cannot read response file: {exc}") from exc
+            raise BadInput(f"cannot read response file: {exc}") from exc
         except ValueError as exc:
-            raise _BadInput(str(exc)) from exc
+            raise BadInput(str(exc)) from exc
         plant = load_knowledge(knowledge_path)
         if measured:
             names = {m.name for m in plant.measured}
             clash = [m.name for m in measured if m.name in names]
             if clash:
-                raise _BadInput(f"--frd: response {clash[0]!r} is already in the knowledge")
+                raise BadInput(f"--frd: response {clash[0]!r} is already in the knowledge")
             plant = PlantKnowledge(
                 (*plant.measured, *measured), plant.bound, plant.model, plant.version,
                 f"{plant.source} + --frd",
             )
         j = judge(cfg, plant, nonlinear=findings)
-    except _BadInput as exc:
+    except BadInput as exc:
         if as_json:
             out.write(json.dumps({"error": str(exc)}) + "\n")
         else:

@@ -17,7 +17,7 @@ from controller.sim.disturbance import disturbance_from_name
 from controller.sim.experiment import ARTICLE_SINE, ExperimentResult, run_experiment
 
 
-def _progress_printer(err: TextIO, label: str) -> Callable[[float], None] | None:
+def progress_printer(err: TextIO, label: str) -> Callable[[float], None] | None:
     if not err.isatty():
         return None
     last = [-1]
@@ -100,7 +100,7 @@ def experiment_main(
                 seed=seed,
                 disturbance=dist,
                 disturbance_name=disturbance,
-                progress=_progress_printer(err, label),
+                progress=progress_printer(err, label),
             )
             results[label] = (res, time.perf_counter() - t0)
     except (ConfigError, ValueError) as exc:

@@ -1,0 +1,1 @@
+"""Tuning searches on the plant knowledge and the simulated rig (pure)."""

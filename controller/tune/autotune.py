@@ -1,0 +1,155 @@
+"""Cut-off autotune: the article's last tuning step (Fig. 16: which Q bandwidth is best) done by
+search instead of by hand.
+
+For each Q type, the cut-off is swept on a log grid (then refined around the best point) with
+the loop's other settings fixed; every candidate is judged first by the gate on the plant
+knowledge (`controller.gate.verdict.judge`: a rejected one is never run; a caution is run and
+marked), then run on the nonlinear simulated rig (`controller.sim.experiment.run_experiment`,
+the controller's own loop) on the chosen trajectory and disturbance. The score is the chosen
+error metric (RMSE or peak |error|, deg) plus `noise_weight` x the RMS of the speed command
+above `NOISE_BAND_HZ` (deg/s): a cut-off that buys a little error with a noisy drive is not
+best. Only candidates the gate accepts count for the best (with `allow_caution`, cautions
+too); cautions are run and shown. The baseline is the same configuration with the DOB off; if
+no DOB setting beats it, the result says so.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import signal
+
+from controller.core.config import LoopConfig
+from controller.core.trajectory import Trajectory
+from controller.gate.knowledge import PlantKnowledge
+from controller.gate.verdict import NonlinearCheck, judge
+from controller.sim.disturbance import Disturbance
+from controller.sim.experiment import ExperimentResult, run_experiment
+
+__all__ = ["NOISE_BAND_HZ", "Point", "TuneResult", "autotune"]
+
+NOISE_BAND_HZ = 20.0
+OBJECTIVES = ("rmse", "peak")
+
+
+@dataclass(frozen=True)
+class Point:
+    config: LoopConfig
+    verdict: str
+    rmse_deg: float = math.nan
+    peak_error_deg: float = math.nan
+    command_noise_deg_s: float = math.nan
+    score: float = math.inf
+
+    @property
+    def q_type(self) -> str:
+        return self.config.q_type
+
+    @property
+    def q_cutoff_hz(self) -> float:
+        return self.config.q_cutoff_hz
+
+
+@dataclass(frozen=True)
+class TuneResult:
+    best: Point | None
+    """The best DOB setting that counts (accepted; None: none did)."""
+    baseline: Point
+    """The same gains, DOB off."""
+    curve: tuple[Point, ...] = field(default_factory=tuple)
+    objective: str = "rmse"
+
+    @property
+    def dob_helps(self) -> bool:
+        return self.best is not None and self.best.score < self.baseline.score
+
+    def summary(self) -> str:
+        b = self.baseline
+        if self.best is None:
+            return "no DOB setting tried is accepted by the gate: keep the DOB off"
+        if not self.dob_helps:
+            return (f"no DOB setting beats the DOB off ({self.objective} {b.score:.4g}): keep "
+                    f"it off for this trajectory and disturbance")
+        p = self.best
+        return (f"best: {p.q_type} at {p.q_cutoff_hz:.3g} Hz ({p.verdict}), RMSE "
+                f"{p.rmse_deg:.4g} deg, peak {p.peak_error_deg:.4g} deg; DOB off: RMSE "
+                f"{b.rmse_deg:.4g} deg, peak {b.peak_error_deg:.4g} deg")
+
+
+def _noise(res: ExperimentResult, rate_hz: float) -> float:
+    sos = signal.butter(2, NOISE_BAND_HZ, btype="highpass", fs=rate_hz, output="sos")
+    hp = signal.sosfilt(sos, res.command_deg_s)
+    n0 = len(hp) // 5  # skip the start-up transient
+    return float(np.sqrt(np.mean(hp[n0:] ** 2)))
+
+
+def autotune(
+    base: LoopConfig,
+    plant: PlantKnowledge,
+    trajectory: Trajectory,
+    *,
+    duration_s: float = 15.0,
+    disturbance: Disturbance | None = None,
+    objective: str = "rmse",
+    noise_weight: float = 0.001,
+    q_types: tuple[str, ...] = ("q31", "q20"),
+    lowest_hz: float = 0.1,
+    highest_hz: float = 20.0,
+    points: int = 10,
+    refine: int = 4,
+    nonlinear: NonlinearCheck | None = None,
+    allow_caution: bool = False,
+    progress: Callable[[float], None] | None = None,
+) -> TuneResult:
+    """Search the Q type and cut-off; see the module's docstring."""
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective: {objective!r} is not one of {', '.join(OBJECTIVES)}")
+    if not (0.0 < lowest_hz < highest_hz < base.rate_hz / 2):
+        raise ValueError(f"cut-off range: need 0 < {lowest_hz} < {highest_hz} < Nyquist")
+    if points < 2 or refine < 0:
+        raise ValueError("points: >= 2; refine: >= 0")
+    if not (math.isfinite(noise_weight) and noise_weight >= 0.0):
+        raise ValueError(f"noise_weight: {noise_weight!r} must be >= 0")
+    total = len(q_types) * (points + refine) + 1
+    done = [0]
+
+    def tick() -> None:
+        done[0] += 1
+        if progress is not None:
+            progress(min(1.0, done[0] / total))
+
+    def evaluate(cfg: LoopConfig) -> Point:
+        verdict = judge(cfg, plant, nonlinear=nonlinear).verdict
+        if verdict == "reject":
+            tick()
+            return Point(cfg, verdict)
+        res = run_experiment(cfg, trajectory, duration_s, disturbance=disturbance)
+        noise = _noise(res, cfg.rate_hz)
+        err = res.rmse_deg if objective == "rmse" else res.peak_error_deg
+        tick()
+        return Point(cfg, verdict, res.rmse_deg, res.peak_error_deg, noise,
+                     err + noise_weight * noise)
+
+    counted = ("accept", "caution") if allow_caution else ("accept",)
+    baseline = evaluate(base.with_(dob_on=False))
+    curve: list[Point] = []
+    for qt in q_types:
+        grid = np.geomspace(lowest_hz, highest_hz, points)
+        pts = [evaluate(base.with_(dob_on=True, q_type=qt, q_cutoff_hz=float(fc)))
+               for fc in grid]
+        ok = [i for i, p in enumerate(pts) if p.verdict in counted]
+        if ok and refine:
+            i = min(ok, key=lambda k: pts[k].score)
+            lo = grid[max(i - 1, 0)]
+            hi = grid[min(i + 1, len(grid) - 1)]
+            for fc in np.geomspace(lo, hi, refine + 2)[1:-1]:
+                pts.append(evaluate(base.with_(dob_on=True, q_type=qt, q_cutoff_hz=float(fc))))
+        curve += sorted(pts, key=lambda p: p.q_cutoff_hz)
+    if progress is not None:
+        progress(1.0)
+    runnable = [p for p in curve if p.verdict in counted]
+    best = min(runnable, key=lambda p: p.score) if runnable else None
+    return TuneResult(best, baseline, tuple(curve), objective)

@@ -1,0 +1,69 @@
+"""Autotune: its best point is the best of an explicit sweep of the same grid (each point run
+independently here), only accepted candidates count, rejected ones are never run."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+
+import numpy as np
+import pytest
+
+from controller.core.config import LoopConfig
+from controller.core.trajectory import default_trajectory
+from controller.gate.knowledge import COMMISSIONING_BOUND, PlantKnowledge
+from controller.gate.verdict import judge
+from controller.sim.disturbance import disturbance_from_name
+from controller.sim.experiment import run_experiment
+from controller.tune.autotune import autotune
+
+K = PlantKnowledge(bound=COMMISSIONING_BOUND)
+
+
+def test_best_is_the_best_of_an_explicit_sweep() -> None:
+    traj = default_trajectory("hold")
+    dist = disturbance_from_name("sine-0.05hz")
+    res = autotune(LoopConfig(), K, traj, duration_s=8.0, disturbance=dist, points=4,
+                   refine=0, q_types=("q31",), lowest_hz=0.2, highest_hz=5.0, noise_weight=0.0)
+    assert res.baseline.config.dob_on is False
+    scores = {}
+    for fc in np.geomspace(0.2, 5.0, 4):
+        cfg = LoopConfig(q_cutoff_hz=float(fc))
+        if judge(cfg, K).verdict != "accept":
+            continue
+        scores[float(fc)] = run_experiment(cfg, traj, 8.0, disturbance=dist).rmse_deg
+    assert res.best is not None
+    assert res.best.q_cutoff_hz == pytest.approx(min(scores, key=scores.__getitem__))
+    assert res.best.rmse_deg == pytest.approx(min(scores.values()), rel=1e-12)
+    assert res.best.verdict == "accept"
+
+
+def test_rejected_candidates_are_not_run_and_bad_input_is_named() -> None:
+    stiff = LoopConfig(cv_kp=8.0)  # unstable whatever the Q: everything rejected
+    res = autotune(stiff, K, default_trajectory("sine"), duration_s=2.0, points=2, refine=0,
+                   q_types=("q31",))
+    assert res.best is None and all(p.verdict == "reject" for p in res.curve)
+    assert all(math.isnan(p.rmse_deg) for p in res.curve)
+    assert "keep the DOB off" in res.summary()
+    with pytest.raises(ValueError, match="objective"):
+        autotune(LoopConfig(), K, default_trajectory("sine"), objective="mse")
+    with pytest.raises(ValueError, match="cut-off range"):
+        autotune(LoopConfig(), K, default_trajectory("sine"), lowest_hz=5.0, highest_hz=1.0)
+
+
+def test_cli_json_has_best_baseline_and_curve() -> None:
+    import argparse
+
+    from controller.cli.autotune import autotune_main
+
+    args = argparse.Namespace(config=None, knowledge=None, trajectory="sine", disturbance="none",
+                              objective="rmse", noise_weight=0.001, duration=4.0, points=3,
+                              lowest_hz=0.2, highest_hz=5.0, allow_caution=False, json=True)
+    out = io.StringIO()
+    assert autotune_main(args, out, io.StringIO()) == 0
+    data = json.loads(out.getvalue())
+    assert set(data) >= {"best", "baseline", "curve", "dob_helps", "summary"}
+    assert {"q_type", "q_cutoff_hz", "rmse_deg", "peak_error_deg", "verdict"} <= set(
+        data["curve"][0])
+    assert data["baseline"]["config"]["dob_on"] is False
