@@ -35,9 +35,14 @@ def _slider_row(page: Any, label: str) -> Any:
 
 
 def _set_number(page: Any, label: str, value: float) -> None:
-    """Type into the number box beside a slider (what a user does for an exact value)."""
-    row = _slider_row(page, label).locator("xpath=..")
-    box = row.locator("input").last
+    """Type into the number box beside a slider, or into a text field (what a user does for
+    an exact value)."""
+    if label == "Q cut-off (Hz)":  # a text field: its row holds one input
+        lab = page.locator("label", has_text=label).first
+        box = lab.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
+            "input").last
+    else:
+        box = _slider_row(page, label).locator("xpath=..").locator("input").last
     box.fill(str(value))
     box.press("Enter")
     box.blur()
