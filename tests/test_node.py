@@ -176,8 +176,9 @@ class FakeQuery:
     def to_bytes(self) -> bytes:
         return self.data
 
-    def reply(self, _key: object, data: bytes) -> None:
+    def reply(self, _key: object, data: bytes, encoding: str | None = None) -> None:
         self.replies.append(data)
+        self.encoding = encoding
 
     def reply_err(self, data: bytes) -> None:
         self.errors.append(data)
@@ -207,7 +208,7 @@ def test_a_reset_that_arrived_before_an_estop_is_refused(node: ZenohNode) -> Non
 
 
 def test_handler_errors_never_reach_the_client_as_text(node: ZenohNode) -> None:
-    def broken(_data: bytes) -> bytes:
+    def broken(_data: bytes, _who: object = None) -> bytes:
         raise KeyError("secret internal detail")
 
     query = FakeQuery(b"")

@@ -247,7 +247,11 @@ def _open_rig(opts: ControllerOptions, rate_hz: float) -> Iterator[tuple[Rig, li
             from controller.sim.sim_rig import SimRig
 
             plant = SimRig(rate_hz=rate_hz, seed=opts.seed)
-            stack.enter_context(SimDriveNode(rig_file, plant, rate_hz=rate_hz))
+            # The simulated drive answers from a thread of this process: real-time priority
+            # (below the loop's) keeps the host's load from starving it, as hardware is not.
+            node = SimDriveNode(rig_file, plant, rate_hz=rate_hz,
+                                on_thread_start=lambda: try_realtime_priority(45))
+            stack.enter_context(node)
         rig = stack.enter_context(CanRig(rig_file, rate_hz=rate_hz))
         faults: list[str] = []
         try:

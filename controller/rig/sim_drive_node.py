@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from types import TracebackType
 from typing import Literal, Protocol
 
@@ -65,6 +66,7 @@ class SimDriveNode:
         rate_hz: float = 1000.0,
         answer_before_step: bool = False,
         poll_s: float = 0.005,
+        on_thread_start: Callable[[], object] | None = None,
     ) -> None:
         """``answer_before_step``: sample and send the feedback at the SYNC, then step (a
         real drive: one tick more delay); default steps first so a CanRig tick equals a
@@ -106,6 +108,8 @@ class SimDriveNode:
         self.controlword = 0
         self.target_units = 0
         self.syncs = 0
+        self._on_thread_start = on_thread_start
+        self.thread_start_result: object = None
         self._motor_position_deg = 0.0
         self._injection: Injection | None = None
         self._running = False
@@ -153,6 +157,10 @@ class SimDriveNode:
     # --- node thread ----------------------------------------------------------------------
     def _run(self) -> None:
         try:
+            if self._on_thread_start is not None:
+                # E.g. real-time priority for this thread: a drive is hardware, it is never
+                # starved by the host's load (an in-process simulation otherwise is).
+                self.thread_start_result = self._on_thread_start()
             self._loop()
         except BaseException as exc:  # surfaced to the test through .error
             self.error = exc

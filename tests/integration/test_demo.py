@@ -43,7 +43,7 @@ def test_demo_starts_serves_and_stops_cleanly(how: str) -> None:
             if "dobtune demo: open " in line:
                 url = line.split("open ", 1)[1].split()[0]
                 break
-        assert url == f"http://127.0.0.1:{http_port}"
+        assert url.startswith(f"http://127.0.0.1:{http_port}/?token=")  # the access token
         with urllib.request.urlopen(url, timeout=10) as resp:
             assert resp.status == 200
         if how == "ctrl-c":

@@ -72,10 +72,16 @@ def test_rigs_through_a_router(
     ep, restart = router
     a = start_controller_factory(rig="rig_a", extra_args=("--connect", ep))
     b = start_controller_factory(rig="rig_b", extra_args=("--connect", ep))
-    assert wait_until(lambda: {r["rig"] for r in _rigs(ep)} == {"rig_a", "rig_b"}, 60.0), (
-        a.log() + b.log())
-    rows = {r["rig"]: r for r in _rigs(ep)}
-    assert rows["rig_a"]["mode"] == "running" and rows["rig_a"]["config_version"] == 1
+    rows: dict[str, Any] = {}
+
+    def both_running() -> bool:
+        rows.clear()
+        rows.update({r["rig"]: r for r in _rigs(ep)})
+        return set(rows) == {"rig_a", "rig_b"} and all(
+            r["mode"] == "running" and r["error_rms_deg"] is not None for r in rows.values())
+
+    assert wait_until(both_running, 60.0), a.log() + b.log()
+    assert rows["rig_a"]["config_version"] == 1
     assert rows["rig_a"]["error_rms_deg"] is not None and rows["rig_a"]["error_rms_deg"] < 1.0
     # A controller that dies leaves the list within a few seconds.
     b.proc.kill()
