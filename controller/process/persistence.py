@@ -93,6 +93,16 @@ def _finite_or_none(value: Any) -> Any:
     return value
 
 
+def _read_or_none(path: Path) -> bytes | None:
+    """The file's bytes; None if it does not exist; PersistenceError if it cannot be read."""
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise PersistenceError(f"{path}: cannot read: {exc}") from exc
+
+
 class StateStore:
     """Active configuration + change log in one directory (created if missing)."""
 
@@ -134,12 +144,9 @@ class StateStore:
         """The saved active configuration; None if there is none; PersistenceError if the file
         is unreadable or invalid (the caller decides; it is never silently replaced)."""
         path = self.active_path
-        try:
-            raw = path.read_bytes()
-        except FileNotFoundError:
+        raw = _read_or_none(path)
+        if raw is None:
             return None
-        except OSError as exc:
-            raise PersistenceError(f"{path}: cannot read: {exc}") from exc
         try:
             data = msgspec.json.decode(raw)
             if not isinstance(data, dict):
@@ -242,12 +249,9 @@ class StateStore:
         sense counts as a fault (never as "not latched"): PersistenceError is for the caller
         to turn into one."""
         path = self.latch_path
-        try:
-            raw = path.read_bytes()
-        except FileNotFoundError:
+        raw = _read_or_none(path)
+        if raw is None:
             return None
-        except OSError as exc:
-            raise PersistenceError(f"{path}: cannot read: {exc}") from exc
         try:
             data = msgspec.json.decode(raw)
         except msgspec.DecodeError as exc:
@@ -274,12 +278,9 @@ class StateStore:
         validated raises PersistenceError naming the field: the controller never judges on
         knowledge it cannot read (nor silently on a default)."""
         path = self.knowledge_path
-        try:
-            raw = path.read_bytes()
-        except FileNotFoundError:
+        raw = _read_or_none(path)
+        if raw is None:
             return None
-        except OSError as exc:
-            raise PersistenceError(f"{path}: cannot read: {exc}") from exc
         try:
             rec = msgspec.json.decode(raw, type=KnowledgeRecord)
             if not 0 <= rec.version <= MAX_VERSION:
