@@ -100,3 +100,21 @@ def test_controller_never_imports_server_or_viser() -> None:
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        cwd=Path(__file__).resolve().parents[1])
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+@pytest.mark.integration
+def test_the_trajectory_dropdown_follows_the_controller(tmp_path: Path) -> None:
+    from controller import protocol as proto
+    from controller.core.trajectory import default_trajectory
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with controller_process(endpoint, "trajtest", tmp_path / "state"):
+        opts = DashboardOptions(connect=(endpoint,), rig_name="trajtest", port=free_port(),
+                                verbose=False, query_timeout_s=2.0)
+        with Dashboard(opts) as d:
+            wait_for(lambda: d.client.connected, CONTROLLER_START_S)
+            assert d.live is not None
+            wait_for(lambda: d.live.trajectory.value == "sine")
+            reply = d.client.command(proto.SetTrajectory(trajectory=default_trajectory("ramp")))
+            assert reply.ok, reply.message
+            wait_for(lambda: d.live.trajectory.value == "ramp")

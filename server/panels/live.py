@@ -110,6 +110,8 @@ class LivePanel:
         self._last_total = -1
         self._last_window = -1.0
         self._last_status_seen: proto.Status | None = None
+        self._controller_traj_kind = ""
+        self.trajectory: Any = None
         self._slow_every = max(1, int(rate_hz / 5))
         self._updater = Periodic(self._refresh, 1.0 / rate_hz, name="live-updater")
 
@@ -195,6 +197,13 @@ class LivePanel:
         st = self.client.status
         if st is not None and st is not self._last_status_seen:
             self._last_status_seen = st
+            kind = st.trajectory.kind
+            if kind != self._controller_traj_kind and kind in TRAJECTORY_KINDS:
+                # The drop-down follows the controller's trajectory when that changes (a
+                # selection not yet sent stays until then).
+                self._controller_traj_kind = kind
+                if self.trajectory is not None:
+                    self.trajectory.value = kind
             if self._on_status is not None:
                 self._on_status(st)
         if cols is None:
