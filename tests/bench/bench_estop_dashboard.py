@@ -1,0 +1,106 @@
+"""Benchmark: e-stop latency from the dashboard's E-STOP button (headless Chromium) to the first
+tick that commands 0, against a real controller (simulated rig). Prints figures; not a test.
+
+    .venv/bin/python tests/bench/bench_estop_dashboard.py [--n N]
+
+Each trial: the loop runs (reset + start through Zenoh), the bench notes the wall time and
+clicks E-STOP in the page; the state stream gives the wall time of the first sample in mode
+estop with command 0 (the tick's own clock, same machine). The path: browser -> websocket ->
+viser -> the dashboard's callback -> Zenoh put on the e-stop key -> the controller's tick.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
+
+from bench_estop import _first_estop_tick_wall_s
+from procs import Client, free_port, start_controller, wait_until
+
+from controller import protocol as proto
+from server.app import Dashboard, DashboardOptions
+
+
+def main() -> None:
+    import importlib.util
+
+    from playwright.sync_api import sync_playwright
+
+    spec = importlib.util.spec_from_file_location(
+        "browser_conftest", Path(__file__).resolve().parents[1] / "browser" / "conftest.py")
+    assert spec is not None and spec.loader is not None
+    bc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bc)
+    CHROMIUM, CHROMIUM_ARGS, open_when_ready = bc.CHROMIUM, bc.CHROMIUM_ARGS, bc.open_when_ready
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=30)
+    args = ap.parse_args()
+    lat_ms: list[float] = []
+    server_ms: list[float] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        proc = start_controller(Path(tmp) / "state", rig="bench-dash")
+        try:
+            with Client(proc.endpoint, proc.rig) as client:
+                client.wait_ready(proc)
+                opts = DashboardOptions(connect=(proc.endpoint,), rig_name=proc.rig,
+                                        port=free_port(), verbose=False)
+                with Dashboard(opts) as dash, sync_playwright() as p:
+                    browser = p.chromium.launch(executable_path=str(CHROMIUM),
+                                                args=CHROMIUM_ARGS)
+                    page = browser.new_page(viewport={"width": 1600, "height": 1000})
+                    open_when_ready(page, dash, 60.0)
+                    button = page.get_by_role("button", name="E-STOP")
+                    # When the dashboard's callback ran (server side): splits the latency
+                    # into browser + websocket + viser, and dashboard + Zenoh + tick.
+                    got_at: list[float] = []
+                    live = dash.live
+                    assert live is not None
+                    send = live._send
+
+                    def timed(body: object) -> None:
+                        got_at.append(time.time())
+                        send(body)
+
+                    live._send = timed
+                    with client.state() as col:
+                        for i in range(args.n):
+                            client.command(proto.ResetFault())
+                            client.command(proto.Start())
+                            assert wait_until(lambda: col.last_seq() >= 0, 5.0)
+                            before = col.last_seq()
+                            t_click = time.time()
+                            button.click()
+                            found: list[float] = []
+
+                            def seen(b: int = before, f: list[float] = found) -> bool:
+                                w = _first_estop_tick_wall_s(client, col, b)
+                                if w is not None:
+                                    f.append(w)
+                                return bool(f)
+
+                            if not wait_until(seen, 10.0, poll_s=0.005):
+                                raise SystemExit(f"trial {i}: no e-stop tick seen")
+                            lat_ms.append((found[0] - t_click) * 1e3)
+                            server_ms.append((found[0] - got_at[-1]) * 1e3)
+                            col.clear()
+                    browser.close()
+        finally:
+            proc.stop()
+    a = np.asarray(lat_ms)
+    print(f"e-stop latency, dashboard button -> first tick with command 0 ({args.n} trials, "
+          f"headless Chromium): p50 {np.percentile(a, 50):.1f} ms, p99 "
+          f"{np.percentile(a, 99):.1f} ms, max {a.max():.1f} ms, min {a.min():.1f} ms; of which "
+          f"from the dashboard's callback: p50 {np.percentile(server_ms, 50):.1f} ms, p99 "
+          f"{np.percentile(server_ms, 99):.1f} ms")
+
+
+if __name__ == "__main__":
+    main()
