@@ -62,6 +62,13 @@ class BodeCurves:
     rejection_db: FloatArray | None = None
     inv_delta_db: FloatArray | None = None
     inv_delta_measured_db: FloatArray | None = None
+    s_db: FloatArray | None = None
+    """Sensitivity 1/(1 + L) at the plant input, speed loop (plant model)."""
+    t_db: FloatArray | None = None
+    """Complementary sensitivity L/(1 + L), speed loop."""
+    s_full_db: FloatArray | None = None
+    """Sensitivity of the whole servo (position loop closed)."""
+    t_full_db: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -167,6 +174,15 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         "DOB rejection gain |E_without / E_with| (23): > 0 dB where the DOB helps",
         (_line("candidate", CANDIDATE), "cand.rejection_db"),
         (_line("active", ACTIVE, dash=_DASH_ACTIVE), "act.rejection_db"),
+    ),
+    _bode_spec(
+        "sensitivity",
+        "Sensitivity |S| and complementary |T| at the plant input (whole servo dashed)",
+        (_line("|S| candidate", CANDIDATE), "cand.s_db"),
+        (_line("|T| candidate", NO_DOB), "cand.t_db"),
+        (_line("|S| whole servo", CANDIDATE, dash=_DASH_NO_DOB, width=1.0), "cand.s_full_db"),
+        (_line("|T| whole servo", NO_DOB, dash=_DASH_NO_DOB, width=1.0), "cand.t_full_db"),
+        (_line("|S| active", ACTIVE, dash=_DASH_ACTIVE), "act.s_db"),
     ),
     _bode_spec(
         "small_gain",

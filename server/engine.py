@@ -149,6 +149,11 @@ def curves_from_analysis(a: Analysis) -> tuple[BodeCurves, GateView]:
         inv_delta_db=bound[0] if bound else None,
         # The worst measured response at each frequency (smallest 1/|Delta|).
         inv_delta_measured_db=np.min(np.stack(measured), axis=0) if measured else None,
+        s_db=charts.db(1.0 / (1.0 + a.open_loop)),
+        t_db=charts.db(a.open_loop / (1.0 + a.open_loop)),
+        s_full_db=None if a.open_loop_full is None else charts.db(1.0 / (1.0 + a.open_loop_full)),
+        t_full_db=None if a.open_loop_full is None else charts.db(
+            a.open_loop_full / (1.0 + a.open_loop_full)),
     )
     margins = {
         "gain_margin_db": a.gain_margin_db,

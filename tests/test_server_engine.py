@@ -104,3 +104,24 @@ def test_the_dashboard_verdict_is_the_controllers() -> None:
         assert mine.reasons == theirs.reasons or mine.verdict == "accept"
         seen[mine.verdict] += 1
     assert min(seen.values()) > 0, seen  # all three verdicts were exercised
+
+
+def test_sensitivity_chart_matches_the_gates_margins() -> None:
+    """The S and T curves drawn: their peaks are the gate's peak sensitivities (speed loop and
+    whole servo, refined by the gate between grid points: the grid peak is at most 0.3 dB
+    below), and |S| <= 1 + |T| everywhere (S + T = 1: the triangle inequality)."""
+    import pytest
+
+    from controller.gate.analysis import analyse
+    from controller.gate.knowledge import COMMISSIONING_BOUND, PlantKnowledge
+
+    eng = TuningEngine(n_freq=2000)
+    cfg = LoopConfig(q_cutoff_hz=2.0)
+    c = eng.evaluate(cfg).curves
+    a = analyse(cfg, PlantKnowledge(bound=COMMISSIONING_BOUND))
+    assert c.s_db is not None and c.s_full_db is not None and c.t_db is not None
+    assert np.max(c.s_db) == pytest.approx(a.margins.peak_sensitivity_db, abs=0.3)
+    assert a.margins_full is not None
+    assert np.max(c.s_full_db) == pytest.approx(a.margins_full.peak_sensitivity_db, abs=0.3)
+    lin = 10 ** (np.asarray(c.s_db) / 20)
+    assert np.all(lin <= 1.0 + 10 ** (np.asarray(c.t_db) / 20) + 1e-9)

@@ -246,6 +246,8 @@ class Analysis:
     """The whole servo (position loop closed) at the plant input, plant model."""
     knowledge: str = ""
     """Which plant knowledge the verdict used (`PlantKnowledge.describe`)."""
+    open_loop_full: ComplexArray | None = None
+    """The whole servo's loop at the plant input, G (C_tot + F1) / (1 - F2 z^-1), plant model."""
 
     @property
     def accepted(self) -> bool:
@@ -424,8 +426,9 @@ def analyse(
     pd = g / mn
     gyw_on = gcv / d_on
     gyw_off = gcv / d_off
-    one, ks, _ = _controller_parts(bk, on)
+    one, ks, kf = _controller_parts(bk, on)
     loop = g * ks / one
+    loop_full = g * kf / one
     gyw = gyw_on if on else gyw_off
     rejections: list[str] = []
     cautions: list[str] = []
@@ -487,6 +490,7 @@ def analyse(
         cautions=tuple(cautions),
         margins_full=margins_full,
         knowledge=plant.describe(),
+        open_loop_full=readonly(loop_full),
     )
 
 
