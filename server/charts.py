@@ -261,6 +261,22 @@ PREVIEW_CHART = ChartSpec(
 )
 
 
+STEP_CHART = ChartSpec(
+    key="steps",
+    title="Linear model: 1 deg reference step (left) and 1 deg/s load-disturbance step (right)",
+    series=(
+        {"label": "t (s)"},
+        _line("ref step candidate", CANDIDATE),
+        _line("ref step active", ACTIVE, dash=_DASH_ACTIVE),
+        _line("load step candidate", NO_DOB, scale="d"),
+        _line("load step active", ACTIVE, dash=_DASH_NO_DOB, scale="d"),
+    ),
+    scales={**_LIN_X, "d": {"auto": True}},
+    axes=(_T_AXIS, {"label": "deg", "scale": "y"},
+          {"label": "deg (load step)", "scale": "d", "side": 1, "grid": {"show": False}}),
+)
+
+
 def preview_data(
     t_s: FloatArray, cand_error_deg: FloatArray, active_error_deg: FloatArray | None,
     max_points: int = 1500,

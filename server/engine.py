@@ -236,6 +236,8 @@ class TuningEngine:
         self._evaluations: _Cache[LoopConfig, Evaluation] = _Cache(64)
         self._recommendations: _Cache[LoopConfig, float | None] = _Cache(64)
         self._previews: _Cache[tuple[LoopConfig, Trajectory], PreviewResult] = _Cache(16)
+        self._steps: _Cache[tuple[LoopConfig, Any], tuple[FloatArray, FloatArray, FloatArray]] = (
+            _Cache(32))
 
     @property
     def measured(self) -> tuple[MeasuredResponse, ...]:
@@ -314,6 +316,19 @@ class TuningEngine:
             rmse_deg=float(res.rmse_deg),
             elapsed_s=time.perf_counter() - t0,
         )
+
+    def steps(self, cfg: LoopConfig) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Reference and load-disturbance step responses on the plant knowledge's linear model
+        (cached; ~25 ms, so off the slider path)."""
+        from controller.tune.steps import step_responses
+
+        model = self.plant.model
+        return self._steps.get((cfg, model), lambda: step_responses(cfg, model))
+
+    def steps_data(self, candidate: LoopConfig, active: LoopConfig) -> tuple[FloatArray, ...]:
+        t, rc, dc = self.steps(candidate)
+        _, ra, da = self.steps(active)
+        return (t, rc, ra, dc, da)
 
     def compare_preview(
         self, candidate: LoopConfig, active: LoopConfig, trajectory: Trajectory

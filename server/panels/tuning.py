@@ -194,6 +194,7 @@ class TuningPanel:
         self._charts: dict[str, Any] = {}
         self._marks: tuple[tuple[float, str], ...] = ()
         self._preview_chart: Any = None
+        self._steps_chart: Any = None
         self._worker = LatestWins(self._update, name="tuning-update")
         self._preview_worker = LatestWins(
             self._run_preview, name="tuning-preview", debounce_s=0.08
@@ -251,6 +252,8 @@ class TuningPanel:
         self.preview_text = gui.add_html('<div class="dt-preview">preview: running...</div>')
         self._preview_chart = add_chart(gui, charts.PREVIEW_CHART,
                                         charts.PREVIEW_CHART.placeholder([0.0, 1.0]))
+        self._steps_chart = add_chart(gui, charts.STEP_CHART,
+                                      charts.STEP_CHART.placeholder([0.0, 1.0]))
         for spec in charts.BODE_CHARTS:
             self._charts[spec.key] = add_chart(gui, spec, spec.placeholder(self.engine.freq_hz))
 
@@ -472,6 +475,8 @@ class TuningPanel:
             set_html(self.cutoff_text, self._cutoff_html(cand.q_cutoff_hz, rec, True))
             self._update_marks(rec)
         p = self.engine.compare_preview(cand, active, traj)
+        if self._steps_chart is not None:
+            self._steps_chart.data = self.engine.steps_data(cand, active)
         if self._preview_chart is not None:
             self._preview_chart.data = p.chart_data
             set_html(self.preview_text, _preview_html(traj, p))
