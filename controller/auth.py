@@ -353,7 +353,7 @@ def _viewer(rig: str, user: str) -> list[_Grant]:
     streams = (proto.key_state(rig), proto.key_status(rig))
     reads = (
         proto.key_config(rig), proto.key_identify(rig), proto.key_knowledge(rig),
-        proto.key_lease(rig),
+        proto.key_lease(rig), proto.key_history(rig),
     )
     estop = (proto.key_estop(rig),)
     return [

@@ -332,6 +332,11 @@ class ControllerClient:
         `reply_type`. Raises ControllerUnavailable (no reply, an error reply) or ProtocolError."""
         return proto.decode(self._query(self.key(key), proto.encode(msg)), reply_type)
 
+    def history(self, last: int = 50) -> proto.HistoryReply:
+        """The controller's newest `last` applied configurations (oldest first)."""
+        req = proto.HistoryRequest(last=last)
+        return self.query(proto.key_history(self.opts.rig_name), req, proto.HistoryReply)
+
     def identify_status(self) -> proto.IdentifyStatus:
         """The controller's latest identification run."""
         raw = self._query(self.key(proto.key_identify(self.opts.rig_name)), b"")

@@ -64,6 +64,11 @@ def key_alive(rig: str) -> str:
     return f"{KEY_PREFIX}/{rig}/alive"
 
 
+def key_history(rig: str) -> str:
+    """Queryable: HistoryRequest (or empty) -> HistoryReply (the applied configurations)."""
+    return f"{KEY_PREFIX}/{rig}/history"
+
+
 def key_lease(rig: str) -> str:
     """Queryable: LeaseRequest -> LeaseReply (the operator lease of the rig)."""
     return f"{KEY_PREFIX}/{rig}/lease"
@@ -248,6 +253,29 @@ class ConfigReply(_Msg, frozen=True, kw_only=True):
     field: str = ""  # for a malformed request: the offending field ("payload", "candidate.x")
     verdict: str = ""  # the gate's verdict on the candidate: accept | caution | reject
     knowledge_version: int = 0  # the plant knowledge it was judged on
+
+
+# -- history ------------------------------------------------------------------------------------
+
+
+class HistoryRequest(_Msg, frozen=True, kw_only=True):
+    last: int = 50  # how many of the newest entries (1..1000)
+
+
+class HistoryEntry(msgspec.Struct, frozen=True, kw_only=True):
+    version: int
+    time_s: float  # UNIX time it was applied
+    client: str  # who: the authenticated user, "startup (...)" or "watchdog rollback: ..."
+    verdict: str  # the gate's verdict then ("" for entries from before verdicts were logged)
+    config: LoopConfig
+    margins: Margins | None = None
+
+
+class HistoryReply(_Msg, frozen=True, kw_only=True):
+    ok: bool
+    entries: list[HistoryEntry] = []  # oldest first
+    message: str = ""
+    field: str = ""
 
 
 # -- the operator lease -------------------------------------------------------------------------

@@ -11,6 +11,7 @@ import contextlib
 import logging
 import signal
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -107,6 +108,8 @@ class Dashboard:
         self.server: Any = None
         self.engine = TuningEngine()
         self._knowledge_version = -1  # the plant knowledge fetched from the controller
+        self._history_version = -1
+        self._history: dict[int, LoopConfig] = {}
         self._requests = Requests(max_workers=2, name="ctl-request")
         self.tuning: NominalTuningPanel | None = None
         self.identify: IdentifyPanel | None = None
@@ -184,6 +187,13 @@ class Dashboard:
             live.build_controls()
         with tabs.add_tab("Identify"):
             self.identify.build_controls()
+        with tabs.add_tab("History"):
+            self.history_html = gui.add_html("<div class='dt-history'>No history yet.</div>")
+            self.history_pick = gui.add_dropdown("Version", ("-",), initial_value="-")
+            use = gui.add_button("Use as candidate", color="gray",
+                                 hint="load that version into the controls; Apply sends it "
+                                 "through the gate like any candidate")
+            use.on_click(lambda _e: self._use_version())
         with tabs.add_tab("Help"):
             gui.add_markdown(_asset("help.md", "Help texts are missing (web_assets/help.md)."))
 
@@ -221,7 +231,47 @@ class Dashboard:
             self.tuning.set_active(reply.config, reply.version)
             self.tuning.revert(say=False)
 
+    def _fetch_history(self) -> None:
+        try:
+            reply = self.client.history(50)
+        except (ControllerUnavailable, proto.ProtocolError) as exc:
+            log.warning("history not fetched: %s", exc)
+            self._history_version = -1
+            return
+        if not reply.ok:
+            self.history_html.content = f"<div class='dt-history'>{esc(reply.message)}</div>"
+            return
+        self._history = {e.version: e.config for e in reply.entries}
+        rows = []
+        for e in reversed(reply.entries):
+            m = e.margins
+            pm = f"{m.phase_margin_deg:.1f}" if m is not None else "-"
+            gm = f"{m.gain_margin_db:.1f}" if m is not None else "-"
+            when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(e.time_s))
+            rows.append(f"<tr><td>v{e.version}</td><td>{esc(when)}</td><td>{esc(e.client)}</td>"
+                        f"<td>{esc(e.verdict or '-')}</td><td>{pm}</td><td>{gm}</td>"
+                        f"<td>{esc(e.config.q_type)} {e.config.q_cutoff_hz:g} Hz</td></tr>")
+        self.history_html.content = (
+            "<div class='dt-history' style='font-size:12px'><table><tr><th>ver</th><th>when"
+            "</th><th>who</th><th>verdict</th><th>PM</th><th>GM</th><th>Q</th></tr>"
+            + "".join(rows) + "</table></div>")
+        options = tuple(f"v{v}" for v in sorted(self._history, reverse=True)) or ("-",)
+        self.history_pick.options = options
+        self.history_pick.value = options[0]
+
+    def _use_version(self) -> None:
+        t = self.tuning
+        value = str(self.history_pick.value)
+        if t is None or not value.startswith("v"):
+            return
+        cfg = self._history.get(int(value[1:]))
+        if cfg is not None:
+            t.load(cfg, say_text=f"Loaded {value} from the history as the candidate.")
+
     def _on_status(self, st: proto.Status) -> None:
+        if st.config_version != self._history_version:
+            self._history_version = st.config_version
+            self._requests.submit(self._fetch_history)
         if st.knowledge_version != self._knowledge_version:
             self._knowledge_version = st.knowledge_version
             self._requests.submit(self._fetch_knowledge)

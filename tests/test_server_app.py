@@ -118,3 +118,32 @@ def test_the_trajectory_dropdown_follows_the_controller(tmp_path: Path) -> None:
             reply = d.client.command(proto.SetTrajectory(trajectory=default_trajectory("ramp")))
             assert reply.ok, reply.message
             wait_for(lambda: d.live.trajectory.value == "ramp")
+
+
+@pytest.mark.integration
+def test_history_lists_versions_and_loads_one_as_the_candidate(tmp_path: Path) -> None:
+    from controller.core.config import LoopConfig
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with controller_process(endpoint, "histtest", tmp_path / "state"):
+        opts = DashboardOptions(connect=(endpoint,), rig_name="histtest", port=free_port(),
+                                verbose=False, query_timeout_s=2.0)
+        with Dashboard(opts) as d:
+            wait_for(lambda: d.client.connected, CONTROLLER_START_S)
+            first = d.client.get_config()
+            reply = d.client.apply(first.config.with_(q_cutoff_hz=0.8, cv_kp=0.5))
+            assert reply.accepted, reply.reasons
+            wait_for(lambda: "v2" in d.history_html.content and "v1" in d.history_html.content)
+            h = d.client.history(10)
+            assert [e.version for e in h.entries] == [1, 2] and h.entries[1].verdict == "accept"
+            assert h.entries[1].config.q_cutoff_hz == 0.8
+            t = d.tuning
+            assert t is not None
+            wait_for(lambda: t.active_version == 2)
+            d.history_pick.value = "v1"
+            d._use_version()
+            assert t.wait_idle(5.0)
+            assert t.candidate() == first.config  # version 1, to go through the gate again
+            assert "q_cutoff_hz" in t.diff_text.content and "active v2" in t.diff_text.content
+            assert d.client.history(0).field == "last"
+            assert LoopConfig() == first.config

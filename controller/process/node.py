@@ -89,6 +89,7 @@ class ZenohNode:
         self.identify_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.knowledge_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.lease_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.history_q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.access = service.access
         self._reply_encoding = {
             id(self.config_q): proto.encoding(proto.ConfigReply),
@@ -96,6 +97,7 @@ class ZenohNode:
             id(self.identify_q): proto.encoding(proto.IdentifyStatus),
             id(self.knowledge_q): proto.encoding(proto.KnowledgeReply),
             id(self.lease_q): proto.encoding(proto.LeaseReply),
+            id(self.history_q): proto.encoding(proto.HistoryReply),
         }
         self.blackbox = BlackBox(
             service.store.directory / "blackbox", opts.rig_name, service.warn
@@ -138,6 +140,7 @@ class ZenohNode:
             (proto.key_identify(rig), self.identify_q),
             (proto.key_knowledge(rig), self.knowledge_q),
             (proto.key_lease(rig), self.lease_q),
+            (proto.key_history(rig), self.history_q),
         ):
             handler = zenoh.handlers.Callback(self._enqueue(q), indirect=False)
             self._entities.append(session.declare_queryable(scoped(key), handler))
@@ -187,6 +190,7 @@ class ZenohNode:
                 lambda: self.serve_queue(self.knowledge_q, self.handle_knowledge),
             ),
             ("lease-worker", lambda: self.serve_queue(self.lease_q, self.handle_lease)),
+            ("history-worker", lambda: self.serve_queue(self.history_q, self.handle_history)),
         ):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -195,7 +199,8 @@ class ZenohNode:
     def close(self) -> None:
         """Stop the threads (after the loop has finished), then undeclare everything."""
         self.stop_event.set()
-        queues = (self.config_q, self.command_q, self.identify_q, self.knowledge_q, self.lease_q)
+        queues = (self.config_q, self.command_q, self.identify_q, self.knowledge_q, self.lease_q,
+                  self.history_q)
         for q in queues:
             q.put(SHUTDOWN)
         for t in self._threads:
@@ -452,6 +457,17 @@ class ZenohNode:
             message=reply.message, field=reply.field, adopt_run=req.adopt_run,
         )
         return proto.encode(reply)
+
+    def handle_history(self, data: bytes, who: Who = LOCAL) -> bytes:
+        """HistoryRequest (or nothing) -> HistoryReply: the applied configurations."""
+        big = self._too_large(data)
+        if big is not None:
+            return proto.encode(proto.HistoryReply(ok=False, message=big, field="payload"))
+        try:
+            req = proto.decode(data, proto.HistoryRequest) if data else proto.HistoryRequest()
+        except proto.ProtocolError as exc:
+            return proto.encode(proto.HistoryReply(ok=False, message=str(exc), field=exc.field))
+        return proto.encode(self.service.history(req.last))
 
     def handle_lease(self, data: bytes, who: Who = LOCAL) -> bytes:
         """LeaseRequest (or nothing: status) -> LeaseReply (recorded in the audit trail)."""

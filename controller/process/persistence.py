@@ -309,6 +309,7 @@ class StateStore:
         margins: dict[str, float] | None,
         client: str = "",
         time_s: float | None = None,
+        verdict: str = "",
     ) -> None:
         """Append one line to the applied-changes log (fsynced)."""
         entry = {
@@ -319,6 +320,7 @@ class StateStore:
             "new": config_to_builtins(new),
             "margins": _finite_or_none(margins),
             "client": client,
+            "verdict": verdict,
         }
         line = _json.encode(_finite_or_none(entry)) + b"\n"
         try:

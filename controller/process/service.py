@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import threading
 import time
 from typing import Any
@@ -18,7 +19,8 @@ from typing import Any
 import msgspec
 
 from controller import protocol as proto
-from controller.core.config import LoopConfig
+from controller.core.config import LoopConfig, config_from_builtins
+from controller.core.errors import ConfigError
 from controller.gate.knowledge import KnowledgeRecord
 from controller.process.access import Access
 from controller.process.gate_worker import GateRunner, margins_dict
@@ -197,6 +199,7 @@ class ControllerService:
                     version=version,
                     margins=margins_dict(margins),
                     client=client,
+                    verdict=verdict.verdict,
                 )
             except PersistenceError as exc:
                 self.warn(str(exc))
@@ -204,6 +207,35 @@ class ControllerService:
                 accepted=True, version=version, config=candidate, margins=margins,
                 reasons=list(verdict.reasons), **judged,
             )
+
+    # -- history -------------------------------------------------------------------------------
+
+    def history(self, last: int) -> proto.HistoryReply:
+        """The newest `last` applied configurations from the change log (oldest first)."""
+        if isinstance(last, bool) or not 1 <= last <= 1000:
+            return proto.HistoryReply(
+                ok=False, field="last", message=f"last: {last} not in 1..1000"
+            )
+        try:
+            items = self.store.read_changes()[-last:]
+        except OSError as exc:
+            return proto.HistoryReply(ok=False, field="state_dir",
+                                      message=f"state_dir: the change log cannot be read: {exc}")
+        entries = []
+        for item in items:
+            try:
+                m = item.get("margins")
+                entries.append(proto.HistoryEntry(
+                    version=int(item["version"]), time_s=float(item.get("time_s") or 0.0),
+                    client=str(item.get("client", ""))[:200], verdict=str(item.get("verdict", "")),
+                    config=config_from_builtins(item["new"]),
+                    margins=None if not isinstance(m, dict) else msgspec.convert(
+                        {k: (math.nan if v is None else v) for k, v in m.items()},
+                        proto.Margins),
+                ))
+            except (KeyError, TypeError, ValueError, ConfigError, msgspec.ValidationError):
+                continue  # a line this version cannot read is skipped, not fatal
+        return proto.HistoryReply(ok=True, entries=entries)
 
     # -- watchdog ------------------------------------------------------------------------------
 

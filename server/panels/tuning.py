@@ -108,6 +108,20 @@ def cutoff_marks(rec_hz: float | None) -> tuple[tuple[float, str], ...]:
     return _BASE_MARKS
 
 
+def diff_html(cand: LoopConfig, active: LoopConfig, version: int | None) -> str:
+    """The fields the candidate changes against the active configuration (always shown)."""
+    from controller.core.config import config_to_builtins
+
+    a, c = config_to_builtins(active), config_to_builtins(cand)
+    rows = [f"<li>{esc(k)}: {esc(str(a[k]))} &rarr; <b>{esc(str(c[k]))}</b></li>"
+            for k in c if c[k] != a.get(k)]
+    against = f"active v{version}" if version is not None else "the active configuration"
+    if not rows:
+        return f"<div class='dt-diff' style='font-size:12px;color:#555'>Same as {against}.</div>"
+    return (f"<div class='dt-diff' style='font-size:12px'>Candidate vs {against}:"
+            f"<ul style='margin:2px 0 0 16px;padding:0'>{''.join(rows)}</ul></div>")
+
+
 def _fmt_hz_value(hz: float) -> str:
     """A cut-off as the Hz field shows it (up to 6 significant digits, no trailing zeros)."""
     return f"{hz:.6g}"
@@ -195,6 +209,7 @@ class TuningPanel:
         self._marks: tuple[tuple[float, str], ...] = ()
         self._preview_chart: Any = None
         self._steps_chart: Any = None
+        self._loaded: LoopConfig | None = None
         self._worker = LatestWins(self._update, name="tuning-update")
         self._preview_worker = LatestWins(
             self._run_preview, name="tuning-preview", debounce_s=0.08
@@ -237,6 +252,7 @@ class TuningPanel:
                                                  hint=g.hint))
             controls.append(getattr(self, g.attr))
         self.verdict = gui.add_html('<div class="dt-verdict">evaluating...</div>')
+        self.diff_text = gui.add_html('<div class="dt-diff"></div>')
         self.apply_button = gui.add_button("Apply candidate", color="green",
                                            hint="send to the controller; its gate decides")
         self.revert_button = gui.add_button("Revert to active", color="gray")
@@ -288,8 +304,10 @@ class TuningPanel:
         return values
 
     def candidate(self) -> LoopConfig:
-        """The candidate from the controls on top of the active config; raises ConfigError."""
-        return candidate_from_values(self.active, self.control_values())
+        """The candidate from the controls on top of the active config (or of a version loaded
+        from the history, for the fields without a control); raises ConfigError."""
+        base = self._loaded if self._loaded is not None else self.active
+        return candidate_from_values(base, self.control_values())
 
     # -- events (GUI thread pool: short) -----------------------------------------------------
 
@@ -414,7 +432,12 @@ class TuningPanel:
 
     def revert(self, say: bool = True) -> None:
         """Set every control to the active configuration (no re-evaluation per control)."""
-        a = self.active
+        self.load(self.active, say_text="Reverted to the active configuration." if say else "")
+
+    def load(self, a: LoopConfig, say_text: str = "") -> None:
+        """Set every control to `a` (a revert, or an older version from the history: it goes
+        through the gate like any candidate when applied)."""
+        self._loaded = None if a is self.active else a
         self._suppress = True
         try:
             self.q_type.value = _label_of(a.q_type)
@@ -422,9 +445,8 @@ class TuningPanel:
             self.cutoff_hz_input.value = _fmt_hz_value(a.q_cutoff_hz)
             self._cutoff_hz = float(a.q_cutoff_hz)
             self._cutoff_error = ""
-            if say:  # (a reply box from an earlier candidate no longer applies)
-                self.apply_result.content = box("dt-apply", NEUTRAL, "Reverted to the active "
-                                                "configuration.")
+            if say_text:  # (a reply box from an earlier candidate no longer applies)
+                self.apply_result.content = box("dt-apply", NEUTRAL, esc(say_text))
             for attr, _label in _SWITCHES:
                 getattr(self, attr).value = bool(getattr(a, attr))
             for g in _GAINS:
@@ -448,6 +470,7 @@ class TuningPanel:
             handle.data = cmp.chart_data[key]
         ev = cmp.candidate
         set_html(self.verdict, format_gate_html(ev))
+        set_html(self.diff_text, diff_html(cand, self.active, self.active_version))
         known, rec = self.engine.cached_recommendation(cand)
         set_html(self.cutoff_text, self._cutoff_html(cand.q_cutoff_hz, rec, known))
         if known:
