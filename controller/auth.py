@@ -40,6 +40,7 @@ import zenoh
 
 from controller import protocol as proto
 from controller.protocol import USER_CHUNK, any_user_key, user_key, user_of_key
+from controller.tls import client_tls, server_tls
 from controller.zenoh_session import DEFAULT_LISTEN, zenoh_config
 
 __all__ = [
@@ -457,6 +458,7 @@ def server_config(
         "transport/auth/usrpwd/dictionary_file", json.dumps(str(dictionary.resolve()))
     )
     conf.insert_json5("access_control", json.dumps(acl))
+    server_tls(conf, Path(directory))
     return conf
 
 
@@ -506,6 +508,10 @@ def client_config(
     conf.insert_json5("mode", json.dumps(mode))
     login = {"user": check_name(user, "user"), "password": password}
     conf.insert_json5("transport/auth/usrpwd", json.dumps(login))
+    if isinstance(credentials, Path):
+        # The authority of the auth directory (or of the password file's directory): on tls/
+        # endpoints the client then accepts only the controller it certified.
+        client_tls(conf, credentials if credentials.is_dir() else credentials.parent)
     if fail_after_s is not None:
         conf.insert_json5("connect/exit_on_failure", "true")
         conf.insert_json5("connect/timeout_ms", json.dumps(max(1, round(fail_after_s * 1000))))

@@ -45,6 +45,7 @@ def init_main(
     force: bool,
     show_passwords: bool,
     out: TextIO,
+    tls_hosts: Sequence[str] = (),
 ) -> int:
     """`dobtune auth init`: write the users file and the dictionary; return the exit code."""
     from controller.auth import ALL_RIGS, DICTIONARY_FILE, init_auth_dir, new_users
@@ -52,6 +53,12 @@ def init_main(
     try:
         created = new_users(users or DEFAULT_USERS, rigs or (ALL_RIGS,))
         loaded = init_auth_dir(directory, created, force=force)
+        if tls_hosts:
+            from controller.tls import make_tls
+
+            ca = make_tls(Path(directory), list(tls_hosts))
+            out.write(f"wrote {ca} (give it to every client) and the server certificate for "
+                      f"{', '.join(tls_hosts)}: listen on tls/ endpoints\n")
     except FileExistsError as exc:
         out.write(
             f"error: {exc.args[0]} exists; --force replaces it (new passwords for every user)\n"
@@ -117,6 +124,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "default: operator=operator viewer=viewer)",
     )
     init.add_argument("--force", action="store_true", help="replace an existing users file")
+    init.add_argument("--tls", nargs="+", default=[], metavar="HOST",
+                      help="also create a TLS authority and the controller's certificate for "
+                      "these host names / addresses (then use tls/ endpoints)")
     init.add_argument("--show-passwords", action="store_true", help="print the passwords")
     show = sub.add_parser("show", help="check DIR/users.toml and list its users")
     show.add_argument("directory", type=Path, metavar="DIR")
@@ -126,7 +136,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.auth_command == "init":
         return init_main(
-            args.directory, args.rigs, args.users, args.force, args.show_passwords, sys.stdout
+            args.directory, args.rigs, args.users, args.force, args.show_passwords, sys.stdout,
+            args.tls,
         )
     return show_main(args.directory, args.passwords, sys.stdout)
 

@@ -362,6 +362,12 @@ def _run(
                           auth=access.auth, listen=list(opts.listen))
             if access.auth:
                 notes.append(f"authentication on ({opts.auth_dir}): requests on per-user scopes")
+                plain = [e for e in opts.listen if not _loopback(e) and not e.startswith("tls/")]
+                if plain:
+                    notes.append(
+                        f"{', '.join(plain)}: not TLS: the traffic is not encrypted and clients "
+                        "cannot check they reach this controller (`dobtune auth init --tls`)"
+                    )
             with contextlib.ExitStack() as closing:
                 closing.callback(access.close)
                 closing.callback(
