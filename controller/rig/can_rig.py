@@ -19,7 +19,10 @@ EMCY with a non-zero code, a heartbeat that is late or not "operational".
 Timing: a tick counts as fed when every feedback frame (TPDO1, TPDO2 and the encoder for
 cia402) arrived after its SYNC. ``read()`` may block until ``SYNC time + wait_feedback_s``
 for missing frames; a 1 kHz loop that reads about a period after the SYNC therefore never
-waits. The frames carry no SYNC counter, so a frame later than that counts for the next tick.
+waits. The frames carry no SYNC counter: a frame later than that is still taken for its own
+tick if it arrives before the next ``step()`` (which drains the bus before its SYNC), and counts
+for the next tick only if it arrives after that SYNC. ``late_ticks`` counts the ticks that
+ended without complete feedback.
 While feedback is missing ``read()`` returns the last values. ``step()`` and ``stop()`` are
 serialised by a lock, so an e-stop from another thread is never followed by a live command;
 everything else is meant for the loop's thread.
@@ -184,6 +187,7 @@ class CanRig:
         self._sync_time = 0.0
         self._got = 0
         self._missed = 0
+        self._late_ticks = 0
         self._pos_deg = 0.0
         self._speed_deg_s = 0.0
         self._enc_counts = 0  # unwrapped
@@ -232,6 +236,11 @@ class CanRig:
         """Consecutive ticks that ended without complete feedback."""
         return self._missed
 
+    @property
+    def late_ticks(self) -> int:
+        """Ticks since construction whose feedback was not complete within the wait."""
+        return self._late_ticks
+
     def read(self) -> tuple[float, float]:
         """(load position deg, load speed deg/s) from the latest load encoder frames.
 
@@ -245,6 +254,7 @@ class CanRig:
                 self._missed = 0
             else:
                 self._missed += 1
+                self._late_ticks += 1
                 if self._enabled and self._missed >= self._timeout_ticks:
                     self._set_fault(f"no complete feedback for {self._missed} ticks")
         else:
@@ -256,7 +266,12 @@ class CanRig:
         return self._pos_deg, self._speed_deg_s
 
     def step(self, command_deg_s: float) -> None:
-        """Send the load-side speed command (limited, scaled to the drive) and a SYNC."""
+        """Send the load-side speed command (limited, scaled to the drive) and a SYNC.
+
+        Frames that came after ``read()`` gave up waiting are handled first, so they count
+        for the tick they answer, not for the next one.
+        """
+        self._collect(0.0)
         with self._lock:  # serialised with stop(): no live command can follow the safe state
             if self._enabled and not math.isfinite(command_deg_s):
                 self._set_fault(f"non-finite speed command {command_deg_s!r}")

@@ -27,11 +27,12 @@ from controller.rig.rig_file import RigFile
 
 __all__ = ["Injection", "Plant", "SimDriveNode"]
 
-Injection = Literal["silent", "no_feedback", "garbage", "fault", "emcy", "no_heartbeat"]
+Injection = Literal["silent", "no_feedback", "garbage", "fault", "emcy", "no_heartbeat", "hold"]
 """silent: the node sends nothing at all (it still obeys frames: a dead transmitter);
 no_feedback: no answer to SYNC (heartbeat continues); garbage: a 3-byte TPDO1 and a
 truncated encoder frame instead of the real ones; fault: the drive goes to Fault (statusword
-bit 3, no EMCY); emcy: Fault plus an EMCY 0x2310 (over-current); no_heartbeat: heartbeat stops."""
+bit 3, no EMCY); emcy: Fault plus an EMCY 0x2310 (over-current); no_heartbeat: heartbeat stops;
+hold: the answer to the next SYNC waits for ``release()`` (one late answer, then it ends)."""
 
 
 class Plant(Protocol):
@@ -112,6 +113,7 @@ class SimDriveNode:
         self.thread_start_result: object = None
         self._motor_position_deg = 0.0
         self._injection: Injection | None = None
+        self._released = threading.Event()
         self._running = False
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
@@ -121,6 +123,10 @@ class SimDriveNode:
     def inject(self, injection: Injection | None) -> None:
         """Start (or with None, end) a fault injection; applies from the next frame handled."""
         self._injection = injection
+
+    def release(self) -> None:
+        """Send the answer a ``hold`` injection is keeping back."""
+        self._released.set()
 
     def start(self) -> SimDriveNode:
         if self._thread is not None:
@@ -132,6 +138,7 @@ class SimDriveNode:
 
     def stop(self) -> None:
         self._running = False
+        self._released.set()  # a held answer must not keep the thread
         if self._thread is not None:
             self._thread.join()
             self._thread = None
@@ -264,6 +271,10 @@ class SimDriveNode:
             and self.mode_of_operation == cia402.PROFILE_VELOCITY_MODE
         )
         command_deg_s = self.target_units / self._units_per_load_deg_s if live else 0.0
+        if injection == "hold":
+            self._injection = injection = None
+            self._released.wait()
+            self._released.clear()
         if self._answer_before_step:
             self._answer(injection)
             self._advance(command_deg_s)
