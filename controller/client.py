@@ -123,6 +123,9 @@ class ClientOptions:
     #: With `auth`: opening fails (ControllerUnavailable) if no connection is made in this
     #: long: wrong credentials and an unreachable controller look the same to Zenoh.
     connect_timeout_s: float = 5.0
+    #: False: requests only (no state and status subscriptions), e.g. one client per user
+    #: behind a dashboard that already receives the streams.
+    subscribe: bool = True
 
 
 @dataclass
@@ -165,6 +168,8 @@ class ControllerClient:
 
         rig = self.opts.rig_name
         self._session = self._open()
+        if not self.opts.subscribe:
+            return self
         try:
             self._state_sub = self._session.declare_subscriber(
                 proto.key_state(rig), zenoh.handlers.RingChannel(4096)

@@ -21,9 +21,11 @@ def add_dashboard_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="HTTP bind address (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8080)
     p.add_argument("--auth", type=Path, default=None, metavar="DIR",
-                   help="credentials for a controller with --auth: an auth directory or a "
-                   "password file (with --user)")
-    p.add_argument("--user", default="", help="the user to connect as (with --auth)")
+                   help="credentials for a controller with --auth: an auth directory (without "
+                   "--user: one URL per user, each browser acting as its own user with its "
+                   "role) or a password file (with --user)")
+    p.add_argument("--user", default="",
+                   help="with --auth: every browser acts as this one user")
 
 
 def run_dashboard_args(args: argparse.Namespace) -> int:

@@ -3,26 +3,35 @@
 Built once at start (shared GUI: every browser sees the same candidate and the same live
 state); afterwards worker threads only assign new data to existing handles. The HTTP server
 binds 127.0.0.1 unless told otherwise, and share tunnels are disabled.
+
+Who acts. Without authentication, or with `--auth` and one `--user`, every browser acts as
+the dashboard's one identity. With `--auth DIR` and no `--user`, each user of `DIR/users.toml`
+who may reach the rig gets a URL of their own (a token per user): the dashboard knows which
+user is behind each browser, refuses a viewer's changes itself (told to that browser only;
+a raw websocket client can press any control, so the check is here, on the server, per
+client) and sends an operator's changes through a Zenoh session logged in as that operator,
+so the controller's access control, lease and audit see the real user, never the dashboard.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import secrets
 import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn, TypeVar
 
 from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import MeasuredResponse
 from server.engine import TuningEngine, measured_from_csv
-from server.gate import Gate
+from server.gate import Gate, Refused
 from server.measured import read_measured
 from server.panels.identify import IdentifyPanel, NominalTuningPanel
 from server.panels.live import LivePanel
@@ -44,6 +53,7 @@ log = logging.getLogger(__name__)
 WEB_ASSETS = Path(__file__).resolve().parent.parent / "web_assets"
 #: How long a lease the dashboard takes for its user's changes (renewed on the next change).
 LEASE_S = 300.0
+R = TypeVar("R")
 
 
 @dataclass(frozen=True)
@@ -61,8 +71,27 @@ class DashboardOptions:
     """The browser access token (None: a random one, in the printed URL)."""
     auth: Path | None = None
     """With a controller that authenticates: the `dobtune auth init` directory or a password
-    file, and `user`, whose role and lease the controller enforces."""
+    file, and `user`, whose role and lease the controller enforces. A directory without
+    `user`: every user in it who may reach the rig, each in their own browser."""
     user: str = ""
+
+
+def dashboard_users(opts: DashboardOptions) -> dict[str, Any]:
+    """The users who each get their own URL ({} : one identity for every browser)."""
+    if opts.auth is None or opts.user:
+        return {}
+    from controller.auth import load_users
+
+    if not opts.auth.is_dir():
+        raise ValueError(f"user: {opts.auth} is a password file: name its user with --user")
+    users = {u.name: u for u in load_users(opts.auth)
+             if u.role in ("operator", "viewer") and u.serves(opts.rig_name)}
+    if not users:
+        raise ValueError(f"auth: no operator or viewer in {opts.auth} may reach rig "
+                         f"{opts.rig_name!r}")
+    if opts.token is not None:
+        raise ValueError("token: one token per user is made with several users")
+    return users
 
 
 def _asset(name: str, default: str = "") -> str:
@@ -94,6 +123,10 @@ class Dashboard:
 
     def __init__(self, opts: DashboardOptions) -> None:
         self.opts = opts
+        self.users = dashboard_users(opts)
+        # The streams come through one session: a viewer's when the users are several.
+        viewers = [n for n, u in self.users.items() if u.role == "viewer"]
+        monitor = opts.user or (viewers or sorted(self.users) or [""])[0]
         self.client = ControllerClient(
             ClientOptions(
                 connect=tuple(opts.connect),
@@ -101,10 +134,18 @@ class Dashboard:
                 query_timeout_s=opts.query_timeout_s,
                 client_name=opts.client_name,
                 auth=opts.auth,
-                user=opts.user,
+                user=monitor,
             )
         )
-        self.gate = Gate(opts.host) if opts.token is None else Gate(opts.host, opts.token)
+        if self.users:
+            self.gate = Gate(opts.host, users={n: secrets.token_urlsafe(24) for n in self.users})
+        else:
+            self.gate = Gate(opts.host) if opts.token is None else Gate(opts.host, opts.token)
+        self._browser_users: dict[int, str] = {}
+        self._acting: dict[str, ControllerClient] = {}
+        self._acting_lock = threading.Lock()
+        self.refusals = 0
+        """Actions refused here (a viewer's change, an unknown browser)."""
         self.server: Any = None
         self.engine = TuningEngine()
         self._knowledge_version = -1  # the plant knowledge fetched from the controller
@@ -118,9 +159,16 @@ class Dashboard:
 
     @property
     def url(self) -> str:
-        """The address to open: it carries the access token (keep it private)."""
+        """The address to open: it carries the access token (keep it private). With several
+        users: the first operator's (see `url_for`)."""
+        operators = [n for n, u in self.users.items() if u.role == "operator"]
+        return self.url_for((operators or sorted(self.users) or [""])[0])
+
+    def url_for(self, user: str) -> str:
+        """The address for `user` ("" with one identity): it carries that user's token."""
         assert self.server is not None
-        return f"http://{self.server.get_host()}:{self.server.get_port()}/?token={self.gate.token}"
+        return (f"http://{self.server.get_host()}:{self.server.get_port()}/"
+                f"?token={self.gate.token_of(user)}")
 
     def __enter__(self) -> Dashboard:
         import viser
@@ -151,7 +199,61 @@ class Dashboard:
         if self.server is not None:
             run_logged(self.server.stop, what="stopping the viser server")
             self.server = None
+        with self._acting_lock:
+            acting, self._acting = list(self._acting.values()), {}
+        for c in acting:
+            c.__exit__(None, None, None)
         self.client.__exit__(None, None, None)
+
+    # -- who acts ------------------------------------------------------------------------------
+
+    def user_of(self, browser: Any) -> str | None:
+        """The user behind a browser (viser client handle); "" with one identity; None:
+        unknown (with several users, a browser must have come through its user's token)."""
+        if not self.users:
+            return ""
+        return self._browser_users.get(getattr(browser, "client_id", -1))
+
+    def client_for(self, browser: Any, action: str) -> ControllerClient:
+        """The controller client that does `action` for this browser; `Refused` here (a
+        viewer's change, an unknown browser), with the reason shown to that browser too."""
+        if not self.users:
+            return self.client
+        user = self.user_of(browser)
+        if user is None:
+            self._refuse(browser, f"{action}: this browser is not signed in")
+        if action != "e-stop" and self.users[user].role != "operator":
+            self._refuse(browser, f"{action}: {user} is a viewer: viewers watch and may E-STOP, "
+                         f"not change the rig")
+        with self._acting_lock:
+            c = self._acting.get(user)
+        if c is None:
+            if action == "e-stop":  # never wait for a login: the streams' session may e-stop
+                self._requests.submit(self._open_acting, user)
+                return self.client
+            c = self._open_acting(user)
+        return c
+
+    def _open_acting(self, user: str) -> ControllerClient:
+        with self._acting_lock:
+            c = self._acting.get(user)
+            if c is None:
+                o = self.opts
+                c = ControllerClient(ClientOptions(
+                    connect=tuple(o.connect), rig_name=o.rig_name,
+                    query_timeout_s=o.query_timeout_s, client_name=f"{o.client_name}:{user}",
+                    auth=o.auth, user=user, subscribe=False))
+                c.__enter__()
+                self._acting[user] = c
+        return c
+
+    def _refuse(self, browser: Any, why: str) -> NoReturn:
+        self.refusals += 1
+        log.warning("refused in the dashboard: %s", why)
+        if browser is not None:
+            run_logged(lambda: browser.add_notification(
+                "Refused", why, color="red", auto_close_seconds=8.0), what="telling a browser")
+        raise Refused(why)
 
     # -- building ------------------------------------------------------------------------------
 
@@ -163,7 +265,8 @@ class Dashboard:
         self.scene = TurntableScene(server.scene)
         tuning = NominalTuningPanel(gui, self.engine, self._apply_async)
         self.identify = IdentifyPanel(gui, tuning, add_measured=self._add_identified,
-                                      client=self.client)
+                                      client=self.client, client_for=self.client_for,
+                                      leased=self.leased)
         live = LivePanel(
             gui, self.client, self._command_async, on_status=self._on_status,
             on_frame=self._on_frame, rate_hz=self.opts.live_rate_hz,
@@ -210,6 +313,7 @@ class Dashboard:
         self.plots = plots
 
         server.on_client_connect(self._on_client_connect)
+        server.on_client_disconnect(self._on_client_disconnect)
         tuning.start()
         live.start()
         self._requests.submit(self._fetch_active)
@@ -217,9 +321,29 @@ class Dashboard:
     # -- wiring ------------------------------------------------------------------------------
 
     def _on_client_connect(self, client: Any) -> None:
-        """Point each new browser's camera at the turntable."""
+        """Note who is at the new browser (with several users) and point its camera at the
+        turntable."""
+        if self.users:
+            # viser keeps each client's websocket; the gate noted whose token opened it.
+            conn = self.server._websock_server._live_connections.get(client.client_id)
+            user = self.gate.user_of_connection(conn) if conn is not None else None
+            if user is None:
+                log.error("browser %s: no user for its connection: it may only watch",
+                          client.client_id)
+            else:
+                self._browser_users[client.client_id] = user
+                role = self.users[user].role
+                note = " (watch and E-STOP only)" if role == "viewer" else ""
+                client.gui.add_html(
+                    f"<div class='dt-whoami' style='font-size:12px'>Signed in as "
+                    f"<b>{esc(user)}</b>, {esc(role)}{note}</div>")
+                if role == "operator":
+                    self._requests.submit(self._open_acting, user)
         client.camera.position = (0.75, -0.85, 0.75)
         client.camera.look_at = (0.15, 0.0, 0.05)
+
+    def _on_client_disconnect(self, client: Any) -> None:
+        self._browser_users.pop(client.client_id, None)
 
     def _fetch_active(self) -> None:
         try:
@@ -288,8 +412,8 @@ class Dashboard:
         if latest is not None and self.scene is not None:
             self.scene.update(latest["pos_deg"], latest["ref_deg"])
 
-    def _apply_async(self, cand: LoopConfig, confirm: bool = False) -> None:
-        self._requests.submit(self._apply, cand, confirm)
+    def _apply_async(self, cand: LoopConfig, confirm: bool = False, browser: Any = None) -> None:
+        self._requests.submit(self._apply, cand, confirm, browser)
 
     def _fetch_knowledge(self) -> None:
         """The controller's plant knowledge: the dashboard judges on nothing else."""
@@ -304,28 +428,32 @@ class Dashboard:
         if self.tuning is not None:
             self.tuning.request_update()
 
-    def _leased(self, act: Any) -> Any:
-        """`act()`, under the operator lease when the controller authenticates: taken when
-        this dashboard holds none (the controller refuses it if someone else holds it: the
-        reply says so), renewed once if the controller says the lease lapsed."""
-        if not self.opts.user:
+    @staticmethod
+    def leased(client: ControllerClient, act: Callable[[], R]) -> R:
+        """`act()`, under `client`'s user's operator lease when the controller authenticates:
+        taken when that client holds none (the controller refuses it if someone else holds
+        it: the reply says so), renewed once if the controller says the lease lapsed."""
+        if not client.opts.user:
             return act()
-        if not self.client.lease_token:
-            self.client.lease("acquire", LEASE_S)
+        if not client.lease_token:
+            client.lease("acquire", LEASE_S)
         reply = act()
         if getattr(reply, "field", "") == "lease":
-            got = self.client.lease("renew" if self.client.lease_token else "acquire", LEASE_S)
+            got = client.lease("renew" if client.lease_token else "acquire", LEASE_S)
             if not got.ok:
-                got = self.client.lease("acquire", LEASE_S)
+                got = client.lease("acquire", LEASE_S)
             if got.ok:
                 reply = act()
         return reply
 
-    def _apply(self, cand: LoopConfig, confirm: bool = False) -> None:
+    def _apply(self, cand: LoopConfig, confirm: bool = False, browser: Any = None) -> None:
         t = self.tuning
         assert t is not None
         try:
-            reply = self._leased(lambda: self.client.apply(cand, confirm=confirm))
+            c = self.client_for(browser, "apply")
+            reply = self.leased(c, lambda: c.apply(cand, confirm=confirm))
+        except Refused:
+            return  # logged, and told to the browser that asked (only)
         except (ControllerUnavailable, proto.ProtocolError) as exc:
             log.warning("apply failed: %s", exc)
             t.show_error(str(exc))
@@ -335,25 +463,27 @@ class Dashboard:
         t.show_reply(reply.accepted, reply.version, list(reply.reasons))
         t.set_active(reply.config, reply.version)
 
-    def _command_async(self, body: proto.CommandBody) -> None:
+    def _command_async(self, body: proto.CommandBody, browser: Any = None) -> None:
         if isinstance(body, proto.EStop):
             # The put goes out at once from the callback; the reply is shown when it comes.
             try:
-                self.client.put_estop()
+                self.client_for(browser, "e-stop").put_estop()
             except Exception:
                 log.exception("e-stop put failed; the EStop command follows")
-        self._requests.submit(self._command, body)
+        self._requests.submit(self._command, body, browser)
 
-    def _command(self, body: proto.CommandBody) -> None:
+    def _command(self, body: proto.CommandBody, browser: Any = None) -> None:
         live = self.live
         assert live is not None
         name = type(body).__name__
         try:
-            reply = (
-                self.client.command(body)
-                if isinstance(body, proto.EStop)
-                else self._leased(lambda: self.client.command(body))
-            )
+            if isinstance(body, proto.EStop):
+                reply = self.client_for(browser, "e-stop").command(body)
+            else:
+                c = self.client_for(browser, name)
+                reply = self.leased(c, lambda: c.command(body))
+        except Refused:
+            return  # logged, and told to the browser that asked (only)
         except (ControllerUnavailable, proto.ProtocolError) as exc:
             log.warning("command %s failed: %s", name, exc)
             live.command_result.content = _command_html(f"{name}: {esc(str(exc))}", False)
@@ -366,12 +496,12 @@ class Dashboard:
 
     def _on_upload(self, event: Any) -> None:
         f = event.target.value
-        self._requests.submit(self._load_measured, f.name, f.content)
+        self._requests.submit(self._load_measured, f.name, f.content, event.client)
 
-    def _add_identified(self, m: MeasuredResponse) -> None:
-        self._add_measured(m, "Identify")
+    def _add_identified(self, m: MeasuredResponse, browser: Any = None) -> None:
+        self._add_measured(m, "Identify", browser)
 
-    def _load_measured(self, name: str, content: bytes) -> None:
+    def _load_measured(self, name: str, content: bytes, browser: Any = None) -> None:
         try:
             measured = measured_from_csv(name, read_measured(name, content))
         except ValueError as exc:
@@ -380,16 +510,19 @@ class Dashboard:
                 f"<div class='dt-measured' style='color:#d62728'>{esc(name)}: "
                 f"{esc(str(exc))}</div>")
             return
-        self._add_measured(measured, "CSV")
+        self._add_measured(measured, "CSV", browser)
         if self.tuning is not None:
             self.tuning.request_update()
 
-    def _add_measured(self, m: MeasuredResponse, source: str) -> None:
+    def _add_measured(self, m: MeasuredResponse, source: str, browser: Any = None) -> None:
         """Send the response to the controller for adoption into its plant knowledge: the
         verdicts (the controller's and this dashboard's) use it once the controller has it."""
         try:
+            c = self.client_for(browser, "plant knowledge")
             req = proto.KnowledgeRequest(record=self.engine.with_measured(m))
-            reply = self._leased(lambda: self.client.knowledge(req))
+            reply = self.leased(c, lambda: c.knowledge(req))
+        except Refused:
+            return  # logged, and told to the browser that asked (only)
         except (ControllerUnavailable, proto.ProtocolError) as exc:
             log.warning("measured response %s not adopted: %s", m.name, exc)
             self.measured_text.content = (
@@ -421,6 +554,7 @@ class PortBusy(RuntimeError):
     pass
 
 
+
 def check_port_free(host: str, port: int, what: str = "--port") -> None:
     """viser moves to the next free port on its own; a dashboard must not silently appear
     elsewhere than asked: a busy port is an error that says so."""
@@ -444,9 +578,16 @@ def run_dashboard(opts: DashboardOptions) -> int:
     except PortBusy as exc:
         print(f"dobtune dashboard: {exc}", flush=True)
         return 2
+    try:
+        users = dashboard_users(opts)
+    except ValueError as exc:  # AuthError included: it names the file and field
+        print(f"dobtune dashboard: {exc}", flush=True)
+        return 2
     with stop_requested() as stop, Dashboard(opts) as dash:
         print(f"dobtune dashboard: {dash.url}  (rig '{opts.rig_name}' via "
               f"{', '.join(opts.connect)})", flush=True)
+        for name, user in sorted(users.items()):
+            print(f"dobtune dashboard: {user.role} {name}: {dash.url_for(name)}", flush=True)
         while not stop.wait(0.5):
             pass
     return 0

@@ -4,7 +4,9 @@ viser has no authentication and accepts any Origin: anyone who reaches the port 
 control (a raw websocket client can press a hidden or disabled one). The dashboard therefore
 checks every HTTP request and the websocket handshake before viser sees them:
 
-- The printed URL carries `?token=<random>`. A request with the right token gets the page and
+- The printed URL carries `?token=<random>`; with several users (`Gate.users`), each user has
+  a token of their own and the dashboard knows which user is behind each websocket
+  (`user_of_connection`). A request with the right token gets the page and
   a cookie (HttpOnly, SameSite=Strict) that the page's own requests and its websocket then
   carry; a request with neither gets 401 and a short page that says how to get in.
 - The websocket handshake needs the cookie, an allowed Host (the configured host, localhost
@@ -26,12 +28,13 @@ import hmac
 import http
 import secrets
 import threading
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-__all__ = ["COOKIE", "Gate", "install"]
+__all__ = ["COOKIE", "Gate", "Refused", "install"]
 
 COOKIE = "dobtune_token"
 _lock = threading.Lock()
@@ -47,6 +50,10 @@ _DENIED_PAGE = (
 )
 
 
+class Refused(RuntimeError):
+    """An action the dashboard refuses for the browser that asked (the message says why)."""
+
+
 @dataclass
 class Gate:
     """The access check of one dashboard."""
@@ -56,19 +63,48 @@ class Gate:
     port: int = 0
     refused: int = 0
     """Requests refused so far (HTTP and websocket)."""
+    users: dict[str, str] = field(default_factory=dict)
+    """With several users: user name -> that user's token (``token`` is then not accepted)."""
+    _by_connection: weakref.WeakKeyDictionary[Any, str] = field(
+        default_factory=weakref.WeakKeyDictionary, repr=False)
+
+    def token_of(self, user: str = "") -> str:
+        return self.users[user] if self.users else self.token
+
+    def user_of_connection(self, connection: Any) -> str | None:
+        """The user whose token opened this websocket ("" with a single token), None if
+        the connection did not pass this gate."""
+        return self._by_connection.get(connection)
 
     def allowed_hosts(self) -> set[str]:
         hosts = {self.host, "localhost", "127.0.0.1"}
         return {f"{h}:{self.port}" for h in hosts} | ({*hosts} if self.port == 80 else set())
 
-    def _token_ok(self, value: str | None) -> bool:
-        return value is not None and hmac.compare_digest(value.encode(), self.token.encode())
+    def _user_by(self, value: str | None) -> str | None:
+        """Whose token `value` is (constant-time against each), None: nobody's."""
+        if value is None:
+            return None
+        if not self.users:
+            return "" if hmac.compare_digest(value.encode(), self.token.encode()) else None
+        found = None
+        for user, token in self.users.items():
+            if hmac.compare_digest(value.encode(), token.encode()):
+                found = user
+        return found
+
+    def user_of(self, path: str, headers: Any) -> str | None:
+        """The user a request speaks for: its URL token first, else its cookie."""
+        query = parse_qs(urlsplit(path).query)
+        by_query = self._user_by(query["token"][0] if query.get("token") else None)
+        if by_query is not None:
+            return by_query
+        return self._user_by(_cookie(headers.get("Cookie", ""), COOKIE))
 
     def check(self, path: str, headers: Any) -> tuple[str, bool]:
         """("", set_cookie) when the request may go on, else why not."""
         query = parse_qs(urlsplit(path).query)
-        by_query = self._token_ok(query["token"][0] if query.get("token") else None)
-        by_cookie = self._token_ok(_cookie(headers.get("Cookie", ""), COOKIE))
+        by_query = self._user_by(query["token"][0] if query.get("token") else None) is not None
+        by_cookie = self._user_by(_cookie(headers.get("Cookie", ""), COOKIE)) is not None
         if headers.get("Upgrade", "").lower() == "websocket":
             host = headers.get("Host", "")
             if self.port and host not in self.allowed_hosts():
@@ -98,10 +134,14 @@ class Gate:
                     "Content-Type": "text/html; charset=utf-8",
                     "Content-Length": str(len(body)),
                 }), body)
+            user = self.user_of(request.path, request.headers)
+            assert user is not None  # check() passed
+            if "Upgrade" in request.headers:
+                self._by_connection[connection] = user
             response = process_request(connection, request) if process_request else None
             if set_cookie and response is not None:
                 response.headers["Set-Cookie"] = (
-                    f"{COOKIE}={self.token}; HttpOnly; SameSite=Strict; Path=/"
+                    f"{COOKIE}={self.token_of(user)}; HttpOnly; SameSite=Strict; Path=/"
                 )
             return response
 

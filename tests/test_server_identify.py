@@ -119,7 +119,7 @@ def test_use_as_nominal_changes_candidate_and_reevaluates_without_apply(
     t = dash.tuning
     assert isinstance(t, NominalTuningPanel)
     applied: list[LoopConfig] = []
-    t._apply_fn = lambda c, _confirm=False: applied.append(c)
+    t._apply_fn = lambda c, _confirm=False, _browser=None: applied.append(c)
     assert t.wait_idle(5.0)
     r = short_run.result
     assert r is not None and r.nominal is not None
@@ -272,7 +272,7 @@ def test_short_identification_on_the_controller(remote_dash: Dashboard) -> None:
     assert p is not None and isinstance(t, NominalTuningPanel)
     assert p.settings().where == WHERE_CONTROLLER  # the default when a controller is known
     applied: list[LoopConfig] = []
-    t._apply_fn = lambda c, _confirm=False: applied.append(c)
+    t._apply_fn = lambda c, _confirm=False, _browser=None: applied.append(c)
     before = d.client.get_config()
     t0 = time.perf_counter()
     assert p.start(dataclasses.replace(SHORT, where=WHERE_CONTROLLER))

@@ -51,6 +51,7 @@ from controller.ident.plan import check_rate
 from controller.ident.result import IdentifyAborted, IdentifyResult, analyse_result
 from controller.ident.spec import IDENTIFY_FIELDS, IdentifySpec, OfflineOptions
 from server import charts
+from server.gate import Refused
 from server.identify_view import (
     FitView,
     IdentifyView,
@@ -234,9 +235,14 @@ class IdentifyPanel:
         tuning: NominalTuningPanel | None,
         config_fn: Callable[[], LoopConfig] | None = None,
         rig_factory: Callable[[LoopConfig, int], RigLike] | None = None,
-        add_measured: Callable[[MeasuredResponse], None] | None = None,
+        add_measured: Callable[[MeasuredResponse, Any], None] | None = None,
         client: ControllerClient | None = None,
+        client_for: Callable[[Any, str], ControllerClient] | None = None,
+        leased: Callable[[ControllerClient, Callable[[], Any]], Any] | None = None,
     ) -> None:
+        """`client`: the controller (None: offline only); `client_for(browser, action)`: the
+        client that acts for a browser (raises `Refused`); `leased(client, act)`: `act()`
+        under that client's operator lease. Without them, `client` acts as it is."""
         self.gui = gui
         self.tuning = tuning
         self._config_fn = config_fn or (
@@ -245,6 +251,9 @@ class IdentifyPanel:
         self._rig_factory = rig_factory or _sim_rig
         self._add_measured = add_measured
         self.client = client
+        self._client_for = client_for or self._as_is
+        self._leased = leased or (lambda _client, act: act())
+        self._run_client: ControllerClient | None = None
         self.where_note = OFFLINE_NOTE
         self._closing = threading.Event()
         self._lock = threading.Lock()
@@ -264,6 +273,10 @@ class IdentifyPanel:
         self._last_publish = 0.0
         self._chart_box: Any = None
         self.chart_note: Any = None
+
+    def _as_is(self, _browser: Any, _action: str) -> ControllerClient:
+        assert self.client is not None
+        return self.client
 
     # -- building --------------------------------------------------------------------------
 
@@ -302,9 +315,9 @@ class IdentifyPanel:
                                          hint="put the fitted Mn Pn into the tuning candidate "
                                               "(checked by the gate; Apply sends it)")
         self.use_result = gui.add_html("<div class='dt-id-use' style='font-size:12px'></div>")
-        self.start_button.on_click(lambda _e: self.start())
-        self.abort_button.on_click(lambda _e: self.abort())
-        self.use_button.on_click(lambda _e: self.use_as_nominal())
+        self.start_button.on_click(lambda e: self.start(browser=e.client))
+        self.abort_button.on_click(lambda e: self.abort(e.client))
+        self.use_button.on_click(lambda e: self.use_as_nominal(e.client))
 
     def build_charts(self) -> None:
         self.chart_note = self.gui.add_html(
@@ -354,14 +367,16 @@ class IdentifyPanel:
 
     # -- events (short) ----------------------------------------------------------------------
 
-    def start(self, settings: IdentifySettings | None = None) -> bool:
+    def start(self, settings: IdentifySettings | None = None, browser: Any = None) -> bool:
         """Start a run unless one is running; False (and a message) if not started."""
         s = settings or self.settings()
         try:
             spec = s.spec()
             cfg = self._config_fn()
             check_rate(spec, cfg.rate_hz)
-        except ConfigError as exc:
+            acting = (self._client_for(browser, "identification")
+                      if s.where == WHERE_CONTROLLER and self.client is not None else None)
+        except (ConfigError, Refused, ControllerUnavailable) as exc:
             self.status.content = _status_html(self.state, f"not started: {exc}")
             return False
         with self._lock:
@@ -376,7 +391,8 @@ class IdentifyPanel:
             self.curves = []
             self.progress = 0.0
             self.n_positions = spec.positions
-            remote = s.where == WHERE_CONTROLLER and self.client is not None
+            remote = acting is not None
+            self._run_client = acting
             self.where_note = (
                 f"on the controller, rig {self.client.opts.rig_name}"
                 if remote and self.client is not None else OFFLINE_NOTE
@@ -397,7 +413,14 @@ class IdentifyPanel:
         self._thread.start()
         return True
 
-    def abort(self) -> bool:
+    def abort(self, browser: Any = None) -> bool:
+        if self._run_client is not None and self.state == RUNNING:
+            try:
+                self._client_for(browser, "abort")
+            except (Refused, ControllerUnavailable) as exc:
+                self.status.content = _status_html(RUNNING, f"not aborted: {exc}",
+                                                   self.where_note)
+                return False
         with self._lock:
             if self.state != RUNNING:
                 self.status.content = _status_html(self.state, "nothing to abort")
@@ -406,7 +429,7 @@ class IdentifyPanel:
         self.status.content = _status_html(RUNNING, "aborting...", self.where_note)
         return True
 
-    def use_as_nominal(self) -> bool:
+    def use_as_nominal(self, browser: Any = None) -> bool:
         """Put the fitted nominal into the tuning candidate (never sent from here)."""
         with self._lock:
             view = self.view if self.state == DONE else None
@@ -419,7 +442,7 @@ class IdentifyPanel:
             return False
         if self._add_measured is not None:
             for m in view.measured:
-                self._add_measured(dataclasses.replace(m, name=f"identify {m.name}"))
+                self._add_measured(dataclasses.replace(m, name=f"identify {m.name}"), browser)
         self.tuning.set_nominal(view.nominal)
         fit = view.fit
         wn = f" (f<sub>n</sub> {fit.natural_freq_hz:.3f} Hz, &zeta; {fit.zeta:.3f})" if fit else ""
@@ -481,7 +504,7 @@ class IdentifyPanel:
 
     def _run_remote(self, spec: IdentifySpec, cfg: LoopConfig, _pace: float) -> None:
         """Start the run on the controller, poll its status until it is over."""
-        client = self.client
+        client = self._run_client
         assert client is not None
         n = spec.positions
         if self._chart_n != n:
@@ -489,7 +512,7 @@ class IdentifyPanel:
         self._publish_charts(None)
         try:
             prev = _query_identify(client).run_id
-            reply = client.command(proto.IdentifyStart(spec=spec))
+            reply = self._leased(client, lambda: client.command(proto.IdentifyStart(spec=spec)))
             if not reply.ok:
                 self._show_end(FAILED, None, f"refused by the controller: {reply.message}", n)
                 return
@@ -499,7 +522,7 @@ class IdentifyPanel:
                 if self._closing.is_set():
                     return  # the dashboard closes; the run goes on in the controller
                 if self._abort.is_set() and not sent_abort:
-                    r = client.command(proto.IdentifyAbort())
+                    r = self._leased(client, lambda: client.command(proto.IdentifyAbort()))
                     sent_abort = True
                     if not r.ok:
                         self.status.content = _status_html(

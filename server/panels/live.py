@@ -92,7 +92,7 @@ class LivePanel:
         self,
         gui: Any,
         client: ControllerClient,
-        send_command: Callable[[proto.CommandBody], None],
+        send_command: Callable[[proto.CommandBody, Any], None],
         on_status: Callable[[proto.Status], None] | None = None,
         on_frame: Callable[[dict[str, float] | None], None] | None = None,
         rate_hz: float = 25.0,
@@ -124,7 +124,7 @@ class LivePanel:
         self.estop_button = self.gui.add_button(
             "E-STOP", color="red", icon=None, hint="speed command 0 and drive disabled, at once"
         )
-        self.estop_button.on_click(lambda _e: self._send(proto.EStop()))
+        self.estop_button.on_click(lambda e: self._send(proto.EStop(), e.client))
 
     def build_controls(self) -> None:
         gui = self.gui
@@ -136,8 +136,8 @@ class LivePanel:
         self.set_traj = gui.add_button("Set trajectory")
         self.run_buttons = gui.add_button_group("Run", ("Start", "Stop", "Reset fault"))
         self.set_traj.on_click(
-            lambda _e: self._send(proto.SetTrajectory(
-                trajectory=default_trajectory(str(self.trajectory.value))))
+            lambda e: self._send(proto.SetTrajectory(
+                trajectory=default_trajectory(str(self.trajectory.value))), e.client)
         )
         self.run_buttons.on_click(self._on_run)
         self.command_result = gui.add_html("<div class='dt-cmd'></div>")
@@ -149,7 +149,7 @@ class LivePanel:
         body: proto.CommandBody = (
             proto.Start() if v == "Start" else proto.Stop() if v == "Stop" else proto.ResetFault()
         )
-        self._send(body)
+        self._send(body, event.client)
 
     def build_charts(self) -> None:
         for spec in charts.LIVE_CHARTS:

@@ -191,7 +191,7 @@ class TuningPanel:
         self,
         gui: Any,
         engine: TuningEngine,
-        apply_fn: Callable[[LoopConfig, bool], None],
+        apply_fn: Callable[[LoopConfig, bool, Any], None],
         initial: LoopConfig | None = None,
     ) -> None:
         self.gui = gui
@@ -260,7 +260,7 @@ class TuningPanel:
         self.active_text = gui.add_html(self._active_html())
         for h in controls:
             h.on_update(self._on_control)
-        self.apply_button.on_click(lambda _e: self.apply())
+        self.apply_button.on_click(lambda e: self.apply(e.client))
         self.revert_button.on_click(lambda _e: self.revert())
 
     def build_charts(self) -> None:
@@ -373,7 +373,9 @@ class TuningPanel:
             self.trajectory = traj
             self.request_update()
 
-    def apply(self) -> None:
+    def apply(self, browser: Any = None) -> None:
+        """Send the candidate unless the gate rejects it; a caution asks `browser` (the viser
+        client that pressed Apply; None: this process) to confirm first."""
         try:
             cand = self.candidate()
         except ConfigError as exc:
@@ -389,26 +391,28 @@ class TuningPanel:
                 f"{_reason_list(ev.gate.reasons, 'dt-reject-reason')}")
             return
         if ev.gate.verdict == "caution":
-            self._confirm_caution(cand, ev.gate.reasons)
+            self._confirm_caution(cand, ev.gate.reasons, browser)
             return
         self.apply_result.content = box("dt-apply", NEUTRAL, "Sending the candidate...")
-        self._apply_fn(cand, False)
+        self._apply_fn(cand, False, browser)
 
-    def _confirm_caution(self, cand: LoopConfig, reasons: tuple[str, ...]) -> None:
-        """A dialog listing the reasons; only "Apply anyway" sends (with confirm)."""
-        with self.gui.add_modal("Apply with caution?") as modal:
-            self.gui.add_html(
+    def _confirm_caution(self, cand: LoopConfig, reasons: tuple[str, ...], browser: Any) -> None:
+        """A dialog (in the browser that asked) listing the reasons; only "Apply anyway"
+        sends (with confirm)."""
+        gui = browser.gui if browser is not None else self.gui
+        with gui.add_modal("Apply with caution?") as modal:
+            gui.add_html(
                 "<div class='dt-confirm'>The gate's verdict is <b>caution</b>:"
                 f"{_reason_list(reasons, 'dt-caution-reason')}</div>")
-            go = self.gui.add_button("Apply anyway", color="orange")
-            cancel = self.gui.add_button("Cancel")
+            go = gui.add_button("Apply anyway", color="orange")
+            cancel = gui.add_button("Cancel")
 
             @go.on_click
-            def _go(_e: Any) -> None:
+            def _go(e: Any) -> None:
                 modal.close()
                 self.apply_result.content = box("dt-apply", NEUTRAL,
                                                 "Sending the candidate (confirmed)...")
-                self._apply_fn(cand, True)
+                self._apply_fn(cand, True, e.client)
 
             @cancel.on_click
             def _cancel(_e: Any) -> None:

@@ -1,0 +1,157 @@
+"""One dashboard, several users, each in their own browser (issue 12: per-browser roles).
+
+A controller with `--auth` (operator op1, viewer view) and a dashboard given the auth directory
+without `--user`: each user has a URL of their own. Two headless Chromium pages, one per user,
+press the same shared controls; what each may do is decided per browser on the server (and
+again by the controller, which sees the real user behind each change):
+
+- the viewer's Apply and Start are refused (told in the viewer's page), nothing changes;
+- the operator's Apply changes the controller's configuration, recorded as op1;
+- the viewer's E-STOP stops the rig;
+- a token that is not one of the users' opens nothing.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import CHROMIUM, CHROMIUM_ARGS, CONTROLLER_START_S, FIRST_LOAD_S, free_port
+
+from controller.auth import init_auth_dir, new_users
+from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
+from server.app import Dashboard, DashboardOptions
+from server.demo import controller_command, stop_process
+
+pytestmark = pytest.mark.browser
+RIG = "usertest"
+
+
+def _wait(cond: Any, timeout_s: float, what: str) -> None:
+    end = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < end, what
+        time.sleep(0.05)
+
+
+def _answers(c: ControllerClient) -> bool:
+    try:
+        c.get_config()
+        return True
+    except ControllerUnavailable:
+        return False
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    base = tmp_path_factory.mktemp("users")
+    auth = base / "auth"
+    init_auth_dir(auth, new_users([("op1", "operator"), ("view", "viewer")]))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = subprocess.Popen(controller_command(endpoint, RIG, base / "state",
+                                               extra=("--auth", str(auth))))
+    try:
+        opts = ClientOptions(connect=(endpoint,), rig_name=RIG, auth=auth, user="view",
+                             client_name="probe", connect_timeout_s=CONTROLLER_START_S)
+        with ControllerClient(opts) as probe:
+            _wait(lambda: _answers(probe), CONTROLLER_START_S, "the controller did not answer")
+            dopts = DashboardOptions(connect=(endpoint,), rig_name=RIG, port=free_port(),
+                                     verbose=False, auth=auth)
+            with Dashboard(dopts) as dash:
+                yield {"auth": auth, "endpoint": endpoint, "probe": probe, "dash": dash}
+    finally:
+        stop_process(proc)
+
+
+@pytest.fixture(scope="module")
+def pages(env: dict[str, Any]) -> Iterator[dict[str, Any]]:
+    if not CHROMIUM.exists():
+        pytest.fail(f"{CHROMIUM} missing: run `bash .ci/setup --browser`")
+    from playwright.sync_api import sync_playwright
+
+    dash: Dashboard = env["dash"]
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS,
+                                    timeout=FIRST_LOAD_S * 1000)
+        try:
+            out = {}
+            for user in ("op1", "view"):
+                # Separate contexts: separate cookie jars, as two people's browsers.
+                page = browser.new_context(viewport={"width": 1600, "height": 1000}).new_page()
+                page.goto(dash.url_for(user), wait_until="domcontentloaded",
+                          timeout=FIRST_LOAD_S * 1000)
+                page.wait_for_selector(".dt-whoami", timeout=FIRST_LOAD_S * 1000)
+                page.wait_for_selector(".dt-verdict", timeout=FIRST_LOAD_S * 1000)
+                out[user] = page
+            yield out
+        finally:
+            browser.close()
+
+
+def test_each_browser_is_signed_in_as_its_user(pages: dict[str, Any]) -> None:
+    assert "Signed in as op1, operator" in pages["op1"].locator(".dt-whoami").inner_text()
+    viewer = pages["view"].locator(".dt-whoami").inner_text()
+    assert "Signed in as view, viewer" in viewer and "E-STOP only" in viewer
+
+
+def test_a_token_of_nobody_opens_nothing(env: dict[str, Any]) -> None:
+    dash: Dashboard = env["dash"]
+    url = dash.url_for("op1").rsplit("=", 1)[0] + "=" + "x" * 32
+    with pytest.raises(urllib.error.HTTPError) as err:
+        urllib.request.urlopen(url, timeout=5)
+    assert err.value.code == 401
+    assert dash.gate.token_of("op1") != dash.gate.token_of("view")
+
+
+def test_the_viewer_cannot_apply_or_start(env: dict[str, Any], pages: dict[str, Any],
+                                          artifacts: Path) -> None:
+    dash: Dashboard = env["dash"]
+    probe: ControllerClient = env["probe"]
+    before = probe.get_config()
+    refusals = dash.refusals
+    page = pages["view"]
+    page.get_by_role("button", name="Apply candidate").click()
+    page.wait_for_selector("text=view is a viewer", timeout=10_000)
+    page.screenshot(path=str(artifacts / "users_1_viewer_refused.png"))
+    page.get_by_role("tab", name="Live", exact=True).click()
+    page.get_by_role("button", name="Start", exact=True).click()
+    _wait(lambda: dash.refusals >= refusals + 2, 10.0, "the viewer's Start was not refused")
+    assert "view is a viewer" not in pages["op1"].content()  # told to the viewer only
+    after = probe.get_config()
+    assert after.version == before.version and after.config == before.config
+
+
+def test_the_operator_applies_as_itself(env: dict[str, Any], pages: dict[str, Any],
+                                        artifacts: Path) -> None:
+    probe: ControllerClient = env["probe"]
+    before = probe.get_config()
+    page = pages["op1"]
+    page.get_by_role("tab", name="Tune", exact=True).click()
+    lab = page.locator("label", has_text="Q cut-off (Hz)").first
+    field = lab.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
+        "input").last
+    field.fill("1.0")
+    field.press("Enter")
+    page.wait_for_selector(".dt-cutoff >> text=1.000 Hz", timeout=15_000)
+    page.wait_for_selector(".dt-verdict.dt-accept", timeout=15_000)
+    page.get_by_role("button", name="Apply candidate").click()
+    page.wait_for_selector(".dt-apply >> text=Accepted", timeout=15_000)
+    page.screenshot(path=str(artifacts / "users_2_operator_applied.png"))
+    after = probe.get_config()
+    assert after.version == before.version + 1 and after.config.q_cutoff_hz == 1.0
+    last = probe.history(1).entries[-1]
+    assert last.version == after.version
+    assert "op1" in last.client  # the controller's record names the real user
+
+
+def test_the_viewer_can_estop(env: dict[str, Any], pages: dict[str, Any]) -> None:
+    probe: ControllerClient = env["probe"]
+    pages["view"].get_by_role("button", name="E-STOP").click()
+    _wait(lambda: probe.status is not None and probe.status.mode == "estop", 10.0,
+          "the viewer's E-STOP did not stop the rig")
