@@ -233,8 +233,11 @@ class TuningEngine:
         #: bound (what a fresh controller starts with).
         self.plant = PlantKnowledge(bound=COMMISSIONING_BOUND, source="not yet fetched")
         self._plant_lock = threading.Lock()
-        self._evaluations: _Cache[LoopConfig, Evaluation] = _Cache(64)
-        self._recommendations: _Cache[LoopConfig, float | None] = _Cache(64)
+        #: Bumped with every new plant: cache keys carry it, so that a result computed on the
+        #: old plant while the new one arrived is never served for the new one.
+        self._generation = 0
+        self._evaluations: _Cache[tuple[int, LoopConfig], Evaluation] = _Cache(64)
+        self._recommendations: _Cache[tuple[int, LoopConfig], float | None] = _Cache(64)
         self._previews: _Cache[tuple[LoopConfig, Trajectory], PreviewResult] = _Cache(16)
         self._steps: _Cache[tuple[LoopConfig, Any], tuple[FloatArray, FloatArray, FloatArray]] = (
             _Cache(32))
@@ -249,8 +252,13 @@ class TuningEngine:
         plant = record.to_knowledge()
         with self._plant_lock:
             self.plant = plant
+            self._generation += 1
             self._evaluations.clear()
             self._recommendations.clear()
+
+    def _current(self) -> tuple[int, PlantKnowledge]:
+        with self._plant_lock:
+            return self._generation, self.plant
 
     def with_measured(self, m: MeasuredResponse) -> KnowledgeRecord:
         """The present knowledge plus `m` (same name replaces), as a record to send to the
@@ -263,18 +271,20 @@ class TuningEngine:
 
     def cached_recommendation(self, cfg: LoopConfig) -> tuple[bool, float | None]:
         """(known, value) without computing."""
-        return self._recommendations.lookup(_recommendation_key(cfg))
+        gen, _ = self._current()
+        return self._recommendations.lookup((gen, _recommendation_key(cfg)))
 
     def recommended_max_cutoff_hz(self, cfg: LoopConfig) -> float | None:
         """The gate's largest accepted Q cut-off for this candidate's other settings (cached;
         ~0.1 s, so call it off the slider path)."""
         key = _recommendation_key(cfg)
-        plant = self.plant
-        return self._recommendations.get(key, lambda: recommended_cutoff_hz(key, plant))
+        gen, plant = self._current()
+        return self._recommendations.get((gen, key), lambda: recommended_cutoff_hz(key, plant))
 
     def evaluate(self, cfg: LoopConfig) -> Evaluation:
         """The gate's verdict and curves for `cfg` (cached)."""
-        return self._evaluations.get(cfg, lambda: self._evaluate(cfg, self.plant))
+        gen, plant = self._current()
+        return self._evaluations.get((gen, cfg), lambda: self._evaluate(cfg, plant))
 
     def _evaluate(self, cfg: LoopConfig, plant: PlantKnowledge) -> Evaluation:
         t0 = time.perf_counter()

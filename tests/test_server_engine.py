@@ -5,6 +5,7 @@ responses changing the verdict."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -125,3 +126,29 @@ def test_sensitivity_chart_matches_the_gates_margins() -> None:
     assert np.max(c.s_full_db) == pytest.approx(a.margins_full.peak_sensitivity_db, abs=0.3)
     lin = 10 ** (np.asarray(c.s_db) / 20)
     assert np.all(lin <= 1.0 + 10 ** (np.asarray(c.t_db) / 20) + 1e-9)
+
+
+def test_a_verdict_computed_while_new_knowledge_arrives_is_not_served_for_it() -> None:
+    """The knowledge fetch can land while the slider's evaluation runs on the old plant: that
+    result must not be cached for the new plant (it was: the dashboard then showed
+    "judged on plant knowledge v0 (not yet fetched)" for good)."""
+    from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
+
+    f = np.geomspace(0.1, 20, 31)
+    h = nominal_continuous_response(NominalModel(), f)
+    record = KnowledgeRecord.of(PlantKnowledge(
+        (MeasuredResponse("pos0", f, h),), COMMISSIONING_BOUND, version=3, source="fetched"))
+    eng = TuningEngine()
+    original = eng._evaluate
+
+    def racing(cfg: LoopConfig, plant: Any) -> Any:
+        eng.set_knowledge(record)  # the fetch lands while this evaluation runs
+        return original(cfg, plant)
+
+    eng._evaluate = racing  # type: ignore[method-assign]
+    first = eng.evaluate(LoopConfig())
+    assert "not yet fetched" in first.gate.knowledge  # judged on what it started with
+    eng._evaluate = original  # type: ignore[method-assign]
+    second = eng.evaluate(LoopConfig())
+    assert "not yet fetched" not in second.gate.knowledge
+    assert "1 measured response(s)" in second.gate.knowledge

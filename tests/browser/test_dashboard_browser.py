@@ -56,6 +56,9 @@ def test_page_loads(page: Any, dashboard: Dashboard, artifacts: Path) -> None:
     page.wait_for_selector("text=E-STOP", timeout=20_000)
     page.wait_for_selector(".dt-banner.dt-ok", timeout=20_000)
     page.wait_for_selector(".dt-verdict", timeout=10_000)
+    # The verdict is on the controller's plant knowledge (v1 of a fresh controller), not on
+    # the placeholder the page starts with.
+    page.wait_for_selector(".dt-verdict >> text=/plant knowledge v[1-9]/", timeout=20_000)
     page.wait_for_function(
         "() => Object.keys(window.__viserTestpoints?.uplots || {}).length >= 7", timeout=20_000
     )
