@@ -399,7 +399,7 @@ class ZenohNode:
                   "identify_abort": "identify"}.get(body_type, "command")
         self.access.record(
             action, who, "accepted" if reply.ok else "refused", command=body_type[:40],
-            message=reply.message, field=reply.field, mode=reply.mode, seq=reply.seq,
+            message=reply.message, field=reply.field, mode=reply.mode, loop_seq=reply.seq,
         )
         return proto.encode(reply)
 
