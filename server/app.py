@@ -31,7 +31,7 @@ from controller.client import ClientOptions, ControllerClient, ControllerUnavail
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import MeasuredResponse
 from server.engine import TuningEngine, measured_from_csv
-from server.gate import Gate, Refused
+from server.gate import ESTOP_LINK_HTML, Gate, Refused
 from server.measured import read_measured
 from server.panels.identify import IdentifyPanel, NominalTuningPanel
 from server.panels.live import LivePanel
@@ -146,6 +146,8 @@ class Dashboard:
         self._acting_lock = threading.Lock()
         self.refusals = 0
         """Actions refused here (a viewer's change, an unknown browser)."""
+        self.gate.on_estop = self._estop_from_link
+        self.gate.page_extra = ESTOP_LINK_HTML
         self.server: Any = None
         self.engine = TuningEngine()
         self._knowledge_version = -1  # the plant knowledge fetched from the controller
@@ -222,17 +224,40 @@ class Dashboard:
         user = self.user_of(browser)
         if user is None:
             self._refuse(browser, f"{action}: this browser is not signed in")
-        if action != "e-stop" and self.users[user].role != "operator":
+        if action == "e-stop":
+            return self._estop_client(user)
+        if self.users[user].role != "operator":
             self._refuse(browser, f"{action}: {user} is a viewer: viewers watch and may E-STOP, "
                          f"not change the rig")
         with self._acting_lock:
             c = self._acting.get(user)
+        return c if c is not None else self._open_acting(user)
+
+    def _estop_client(self, user: str) -> ControllerClient:
+        """`user`'s own session when it is open; else, never waiting for a login, the
+        streams' session (every role may e-stop)."""
+        if not self.users:
+            return self.client
+        with self._acting_lock:
+            c = self._acting.get(user)
         if c is None:
-            if action == "e-stop":  # never wait for a login: the streams' session may e-stop
-                self._requests.submit(self._open_acting, user)
-                return self.client
-            c = self._open_acting(user)
+            self._requests.submit(self._open_acting, user)
+            return self.client
         return c
+
+    def _estop_from_link(self, user: str) -> str:
+        """The always-visible E-STOP link (on viser's event loop: the put at once, the
+        command for a reply in a worker)."""
+        c = self._estop_client(user)
+        try:
+            c.put_estop()
+        except Exception as exc:  # told to the page and logged; the command still follows
+            log.exception("e-stop put from the E-STOP link failed")
+            self._requests.submit(self._command, proto.EStop(), None, c)
+            return f"E-STOP put failed ({exc}); the EStop command follows"
+        self._requests.submit(self._command, proto.EStop(), None, c)
+        log.warning("E-STOP from the page's E-STOP link (%s)", user or "dashboard")
+        return "E-STOP sent"
 
     def _open_acting(self, user: str) -> ControllerClient:
         with self._acting_lock:
@@ -472,12 +497,16 @@ class Dashboard:
                 log.exception("e-stop put failed; the EStop command follows")
         self._requests.submit(self._command, body, browser)
 
-    def _command(self, body: proto.CommandBody, browser: Any = None) -> None:
+    def _command(self, body: proto.CommandBody, browser: Any = None,
+                 via: ControllerClient | None = None) -> None:
+        """Send `body` for `browser` (or through `via`) and show the reply."""
         live = self.live
         assert live is not None
         name = type(body).__name__
         try:
-            if isinstance(body, proto.EStop):
+            if via is not None:
+                reply = via.command(body)
+            elif isinstance(body, proto.EStop):
                 reply = self.client_for(browser, "e-stop").command(body)
             else:
                 c = self.client_for(browser, name)

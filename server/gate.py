@@ -24,7 +24,10 @@ comparison of tokens is constant-time.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import gzip
 import hmac
+import html
 import http
 import secrets
 import threading
@@ -34,9 +37,24 @@ from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-__all__ = ["COOKIE", "Gate", "Refused", "install"]
+__all__ = ["COOKIE", "ESTOP_LINK_HTML", "ESTOP_PATH", "Gate", "Refused", "install"]
 
 COOKIE = "dobtune_token"
+#: GET with the cookie (or token): e-stop, outside viser's websocket. The page's always-visible
+#: E-STOP is a plain link to it (into a hidden frame): no script, no websocket needed.
+ESTOP_PATH = "/__dobtune_estop"
+#: Put into the page itself (outside viser's panels, which unmount what they collapse): fixed
+#: to the window above everything, whatever is collapsed or scrolled; a link into a hidden
+#: frame, so it needs neither script nor websocket.
+ESTOP_LINK_HTML = (
+    f"<a class='dt-estop-fixed' href='{ESTOP_PATH}' target='dt-estop-frame' title='E-STOP: "
+    "speed command 0 and drive disabled' style='position:fixed;left:50%;bottom:18px;"
+    "transform:translateX(-50%);z-index:2147483647;background:#d62728;color:#fff;"
+    "font:bold 22px sans-serif;letter-spacing:1px;padding:14px 34px;border-radius:8px;"
+    "border:3px solid #7f0000;box-shadow:0 2px 10px rgba(0,0,0,.35);text-decoration:none'>"
+    "E-STOP</a><iframe name='dt-estop-frame' title='e-stop answer' style='display:none'>"
+    "</iframe>"
+)
 _lock = threading.Lock()
 #: One server start at a time: the gate a starting server takes is the one being installed.
 _starting = threading.Lock()
@@ -67,6 +85,11 @@ class Gate:
     """With several users: user name -> that user's token (``token`` is then not accepted)."""
     _by_connection: weakref.WeakKeyDictionary[Any, str] = field(
         default_factory=weakref.WeakKeyDictionary, repr=False)
+    page_extra: str = ""
+    """HTML put at the end of the page's body (the index page only)."""
+    on_estop: Callable[[str], str] | None = None
+    """Called with the user for a request to ESTOP_PATH (on the server's event loop: it must
+    not block); returns the text to answer."""
 
     def token_of(self, user: str = "") -> str:
         return self.users[user] if self.users else self.token
@@ -105,6 +128,13 @@ class Gate:
         query = parse_qs(urlsplit(path).query)
         by_query = self._user_by(query["token"][0] if query.get("token") else None) is not None
         by_cookie = self._user_by(_cookie(headers.get("Cookie", ""), COOKIE)) is not None
+        if urlsplit(path).path == ESTOP_PATH:  # an action: the same Host check as a websocket
+            host = headers.get("Host", "")
+            if self.port and host not in self.allowed_hosts():
+                return f"host {host!r} is not this dashboard", False
+            if not (by_cookie or by_query):
+                return "no valid token", False
+            return "", False
         if headers.get("Upgrade", "").lower() == "websocket":
             host = headers.get("Host", "")
             if self.port and host not in self.allowed_hosts():
@@ -136,9 +166,20 @@ class Gate:
                 }), body)
             user = self.user_of(request.path, request.headers)
             assert user is not None  # check() passed
+            if urlsplit(request.path).path == ESTOP_PATH and self.on_estop is not None:
+                text = self.on_estop(user)
+                body = (f"<!doctype html><meta charset=utf-8><title>E-STOP</title>"
+                        f"<p>{html.escape(text)}</p>").encode()
+                return Response(200, "OK", Headers(**{
+                    "Content-Type": "text/html; charset=utf-8",
+                    "Content-Length": str(len(body)), "Cache-Control": "no-store",
+                }), body)
             if "Upgrade" in request.headers:
                 self._by_connection[connection] = user
             response = process_request(connection, request) if process_request else None
+            if self.page_extra and response is not None and urlsplit(request.path).path in (
+                    "/", "/index.html"):
+                response = _with_extra(response, self.page_extra)
             if set_cookie and response is not None:
                 response.headers["Set-Cookie"] = (
                     f"{COOKIE}={self.token_of(user)}; HttpOnly; SameSite=Strict; Path=/"
@@ -159,6 +200,21 @@ class Gate:
             finally:
                 with _lock, contextlib.suppress(ValueError):
                     _pending.remove(self)
+
+
+def _with_extra(response: Any, extra: str) -> Any:
+    """`response` (an HTML page, maybe gzipped) with `extra` before its closing body tag."""
+    if response.status_code != 200 or not response.headers.get(
+            "Content-Type", "").startswith("text/html"):
+        return response
+    zipped = response.headers.get("Content-Encoding") == "gzip"
+    page = gzip.decompress(response.body) if zipped else bytes(response.body)
+    end = page.rfind(b"</body>")
+    page = page[:end] + extra.encode() + page[end:] if end >= 0 else page + extra.encode()
+    body = gzip.compress(page) if zipped else page
+    del response.headers["Content-Length"]  # a multi-dict: assigning would add a second one
+    response.headers["Content-Length"] = str(len(body))
+    return dataclasses.replace(response, body=body)
 
 
 def _cookie(header: str, name: str) -> str | None:

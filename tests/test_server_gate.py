@@ -13,7 +13,7 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from server.app import Dashboard, DashboardOptions
-from server.gate import COOKIE, Gate
+from server.gate import COOKIE, ESTOP_PATH, Gate
 
 
 def _free_port() -> int:
@@ -44,6 +44,8 @@ def test_the_page_needs_the_token_and_sets_a_cookie(dash: Dashboard) -> None:
     with urllib.request.urlopen(dash.url, timeout=5) as r:
         assert r.status == 200
         cookie = r.headers["Set-Cookie"]
+        page = r.read()
+    assert b"dt-estop-fixed" in page and ESTOP_PATH.encode() in page  # the E-STOP is in it
     assert cookie.startswith(f"{COOKIE}={dash.gate.token};") and "HttpOnly" in cookie
     assert "SameSite=Strict" in cookie
 
@@ -101,3 +103,28 @@ def test_a_busy_http_port_is_an_error_not_another_port(capsys: pytest.CaptureFix
         assert f"--port {port}" in capsys.readouterr().out
         with pytest.raises(PortBusy, match="in use"):
             Dashboard(opts).__enter__()
+
+
+def test_the_estop_link_needs_the_token_and_this_host(dash: Dashboard) -> None:
+    """The always-visible E-STOP is a plain GET: anyone with the page (any role) may press it,
+    nobody without the token, and no other host name (DNS rebinding)."""
+    calls: list[str] = []
+    real = dash.gate.on_estop
+    dash.gate.on_estop = lambda user: calls.append(user) or "E-STOP sent"
+    try:
+        url = f"http://{_base(dash)}{ESTOP_PATH}"
+        for bad in ({}, {"Cookie": f"{COOKIE}=wrong"}):
+            with pytest.raises(urllib.error.HTTPError) as err:
+                urllib.request.urlopen(urllib.request.Request(url, headers=bad), timeout=5)
+            assert err.value.code == 401
+        rebound = {"Cookie": f"{COOKIE}={dash.gate.token}", "Host": f"evil:{dash.gate.port}"}
+        with pytest.raises(urllib.error.HTTPError):
+            urllib.request.urlopen(urllib.request.Request(url, headers=rebound), timeout=5)
+        assert calls == []
+        ok = {"Cookie": f"{COOKIE}={dash.gate.token}"}
+        with urllib.request.urlopen(urllib.request.Request(url, headers=ok), timeout=5) as r:
+            assert r.status == 200 and b"E-STOP sent" in r.read()
+            assert r.headers["Cache-Control"] == "no-store"
+        assert calls == [""]
+    finally:
+        dash.gate.on_estop = real

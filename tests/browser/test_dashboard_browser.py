@@ -233,3 +233,34 @@ def test_text_from_the_network_is_shown_not_run(
     assert page.evaluate("() => window.__xss") is None
     assert page.locator(".dt-verdict img").count() == 0
     page.screenshot(path=str(artifacts / "browser_9_xss_as_text.png"))
+
+
+def test_the_big_estop_stays_in_view_when_everything_is_collapsed(
+    page: Any, probe: ControllerClient, artifacts: Path
+) -> None:
+    """Both panels collapsed, the page scrolled: the E-STOP is still on screen, and it stops
+    the rig (a plain link to the dashboard's HTTP gate, not through viser's websocket)."""
+    from controller import protocol as proto
+
+    assert probe.command(proto.ResetFault()).ok
+    assert probe.command(proto.Start()).ok
+    _wait(lambda: probe.status is not None and probe.status.mode == "running", 10.0)
+    for side in ("left", "right"):
+        page.locator(f"[data-dock-region-collapse='{side}']").first.click()
+    page.mouse.wheel(0, 2000)
+    page.wait_for_selector("text=Apply candidate", state="hidden", timeout=10_000)
+    link = page.locator(".dt-estop-fixed")
+    box = link.bounding_box()
+    assert link.is_visible() and box is not None
+    assert box["y"] >= 0 and box["y"] + box["height"] <= 1000 and box["width"] > 100
+    # Nothing covers it: the element at its centre is the link itself.
+    assert page.evaluate(
+        "([x, y]) => document.elementFromPoint(x, y)?.classList.contains('dt-estop-fixed')",
+        [box["x"] + box["width"] / 2, box["y"] + box["height"] / 2])
+    page.screenshot(path=str(artifacts / "browser_10_collapsed_estop.png"))
+    link.click()
+    _wait(lambda: probe.status is not None and probe.status.mode == "estop", 5.0)
+    expand = page.get_by_role("button", name="Expand column")
+    while expand.count():
+        expand.first.click()
+    page.wait_for_selector(".dt-banner.dt-estop", timeout=15_000)
