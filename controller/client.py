@@ -189,30 +189,12 @@ class ControllerClient:
         self._close()
 
     def _open(self) -> Any:
-        o = self.opts
-        if o.auth is None:
-            if o.user:
-                raise ValueError("user: needs auth (the credentials of that user)")
-            return open_session(o.listen, o.connect)
-        import zenoh
+        return open_client_session(self.opts)
 
-        from controller.auth import AuthError, client_config
-
-        if not o.user:
-            raise ValueError("user: required with auth")
-        try:
-            conf = client_config(o.auth, o.user, o.connect, o.listen,
-                                 fail_after_s=o.connect_timeout_s)
-        except (AuthError, KeyError, OSError) as exc:
-            raise ControllerUnavailable(f"credentials of {o.user!r}: {exc}") from exc
-        try:
-            return zenoh.open(conf)
-        except zenoh.ZError as exc:
-            raise ControllerUnavailable(
-                f"no connection to {', '.join(o.connect)} as {o.user!r} within "
-                f"{o.connect_timeout_s:g} s: wrong credentials, or the controller is not "
-                f"reachable ({exc})"
-            ) from exc
+    @property
+    def session(self) -> Any:
+        """The open Zenoh session (None before `__enter__` and after closing)."""
+        return self._session
 
     def key(self, key: str) -> str:
         """`key` as this client sends on it: its user's scope with authentication."""
@@ -399,6 +381,34 @@ class ControllerClient:
         except ControllerUnavailable as exc:
             log.warning("e-stop put sent; no reply to the EStop command: %s", exc)
             return None
+
+
+def open_client_session(o: ClientOptions) -> Any:
+    """A Zenoh session as `o` says (with `o.auth`: logged in as `o.user`); ControllerUnavailable
+    when the credentials reach nothing within `o.connect_timeout_s`."""
+    if o.auth is None:
+        if o.user:
+            raise ValueError("user: needs auth (the credentials of that user)")
+        return open_session(o.listen, o.connect)
+    import zenoh
+
+    from controller.auth import AuthError, client_config
+
+    if not o.user:
+        raise ValueError("user: required with auth")
+    try:
+        conf = client_config(o.auth, o.user, o.connect, o.listen,
+                             fail_after_s=o.connect_timeout_s)
+    except (AuthError, KeyError, OSError) as exc:
+        raise ControllerUnavailable(f"credentials of {o.user!r}: {exc}") from exc
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as exc:
+        raise ControllerUnavailable(
+            f"no connection to {', '.join(o.connect)} as {o.user!r} within "
+            f"{o.connect_timeout_s:g} s: wrong credentials, or the controller is not "
+            f"reachable ({exc})"
+        ) from exc
 
 
 def _quietly(what: str, fn: Callable[[], Any]) -> None:

@@ -26,6 +26,8 @@ def add_dashboard_arguments(p: argparse.ArgumentParser) -> None:
                    "role) or a password file (with --user)")
     p.add_argument("--user", default="",
                    help="with --auth: every browser acts as this one user")
+    p.add_argument("--fleet", action="store_true",
+                   help="also a Fleet tab: every rig reachable through --connect (a router)")
 
 
 def run_dashboard_args(args: argparse.Namespace) -> int:
@@ -37,7 +39,7 @@ def run_dashboard_args(args: argparse.Namespace) -> int:
     return run_dashboard(
         DashboardOptions(
             connect=tuple(connect), rig_name=args.rig_name, host=args.host, port=args.port,
-            auth=args.auth, user=args.user,
+            auth=args.auth, user=args.user, fleet=args.fleet,
         )
     )
 

@@ -31,6 +31,7 @@ from controller.client import ClientOptions, ControllerClient, ControllerUnavail
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import MeasuredResponse
 from server.engine import TuningEngine, measured_from_csv
+from server.fleet import FleetMonitor, FleetPanel
 from server.gate import ESTOP_LINK_HTML, Gate, Refused
 from server.measured import read_measured
 from server.panels.identify import IdentifyPanel, NominalTuningPanel
@@ -74,6 +75,9 @@ class DashboardOptions:
     file, and `user`, whose role and lease the controller enforces. A directory without
     `user`: every user in it who may reach the rig, each in their own browser."""
     user: str = ""
+    fleet: bool = False
+    """Also the fleet overview: every rig reachable through `connect` (a router), each with an
+    E-STOP and a full view of its own."""
 
 
 def dashboard_users(opts: DashboardOptions) -> dict[str, Any]:
@@ -158,6 +162,10 @@ class Dashboard:
         self.identify: IdentifyPanel | None = None
         self.live: LivePanel | None = None
         self.scene: TurntableScene | None = None
+        self.fleet: FleetPanel | None = None
+        self._fleet_monitor: FleetMonitor | None = None
+        self._views: dict[str, Dashboard] = {}
+        self._views_lock = threading.Lock()
 
     @property
     def url(self) -> str:
@@ -194,9 +202,15 @@ class Dashboard:
         self._close()
 
     def _close(self) -> None:
-        for panel in (self.live, self.tuning, self.identify):
+        for panel in (self.live, self.tuning, self.identify, self.fleet):
             if panel is not None:
                 panel.stop()
+        if self._fleet_monitor is not None:
+            self._fleet_monitor.close()
+        with self._views_lock:
+            views, self._views = list(self._views.values()), {}
+        for v in views:
+            run_logged(v._close, what="closing a rig's full view")
         self._requests.shutdown()
         if self.server is not None:
             run_logged(self.server.stop, what="stopping the viser server")
@@ -206,6 +220,31 @@ class Dashboard:
         for c in acting:
             c.__exit__(None, None, None)
         self.client.__exit__(None, None, None)
+
+    def open_view(self, rig: str, browser: Any = None) -> str:
+        """The full view of `rig` (another dashboard in this process, on a free port of the
+        same host, with the same endpoints and credentials); its URL for `browser`'s user
+        (with several users, each their own token: a viewer never gets an operator's)."""
+        proto.check_rig_name(rig)
+        user = self.user_of(browser)
+        if user is None:
+            self._refuse(browser, "full view: this browser is not signed in")
+        if rig == self.opts.rig_name:
+            return self.url_for(user)
+        with self._views_lock:
+            view = self._views.get(rig)
+            if view is None:
+                import dataclasses
+                import socket
+
+                with socket.socket() as s:
+                    s.bind((self.opts.host, 0))
+                    port = int(s.getsockname()[1])
+                view = Dashboard(dataclasses.replace(
+                    self.opts, rig_name=rig, port=port, fleet=False, token=None))
+                view.__enter__()
+                self._views[rig] = view
+        return view.url_for(user)
 
     # -- who acts ------------------------------------------------------------------------------
 
@@ -315,6 +354,13 @@ class Dashboard:
             live.build_controls()
         with tabs.add_tab("Identify"):
             self.identify.build_controls()
+        if self.opts.fleet:
+            self._fleet_monitor = FleetMonitor(
+                self.client.session,
+                (lambda r: self.client.key(proto.key_estop(r)))).__enter__()
+            self.fleet = FleetPanel(gui, self._fleet_monitor, self.open_view)
+            with tabs.add_tab("Fleet"):
+                self.fleet.build()
         with tabs.add_tab("History"):
             self.history_html = gui.add_html("<div class='dt-history'>No history yet.</div>")
             self.history_pick = gui.add_dropdown("Version", ("-",), initial_value="-")
@@ -341,6 +387,8 @@ class Dashboard:
         server.on_client_disconnect(self._on_client_disconnect)
         tuning.start()
         live.start()
+        if self.fleet is not None:
+            self.fleet.start()
         self._requests.submit(self._fetch_active)
 
     # -- wiring ------------------------------------------------------------------------------

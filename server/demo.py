@@ -170,8 +170,9 @@ def _run_fleet(opts: DemoOptions, router_ep: str) -> int:
         procs = stack.enter_context(fleet_processes(opts, root))
         dash = stack.enter_context(Dashboard(DashboardOptions(
             connect=(router_ep,), rig_name="rig1", host=opts.host, port=opts.port,
-            verbose=opts.verbose)))
-        print(f"dobtune demo: {opts.rigs} rigs behind the router {router_ep}; dashboard of rig1: "
+            verbose=opts.verbose, fleet=True)))
+        print(f"dobtune demo: {opts.rigs} rigs behind the router {router_ep}; dashboard of rig1 "
+              "(its Fleet tab shows them all): "
               f"{dash.url}; list them with: dobtune ctl --connect {router_ep} rigs", flush=True)
         while not stop.wait(0.5):
             dead = [p for p in procs if p.poll() is not None]

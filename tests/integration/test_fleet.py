@@ -94,3 +94,61 @@ def test_rigs_through_a_router(
     assert wait_until(lambda: [r["rig"] for r in _rigs(ep)] == ["rig_a"], 30.0)
     print(f"  listed again {time.monotonic() - t0:.1f} s after the router restart")
     assert a.proc.poll() is None
+
+
+def test_the_dashboards_fleet_overview(
+    router: tuple[str, Callable[[], None]],
+    start_controller_factory: Callable[..., ControllerProcess],
+) -> None:
+    """A dashboard on the router with the Fleet tab: a row per rig with its state and a live
+    error trace, an E-STOP for one rig (the other runs on), the full view of another rig, and a
+    dead rig shown as gone."""
+    import urllib.request
+
+    from controller.client import ClientOptions, ControllerClient
+    from server.app import Dashboard, DashboardOptions
+
+    ep, _restart = router
+    a = start_controller_factory(rig="rig_a", extra_args=("--connect", ep))
+    b = start_controller_factory(rig="rig_b", extra_args=("--connect", ep))
+    opts = DashboardOptions(connect=(ep,), rig_name="rig_a", port=free_port(), verbose=False,
+                            fleet=True)
+    with Dashboard(opts) as dash:
+        assert dash.fleet is not None and dash._fleet_monitor is not None
+        mon, panel = dash._fleet_monitor, dash.fleet
+
+        def rows() -> dict[str, Any]:
+            return {r.rig: r for r in mon.rows()}
+
+        def both_live() -> bool:
+            r = rows()
+            return set(r) == {"rig_a", "rig_b"} and all(
+                x.alive and x.mode == "running" and len(x.trace) > 100 for x in r.values())
+
+        assert wait_until(both_live, 60.0), a.log() + b.log()
+        first = rows()["rig_b"].trace
+        assert wait_until(lambda: rows()["rig_b"].trace != first, 5.0)  # the trace moves
+        assert wait_until(lambda: "rig_b" in panel.table.content
+                          and panel.table.content.count("dt-spark") == 2, 5.0)
+        assert tuple(panel.pick.options) == ("rig_a", "rig_b")
+        # E-STOP of rig_b from the overview: rig_b stops, rig_a runs on.
+        assert panel.estop("rig_b")
+        assert wait_until(lambda: rows()["rig_b"].mode == "estop", 5.0)
+        assert rows()["rig_a"].mode == "running"
+        assert not panel.estop("no_such_rig")
+        # The full view of rig_b: a dashboard of its own, on rig_b.
+        url = panel.open("rig_b")
+        assert url and "token=" in url and "rig_b" in panel.result.content
+        with urllib.request.urlopen(url, timeout=10) as r:
+            assert r.status == 200
+        view = dash._views["rig_b"]
+        assert wait_until(lambda: view.client.status is not None, 10.0)
+        assert view.client.status is not None and view.client.status.rig == "rig_b"
+        # A dead rig is shown as gone.
+        b.proc.kill()
+        assert wait_until(lambda: not rows()["rig_b"].alive, 15.0)
+        assert wait_until(lambda: ">gone<" in panel.table.content, 5.0)
+        assert tuple(panel.pick.options) == ("rig_a",)
+    with ControllerClient(ClientOptions(connect=(ep,), rig_name="rig_a")) as c:
+        assert wait_until(lambda: c.status is not None, 10.0)
+        assert c.status is not None and c.status.mode == "running"
