@@ -349,6 +349,19 @@ def _declared(keys: Iterable[str]) -> tuple[str, ...]:
     return keys + tuple(any_user_key(k) for k in keys)
 
 
+def _fleet(rig: str) -> list[_Grant]:
+    """What the fleet overview and `ctl rigs` need: they subscribe to every rig at once
+    (`dobtune/*/...`); the router then passes on the samples and liveliness of this rig only
+    (the egress rules name it), so a user learns nothing of rigs it may not reach."""
+    p = proto.KEY_PREFIX
+    return [
+        _Grant(("ingress",), ("declare_subscriber",), (f"{p}/*/state", f"{p}/*/status")),
+        _Grant(("ingress",), ("declare_liveliness_subscriber", "liveliness_query"),
+               (f"{p}/*/alive",)),
+        _Grant(("egress",), ("liveliness_token",), (proto.key_alive(rig),)),
+    ]
+
+
 def _viewer(rig: str, user: str) -> list[_Grant]:
     """Receive state and status, read config and identification, put e-stop."""
     streams = (proto.key_state(rig), proto.key_status(rig))
@@ -358,6 +371,7 @@ def _viewer(rig: str, user: str) -> list[_Grant]:
     )
     estop = (proto.key_estop(rig),)
     return [
+        *_fleet(rig),
         _Grant(("ingress",), ("declare_subscriber",), streams),
         _Grant(("egress",), ("put",), streams),
         _Grant(("ingress",), ("query",), _own(reads, user)),
@@ -374,6 +388,7 @@ def _operator(rig: str, user: str) -> list[_Grant]:
     mine = (rig_all, f"{proto.KEY_PREFIX}/{rig}/{USER_CHUNK}/{user}/**")
     seen = (rig_all, f"{proto.KEY_PREFIX}/{rig}/{USER_CHUNK}/*/**")
     return [
+        *_fleet(rig),
         _Grant(("ingress",), _CLIENT_IN, mine),
         _Grant(("egress",), ("put", "delete", "reply"), mine),
         _Grant(("egress",), ("declare_subscriber", "declare_queryable", "liveliness_token"), seen),

@@ -266,7 +266,12 @@ def test_acl_is_default_deny_with_consistent_ids(auth_dir: Path) -> None:
 def test_viewer_rules(auth_dir: Path) -> None:
     rules = rules_of(acl_config(load_users(auth_dir), ["a", "b"]), "view_a")
     everything = {k for r in rules for k in r["key_exprs"]}
-    assert all(k.startswith("dobtune/a/") for k in everything)  # rig a only
+    # rig a only, but for the fleet overview's subscriptions to every rig at once (whose
+    # samples and liveliness the egress rules limit to rig a)
+    fleet = {"dobtune/*/state", "dobtune/*/status", "dobtune/*/alive"}
+    assert all(k.startswith("dobtune/a/") or k in fleet for k in everything)
+    assert fleet <= everything
+    assert keys_for(rules, "egress", "liveliness_token") == {"dobtune/a/alive"}
     assert not any(k.endswith("/cmd") or "**" in k for k in everything)
     assert keys_for(rules, "ingress", "query") == {
         "dobtune/a/config", "dobtune/a/identify", "dobtune/a/knowledge", "dobtune/a/lease",

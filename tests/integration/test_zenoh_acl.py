@@ -248,8 +248,9 @@ def test_viewer_watches_reads_and_estops_only_its_rig(net: Net) -> None:
         assert got[mine[k]] == [f"{any_user_key(k)}|view_a"], mine[k]
     assert {k: got[k] for k in denied} == {k: [] for k in denied}
 
-    # Subscriptions: its rig's state and status arrive; rig b gets nothing, and a wildcard
-    # subscription is refused as a whole (a second session of the same user holds only those).
+    # Subscriptions: its rig's state and status arrive; rig b's never, not even through a
+    # wildcard subscription (the fleet overview subscribes to dobtune/*/...: the router's
+    # egress rules pass on this rig's samples only). A second session holds the wildcards.
     wild = ready(net.login("view_a"), proto.key_config("a"))
     wild_keys = ("dobtune/**", "dobtune/a/*", "dobtune/*/state")
     subs = {(viewer, k): viewer.declare_subscriber(k, zenoh.handlers.FifoChannel(256)) for k in (
@@ -268,8 +269,11 @@ def test_viewer_watches_reads_and_estops_only_its_rig(net: Net) -> None:
         return len(seen[proto.key_state("a")]) >= 3 and len(seen[proto.key_status("a")]) >= 3
 
     assert wait_until(own_streams_arrived, WAIT_S), seen
-    for k in (proto.key_state("b"), proto.key_status("b"), *wild_keys):
+    for k in (proto.key_state("b"), proto.key_status("b")):
         assert seen[k] == [], k
+    own = {proto.key_state("a"), proto.key_status("a")}
+    for k in wild_keys:
+        assert set(seen[k]) <= own, k
 
     # Puts: only the e-stop arrives (public and in its own scope, attributed).
     forbidden = [*trap_keys("a"), proto.key_estop("b"), "dobtune/*/estop", "dobtune/**",
@@ -348,5 +352,17 @@ def test_through_a_router_the_same_rules_hold(net: Net) -> None:
         mine = user_key(cmd_b, "op_b")
         got = get_all(op, [cmd_b, mine, cmd_a])
         assert got == {cmd_b: [f"{cmd_b}|"], mine: [f"{any_user_key(cmd_b)}|op_b"], cmd_a: []}
+        # The fleet overview's liveliness: each user sees the rigs it may reach, no other.
+        ctl = net.open(client_config(net.auth_dir, "ctl", [endpoint], mode="client"))
+        tokens = [ctl.liveliness().declare_token(proto.key_alive(r)) for r in ("a", "b")]
+
+        def alive(session: Any) -> set[str]:
+            return {str(r.ok.key_expr) for r in session.liveliness().get(
+                "dobtune/*/alive", timeout=GET_S) if r.ok is not None}
+
+        assert wait_until(lambda: alive(viewer) == {proto.key_alive("a")}, WAIT_S)
+        assert wait_until(lambda: alive(op) == {proto.key_alive("b")}, WAIT_S)
+        for t in tokens:
+            t.undeclare()
     finally:
         served.close()
