@@ -398,7 +398,15 @@ def _operator(rig: str, user: str) -> list[_Grant]:
 def _controller(rig: str, user: str) -> list[_Grant]:
     """Serves the rig through a router: every message on every key of the rig."""
     keys = (f"{proto.KEY_PREFIX}/{rig}/**", f"{proto.KEY_PREFIX}/{rig}/{USER_CHUNK}/*/**")
-    return [_Grant(("ingress", "egress"), _ALL_MESSAGES, keys)]
+    p = proto.KEY_PREFIX
+    return [
+        _Grant(("ingress", "egress"), _ALL_MESSAGES, keys),
+        # The fleet overview's interest in every rig at once reaches the controller, which
+        # then sends its streams and liveliness to the router (that passes them on by rule).
+        _Grant(("egress",), ("declare_subscriber",), (f"{p}/*/state", f"{p}/*/status")),
+        _Grant(("egress",), ("declare_liveliness_subscriber", "liveliness_query"),
+               (f"{p}/*/alive",)),
+    ]
 
 
 _ROLE_GRANTS = {"viewer": _viewer, "operator": _operator, "controller": _controller}
@@ -497,16 +505,21 @@ def client_config(
     connect: Iterable[str],
     listen: Iterable[str] = (),
     fail_after_s: float | None = None,
-    mode: str = "peer",
+    mode: str | None = None,
 ) -> zenoh.Config:
     """A client's configuration: explicit endpoints, no multicast, logging in as `user`.
 
     `credentials`: an auth directory (its users file has the password), a password file (a
-    Path), or the password itself (a str). `mode`: "peer" to connect to a controller directly,
-    "client" through a router (a router does not route between peers that listen nowhere).
+    Path), or the password itself (a str). `mode`: "client" (the default without `listen`)
+    reaches a controller directly or through a router (a router does not route between peers
+    that listen nowhere, and an authenticated controller behind a router listens nowhere);
+    "peer" (the default with `listen`) to be reachable itself.
     `fail_after_s`: `zenoh.open` raises when no connection succeeded within that time
     (unreachable or refused credentials look the same); by default it opens anyway and keeps
     retrying."""
+    listen = tuple(listen)
+    if mode is None:
+        mode = "peer" if listen else "client"
     if mode not in ("peer", "client"):
         raise ValueError(f"mode {mode!r}: expected peer or client")
     if isinstance(credentials, Path):

@@ -299,7 +299,11 @@ def test_rules_follow_the_served_rigs(auth_dir: Path) -> None:
     assert {s["id"] for s in only_b["subjects"]} == {"user everywhere", "user ctl"}
     both = acl_config(users, ["a", "b"])
     ctl = {k for r in rules_of(both, "ctl") for k in r["key_exprs"]}
-    assert ctl == {"dobtune/a/**", "dobtune/a/@user/*/**", "dobtune/b/**", "dobtune/b/@user/*/**"}
+    fleet = {"dobtune/*/state", "dobtune/*/status", "dobtune/*/alive"}  # interest, egress only
+    assert ctl == {"dobtune/a/**", "dobtune/a/@user/*/**", "dobtune/b/**", "dobtune/b/@user/*/**",
+                   *fleet}
+    assert all(r["flows"] == ["egress"] for r in rules_of(both, "ctl")
+               if set(r["key_exprs"]) <= fleet)
     with pytest.raises(ValueError, match="no user may reach"):
         acl_config([u for u in users if u.name == "op_a"], ["b"])
     with pytest.raises(ValueError, match="no rig names"):
@@ -347,7 +351,10 @@ def test_client_config_credentials(auth_dir: Path, tmp_path: Path) -> None:
     assert login_of(conf)["user"] == "view_a"
     assert login_of(conf)["password"] == users["view_a"].password
     assert json.loads(conf.get_json("listen/endpoints")) == []
-    assert json.loads(conf.get_json("mode")) == "peer"
+    assert json.loads(conf.get_json("mode")) == "client"  # listening nowhere: a client
+    listening = client_config(auth_dir, "view_a", ["tcp/127.0.0.1:7447"],
+                              ["tcp/127.0.0.1:7448"])
+    assert json.loads(listening.get_json("mode")) == "peer"
 
     pw_file = tmp_path / "pw"
     pw_file.write_text(users["op_a"].password + "\n")

@@ -40,6 +40,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "access control per role, the operator lease per user",
     )
     p.add_argument(
+        "--user",
+        default="",
+        metavar="NAME",
+        help="with --auth and --connect ROUTER: the account (role controller) to log in to an "
+        "authenticating router with; the controller then listens nowhere",
+    )
+    p.add_argument(
         "--insecure",
         action="store_true",
         help="allow a non-loopback --listen without --auth (anyone who reaches it may act)",
@@ -62,7 +69,9 @@ def run(args: argparse.Namespace) -> int:
     def say(text: str) -> None:
         print(f"dobtune controller: {text}", file=sys.stderr, flush=True)
 
-    listen = args.listen if args.listen is not None else ["tcp/127.0.0.1:7447"]
+    behind_router = args.auth is not None and bool(args.connect)
+    default_listen = [] if behind_router else ["tcp/127.0.0.1:7447"]
+    listen = args.listen if args.listen is not None else default_listen
     opts = ControllerOptions(
         plant=args.plant,
         rig_file=args.rig,
@@ -76,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
         realtime_priority=args.realtime_priority,
         sim_drive_node=args.sim_drive_node,
         auth_dir=args.auth,
+        auth_user=args.user,
         insecure=args.insecure,
     )
     try:

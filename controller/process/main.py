@@ -48,6 +48,10 @@ __all__ = ["StartupError", "run_controller"]
 log = logging.getLogger(__name__)
 
 
+#: How long a controller behind an authenticating router tries to log in at start.
+ROUTER_LOGIN_S = 10.0
+
+
 class StartupError(RuntimeError):
     """The controller cannot start (bad options, a configuration the gate rejects, ...)."""
 
@@ -72,10 +76,20 @@ def _check_options(opts: ControllerOptions) -> None:
             "anyone who reaches it could move the rig. Give --auth, or --insecure to accept that"
         )
     if opts.auth_dir is not None and opts.connect:
-        raise StartupError(
-            "--connect with --auth: a controller with access control cannot dial out (the "
-            "remote would be unauthenticated); let the clients connect to it"
-        )
+        if not opts.auth_user:
+            raise StartupError(
+                "--connect with --auth: give --user, the account (role controller) to log in "
+                "to the authenticating router with (a controller that serves clients itself "
+                "cannot dial out: the remote would be unauthenticated)"
+            )
+        if opts.listen:
+            raise StartupError(
+                "--listen with --auth --connect: behind an authenticating router the "
+                "controller listens nowhere (the router enforces the access control); drop "
+                "--listen"
+            )
+    elif opts.auth_user:
+        raise StartupError("--user: only with --auth and --connect (a router to log in to)")
 
 
 def _loopback(endpoint: str) -> bool:
@@ -117,8 +131,25 @@ def _session(opts: ControllerOptions) -> Any:
                 f"--listen {', '.join(opts.listen)}: cannot open the Zenoh session (is the "
                 f"port in use by another controller? choose another with --listen): {exc}"
             ) from exc
-    from controller.auth import AuthError, server_config
+    from controller.auth import AuthError, client_config, load_users, server_config
 
+    if opts.connect:  # behind an authenticating router, logged in as a "controller" account
+        try:
+            role = load_users(opts.auth_dir)[opts.auth_user].role
+            if role != "controller":
+                raise AuthError(f"--user {opts.auth_user}: role {role!r}, expected controller "
+                                f"(add one with `dobtune auth init --user NAME=controller`)")
+            conf = client_config(opts.auth_dir, opts.auth_user, opts.connect,
+                                 fail_after_s=ROUTER_LOGIN_S)
+        except (AuthError, OSError, ValueError) as exc:
+            raise StartupError(f"--auth {opts.auth_dir}: {exc}") from exc
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError as exc:
+            raise StartupError(
+                f"--connect {', '.join(opts.connect)}: no connection as {opts.auth_user!r} "
+                f"within {ROUTER_LOGIN_S:g} s (router unreachable, or it refused the "
+                f"credentials): {exc}") from exc
     try:
         return zenoh.open(server_config(opts.auth_dir, [opts.rig_name], opts.listen))
     except (AuthError, OSError, ValueError) as exc:
@@ -387,6 +418,8 @@ def _run(
                     text = (
                         f"rig {opts.rig_name!r} plant {opts.plant} at {cfg.rate_hz:g} Hz, "
                         f"config v{version}, listening on {', '.join(opts.listen) or '-'}"
+                        + (f", connected to {', '.join(opts.connect)}" if opts.connect else "")
+                        + (f" as {opts.auth_user}" if opts.auth_user else "")
                     )
                     if ready is not None:
                         ready(text)

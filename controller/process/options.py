@@ -52,6 +52,10 @@ class ControllerOptions:
     auth_dir: Path | None = None
     """`dobtune auth init` directory: user/password authentication, access control per role,
     requests on per-user key scopes, the operator lease enforced for every user."""
+    auth_user: str = ""
+    """With `auth_dir` and `connect` (an authenticating router): the account, of role
+    "controller", this controller logs in with; it then listens nowhere and is reached only
+    through the router, which enforces the access control."""
     insecure: bool = False
     """Allow a non-loopback listen endpoint without `auth_dir` (anyone who reaches it can
     change the rig while nobody holds the lease)."""

@@ -96,13 +96,14 @@ def start_controller(
     port: int | None = None,
     extra_args: tuple[str, ...] = (),
     python_code: str | None = None,
+    listen: bool = True,
 ) -> ControllerProcess:
-    """Start a controller on 127.0.0.1:<free port>. `python_code` replaces `-m controller`
-    (for options the command line does not expose); it gets the same arguments in argv."""
+    """Start a controller on 127.0.0.1:<free port> (`listen` False: none, for a controller
+    behind an authenticating router). `python_code` replaces `-m controller` (for options the
+    command line does not expose); it gets the same arguments in argv."""
     port = free_port() if port is None else port
     args = [
-        "--listen",
-        f"tcp/127.0.0.1:{port}",
+        *(("--listen", f"tcp/127.0.0.1:{port}") if listen else ()),
         "--rig-name",
         rig,
         "--state-dir",

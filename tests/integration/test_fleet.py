@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from procs import REPO, ControllerProcess, free_port, wait_until
+from procs import REPO, ControllerProcess, free_port, port_is_free, wait_until
 
 from controller.cli import build_parser, controller_commands
 
@@ -23,10 +23,10 @@ ROUTER_CODE = ("import sys; from server.__main__ import dobtune_main; "
                "sys.exit(dobtune_main(['router', *sys.argv[1:]]))")
 
 
-def _router(port: int, log: Path) -> subprocess.Popen[bytes]:
+def _router(port: int, log: Path, *extra: str) -> subprocess.Popen[bytes]:
     with open(log, "ab") as f:
         return subprocess.Popen([sys.executable, "-c", ROUTER_CODE, "--listen",
-                                 f"tcp/127.0.0.1:{port}"], cwd=REPO, stdout=f, stderr=f)
+                                 f"tcp/127.0.0.1:{port}", *extra], cwd=REPO, stdout=f, stderr=f)
 
 
 def _stop(p: subprocess.Popen[bytes]) -> None:
@@ -152,3 +152,60 @@ def test_the_dashboards_fleet_overview(
     with ControllerClient(ClientOptions(connect=(ep,), rig_name="rig_a")) as c:
         assert wait_until(lambda: c.status is not None, 10.0)
         assert c.status is not None and c.status.mode == "running"
+
+
+def test_a_fleet_behind_an_authenticating_router(tmp_path: Path) -> None:
+    """Router and controllers with --auth: the controllers log in to the router with a
+    "controller" account and listen nowhere; a viewer's dashboard sees both rigs in the Fleet
+    tab and may e-stop one; an operator changes a rig through the router as itself."""
+    from procs import start_controller
+
+    from controller import protocol as proto
+    from controller.auth import init_auth_dir, new_users
+    from controller.client import ClientOptions, ControllerClient
+    from server.app import Dashboard, DashboardOptions
+
+    auth = tmp_path / "auth"
+    init_auth_dir(auth, new_users([("op1", "operator"), ("view", "viewer"), ("ctl", "controller")]))
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    router = _router(port, tmp_path / "router.log", "--auth", str(auth),
+                     "--rig-name", "rig_a", "--rig-name", "rig_b")
+    procs = []
+    try:
+        assert wait_until(lambda: not port_is_free(port), 30.0), "the router did not listen"
+        for rig in ("rig_a", "rig_b"):
+            procs.append(start_controller(
+                tmp_path / rig, rig=rig, listen=False,
+                extra_args=("--auth", str(auth), "--connect", ep, "--user", "ctl")))
+        opts = DashboardOptions(connect=(ep,), rig_name="rig_a", port=free_port(),
+                                verbose=False, fleet=True, auth=auth)
+        with Dashboard(opts) as dash:
+            assert dash.fleet is not None and dash._fleet_monitor is not None
+            assert dash.client.opts.user == "view"  # the streams come as the viewer
+            mon = dash._fleet_monitor
+
+            def running() -> bool:
+                rows = {r.rig: r for r in mon.rows()}
+                return set(rows) == {"rig_a", "rig_b"} and all(
+                    r.alive and r.mode == "running" and r.trace for r in rows.values())
+
+            ok = wait_until(running, 40.0)
+            assert ok, (mon.rows(), dash.client.status, "".join(p.log() for p in procs))
+            assert dash.fleet.estop("rig_b")
+            assert wait_until(lambda: {r.rig: r.mode for r in mon.rows()}["rig_b"] == "estop",
+                              10.0)
+        copts = ClientOptions(connect=(ep,), rig_name="rig_a", auth=auth, user="op1",
+                              client_name="op1", connect_timeout_s=10.0)
+        with ControllerClient(copts) as op:
+            assert op.lease("acquire", 60.0).ok
+            before = op.get_config()
+            reply = op.apply(before.config.with_(cv_kp=0.45), expect_version=before.version)
+            assert reply.accepted, reply
+            last = op.history(1).entries[-1]
+            assert last.version == reply.version and "op1" in last.client
+            assert op.command(proto.EStop()).ok
+    finally:
+        for p in procs:
+            p.stop()
+        _stop(router)

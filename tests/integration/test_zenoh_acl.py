@@ -130,7 +130,9 @@ class Net:
 
     def login(self, user: str, password: str | None = None) -> Any:
         creds: Path | str = self.auth_dir if password is None else password
-        return self.open(client_config(creds, user, [self.endpoint]))
+        # peer mode: wrong credentials open a session that reaches nothing (what is tested);
+        # in client mode (the default of dobtune's clients) opening itself fails, see below.
+        return self.open(client_config(creds, user, [self.endpoint], mode="peer"))
 
 
 def get_all(session: Any, keys: list[str]) -> dict[str, list[str]]:
@@ -227,6 +229,16 @@ def test_without_valid_credentials_nothing_is_reached(
     intruder.put(proto.key_estop("a"), b"intruder")
     deliver(net, viewer, proto.key_estop("a"), "viewer-marker")
     assert net.controller.puts_from("intruder") == []
+
+
+def test_a_client_with_wrong_credentials_does_not_open(net: Net) -> None:
+    """dobtune's clients log in in client mode: refused credentials fail at once, with Zenoh's
+    error (in peer mode the session would open and reach nothing, silently)."""
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(client_config("not-the-password", "view_a", [net.endpoint],
+                                 fail_after_s=2.0))
+    ok = zenoh.open(client_config(net.auth_dir, "view_a", [net.endpoint], fail_after_s=5.0))
+    ok.close()
 
 
 def test_viewer_watches_reads_and_estops_only_its_rig(net: Net) -> None:
