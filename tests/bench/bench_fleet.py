@@ -95,6 +95,35 @@ def count_samples(router_ep: str, rigs: list[str], window_s: float) -> dict[str,
             "skipped": {r: (v[-1] - v[0]) if len(v) > 1 else 0 for r, v in skipped.items()}}
 
 
+def extra_state_latency_ms(router_ep: str, direct_ep: str, rig: str,
+                           window_s: float) -> tuple[float, float, int]:
+    """The same state batches received straight from the controller and through the router,
+    in one process: p50 / p99 of (arrival via router - arrival direct), and batches compared."""
+    arrivals: dict[str, dict[int, float]] = {"router": {}, "direct": {}}
+    sessions = {"router": zenoh.open(zenoh_config((), [router_ep])),
+                "direct": zenoh.open(zenoh_config((), [direct_ep]))}
+    subs = []
+    try:
+        for name, session in sessions.items():
+            def on_sample(sample: Any, into: dict[int, float] = arrivals[name]) -> None:
+                t = time.perf_counter()
+                b = proto.decode(sample.payload.to_bytes(), proto.StateBatch)
+                into[b.seq0] = t
+            subs.append(session.declare_subscriber(proto.key_state(rig),
+                                                   zenoh.handlers.Callback(on_sample)))
+        time.sleep(window_s)
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        for session in sessions.values():
+            session.close()
+    both = sorted(set(arrivals["router"]) & set(arrivals["direct"]))
+    d = sorted((arrivals["router"][k] - arrivals["direct"][k]) * 1000 for k in both)
+    if not d:
+        return float("nan"), float("nan"), 0
+    return statistics.median(d), d[int(0.99 * (len(d) - 1))], len(d)
+
+
 def rtt_ms(ep: str, rig: str, n: int = 200) -> tuple[float, float, int]:
     """p50, p99 of the answered queries, and how many got no reply within 3 s."""
     times = []
@@ -155,6 +184,10 @@ def main() -> int:
             print(f"{n:>4} {rate:>18.0f} {lost:>6} {skipped:>13} "
                   f"{via[0]:>10.2f} / {via[1]:<9.2f} {direct[0]:>10.2f} / {direct[1]:<9.2f}"
                   f"  (no reply: {via[2]} via the router, {direct[2]} direct)", flush=True)
+            lat = extra_state_latency_ms(router_ep, f"tcp/127.0.0.1:{base + 1}", "rig1",
+                                         args.window_s)
+            print(f"     state through the router vs straight, same batches ({lat[2]}): "
+                  f"+{lat[0]:.2f} ms p50, +{lat[1]:.2f} ms p99", flush=True)
             if n == args.rigs[-1] or n == 3:
                 off = dashboard_cpu(router_ep, args.window_s, fleet=False)
                 on = dashboard_cpu(router_ep, args.window_s, fleet=True)
