@@ -62,6 +62,7 @@ from server.identify_view import (
     view_from_status,
 )
 from server.panels.tuning import TuningPanel
+from server.panels.widgets import confirm, esc
 
 __all__ = [
     "ABORTED",
@@ -315,7 +316,7 @@ class IdentifyPanel:
                                          hint="put the fitted Mn Pn into the tuning candidate "
                                               "(checked by the gate; Apply sends it)")
         self.use_result = gui.add_html("<div class='dt-id-use' style='font-size:12px'></div>")
-        self.start_button.on_click(lambda e: self.start(browser=e.client))
+        self.start_button.on_click(lambda e: self._ask_start(e.client))
         self.abort_button.on_click(lambda e: self.abort(e.client))
         self.use_button.on_click(lambda e: self.use_as_nominal(e.client))
 
@@ -366,6 +367,21 @@ class IdentifyPanel:
         )
 
     # -- events (short) ----------------------------------------------------------------------
+
+    def _ask_start(self, browser: Any) -> None:
+        """On the controller the rig moves: asked first, in the browser that pressed Start."""
+        s = self.settings()
+        if s.where != WHERE_CONTROLLER or self.client is None:
+            self.start(s, browser)
+            return
+        v = s.values
+        confirm(self.gui, browser, "Start the identification?",
+                f"<b>The rig moves</b> (rig {esc(self.client.opts.rig_name)}): "
+                f"{esc(str(v.get('signal', '')))} excitation of "
+                f"{esc(str(v.get('amplitude_deg_s', '')))} deg/s at "
+                f"{esc(str(v.get('positions', '')))} position(s), within the position window "
+                "and the duration limit; E-STOP aborts.",
+                "Start identification", lambda who: self.start(s, who), ok_color="green")
 
     def start(self, settings: IdentifySettings | None = None, browser: Any = None) -> bool:
         """Start a run unless one is running; False (and a message) if not started."""

@@ -19,7 +19,7 @@ from controller import protocol as proto
 from controller.client import ControllerClient
 from controller.core.trajectory import TRAJECTORY_KINDS, default_trajectory
 from server import charts
-from server.panels.widgets import add_chart, esc, set_html
+from server.panels.widgets import add_chart, confirm, esc, set_html
 from server.workers import Periodic
 
 __all__ = ["LivePanel", "LiveStats", "banner_html", "window_metrics"]
@@ -135,10 +135,7 @@ class LivePanel:
                                                 "hold at 40 deg")
         self.set_traj = gui.add_button("Set trajectory")
         self.run_buttons = gui.add_button_group("Run", ("Start", "Stop", "Reset fault"))
-        self.set_traj.on_click(
-            lambda e: self._send(proto.SetTrajectory(
-                trajectory=default_trajectory(str(self.trajectory.value))), e.client)
-        )
+        self.set_traj.on_click(lambda e: self._confirm_trajectory(e.client))
         self.run_buttons.on_click(self._on_run)
         self.command_result = gui.add_html("<div class='dt-cmd'></div>")
         self.metrics = gui.add_html("<div class='dt-metrics'>metrics: waiting for data</div>")
@@ -146,10 +143,26 @@ class LivePanel:
 
     def _on_run(self, event: Any) -> None:
         v = event.target.value
-        body: proto.CommandBody = (
-            proto.Start() if v == "Start" else proto.Stop() if v == "Stop" else proto.ResetFault()
-        )
+        if v == "Start":  # the axis moves: asked first, in the browser that pressed it
+            st = self.client.status
+            traj = esc(st.trajectory.kind) if st is not None else "the set trajectory"
+            confirm(self.gui, event.client, "Start the loop?",
+                    f"<b>The axis moves</b>: from its present position onto {traj} (speed and "
+                    "acceleration bounded).", "Start", lambda who: self._send(proto.Start(), who))
+            return
+        body: proto.CommandBody = proto.Stop() if v == "Stop" else proto.ResetFault()
         self._send(body, event.client)
+
+    def _confirm_trajectory(self, browser: Any) -> None:
+        kind = str(self.trajectory.value)
+        body = proto.SetTrajectory(trajectory=default_trajectory(kind))
+        st = self.client.status
+        if st is None or st.mode != "running":
+            self._send(body, browser)  # nothing moves until Start (which asks)
+            return
+        confirm(self.gui, browser, "Change the trajectory?",
+                f"<b>The axis moves</b>: the running loop follows {esc(kind)} from now.",
+                "Set trajectory", lambda who: self._send(body, who))
 
     def build_charts(self) -> None:
         for spec in charts.LIVE_CHARTS:

@@ -35,6 +35,7 @@ from server.panels.widgets import (
     REJECT,
     add_chart,
     box,
+    confirm,
     esc,
     set_html,
 )
@@ -399,25 +400,15 @@ class TuningPanel:
     def _confirm_caution(self, cand: LoopConfig, reasons: tuple[str, ...], browser: Any) -> None:
         """A dialog (in the browser that asked) listing the reasons; only "Apply anyway"
         sends (with confirm)."""
-        gui = browser.gui if browser is not None else self.gui
-        with gui.add_modal("Apply with caution?") as modal:
-            gui.add_html(
-                "<div class='dt-confirm'>The gate's verdict is <b>caution</b>:"
-                f"{_reason_list(reasons, 'dt-caution-reason')}</div>")
-            go = gui.add_button("Apply anyway", color="orange")
-            cancel = gui.add_button("Cancel")
 
-            @go.on_click
-            def _go(e: Any) -> None:
-                modal.close()
-                self.apply_result.content = box("dt-apply", NEUTRAL,
-                                                "Sending the candidate (confirmed)...")
-                self._apply_fn(cand, True, e.client)
+        def go(who: Any) -> None:
+            self.apply_result.content = box("dt-apply", NEUTRAL,
+                                            "Sending the candidate (confirmed)...")
+            self._apply_fn(cand, True, who)
 
-            @cancel.on_click
-            def _cancel(_e: Any) -> None:
-                modal.close()
-                self.apply_result.content = box("dt-apply", NEUTRAL, "Not sent (cancelled).")
+        confirm(self.gui, browser, "Apply with caution?",
+                "The gate's verdict is <b>caution</b>:"
+                f"{_reason_list(reasons, 'dt-caution-reason')}", "Apply anyway", go)
 
     def show_reply(self, accepted: bool, version: int, reasons: list[str], note: str = "") -> None:
         if accepted:

@@ -4,11 +4,12 @@ changes, and the bordered status boxes (accept / reject / neutral)."""
 from __future__ import annotations
 
 import html
+from collections.abc import Callable
 from typing import Any
 
 from server.charts import ChartSpec, FloatArray
 
-__all__ = ["ACCEPT", "NEUTRAL", "REJECT", "add_chart", "box", "esc", "set_html"]
+__all__ = ["ACCEPT", "NEUTRAL", "REJECT", "add_chart", "box", "confirm", "esc", "set_html"]
 
 #: (border, background) of a status box.
 ACCEPT = ("#2ca02c", "#eaf7ea")
@@ -46,3 +47,24 @@ def box(cls: str, colors: tuple[str, str], content: str, font_px: int | None = 1
     size = f";font-size:{font_px}px" if font_px is not None else ""
     return (f"<div class='{cls}' style='border:2px solid {border};background:{background};"
             f"padding:6px;border-radius:4px{size}'>{content}</div>")
+
+
+def confirm(gui: Any, browser: Any, title: str, body_html: str, ok_label: str,
+            on_ok: Callable[[Any], object], ok_color: str = "orange") -> None:
+    """A dialog in the browser that asked (`browser`: its viser client; None: every browser,
+    on `gui`): `body_html` (already escaped), then `ok_label` calls `on_ok(browser)`, Cancel
+    only closes it."""
+    g = browser.gui if browser is not None else gui
+    with g.add_modal(title) as modal:
+        g.add_html(f"<div class='dt-confirm'>{body_html}</div>")
+        go = g.add_button(ok_label, color=ok_color)
+        cancel = g.add_button("Cancel")
+
+        @go.on_click
+        def _go(e: Any) -> None:
+            modal.close()
+            on_ok(e.client)
+
+        @cancel.on_click
+        def _cancel(_e: Any) -> None:
+            modal.close()

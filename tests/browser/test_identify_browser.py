@@ -68,6 +68,10 @@ def test_identify_short_run_in_the_browser(
         "controller", "multisine", 1.0, 8.0, 1)
     before = probe.get_config()
     page.get_by_role("button", name="Start identification").click()
+    page.wait_for_selector("text=Start the identification?", timeout=10_000)  # the rig moves
+    assert "The rig moves" in page.locator(".dt-confirm").last.inner_text()
+    assert probe.get_config().version == before.version and ident.state != "running"
+    page.get_by_role("button", name="Start identification").last.click()
     page.wait_for_selector(".dt-identify-status.dt-id-running", timeout=15_000)
     page.wait_for_function(
         "() => /\\d+ %/.test(document.querySelector('.dt-identify-status').innerText)",

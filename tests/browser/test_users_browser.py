@@ -121,6 +121,8 @@ def test_the_viewer_cannot_apply_or_start(env: dict[str, Any], pages: dict[str, 
     page.screenshot(path=str(artifacts / "users_1_viewer_refused.png"))
     page.get_by_role("tab", name="Live", exact=True).click()
     page.get_by_role("button", name="Start", exact=True).click()
+    page.wait_for_selector("text=Start the loop?", timeout=10_000)  # the axis would move
+    page.locator(".mantine-Modal-content").get_by_role("button", name="Start", exact=True).click()
     _wait(lambda: dash.refusals >= refusals + 2, 10.0, "the viewer's Start was not refused")
     assert "view is a viewer" not in pages["op1"].content()  # told to the viewer only
     after = probe.get_config()
