@@ -70,6 +70,58 @@ class BodeCurves:
     """Sensitivity of the whole servo (position loop closed)."""
     t_full_db: FloatArray | None = None
 
+    @property
+    def gain_crossover_marks(self) -> FloatArray:
+        """A vertical line at each gain crossover (|L| = 0 dB: where the phase margin is
+        read), on the 0..1 "mark" scale; NaN elsewhere."""
+        return _marks(self.open_loop_db)
+
+    @property
+    def phase_crossover_marks(self) -> FloatArray:
+        """A vertical line at each phase crossover (-180 deg + k 360: where the gain margin is
+        read)."""
+        return _marks((self.open_loop_phase_deg + 180.0 + 180.0) % 360.0 - 180.0)
+
+
+def _marks(crossing: FloatArray) -> FloatArray:
+    """0 and 1 on the two grid points around each zero crossing of `crossing` (a sign change
+    between neighbours of less than 180: a wrap of the phase is not a crossing), NaN
+    elsewhere: on a fixed 0..1 scale, a line across the whole chart there. The canvas joins
+    the marks across the gaps, so they alternate up and down: the joins run along the chart's
+    top or bottom edge."""
+    c = np.asarray(crossing, dtype=np.float64)
+    out = np.full(len(c), np.nan)
+    up = True
+    for i in range(len(c) - 1):
+        a, b = c[i], c[i + 1]
+        if np.isfinite(a) and np.isfinite(b) and (a <= 0.0 < b or b <= 0.0 < a) and abs(
+                b - a) < 180.0:
+            out[i], out[i + 1] = (0.0, 1.0) if up else (1.0, 0.0)
+            up = not up
+    return out
+
+
+#: The scale of the crossover marks: fixed 0..1 (no auto range, so gaps cannot upset it).
+MARK_SCALE = "mark"
+
+
+def uplot_column(y: FloatArray, fallback: float) -> FloatArray:
+    """`y` as uPlot can scale it: a series whose first value is not finite gives its scale a
+    NaN range (measured in Chromium: the chart then draws nothing at all), so a non-finite
+    first value becomes the series' first finite value (`fallback` if none): one point with no
+    neighbour, which draws nothing."""
+    y = np.asarray(y, dtype=np.float64)
+    if y.size == 0 or np.isfinite(y[0]):
+        return y
+    finite = y[np.isfinite(y)]
+    y = y.copy()
+    y[0] = finite[0] if finite.size else fallback
+    return y
+
+
+def _marker(label: str, color: str) -> dict[str, Any]:
+    return {"label": label, "stroke": color, "width": 2, "scale": MARK_SCALE, "dash": (3, 3)}
+
 
 @dataclass(frozen=True)
 class ChartSpec:
@@ -156,7 +208,10 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
          "cand.open_loop_phase_deg"),
         (_line("phase active", ACTIVE, dash=(2, 3), width=1.0, scale="deg"),
          "act.open_loop_phase_deg"),
-        scales={**_LOG_X, "deg": {"auto": True}},
+        (_marker("0 dB crossing (PM read here)", "#2ca02c"), "cand.gain_crossover_marks"),
+        (_marker("-180 deg crossing (GM read here)", "#9467bd"), "cand.phase_crossover_marks"),
+        scales={**_LOG_X, "deg": {"auto": True},
+                MARK_SCALE: {"auto": False, "range": (0.0, 1.0)}},
         axes=(
             _HZ_AXIS,
             {"label": "dB", "scale": "y"},
@@ -202,12 +257,19 @@ def bode_data(key: str, cand: BodeCurves, active: BodeCurves | None) -> tuple[Fl
     act = active if active is not None and active.freq_hz.shape == cand.freq_hz.shape else cand
     nan = np.full_like(cand.freq_hz, np.nan)
     sources = {"cand": cand, "act": act}
-    cols = []
+    cols: list[FloatArray] = []
     for column in _BODE_BY_KEY[key].columns:
         which, name = column.split(".")
         y = getattr(sources[which], name)
         cols.append(nan if y is None else np.asarray(y, dtype=np.float64))
-    return (cand.freq_hz, *cols)
+    # An empty column takes the first value of a column on its own scale (none drawn).
+    scales = [s.get("scale", "y") for s in _BODE_BY_KEY[key].series[1:]]
+    first: dict[str, float] = {}
+    for sc, c in zip(scales, cols, strict=True):
+        if c.size and np.isfinite(c[0]):
+            first.setdefault(sc, float(c[0]))
+    return (cand.freq_hz, *(c if sc == MARK_SCALE else uplot_column(c, first.get(sc, 0.0))
+                            for sc, c in zip(scales, cols, strict=True)))
 
 
 # -- time domain --------------------------------------------------------------------------------

@@ -63,6 +63,23 @@ def test_page_loads(page: Any, dashboard: Dashboard, artifacts: Path) -> None:
         "() => Object.keys(window.__viserTestpoints?.uplots || {}).length >= 7", timeout=20_000
     )
     page.wait_for_function(f"() => ({Q_SERIES_JS})() !== null && ({Q_SERIES_JS})().at(-1) < -20")
+    # Every chart has a drawable scale (a NaN range draws nothing: the small-gain chart without
+    # a measured response once did), and the open-loop chart marks its crossovers.
+    page.wait_for_function("""() => {
+      const ups = Object.values(window.__viserTestpoints?.uplots || {});
+      const ok = (s) => s.min == null || (Number.isFinite(s.min) && Number.isFinite(s.max));
+      return ups.length >= 7 && ups.every(
+        u => Object.entries(u.chart.scales).every(([k, s]) => k === 'x' || ok(s)));
+    }""", timeout=20_000)
+    marks = page.evaluate("""() => {
+      const ups = Object.values(window.__viserTestpoints?.uplots || {});
+      for (const u of ups) {
+        const i = u.chart.series.findIndex(s => s.label.startsWith('0 dB crossing'));
+        if (i > 0) return Array.from(u.chart.data[i]).slice(1).filter(Number.isFinite).length;
+      }
+      return -1;
+    }""")
+    assert marks > 0
     page.screenshot(path=str(artifacts / "browser_1_loaded.png"))
     assert "Connected" in _text(page, ".dt-banner")
 
