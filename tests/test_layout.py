@@ -38,6 +38,9 @@ SERVER_MAY_IMPORT = (
     *PURE,
     "controller.protocol", "controller.client", "controller.zenoh_session", "controller.logs",
     "controller.cli",
+    # the users file and the client-side Zenoh credentials (the dashboard gives each user of
+    # an auth directory a URL and logs in as them)
+    "controller.auth",
 )
 
 

@@ -1,0 +1,101 @@
+"""The Fleet tab in headless Chromium (issue 16): a router with two simulated rigs
+(`dobtune demo --rigs 2`'s processes) and a dashboard with the fleet overview. What a user
+sees: a row per rig with its state and a live error trace that moves; E-STOP of one rig from
+the overview stops that rig (its row says so), the other runs on.
+"""
+
+from __future__ import annotations
+
+import socket
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import CHROMIUM, CHROMIUM_ARGS, CONTROLLER_START_S, FIRST_LOAD_S, free_port
+
+from server.app import Dashboard, DashboardOptions
+from server.demo import DemoOptions, fleet_processes
+
+pytestmark = pytest.mark.browser
+
+ROWS_JS = """() => Array.from(document.querySelectorAll('.dt-fleet-row')).map(r => [
+  r.dataset.rig, r.querySelector('.dt-fleet-mode').innerText,
+  r.querySelector('.dt-spark')?.getAttribute('points') || ''])"""
+
+
+def _free_run(n: int) -> int:
+    """A port p with p .. p+n free."""
+    while True:
+        p = free_port()
+        if p + n >= 65000:
+            continue
+        ok = True
+        for i in range(1, n + 1):
+            with socket.socket() as s:
+                try:
+                    s.bind(("127.0.0.1", p + i))
+                except OSError:
+                    ok = False
+                    break
+        if ok:
+            return p
+
+
+def _wait(cond: Any, timeout_s: float, what: str) -> None:
+    end = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < end, what
+        time.sleep(0.05)
+
+
+@pytest.fixture(scope="module")
+def fleet() -> Iterator[Dashboard]:
+    base = _free_run(2)
+    with tempfile.TemporaryDirectory() as root, fleet_processes(
+            DemoOptions(zenoh_port=base, rigs=2, log_level="warning"), Path(root)):
+        opts = DashboardOptions(connect=(f"tcp/127.0.0.1:{base}",), rig_name="rig1",
+                                port=free_port(), verbose=False, fleet=True)
+        with Dashboard(opts) as dash:
+            mon = dash._fleet_monitor
+            assert mon is not None
+            _wait(lambda: [(r.rig, r.mode) for r in mon.rows()]
+                  == [("rig1", "running"), ("rig2", "running")],
+                  CONTROLLER_START_S, "the two rigs did not come up")
+            yield dash
+
+
+def test_the_fleet_tab_shows_every_rig_and_stops_one(fleet: Dashboard, artifacts: Path) -> None:
+    if not CHROMIUM.exists():
+        pytest.fail(f"{CHROMIUM} missing: run `bash .ci/setup --browser`")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS,
+                                    timeout=FIRST_LOAD_S * 1000)
+        try:
+            page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            page.goto(fleet.url, wait_until="domcontentloaded", timeout=FIRST_LOAD_S * 1000)
+            page.wait_for_selector(".dt-banner", timeout=FIRST_LOAD_S * 1000)
+            page.get_by_role("tab", name="Fleet").click()
+            page.wait_for_function(f"() => ({ROWS_JS})().length === 2", timeout=20_000)
+            rows = page.evaluate(ROWS_JS)
+            assert [(r[0], r[1]) for r in rows] == [("rig1", "running"), ("rig2", "running")]
+            assert all(r[2].count(",") > 100 for r in rows)  # a trace of >100 points each
+            # The traces move (what is drawn changes, not only what was sent).
+            page.wait_for_function(
+                f"(a) => JSON.stringify(({ROWS_JS})()) !== JSON.stringify(a)", arg=rows,
+                timeout=10_000)
+            page.screenshot(path=str(artifacts / "fleet_1_overview.png"))
+            assert fleet.fleet is not None and str(fleet.fleet.pick.value) == "rig1"
+            page.get_by_role("button", name="E-STOP this rig").click()
+            page.wait_for_function(
+                f"() => ({ROWS_JS})().map(r => r[1]).join() === 'estop,running'",
+                timeout=15_000)
+            page.wait_for_selector(".dt-fleet-result >> text=E-STOP sent to rig1",
+                                   timeout=10_000)
+            page.screenshot(path=str(artifacts / "fleet_2_estop_one.png"))
+        finally:
+            browser.close()
