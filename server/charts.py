@@ -521,3 +521,74 @@ def identify_data(
         "identify_phase": (x, *phase, fit_phase),
         "identify_coherence": (x, *coh),
     }
+
+
+# -- Nyquist -------------------------------------------------------------------------------------
+
+#: The Nyquist view shows |L| <= this radius (the loop's integrators send L to infinity at
+#: low frequency; what matters for margins is near the unit circle and -1).
+NYQUIST_RADIUS = 3.0
+
+
+def open_loop_response(c: BodeCurves) -> npt.NDArray[np.complex128]:
+    """L on the grid, back from the drawn magnitude (dB) and unwrapped phase (deg)."""
+    return np.asarray(10.0 ** (c.open_loop_db / 20.0) * np.exp(
+        1j * np.deg2rad(c.open_loop_phase_deg)), dtype=np.complex128)
+
+
+def nyquist_segments(c: BodeCurves, radius: float = NYQUIST_RADIUS,
+                     ) -> list[npt.NDArray[np.complex128]]:
+    """The runs of consecutive grid points of L inside |L| <= radius (one polyline each)."""
+    z = open_loop_response(c)
+    inside = np.isfinite(z) & (np.abs(z) <= radius)
+    segments, start = [], None
+    for i, ok in enumerate(inside):
+        if ok and start is None:
+            start = i
+        elif not ok and start is not None:
+            segments.append(z[start:i])
+            start = None
+    if start is not None:
+        segments.append(z[start:])
+    return [s for s in segments if len(s) >= 2]
+
+
+def nyquist_svg(cand: BodeCurves, active: BodeCurves | None, size: int = 560,
+                radius: float = NYQUIST_RADIUS) -> str:
+    """The speed loop's Nyquist plot (positive frequencies) as inline SVG: candidate and
+    active, the unit circle, the critical point -1 and the points where PM and GM are read."""
+    half = size / 2.0
+    k = (half - 12.0) / radius
+
+    def xy(z: complex) -> str:
+        return f"{half + k * z.real:.1f},{half - k * z.imag:.1f}"
+
+    parts = [f"<svg class='dt-nyquist' width='{size}' height='{size}' "
+             f"viewBox='0 0 {size} {size}' style='background:#fff'>",
+             f"<line x1='0' y1='{half}' x2='{size}' y2='{half}' stroke='#ddd'/>",
+             f"<line x1='{half}' y1='0' x2='{half}' y2='{size}' stroke='#ddd'/>",
+             f"<circle cx='{half}' cy='{half}' r='{k:.1f}' fill='none' stroke='#999' "
+             "stroke-dasharray='4 3'/>"]
+    for curves, color, cls, dash in ((active, ACTIVE, "dt-nyq-active", "6 4"),
+                                     (cand, CANDIDATE, "dt-nyq-cand", "")):
+        if curves is None:
+            continue
+        for seg in nyquist_segments(curves, radius):
+            pts = " ".join(xy(complex(z)) for z in seg)
+            parts.append(f"<polyline class='{cls}' fill='none' stroke='{color}' "
+                         f"stroke-width='1.5' stroke-dasharray='{dash}' points='{pts}'/>")
+    z = open_loop_response(cand)
+    for marks, color, label in ((cand.gain_crossover_marks, "#2ca02c", "PM"),
+                                (cand.phase_crossover_marks, "#9467bd", "GM")):
+        idx = np.flatnonzero(np.isfinite(marks))
+        for i in idx[::2]:  # one per crossing (the first of its two points)
+            if abs(z[i]) <= radius:
+                cx, cy = xy(complex(z[i])).split(",")
+                parts.append(f"<circle class='dt-nyq-{label.lower()}' cx='{cx}' cy='{cy}' r='4' "
+                             f"fill='{color}'><title>{label} read here</title></circle>")
+    cx, cy = xy(-1.0 + 0j).split(",")
+    parts.append(f"<text class='dt-nyq-critical' x='{cx}' y='{cy}' fill='#d62728' "
+                 "font-size='18' text-anchor='middle' dominant-baseline='central'>+</text>")
+    parts.append(f"<text x='8' y='16' font-size='12' fill='#555'>Nyquist, speed loop L "
+                 f"(|L| &le; {radius:g}; unit circle dashed; + = -1)</text></svg>")
+    return "".join(parts)

@@ -117,3 +117,24 @@ def test_no_bode_column_starts_with_a_gap() -> None:
             assert np.isfinite(col[0]), (key, i)
     measured = cmp.chart_data["small_gain"][4]  # no measured response: nothing to draw
     assert np.isnan(measured[1:]).all()
+
+
+def test_nyquist_is_the_open_loop_inside_the_window() -> None:
+    """The Nyquist view's points are L itself (python-control's frequency response of the
+    same loop is the reference through the gate's analysis), clipped to |L| <= the radius,
+    and the critical point, the unit circle and both margin points are drawn."""
+    from server.engine import TuningEngine
+
+    eng = TuningEngine()
+    cfg = LoopConfig()
+    c = eng.evaluate(cfg).curves
+    a = analyse(cfg, eng.plant, freq_hz=c.freq_hz)
+    z = charts.open_loop_response(c)
+    np.testing.assert_allclose(z, a.open_loop, rtol=1e-9)  # back from dB and degrees
+    segments = charts.nyquist_segments(c)
+    inside = np.abs(a.open_loop) <= charts.NYQUIST_RADIUS
+    assert sum(len(s) for s in segments) == int(inside.sum()) > 20
+    assert all(np.all(np.abs(s) <= charts.NYQUIST_RADIUS) for s in segments)
+    svg = charts.nyquist_svg(c, c)
+    assert svg.count("dt-nyq-cand") == len(segments) and "dt-nyq-critical" in svg
+    assert "dt-nyq-pm" in svg  # |L| = 1 lies on the unit circle, inside the window

@@ -210,6 +210,7 @@ class TuningPanel:
         self._marks: tuple[tuple[float, str], ...] = ()
         self._preview_chart: Any = None
         self._steps_chart: Any = None
+        self.nyquist: Any = None
         self._loaded: LoopConfig | None = None
         self._worker = LatestWins(self._update, name="tuning-update")
         self._preview_worker = LatestWins(
@@ -273,6 +274,7 @@ class TuningPanel:
                                       charts.STEP_CHART.placeholder([0.0, 1.0]))
         for spec in charts.BODE_CHARTS:
             self._charts[spec.key] = add_chart(gui, spec, spec.placeholder(self.engine.freq_hz))
+        self.nyquist = gui.add_html("<div class='dt-nyquist-box'></div>")
 
     def start(self) -> None:
         self._worker.start()
@@ -463,6 +465,9 @@ class TuningPanel:
         cmp = self.engine.compare(cand, self.active)
         for key, handle in self._charts.items():
             handle.data = cmp.chart_data[key]
+        if self.nyquist is not None:
+            set_html(self.nyquist, "<div class='dt-nyquist-box'>" + charts.nyquist_svg(
+                cmp.candidate.curves, cmp.active.curves) + "</div>")
         ev = cmp.candidate
         set_html(self.verdict, format_gate_html(ev))
         set_html(self.diff_text, diff_html(cand, self.active, self.active_version))

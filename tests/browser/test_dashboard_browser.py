@@ -80,6 +80,10 @@ def test_page_loads(page: Any, dashboard: Dashboard, artifacts: Path) -> None:
       return -1;
     }""")
     assert marks > 0
+    # The Nyquist view: the candidate's loop drawn, the critical point, the PM point.
+    page.wait_for_selector(".dt-nyquist polyline.dt-nyq-cand", state="attached", timeout=20_000)
+    assert page.locator(".dt-nyquist .dt-nyq-critical").count() == 1
+    assert page.locator(".dt-nyquist .dt-nyq-pm").count() >= 1
     page.screenshot(path=str(artifacts / "browser_1_loaded.png"))
     assert "Connected" in _text(page, ".dt-banner")
 

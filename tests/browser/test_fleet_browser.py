@@ -6,6 +6,7 @@ the overview stops that rig (its row says so), the other runs on.
 
 from __future__ import annotations
 
+import re
 import socket
 import tempfile
 import time
@@ -89,7 +90,15 @@ def test_the_fleet_tab_shows_every_rig_and_stops_one(fleet: Dashboard, artifacts
                 f"(a) => JSON.stringify(({ROWS_JS})()) !== JSON.stringify(a)", arg=rows,
                 timeout=10_000)
             page.screenshot(path=str(artifacts / "fleet_1_overview.png"))
-            assert fleet.fleet is not None and str(fleet.fleet.pick.value) == "rig1"
+            # Choose rig1 as a user does (the default is whichever rig appeared first).
+            label = page.locator("label").filter(has_text=re.compile(r"^Rig$")).first
+            box = page.locator(f"[id='{label.get_attribute('for')}']")
+            (box if box.evaluate("e => e.tagName") == "INPUT" else box.locator("input")).first \
+                .click()
+            page.get_by_role("option", name="rig1", exact=True).click()
+            panel = fleet.fleet
+            assert panel is not None
+            _wait(lambda: str(panel.pick.value) == "rig1", 10.0, "the choice never arrived")
             page.get_by_role("button", name="E-STOP this rig").click()
             page.wait_for_function(
                 f"() => ({ROWS_JS})().map(r => r[1]).join() === 'estop,running'",
