@@ -319,9 +319,12 @@ class Runtime:
         arrival = getattr(self._arrival_local, "arrival", None)
         if arrival is None:
             arrival = self.next_arrival()
-        ticket = Ticket(body, self.seq, arrival)
         if isinstance(body, EStop):
+            # Armed first, then stamped: received_seq is the tick during which the loop could
+            # first see it (a request thread preempted between the two, as happens on a loaded
+            # machine, used to stamp a tick or two earlier than the e-stop was armed).
             self.estop("command", arrival)
+        ticket = Ticket(body, self.seq, arrival)
         self._inbox.append(ticket)
         return ticket
 
