@@ -1,8 +1,10 @@
 """The dashboard: a viser app that joins one controller's Zenoh session.
 
-Built once at start (shared GUI: every browser sees the same candidate and the same live
-state); afterwards worker threads only assign new data to existing handles. The HTTP server
-binds 127.0.0.1 unless told otherwise, and share tunnels are disabled.
+Built once at start: the live state, the identification, the history and the fleet are shared
+GUI (every browser sees the same); the tuning candidate (its controls, verdict and charts) is
+per browser, built into that browser's `client.gui` when it connects, so two engineers never
+edit one candidate. Afterwards worker threads only assign new data to existing handles. The
+HTTP server binds 127.0.0.1 unless told otherwise, and share tunnels are disabled.
 
 Who acts. Without authentication, or with `--auth` and one `--user`, every browser acts as
 the dashboard's one identity. With `--auth DIR` and no `--user`, each user of `DIR/users.toml`
@@ -29,6 +31,7 @@ from typing import Any, NoReturn, TypeVar
 from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig
+from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import MeasuredResponse
 from server.engine import TuningEngine, measured_from_csv
 from server.fleet import FleetMonitor, FleetPanel
@@ -36,6 +39,7 @@ from server.gate import ESTOP_LINK_HTML, Gate, Refused
 from server.measured import read_measured
 from server.panels.identify import IdentifyPanel, NominalTuningPanel
 from server.panels.live import LivePanel
+from server.panels.tuning import config_diff_html
 from server.panels.widgets import esc
 from server.scene3d import TurntableScene
 from server.workers import Requests, run_logged
@@ -158,7 +162,13 @@ class Dashboard:
         self._history_version = -1
         self._history: dict[int, LoopConfig] = {}
         self._requests = Requests(max_workers=2, name="ctl-request")
-        self.tuning: NominalTuningPanel | None = None
+        self.panels: dict[int, NominalTuningPanel] = {}
+        """The candidate panels, one per browser (viser client id; -1: built on the shared
+        GUI by `panel_in` without a browser, as scripts and tests do)."""
+        self._panels_lock = threading.Lock()
+        self.active: LoopConfig | None = None
+        self.active_version: int | None = None
+        self.trajectory: Trajectory | None = None
         self.identify: IdentifyPanel | None = None
         self.live: LivePanel | None = None
         self.scene: TurntableScene | None = None
@@ -202,7 +212,9 @@ class Dashboard:
         self._close()
 
     def _close(self) -> None:
-        for panel in (self.live, self.tuning, self.identify, self.fleet):
+        with self._panels_lock:
+            panels, self.panels = list(self.panels.values()), {}
+        for panel in (self.live, *panels, self.identify, self.fleet):
             if panel is not None:
                 panel.stop()
         if self._fleet_monitor is not None:
@@ -327,8 +339,9 @@ class Dashboard:
                             brand_color=(31, 119, 180))
         gui.set_panel_label("dobtune")
         self.scene = TurntableScene(server.scene)
-        tuning = NominalTuningPanel(gui, self.engine, self._apply_async)
-        self.identify = IdentifyPanel(gui, tuning, add_measured=self._add_identified,
+        self.identify = IdentifyPanel(gui, self.panel_of,
+                                      config_fn=lambda: self.active or LoopConfig(),
+                                      add_measured=self._add_identified,
                                       client=self.client, client_for=self.client_for,
                                       leased=self.leased)
         live = LivePanel(
@@ -336,19 +349,20 @@ class Dashboard:
             on_frame=self._on_frame, rate_hz=self.opts.live_rate_hz,
             max_points=self.opts.live_max_points,
         )
-        self.tuning, self.live = tuning, live
+        self.live = live
 
         gui.add_html(_asset("header.html", "<b>dobtune</b>"))
         live.build_banner()
         live.build_estop()
         tabs = gui.add_tab_group()
-        with tabs.add_tab("Tune"):
-            tuning.build_controls()
+        with tabs.add_tab("Tune") as self.tune_tab:
+            # Shared, below each browser's own candidate controls (built when it connects).
             upload = gui.add_upload_button("Upload measured responses (CSV)",
-                                           mime_type="text/csv,.csv", color="gray")
+                                           mime_type="text/csv,.csv", color="gray",
+                                           order=_LAST)
             self.measured_text = gui.add_html(
                 "<div class='dt-measured' style='font-size:12px;color:#555'>No measured "
-                "responses: 1/|Delta| is the stated bound.</div>")
+                "responses: 1/|Delta| is the stated bound.</div>", order=_LAST + 1)
             upload.on_upload(self._on_upload)
         with tabs.add_tab("Live"):
             live.build_controls()
@@ -364,16 +378,22 @@ class Dashboard:
         with tabs.add_tab("History"):
             self.history_html = gui.add_html("<div class='dt-history'>No history yet.</div>")
             self.history_pick = gui.add_dropdown("Version", ("-",), initial_value="-")
+            self.history_other = gui.add_dropdown(
+                "Compare with", ("-",), initial_value="-",
+                hint="the fields in which Version differs from this one")
+            self.version_diff = gui.add_html("<div class='dt-version-diff'></div>")
             use = gui.add_button("Use as candidate", color="gray",
                                  hint="load that version into the controls; Apply sends it "
                                  "through the gate like any candidate")
-            use.on_click(lambda _e: self._use_version())
+            use.on_click(lambda e: self._use_version(e.client))
+            self.history_pick.on_update(lambda _e: self._show_version_diff())
+            self.history_other.on_update(lambda _e: self._show_version_diff())
         with tabs.add_tab("Help"):
             gui.add_markdown(_asset("help.md", "Help texts are missing (web_assets/help.md)."))
 
         plots = gui.add_panel()
-        with plots.add_tab("Bode"):
-            tuning.build_charts()
+        with plots.add_tab("Bode") as self.bode_tab:
+            pass  # each browser's candidate charts, built when it connects
         with plots.add_tab("Live traces"):
             live.build_charts()
         with plots.add_tab("Identify"):
@@ -385,11 +405,60 @@ class Dashboard:
 
         server.on_client_connect(self._on_client_connect)
         server.on_client_disconnect(self._on_client_disconnect)
-        tuning.start()
         live.start()
         if self.fleet is not None:
             self.fleet.start()
         self._requests.submit(self._fetch_active)
+
+    # -- the candidates, one per browser --------------------------------------------------------
+
+    def panel_in(self, gui: Any, browser: Any = None) -> NominalTuningPanel:
+        """A candidate panel of its own in `gui` (a browser's `client.gui`; or the shared GUI
+        without a browser): controls in the Tune tab, charts in the Bode tab, started on the
+        active configuration when it is known."""
+        t = NominalTuningPanel(gui, self.engine, self._apply_async)
+        with self.tune_tab:
+            t.build_controls()
+        with self.bode_tab:
+            t.build_charts()
+        key = getattr(browser, "client_id", -1)
+        with self._panels_lock:
+            old = self.panels.pop(key, None)
+            self.panels[key] = t
+            if self.active is not None:
+                t.set_active(self.active, self.active_version)
+            if self.trajectory is not None:
+                t.set_trajectory(self.trajectory)
+        if old is not None:
+            old.stop()
+        t.start()
+        return t
+
+    def panel_of(self, browser: Any) -> NominalTuningPanel | None:
+        """The candidate panel of `browser` (None: the one built without a browser)."""
+        with self._panels_lock:
+            return self.panels.get(getattr(browser, "client_id", -1))
+
+    def _each_panel(self) -> list[NominalTuningPanel]:
+        with self._panels_lock:
+            return list(self.panels.values())
+
+    def _set_active(self, cfg: LoopConfig, version: int,
+                    trajectory: Trajectory | None = None) -> None:
+        """The controller's active configuration (and trajectory), to every candidate panel."""
+        with self._panels_lock:
+            self.active, self.active_version = cfg, version
+            if trajectory is not None:
+                self.trajectory = trajectory
+            panels = list(self.panels.values())
+        for t in panels:
+            t.set_active(cfg, version)
+            if trajectory is not None:
+                t.set_trajectory(trajectory)
+
+    def _update_panels(self) -> None:
+        for t in self._each_panel():
+            t.request_update()
 
     # -- wiring ------------------------------------------------------------------------------
 
@@ -412,11 +481,16 @@ class Dashboard:
                     f"<b>{esc(user)}</b>, {esc(role)}{note}</div>")
                 if role == "operator":
                     self._requests.submit(self._open_acting, user)
+        self.panel_in(client.gui, client)
         client.camera.position = (0.75, -0.85, 0.75)
         client.camera.look_at = (0.15, 0.0, 0.05)
 
     def _on_client_disconnect(self, client: Any) -> None:
         self._browser_users.pop(client.client_id, None)
+        with self._panels_lock:
+            t = self.panels.pop(client.client_id, None)
+        if t is not None:
+            t.stop()
 
     def _fetch_active(self) -> None:
         try:
@@ -424,9 +498,7 @@ class Dashboard:
         except (ControllerUnavailable, proto.ProtocolError) as exc:
             log.warning("active config not fetched (the first status will bring it): %s", exc)
             return
-        if self.tuning is not None:
-            self.tuning.set_active(reply.config, reply.version)
-            self.tuning.revert(say=False)
+        self._set_active(reply.config, reply.version)
 
     def _fetch_history(self) -> None:
         try:
@@ -455,15 +527,30 @@ class Dashboard:
         options = tuple(f"v{v}" for v in sorted(self._history, reverse=True)) or ("-",)
         self.history_pick.options = options
         self.history_pick.value = options[0]
+        self.history_other.options = options
+        self.history_other.value = options[min(1, len(options) - 1)]
+        self._show_version_diff()
 
-    def _use_version(self) -> None:
-        t = self.tuning
+    def _show_version_diff(self) -> None:
+        """The difference between the two versions chosen in the History tab."""
+        a, b = str(self.history_other.value), str(self.history_pick.value)
+        old = self._history.get(int(a[1:])) if a.startswith("v") else None
+        new = self._history.get(int(b[1:])) if b.startswith("v") else None
+        if old is None or new is None:
+            self.version_diff.content = "<div class='dt-version-diff'></div>"
+            return
+        self.version_diff.content = config_diff_html(old, new, a, b, cls="dt-version-diff")
+
+    def _use_version(self, browser: Any = None) -> None:
+        """Load the chosen version into the candidate of the browser that asked."""
+        t = self.panel_of(browser)
         value = str(self.history_pick.value)
         if t is None or not value.startswith("v"):
             return
         cfg = self._history.get(int(value[1:]))
         if cfg is not None:
-            t.load(cfg, say_text=f"Loaded {value} from the history as the candidate.")
+            t.load(cfg, self.active_version,
+                   say_text=f"Loaded {value} from the history as the candidate.")
 
     def _on_status(self, st: proto.Status) -> None:
         if st.config_version != self._history_version:
@@ -472,21 +559,15 @@ class Dashboard:
         if st.knowledge_version != self._knowledge_version:
             self._knowledge_version = st.knowledge_version
             self._requests.submit(self._fetch_knowledge)
-        t = self.tuning
-        if t is None:
-            return
-        first = t.active_version is None
-        t.set_active(st.config, st.config_version)
-        t.set_trajectory(st.trajectory)
-        if first:
-            t.revert(say=False)
+        self._set_active(st.config, st.config_version, st.trajectory)
 
     def _on_frame(self, latest: dict[str, float] | None) -> None:
         if latest is not None and self.scene is not None:
             self.scene.update(latest["pos_deg"], latest["ref_deg"])
 
-    def _apply_async(self, cand: LoopConfig, confirm: bool = False, browser: Any = None) -> None:
-        self._requests.submit(self._apply, cand, confirm, browser)
+    def _apply_async(self, panel: NominalTuningPanel, cand: LoopConfig, confirm: bool = False,
+                     browser: Any = None) -> None:
+        self._requests.submit(self._apply, panel, cand, confirm, browser)
 
     def _fetch_knowledge(self) -> None:
         """The controller's plant knowledge: the dashboard judges on nothing else."""
@@ -498,8 +579,7 @@ class Dashboard:
             self._knowledge_version = -1  # try again with the next status
             return
         log.info("plant knowledge v%d fetched (%s)", reply.record.version, reply.record.source)
-        if self.tuning is not None:
-            self.tuning.request_update()
+        self._update_panels()
 
     @staticmethod
     def leased(client: ControllerClient, act: Callable[[], R]) -> R:
@@ -519,12 +599,14 @@ class Dashboard:
                 reply = act()
         return reply
 
-    def _apply(self, cand: LoopConfig, confirm: bool = False, browser: Any = None) -> None:
-        t = self.tuning
-        assert t is not None
+    def _apply(self, t: NominalTuningPanel, cand: LoopConfig, confirm: bool = False,
+               browser: Any = None) -> None:
+        """Send `t`'s candidate, made against `t.base_version` (the controller refuses it if
+        the active version has moved on), and show the reply on `t`."""
+        expect = t.base_version
         try:
             c = self.client_for(browser, "apply")
-            reply = self.leased(c, lambda: c.apply(cand, confirm=confirm))
+            reply = self.leased(c, lambda: c.apply(cand, confirm=confirm, expect_version=expect))
         except Refused:
             return  # logged, and told to the browser that asked (only)
         except (ControllerUnavailable, proto.ProtocolError) as exc:
@@ -534,7 +616,9 @@ class Dashboard:
         log.info("apply: %s, version %d", "accepted" if reply.accepted else "rejected",
                  reply.version)
         t.show_reply(reply.accepted, reply.version, list(reply.reasons))
-        t.set_active(reply.config, reply.version)
+        self._set_active(reply.config, reply.version)
+        if reply.accepted:
+            t.rebase(reply.config, reply.version)
 
     def _command_async(self, body: proto.CommandBody, browser: Any = None) -> None:
         if isinstance(body, proto.EStop):
@@ -588,8 +672,7 @@ class Dashboard:
                 f"{esc(str(exc))}</div>")
             return
         self._add_measured(measured, "CSV", browser)
-        if self.tuning is not None:
-            self.tuning.request_update()
+        self._update_panels()
 
     def _add_measured(self, m: MeasuredResponse, source: str, browser: Any = None) -> None:
         """Send the response to the controller for adoption into its plant knowledge: the
@@ -620,6 +703,10 @@ class Dashboard:
             f"<div class='dt-measured' style='font-size:12px'>plant knowledge "
             f"v{reply.record.version}: {n} measured response(s); last: {esc(m.name)} "
             f"({esc(source)}). The verdicts (here and in the controller) use them.</div>")
+
+
+#: viser's order of the shared elements that follow each browser's own ones in a tab.
+_LAST = 1e9
 
 
 def _command_html(text: str, ok: bool) -> str:

@@ -58,18 +58,18 @@ def test_two_dashboards_watch_one_controller_then_it_goes_away(tmp_path: Path) -
                 wait_for(lambda d=d: d.client.connected and d.client.ring.total > 500)
                 assert d.live is not None
                 wait_for(lambda d=d: "dt-ok" in d.live.banner.content)
-            assert a.tuning is not None and b.tuning is not None
-            wait_for(lambda: a.tuning.active_version == b.tuning.active_version == 1)
+            ta, tb = a.panel_in(a.server.gui), b.panel_in(b.server.gui)
+            wait_for(lambda: ta.active_version == tb.active_version == 1)
             # Upload a measured response (the nominal model, 10 % high) into one dashboard.
             f = np.geomspace(0.1, 20, 40)
             csv = tmp_path / "frf.csv"
             write_frd_csv(csv, f, 1.1 * nominal_continuous_response(NominalModel(), f))
             a._load_measured("frf.csv", csv.read_bytes())
             assert len(a.engine.measured) == 1
-            assert a.tuning.wait_preview_idle(30.0)
-            a.tuning.request_update()
-            assert a.tuning.wait_idle(5.0)
-            ev = a.tuning.last_evaluation
+            assert ta.wait_preview_idle(30.0)
+            ta.request_update()
+            assert ta.wait_idle(5.0)
+            ev = ta.last_evaluation
             assert ev is not None and ev.curves.inv_delta_measured_db is not None
             assert np.isfinite(ev.gate.margins["small_gain_peak"])
             # The controller goes away: both show the banner.
@@ -134,11 +134,18 @@ def test_history_lists_versions_and_loads_one_as_the_candidate(tmp_path: Path) -
             reply = d.client.apply(first.config.with_(q_cutoff_hz=0.8, cv_kp=0.5))
             assert reply.accepted, reply.reasons
             wait_for(lambda: "v2" in d.history_html.content and "v1" in d.history_html.content)
+            # The History tab shows the difference between any two versions (newest vs the one
+            # before by default).
+            wait_for(lambda: "q_cutoff_hz" in d.version_diff.content)
+            diff = d.version_diff.content
+            assert "v2 vs v1" in diff and "q_cutoff_hz: 0.5 &rarr; <b>0.8</b>" in diff
+            assert "rate_hz" not in d.version_diff.content
+            d.history_other.value = "v2"
+            wait_for(lambda: "same as v2" in d.version_diff.content)
             h = d.client.history(10)
             assert [e.version for e in h.entries] == [1, 2] and h.entries[1].verdict == "accept"
             assert h.entries[1].config.q_cutoff_hz == 0.8
-            t = d.tuning
-            assert t is not None
+            t = d.panel_in(d.server.gui)
             wait_for(lambda: t.active_version == 2)
             d.history_pick.value = "v1"
             d._use_version()

@@ -61,8 +61,9 @@ def dash() -> Iterator[Dashboard]:
         port=free_port(), connect=(f"tcp/127.0.0.1:{free_port()}",), verbose=False
     )
     with Dashboard(opts) as d:
-        assert d.tuning is not None and d.identify is not None
-        assert d.tuning.wait_preview_idle(30.0)
+        t = d.panel_in(d.server.gui)  # a candidate panel without a browser
+        assert d.identify is not None
+        assert t.wait_preview_idle(30.0)
         yield d
 
 
@@ -116,10 +117,10 @@ def test_short_identification_fills_charts_and_shows_fit_and_cutoffs(
 def test_use_as_nominal_changes_candidate_and_reevaluates_without_apply(
     dash: Dashboard, short_run: IdentifyPanel,
 ) -> None:
-    t = dash.tuning
+    t = dash.panel_of(None)
     assert isinstance(t, NominalTuningPanel)
     applied: list[LoopConfig] = []
-    t._apply_fn = lambda c, _confirm=False, _browser=None: applied.append(c)
+    t._apply_fn = lambda _panel, c, _confirm=False, _browser=None: applied.append(c)
     assert t.wait_idle(5.0)
     r = short_run.result
     assert r is not None and r.nominal is not None
@@ -258,6 +259,7 @@ def remote_dash() -> Iterator[Dashboard]:
             opts = DashboardOptions(connect=(endpoint,), rig_name="idtest", port=free_port(),
                                     verbose=False)
             with Dashboard(opts) as d:
+                d.panel_in(d.server.gui)  # a candidate panel without a browser
                 wait_for(lambda: d.client.status is not None
                          and d.client.status.mode == "running", 30.0)
                 yield d
@@ -268,11 +270,11 @@ def remote_dash() -> Iterator[Dashboard]:
 @pytest.mark.integration
 def test_short_identification_on_the_controller(remote_dash: Dashboard) -> None:
     d = remote_dash
-    p, t = d.identify, d.tuning
+    p, t = d.identify, d.panel_of(None)
     assert p is not None and isinstance(t, NominalTuningPanel)
     assert p.settings().where == WHERE_CONTROLLER  # the default when a controller is known
     applied: list[LoopConfig] = []
-    t._apply_fn = lambda c, _confirm=False, _browser=None: applied.append(c)
+    t._apply_fn = lambda _panel, c, _confirm=False, _browser=None: applied.append(c)
     before = d.client.get_config()
     t0 = time.perf_counter()
     assert p.start(dataclasses.replace(SHORT, where=WHERE_CONTROLLER))

@@ -33,13 +33,14 @@ def dash() -> Iterator[Dashboard]:
         port=free_port(), connect=(f"tcp/127.0.0.1:{free_port()}",), verbose=False
     )
     with Dashboard(opts) as d:
-        assert d.tuning is not None
-        assert d.tuning.wait_preview_idle(30.0)
+        t = d.panel_in(d.server.gui)  # a candidate panel without a browser
+        assert d.panel_of(None) is t
+        assert t.wait_preview_idle(30.0)
         yield d
 
 
 def test_slider_move_updates_plots_margins_verdict_within_50_ms(dash: Dashboard) -> None:
-    t = dash.tuning
+    t = dash.panel_of(None)
     assert t is not None
     times = []
     for k, log_hz in enumerate(np.linspace(-1.0, 0.6, 25)):
@@ -63,7 +64,7 @@ def test_slider_move_updates_plots_margins_verdict_within_50_ms(dash: Dashboard)
 
 
 def test_typing_the_cutoff_in_hz_moves_the_slider_and_reevaluates(dash: Dashboard) -> None:
-    t = dash.tuning
+    t = dash.panel_of(None)
     assert t is not None
     before = t.update_count
     t.cutoff_hz_input.value = "2.5"  # what typing in the Hz box does
@@ -84,7 +85,7 @@ def test_typing_the_cutoff_in_hz_moves_the_slider_and_reevaluates(dash: Dashboar
 @pytest.mark.parametrize("typed, hz", [("2e-1", 0.2), ("1.5e1", 15.0), ("0.5", 0.5),
                                        (" 0.2 ", 0.2)])
 def test_typed_cutoffs_are_taken_as_typed(dash: Dashboard, typed: str, hz: float) -> None:
-    t = dash.tuning
+    t = dash.panel_of(None)
     assert t is not None
     t.cutoff_hz_input.value = typed
     assert t.wait_idle(2.0)
@@ -100,7 +101,7 @@ def test_a_cutoff_being_typed_or_out_of_range_is_said_not_rewritten(
     dash: Dashboard, typed: str
 ) -> None:
     """"0" is how "0.2" starts: it is reported (invalid candidate) and left as typed."""
-    t = dash.tuning
+    t = dash.panel_of(None)
     assert t is not None
     t.cutoff_hz_input.value = typed
     assert t.wait_idle(2.0)
@@ -112,7 +113,7 @@ def test_a_cutoff_being_typed_or_out_of_range_is_said_not_rewritten(
 
 
 def test_rejected_candidate_is_highlighted(dash: Dashboard) -> None:
-    t = dash.tuning
+    t = dash.panel_of(None)
     assert t is not None
     t.cv_kp.value = 3.0
     assert t.wait_idle(2.0)

@@ -233,7 +233,7 @@ class IdentifyPanel:
     def __init__(
         self,
         gui: Any,
-        tuning: NominalTuningPanel | None,
+        tuning_for: Callable[[Any], NominalTuningPanel | None] | None,
         config_fn: Callable[[], LoopConfig] | None = None,
         rig_factory: Callable[[LoopConfig, int], RigLike] | None = None,
         add_measured: Callable[[MeasuredResponse, Any], None] | None = None,
@@ -241,14 +241,14 @@ class IdentifyPanel:
         client_for: Callable[[Any, str], ControllerClient] | None = None,
         leased: Callable[[ControllerClient, Callable[[], Any]], Any] | None = None,
     ) -> None:
-        """`client`: the controller (None: offline only); `client_for(browser, action)`: the
+        """`tuning_for(browser)`: the candidate panel of that browser ("Use as nominal model"
+        puts the fit there); `config_fn()`: the active configuration (the offline run's loop).
+        `client`: the controller (None: offline only); `client_for(browser, action)`: the
         client that acts for a browser (raises `Refused`); `leased(client, act)`: `act()`
         under that client's operator lease. Without them, `client` acts as it is."""
         self.gui = gui
-        self.tuning = tuning
-        self._config_fn = config_fn or (
-            (lambda: tuning.active) if tuning is not None else LoopConfig
-        )
+        self._tuning_for = tuning_for
+        self._config_fn = config_fn or LoopConfig
         self._rig_factory = rig_factory or _sim_rig
         self._add_measured = add_measured
         self.client = client
@@ -454,17 +454,22 @@ class IdentifyPanel:
                 "<div class='dt-id-use' style='color:#d62728;font-size:12px'>No complete "
                 "identification with a usable fit: nothing to use.</div>")
             return False
-        if self.tuning is None:
+        tuning = self._tuning_for(browser) if self._tuning_for is not None else None
+        if tuning is None:
+            self.use_result.content = (
+                "<div class='dt-id-use' style='color:#d62728;font-size:12px'>This browser has "
+                "no tuning candidate to put the fit into.</div>")
             return False
         if self._add_measured is not None:
             for m in view.measured:
                 self._add_measured(dataclasses.replace(m, name=f"identify {m.name}"), browser)
-        self.tuning.set_nominal(view.nominal)
+        tuning.set_nominal(view.nominal)
         fit = view.fit
         wn = f" (f<sub>n</sub> {fit.natural_freq_hz:.3f} Hz, &zeta; {fit.zeta:.3f})" if fit else ""
         self.use_result.content = (
             "<div class='dt-id-use dt-id-used' style='font-size:12px;border:2px solid #1f77b4;"
-            "padding:4px;border-radius:4px'>The tuning candidate now uses the fitted Mn Pn"
+            "padding:4px;border-radius:4px'>The tuning candidate of the browser that pressed "
+            "<i>Use as nominal model</i> now uses the fitted Mn Pn"
             f"{wn} and the measured responses. Check the verdict on the <b>Tune</b> tab; "
             "<b>Apply</b> there sends it (the controller's gate decides). Revert drops it."
             "</div>")

@@ -111,15 +111,22 @@ def cutoff_marks(rec_hz: float | None) -> tuple[tuple[float, str], ...]:
 
 def diff_html(cand: LoopConfig, active: LoopConfig, version: int | None) -> str:
     """The fields the candidate changes against the active configuration (always shown)."""
+    against = f"active v{version}" if version is not None else "the active configuration"
+    return config_diff_html(active, cand, against, "Candidate")
+
+
+def config_diff_html(old: LoopConfig, new: LoopConfig, old_label: str, new_label: str,
+                     cls: str = "dt-diff") -> str:
+    """The fields in which `new` differs from `old`, one per line (old &rarr; new)."""
     from controller.core.config import config_to_builtins
 
-    a, c = config_to_builtins(active), config_to_builtins(cand)
-    rows = [f"<li>{esc(k)}: {esc(str(a[k]))} &rarr; <b>{esc(str(c[k]))}</b></li>"
+    a, c = config_to_builtins(old), config_to_builtins(new)
+    rows = [f"<li>{esc(k)}: {esc(str(a.get(k)))} &rarr; <b>{esc(str(c[k]))}</b></li>"
             for k in c if c[k] != a.get(k)]
-    against = f"active v{version}" if version is not None else "the active configuration"
     if not rows:
-        return f"<div class='dt-diff' style='font-size:12px;color:#555'>Same as {against}.</div>"
-    return (f"<div class='dt-diff' style='font-size:12px'>Candidate vs {against}:"
+        return (f"<div class='{cls}' style='font-size:12px;color:#555'>{esc(new_label)}: same "
+                f"as {esc(old_label)}.</div>")
+    return (f"<div class='{cls}' style='font-size:12px'>{esc(new_label)} vs {esc(old_label)}:"
             f"<ul style='margin:2px 0 0 16px;padding:0'>{''.join(rows)}</ul></div>")
 
 
@@ -177,8 +184,16 @@ _SWITCHES = (("dob_on", "DOB on"), ("ff_on", "Velocity feedforward"))
 
 
 class TuningPanel:
-    """Controls, verdict, Apply/Revert (built into the current GUI container) and the Bode and
-    preview charts (built separately with `build_charts`, e.g. in another panel)."""
+    """One candidate: controls, verdict, Apply/Revert (built into the current GUI container)
+    and the Bode and preview charts (built separately with `build_charts`, e.g. in another
+    panel). The dashboard gives each browser a panel of its own (its `gui` is that browser's
+    `client.gui`): the candidate is per browser; the active configuration is shared.
+
+    The candidate is built on `base`, the configuration its controls were last loaded from
+    (the active one at a revert, or a version from the history), and carries `base_version`,
+    the active version it was made against: Apply sends it as `expect_version`, so the
+    controller refuses it if someone else applied in between, and the panel says so before.
+    """
 
     # The control handles (build_controls): the switches and gains are made from the tables.
     dob_on: Any
@@ -192,14 +207,19 @@ class TuningPanel:
         self,
         gui: Any,
         engine: TuningEngine,
-        apply_fn: Callable[[LoopConfig, bool, Any], None],
+        apply_fn: Callable[[TuningPanel, LoopConfig, bool, Any], None],
         initial: LoopConfig | None = None,
     ) -> None:
+        """`apply_fn(panel, candidate, confirm, browser)` sends a candidate (with
+        `panel.base_version` as the expected version) and shows the reply on `panel`."""
         self.gui = gui
         self.engine = engine
         self._apply_fn = apply_fn
         self.active: LoopConfig = initial or LoopConfig()
         self.active_version: int | None = None
+        self.base: LoopConfig = self.active
+        self.base_version: int | None = None
+        """The active version this candidate was made against (None: not known yet)."""
         self.trajectory = Trajectory()
         self._suppress = False
         self.last_update_s = 0.0
@@ -211,7 +231,6 @@ class TuningPanel:
         self._preview_chart: Any = None
         self._steps_chart: Any = None
         self.nyquist: Any = None
-        self._loaded: LoopConfig | None = None
         self._worker = LatestWins(self._update, name="tuning-update")
         self._preview_worker = LatestWins(
             self._run_preview, name="tuning-preview", debounce_s=0.08
@@ -254,6 +273,7 @@ class TuningPanel:
                                                  hint=g.hint))
             controls.append(getattr(self, g.attr))
         self.verdict = gui.add_html('<div class="dt-verdict">evaluating...</div>')
+        self.stale_text = gui.add_html('<div class="dt-stale"></div>')
         self.diff_text = gui.add_html('<div class="dt-diff"></div>')
         self.apply_button = gui.add_button("Apply candidate", color="green",
                                            hint="send to the controller; its gate decides")
@@ -307,10 +327,15 @@ class TuningPanel:
         return values
 
     def candidate(self) -> LoopConfig:
-        """The candidate from the controls on top of the active config (or of a version loaded
-        from the history, for the fields without a control); raises ConfigError."""
-        base = self._loaded if self._loaded is not None else self.active
-        return candidate_from_values(base, self.control_values())
+        """The candidate from the controls on top of `base` (the fields without a control come
+        from there); raises ConfigError."""
+        return candidate_from_values(self.base, self.control_values())
+
+    @property
+    def stale(self) -> bool:
+        """Made against an older active version than the controller's present one."""
+        return (self.base_version is not None and self.active_version is not None
+                and self.base_version != self.active_version)
 
     # -- events (GUI thread pool: short) -----------------------------------------------------
 
@@ -363,12 +388,25 @@ class TuningPanel:
         return self._worker.wait_idle(timeout_s) and self._preview_worker.wait_idle(timeout_s)
 
     def set_active(self, cfg: LoopConfig, version: int | None) -> None:
-        """The controller's active configuration changed (any dashboard may have applied it)."""
+        """The controller's active configuration changed (any browser or client may have
+        applied it). The candidate stays as it is (based on its version: the panel says so);
+        the first one known loads the controls."""
         if cfg == self.active and version == self.active_version:
             return
         self.active = cfg
         self.active_version = version
         self.active_text.content = self._active_html()
+        if self.base_version is None and version is not None:
+            self.load(cfg, version)
+        else:
+            set_html(self.stale_text, self._stale_html())
+            self.request_update()
+
+    def rebase(self, cfg: LoopConfig, version: int) -> None:
+        """This panel's own candidate became the active `version`: the candidate is now based
+        on it (the controls keep what they show)."""
+        self.base, self.base_version = cfg, version
+        set_html(self.stale_text, self._stale_html())
         self.request_update()
 
     def set_trajectory(self, traj: Trajectory) -> None:
@@ -397,7 +435,7 @@ class TuningPanel:
             self._confirm_caution(cand, ev.gate.reasons, browser)
             return
         self.apply_result.content = box("dt-apply", NEUTRAL, "Sending the candidate...")
-        self._apply_fn(cand, False, browser)
+        self._apply_fn(self, cand, False, browser)
 
     def _confirm_caution(self, cand: LoopConfig, reasons: tuple[str, ...], browser: Any) -> None:
         """A dialog (in the browser that asked) listing the reasons; only "Apply anyway"
@@ -406,7 +444,7 @@ class TuningPanel:
         def go(who: Any) -> None:
             self.apply_result.content = box("dt-apply", NEUTRAL,
                                             "Sending the candidate (confirmed)...")
-            self._apply_fn(cand, True, who)
+            self._apply_fn(self, cand, True, who)
 
         confirm(self.gui, browser, "Apply with caution?",
                 "The gate's verdict is <b>caution</b>:"
@@ -429,12 +467,15 @@ class TuningPanel:
 
     def revert(self, say: bool = True) -> None:
         """Set every control to the active configuration (no re-evaluation per control)."""
-        self.load(self.active, say_text="Reverted to the active configuration." if say else "")
+        self.load(self.active, self.active_version,
+                  say_text="Reverted to the active configuration." if say else "")
 
-    def load(self, a: LoopConfig, say_text: str = "") -> None:
+    def load(self, a: LoopConfig, version: int | None, say_text: str = "") -> None:
         """Set every control to `a` (a revert, or an older version from the history: it goes
-        through the gate like any candidate when applied)."""
-        self._loaded = None if a is self.active else a
+        through the gate like any candidate when applied), made against the active
+        `version`."""
+        self.base, self.base_version = a, version
+        set_html(self.stale_text, self._stale_html())
         self._suppress = True
         try:
             self.q_type.value = _label_of(a.q_type)
@@ -520,6 +561,15 @@ class TuningPanel:
             warn = " <span style='color:#d62728'>(above the recommendation)</span>"
         return (f"<div class='dt-cutoff' style='font-size:13px'>Q cut-off "
                 f"<b>{cutoff_hz:.3f} Hz</b>{rec_txt}{warn}</div>")
+
+    def _stale_html(self) -> str:
+        if not self.stale:
+            return "<div class='dt-stale'></div>"
+        return box(
+            "dt-stale", CAUTION,
+            f"<b>Based on v{self.base_version}</b>: the active configuration is now "
+            f"v{self.active_version} (applied elsewhere). Apply would be refused (it carries "
+            f"v{self.base_version}); <b>Revert</b> loads v{self.active_version}.")
 
     def _active_html(self) -> str:
         a = self.active

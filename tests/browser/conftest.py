@@ -119,6 +119,32 @@ def open_when_ready(page: Any, dashboard: Dashboard, timeout_s: float) -> None:
     page.wait_for_selector(".dt-banner", timeout=left_ms())
 
 
+def slider_row(page: Any, label: str) -> Any:
+    fid = page.locator("label", has_text=label).first.get_attribute("for")
+    return page.locator(f"[id='{fid}']")
+
+
+def set_number(page: Any, label: str, value: float) -> None:
+    """Type into the number box beside a slider, or into a text field (what a user does for
+    an exact value)."""
+    if label == "Q cut-off (Hz)":  # a text field: its row holds one input
+        lab = page.locator("label", has_text=label).first
+        box = lab.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
+            "input").last
+    else:
+        box = slider_row(page, label).locator("xpath=..").locator("input").last
+    box.fill(str(value))
+    box.press("Enter")
+    box.blur()
+
+
+def only_panel(dashboard: Dashboard) -> Any:
+    """The candidate panel of the one browser connected (each browser has its own)."""
+    panels = list(dashboard.panels.values())
+    assert len(panels) == 1, f"{len(panels)} candidate panels: one browser expected"
+    return panels[0]
+
+
 def _wait_until(cond: Callable[[], object], timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while not cond():

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import set_number, slider_row
 
 from controller.client import ControllerClient
 from server.app import Dashboard
@@ -27,25 +28,6 @@ Q_SERIES_JS = """() => {
   }
   return null;
 }"""
-
-
-def _slider_row(page: Any, label: str) -> Any:
-    fid = page.locator("label", has_text=label).first.get_attribute("for")
-    return page.locator(f"[id='{fid}']")
-
-
-def _set_number(page: Any, label: str, value: float) -> None:
-    """Type into the number box beside a slider, or into a text field (what a user does for
-    an exact value)."""
-    if label == "Q cut-off (Hz)":  # a text field: its row holds one input
-        lab = page.locator("label", has_text=label).first
-        box = lab.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
-            "input").last
-    else:
-        box = _slider_row(page, label).locator("xpath=..").locator("input").last
-    box.fill(str(value))
-    box.press("Enter")
-    box.blur()
 
 
 def _text(page: Any, selector: str) -> str:
@@ -94,7 +76,7 @@ def test_cutoff_slider_changes_bode_and_margins(page: Any, artifacts: Path) -> N
     # Move the thumb from the keyboard (a click on the track can land on a mark label). In
     # headless Chromium with software WebGL an input event is now and then not delivered to
     # viser's slider: a second key press is a second move, as a user would make it.
-    thumb = _slider_row(page, "Q cut-off").locator("[role=slider]").first
+    thumb = slider_row(page, "Q cut-off").locator("[role=slider]").first
     changed = False
     for key in ("End", "ArrowLeft", "End"):
         thumb.focus()
@@ -141,9 +123,9 @@ def test_apply_stable_candidate_changes_controller_config(
     page: Any, probe: ControllerClient, artifacts: Path
 ) -> None:
     before = probe.get_config()
-    _set_number(page, "Q cut-off (Hz)", 1.0)  # typed in Hz; the log slider follows
+    set_number(page, "Q cut-off (Hz)", 1.0)  # typed in Hz; the log slider follows
     page.wait_for_selector(".dt-cutoff >> text=1.000 Hz", timeout=15_000)
-    _set_number(page, "Cv Kp", 0.5)
+    set_number(page, "Cv Kp", 0.5)
     _apply(page, "accept", "text=Accepted", artifacts / "browser_3_apply_accepted.png")
     after = probe.get_config()  # through Zenoh, not through the page
     assert after.version > before.version
@@ -155,7 +137,7 @@ def test_apply_unstable_candidate_is_refused_and_config_unchanged(
     page: Any, probe: ControllerClient, artifacts: Path
 ) -> None:
     before = probe.get_config()
-    _set_number(page, "Cv Kp", 3.0)
+    set_number(page, "Cv Kp", 3.0)
     _apply(page, "reject", ".dt-apply-rejected", artifacts / "browser_4_apply_rejected.png")
     reasons = page.locator(".dt-reject-reason").all_inner_texts()
     assert reasons and all(r.strip() for r in reasons)
@@ -169,8 +151,8 @@ def test_a_caution_applies_only_after_the_dialog(
     page: Any, probe: ControllerClient, artifacts: Path
 ) -> None:
     before = probe.get_config()
-    _set_number(page, "Cv Kp", before.config.cv_kp)
-    _set_number(page, "Q cut-off (Hz)", 5.0)  # stable; thin margins, chatter at standstill
+    set_number(page, "Cv Kp", before.config.cv_kp)
+    set_number(page, "Q cut-off (Hz)", 5.0)  # stable; thin margins, chatter at standstill
     page.wait_for_selector(".dt-verdict.dt-caution", timeout=15_000)
     assert "nonlinear check" in _text(page, ".dt-verdict")
     page.get_by_role("button", name="Apply candidate").click()
@@ -184,7 +166,7 @@ def test_a_caution_applies_only_after_the_dialog(
     after = probe.get_config()
     assert after.version == before.version + 1 and math.isclose(after.config.q_cutoff_hz, 5.0)
     # Back to a calm configuration for the tests that follow.
-    _set_number(page, "Q cut-off (Hz)", 0.5)
+    set_number(page, "Q cut-off (Hz)", 0.5)
     _apply(page, "accept", "text=Accepted", artifacts / "browser_4c_back.png")
 
 

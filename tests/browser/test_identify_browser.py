@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import only_panel
 
 from controller.client import ControllerClient
 from server.app import Dashboard
@@ -92,10 +93,11 @@ def test_identify_short_run_in_the_browser(
     # Use as nominal: the candidate changes, the controller's config does not.
     page.get_by_role("button", name="Use as nominal model").click()
     page.wait_for_selector(".dt-id-used", timeout=15_000)
-    assert dashboard.tuning is not None and dashboard.tuning.wait_idle(5.0)
+    t = only_panel(dashboard)  # this browser's candidate
+    assert t.wait_idle(5.0)
     view = ident.view  # what the controller reported
     assert view is not None and view.nominal is not None
-    assert dashboard.tuning.candidate().nominal == view.nominal
+    assert t.candidate().nominal == view.nominal
     page.get_by_role("tab", name="Tune").click()
     page.wait_for_selector(".dt-verdict", timeout=15_000)
     page.wait_for_selector(".dt-nominal-fitted", timeout=15_000)

@@ -1,0 +1,93 @@
+"""Per-browser candidates (issue 13 item 4), in two headless Chromium pages of one dashboard.
+
+Each browser edits a candidate of its own; the active configuration and the live data are
+shared. A candidate made against a version that someone else has since replaced says so, and
+its Apply carries that version: the controller refuses it (compare-and-set) and the active
+configuration stays. What is checked is what each page shows, and what the controller runs
+(through a separate Zenoh client).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import FIRST_LOAD_S, open_when_ready, set_number
+
+from controller.client import ControllerClient
+from server.app import Dashboard
+
+pytestmark = pytest.mark.browser
+
+
+def _wait(cond: Any, timeout_s: float, what: str) -> None:
+    end = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < end, what
+        time.sleep(0.05)
+
+
+def _cutoff_field(page: Any) -> str:
+    lab = page.locator("label", has_text="Q cut-off (Hz)").first
+    box = lab.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
+        "input").last
+    return str(box.input_value())
+
+
+def _stale(page: Any) -> str:
+    return str(page.locator(".dt-stale").first.inner_text()).strip()
+
+
+def test_each_browser_edits_its_own_candidate(
+    page: Any, dashboard: Dashboard, probe: ControllerClient, artifacts: Path
+) -> None:
+    other = page.context.browser.new_context(viewport={"width": 1600, "height": 1000}).new_page()
+    try:
+        open_when_ready(other, dashboard, FIRST_LOAD_S)
+        _wait(lambda: len(dashboard.panels) == 2, 10.0, "the second browser has no candidate")
+        start = probe.get_config()
+        hz0 = start.config.q_cutoff_hz
+        assert hz0 != 0.8
+        other.wait_for_selector(f".dt-cutoff >> text={hz0:.3f} Hz", timeout=15_000)
+
+        # A types 0.8 Hz: A's candidate changes, B's does not.
+        set_number(page, "Q cut-off (Hz)", 0.8)
+        page.wait_for_selector(".dt-cutoff >> text=0.800 Hz", timeout=15_000)
+        page.wait_for_selector(".dt-diff >> text=q_cutoff_hz", timeout=15_000)
+        assert float(_cutoff_field(other)) == hz0
+        assert "same as active" in other.locator(".dt-diff").first.inner_text()
+
+        # A applies: the controller runs 0.8 Hz; B's candidate is now based on an old version.
+        page.wait_for_selector(".dt-verdict.dt-accept", timeout=15_000)
+        page.get_by_role("button", name="Apply candidate").click()
+        page.wait_for_selector(".dt-apply >> text=Accepted", timeout=15_000)
+        v2 = probe.get_config()
+        assert v2.version == start.version + 1 and v2.config.q_cutoff_hz == 0.8
+        other.wait_for_selector(f".dt-stale >> text=Based on v{start.version}", timeout=15_000)
+        assert f"now v{v2.version}" in _stale(other)
+        assert _stale(page) == ""  # A's own apply: A is up to date
+        assert float(_cutoff_field(other)) == hz0  # B's candidate is still its own
+        other.screenshot(path=str(artifacts / "candidates_1_stale.png"))
+
+        # B's Apply carries the version it was made against: refused, A's config stays.
+        set_number(other, "Q cut-off (Hz)", 0.6)
+        other.wait_for_selector(".dt-cutoff >> text=0.600 Hz", timeout=15_000)
+        other.wait_for_selector(".dt-verdict.dt-accept", timeout=15_000)
+        other.get_by_role("button", name="Apply candidate").click()
+        other.wait_for_selector(".dt-apply-rejected", timeout=15_000)
+        refusal = other.locator(".dt-apply-rejected").first.inner_text()
+        assert f"based on version {start.version}" in refusal, refusal
+        after = probe.get_config()
+        assert after.version == v2.version and after.config == v2.config
+        other.screenshot(path=str(artifacts / "candidates_2_refused.png"))
+
+        # Revert: B's candidate is the active v2, nothing stale.
+        other.get_by_role("button", name="Revert to active").click()
+        other.wait_for_selector(".dt-cutoff >> text=0.800 Hz", timeout=15_000)
+        _wait(lambda: _stale(other) == "", 10.0, "the stale note stayed after Revert")
+        assert float(_cutoff_field(other)) == 0.8
+    finally:
+        other.context.close()
+    _wait(lambda: len(dashboard.panels) == 1, 15.0, "the closed browser's candidate stayed")
