@@ -129,3 +129,47 @@ def test_gate_html_lists_every_reason() -> None:
     ev = eng.evaluate(LoopConfig(cv_kp=3.0))
     html = format_gate_html(ev)
     assert html.count("dt-reason") == len(ev.gate.reasons) >= 1
+
+
+def test_suggest_puts_the_best_accepted_setting_into_the_candidate_never_applies(
+    dash: Dashboard,
+) -> None:
+    t = dash.panel_of(None)
+    assert t is not None
+    sent: list[object] = []
+    apply_fn = t._apply_fn
+    t._apply_fn = lambda *a: sent.append(a)
+    try:
+        t.revert(say=False)
+        assert t.wait_idle(5.0)
+        base = t.candidate()
+        t.request_suggest()
+        assert t.wait_suggest_idle(120.0)
+        res = t.last_suggestion
+        assert res is not None and len(res.curve) >= 10
+        # The best, found again from the curve: the lowest score among accepted points, and
+        # only if it beats the DOB off.
+        accepted = [p for p in res.curve if p.verdict == "accept"]
+        best = min(accepted, key=lambda p: p.score) if accepted else None
+        if best is not None and best.score < res.baseline.score:
+            want = base.with_(dob_on=True, q_type=best.q_type, q_cutoff_hz=best.q_cutoff_hz)
+        else:
+            want = base.with_(dob_on=False)
+        assert t.wait_idle(5.0)
+        assert t.candidate() == want
+        assert "dt-suggest-done" in t.suggest_text.content
+        # The chart: every point run, at its cut-off, in its Q type's column.
+        x, q31, q20, off, _mark = t._suggest_chart.data
+        for p in res.curve:
+            col = q31 if p.q_type == "q31" else q20
+            i = int(np.flatnonzero(np.isclose(x, p.q_cutoff_hz))[0])
+            if p.verdict == "reject":
+                assert not np.isfinite(col[i]) or i == 0
+            else:
+                assert col[i] == pytest.approx(p.rmse_deg, rel=1e-12)
+        assert np.all(off == res.baseline.rmse_deg)
+        assert np.isfinite(q31[0]) and np.isfinite(q20[0])  # uPlot's scale needs them
+        assert not sent  # a suggestion is never applied
+    finally:
+        t._apply_fn = apply_fn
+        t.revert(say=False)

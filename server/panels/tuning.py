@@ -39,6 +39,7 @@ from server.panels.widgets import (
     esc,
     set_html,
 )
+from server.suggest import SUGGEST_CHART, suggest, suggest_data, suggest_html, suggested_config
 from server.workers import LatestWins
 
 __all__ = ["TuningPanel", "cutoff_marks", "format_gate_html"]
@@ -235,6 +236,10 @@ class TuningPanel:
         self._preview_worker = LatestWins(
             self._run_preview, name="tuning-preview", debounce_s=0.08
         )
+        self._suggest_worker = LatestWins(self._run_suggest, name="tuning-suggest")
+        self._suggest_chart: Any = None
+        self.last_suggestion: Any = None
+        """The last Suggest's `TuneResult` (None: not run)."""
 
     # -- building --------------------------------------------------------------------------
 
@@ -278,12 +283,19 @@ class TuningPanel:
         self.apply_button = gui.add_button("Apply candidate", color="green",
                                            hint="send to the controller; its gate decides")
         self.revert_button = gui.add_button("Revert to active", color="gray")
+        self.suggest_button = gui.add_button(
+            "Suggest Q cut-off", color="gray",
+            hint="search Q type and cut-off for the controller's trajectory on the simulated "
+            "rig (only what the gate accepts counts) and put the best into this candidate; "
+            "never applied")
+        self.suggest_text = gui.add_html("<div class='dt-suggest'></div>")
         self.apply_result = gui.add_html('<div class="dt-apply">No change sent yet.</div>')
         self.active_text = gui.add_html(self._active_html())
         for h in controls:
             h.on_update(self._on_control)
         self.apply_button.on_click(lambda e: self.apply(e.client))
         self.revert_button.on_click(lambda _e: self.revert())
+        self.suggest_button.on_click(lambda _e: self.request_suggest())
 
     def build_charts(self) -> None:
         gui = self.gui
@@ -295,15 +307,27 @@ class TuningPanel:
         for spec in charts.BODE_CHARTS:
             self._charts[spec.key] = add_chart(gui, spec, spec.placeholder(self.engine.freq_hz))
         self.nyquist = gui.add_html("<div class='dt-nyquist-box'></div>")
+        self._suggest_chart = add_chart(gui, SUGGEST_CHART, suggest_data(None))
 
     def start(self) -> None:
         self._worker.start()
         self._preview_worker.start()
+        self._suggest_worker.start()
         self.request_update()
 
     def stop(self) -> None:
         self._worker.stop()
         self._preview_worker.stop()
+        self._suggest_worker.stop()
+
+    def request_suggest(self) -> None:
+        """Run Suggest on the present candidate (in its own worker thread)."""
+        set_html(self.suggest_text,
+                 "<div class='dt-suggest dt-suggest-running'>Suggest: starting...</div>")
+        self._suggest_worker.submit(time.perf_counter())
+
+    def wait_suggest_idle(self, timeout_s: float = 60.0) -> bool:
+        return self._suggest_worker.wait_idle(timeout_s)
 
     # -- reading the controls ----------------------------------------------------------------
 
@@ -545,6 +569,31 @@ class TuningPanel:
             self._preview_chart.data = p.chart_data
             set_html(self.preview_text, _preview_html(traj, p))
         self.last_preview = p.candidate
+
+    def _run_suggest(self, _submitted: Any) -> None:
+        try:
+            base = self.candidate()
+        except ConfigError as exc:
+            set_html(self.suggest_text, box("dt-suggest", REJECT,
+                                            f"Suggest needs a valid candidate: {esc(str(exc))}"))
+            return
+        t0 = time.perf_counter()
+        traj = self.trajectory
+        shown = [t0]
+
+        def progress(frac: float) -> None:
+            now = time.perf_counter()
+            if now - shown[0] >= 0.25:
+                shown[0] = now
+                set_html(self.suggest_text, "<div class='dt-suggest dt-suggest-running'>"
+                         f"Suggest: searching on the simulated rig... {100 * frac:.0f} %</div>")
+
+        result = suggest(base, self.engine.plant, traj, progress=progress)
+        self.last_suggestion = result
+        if self._suggest_chart is not None:
+            self._suggest_chart.data = suggest_data(result)
+        self.load(suggested_config(base, result), self.base_version)
+        set_html(self.suggest_text, suggest_html(result, traj, time.perf_counter() - t0))
 
     # -- text --------------------------------------------------------------------------------
 

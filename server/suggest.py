@@ -1,0 +1,122 @@
+"""The dashboard's "Suggest" (issue 15 item 3): the cut-off autotune run for one browser's
+candidate, drawn as the curve it searched and put into that candidate (never applied).
+
+Pure (no viser): the search is `controller.tune.autotune.autotune` on the dashboard's copy of
+the controller's plant knowledge, on the nonlinear simulated rig, with the controller's
+present trajectory; here are the settings, the chart and the text.
+"""
+
+from __future__ import annotations
+
+import html
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from controller.core.config import LoopConfig
+from controller.core.trajectory import Trajectory
+from controller.gate.knowledge import PlantKnowledge
+from controller.tune.autotune import Point, TuneResult, autotune
+from server.charts import ChartSpec, FloatArray, uplot_column
+
+__all__ = ["SUGGEST_CHART", "SuggestSettings", "suggest", "suggest_data", "suggest_html",
+           "suggested_config"]
+
+#: The Q types in the curve's series order.
+Q_TYPES = ("q31", "q20")
+
+
+@dataclass(frozen=True)
+class SuggestSettings:
+    """How the dashboard's Suggest searches (shorter runs than the CLI's default: the user
+    waits for it)."""
+
+    duration_s: float = 8.0
+    points: int = 8
+    refine: int = 3
+    lowest_hz: float = 0.1
+    highest_hz: float = 20.0
+    objective: str = "rmse"
+
+
+def suggest(base: LoopConfig, plant: PlantKnowledge, trajectory: Trajectory,
+            settings: SuggestSettings = SuggestSettings(),
+            progress: Any = None) -> TuneResult:
+    """The autotune of `base`'s Q type and cut-off (its gains kept) on `trajectory`."""
+    from controller.sim.nonlinear_check import findings
+
+    return autotune(base, plant, trajectory, duration_s=settings.duration_s,
+                    objective=settings.objective, points=settings.points,
+                    refine=settings.refine, lowest_hz=settings.lowest_hz,
+                    highest_hz=settings.highest_hz, nonlinear=findings, q_types=Q_TYPES,
+                    progress=progress)
+
+
+def suggested_config(base: LoopConfig, result: TuneResult) -> LoopConfig:
+    """What Suggest puts into the candidate: the best accepted DOB setting when it beats the
+    DOB off, else the DOB off (the same gains)."""
+    if result.dob_helps and result.best is not None:
+        p = result.best
+        return base.with_(dob_on=True, q_type=p.q_type, q_cutoff_hz=p.q_cutoff_hz)
+    return base.with_(dob_on=False)
+
+
+SUGGEST_CHART = ChartSpec(
+    key="suggest",
+    title="Suggest: tracking error against the Q cut-off (simulated rig)",
+    series=(
+        {"label": "f (Hz)"},
+        {"label": "Q31 RMSE (deg)", "stroke": "#1f77b4", "width": 1.5, "scale": "y",
+         "points": {"show": True, "size": 6}, "spanGaps": True},
+        {"label": "Q20 RMSE (deg)", "stroke": "#2ca02c", "width": 1.5, "scale": "y",
+         "points": {"show": True, "size": 6}, "spanGaps": True},
+        {"label": "DOB off (deg)", "stroke": "#e8871e", "width": 1.5, "scale": "y",
+         "dash": (4, 3)},
+        {"label": "suggested", "stroke": "#d62728", "width": 0, "scale": "y",
+         "points": {"show": True, "size": 12, "stroke": "#d62728", "fill": "#d62728"}},
+    ),
+    scales={"x": {"time": False, "distr": 3, "log": 10}, "y": {"auto": True}},
+    axes=({"label": "Hz", "scale": "x"}, {"label": "RMSE deg", "scale": "y"}),
+    height=220,
+)
+
+
+def suggest_data(result: TuneResult | None) -> tuple[FloatArray, ...]:
+    """The chart's columns: the cut-offs tried (both Q types, sorted), each type's error where
+    it was run (NaN where it was not, or the gate rejected it), the DOB-off level, the
+    suggested point. Without a result: a placeholder that draws nothing."""
+    if result is None or not result.curve:
+        x = np.array([0.1, 20.0])
+        nan = np.full(2, math.nan)
+        return (x, *(uplot_column(nan, 0.0) for _ in range(len(SUGGEST_CHART.series) - 1)))
+    x = np.array(sorted({p.q_cutoff_hz for p in result.curve}), dtype=np.float64)
+    index = {f: i for i, f in enumerate(x)}
+    cols = {q: np.full(len(x), math.nan) for q in Q_TYPES}
+    for p in result.curve:
+        if p.verdict != "reject" and p.q_type in cols:
+            cols[p.q_type][index[p.q_cutoff_hz]] = _metric(p, result.objective)
+    base = np.full(len(x), _metric(result.baseline, result.objective))
+    best = np.full(len(x), math.nan)
+    if result.dob_helps and result.best is not None:
+        best[index[result.best.q_cutoff_hz]] = _metric(result.best, result.objective)
+    fallback = float(base[0]) if np.isfinite(base[0]) else 0.0
+    return (x, *(uplot_column(cols[q], fallback) for q in Q_TYPES), base,
+            uplot_column(best, fallback))
+
+
+def _metric(p: Point, objective: str) -> float:
+    return p.rmse_deg if objective == "rmse" else p.peak_error_deg
+
+
+def suggest_html(result: TuneResult, trajectory: Trajectory, elapsed_s: float) -> str:
+    """What the search found, in words (the numbers are the simulated rig's)."""
+    tried = len(result.curve)
+    rejected = sum(1 for p in result.curve if p.verdict == "reject")
+    what = ("The candidate now has this setting (not applied: the verdict and Apply are "
+            "yours)." if result.dob_helps else
+            "The candidate now has the <b>DOB off</b> (not applied).")
+    return (f"<div class='dt-suggest dt-suggest-done' style='font-size:12px'><b>Suggest</b> "
+            f"({html.escape(trajectory.kind)}, {tried} cut-offs tried, {rejected} rejected by the "
+            f"gate, {elapsed_s:.1f} s): {html.escape(result.summary())}. {what}</div>")

@@ -1,0 +1,52 @@
+"""The Suggest chart and choice (server/suggest.py) on hand-made search results."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from controller.core.config import LoopConfig
+from controller.tune.autotune import Point, TuneResult
+from server.suggest import SUGGEST_CHART, suggest_data, suggested_config
+
+
+def _p(q: str, hz: float, verdict: str, rmse: float) -> Point:
+    cfg = LoopConfig().with_(q_type=q, q_cutoff_hz=hz)
+    return Point(cfg, verdict, rmse, 2 * rmse, 0.0, rmse if verdict != "reject" else math.inf)
+
+
+def test_columns_follow_the_points_and_start_finite() -> None:
+    curve = (_p("q31", 0.1, "reject", math.nan), _p("q31", 1.0, "accept", 0.02),
+             _p("q20", 0.1, "accept", 0.03), _p("q20", 5.0, "caution", 0.01))
+    res = TuneResult(best=curve[1], baseline=_p("q31", 0.5, "accept", 0.025), curve=curve)
+    data = suggest_data(res)
+    assert len(data) == len(SUGGEST_CHART.series)
+    x, q31, q20, off, mark = data
+    np.testing.assert_array_equal(x, [0.1, 1.0, 5.0])
+    # q31 at 0.1 Hz was rejected: not drawn, but the first value is finite for uPlot's scale.
+    assert np.isfinite(q31[0]) and q31[1] == 0.02 and math.isnan(q31[2])
+    assert q20[0] == 0.03 and math.isnan(q20[1]) and q20[2] == 0.01
+    np.testing.assert_array_equal(off, [0.025] * 3)
+    assert mark[1] == 0.02 and np.isfinite(mark[0]) and math.isnan(mark[2])
+
+
+def test_the_dob_goes_off_when_no_setting_beats_it() -> None:
+    base = LoopConfig()
+    worse = _p("q31", 1.0, "accept", 0.05)
+    res = TuneResult(best=worse, baseline=_p("q31", 0.5, "accept", 0.02), curve=(worse,))
+    assert not res.dob_helps
+    assert suggested_config(base, res) == base.with_(dob_on=False)
+    better = _p("q20", 2.0, "accept", 0.01)
+    res = TuneResult(best=better, baseline=_p("q31", 0.5, "accept", 0.02), curve=(better,))
+    assert suggested_config(base, res) == base.with_(dob_on=True, q_type="q20", q_cutoff_hz=2.0)
+    assert suggested_config(base, res).cv_kp == base.cv_kp  # the gains are kept
+
+
+def test_no_result_draws_nothing_but_has_a_finite_scale() -> None:
+    x, *cols = suggest_data(None)
+    assert len(cols) == len(SUGGEST_CHART.series) - 1
+    for c in cols:
+        assert np.isfinite(c[0]) and not np.isfinite(c[1:]).any()
+    assert x[0] == pytest.approx(0.1)
