@@ -17,20 +17,26 @@ import numpy.typing as npt
 __all__ = [
     "BODE_CHARTS",
     "LIVE_CHARTS",
+    "PLANT_CHART",
     "PREVIEW_CHART",
     "BodeCurves",
     "ChartSpec",
     "MeasuredCurve",
+    "NyquistLoop",
+    "PlantCurves",
     "bode_data",
     "db",
     "identify_chart_specs",
     "identify_data",
     "live_data",
     "minmax_decimate",
+    "nyquist_svg",
     "preview_data",
+    "spread_band_db",
 ]
 
 FloatArray = npt.NDArray[np.float64]
+ComplexArray = npt.NDArray[np.complex128]
 
 CANDIDATE = "#1f77b4"
 ACTIVE = "#9aa5b1"
@@ -43,6 +49,64 @@ def db(x: npt.ArrayLike) -> FloatArray:
     """20 log10 |x|, with zeros clipped to -300 dB (uPlot cannot draw -inf)."""
     mag = np.abs(np.asarray(x))
     return np.asarray(20.0 * np.log10(np.maximum(mag, 1e-15)), dtype=np.float64)
+
+
+def _rgba(hex_color: str, alpha: float) -> str:
+    r, g, b = (int(hex_color[i:i + 2], 16) for i in (1, 3, 5))
+    return f"rgba({r},{g},{b},{alpha})"
+
+
+@dataclass(frozen=True)
+class NyquistLoop:
+    """One open loop for the Nyquist view: L on the grid of its BodeCurves and the points,
+    refined between grid points, where its margins are read (python-control's rules pick
+    the reported PM and GM among them)."""
+
+    response: ComplexArray
+    gain_crossover_hz: FloatArray
+    """Every |L| = 1 crossing (the phase margin is read there)."""
+    gain_crossings: ComplexArray
+    """L at those frequencies (on the unit circle)."""
+    phase_crossover_hz: FloatArray
+    """Every crossing of the negative real axis (the gain margin is read there)."""
+    phase_crossings: ComplexArray
+    phase_margin_deg: float
+    """The reported PM (smallest |PM|; inf without a gain crossover)."""
+    gain_margin_db: float
+    """The reported GM (closest to 0 dB; inf without a phase crossover)."""
+
+
+@dataclass(frozen=True)
+class PlantCurves:
+    """The plant u -> load rate for drawing: the plant knowledge's model M P and its measured
+    responses with their spread, in the continuous basis, on one grid (the measured points
+    merged in). Measured columns are NaN where no response has a point; with several
+    responses a point shows their mean (dB, deg) and the band their envelope."""
+
+    freq_hz: FloatArray
+    model_db: FloatArray
+    model_phase_deg: FloatArray
+    measured_db: FloatArray
+    measured_phase_deg: FloatArray
+    upper_db: FloatArray
+    """max over responses of 20 log10(|H| (1 + spread))."""
+    lower_db: FloatArray
+    """min over responses of 20 log10(|H| max(1 - spread, SPREAD_FLOOR))."""
+    n_measured: int = 0
+
+
+#: The lower edge of a measured band is drawn at most 20 dB below |H|: a spread near or
+#: above 1 leaves the magnitude unbounded below (20 log10(1 - spread) -> -inf), which would
+#: only stretch the chart's scale.
+SPREAD_FLOOR = 0.1
+
+
+def spread_band_db(h: npt.ArrayLike, spread: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """(upper, lower) edge of the band |H| (1 +- spread) in dB, the lower one clipped at
+    SPREAD_FLOOR |H|."""
+    mag = np.abs(np.asarray(h))
+    sp = np.asarray(spread, dtype=np.float64)
+    return db(mag * (1.0 + sp)), db(mag * np.maximum(1.0 - sp, SPREAD_FLOOR))
 
 
 @dataclass(frozen=True)
@@ -69,6 +133,12 @@ class BodeCurves:
     s_full_db: FloatArray | None = None
     """Sensitivity of the whole servo (position loop closed)."""
     t_full_db: FloatArray | None = None
+    nyquist_dob: NyquistLoop | None = None
+    """The speed loop with the DOB, G (Cv + F1) / (1 - F2 z^-1), whatever cfg.dob_on."""
+    nyquist_nodob: NyquistLoop | None = None
+    """The speed loop without the DOB, G Cv."""
+    plant: PlantCurves | None = None
+    """The plant the configuration is judged on (same for every configuration)."""
 
     @property
     def gain_crossover_marks(self) -> FloatArray:
@@ -198,6 +268,48 @@ def _dob_spec(key: str, title: str, dob: str, no_dob: str, labels: tuple[str, st
     )
 
 
+def _measured_points(label: str, stroke: str, scale: str = "y") -> dict[str, Any]:
+    """Measured points joined across the grid points between them (spanGaps). uPlot's own
+    rule shows the points once they are sparse on screen (zoomed in); always showing them
+    would also draw the stand-in first value of an empty column (`uplot_column`) as a point,
+    and the CSV export would take it for data."""
+    s = _line(label, stroke, width=2.0, scale=scale)
+    s["spanGaps"] = True
+    return s
+
+
+def _band_edge(label: str) -> dict[str, Any]:
+    """One edge of a measured band, as a dashed line. Not a filled uPlot band: the data
+    reach uPlot as Float64Array, where a gap is NaN, not null, and uPlot closes a band's fill
+    at the last non-null x, so the fill of a band that ends before the chart does runs on
+    to the chart's end (seen in Chromium: a wedge past the last measured point)."""
+    s = _line(label, _rgba(MEASURED, 0.8), dash=(4, 3), width=1.0)
+    s["spanGaps"] = True
+    return s
+
+
+PLANT_MODEL = "#34495e"
+
+#: The plant itself: the model the gate judges on, and the measured responses with their
+#: spread as a band between the "+spread" and "-spread" series.
+PLANT_CHART = _bode_spec(
+    "plant",
+    "Plant u -> speed: model and measured (band: measured |H| (1 +- spread))",
+    (_line("|M P| model", PLANT_MODEL), "plant.model_db"),
+    (_measured_points("|H| measured", MEASURED), "plant.measured_db"),
+    (_band_edge("|H| (1 + spread)"), "plant.upper_db"),
+    (_band_edge("|H| (1 - spread)"), "plant.lower_db"),
+    (_line("phase model", PLANT_MODEL, dash=(2, 3), width=1.0, scale="deg"),
+     "plant.model_phase_deg"),
+    (_measured_points("phase measured", "#7fbf7f", scale="deg"), "plant.measured_phase_deg"),
+    scales={**_LOG_X, "deg": {"auto": True}},
+    axes=(
+        _HZ_AXIS,
+        {"label": "dB", "scale": "y"},
+        {"label": "deg", "scale": "deg", "side": 1, "grid": {"show": False}},
+    ),
+)
+
 BODE_CHARTS: tuple[ChartSpec, ...] = (
     _bode_spec(
         "open_loop",
@@ -247,18 +359,27 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         (_line("1/|Delta| bound", BOUND, dash=_DASH_NO_DOB), "cand.inv_delta_db"),
         (_line("1/|Delta| measured", MEASURED, width=2.0), "cand.inv_delta_measured_db"),
     ),
+    PLANT_CHART,
 )
 _BODE_BY_KEY = {spec.key: spec for spec in BODE_CHARTS}
 
 
 def bode_data(key: str, cand: BodeCurves, active: BodeCurves | None) -> tuple[FloatArray, ...]:
     """The uPlot data tuple of chart `key`; the active curves must share the candidate's grid.
-    A curve the configuration does not have (no measured response, say) is all NaN."""
+    A curve the configuration does not have (no measured response, say) is all NaN. The
+    plant chart ("plant.<field>" columns) draws `cand.plant` on its own grid."""
     act = active if active is not None and active.freq_hz.shape == cand.freq_hz.shape else cand
-    nan = np.full_like(cand.freq_hz, np.nan)
-    sources = {"cand": cand, "act": act}
+    spec = _BODE_BY_KEY[key]
+    x = cand.freq_hz
+    sources: dict[str, Any] = {"cand": cand, "act": act}
+    if any(c.startswith("plant.") for c in spec.columns):
+        if cand.plant is None:
+            raise ValueError(f"chart {key!r}: BodeCurves.plant is None (no plant curves)")
+        x = cand.plant.freq_hz
+        sources["plant"] = cand.plant
+    nan = np.full_like(x, np.nan)
     cols: list[FloatArray] = []
-    for column in _BODE_BY_KEY[key].columns:
+    for column in spec.columns:
         which, name = column.split(".")
         y = getattr(sources[which], name)
         cols.append(nan if y is None else np.asarray(y, dtype=np.float64))
@@ -268,8 +389,8 @@ def bode_data(key: str, cand: BodeCurves, active: BodeCurves | None) -> tuple[Fl
     for sc, c in zip(scales, cols, strict=True):
         if c.size and np.isfinite(c[0]):
             first.setdefault(sc, float(c[0]))
-    return (cand.freq_hz, *(c if sc == MARK_SCALE else uplot_column(c, first.get(sc, 0.0))
-                            for sc, c in zip(scales, cols, strict=True)))
+    return (x, *(c if sc == MARK_SCALE else uplot_column(c, first.get(sc, 0.0))
+                 for sc, c in zip(scales, cols, strict=True)))
 
 
 # -- time domain --------------------------------------------------------------------------------
@@ -427,11 +548,6 @@ class MeasuredCurve:
     complete: bool = True
 
 
-def _rgba(hex_color: str, alpha: float) -> str:
-    r, g, b = (int(hex_color[i:i + 2], 16) for i in (1, 3, 5))
-    return f"rgba({r},{g},{b},{alpha})"
-
-
 def _points(label: str, stroke: str, **extra: Any) -> dict[str, Any]:
     s = _line(label, stroke)
     s.update({"points": {"show": True, "size": 6}, "spanGaps": True, **extra})
@@ -529,17 +645,20 @@ def identify_data(
 #: low frequency; what matters for margins is near the unit circle and -1).
 NYQUIST_RADIUS = 3.0
 
+PM_COLOR = "#2ca02c"
+GM_COLOR = "#9467bd"
 
-def open_loop_response(c: BodeCurves) -> npt.NDArray[np.complex128]:
+
+def open_loop_response(c: BodeCurves) -> ComplexArray:
     """L on the grid, back from the drawn magnitude (dB) and unwrapped phase (deg)."""
     return np.asarray(10.0 ** (c.open_loop_db / 20.0) * np.exp(
         1j * np.deg2rad(c.open_loop_phase_deg)), dtype=np.complex128)
 
 
-def nyquist_segments(c: BodeCurves, radius: float = NYQUIST_RADIUS,
-                     ) -> list[npt.NDArray[np.complex128]]:
-    """The runs of consecutive grid points of L inside |L| <= radius (one polyline each)."""
-    z = open_loop_response(c)
+def nyquist_segments(z: npt.ArrayLike, radius: float = NYQUIST_RADIUS) -> list[ComplexArray]:
+    """The runs of consecutive grid points of the response `z` inside |z| <= radius (one
+    polyline each)."""
+    z = np.asarray(z, dtype=np.complex128)
     inside = np.isfinite(z) & (np.abs(z) <= radius)
     segments, start = [], None
     for i, ok in enumerate(inside):
@@ -553,42 +672,93 @@ def nyquist_segments(c: BodeCurves, radius: float = NYQUIST_RADIUS,
     return [s for s in segments if len(s) >= 2]
 
 
-def nyquist_svg(cand: BodeCurves, active: BodeCurves | None, size: int = 560,
-                radius: float = NYQUIST_RADIUS) -> str:
-    """The speed loop's Nyquist plot (positive frequencies) as inline SVG: candidate and
-    active, the unit circle, the critical point -1 and the points where PM and GM are read."""
+def _fmt_margin(value: float, unit: str) -> str:
+    return f"{value:.1f} {unit}" if np.isfinite(value) else "none"
+
+
+def _nyquist_panel(cand: NyquistLoop | None, active: NyquistLoop | None, title: str,
+                   formula: str, cls: str, loop: str, size: int, radius: float) -> str:
+    """One Nyquist panel (an SVG): candidate solid, active dashed, unit circle, -1, and the
+    candidate's margin points (PM on the unit circle, GM on the negative real axis)."""
     half = size / 2.0
     k = (half - 12.0) / radius
 
-    def xy(z: complex) -> str:
-        return f"{half + k * z.real:.1f},{half - k * z.imag:.1f}"
+    def xy(z: complex) -> tuple[str, str]:
+        return f"{half + k * z.real:.1f}", f"{half - k * z.imag:.1f}"
 
-    parts = [f"<svg class='dt-nyquist' width='{size}' height='{size}' "
-             f"viewBox='0 0 {size} {size}' style='background:#fff'>",
+    parts = [f"<svg class='{cls} dt-nyq-panel' data-loop='{loop}' viewBox='0 0 {size} {size}' "
+             f"width='100%' style='display:block;height:auto;background:#fff'>",
              f"<line x1='0' y1='{half}' x2='{size}' y2='{half}' stroke='#ddd'/>",
              f"<line x1='{half}' y1='0' x2='{half}' y2='{size}' stroke='#ddd'/>",
              f"<circle cx='{half}' cy='{half}' r='{k:.1f}' fill='none' stroke='#999' "
              "stroke-dasharray='4 3'/>"]
-    for curves, color, cls, dash in ((active, ACTIVE, "dt-nyq-active", "6 4"),
-                                     (cand, CANDIDATE, "dt-nyq-cand", "")):
-        if curves is None:
+    for nl, color, css, dash in ((active, ACTIVE, "dt-nyq-active", "6 4"),
+                                 (cand, CANDIDATE, "dt-nyq-cand", "")):
+        if nl is None:
             continue
-        for seg in nyquist_segments(curves, radius):
-            pts = " ".join(xy(complex(z)) for z in seg)
-            parts.append(f"<polyline class='{cls}' fill='none' stroke='{color}' "
-                         f"stroke-width='1.5' stroke-dasharray='{dash}' points='{pts}'/>")
-    z = open_loop_response(cand)
-    for marks, color, label in ((cand.gain_crossover_marks, "#2ca02c", "PM"),
-                                (cand.phase_crossover_marks, "#9467bd", "GM")):
-        idx = np.flatnonzero(np.isfinite(marks))
-        for i in idx[::2]:  # one per crossing (the first of its two points)
-            if abs(z[i]) <= radius:
-                cx, cy = xy(complex(z[i])).split(",")
-                parts.append(f"<circle class='dt-nyq-{label.lower()}' cx='{cx}' cy='{cy}' r='4' "
-                             f"fill='{color}'><title>{label} read here</title></circle>")
-    cx, cy = xy(-1.0 + 0j).split(",")
+        for seg in nyquist_segments(nl.response, radius):
+            pts = " ".join(",".join(xy(complex(z))) for z in seg)
+            parts.append(f"<polyline class='{css}' fill='none' stroke='{color}' "
+                         f"stroke-width='2' stroke-dasharray='{dash}' points='{pts}'/>")
+    if cand is not None:
+        for zs, fs, color, css, what in (
+                (cand.gain_crossings, cand.gain_crossover_hz, PM_COLOR, "dt-nyq-pm", "PM"),
+                (cand.phase_crossings, cand.phase_crossover_hz, GM_COLOR, "dt-nyq-gm", "GM")):
+            for z, f in zip(zs, fs, strict=True):
+                if not abs(z) <= radius:
+                    continue
+                if what == "PM":
+                    value = f"PM {np.degrees(np.angle(z)) % 360.0 - 180.0:.1f} deg"
+                else:
+                    value = f"GM {-20.0 * np.log10(abs(z)):.1f} dB"
+                cx, cy = xy(complex(z))
+                parts.append(f"<circle class='{css}' cx='{cx}' cy='{cy}' r='6' fill='{color}'>"
+                             f"<title>{value} read here ({f:.3g} Hz)</title></circle>")
+    cx, cy = xy(-1.0 + 0j)
     parts.append(f"<text class='dt-nyq-critical' x='{cx}' y='{cy}' fill='#d62728' "
-                 "font-size='18' text-anchor='middle' dominant-baseline='central'>+</text>")
-    parts.append(f"<text x='8' y='16' font-size='12' fill='#555'>Nyquist, speed loop L "
-                 f"(|L| &le; {radius:g}; unit circle dashed; + = -1)</text></svg>")
+                 "font-size='28' text-anchor='middle' dominant-baseline='central'>+</text>")
+    if cand is None:
+        summary = "not computed"
+    else:
+        gms = -20.0 * np.log10(np.abs(cand.phase_crossings))
+        # The reported GM's point may lie outside the window (a gain-reduction margin).
+        outside = bool(np.isfinite(cand.gain_margin_db) and gms.size and abs(
+            cand.phase_crossings[int(np.argmin(np.abs(gms - cand.gain_margin_db)))]) > radius)
+        summary = (f"PM {_fmt_margin(cand.phase_margin_deg, 'deg')}, "
+                   f"GM {_fmt_margin(cand.gain_margin_db, 'dB')}"
+                   + (" (read outside the view)" if outside else ""))
+    # Sized for a panel drawn at about half its viewBox width (two side by side in the
+    # dashboard's plot column): the title on two lines, the legend on two.
+    parts.append(f"<text class='dt-nyq-title' fill='#333'>"
+                 f"<tspan x='8' y='24' font-size='22' font-weight='bold'>{title}:</tspan>"
+                 f"<tspan x='8' y='48' font-size='19'> {summary}</tspan></text>")
+    parts.append(f"<text x='8' y='70' font-size='15' fill='#555'>{formula}</text>")
+    parts.append(f"<text x='8' y='{size - 30}' font-size='15' fill='#555'>"
+                 f"|L| &#8804; {radius:g}, unit circle dashed, + = -1</text>")
+    parts.append(f"<text x='8' y='{size - 10}' font-size='15' fill='#555'>"
+                 "candidate solid, active dashed; "
+                 f"<tspan fill='{PM_COLOR}'>&#9679; PM</tspan> "
+                 f"<tspan fill='{GM_COLOR}'>&#9679; GM</tspan> read here</text></svg>")
     return "".join(parts)
+
+
+def nyquist_svg(cand: BodeCurves, active: BodeCurves | None, size: int = 460,
+                radius: float = NYQUIST_RADIUS) -> str:
+    """The speed loop's Nyquist plots (positive frequencies) side by side, as inline SVG:
+    with the DOB (class `dt-nyquist`) and without it (class `dt-nyquist-nodob`); each draws
+    the candidate and the active configuration, the unit circle, the critical point -1 and
+    the candidate's own points where its PM and GM are read. The panels wrap one under the
+    other when the container is narrower than two."""
+    act_dob = active.nyquist_dob if active is not None else None
+    act_nodob = active.nyquist_nodob if active is not None else None
+    panels = (
+        _nyquist_panel(cand.nyquist_dob, act_dob, "with DOB",
+                       "speed loop L = G (Cv + F1) / (1 - F2 z^-1)", "dt-nyquist", "dob",
+                       size, radius),
+        _nyquist_panel(cand.nyquist_nodob, act_nodob, "without DOB", "speed loop L = G Cv",
+                       "dt-nyquist-nodob", "nodob", size, radius),
+    )
+    return ("<div class='dt-nyq-pair' style='display:flex;flex-wrap:wrap;gap:8px'>"
+            + "".join(f"<div style='flex:1 1 260px;max-width:{size}px'>{p}</div>"
+                      for p in panels)
+            + "</div>")

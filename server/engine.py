@@ -17,8 +17,9 @@ from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 
-from controller.core.config import LoopConfig
+from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
 from controller.gate.analysis import Analysis, analyse
@@ -28,11 +29,18 @@ from controller.gate.knowledge import (
     MeasuredResponse,
     PlantKnowledge,
 )
-from controller.gate.loop_model import default_grid
+from controller.gate.loop_model import (
+    default_grid,
+    discrete_equivalent,
+    dob_filters,
+    loop_blocks,
+    nominal_continuous_response,
+)
+from controller.gate.margins import loop_tasks, margins_of, solve
 from controller.gate.verdict import judge, recommended_cutoff_hz
 from controller.sim.nonlinear_check import findings
 from server import charts
-from server.charts import BodeCurves, FloatArray
+from server.charts import BodeCurves, FloatArray, NyquistLoop, PlantCurves
 
 __all__ = [
     "CUTOFF_MAX_HZ",
@@ -48,6 +56,8 @@ __all__ = [
     "curves_from_analysis",
     "freq_grid_hz",
     "measured_from_csv",
+    "plant_curves",
+    "speed_loop",
 ]
 
 #: Range of the Q cut-off the dashboard offers, Hz.
@@ -130,8 +140,86 @@ def candidate_from_values(base: LoopConfig, values: dict[str, Any]) -> LoopConfi
 # -- the analysis adapter -------------------------------------------------------------------------
 
 
-def curves_from_analysis(a: Analysis) -> tuple[BodeCurves, GateView]:
-    """Adapter: the gate's Analysis -> what the charts draw and the verdict box shows."""
+def speed_loop(cfg: LoopConfig, model: NominalModel, freq_hz: FloatArray, *, dob: bool,
+               ) -> NyquistLoop:
+    """The speed loop broken at the plant input, with the DOB (G (Cv + F1) / (1 - F2 z^-1))
+    or without it (G Cv), whatever `cfg.dob_on`: the gate's own blocks (`loop_blocks`, the
+    implemented discrete loop on the plant `model`) and its own margin refinement
+    (`loop_tasks`, `solve`, `margins_of`: python-control's selection rules)."""
+    filters = dob_filters(cfg) if dob else None
+
+    def loop_at(f: FloatArray) -> npt.NDArray[np.complex128]:
+        b = loop_blocks(cfg, filters, f, model)
+        return np.asarray(b.g * (b.cv + b.f1) / (1.0 - b.f2d), dtype=np.complex128)
+
+    f = np.asarray(freq_hz, dtype=np.float64)
+    response = loop_at(f)
+    tasks = loop_tasks(np.log(f), response, "L")
+    solve(tasks.all(), lambda ff: {"L": loop_at(ff)})
+    m = margins_of(tasks)
+    phase = [t for t in tasks.phase if t.out.real <= 0.0]  # margins_of's own filter
+    return NyquistLoop(
+        response=response,
+        gain_crossover_hz=np.array([t.freq_hz for t in tasks.gain], dtype=np.float64),
+        gain_crossings=np.array([t.out for t in tasks.gain], dtype=np.complex128),
+        phase_crossover_hz=np.array([t.freq_hz for t in phase], dtype=np.float64),
+        phase_crossings=np.array([t.out for t in phase], dtype=np.complex128),
+        phase_margin_deg=m.phase_margin_deg,
+        gain_margin_db=m.gain_margin_db,
+    )
+
+
+def plant_curves(plant: PlantKnowledge, freq_hz: FloatArray, rate_hz: float) -> PlantCurves:
+    """The plant chart's curves: the knowledge's model M P (continuous) and its measured
+    responses with their spread (`charts.spread_band_db`), on `freq_hz` merged with every
+    measured frequency. With measured responses the grid starts at the lowest measured
+    frequency, so that every measured column starts with a real point (uPlot's first-value
+    rule, `charts.uplot_column`, would otherwise join a stand-in point to the first
+    measurement). Sampled responses (u[k] -> w[k]) are brought to the continuous basis by
+    dividing out the gate's ZOH + backward-difference factor (`discrete_equivalent`)."""
+    grid = np.asarray(freq_hz, dtype=np.float64)
+    measured = plant.measured
+    if measured:
+        lowest = min(float(m.freq_hz[0]) for m in measured)
+        grid = np.union1d(grid[grid > lowest], np.concatenate([m.freq_hz for m in measured]))
+    model = nominal_continuous_response(plant.model, grid)
+    model_phase = _wrap_start(np.degrees(np.unwrap(np.angle(model))))
+    n = grid.size
+    mag_sum, phase_sum, count = np.zeros(n), np.zeros(n), np.zeros(n)
+    upper, lower = np.full(n, -np.inf), np.full(n, np.inf)
+    for m in measured:
+        h = np.asarray(m.response, dtype=np.complex128)
+        if m.sampled:
+            h = h / discrete_equivalent(np.ones_like(h), m.freq_hz, rate_hz)
+        idx = np.searchsorted(grid, m.freq_hz)
+        ph = np.degrees(np.unwrap(np.angle(h)))
+        ph = ph - 360.0 * np.round((ph[0] - model_phase[idx[0]]) / 360.0)  # near the model
+        spread = m.spread if m.spread is not None else np.zeros(h.shape)
+        hi, lo = charts.spread_band_db(h, spread)
+        mag_sum[idx] += charts.db(h)
+        phase_sum[idx] += ph
+        count[idx] += 1.0
+        upper[idx] = np.maximum(upper[idx], hi)
+        lower[idx] = np.minimum(lower[idx], lo)
+    have = count > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_db = np.where(have, mag_sum / count, np.nan)
+        mean_phase = np.where(have, phase_sum / count, np.nan)
+    return PlantCurves(
+        freq_hz=grid,
+        model_db=charts.db(model),
+        model_phase_deg=model_phase,
+        measured_db=mean_db,
+        measured_phase_deg=mean_phase,
+        upper_db=np.where(have, upper, np.nan),
+        lower_db=np.where(have, lower, np.nan),
+        n_measured=len(measured),
+    )
+
+
+def curves_from_analysis(a: Analysis, plant: PlantKnowledge) -> tuple[BodeCurves, GateView]:
+    """Adapter: the gate's Analysis (of `a.config` on `plant`) -> what the charts draw and
+    the verdict box shows."""
     bound = [src.inv_delta_db for src in a.sources if src.kind == "bound"]
     measured = [src.inv_delta_db for src in a.sources if src.kind == "measured"]
     curves = BodeCurves(
@@ -154,6 +242,9 @@ def curves_from_analysis(a: Analysis) -> tuple[BodeCurves, GateView]:
         s_full_db=None if a.open_loop_full is None else charts.db(1.0 / (1.0 + a.open_loop_full)),
         t_full_db=None if a.open_loop_full is None else charts.db(
             a.open_loop_full / (1.0 + a.open_loop_full)),
+        nyquist_dob=speed_loop(a.config, plant.model, a.freq_hz, dob=True),
+        nyquist_nodob=speed_loop(a.config, plant.model, a.freq_hz, dob=False),
+        plant=plant_curves(plant, a.freq_hz, a.config.rate_hz),
     )
     margins = {
         "gain_margin_db": a.gain_margin_db,
@@ -289,7 +380,7 @@ class TuningEngine:
     def _evaluate(self, cfg: LoopConfig, plant: PlantKnowledge) -> Evaluation:
         t0 = time.perf_counter()
         grid = freq_grid_hz(cfg.rate_hz, self.n_freq)
-        curves, view = curves_from_analysis(analyse(cfg, plant, freq_hz=grid))
+        curves, view = curves_from_analysis(analyse(cfg, plant, freq_hz=grid), plant)
         # The verdict: the controller's own function on the controller's knowledge (its
         # default grid, not the charts'), so both sides say the same.
         j = judge(cfg, plant, nonlinear=findings)

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import xml.etree.ElementTree as ET
+
 import numpy as np
 import pytest
 
 from controller.core.config import LoopConfig
 from controller.gate.analysis import analyse
+from controller.gate.knowledge import PlantKnowledge
 from server import charts
 from server.engine import curves_from_analysis, freq_grid_hz
+
+MODEL_ONLY = PlantKnowledge()
 
 
 def test_minmax_decimate_keeps_extremes_and_bounds_size() -> None:
@@ -41,16 +46,18 @@ def test_bode_specs_use_log_frequency_axis() -> None:
 @pytest.mark.parametrize("spec", charts.BODE_CHARTS, ids=lambda s: s.key)
 def test_bode_data_matches_series(spec: charts.ChartSpec) -> None:
     cfg = LoopConfig()
-    cand, _ = curves_from_analysis(analyse(cfg, freq_hz=freq_grid_hz()))
-    act, _ = curves_from_analysis(analyse(cfg.with_(q_cutoff_hz=2.0), freq_hz=freq_grid_hz()))
+    cand, _ = curves_from_analysis(analyse(cfg, freq_hz=freq_grid_hz()), MODEL_ONLY)
+    act, _ = curves_from_analysis(
+        analyse(cfg.with_(q_cutoff_hz=2.0), freq_hz=freq_grid_hz()), MODEL_ONLY)
     data = charts.bode_data(spec.key, cand, act)
-    assert len(data) == len(spec.series)
-    assert all(d.shape == cand.freq_hz.shape for d in data)
+    assert len(data) == len(spec.series) == len(spec.columns) + 1
+    assert all(d.shape == data[0].shape for d in data)
+    assert np.all(np.diff(data[0]) > 0)
     assert np.all(np.isfinite(data[1]))
 
 
 def test_disturbance_chart_shows_dob_rejection_at_low_frequency() -> None:
-    cand, _ = curves_from_analysis(analyse(LoopConfig(), freq_hz=freq_grid_hz()))
+    cand, _ = curves_from_analysis(analyse(LoopConfig(), freq_hz=freq_grid_hz()), MODEL_ONLY)
     f, with_dob, without, _active = charts.bode_data("disturbance", cand, None)
     low = f < 0.05
     assert np.all(with_dob[low] < without[low] - 6.0)  # eq. 16 well below eq. 18
@@ -120,21 +127,101 @@ def test_no_bode_column_starts_with_a_gap() -> None:
 
 
 def test_nyquist_is_the_open_loop_inside_the_window() -> None:
-    """The Nyquist view's points are L itself (python-control's frequency response of the
-    same loop is the reference through the gate's analysis), clipped to |L| <= the radius,
-    and the critical point, the unit circle and both margin points are drawn."""
+    """The with-DOB panel's points are the gate's L itself (the analysis of a DOB-on
+    candidate), clipped to |L| <= the radius, and the critical point, the unit circle and both
+    margin points are drawn; the Bode chart's L comes back from dB and degrees unchanged."""
     from server.engine import TuningEngine
 
     eng = TuningEngine()
     cfg = LoopConfig()
     c = eng.evaluate(cfg).curves
     a = analyse(cfg, eng.plant, freq_hz=c.freq_hz)
-    z = charts.open_loop_response(c)
-    np.testing.assert_allclose(z, a.open_loop, rtol=1e-9)  # back from dB and degrees
-    segments = charts.nyquist_segments(c)
+    np.testing.assert_allclose(charts.open_loop_response(c), a.open_loop, rtol=1e-9)
+    assert c.nyquist_dob is not None
+    np.testing.assert_allclose(c.nyquist_dob.response, a.open_loop, rtol=1e-12)
+    segments = charts.nyquist_segments(c.nyquist_dob.response)
     inside = np.abs(a.open_loop) <= charts.NYQUIST_RADIUS
     assert sum(len(s) for s in segments) == int(inside.sum()) > 20
     assert all(np.all(np.abs(s) <= charts.NYQUIST_RADIUS) for s in segments)
-    svg = charts.nyquist_svg(c, c)
-    assert svg.count("dt-nyq-cand") == len(segments) and "dt-nyq-critical" in svg
-    assert "dt-nyq-pm" in svg  # |L| = 1 lies on the unit circle, inside the window
+    dob, _nodob = _panels(charts.nyquist_svg(c, c))
+    assert len(dob.findall(".//*[@class='dt-nyq-cand']")) == len(segments)
+    assert len(dob.findall(".//*[@class='dt-nyq-critical']")) == 1
+    assert dob.findall(".//*[@class='dt-nyq-pm']")  # |L| = 1: on the unit circle, in view
+
+
+def _panels(html: str) -> tuple[ET.Element, ET.Element]:
+    """The two SVG panels of the Nyquist view (the HTML is well-formed XML)."""
+    root = ET.fromstring(html)
+    svgs = root.findall(".//svg")
+    assert len(svgs) == 2
+    return svgs[0], svgs[1]
+
+
+def _svg_point(panel: ET.Element, el: ET.Element) -> complex:
+    """An element's centre back in the complex plane of its panel."""
+    size = float(panel.attrib["viewBox"].split()[2])
+    half = size / 2.0
+    k = (half - 12.0) / charts.NYQUIST_RADIUS
+    return complex((float(el.attrib["cx"]) - half) / k, (half - float(el.attrib["cy"])) / k)
+
+
+@pytest.mark.parametrize("dob_on", [True, False])
+def test_nyquist_shows_the_loop_with_and_without_the_dob(dob_on: bool) -> None:
+    """Two panels side by side, "with DOB" (class dt-nyquist: what the browser test finds)
+    and "without DOB" (dt-nyquist-nodob), whatever the candidate's DOB switch: each draws
+    its own loop, the active one dashed, its own critical point, and its own PM and GM
+    points where the refined crossings lie (|L| = 1 on the unit circle, L real and
+    negative), to the drawing's 0.1 px rounding."""
+    from server.engine import TuningEngine
+
+    eng = TuningEngine()
+    cand = eng.evaluate(LoopConfig(q_cutoff_hz=2.0, dob_on=dob_on)).curves
+    act = eng.evaluate(LoopConfig()).curves
+    dob, nodob = _panels(charts.nyquist_svg(cand, act))
+    assert "dt-nyquist" in dob.attrib["class"].split() and dob.attrib["data-loop"] == "dob"
+    assert "dt-nyquist" not in nodob.attrib["class"].split()
+    assert "dt-nyquist-nodob" in nodob.attrib["class"].split()
+    assert nodob.attrib["data-loop"] == "nodob"
+    px = charts.NYQUIST_RADIUS / (float(dob.attrib["viewBox"].split()[2]) / 2 - 12)  # one px
+    for panel, loop, title in ((dob, cand.nyquist_dob, "with DOB"),
+                               (nodob, cand.nyquist_nodob, "without DOB")):
+        assert loop is not None
+        text = "".join(panel.find(".//*[@class='dt-nyq-title']").itertext())  # type: ignore[union-attr]
+        assert text.startswith(f"{title}: PM {loop.phase_margin_deg:.1f} deg")
+        assert len(panel.findall(".//*[@class='dt-nyq-critical']")) == 1
+        cand_lines = panel.findall(".//*[@class='dt-nyq-cand']")
+        assert len(cand_lines) == len(charts.nyquist_segments(loop.response)) >= 1
+        assert panel.findall(".//*[@class='dt-nyq-active']")
+        pms = panel.findall(".//*[@class='dt-nyq-pm']")
+        assert len(pms) == int(np.sum(np.abs(loop.gain_crossings) <= charts.NYQUIST_RADIUS)) >= 1
+        for el in pms:
+            assert abs(abs(_svg_point(panel, el)) - 1.0) <= px
+        for el in panel.findall(".//*[@class='dt-nyq-gm']"):
+            z = _svg_point(panel, el)
+            assert abs(z.imag) <= px and z.real < 0
+    # The two loops differ (the DOB changes L), and each panel draws its own.
+    assert cand.nyquist_dob is not None and cand.nyquist_nodob is not None
+    assert not np.allclose(cand.nyquist_dob.response, cand.nyquist_nodob.response)
+    assert ET.tostring(dob) != ET.tostring(nodob)
+
+
+def test_spread_band_is_the_relative_band_in_db() -> None:
+    """20 log10(|H| (1 +- spread)), the lower edge clipped at SPREAD_FLOOR |H| (a spread of 1
+    or more has no lower edge)."""
+    h = np.array([2.0, 1j, -0.5, 3.0 + 4.0j])
+    sp = np.array([0.0, 0.5, 0.95, 2.0])
+    hi, lo = charts.spread_band_db(h, sp)
+    mag = np.array([2.0, 1.0, 0.5, 5.0])
+    np.testing.assert_allclose(hi, 20 * np.log10(mag * (1 + sp)), rtol=1e-12)
+    np.testing.assert_allclose(lo[:2], 20 * np.log10(mag[:2] * (1 - sp[:2])), rtol=1e-12)
+    np.testing.assert_allclose(lo[2:], 20 * np.log10(mag[2:]) - 20.0, rtol=1e-12)
+
+
+def test_plant_chart_without_plant_curves_names_the_field() -> None:
+    """Curves built without the plant (not the engine's way) are an error naming it, not an
+    empty chart."""
+    import dataclasses
+
+    cand, _ = curves_from_analysis(analyse(LoopConfig(), freq_hz=freq_grid_hz()), MODEL_ONLY)
+    with pytest.raises(ValueError, match=r"BodeCurves\.plant"):
+        charts.bode_data("plant", dataclasses.replace(cand, plant=None), None)

@@ -8,6 +8,7 @@ import math
 from typing import Any
 
 import numpy as np
+import pytest
 
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.trajectory import Trajectory
@@ -152,3 +153,191 @@ def test_a_verdict_computed_while_new_knowledge_arrives_is_not_served_for_it() -
     second = eng.evaluate(LoopConfig())
     assert "not yet fetched" not in second.gate.knowledge
     assert "1 measured response(s)" in second.gate.knowledge
+
+
+# -- the Nyquist view's loops -------------------------------------------------------------------
+
+
+def _reference_loop(cfg: LoopConfig, dob: bool) -> Any:
+    """The speed loop at the plant input as python-control builds it from the tick's
+    equations (tests/fuzz_truth.py: nothing taken from the gate), the plant = the model."""
+    import fuzz_truth
+
+    l_speed, _ = fuzz_truth.open_loops(fuzz_truth.TruePlant(), cfg.with_(dob_on=dob))
+    return l_speed
+
+
+NODOB_CASES = [
+    LoopConfig(),
+    LoopConfig(cv_kp=1.2, pos_kp_per_s=20.0, q_cutoff_hz=3.0, dob_on=False),
+    LoopConfig(cv_kp=0.3, cv_ki_per_s=20.0, q_type="q20", q_cutoff_hz=0.3),
+]
+
+
+@pytest.mark.parametrize("cfg", NODOB_CASES, ids=["default", "stiff-dob-off", "soft-q20"])
+def test_speed_loop_without_dob_is_python_controls_discrete_loop(cfg: LoopConfig) -> None:
+    """The without-DOB L (G Cv, the implemented discrete loop: ZOH plant with the
+    backward-difference rate, Tustin PI) equals python-control's state-space loop to a
+    relative 1e-9 on the chart grid, whatever the candidate's DOB switch; its margins equal
+    control.stability_margins on that loop (PM 1e-4 deg, GM 1e-4 dB, crossovers 1e-6
+    relative); and it is the loop behind the analysis' eq. 18 (T = L / (1 + L))."""
+    import control
+
+    from controller.gate.analysis import analyse
+
+    eng = TuningEngine()
+    c = eng.evaluate(cfg).curves
+    nl = c.nyquist_nodob
+    assert nl is not None
+    ref = _reference_loop(cfg, dob=False)
+    import fuzz_truth
+
+    np.testing.assert_allclose(nl.response, fuzz_truth.frequency_response(ref, c.freq_hz),
+                               rtol=1e-9)
+    # "frd": python-control's exact response on its own grid, crossings refined there
+    # ("best" says its polynomial method may be inaccurate here, and falls back to this).
+    gm, pm, _sm, wpc, wgc, _wms = control.stability_margins(ref, method="frd")
+    assert nl.phase_margin_deg == pytest.approx(pm, abs=1e-4)
+    assert nl.gain_margin_db == pytest.approx(20 * np.log10(gm), abs=1e-4)
+    w = 2 * np.pi
+    assert float(nl.gain_crossover_hz[np.argmin(np.abs(nl.gain_crossover_hz - wgc / w))]) == (
+        pytest.approx(wgc / w, rel=1e-6))
+    assert float(nl.phase_crossover_hz[np.argmin(np.abs(nl.phase_crossover_hz - wpc / w))]) == (
+        pytest.approx(wpc / w, rel=1e-6))
+    np.testing.assert_allclose(np.abs(nl.gain_crossings), 1.0, atol=1e-6)
+    np.testing.assert_allclose(np.angle(-nl.phase_crossings), 0.0, atol=1e-6)
+    a = analyse(cfg, eng.plant, freq_hz=c.freq_hz)
+    np.testing.assert_allclose(nl.response / (1 + nl.response), a.closed_loop_no_dob, rtol=1e-9)
+
+
+def test_speed_loop_with_dob_is_the_gates_loop_and_margins() -> None:
+    """The with-DOB L equals the gate's L of a DOB-on candidate (the analysis and python-
+    control's loop, 1e-6: the DOB's poles near z = 1 cost digits) and carries the gate's
+    margins; a DOB-off candidate still gets the with-DOB loop its DOB would give."""
+    import fuzz_truth
+
+    from controller.gate.analysis import analyse
+
+    eng = TuningEngine()
+    cfg = LoopConfig(q_cutoff_hz=2.0)
+    c = eng.evaluate(cfg).curves
+    a = analyse(cfg, eng.plant, freq_hz=c.freq_hz)
+    assert c.nyquist_dob is not None
+    np.testing.assert_allclose(c.nyquist_dob.response, a.open_loop, rtol=1e-12)
+    ref = fuzz_truth.frequency_response(_reference_loop(cfg, dob=True), c.freq_hz)
+    np.testing.assert_allclose(c.nyquist_dob.response, ref, rtol=1e-6)
+    assert c.nyquist_dob.phase_margin_deg == pytest.approx(a.phase_margin_deg, abs=1e-9)
+    assert c.nyquist_dob.gain_margin_db == pytest.approx(a.gain_margin_db, abs=1e-9)
+    off = eng.evaluate(cfg.with_(dob_on=False)).curves
+    assert off.nyquist_dob is not None and off.nyquist_nodob is not None
+    np.testing.assert_allclose(off.nyquist_dob.response, c.nyquist_dob.response, rtol=1e-12)
+    a_off = analyse(cfg.with_(dob_on=False), eng.plant, freq_hz=c.freq_hz)
+    np.testing.assert_allclose(off.nyquist_nodob.response, a_off.open_loop, rtol=1e-12)
+    assert off.nyquist_nodob.phase_margin_deg == pytest.approx(a_off.phase_margin_deg, abs=1e-9)
+
+
+# -- the plant chart ----------------------------------------------------------------------------
+
+
+def _model_db(f: np.ndarray) -> np.ndarray:
+    """20 log10 |M P| by scipy (independent of the gate's polyval)."""
+    from scipy import signal
+
+    nm = NominalModel()
+    _, h = signal.freqs(nm.pn_num, np.polymul(nm.mn_den, nm.pn_den), worN=2 * np.pi * f)
+    return np.asarray(20 * np.log10(np.abs(h)))
+
+
+def _plant_chart(eng: TuningEngine) -> dict[str, np.ndarray]:
+    spec = {s.key: s for s in charts.BODE_CHARTS}["plant"]
+    data = eng.compare(LoopConfig(q_cutoff_hz=2.0), LoopConfig()).chart_data["plant"]
+    assert len(data) == len(spec.series) == 7
+    assert all(d.shape == data[0].shape for d in data)
+    return {"f": data[0], **{c.split(".")[1]: d for c, d in zip(spec.columns, data[1:],
+                                                                 strict=True)}}
+
+
+def test_plant_chart_draws_measured_spread_over_the_model() -> None:
+    """With a measured response: the model |M P| (scipy), the measured points at their
+    frequencies (20 log10 |H|, nothing between), the band 20 log10(|H| (1 +- spread))
+    computed here (the lower edge at most 20 dB below |H|), the phase near the model's;
+    every column starts finite (uPlot's rule); the band's edges are the series after the
+    measured points."""
+    f_m = np.geomspace(0.2, 30.0, 25)
+    h = 1.2 * nominal_continuous_response(NominalModel(), f_m) * np.exp(-2j * np.pi * f_m * 2e-3)
+    spread = np.linspace(0.0, 1.5, f_m.size)  # up to beyond 1: the lower edge is clipped
+    eng = TuningEngine()
+    eng.set_knowledge(eng.with_measured(MeasuredResponse("pos0", f_m, h, spread=spread)))
+    d = _plant_chart(eng)
+    f = d["f"]
+    assert f[0] == f_m[0] and np.all(np.isfinite([col[0] for col in d.values()]))
+    np.testing.assert_allclose(d["model_db"], _model_db(f), atol=1e-9)
+    at = np.isin(f, f_m)
+    assert at.sum() == f_m.size
+    assert np.isnan(d["measured_db"][~at]).all() and np.isnan(d["upper_db"][~at]).all()
+    mag = np.abs(h)
+    np.testing.assert_allclose(d["measured_db"][at], 20 * np.log10(mag), rtol=1e-12)
+    np.testing.assert_allclose(d["upper_db"][at], 20 * np.log10(mag * (1 + spread)), rtol=1e-12)
+    exact = spread < 0.9
+    np.testing.assert_allclose(d["lower_db"][at][exact],
+                               20 * np.log10(mag[exact] * (1 - spread[exact])), rtol=1e-12)
+    np.testing.assert_allclose(d["lower_db"][at][~exact], 20 * np.log10(mag[~exact]) - 20.0,
+                               rtol=1e-12)
+    phase_ref = np.degrees(np.angle(h / nominal_continuous_response(NominalModel(), f_m)))
+    np.testing.assert_allclose(d["measured_phase_deg"][at] - d["model_phase_deg"][at],
+                               phase_ref, atol=1e-9)
+    spec = {s.key: s for s in charts.BODE_CHARTS}["plant"]
+    labels = [s["label"] for s in spec.series[2:5]]
+    assert labels == ["|H| measured", "|H| (1 + spread)", "|H| (1 - spread)"]
+    assert np.all(d["lower_db"][at] <= d["measured_db"][at])
+    assert np.all(d["measured_db"][at] <= d["upper_db"][at])
+
+
+def test_plant_chart_with_several_responses_shows_their_envelope() -> None:
+    """Two responses at the same frequencies: the points are their mean in dB, the band the
+    envelope of both bands."""
+    f_m = np.geomspace(0.5, 10.0, 8)
+    g = nominal_continuous_response(NominalModel(), f_m)
+    eng = TuningEngine()
+    eng.set_knowledge(eng.with_measured(MeasuredResponse("a", f_m, 0.9 * g,
+                                                         spread=np.full(8, 0.1))))
+    eng.set_knowledge(eng.with_measured(MeasuredResponse("b", f_m, 1.3 * g)))
+    d = _plant_chart(eng)
+    at = np.isin(d["f"], f_m)
+    m = 20 * np.log10(np.abs(g))
+    np.testing.assert_allclose(d["measured_db"][at], m + 10 * np.log10(0.9 * 1.3), atol=1e-9)
+    np.testing.assert_allclose(d["upper_db"][at], m + 20 * np.log10(1.3), atol=1e-9)
+    np.testing.assert_allclose(d["lower_db"][at], m + 20 * np.log10(0.9 * 0.9), atol=1e-9)
+
+
+def test_plant_chart_without_measured_responses_still_draws() -> None:
+    """No measured response: the model over the whole chart grid, every column starting
+    finite (a NaN first value gives uPlot a NaN scale: nothing drawn), the measured columns
+    empty after their stand-in first value."""
+    eng = TuningEngine()
+    d = _plant_chart(eng)
+    np.testing.assert_array_equal(d["f"], eng.freq_hz)
+    assert all(np.isfinite(col[0]) for col in d.values())
+    np.testing.assert_allclose(d["model_db"], _model_db(d["f"]), atol=1e-9)
+    for name in ("measured_db", "upper_db", "lower_db", "measured_phase_deg"):
+        assert np.isnan(d[name][1:]).all(), name
+
+
+def test_plant_chart_draws_a_sampled_response_in_the_continuous_basis() -> None:
+    """A sampled response (u[k] -> w[k]: the exact sampled model here, from the gate's ZOH
+    discretisation) is drawn in the model's continuous basis: the ZOH + backward-difference
+    factor divided out, it lies on M P within 0.01 dB and 0.01 deg up to 100 Hz (raw it is
+    0.28 dB and 36 deg off there)."""
+    from controller.gate.knowledge import PlantKnowledge
+    from controller.gate.loop_model import discrete_plant, plant_response
+    from server.engine import freq_grid_hz, plant_curves
+
+    f = np.geomspace(0.1, 100.0, 30)
+    h = plant_response(discrete_plant(NominalModel(), 1000.0), np.exp(-2j * np.pi * f / 1000.0))
+    pc = plant_curves(PlantKnowledge((MeasuredResponse("s", f, h, sampled=True),)),
+                      freq_grid_hz(), 1000.0)
+    at = np.isin(pc.freq_hz, f)
+    assert at.sum() == f.size
+    np.testing.assert_allclose(pc.measured_db[at], _model_db(f), atol=0.01)
+    np.testing.assert_allclose(pc.measured_phase_deg[at], pc.model_phase_deg[at], atol=0.01)
+    assert np.max(np.abs(20 * np.log10(np.abs(h)) - _model_db(f))) > 0.2  # the test can fail
