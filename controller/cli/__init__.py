@@ -64,6 +64,7 @@ def controller_commands() -> dict[str, Command]:
         ctl,
         experiment,
         identify,
+        paper,
         record,
         report,
         router,
@@ -72,4 +73,4 @@ def controller_commands() -> dict[str, Command]:
     return {c.name: c for c in (experiment.COMMAND, check.COMMAND, controller.COMMAND,
                                 identify.COMMAND, audit.COMMAND, auth.COMMAND, ctl.COMMAND,
                                 record.COMMAND, report.COMMAND, router.COMMAND,
-                                autotune.COMMAND)}
+                                autotune.COMMAND, paper.COMMAND)}

@@ -1,20 +1,33 @@
-"""`dobtune experiment`: offline runs on the simulated rig, printed next to the article's."""
+"""`dobtune experiment`: offline runs on the simulated rig, printed next to the article's.
+
+`sine|step|ramp|hold|compare`: one trajectory (compare: no DOB / DOB / DOB + FF); `fig8` ...
+`fig17`, `sensitivity`, `disturbances`: the article's experiments (`controller.sim.paper`),
+each with the article's numbers and a statement of agreement. `--disturbance NAME` (several
+allowed) names timing-belt disturbances (`controller.sim.rig_disturbances`); `--config FILE`
+runs any LoopConfig JSON (the flags given override it).
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, TextIO
 
 from controller.cli import Command, on_off
 from controller.core.config import LoopConfig, config_to_builtins
 from controller.core.errors import ConfigError
 from controller.core.trajectory import default_trajectory
-from controller.sim.disturbance import disturbance_from_name
 from controller.sim.experiment import ARTICLE_SINE, ExperimentResult, run_experiment
+from controller.sim.paper import EXPERIMENTS, FigureResult, Options
+from controller.sim.rig_disturbances import RIG_DISTURBANCES, build_rig, rig_setup
+
+TRAJECTORY_TESTS = ("sine", "step", "ramp", "hold", "compare")
+TESTS = (*TRAJECTORY_TESTS, *EXPERIMENTS)
 
 
 def progress_printer(err: TextIO, label: str) -> Callable[[float], None] | None:
@@ -61,24 +74,123 @@ def _fmt(v: float | None, spec: str = ".4f") -> str:
     return "-" if v is None else format(v, spec)
 
 
+def _finite(v: float) -> float | None:
+    return v if math.isfinite(v) else None
+
+
+def figure_to_json(f: FigureResult) -> dict[str, Any]:
+    return {
+        "figure": f.figure,
+        "title": f.title,
+        "setup": f.setup,
+        "columns": list(f.columns),
+        "rows": [list(r) for r in f.rows],
+        "article": [
+            {"quantity": a.quantity, "run": a.run, "value": a.value, "unit": a.unit,
+             "text": a.text}
+            for a in f.article
+        ],
+        "agreement": f.agreement,
+        "reason": f.reason,
+        "numbers": {k: _finite(v) for k, v in f.numbers.items()},
+    }
+
+
+def markdown_table(columns: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """A GitHub-flavoured markdown table (pipes in cells escaped)."""
+
+    def cell(x: str) -> str:
+        return str(x).replace("|", "\\|")
+
+    lines = ["| " + " | ".join(cell(c) for c in columns) + " |",
+             "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(cell(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def print_figure(out: TextIO, f: FigureResult) -> None:
+    """A figure's result as plain text: ours, the article's, the agreement."""
+    out.write(f"{f.figure}: {f.title}\n  {f.setup}\n\n")
+    widths = [max(len(c), *(len(r[i]) for r in f.rows)) for i, c in enumerate(f.columns)]
+    out.write("  " + "  ".join(c.ljust(w) for c, w in zip(f.columns, widths, strict=True)) + "\n")
+    for r in f.rows:
+        out.write("  " + "  ".join(x.ljust(w) for x, w in zip(r, widths, strict=True)) + "\n")
+    out.write("\n  article (control.md):\n")
+    for a in f.article:
+        out.write(f"    {a.quantity} [{a.run}]: {a.text}\n")
+    out.write(f"\n  {f.agreement.upper()}: {f.reason}\n\n")
+
+
+def _figure_main(
+    test: str, base: LoopConfig, names: tuple[str, ...], seed: int, quick: bool,
+    as_json: bool, out: TextIO, err: TextIO,
+) -> int:
+    def say(what: str) -> None:
+        if err.isatty():
+            err.write(f"\r\x1b[K{what}")
+            err.flush()
+
+    opts = Options(cfg=base, disturbances=names, quick=quick, seed=seed, progress=say)
+    t0 = time.perf_counter()
+    figures = EXPERIMENTS[test](opts)
+    if err.isatty():
+        err.write("\r\x1b[K")
+    if as_json:
+        out.write(json.dumps({
+            "test": test, "quick": quick, "disturbances": list(names),
+            "config": config_to_builtins(base), "wall_time_s": time.perf_counter() - t0,
+            "figures": [figure_to_json(f) for f in figures],
+        }) + "\n")
+        return 0
+    for f in figures:
+        print_figure(out, f)
+    return 0
+
+
 def experiment_main(
     *,
     test: str,
-    dob_on: bool,
-    ff_on: bool,
-    q_type: str,
-    cutoff_hz: float,
+    dob_on: bool | None,
+    ff_on: bool | None,
+    q_type: str | None,
+    cutoff_hz: float | None,
     duration_s: float | None,
     seed: int,
-    disturbance: str,
+    disturbance: str | Sequence[str] | None,
     as_json: bool,
     out: TextIO,
     err: TextIO,
+    config_path: Path | None = None,
+    quick: bool = False,
 ) -> int:
-    """Exit code 0 on a completed run, 2 on bad input (message names the parameter)."""
+    """Exit code 0 on a completed run, 2 on bad input (message names the parameter).
+    None for a setting: the configuration file's (or the default's) value."""
+    from controller.cli.check import BadInput, load_config
+
     try:
-        base = LoopConfig(q_type=q_type, q_cutoff_hz=cutoff_hz, dob_on=dob_on, ff_on=ff_on)
-        dist = disturbance_from_name(disturbance)
+        if test not in TESTS:
+            raise ConfigError("test", f"unknown experiment {test!r}; expected one of "
+                              f"{', '.join(TESTS)}")
+        base = load_config(config_path)
+        changes: dict[str, Any] = {}
+        for key, value in (("q_type", q_type), ("q_cutoff_hz", cutoff_hz), ("dob_on", dob_on),
+                           ("ff_on", ff_on)):
+            if value is not None:
+                changes[key] = value
+        if changes:
+            base = base.with_(**changes)
+        if disturbance is None:
+            names: tuple[str, ...] = ()
+        elif isinstance(disturbance, str):
+            names = (disturbance,)
+        else:
+            names = tuple(disturbance)
+        setup = rig_setup(names)
+        if test in EXPERIMENTS:
+            if duration_s is not None:
+                raise ConfigError("duration_s", f"--duration applies to "
+                                  f"{', '.join(TRAJECTORY_TESTS)}, not to {test}")
+            return _figure_main(test, base, setup.names, seed, quick, as_json, out, err)
         kind = "sine" if test == "compare" else test
         traj = default_trajectory(kind)
         dur = duration_s if duration_s is not None else (30.0 if kind in ("sine", "ramp") else 10.0)
@@ -93,16 +205,21 @@ def experiment_main(
         results: dict[str, tuple[ExperimentResult, float]] = {}
         for label, cfg in runs.items():
             t0 = time.perf_counter()
+            rig = build_rig(setup, rate_hz=cfg.rate_hz, seed=seed,
+                            initial_position_deg=traj.at(0.0)[0])
             res = run_experiment(
                 cfg,
                 traj,
                 dur,
                 seed=seed,
-                disturbance=dist,
-                disturbance_name=disturbance,
+                disturbance_name=setup.label,
                 progress=progress_printer(err, label),
+                rig=rig,
             )
             results[label] = (res, time.perf_counter() - t0)
+    except BadInput as exc:
+        err.write(f"dobtune experiment: error: {exc}\n")
+        return 2
     except (ConfigError, ValueError) as exc:
         err.write(f"dobtune experiment: error: {exc}\n")
         return 2
@@ -119,7 +236,7 @@ def experiment_main(
             payload = result_to_json(*results["run"])
         out.write(json.dumps(payload) + "\n")
         return 0
-    _print_table(out, test, traj.kind, results, dur, disturbance)
+    _print_table(out, test, traj.kind, results, dur, setup.label)
     return 0
 
 
@@ -171,13 +288,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "test",
         nargs="?",
         default="sine",
-        choices=("sine", "step", "ramp", "hold", "compare"),
-        help="trajectory, or compare: no DOB / DOB / DOB + feedforward (default sine)",
+        choices=TESTS,
+        help="trajectory, compare (no DOB / DOB / DOB + feedforward), or one of the "
+        "article's experiments: fig8 ... fig17, sensitivity (eqs. 28-29), disturbances "
+        "(where the DOB helps) (default sine)",
     )
-    p.add_argument("--dob", type=on_off, default=True, metavar="on|off")
-    p.add_argument("--ff", type=on_off, default=False, metavar="on|off")
-    p.add_argument("--q", dest="q_type", default="q31", metavar="q20|q31")
-    p.add_argument("--cutoff-hz", type=float, default=0.5)
+    p.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="a LoopConfig JSON (as dobtune check takes); the flags below override it")
+    p.add_argument("--dob", type=on_off, default=None, metavar="on|off")
+    p.add_argument("--ff", type=on_off, default=None, metavar="on|off")
+    p.add_argument("--q", dest="q_type", default=None, metavar="q20|q31")
+    p.add_argument("--cutoff-hz", type=float, default=None)
     p.add_argument(
         "--duration",
         type=float,
@@ -186,7 +307,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="simulated seconds (default: 30 for sine/ramp, 10 otherwise)",
     )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--disturbance", default="none", metavar="NAME")
+    p.add_argument("--disturbance", action="append", default=None, metavar="NAME",
+                   help="timing-belt disturbance, repeatable: "
+                   + ", ".join(sorted(RIG_DISTURBANCES)))
+    p.add_argument("--quick", action="store_true",
+                   help="the article's experiments: shorter runs, fewer points")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
 
 
@@ -203,6 +328,8 @@ def run(args: argparse.Namespace) -> int:
         as_json=args.json,
         out=sys.stdout,
         err=sys.stderr,
+        config_path=args.config,
+        quick=args.quick,
     )
 
 

@@ -20,6 +20,8 @@ __all__ = [
     "NoDisturbance",
     "SineTorque",
     "StepTorque",
+    "StepsTorque",
+    "SumTorque",
     "disturbance_from_name",
 ]
 
@@ -74,6 +76,41 @@ class StepTorque:
 
     def torque_n_m(self, time_s: float) -> float:
         return self.amplitude_n_m if time_s >= self.time_s else 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class StepsTorque:
+    """Piecewise constant: `levels_n_m[i]` from `times_s[i]` on (0 before the first time)."""
+
+    times_s: tuple[float, ...]
+    levels_n_m: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        if len(self.times_s) != len(self.levels_n_m) or not self.times_s:
+            raise ConfigError("times_s", "needs as many times as levels, at least one")
+        for i, (t, v) in enumerate(zip(self.times_s, self.levels_n_m, strict=True)):
+            number(t, f"times_s[{i}]")
+            number(v, f"levels_n_m[{i}]")
+            if t < 0.0 or (i and t <= self.times_s[i - 1]):
+                raise ConfigError(f"times_s[{i}]", "times must be >= 0 and increasing")
+
+    def torque_n_m(self, time_s: float) -> float:
+        out = 0.0
+        for t, v in zip(self.times_s, self.levels_n_m, strict=True):
+            if time_s < t:
+                break
+            out = v
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class SumTorque:
+    """The sum of several profiles (several named disturbances at once)."""
+
+    parts: tuple[Disturbance, ...]
+
+    def torque_n_m(self, time_s: float) -> float:
+        return sum(d.torque_n_m(time_s) for d in self.parts)
 
 
 #: Named profiles offered to users. Open loop, 1 N m deflects the belt by ~0.3 deg (stiffness

@@ -123,6 +123,17 @@ def compute_metrics(
 ProgressFn = Callable[[float], None]
 
 
+class Loop(Protocol):
+    """What an experiment needs of a loop: ServoLoop, or a simulation-only variant."""
+
+    d_hat: float
+    speed_ref_deg_s: float
+
+    def tick(
+        self, ref_deg: float, ref_rate_deg_s: float, pos_deg: float, speed_deg_s: float
+    ) -> float: ...
+
+
 class Rig(Protocol):
     """What the loop needs of a rig: the simulated one, or the real one over CAN."""
 
@@ -143,8 +154,10 @@ def run_experiment(
     settle_s: float | None = None,
     progress: ProgressFn | None = None,
     rig: Rig | None = None,
+    loop: Loop | None = None,
 ) -> ExperimentResult:
-    """Run the loop against the simulated rig for `duration_s` simulated seconds."""
+    """Run the loop against the simulated rig for `duration_s` simulated seconds (`loop`: a
+    loop variant instead of the runtime's ServoLoop built from `cfg`)."""
     if not (isinstance(duration_s, (int, float)) and math.isfinite(duration_s)):
         raise ConfigError("duration_s", f"expected a finite number, got {duration_s!r}")
     if not 0.0 < duration_s <= 3600.0:
@@ -161,7 +174,8 @@ def run_experiment(
             disturbance=disturbance,
             initial_position_deg=p0,
         )
-    loop = ServoLoop(LoopCoefficients.build(cfg))
+    if loop is None:
+        loop = ServoLoop(LoopCoefficients.build(cfg))
     t_s = np.arange(n) * ts
     ref = np.empty(n)
     pos = np.empty(n)

@@ -33,6 +33,11 @@ rig measured through `read()` at 20 +- 2 deg/s, everything on, is within 0.28 dB
 0.2-5 Hz; of that phase, about one tick is sampling delay (half from the held command, half
 from the backward-difference rate), i.e. -1.8 deg at 5 Hz.
 
+Disturbances beyond the reference model (`controller.sim.rig_disturbances` names them): the
+motor's cogging torque (`cogging_torque_n_m`, motor side, `cogging_periods_per_rev` per motor
+revolution; 0 by default, and then the kernel skips it: runs are bit-identical to the model
+without it) and friction changes while running (`SimRig.set_friction`).
+
 The kernel is compiled with numba and works on two preallocated float64 arrays (parameters and
 state); `SimRig` wraps it. The external disturbance is sampled once per tick and held.
 
@@ -117,6 +122,10 @@ class RigParams:
     """Load encoder resolution: 2**bits counts per revolution."""
     position_noise_deg: float = 1.0e-5
     """Standard deviation of Gaussian noise on the measured load position (~2 LSB)."""
+    cogging_torque_n_m: float = 0.0
+    """Amplitude of the motor's cogging torque, motor side (0 = none: the reference model)."""
+    cogging_periods_per_rev: int = 12
+    """Cogging periods per MOTOR revolution (slots and poles of the motor)."""
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -136,6 +145,7 @@ class RigParams:
             "load_inertia_kg_m2",
             "stribeck_speed_deg_s",
             "pulley_teeth",
+            "cogging_periods_per_rev",
         )
         for name in positive:
             if getattr(self, name) <= 0:
@@ -150,6 +160,7 @@ class RigParams:
             "transmission_error_deg",
             "ripple_torque_n_m",
             "position_noise_deg",
+            "cogging_torque_n_m",
         )
         for name in non_negative:
             if getattr(self, name) < 0:
@@ -160,7 +171,9 @@ class RigParams:
                 f"must be >= coulomb_torque_n_m ({self.coulomb_torque_n_m!r}), "
                 f"got {self.static_torque_n_m!r}",
             )
-        for name in ("motor_encoder_counts_per_rev", "pulley_teeth", "load_encoder_bits"):
+        ints = ("motor_encoder_counts_per_rev", "pulley_teeth", "load_encoder_bits",
+                "cogging_periods_per_rev")
+        for name in ints:
             if not isinstance(getattr(self, name), int):
                 raise ConfigError(name, f"must be an int, got {getattr(self, name)!r}")
         if not 1 <= self.load_encoder_bits <= 48:
@@ -209,7 +222,10 @@ _P_GAIN, _P_RES_JP, _P_RES_W2, _P_RES_2ZW = range(24, 28)  # active fault values
 _FAULT_SLOTS = (_P_GAIN, _P_HALF_BL, _P_JL, _P_RES_JP, _P_RES_W2, _P_RES_2ZW)
 _P_NEW = 28
 _P_PENDING = _P_NEW + len(_FAULT_SLOTS)
-_P_LEN = _P_PENDING + 1
+# Motor cogging torque (motor side) and its periods per motor revolution; 0 = none.
+_P_COG = _P_PENDING + 1
+_P_NCOG = _P_PENDING + 2
+_P_LEN = _P_PENDING + 3
 
 # State array layout; the motor-encoder ring buffer (counts) follows _X_RING. _X_Q / _X_QD:
 # deflection of the extra mode's payload relative to the hub, and its rate.
@@ -247,6 +263,8 @@ def _param_array(
     a[_P_NWIN] = nwin
     a[_P_RATE] = rate_hz
     a[_P_GAIN] = 1.0
+    a[_P_COG] = p.cogging_torque_n_m
+    a[_P_NCOG] = p.cogging_periods_per_rev
     return a, nwin
 
 
@@ -344,6 +362,8 @@ def _advance(
     jp = p[_P_RES_JP]
     res_w2 = p[_P_RES_W2]
     res_zw2 = p[_P_RES_2ZW]
+    cog = p[_P_COG]
+    ncog = p[_P_NCOG]
 
     thm = x[_X_THM]
     wm = x[_X_WM]
@@ -387,7 +407,10 @@ def _advance(
         elif stretch < -half:
             tb = min(0.0, k * (stretch + half) + c * stretch_rate)
 
-        wm_new = wm + dt / jm * (tau - bm * wm - tb / n)
+        t_motor = tau - bm * wm - tb / n
+        if cog != 0.0:  # skipped without cogging: the reference model stays bit-identical
+            t_motor -= cog * math.sin(ncog * thm)
+        wm_new = wm + dt / jm * t_motor
 
         # Load (hub): friction at the velocity level; stick when friction can absorb the
         # momentum. An extra mode's payload pulls through its spring; the payload's deflection
@@ -559,6 +582,25 @@ class SimRig:
 
     def clear_faults(self) -> None:
         self.set_faults(_NO_FAULTS)
+
+    # -- friction changes (a disturbance: wear, temperature, lubrication) ---------------------
+
+    def set_friction(self, coulomb_torque_n_m: float, static_torque_n_m: float) -> None:
+        """Change the load's Coulomb and static friction from the next step on (call between
+        steps, from the stepping thread). Survives `reset()`; `params` keeps the original."""
+        fc = in_range(coulomb_torque_n_m, "coulomb_torque_n_m", 0.0, 1e3)
+        fs = in_range(static_torque_n_m, "static_torque_n_m", 0.0, 1e3)
+        if fs < fc:
+            raise ConfigError(
+                "static_torque_n_m", f"must be >= coulomb_torque_n_m ({fc!r}), got {fs!r}"
+            )
+        self._p[_P_FC] = fc
+        self._p[_P_FS] = fs
+
+    @property
+    def friction_n_m(self) -> tuple[float, float]:
+        """(Coulomb, static) friction of the load in effect."""
+        return float(self._p[_P_FC]), float(self._p[_P_FS])
 
     @property
     def faults(self) -> RigFaults:

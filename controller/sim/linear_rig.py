@@ -1,0 +1,135 @@
+"""A linear rig: the article's block diagram w = P (M u + d) with a perturbed P, sampled exactly.
+
+For the article's robustness cases (Figs. 8-9: "40 % low-frequency model uncertainty and an
+unmodelled 5 Hz mode"): the true plant is
+
+    P'(s) = gain * Pn(s) * R(s),   R(s) = (s^2/wz^2 + 2 zz s/wz + 1) / (s^2/wp^2 + 2 zp s/wp + 1)
+
+(an extra pair of conjugate poles at `mode_hz` and zeros at `antimode_hz`; gain 1.4 or 0.6 is
+the 40 % error), M = Mn. d is a rate disturbance at P's input (control.md), in deg/s. The
+command u and d are held over each period (ZOH, exact matrix exponential); the rate is the
+backward difference of the position over one period, as on the simulated and the real rig.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy import linalg, signal
+
+from controller.core.config import NominalModel
+from controller.core.errors import ConfigError
+
+__all__ = ["LinearRig", "PlantVariant"]
+
+_TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True, slots=True)
+class PlantVariant:
+    """P' = gain Pn R: see the module docstring. mode_hz = 0: no extra mode."""
+
+    label: str
+    gain: float = 1.0
+    mode_hz: float = 0.0
+    mode_damping: float = 0.05
+    antimode_hz: float = 0.0
+    antimode_damping: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.gain) and self.gain > 0.0):
+            raise ConfigError("gain", f"must be > 0, got {self.gain!r}")
+        if self.mode_hz < 0.0 or (self.mode_hz > 0.0 and self.antimode_hz <= 0.0):
+            raise ConfigError("antimode_hz", "a mode needs its pair of zeros (antimode_hz > 0)")
+
+    def mode_polys(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """(numerator, denominator) of R(s), highest power first."""
+        if self.mode_hz == 0.0:
+            return np.array([1.0]), np.array([1.0])
+        wz = _TWO_PI * self.antimode_hz
+        wp = _TWO_PI * self.mode_hz
+        num = np.array([1.0 / wz**2, 2.0 * self.antimode_damping / wz, 1.0])
+        den = np.array([1.0 / wp**2, 2.0 * self.mode_damping / wp, 1.0])
+        return num, den
+
+    def p_polys(
+        self, nominal: NominalModel
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """(numerator, denominator) of P'(s)."""
+        rn, rd = self.mode_polys()
+        num = self.gain * np.polymul(np.asarray(nominal.pn_num, float), rn)
+        den = np.polymul(np.asarray(nominal.pn_den, float), rd)
+        return num, den
+
+    def response(self, nominal: NominalModel, freq_hz: npt.ArrayLike) -> npt.NDArray[np.complex128]:
+        """P'(j 2 pi f)."""
+        s = 1j * _TWO_PI * np.asarray(freq_hz, float)
+        num, den = self.p_polys(nominal)
+        return np.asarray(np.polyval(num, s) / np.polyval(den, s), dtype=np.complex128)
+
+
+def _ss(num: npt.NDArray[np.float64], den: npt.NDArray[np.float64]) -> tuple[np.ndarray, ...]:
+    a, b, c, d = signal.tf2ss(num, den)
+    return tuple(np.atleast_2d(np.asarray(m, float)) for m in (a, b, c, d))
+
+
+class LinearRig:
+    """`read()` / `step(u)` like SimRig, for the linear plant Mn, P'. `speed_disturbance(t)`
+    gives d (deg/s) per period."""
+
+    __slots__ = ("_ad", "_bd", "_cth", "_d", "_k", "_pos", "_rate", "_ts", "_x")
+
+    def __init__(
+        self,
+        variant: PlantVariant,
+        nominal: NominalModel | None = None,
+        *,
+        rate_hz: float = 1000.0,
+        speed_disturbance: Callable[[float], float] | None = None,
+    ) -> None:
+        self._ts = 1.0 / rate_hz
+        nominal = nominal or NominalModel()
+        a1, b1, c1, d1 = _ss(np.array([1.0]), np.asarray(nominal.mn_den, float))
+        a2, b2, c2, d2 = _ss(*variant.p_polys(nominal))
+        n1, n2 = a1.shape[0], a2.shape[0]
+        n = n1 + n2 + 1
+        # x = [x1 (M); x2 (P'); theta], inputs [u, d]: v = C1 x1 + D1 u + d, w = C2 x2 + D2 v.
+        a = np.zeros((n, n))
+        b = np.zeros((n, 2))
+        a[:n1, :n1] = a1
+        b[:n1, 0] = b1[:, 0]
+        a[n1 : n1 + n2, :n1] = b2 @ c1
+        a[n1 : n1 + n2, n1 : n1 + n2] = a2
+        b[n1 : n1 + n2, 0] = (b2 * d1[0, 0])[:, 0]
+        b[n1 : n1 + n2, 1] = b2[:, 0]
+        a[n - 1, :n1] = d2[0, 0] * c1[0]
+        a[n - 1, n1 : n1 + n2] = c2[0]
+        b[n - 1, 0] = d2[0, 0] * d1[0, 0]
+        b[n - 1, 1] = d2[0, 0]
+        big = np.zeros((n + 2, n + 2))
+        big[:n, :n] = a
+        big[:n, n:] = b
+        e = linalg.expm(big * self._ts)
+        self._ad = e[:n, :n]
+        self._bd = e[:n, n:]
+        self._cth = n - 1
+        self._x = np.zeros(n)
+        self._d = speed_disturbance
+        self._k = 0
+        self._pos = 0.0
+        self._rate = 0.0
+
+    def read(self) -> tuple[float, float]:
+        return self._pos, self._rate
+
+    def step(self, command_deg_s: float) -> None:
+        d = 0.0 if self._d is None else self._d(self._k * self._ts)
+        self._x = self._ad @ self._x + self._bd @ np.array([command_deg_s, d])
+        pos = float(self._x[self._cth])
+        self._rate = (pos - self._pos) / self._ts
+        self._pos = pos
+        self._k += 1
