@@ -429,6 +429,19 @@ class PositionResponse(msgspec.Struct, frozen=True, kw_only=True):
 IDENTIFY_STATES: tuple[str, ...] = ("idle", "running", "analysing", "done", "aborted")
 
 
+class IdentifyRun(msgspec.Struct, frozen=True, kw_only=True):
+    """What a run executes, so a recording of the state stream can be analysed again
+    (`dobtune identify --from`): the plan is `plan_program(spec, config, start_deg)`; tick i
+    of it is state sample `start_seq + i`."""
+
+    spec: IdentifySpec
+    config: LoopConfig  # the configuration the plan was made with
+    start_deg: float  # the position the plan was made from
+    start_seq: int  # sequence number of the program's first tick
+    ticks_planned: int
+    ticks_done: int  # ticks executed so far (final once the state is not running)
+
+
 class IdentifyStatus(_Msg, frozen=True, kw_only=True):
     """The latest identification run (run_id counts runs since the controller started)."""
 
@@ -445,6 +458,7 @@ class IdentifyStatus(_Msg, frozen=True, kw_only=True):
     agreement_freq_hz: float | None = None
     recommended_cutoff_hz: dict[str, float | None] = {}
     summary_json: str = ""  # the summary.json `dobtune identify` writes (done/aborted)
+    run: IdentifyRun | None = None  # what the run executes (None: idle, older senders)
 
 
 # -- encoding ---------------------------------------------------------------------------------

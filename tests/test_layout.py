@@ -41,6 +41,8 @@ SERVER_MAY_IMPORT = (
     # the users file and the client-side Zenoh credentials (the dashboard gives each user of
     # an auth directory a URL and logs in as them)
     "controller.auth",
+    # recordings (MCAP files) and their metrics: the Recordings panel lists and compares them
+    "controller.recording",
 )
 
 

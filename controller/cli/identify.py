@@ -163,6 +163,16 @@ def _connection_error(plant: str | None, connect: str | None, rig_name: str | No
     return None
 
 
+def _from_error(plant: str | None, connect: str | None, spec: Mapping[str, Any]) -> str | None:
+    """Why --from cannot run with these options (the spec comes from the recording), or None."""
+    if plant is not None or connect is not None:
+        return "--from is exclusive with --plant and --connect"
+    given = [f.param.flag for f in CLI_FIELDS if f.name in spec and spec[f.name] != f.default]
+    if given:
+        return f"--from: the spec comes from the recording; remove {', '.join(given)}"
+    return None
+
+
 def identify_main(
     plant: str | None,
     connect: str | None,
@@ -175,6 +185,7 @@ def identify_main(
     *,
     cfg: LoopConfig | None = None,
     rig_factory: Callable[[], RigLike] | None = None,
+    from_file: Path | None = None,
 ) -> int:
     """Run the identification and report; returns the exit code (0 ok, 1 aborted, 2 bad input).
 
@@ -182,7 +193,10 @@ def identify_main(
     short runs), checked here as the controller checks them, before anything connects or
     moves. ``rig_factory`` replaces the simulated rig (tests: a faulty rig).
     """
-    problem = _connection_error(plant, connect, rig_name)
+    if from_file is not None:  # the run analysed again from its recording
+        problem = _from_error(plant, connect, spec_fields)
+    else:
+        problem = _connection_error(plant, connect, rig_name)
     if problem is not None:
         return _bad(problem, as_json, out, err)
     try:
@@ -194,7 +208,15 @@ def identify_main(
     progress = _Progress(err)
     t0 = time.perf_counter()
     try:
-        if connect is not None and rig_name is not None:
+        if from_file is not None:
+            from controller.cli.identify_from import RecordingProblem, status_from_recording
+
+            try:
+                status = status_from_recording(from_file, rig_name or "")
+            except RecordingProblem as exc:
+                return _bad(f"--from: {exc}", as_json, out, err)
+            summary = _write_remote(status, out_dir, time.perf_counter() - t0)
+        elif connect is not None and rig_name is not None:
             status = _remote(connect, rig_name, spec, progress)
             if isinstance(status, str):
                 return _bad(status, as_json, out, err)
@@ -283,6 +305,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plant", default=None, metavar="sim", help="offline simulated rig (default)")
     p.add_argument("--connect", default=None, metavar="ENDPOINT", help="running controller")
     p.add_argument("--rig-name", default=None, metavar="NAME", help="with --connect")
+    p.add_argument("--from", dest="from_file", type=Path, default=None, metavar="FILE.mcap",
+                   help="analyse again an identification run recorded by `dobtune record`")
     for f in CLI_FIELDS:  # generated from the spec: flag, type, default, unit, help
         p.add_argument(
             f.param.flag,
@@ -306,6 +330,7 @@ def run(args: argparse.Namespace) -> int:
         as_json=args.json,
         out=sys.stdout,
         err=sys.stderr,
+        from_file=args.from_file,
     )
 
 

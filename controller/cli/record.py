@@ -4,10 +4,11 @@
                    [--auth DIR --user NAME]
 
 One message per loop tick on `/state`, every Status on `/status`, each configuration version on
-`/config`, and events (lost samples, mode changes, watchdog trips) on `/events`; Foxglove and
-PlotJuggler open the file directly (`docs/foxglove_layout.json`). Ctrl-C ends the recording
-cleanly. Exit codes: 0 recorded (samples lost are reported and recorded as events, not an
-error), 2 bad input, 4 nothing received from the controller.
+`/config`, and events (lost samples, mode changes, watchdog trips, identification runs with
+what they executed, for `dobtune identify --from`) on `/events`; Foxglove and PlotJuggler open
+the file directly (`docs/foxglove_layout.json`). Ctrl-C ends the recording cleanly. Exit
+codes: 0 recorded (samples lost are reported and recorded as events, not an error), 2 bad
+input, 4 nothing received from the controller.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from typing import Any, TextIO
 
 from controller.cli import Command
 
-__all__ = ["record_main"]
+__all__ = ["identify_event", "record_main"]
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_NOTHING = 0, 2, 4
 
@@ -38,6 +39,56 @@ def _session(args: argparse.Namespace) -> Any:
     from controller.zenoh_session import open_session
 
     return open_session(listen=(), connect=args.connect)
+
+
+#: How often the recorder asks the controller for its identification status.
+IDENTIFY_POLL_S = 0.5
+
+
+class _IdentifyWatch:
+    """Records an `identify` event whenever the controller's identification run changes state
+    (run id, state): the run's spec, configuration, start position and first tick
+    (`IdentifyRun`), which `dobtune identify --from` needs to analyse the run again."""
+
+    def __init__(self) -> None:
+        self.last: tuple[int, str] | None = None
+        self.failed = False
+
+    def poll(self, session: Any, key: str, rec: Any) -> None:
+        from controller import protocol as proto
+
+        try:
+            replies = list(session.get(key, timeout=1.0))
+            ok = [r.ok for r in replies if r.ok is not None]
+            if not ok:
+                raise ValueError("no reply")
+            st = proto.decode(ok[0].payload.to_bytes(), proto.IdentifyStatus)
+        except Exception as exc:  # said once in the recording, the recording goes on
+            if not self.failed:
+                self.failed = True
+                rec.event("note", f"identification status unavailable: {exc}")
+            return
+        now = (st.run_id, st.state)
+        if st.run is None or now == self.last:
+            return
+        self.last = now
+        identify_event(rec, st)
+
+
+def identify_event(rec: Any, st: Any) -> None:
+    """Record the `identify` event of an IdentifyStatus `st` (which carries `run`) into the
+    Recorder `rec`: what `dobtune identify --from` reads."""
+    import msgspec
+
+    rec.event(
+        "identify",
+        f"identification {st.run_id}: {st.state}"
+        + (f" ({st.abort_reason})" if st.abort_reason else ""),
+        run_id=st.run_id,
+        state=st.state,
+        abort_reason=st.abort_reason,
+        run=msgspec.to_builtins(st.run),
+    )
 
 
 def record_main(args: argparse.Namespace, out: TextIO, stop: threading.Event | None = None) -> int:
@@ -67,6 +118,11 @@ def record_main(args: argparse.Namespace, out: TextIO, stop: threading.Event | N
     t0 = time.monotonic()
     last_status = ""
     bad = 0
+    identify_key = proto.key_identify(args.rig_name)
+    if args.auth is not None:
+        identify_key = proto.user_key(identify_key, args.user)
+    identify = _IdentifyWatch()
+    next_poll = t0
     with session, Recorder(out_path, rig=args.rig_name) as rec:
         state = session.declare_subscriber(proto.key_state(args.rig_name),
                                            zenoh.handlers.FifoChannel(16384))
@@ -100,8 +156,12 @@ def record_main(args: argparse.Namespace, out: TextIO, stop: threading.Event | N
                         rec.event("status", f"mode {st.mode}; faults: "
                                   f"{'; '.join(st.faults) or '-'}; {st.watchdog}", time.time())
                     last_status = text
+                if time.monotonic() >= next_poll:
+                    next_poll = time.monotonic() + IDENTIFY_POLL_S
+                    identify.poll(session, identify_key, rec)
                 if not got:
                     time.sleep(0.01)
+            identify.poll(session, identify_key, rec)  # a run that ended in the last interval
         finally:
             state.undeclare()
             status.undeclare()

@@ -122,10 +122,14 @@ def identify_segments(segments: Sequence[Any]) -> list[tuple[list[float], ...]]:
 class IdentifyJob:
     """The latest identification run as the controller sees it."""
 
-    def __init__(self, run_id: int, plan: Any, program: ExcitationProgram) -> None:
+    def __init__(
+        self, run_id: int, plan: Any, program: ExcitationProgram, start_deg: float = math.nan
+    ) -> None:
         self.run_id = run_id
         self.plan = plan
         self.program = program
+        self.start_deg = start_deg
+        """The position the plan was made from."""
         self.state = "running"
         self.t0 = time.monotonic()
         self.results: dict[str, Any] = {}
@@ -186,10 +190,13 @@ class IdentifyRuns:
         plan = plan_program(spec, config, pos_deg)
         return plan, to_program(plan)
 
-    def begin(self, plan: Any, program: ExcitationProgram) -> IdentifyJob:
-        """The loop has started `program`: a new run, watched from a thread."""
+    def begin(
+        self, plan: Any, program: ExcitationProgram, start_deg: float = math.nan
+    ) -> IdentifyJob:
+        """The loop has started `program` (planned from `start_deg`): a new run, watched from
+        a thread."""
         run_id = (self.job.run_id if self.job is not None else 0) + 1
-        job = self.job = IdentifyJob(run_id, plan, program)
+        job = self.job = IdentifyJob(run_id, plan, program, start_deg)
         log.info("identification %d started: %d ticks planned", run_id, plan.n_ticks)
         t = threading.Thread(target=self._watch, args=(job,), name="identify-watch", daemon=True)
         t.start()
@@ -209,6 +216,14 @@ class IdentifyRuns:
             text = job.text
         fields = dict(job.results)
         fields.setdefault("positions", job.partial)  # live: the segments finished so far
+        run = proto.IdentifyRun(
+            spec=job.plan.spec,
+            config=job.plan.config,
+            start_deg=job.start_deg,
+            start_seq=prog.start_seq,
+            ticks_planned=prog.n,
+            ticks_done=prog.n_done,
+        )
         return proto.IdentifyStatus(
             rig=self.rig_name,
             state=state,
@@ -216,6 +231,7 @@ class IdentifyRuns:
             progress=progress,
             text=text,
             abort_reason=job.abort_reason,
+            run=run,
             **fields,
         )
 

@@ -381,7 +381,8 @@ class ControllerService:
         with self._identify_lock:
             if self.identify.busy():
                 return self.refused("an identification is already running")
-            plan, program = self.identify.plan(spec, rt.loop.active.config, rt.last_pos_deg)
+            start_deg = rt.last_pos_deg
+            plan, program = self.identify.plan(spec, rt.loop.active.config, start_deg)
             ticket = rt.submit(RunProgram(program))
             if not ticket.wait(self.opts.command_timeout_s) or not ticket.ok:
                 reply = self.refused(
@@ -389,7 +390,7 @@ class ControllerService:
                 )
                 log.warning("identification from %s refused: %s", client, reply.message)
                 return reply
-            job = self.identify.begin(plan, program)
+            job = self.identify.begin(plan, program, start_deg)
         return proto.CommandReply(
             ok=True,
             message=f"identification {job.run_id}: {plan.n_ticks / plan.config.rate_hz:.1f} s "

@@ -1,0 +1,142 @@
+"""Two recordings compared (alignment on the reference, configuration diff, the list's rows)
+and the dashboard's Recordings panel on real MCAP files.
+
+References: shifts known by construction (the alignment must find them), numpy's own
+peak / RMSE on the samples written.
+"""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controller import protocol as proto
+from controller.core.config import LoopConfig, config_from_builtins
+from controller.recording.compare import align_runs, config_diff, flatten, summary_row
+from controller.recording.mcap_io import Recorder, read_recording
+from controller.recording.report import metrics
+
+
+def _sine_run(t0_s: float, seconds: float, gain: float, rate_hz: float = 1000.0
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, ref, error) of 5 sin(0.5 t) started at trajectory time t0_s; the error is a
+    function of the trajectory time (so aligned runs have proportional errors)."""
+    t = np.arange(0.0, seconds, 1.0 / rate_hz)
+    tt = t + t0_s
+    ref = 5.0 * np.sin(0.5 * tt)
+    err = gain * (0.01 * np.cos(0.5 * tt) + 0.004 * np.sin(3.1 * tt))
+    return t + 100.0, ref, err  # any time origin
+
+
+def test_alignment_finds_a_known_shift_of_a_periodic_reference() -> None:
+    a = _sine_run(0.0, 40.0, 1.0)
+    b = _sine_run(3.7, 40.0, 0.5)  # B started 3.7 s later along the trajectory
+    al = align_runs(*a, *b)
+    assert al.lag_s == pytest.approx(-3.7, abs=0.011)  # one grid step (10 ms)
+    assert al.correlation > 0.999
+    assert al.t_s.size == pytest.approx((40.0 - 3.7) / 0.01, abs=2)  # the longest overlap
+    np.testing.assert_allclose(al.ref_b_deg, al.ref_a_deg, atol=0.03)
+    np.testing.assert_allclose(al.error_b_deg, 0.5 * al.error_a_deg, atol=2e-4)
+
+
+def test_alignment_of_a_random_reference_is_exact() -> None:
+    rng = np.random.default_rng(1)
+    x = np.cumsum(rng.normal(size=3000))
+    t = np.arange(2000) * 0.01
+    a = (t, x[:2000], x[:2000] * 1e-3)
+    b = (t, x[137:2137], np.zeros(2000))  # B's sample j is A's j + 137
+    al = align_runs(*a, *b)
+    assert al.lag_s == pytest.approx(-1.37, abs=1e-9)
+    assert al.correlation == pytest.approx(1.0, abs=1e-9)
+    np.testing.assert_allclose(al.ref_b_deg, al.ref_a_deg, atol=1e-9)
+
+
+def test_alignment_refuses_bad_input() -> None:
+    a = _sine_run(0.0, 2.0, 1.0)
+    with pytest.raises(ValueError, match="fewer than 2 finite samples"):
+        align_runs(*a, np.array([0.0]), np.array([1.0]), np.array([0.0]))
+    with pytest.raises(ValueError, match="dt_s"):
+        align_runs(*a, *a, dt_s=0.0)
+    with pytest.raises(ValueError, match="min_overlap"):
+        align_runs(*a, *a, min_overlap=1.5)
+
+
+def test_config_diff_names_nested_fields() -> None:
+    a = {"q_type": "q31", "q_cutoff_hz": 0.5, "nominal": {"mn_den": [1.0, 2.0, 1.0]}}
+    b = {"q_type": "q31", "q_cutoff_hz": 0.8, "nominal": {"mn_den": [1.0, 3.0, 1.0]}, "x": 1}
+    assert config_diff(a, b) == [("nominal.mn_den", (1.0, 2.0, 1.0), (1.0, 3.0, 1.0)),
+                                 ("q_cutoff_hz", 0.5, 0.8), ("x", None, 1)]
+    assert config_diff(a, a) == []
+    assert flatten({"n": {"m": {"k": 1}}}) == {"n.m.k": 1}
+
+
+def _write(path: Path, cfg: LoopConfig, t0_s: float, gain: float, seconds: float = 30.0) -> Path:
+    t, ref, err = _sine_run(t0_s, seconds, gain)
+    with Recorder(path, rig="t") as rec:
+        rec.config(1, cfg, 1.7e9)
+        for i0 in range(0, t.size, 20):
+            sl = slice(i0, i0 + 20)
+            zeros = np.zeros(len(t[sl])).tolist()
+            cols = [t[sl].tolist(), ref[sl].tolist(), (ref[sl] - err[sl]).tolist(), zeros,
+                    zeros, zeros, zeros, err[sl].tolist()]
+            rec.state(proto.state_batch(rig="t", seq0=i0 + 1, rate_hz=1000.0,
+                                        config_version=1, columns=cols, epoch_s=1.7e9,
+                                        mode="running"))
+    return path
+
+
+def test_summary_row_has_the_latest_configuration_and_numpys_metrics(tmp_path: Path) -> None:
+    cfg = LoopConfig().with_(q_cutoff_hz=0.8)
+    path = _write(tmp_path / "a.mcap", cfg, 0.0, 1.0)
+    rec = read_recording(path)
+    row = summary_row("a.mcap", rec.configs, metrics(rec))
+    e = rec.state["error_deg"]
+    assert row.peak_error_deg == pytest.approx(float(np.max(np.abs(e))), rel=1e-12)
+    assert row.rmse_deg == pytest.approx(float(np.sqrt(np.mean(e**2))), rel=1e-12)
+    assert row.config_version == 1
+    assert config_from_builtins(row.config) == cfg
+    assert row.samples == 30000 and row.gaps == 0
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def gui() -> Iterator[object]:
+    import viser
+
+    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    try:
+        yield server.gui
+    finally:
+        server.stop()
+
+
+def test_the_panel_lists_and_compares_two_runs(gui: object, tmp_path: Path) -> None:
+    from server.panels.recordings import RecordingsPanel
+
+    before = LoopConfig()
+    after = before.with_(q_cutoff_hz=0.8)
+    _write(tmp_path / "1-before.mcap", before, 0.0, 1.0)
+    _write(tmp_path / "2-after.mcap", after, 3.7, 0.5)
+    (tmp_path / "3-broken.mcap").write_bytes(b"not an mcap file")
+    panel = RecordingsPanel(gui, tmp_path)
+    panel.build(background=False)
+    assert [r.name for r in panel.rows] == ["1-before.mcap", "2-after.mcap"]
+    listing = panel.list_box.content
+    assert "1-before.mcap" in listing and "3-broken.mcap" in listing  # named, not hidden
+    assert f"{panel.rows[1].peak_error_deg:.4g} deg" in listing
+    assert panel.pick_b.value == "2-after.mcap"
+    html = panel.compare("1-before.mcap", "2-after.mcap")
+    assert "q_cutoff_hz" in html and "0.8" in html and "-3.70 s" in html
+    x, ea, eb = panel.chart.data
+    assert len(x) <= 2000 and np.max(np.abs(eb)) == pytest.approx(
+        0.5 * np.max(np.abs(ea)), rel=0.05)
+    assert "Cannot compare" in panel.compare("1-before.mcap", "3-broken.mcap")
