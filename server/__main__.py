@@ -28,6 +28,9 @@ def add_dashboard_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --auth: every browser acts as this one user")
     p.add_argument("--fleet", action="store_true",
                    help="also a Fleet tab: every rig reachable through --connect (a router)")
+    p.add_argument("--recordings", type=Path, default=Path("recordings"), metavar="DIR",
+                   help="the .mcap recordings the Recordings tab lists and compares "
+                   "(default ./recordings)")
 
 
 def run_dashboard_args(args: argparse.Namespace) -> int:
@@ -40,6 +43,7 @@ def run_dashboard_args(args: argparse.Namespace) -> int:
         DashboardOptions(
             connect=tuple(connect), rig_name=args.rig_name, host=args.host, port=args.port,
             auth=args.auth, user=args.user, fleet=args.fleet,
+            recordings_dir=args.recordings,
         )
     )
 

@@ -39,6 +39,7 @@ from server.gate import ESTOP_LINK_HTML, Gate, Refused
 from server.measured import read_measured
 from server.panels.identify import IdentifyPanel, NominalTuningPanel
 from server.panels.live import LivePanel
+from server.panels.recordings import RecordingsPanel
 from server.panels.tuning import config_diff_html
 from server.panels.widgets import esc
 from server.scene3d import TurntableScene
@@ -79,6 +80,9 @@ class DashboardOptions:
     file, and `user`, whose role and lease the controller enforces. A directory without
     `user`: every user in it who may reach the rig, each in their own browser."""
     user: str = ""
+    recordings_dir: Path = Path("recordings")
+    """The .mcap files the Recordings tab lists and compares (`dobtune record --out`, a
+    controller's `<state-dir>/blackbox`)."""
     fleet: bool = False
     """Also the fleet overview: every rig reachable through `connect` (a router), each with an
     E-STOP and a full view of its own."""
@@ -170,6 +174,7 @@ class Dashboard:
         self.active_version: int | None = None
         self.trajectory: Trajectory | None = None
         self.identify: IdentifyPanel | None = None
+        self.recordings: RecordingsPanel | None = None
         self.live: LivePanel | None = None
         self.scene: TurntableScene | None = None
         self.fleet: FleetPanel | None = None
@@ -388,6 +393,9 @@ class Dashboard:
             use.on_click(lambda e: self._use_version(e.client))
             self.history_pick.on_update(lambda _e: self._show_version_diff())
             self.history_other.on_update(lambda _e: self._show_version_diff())
+        with tabs.add_tab("Recordings"):
+            self.recordings = RecordingsPanel(gui, self.opts.recordings_dir)
+            self.recordings.build()
         with tabs.add_tab("Help"):
             gui.add_markdown(_asset("help.md", "Help texts are missing (web_assets/help.md)."))
 
