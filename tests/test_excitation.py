@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -96,6 +97,86 @@ def test_multisine_peak_speed_and_window(knee: float | None) -> None:
         # below the knee the position amplitudes a / (2 pi f) are equal
         pos_amp = ms.amplitudes_deg_s[low] / (2 * np.pi * ms.freq_hz[low])
         np.testing.assert_allclose(pos_amp, pos_amp[0], rtol=1e-12)
+
+
+# ------------------------------------------------------------- odd random-phase multisine
+
+ODD = MultisineSpec(
+    f_min_hz=0.1,
+    f_max_hz=20.0,
+    period_samples=10000,
+    n_periods=2,
+    transient_periods=0,
+    points_per_decade=10,
+    harmonics="odd",
+    phases="random",
+    seed=0,
+    lead_samples=1000,
+    tail_samples=200,
+    spread_from="lines",
+)
+
+
+def test_odd_multisine_has_lines_only_at_odd_excited_bins() -> None:
+    """Over the measured periods (a whole number of them after the lead-in) the spectrum holds
+    exactly the excited odd bins with their amplitudes and nothing between them."""
+    ms = multisine(ODD)
+    n = ODD.period_samples
+    assert np.all(ms.bins % 2 == 1) and np.all(np.diff(ms.bins) > 0)
+    assert ms.freq_hz[0] == pytest.approx(0.1) and ms.freq_hz[-1] <= 20.0
+    # log-spaced: about 10 per decade, fewer where the odd grid is coarser (below 1 Hz)
+    assert 15 <= ms.bins.size <= 24
+    measured = ms.signal[ms.measure_start : ms.measure_start + ms.measure_len]
+    assert measured.size == ODD.n_periods * n
+    X = np.fft.rfft(measured) * (2.0 / measured.size)
+    on = ms.bins * ODD.n_periods  # the bins of the two-period record
+    np.testing.assert_allclose(np.abs(X[on]), ms.amplitudes_deg_s, rtol=1e-9)
+    np.testing.assert_allclose(np.angle(X[on] / np.exp(1j * ms.phases_rad)), 0.0, atol=1e-9)
+    off = np.ones(X.size, dtype=bool)
+    off[on] = False
+    assert np.max(np.abs(X[off])) < 1e-9 * np.max(np.abs(X))  # DC and every other line
+    # the detection lines are every other bin up to twice the highest excited one
+    det = ODD.detection_bins()
+    assert not set(det.tolist()) & set(ms.bins.tolist())
+    assert det[0] == 2 and det[-1] == 2 * ms.bins[-1] + 1
+    assert set(det.tolist()) | set(ms.bins.tolist()) == set(range(1, det[-1] + 1))
+    # the spread comes from the odd ones only (even-order distortion stays on even lines)
+    np.testing.assert_array_equal(ODD.noise_bins(), det[det % 2 == 1])
+
+
+def test_odd_multisine_is_periodic_with_a_faded_lead_in_and_tail() -> None:
+    ms = multisine(ODD)
+    n, lead, tail = ODD.period_samples, ODD.lead_samples, ODD.tail_samples
+    assert ms.signal.size == lead + ODD.n_periods * n + tail
+    assert ms.measure_start == lead
+    np.testing.assert_array_equal(ms.signal[lead : lead + n], ms.period)
+    np.testing.assert_array_equal(ms.signal[lead + n : lead + 2 * n], ms.period)
+    # the lead-in is the end of a period, faded in over its first half (raised cosine), the
+    # tail its start, faded out
+    half = lead // 2
+    rise = np.sin(0.5 * np.pi * np.arange(1, half + 1) / (half + 1)) ** 2
+    np.testing.assert_allclose(ms.signal[:half], ms.period[n - lead : n - half] * rise,
+                               atol=1e-12)
+    np.testing.assert_array_equal(ms.signal[half:lead], ms.period[n - half :])
+    fall = np.cos(0.5 * np.pi * np.arange(1, tail + 1) / (tail + 1)) ** 2
+    np.testing.assert_allclose(ms.signal[lead + 2 * n :], ms.period[:tail] * fall, atol=1e-12)
+    assert abs(ms.signal[0]) < 1e-5 * ms.peak_speed_deg_s
+    assert abs(ms.signal[-1]) < 1e-3 * ms.peak_speed_deg_s
+    assert np.max(np.abs(ms.signal)) <= ms.peak_speed_deg_s * (1 + 1e-12)
+
+
+def test_odd_multisine_crest_factor() -> None:
+    """Random phases, then clipping: well below the random phases' own crest factor and below
+    2.2 (a single sine has sqrt 2; Schroeder phases on the same sparse bins give about 2.3)."""
+    ms = multisine(ODD)
+    raw = multisine(dataclasses.replace(ODD, crest_iterations=0))
+    np.testing.assert_array_equal(raw.bins, ms.bins)
+    assert ms.crest_factor == pytest.approx(crest_factor(ms.period))
+    assert ms.crest_factor < 2.2
+    assert ms.crest_factor < raw.crest_factor
+    # the same seed gives the same signal, another seed another one
+    np.testing.assert_array_equal(multisine(ODD).signal, ms.signal)
+    assert not np.allclose(multisine(dataclasses.replace(ODD, seed=1)).period, ms.period)
 
 
 # ---------------------------------------------------------------------------- stepped sine
@@ -213,6 +294,13 @@ def test_stepped_sine_errors_name_the_field(kwargs: dict[str, object], field: st
         ({"window_deg": 0.0}, "window_deg"),
         ({"position_knee_hz": math.nan}, "position_knee_hz"),
         ({"crest_iterations": 0.5}, "crest_iterations"),
+        ({"harmonics": "even"}, "harmonics"),
+        ({"phases": "zero"}, "phases"),
+        ({"spread_from": "guess"}, "spread_from"),
+        ({"seed": -1}, "seed"),
+        ({"lead_samples": 1.5}, "lead_samples"),
+        ({"lead_samples": 20000}, "lead_samples"),
+        ({"tail_samples": -1}, "tail_samples"),
     ],
 )
 def test_multisine_errors_name_the_field(kwargs: dict[str, object], field: str) -> None:

@@ -149,8 +149,8 @@ def test_limit_hit_aborts_cleanly_back_to_hold() -> None:
             return self.amplitude_n_m if self.t0_s <= time_s < self.t0_s + self.duration_s else 0.0
 
     spec = IdentifySpec(
-        f_min_hz=0.5, f_max_hz=5.0, points_per_decade=4, min_measure_s=1.0, positions=2,
-        window_deg=20.0,
+        signal="sine", f_min_hz=0.5, f_max_hz=5.0, points_per_decade=4, min_measure_s=1.0,
+        positions=2, window_deg=20.0,
     )  # fmt: skip
     offline = OfflineOptions(hold_s=3.0)
     # an undisturbed run takes ~56 s; the shove comes during the second position's 2nd point

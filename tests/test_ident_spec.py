@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 #: The wire's identify_start spec as docs/protocol.md lists it: names, order and defaults.
 WIRE_DEFAULTS = {
     "mode": "open",
-    "signal": "sine",
+    "signal": "multisine",
     "f_min_hz": 0.1,
     "f_max_hz": 20.0,
     "points_per_decade": 10,
@@ -34,7 +34,7 @@ WIRE_DEFAULTS = {
     "travel_fraction": 0.8,
     "min_periods": 2,
     "min_measure_s": 2.0,
-    "multisine_periods": 3,
+    "multisine_periods": 1,
     "fit_f_lo_hz": None,
     "fit_f_hi_hz": 10.0,
     "fit_error_floor": 0.01,

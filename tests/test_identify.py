@@ -207,7 +207,8 @@ def test_identify_options_are_the_specs_with_their_defaults() -> None:
     p = argparse.ArgumentParser()
     controller_commands()["identify"].add_arguments(p)
     args = p.parse_args([])
-    assert (args.mode, args.signal, args.f_min_hz, args.f_max_hz) == ("open", "sine", 0.1, 20.0)
+    assert (args.mode, args.signal, args.f_min_hz, args.f_max_hz) == (
+        "open", "multisine", 0.1, 20.0)
     assert (args.positions, args.amplitude_deg_s) == (3, 10.0)
     assert (args.plant, args.connect, args.out, args.json) == (None, None, Path("identify-out"),
                                                                False)

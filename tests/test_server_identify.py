@@ -187,7 +187,7 @@ def test_the_panels_fields_are_generated_from_the_spec(dash: Dashboard) -> None:
     shown = {f.name: (f.title, f.default, f.param.choices or f.limits) for f in DASHBOARD_FIELDS}
     assert shown == {
         "mode": ("Mode", "open", ("open", "closed")),
-        "signal": ("Signal", "sine", ("sine", "multisine")),
+        "signal": ("Signal", "multisine", ("sine", "multisine")),
         "f_min_hz": ("f min (Hz)", 0.1, (0.01, 200.0, 0.01)),
         "f_max_hz": ("f max (Hz)", 20.0, (0.02, 400.0, 0.01)),
         "points_per_decade": ("Points per decade", 10, (1, 200, 1.0)),

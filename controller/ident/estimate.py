@@ -17,6 +17,20 @@ the standard deviation of the estimate from the spread between periods: with res
 into magnitude and phase, so ``mag_std_db = 20 log10(e) sigma / (sqrt 2 |H|)`` and
 ``phase_std_deg = deg(sigma / (sqrt 2 |H|))``. With one period they are NaN.
 
+A multisine with ``spread_from="lines"`` (`estimate_multisine_lines`) takes the variance from
+the non-excited lines instead (Pintelon & Schoukens' nonparametric noise analysis): on the
+period-averaged spectra ``H_k = W_k / U_k`` (equal to H1 and to ``S_xw / S_xu``: the
+excitation repeats exactly), and ``var H_k = s_k^2 / |U_k|^2`` with ``s_k^2`` the mean of
+``|W_l - H_k U_l|^2`` over the `NOISE_LINES` non-excited lines ``l`` nearest to ``k``, taken as
+a median (divided by its expectation for exponentially distributed powers) so that a lone
+periodic disturbance on one line (a belt tooth) does not inflate its neighbours. Those lines
+carry the noise and the nonlinear distortion (which repeats in every period and so never shows
+between periods): the spread is that of the best linear approximation. With only odd bins
+excited only the odd non-excited lines count: even-order distortion (and the first
+intermodulation of a disturbance kept on an odd line) falls on the even lines, never on the
+excited ones. The coherence is the
+one that gives this spread in `coherence_std`: ``1 / (1 + P var H / |H|^2)``.
+
 CSV format (the project's measured-response files): header ``freq_hz,mag_db,phase_deg`` plus an
 optional ``coherence`` column; frequencies strictly increasing; phase unwrapped on write.
 :func:`read_frd_csv` is the single reader; errors name the file and the line.
@@ -36,12 +50,16 @@ from controller.gate.frd_csv import FrdLike, mag_db_of, phase_deg_of
 from controller.ident.excitation import Multisine, SteppedSine
 
 __all__ = [
+    "NOISE_LINES",
     "Agreement",
+    "DetectionLines",
     "FrdEstimate",
     "agreement",
     "coherence_std",
+    "detection_lines",
     "estimate_from_coefficients",
     "estimate_multisine",
+    "estimate_multisine_lines",
     "estimate_stepped_sine",
     "multisine_coefficients",
     "stepped_sine_coefficients",
@@ -53,6 +71,9 @@ IntArray = NDArray[np.int64]
 Method = Literal["open_loop_h1", "closed_loop_x"]
 
 _DB_PER_NEPER = 20.0 / math.log(10.0)
+
+#: Non-excited lines whose median power gives an excited line's noise (`estimate_multisine_lines`).
+NOISE_LINES = 6
 
 
 @dataclass(frozen=True, eq=False)
@@ -165,18 +186,22 @@ def _signal(name: str, y: ArrayLike, needed: int) -> FloatArray:
     return arr
 
 
-def multisine_coefficients(excitation: Multisine, y: ArrayLike, name: str = "y") -> ComplexArray:
-    """Per-period coefficients of ``y`` at the excited bins, shape (n_periods, n_bins).
+def multisine_coefficients(
+    excitation: Multisine, y: ArrayLike, name: str = "y", bins: IntArray | None = None
+) -> ComplexArray:
+    """Per-period coefficients of ``y`` at the excited bins (or at `bins`), shape
+    (n_periods, n_bins).
 
-    ``y`` is aligned with ``excitation.signal`` (same sample 0); the transient periods are
-    dropped. Coefficients are amplitudes: a cos(2 pi f t + phi) gives a e^{j phi}.
+    ``y`` is aligned with ``excitation.signal`` (same sample 0); the lead-in and the transient
+    periods are dropped. Coefficients are amplitudes: a cos(2 pi f t + phi) gives a e^{j phi}.
     """
     spec = excitation.spec
     n = spec.period_samples
-    start = spec.transient_periods * n
+    start = excitation.measure_start
     arr = _signal(name, y, start + spec.n_periods * n)
     periods = arr[start : start + spec.n_periods * n].reshape(spec.n_periods, n)
-    return np.fft.rfft(periods, axis=1)[:, excitation.bins] * (2.0 / n)
+    at = excitation.bins if bins is None else bins
+    return np.fft.rfft(periods, axis=1)[:, at] * (2.0 / n)
 
 
 def estimate_multisine(
@@ -185,12 +210,97 @@ def estimate_multisine(
     """Response from command ``u`` to output ``w`` under a periodic multisine.
 
     Pass the excitation samples as ``x`` (usually ``excitation.signal``) when the loop is
-    closed; then the estimate is ``S_xw / S_xu``.
+    closed; then the estimate is ``S_xw / S_xu``. With ``spread_from="lines"`` this is
+    `estimate_multisine_lines`.
     """
+    if excitation.spec.spread_from == "lines":
+        return estimate_multisine_lines(excitation, u, w, x)
     U = multisine_coefficients(excitation, u, "u")
     W = multisine_coefficients(excitation, w, "w")
     X = None if x is None else multisine_coefficients(excitation, x, "x")
     return estimate_from_coefficients(excitation.freq_hz, U, W, X)
+
+
+def _expected_median(n: int) -> float:
+    """Expected sample median of `n` exponential variables of mean 1 (order statistics)."""
+
+    def order(i: int) -> float:  # E[X_(i)], i-th smallest of n
+        return sum(1.0 / m for m in range(n - i + 1, n + 1))
+
+    if n % 2:
+        return order((n + 1) // 2)
+    return 0.5 * (order(n // 2) + order(n // 2 + 1))
+
+
+def _nearest(bins: IntArray, candidates: IntArray, count: int) -> IntArray:
+    """For each of `bins`, the `count` nearest `candidates` (shape (bins, count))."""
+    dist = np.abs(candidates[None, :] - bins[:, None])
+    order = np.argsort(dist, axis=1, kind="stable")[:, :count]
+    return np.asarray(candidates[order], dtype=np.int64)
+
+
+def estimate_multisine_lines(
+    excitation: Multisine, u: ArrayLike, w: ArrayLike, x: ArrayLike | None = None
+) -> FrdEstimate:
+    """Response from ``u`` to ``w`` with each line's variance from its non-excited neighbours
+    (see the module docstring); works from one measured period. ``x`` (closed loop) only
+    selects the method's name: with an exactly repeating excitation ``S_xw / S_xu`` is the
+    ratio of the period-averaged spectra, as H1 is."""
+    bins = excitation.bins
+    det = excitation.spec.noise_bins()
+    if det.size == 0:
+        raise ValueError("excitation: no non-excited line to take the spread from")
+    near = _nearest(bins, det, min(NOISE_LINES, det.size))
+    at = np.union1d(bins, det)  # sorted; the two sets are disjoint
+    U = np.mean(multisine_coefficients(excitation, u, "u", at), axis=0)
+    W = np.mean(multisine_coefficients(excitation, w, "w", at), axis=0)
+    if x is not None:
+        multisine_coefficients(excitation, x, "x")  # same length checks as the other signals
+    exc_i = np.searchsorted(at, bins)
+    u_k, w_k = U[exc_i], W[exc_i]
+    h = w_k / u_k
+    idx = np.searchsorted(at, near)
+    resid = W[idx] - h[:, None] * U[idx]
+    s2 = np.median(np.abs(resid) ** 2, axis=1) / _expected_median(near.shape[1])
+    var_h = s2 / np.abs(u_k) ** 2
+    rel = np.sqrt(var_h) / (math.sqrt(2.0) * np.abs(h))
+    n = excitation.spec.n_periods
+    return FrdEstimate(
+        freq_hz=excitation.freq_hz,
+        response=h,
+        coherence=1.0 / (1.0 + n * var_h / np.abs(h) ** 2),
+        mag_std_db=_DB_PER_NEPER * rel,
+        phase_std_deg=np.degrees(rel),
+        n_averages=np.full(bins.size, n, dtype=np.int64),
+        method="open_loop_h1" if x is None else "closed_loop_x",
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class DetectionLines:
+    """The output spectrum of a multisine run split by lines (period-averaged amplitudes)."""
+
+    freq_hz: FloatArray
+    """Every bin from 1 to twice the highest excited one."""
+    amplitude: FloatArray
+    """|Y| at each of them."""
+    kind: NDArray[np.int8]
+    """0: excited, 1: odd non-excited (odd-order distortion + noise), 2: even non-excited
+    (even-order distortion + noise)."""
+
+
+def detection_lines(excitation: Multisine, y: ArrayLike) -> DetectionLines:
+    """The spectrum of ``y`` at the excited lines and at the detection lines: how far the
+    nonlinear distortion and the noise lie below the response (odd and even orders apart when
+    only odd bins are excited)."""
+    det = excitation.spec.detection_bins()
+    at = np.union1d(excitation.bins, det)
+    amp = np.abs(np.mean(multisine_coefficients(excitation, y, "y", at), axis=0))
+    kind = np.where(np.isin(at, excitation.bins), 0, np.where(at % 2 == 1, 1, 2))
+    res = excitation.spec.sample_rate_hz / excitation.spec.period_samples
+    return DetectionLines(
+        freq_hz=at.astype(np.float64) * res, amplitude=amp, kind=kind.astype(np.int8)
+    )
 
 
 def stepped_sine_coefficients(

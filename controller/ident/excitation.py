@@ -10,6 +10,16 @@ of the speed command u):
 * Periodic multisine: whole periods of ``N`` samples, components on exact DFT bins
   ``k fs / N`` in ``[f_min, f_max]``, Schroeder phases for a low crest factor, ``P`` measured
   periods after ``transient_periods`` periods that the estimator discards.
+* Odd random-phase multisine (Pintelon & Schoukens, *System Identification*, ch. 3-4): the
+  same, with only odd bins excited (``harmonics="odd"``; log-spaced, the next free odd bin
+  where the odd grid is coarser than the spacing asked for) and random phases, then the crest
+  factor lowered by clipping. Every other bin is a detection line: even bins see the even-order
+  nonlinear distortion, the non-excited odd bins the odd-order distortion, all of them the
+  noise; the estimator takes the variance of each excited line from its non-excited neighbours
+  (``spread_from="lines"``), so one period suffices and the spread includes the nonlinear
+  distortion. Instead of whole transient periods a lead-in of ``lead_samples`` (the end of a
+  period, faded in over its first half) precedes the measured periods: the plant settles in a
+  fraction of a second, the lowest frequency's period is ten seconds. A faded tail follows.
 
 Amplitude shaping (position window). A speed sine ``A sin(2 pi f t)`` moves the position by
 ``A / (2 pi f)`` deg (amplitude). With ``window_deg`` set, the stepped sine caps the speed
@@ -28,6 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,8 +47,14 @@ from controller.core.errors import ConfigError
 from controller.core.validate import nonnegative, positive
 
 __all__ = [
+    "HARMONICS",
+    "PHASES",
+    "SPREAD_FROM",
+    "Harmonics",
     "Multisine",
     "MultisineSpec",
+    "PhaseKind",
+    "SpreadFrom",
     "SteppedSine",
     "SteppedSinePoint",
     "SteppedSineSpec",
@@ -50,6 +67,13 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+Harmonics = Literal["all", "odd"]
+PhaseKind = Literal["schroeder", "random"]
+SpreadFrom = Literal["periods", "lines"]
+HARMONICS: tuple[Harmonics, ...] = ("all", "odd")
+PHASES: tuple[PhaseKind, ...] = ("schroeder", "random")
+SPREAD_FROM: tuple[SpreadFrom, ...] = ("periods", "lines")
 
 
 # --------------------------------------------------------------------------- validation helpers
@@ -73,6 +97,11 @@ def _integer(value: object, name: str, minimum: int) -> int:
 
 def _set(obj: object, name: str, value: object) -> None:
     object.__setattr__(obj, name, value)
+
+
+def _choice(value: object, name: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ConfigError(name, f"must be one of {', '.join(choices)} (got {value!r})")
 
 
 def _check_band(spec: SteppedSineSpec | MultisineSpec) -> None:
@@ -308,7 +337,8 @@ class MultisineSpec:
     period_samples: int = 10000
     """Period ``N`` in samples; the frequency resolution is ``sample_rate_hz / N``."""
     n_periods: int = 4
-    """Measured periods ``P`` (>= 2 for a variance estimate)."""
+    """Measured periods ``P`` (>= 2 for the spread between periods; 1 is enough with
+    ``spread_from="lines"``)."""
     transient_periods: int = 1
     """Leading periods that the estimator discards (settling)."""
     amplitude_deg_s: float = 10.0
@@ -320,12 +350,44 @@ class MultisineSpec:
     position_knee_hz: float | None = None
     """Below this frequency component speed amplitudes fall as f (constant position)."""
     crest_iterations: int = 100
-    """Clip-and-restore iterations after Schroeder phases (0: pure Schroeder)."""
+    """Clip-and-restore iterations after the initial phases (0: the initial phases as they are)."""
     sample_rate_hz: float = 1000.0
     """Loop rate."""
+    harmonics: Harmonics = "all"
+    """``odd``: only odd bins are excited (the rest are detection lines)."""
+    phases: PhaseKind = "schroeder"
+    """Initial phases: Schroeder's, or uniformly random (``seed``)."""
+    seed: int = 0
+    """Seed of the random phases (the same seed gives the same signal)."""
+    lead_samples: int = 0
+    """Samples of the end of a period played before the transient and measured periods,
+    faded in over its first half (the signal is periodic: the measured periods start in
+    steady state once the plant has settled in the second half)."""
+    tail_samples: int = 0
+    """Samples of the start of a period played, faded out, after the measured periods."""
+    spread_from: SpreadFrom = "periods"
+    """How the estimator gets each line's variance: between the measured periods (>= 2
+    needed), or from the non-excited lines next to it (noise and nonlinear distortion)."""
+    skip_bins: tuple[int, ...] = ()
+    """Bins left out of the excitation (detection lines kept free for a known periodic
+    disturbance, see `controller.ident.plan`)."""
 
     def __post_init__(self) -> None:
+        _choice(self.harmonics, "harmonics", HARMONICS)
+        _choice(self.phases, "phases", PHASES)
+        _choice(self.spread_from, "spread_from", SPREAD_FROM)
+        _set(self, "seed", _integer(self.seed, "seed", 0))
+        _set(self, "lead_samples", _integer(self.lead_samples, "lead_samples", 0))
+        _set(self, "tail_samples", _integer(self.tail_samples, "tail_samples", 0))
         _set(self, "period_samples", _integer(self.period_samples, "period_samples", 4))
+        _set(self, "skip_bins", tuple(_integer(k, "skip_bins", 1) for k in self.skip_bins))
+        for name in ("lead_samples", "tail_samples"):
+            if getattr(self, name) > self.period_samples:
+                raise ConfigError(
+                    name,
+                    f"must be <= period_samples {self.period_samples} "
+                    f"(got {getattr(self, name)})",
+                )
         _check_band(self)
         resolution = self.sample_rate_hz / self.period_samples
         if self.f_min_hz < resolution * (1.0 - 1e-9):
@@ -354,20 +416,46 @@ class MultisineSpec:
         _set(self, "crest_iterations", _integer(self.crest_iterations, "crest_iterations", 0))
         if self.bins().size == 0:
             raise ConfigError("f_min_hz", "no DFT bin between f_min_hz and f_max_hz")
+        if self.spread_from == "lines" and self.noise_bins().size == 0:
+            raise ConfigError("spread_from", "no non-excited line to take the spread from")
 
     def bins(self) -> IntArray:
         """The excited DFT bins ``k`` (frequency ``k * sample_rate_hz / period_samples``)."""
         res = self.sample_rate_hz / self.period_samples
         k_lo = math.ceil(self.f_min_hz / res - 1e-9)
         k_hi = math.floor(self.f_max_hz / res + 1e-9)
+        odd = self.harmonics == "odd"
+        if odd:
+            k_lo += 1 - k_lo % 2
+            k_hi -= 1 - k_hi % 2
         if k_hi < k_lo:
             return np.zeros(0, dtype=np.int64)
         if self.points_per_decade is None:
-            return np.arange(k_lo, k_hi + 1, dtype=np.int64)
+            every = np.arange(k_lo, k_hi + 1, 2 if odd else 1, dtype=np.int64)
+            return np.setdiff1d(every, np.asarray(self.skip_bins, dtype=np.int64))
         decades = math.log10(k_hi / k_lo) if k_hi > k_lo else 0.0
         n = max(1, round(self.points_per_decade * decades) + 1)
-        ks = np.round(np.logspace(math.log10(k_lo), math.log10(k_hi), n)).astype(np.int64)
-        return np.unique(ks)
+        targets = np.logspace(math.log10(k_lo), math.log10(k_hi), n)
+        if odd:  # the nearest odd bin, or the next free one where the odd grid is too coarse
+            nearest = (2 * np.floor(targets / 2.0) + 1).astype(np.int64)  # within 1 of it
+            ks = np.maximum.accumulate(nearest - 2 * np.arange(n)) + 2 * np.arange(n)
+            ks = ks[ks <= k_hi]
+        else:
+            ks = np.round(targets).astype(np.int64)
+        return np.setdiff1d(np.unique(ks), np.asarray(self.skip_bins, dtype=np.int64))
+
+    def detection_bins(self) -> IntArray:
+        """The non-excited bins from 1 to twice the highest excited one (below Nyquist): where
+        the noise and the nonlinear distortion show without the linear response."""
+        k_top = min(2 * int(self.bins()[-1]) + 1, (self.period_samples - 1) // 2)
+        every = np.arange(1, k_top + 1, dtype=np.int64)
+        return np.setdiff1d(every, self.bins())
+
+    def noise_bins(self) -> IntArray:
+        """The detection bins that give the excited lines' variance: with only odd bins
+        excited the odd ones (even-order distortion never reaches an odd line), else all."""
+        det = self.detection_bins()
+        return det[det % 2 == 1] if self.harmonics == "odd" else det
 
 
 @dataclass(frozen=True, eq=False)
@@ -384,7 +472,8 @@ class Multisine:
     period: FloatArray = field(repr=False)
     """One period, ``N`` samples (deg/s)."""
     signal: FloatArray = field(repr=False)
-    """``transient_periods + n_periods`` periods back to back (deg/s)."""
+    """The faded lead-in, ``transient_periods + n_periods`` periods back to back and the faded
+    tail (deg/s)."""
     crest_factor: float
     """Peak / RMS of the speed signal."""
     peak_speed_deg_s: float
@@ -399,6 +488,22 @@ class Multisine:
     @property
     def duration_s(self) -> float:
         return self.signal.size / self.spec.sample_rate_hz
+
+    @property
+    def measure_start(self) -> int:
+        """First sample of the measured periods in :attr:`signal`."""
+        return self.spec.lead_samples + self.spec.transient_periods * self.spec.period_samples
+
+    @property
+    def measure_len(self) -> int:
+        """Samples in the measured periods."""
+        return self.spec.n_periods * self.spec.period_samples
+
+
+def _fade(n: int) -> FloatArray:
+    """Raised cosine from 0 (exclusive) to 1 (exclusive) over n samples."""
+    k = np.arange(1, n + 1)
+    return 0.5 - 0.5 * np.cos(np.pi * k / (n + 1))
 
 
 def _synth(n: int, bins: IntArray, amps: FloatArray, phases: FloatArray) -> FloatArray:
@@ -416,7 +521,10 @@ def multisine(spec: MultisineSpec) -> Multisine:
     shape = np.ones(bins.size)
     if spec.position_knee_hz is not None:
         shape = np.minimum(1.0, freq / spec.position_knee_hz)
-    phases = schroeder_phases(bins, shape)
+    if spec.phases == "random":
+        phases = np.random.default_rng(spec.seed).uniform(0.0, 2.0 * np.pi, bins.size)
+    else:
+        phases = schroeder_phases(bins, shape)
     period = _synth(n, bins, shape, phases)
     best = crest_factor(period)
     trial = period
@@ -440,7 +548,16 @@ def multisine(spec: MultisineSpec) -> Multisine:
     if spec.window_deg is not None:
         scale = min(scale, spec.window_deg / excursion)
     period = period * scale
-    signal = np.tile(period, spec.transient_periods + spec.n_periods)
+    lead = spec.lead_samples
+    tail = spec.tail_samples
+    fade_in = np.concatenate([_fade(lead // 2), np.ones(lead - lead // 2)])
+    signal = np.concatenate(
+        [
+            period[n - lead :] * fade_in,
+            np.tile(period, spec.transient_periods + spec.n_periods),
+            period[:tail] * _fade(tail)[::-1],
+        ]
+    )
     return Multisine(
         spec=spec,
         bins=bins,

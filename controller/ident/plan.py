@@ -18,7 +18,16 @@ How the excitation is applied (and why):
   position loop first moves it to the edge of the window it starts from. The low frequencies,
   which take longest, therefore get the smallest amplitudes.
 * Stepped sine: one segment per frequency (whole periods, settling then measurement).
-  Multisine: one segment per position (transient period + measured periods).
+  Multisine: one segment per position: an odd random-phase multisine (odd bins of the lowest
+  frequency, log-spaced, crest factor lowered), a lead-in of `LEAD_S` (the end of a period,
+  faded in: the plant settles in a fraction of a second, far less than the 10 s period of
+  0.1 Hz), ``multisine_periods`` measured periods, a faded tail of `TAIL_S`. The spread of each
+  line comes from its non-excited neighbours, so one period is enough
+  (`controller.ident.estimate.estimate_multisine_lines`; docs/identification.md has the
+  trade-off against the stepped sine). The belt tooth's line is kept on an odd, non-excited
+  bin (one odd bin is left out of the excitation for it if needed), where its intermodulation
+  with the excitation falls on even lines (`_tooth_clear`), and in open mode the lines below
+  `POSITION_KNEE_HZ` have equal position amplitudes.
 
 Every planning error is a `ConfigError` naming the spec field, raised before anything moves.
 """
@@ -26,8 +35,10 @@ Every planning error is a `ConfigError` naming the spec field, raised before any
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import math
 from array import array
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeAlias
 
@@ -50,6 +61,11 @@ from controller.ident.program import ExcitationProgram
 from controller.ident.spec import IdentifySpec
 
 __all__ = [
+    "LEAD_CLOSED_S",
+    "LEAD_S",
+    "MULTISINE_SEED",
+    "POSITION_KNEE_HZ",
+    "TAIL_S",
     "Excitation",
     "ProgramPlan",
     "Segment",
@@ -72,6 +88,20 @@ _RAMP_S = 0.3  # offset ramp up / down (raised cosine)
 _STEADY_S = 0.2  # constant offset before the excitation starts
 _STILL_S = 0.1  # command 0 (open) or r = 0 (closed) after a segment
 _MIN_MOVE_S = 0.3
+#: Multisine lead-in before the measured periods (open mode; closed mode: `LEAD_CLOSED_S`).
+LEAD_S = 1.0
+LEAD_CLOSED_S = 2.0
+#: Multisine faded tail after the measured periods.
+TAIL_S = 0.2
+#: Seed of the multisine's random phases (fixed: the plan is the same every time).
+MULTISINE_SEED = 0
+#: Open mode: multisine lines below this frequency have equal position (not speed)
+#: amplitudes. A disturbance periodic in position (a belt tooth) is phase modulated by the
+#: excitation's position, and the low lines' position amplitude (speed / 2 pi f) sets the
+#: modulation index: on the simulated rig 2 Hz takes the per-point error from 0.22 % rms
+#: (0.63 % max) to 0.04 % (0.12 %). Closed mode keeps equal speed amplitudes: the loop rejects
+#: the disturbance, and the low lines' response is small behind its gain.
+POSITION_KNEE_HZ = 2.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -155,17 +185,25 @@ def _build_excitation(spec: IdentifySpec, rate_hz: float) -> Excitation:
                 )
             )
         n = math.ceil(rate_hz / spec.f_min_hz - 1e-9)
+        lead = round((LEAD_CLOSED_S if spec.closed else LEAD_S) * rate_hz)
         return multisine(
             MultisineSpec(
                 f_min_hz=rate_hz / n,
                 f_max_hz=spec.f_max_hz,
                 period_samples=n,
                 n_periods=spec.multisine_periods,
-                transient_periods=1,
+                transient_periods=max(0, math.ceil(lead / n) - 1),
                 amplitude_deg_s=1.0,
                 window_deg=None,
                 points_per_decade=spec.points_per_decade,
                 sample_rate_hz=rate_hz,
+                harmonics="odd",
+                phases="random",
+                seed=MULTISINE_SEED,
+                lead_samples=min(lead, n),
+                tail_samples=min(round(TAIL_S * rate_hz), n),
+                spread_from="lines",
+                position_knee_hz=None if spec.closed else POSITION_KNEE_HZ,
             )
         )
     except ConfigError as exc:
@@ -181,32 +219,91 @@ def _unit_slices(exc: Excitation) -> list[tuple[int, int, float]]:
     return [(0, exc.signal.size, float(exc.freq_hz[0]))]
 
 
+def _tooth_clear(j: int, periods: int, bins: set[int], odd: bool) -> bool:
+    """Whether a disturbance at bin `j` of a multisine record of `periods` periods keeps
+    itself and its first intermodulation products with the excitation off the excited lines.
+
+    The excitation moves the position, so a disturbance periodic in position is phase
+    modulated: lines at ``j`` and ``j +- k P`` for every excited bin ``k``. Off the period grid
+    (``j`` not a multiple of ``P``) none of them is a multiple of ``P``. On it, at period bin
+    ``m``: ``m`` must not be excited, and with only odd bins excited ``m`` odd puts every
+    ``m +- k`` on an even, non-excited line.
+    """
+    if j % periods:
+        return True
+    m = j // periods
+    if m in bins:
+        return False
+    if odd:
+        return m % 2 == 1
+    return not any(m + k in bins or abs(m - k) in bins for k in bins)
+
+
+def _tooth_bin(spec: IdentifySpec, exc: Excitation, i: int, amp: float) -> tuple[int, float]:
+    """(j0, t_meas): the most whole pitches the measured record of segment `i` can travel at
+    amplitude `amp`, and the record's length."""
+    pitch = spec.periodic_pitch_deg
+    assert pitch is not None
+    fs = exc.spec.sample_rate_hz
+    if isinstance(exc, SteppedSine):
+        t_meas = exc.points[i].measure_len / fs
+    else:
+        t_meas = exc.spec.n_periods * exc.spec.period_samples / fs
+    return math.floor(spec.offset_ratio * amp * t_meas / pitch + 1e-9), t_meas
+
+
 def _pitch_lock(spec: IdentifySpec, exc: Excitation, i: int, amp: float) -> float:
     """Lower ``amp`` (so the offset) until the travel over the measured periods is a whole
     number ``j`` of `periodic_pitch_deg`.
 
     A disturbance periodic in position (a belt tooth) then runs ``j`` whole cycles over the
     record, which is orthogonal to every DFT bin but bin ``j``; ``j`` (and ``2 j`` if possible)
-    are kept off the excited bins. Returns ``amp`` unchanged when no such ``j >= 1`` exists.
+    are kept off the excited bins, for a multisine its intermodulation with the excitation too
+    (`_tooth_clear`). Returns ``amp`` unchanged when no such ``j >= 1`` exists.
     """
     pitch = spec.periodic_pitch_deg
     if pitch is None:
         return amp
-    fs = exc.spec.sample_rate_hz
+    j0, t_meas = _tooth_bin(spec, exc, i, amp)
+    tiers: list[Callable[[int], bool]] = []
     if isinstance(exc, SteppedSine):
-        pt = exc.points[i]
-        t_meas = pt.measure_len / fs
-        excited = {pt.n_periods}
+        excited = {exc.points[i].n_periods}
     else:
         p = exc.spec.n_periods
-        t_meas = p * exc.spec.period_samples / fs
         excited = {int(k) * p for k in exc.bins}
-    j0 = math.floor(spec.offset_ratio * amp * t_meas / pitch + 1e-9)
-    for harmonics in ((1, 2), (1,)):  # keep the second harmonic off too if possible
+        bins = {int(k) for k in exc.bins}
+        odd = exc.spec.harmonics == "odd"
+        tiers += [
+            lambda j: _tooth_clear(j, p, bins, odd) and _tooth_clear(2 * j, p, bins, odd),
+            lambda j: _tooth_clear(j, p, bins, odd),
+        ]
+    tiers += [  # keep the second harmonic off too if possible
+        lambda j: j not in excited and 2 * j not in excited,
+        lambda j: j not in excited,
+    ]
+    for ok in tiers:
         for j in range(j0, 0, -1):
-            if all(h * j not in excited for h in harmonics):
+            if ok(j):
                 return j * pitch / t_meas / spec.offset_ratio
     return amp
+
+
+def _clear_tooth_line(spec: IdentifySpec, exc: Multisine, amp: float) -> Multisine:
+    """An odd multisine measured over one period has no bin off the period grid: when no
+    odd, non-excited bin lies within the pitches the record can travel, leave the highest odd
+    bin that does out of the excitation so the tooth can sit there (`_tooth_clear`)."""
+    if spec.periodic_pitch_deg is None or exc.spec.harmonics != "odd":
+        return exc
+    j0, _ = _tooth_bin(spec, exc, 0, amp)
+    p = exc.spec.n_periods
+    bins = {int(k) for k in exc.bins}
+    if any(_tooth_clear(j, p, bins, True) for j in range(1, j0 + 1)):
+        return exc
+    m = (j0 // p) - (1 - (j0 // p) % 2)  # the highest odd period bin within reach
+    if m <= int(exc.bins[0]):  # never the lowest frequency
+        return exc
+    skip = (*exc.spec.skip_bins, m)
+    return multisine(dataclasses.replace(exc.spec, skip_bins=skip))
 
 
 @dataclass(frozen=True, slots=True)
@@ -235,6 +332,23 @@ def _excursion(offset: FloatArray, x: FloatArray, ts: float) -> tuple[FloatArray
     return path, min(0.0, float(path.min())), max(0.0, float(path.max()))
 
 
+def _fit_amplitude(
+    spec: IdentifySpec, unit: FloatArray, shape: _Shape, direction: float, ts: float
+) -> float:
+    """The largest amplitude (at most the spec's) whose segment, offset included, travels
+    within ``travel_fraction`` of the window."""
+    half = spec.travel_fraction * spec.window_deg
+    ratio = spec.offset_ratio
+    t_eff = (shape.ramp + shape.steady + unit.size + shape.still) * ts
+    amp = min(spec.amplitude_deg_s, 2.0 * half / (t_eff * ratio))
+    for _ in range(20):  # shrink until the exact excursion fits in the window
+        _, lo, hi = _excursion(*shape.samples(unit, amp, direction * ratio * amp), ts)
+        if hi - lo <= 2.0 * half:
+            break
+        amp *= 0.98 * 2.0 * half / (hi - lo)
+    return amp
+
+
 def plan_segments(spec: IdentifySpec, cfg: LoopConfig) -> tuple[Excitation, list[Segment]]:
     """The unit excitation and the segments of one position (the same at every position: each
     starts from the centre). ConfigError (naming the spec field) if it cannot be planned."""
@@ -258,18 +372,15 @@ def plan_segments(spec: IdentifySpec, cfg: LoopConfig) -> tuple[Excitation, list
             f"{spec.amplitude_deg_s} deg/s with its offset ({ratio:g}x) exceeds the command limit "
             f"{command_limit} deg/s: at most {command_limit / (1.0 + ratio):.3g}",
         )
+    if isinstance(exc, Multisine):
+        exc = _clear_tooth_line(spec, exc, _fit_amplitude(spec, exc.signal, shape, 1.0, ts))
     segments: list[Segment] = []
     p = 0.0  # planned position relative to the centre
     for i, (start, stop, f_lo) in enumerate(_unit_slices(exc)):
         unit = exc.signal[start:stop]
         t_eff = (shape.ramp + shape.steady + unit.size + shape.still) * ts
-        amp = min(spec.amplitude_deg_s, 2.0 * half / (t_eff * ratio))
         direction = 1.0 if p <= 0.0 else -1.0
-        for _ in range(20):  # shrink until the exact excursion fits in the window
-            _, lo, hi = _excursion(*shape.samples(unit, amp, direction * ratio * amp), ts)
-            if hi - lo <= 2.0 * half:
-                break
-            amp *= 0.98 * 2.0 * half / (hi - lo)
+        amp = _fit_amplitude(spec, unit, shape, direction, ts)
         amp = _pitch_lock(spec, exc, i, amp)
         offset, x = shape.samples(unit, amp, direction * ratio * amp)
         path, lo, hi = _excursion(offset, x, ts)

@@ -155,8 +155,9 @@ class IdentifySpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         "open: u = offset + x, no controller; closed: the speed loop is active and x is added "
         "to its command", choices=MODES, flag="--mode", label="Mode")] = "open"
     signal: Annotated[str, Param(
-        "sine: stepped sine; multisine: periodic, Schroeder phases", choices=SIGNALS,
-        flag="--signal", label="Signal")] = "sine"
+        "multisine: odd random-phase multisine, one period per position (about 45 s for the "
+        "default band); sine: stepped sine, one frequency at a time (about 11 min)",
+        choices=SIGNALS, flag="--signal", label="Signal")] = "multisine"
     f_min_hz: Annotated[float, Param(
         "lowest frequency", unit="Hz", gt=0.0, flag="--f-min", label="f min",
         widget=(0.01, 200.0, 0.01))] = 0.1
@@ -197,8 +198,9 @@ class IdentifySpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         "stepped sine: at least this long a measurement window per frequency", unit="s",
         ge=0.0)] = 2.0
     multisine_periods: Annotated[int, Param(
-        "multisine: measured periods (one more transient period is discarded)",
-        ge=2, le=1000)] = 3
+        "multisine: measured periods after a lead-in of 1 s (2 s closed); the spread of each "
+        "line comes from the non-excited lines next to it, so one is enough",
+        ge=1, le=1000)] = 1
     fit_f_lo_hz: Annotated[float | None, Param(
         "fit band, low end (none: the lowest measured frequency)", unit="Hz",
         gt=0.0)] = None

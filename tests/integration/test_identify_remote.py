@@ -31,6 +31,7 @@ MP = control.tf([1.0], list(ARTICLE_MN_DEN)) * control.tf(
 
 #: A short run: 3 stepped sines 0.5-3 Hz at one position (~16 s in the loop).
 SHORT = IdentifySpec(
+    signal="sine",
     f_min_hz=0.5,
     f_max_hz=3.0,
     points_per_decade=3,
