@@ -29,15 +29,20 @@ import gzip
 import hmac
 import html
 import http
+import logging
 import secrets
 import threading
 import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-__all__ = ["COOKIE", "ESTOP_LINK_HTML", "ESTOP_PATH", "Gate", "Refused", "install"]
+__all__ = ["COOKIE", "ESTOP_LINK_HTML", "ESTOP_PATH", "PAGE_SCRIPT_FILE", "Gate", "Refused",
+           "install", "page_script_html"]
+
+log = logging.getLogger(__name__)
 
 COOKIE = "dobtune_token"
 #: GET with the cookie (or token): e-stop, outside viser's websocket. The page's always-visible
@@ -55,6 +60,9 @@ ESTOP_LINK_HTML = (
     "E-STOP</a><iframe name='dt-estop-frame' title='e-stop answer' style='display:none'>"
     "</iframe>"
 )
+#: The page's own script: a PNG button beside every chart's CSV button, and the selected tabs
+#: kept in the URL's fragment (put into the page after `Gate.page_extra`).
+PAGE_SCRIPT_FILE = Path(__file__).resolve().parent.parent / "web_assets" / "dashboard.js"
 _lock = threading.Lock()
 #: One server start at a time: the gate a starting server takes is the one being installed.
 _starting = threading.Lock()
@@ -66,6 +74,20 @@ _DENIED_PAGE = (
     "<p style='font:16px sans-serif;margin:2em'>This dashboard needs its access token: open "
     "the URL the dashboard printed when it started (it ends in <code>?token=...</code>).</p>"
 )
+
+
+def page_script_html(path: Path = PAGE_SCRIPT_FILE) -> str:
+    """`path` as an inline script element; "" (logged) when it cannot be read: the page then
+    works without PNG export and without the view in its URL."""
+    try:
+        source = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        log.warning("page script %s unreadable (%s): no PNG export, the URL keeps no view",
+                    path, exc)
+        return ""
+    if "</script" in source.lower():
+        raise ValueError(f"page script: {path} contains '</script' (it would end the element)")
+    return f"<script>{source}</script>"
 
 
 class Refused(RuntimeError):
@@ -87,6 +109,8 @@ class Gate:
         default_factory=weakref.WeakKeyDictionary, repr=False)
     page_extra: str = ""
     """HTML put at the end of the page's body (the index page only)."""
+    page_script: str = field(default_factory=page_script_html, repr=False)
+    """A script element put after `page_extra` (by default web_assets/dashboard.js)."""
     on_estop: Callable[[str], str] | None = None
     """Called with the user for a request to ESTOP_PATH (on the server's event loop: it must
     not block); returns the text to answer."""
@@ -177,9 +201,10 @@ class Gate:
             if "Upgrade" in request.headers:
                 self._by_connection[connection] = user
             response = process_request(connection, request) if process_request else None
-            if self.page_extra and response is not None and urlsplit(request.path).path in (
+            extra = self.page_extra + self.page_script
+            if extra and response is not None and urlsplit(request.path).path in (
                     "/", "/index.html"):
-                response = _with_extra(response, self.page_extra)
+                response = _with_extra(response, extra)
             if set_cookie and response is not None:
                 response.headers["Set-Cookie"] = (
                     f"{COOKIE}={self.token_of(user)}; HttpOnly; SameSite=Strict; Path=/"

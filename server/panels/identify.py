@@ -62,7 +62,7 @@ from server.identify_view import (
     view_from_status,
 )
 from server.panels.tuning import TuningPanel
-from server.panels.widgets import confirm, esc
+from server.panels.widgets import add_chart, confirm, esc
 
 __all__ = [
     "ABORTED",
@@ -338,11 +338,7 @@ class IdentifyPanel:
         data = charts.identify_data(n, [])
         with self._chart_box:
             for spec in charts.identify_chart_specs(n):
-                self.charts[spec.key] = self.gui.add_uplot(
-                    data=data[spec.key], series=spec.series, scales=spec.scales,
-                    axes=spec.axes, title=spec.title, height=spec.height, aspect=2.0,
-                    bands=spec.extra.get("bands"),
-                )
+                self.charts[spec.key] = add_chart(self.gui, spec, data[spec.key])
         self._chart_n = n
 
     def stop(self) -> None:

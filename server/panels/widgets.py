@@ -1,15 +1,20 @@
-"""Plumbing the panels share: a chart from its `ChartSpec`, HTML text that is only sent when it
-changes, and the bordered status boxes (accept / reject / neutral)."""
+"""Plumbing the panels share: a chart from its `ChartSpec` (with its Export row), HTML text
+that is only sent when it changes, and the bordered status boxes (accept / reject / neutral)."""
 
 from __future__ import annotations
 
 import html
+import logging
 from collections.abc import Callable
 from typing import Any
 
 from server.charts import ChartSpec, FloatArray
+from server.export import chart_csv, export_filename
 
-__all__ = ["ACCEPT", "NEUTRAL", "REJECT", "add_chart", "box", "confirm", "esc", "set_html"]
+__all__ = ["ACCEPT", "EXPORT_LABEL", "NEUTRAL", "REJECT", "add_chart", "add_export_row", "box",
+           "confirm", "esc", "set_html"]
+
+log = logging.getLogger(__name__)
 
 #: (border, background) of a status box.
 ACCEPT = ("#2ca02c", "#eaf7ea")
@@ -18,15 +23,53 @@ NEUTRAL = ("#888", "#f4f4f4")
 CAUTION = ("#b26a00", "#fff4e0")
 
 
+#: The label of the row under every chart; web_assets/dashboard.js finds the rows by it (and
+#: their one "CSV" button) and adds the PNG button beside it.
+EXPORT_LABEL = "Export"
+EXPORT_HINT = "CSV: this chart's data, from the dashboard; PNG: the chart as drawn here"
+
+
 def add_chart(
     gui: Any, spec: ChartSpec, data: tuple[FloatArray, ...], *, aspect: float = 2.0,
     **options: Any,
 ) -> Any:
-    """A uPlot handle built from `spec` (its bands too, if any); afterwards assign `.data`."""
-    return gui.add_uplot(
+    """A uPlot handle built from `spec` (its bands too, if any), with its Export row under it;
+    afterwards assign `.data`. `gui`: the shared `server.gui` or one browser's `client.gui`;
+    either way a CSV goes only to the browser whose button was pressed."""
+    chart = gui.add_uplot(
         data=data, series=spec.series, scales=spec.scales, axes=spec.axes, title=spec.title,
         height=spec.height, aspect=aspect, bands=spec.extra.get("bands"), **options,
     )
+    add_export_row(gui, spec, chart)
+    return chart
+
+
+def add_export_row(gui: Any, spec: ChartSpec, chart: Any) -> Any:
+    """The compact row under `chart`: "CSV" (made here from the chart's present data and sent
+    to the browser that pressed it); the page's script adds "PNG" beside it (drawn in the
+    browser from the chart's canvas). `chart.remove()` removes the row too."""
+    row = gui.add_button_group(EXPORT_LABEL, ("CSV",), hint=EXPORT_HINT)
+
+    def send_csv(event: Any) -> None:
+        # Nothing of the message is used (its value is whatever the sender wrote): a press is
+        # a request for this chart's data, for the browser that pressed.
+        browser = event.client
+        if browser is None:
+            log.warning("CSV of %r: the browser that asked is gone", spec.key)
+            return
+        content = chart_csv(spec, chart.data).encode("utf-8")
+        browser.send_file_download(export_filename(spec, "csv"), content,
+                                   save_immediately=True)
+
+    row.on_click(send_csv)
+    remove_chart = chart.remove
+
+    def remove() -> None:
+        row.remove()
+        remove_chart()
+
+    chart.remove = remove  # the row goes with its chart (panels re-create charts)
+    return row
 
 
 def set_html(handle: Any, content: str) -> None:

@@ -1,0 +1,355 @@
+// dobtune's page script (put into the page by server/gate.py, after viser's own page).
+//
+// 1. PNG of every chart: beside the "CSV" button of each chart's Export row (server/panels/
+//    widgets.py) a "PNG" button that saves the chart as drawn here: its title, its canvas (the
+//    curves and axes uPlot drew) and its legend, at the screen's pixel density; a "PNG" button
+//    under the Nyquist views (SVG) too.
+// 2. The URL keeps the view: the selected tab of the controls ("tab": Tune, Live, ...) and of
+//    the plots ("plot": Bode, Live traces, ...) live in the fragment (#tab=Live&plot=Bode); a
+//    page opened with one selects those tabs once viser has drawn them. The token stays in the
+//    query string.
+//
+// viser's React client re-renders and re-mounts freely: a MutationObserver (and a slow timer,
+// for URL rewrites that change no element) brings both back.
+(() => {
+  "use strict";
+  if (window.__dobtuneView) return;
+  window.__dobtuneView = true;
+
+  const EXPORT_LABEL = "Export";
+  // A tab group is known by one of its tabs: [fragment key, a tab label of that group].
+  const GROUPS = [["tab", "Tune"], ["plot", "Bode"]];
+  const RESTORE_FOR_MS = 60000;
+
+  // ---- PNG ---------------------------------------------------------------------------------
+
+  function slug(title) {
+    // The same rule as server/export.py export_filename.
+    let s = title.toLowerCase().replace(/[^a-z0-9]+/g, "-").replace(/^-+|-+$/g, "");
+    if (s.length > 48) {
+      const cut = s.slice(0, 49);
+      s = cut.includes("-") ? cut.slice(0, cut.lastIndexOf("-")) : s.slice(0, 48);
+    }
+    return "dobtune-" + (s || "chart");
+  }
+
+  function isExportRow(el) {
+    if (!el) return false;
+    const label = el.querySelector("label");
+    if (!label || label.textContent.trim() !== EXPORT_LABEL) return false;
+    return [...el.querySelectorAll("button")].some((b) => b.textContent.trim() === "CSV");
+  }
+
+  // The chart of an Export row: the uPlot right before it (GUI order), none if not drawn.
+  function chartOfRow(row) {
+    const prev = row.previousElementSibling;
+    return prev ? prev.querySelector(":scope > .uplot-container .uplot") : null;
+  }
+
+  function addPngButtons() {
+    for (const container of document.querySelectorAll(".uplot-container")) {
+      const row = container.parentElement && container.parentElement.nextElementSibling;
+      if (!isExportRow(row) || row.querySelector(".dt-png")) continue;
+      const csv = [...row.querySelectorAll("button")].find(
+        (b) => b.textContent.trim() === "CSV");
+      const png = csv.cloneNode(true);
+      png.classList.add("dt-png");
+      png.removeAttribute("id");
+      png.disabled = false;
+      const text = png.querySelector(".mantine-Button-label") || png;
+      text.textContent = "PNG";
+      png.title = "the chart as drawn here, as a PNG image";
+      png.addEventListener("click", (e) => {
+        e.preventDefault();
+        e.stopPropagation();
+        const chart = chartOfRow(row);
+        if (!chart) {
+          console.error("dobtune: no drawn chart above this Export row");
+          return;
+        }
+        savePng(chart);
+      });
+      csv.parentElement.appendChild(png);
+    }
+  }
+
+  // The Nyquist views are SVG (server/charts.py nyquist_svg), not uPlot: a PNG button under
+  // them. Their HTML is replaced when the candidate changes; the button then comes back.
+  function addNyquistButtons() {
+    for (const box of document.querySelectorAll(".dt-nyquist-box")) {
+      if (!box.querySelector("svg") || box.querySelector(".dt-png-nyquist")) continue;
+      const b = document.createElement("button");
+      b.type = "button";
+      b.className = "dt-png-nyquist";
+      b.textContent = "PNG";
+      b.title = "the Nyquist view as drawn here, as a PNG image";
+      b.style.cssText = "display:block;margin:4px 0 0 auto;font:12px sans-serif;" +
+        "padding:2px 14px;border:1px solid #1f77b4;border-radius:4px;background:#fff;" +
+        "color:#1f77b4;cursor:pointer";
+      b.addEventListener("click", (e) => {
+        e.preventDefault();
+        e.stopPropagation();
+        saveSvgsPng([...box.querySelectorAll("svg")], "dobtune-nyquist-speed-loop.png");
+      });
+      box.appendChild(b);
+    }
+  }
+
+  function download(blob, name) {
+    const a = document.createElement("a");
+    a.href = URL.createObjectURL(blob);
+    a.download = name;
+    a.style.display = "none";
+    document.body.appendChild(a);
+    a.click();
+    a.remove();
+    setTimeout(() => URL.revokeObjectURL(a.href), 60000);
+  }
+
+  // The SVGs where they are on the screen, on one white canvas.
+  function saveSvgsPng(svgs, name) {
+    const k = window.devicePixelRatio || 1;
+    const rects = svgs.map((g) => g.getBoundingClientRect());
+    const x0 = Math.min(...rects.map((r) => r.left));
+    const y0 = Math.min(...rects.map((r) => r.top));
+    const out = document.createElement("canvas");
+    out.width = Math.round((Math.max(...rects.map((r) => r.right)) - x0) * k);
+    out.height = Math.round((Math.max(...rects.map((r) => r.bottom)) - y0) * k);
+    const ctx = out.getContext("2d");
+    ctx.fillStyle = "#ffffff";
+    ctx.fillRect(0, 0, out.width, out.height);
+    const drawn = svgs.map((g, i) => new Promise((resolve, reject) => {
+      const img = new Image();
+      img.onload = () => {
+        const r = rects[i];
+        ctx.drawImage(img, (r.left - x0) * k, (r.top - y0) * k, r.width * k, r.height * k);
+        resolve();
+      };
+      img.onerror = () => reject(new Error("an SVG of the Nyquist view could not be drawn"));
+      // Alone, an SVG has no page to inherit its font from: give it the page's.
+      const copy = g.cloneNode(true);
+      copy.setAttribute("style", (copy.getAttribute("style") || "") +
+        ";font-family:" + getComputedStyle(g).fontFamily);
+      img.src = "data:image/svg+xml;charset=utf-8," +
+        encodeURIComponent(new XMLSerializer().serializeToString(copy));
+    }));
+    Promise.all(drawn).then(() => out.toBlob((blob) => {
+      if (blob) download(blob, name);
+      else console.error("dobtune: the PNG of the Nyquist view could not be made");
+    }, "image/png"), (err) => console.error("dobtune:", err));
+  }
+
+  function background(el) {
+    for (let e = el; e; e = e.parentElement) {
+      const c = getComputedStyle(e).backgroundColor;
+      if (c && c !== "transparent" && !/rgba\(.*,\s*0\)$/.test(c)) return c;
+    }
+    return "#ffffff";
+  }
+
+  function savePng(root) {
+    const canvas = root.querySelector("canvas");
+    const cssWidth = parseFloat(canvas.style.width) || canvas.getBoundingClientRect().width ||
+      canvas.width;
+    const k = canvas.width / cssWidth; // device pixels per CSS pixel
+    const title = ((root.querySelector(".u-title") || {}).textContent || "").trim();
+    // The uPlot instance (viser's registry of its charts), for the series' dash patterns: the
+    // legend's markers are drawn solid.
+    const reg = (window.__viserTestpoints && window.__viserTestpoints.uplots) || {};
+    const plot = (Object.values(reg).find((u) => u.chart && u.chart.root === root) || {}).chart;
+    const items = [];
+    [...root.querySelectorAll(".u-legend .u-series")].forEach((tr, i) => {
+      const marker = tr.querySelector(".u-marker");
+      const label = tr.querySelector(".u-label");
+      // Row 0 is the x series (no curve); a series switched off in the legend is not drawn.
+      if (i === 0 || !marker || !label || tr.classList.contains("u-off")) return;
+      const st = getComputedStyle(marker);
+      const dash = plot && plot.series[i] && plot.series[i].dash;
+      items.push({ text: label.textContent.trim(), color: st.borderTopColor,
+                   dashed: Array.isArray(dash) ? dash.length > 0 : st.borderTopStyle !== "solid" });
+    });
+    const font = (px, bold) => `${bold ? "bold " : ""}${Math.round(px * k)}px sans-serif`;
+    const pad = 8 * k;
+    const lineH = 16 * k;
+    const ctx0 = document.createElement("canvas").getContext("2d");
+    // Legend layout: entries flow left to right, wrapped at the chart's width.
+    ctx0.font = font(12, false);
+    const rows = [[]];
+    let x = pad;
+    for (const it of items) {
+      const w = 22 * k + ctx0.measureText(it.text).width + 14 * k;
+      if (x + w > canvas.width - pad && rows[rows.length - 1].length) {
+        rows.push([]);
+        x = pad;
+      }
+      rows[rows.length - 1].push({ ...it, x });
+      x += w;
+    }
+    const titleH = title ? 22 * k : 0;
+    const legendH = items.length ? rows.length * lineH + pad : 0;
+    const out = document.createElement("canvas");
+    out.width = canvas.width;
+    out.height = Math.ceil(titleH + canvas.height + legendH + pad);
+    const ctx = out.getContext("2d");
+    ctx.fillStyle = background(root);
+    ctx.fillRect(0, 0, out.width, out.height);
+    const ink = getComputedStyle(root).color || "#222";
+    if (title) {
+      ctx.fillStyle = ink;
+      ctx.font = font(13, true);
+      ctx.textAlign = "center";
+      ctx.textBaseline = "middle";
+      ctx.fillText(title, out.width / 2, titleH / 2 + 2 * k);
+    }
+    ctx.drawImage(canvas, 0, titleH);
+    ctx.font = font(12, false);
+    ctx.textAlign = "left";
+    ctx.textBaseline = "middle";
+    rows.forEach((row, r) => {
+      const y = titleH + canvas.height + pad + r * lineH + lineH / 2;
+      for (const it of row) {
+        ctx.strokeStyle = it.color;
+        ctx.lineWidth = 2 * k;
+        ctx.setLineDash(it.dashed ? [4 * k, 3 * k] : []);
+        ctx.beginPath();
+        ctx.moveTo(it.x, y);
+        ctx.lineTo(it.x + 16 * k, y);
+        ctx.stroke();
+        ctx.fillStyle = ink;
+        ctx.fillText(it.text, it.x + 22 * k, y);
+      }
+    });
+    out.toBlob((blob) => {
+      if (blob) download(blob, slug(title) + ".png");
+      else console.error("dobtune: the PNG of", title, "could not be made");
+    }, "image/png");
+  }
+
+  // ---- the view in the URL ------------------------------------------------------------------
+
+  function parseView(hash) {
+    const want = {};
+    const p = new URLSearchParams(hash.replace(/^#/, ""));
+    for (const [key] of GROUPS) if (p.get(key)) want[key] = p.get(key);
+    return want;
+  }
+
+  const tabLabel = (t) => (t.getAttribute("title") || t.textContent || "").trim();
+
+  // fragment key -> the tabs of that group (the dock's tab strips).
+  function groups() {
+    const out = {};
+    for (const strip of document.querySelectorAll("[data-dock-strip]")) {
+      const tabs = [...strip.querySelectorAll("[role=tab]")];
+      const labels = tabs.map(tabLabel);
+      for (const [key, member] of GROUPS) {
+        if (!(key in out) && labels.includes(member)) out[key] = tabs;
+      }
+    }
+    return out;
+  }
+
+  let want = parseView(location.hash); // read now: viser rewrites the URL when it starts
+  let restoreUntil = Date.now() + RESTORE_FOR_MS;
+
+  function restore() {
+    const g = groups();
+    let done = true;
+    for (const [key, label] of Object.entries(want)) {
+      const tab = (g[key] || []).find((t) => tabLabel(t) === label);
+      if (!tab) {
+        done = false;
+        continue;
+      }
+      if (tab.getAttribute("aria-selected") !== "true") {
+        done = false;
+        // What a keyboard user does: Enter on the tab activates it.
+        tab.dispatchEvent(new KeyboardEvent("keydown", { key: "Enter", bubbles: true,
+                                                         cancelable: true }));
+      }
+    }
+    if (done) want = {};
+    else if (Date.now() > restoreUntil) {
+      console.warn("dobtune: tabs from the URL not found:", JSON.stringify(want));
+      want = {};
+    }
+  }
+
+  function viewHash() {
+    const g = groups();
+    const p = new URLSearchParams();
+    for (const [key] of GROUPS) {
+      const sel = (g[key] || []).find((t) => t.getAttribute("aria-selected") === "true");
+      if (sel) p.set(key, tabLabel(sel));
+    }
+    return p.toString();
+  }
+
+  function syncUrl() {
+    // While tabs from the URL are still to be selected, the URL keeps asking for them.
+    const p = new URLSearchParams();
+    const h = Object.keys(want).length
+      ? (Object.entries(want).forEach(([k, v]) => p.set(k, v)), p.toString())
+      : viewHash();
+    if (!h || location.hash.replace(/^#/, "") === h) return;
+    history.replaceState(history.state, "", location.pathname + location.search + "#" + h);
+  }
+
+  window.addEventListener("hashchange", () => {
+    const w = parseView(location.hash);
+    if (Object.keys(w).length) {
+      want = w;
+      restoreUntil = Date.now() + RESTORE_FOR_MS;
+    }
+    schedule();
+  });
+
+  // ---- the log slider's number box ----------------------------------------------------------
+  // The cut-off slider moves on a log scale: its own number box would show log10 of the
+  // frequency, where a user thinks in Hz. The Hz field under it is the value: the box goes.
+
+  const LOG_SLIDER_LABEL = "Q cut-off, log scale";
+  function hideLogBoxes() {
+    for (const lab of document.querySelectorAll("label")) {
+      if (!lab.textContent || !lab.textContent.startsWith(LOG_SLIDER_LABEL)) continue;
+      const slider = lab.htmlFor ? document.getElementById(lab.htmlFor) : null;
+      const row = slider && slider.parentElement;
+      if (!row) continue;
+      const inputs = Array.from(row.querySelectorAll("input")).filter(i => i.type !== "hidden");
+      const box = inputs[inputs.length - 1];
+      if (!box) continue;
+      const wrap = box.closest(".mantine-NumberInput-root") || box;
+      if (wrap.style.display !== "none") wrap.style.display = "none";
+    }
+  }
+
+  // ---- upkeep ----------------------------------------------------------------------------------
+
+  let pending = false;
+  function tick() {
+    pending = false;
+    try {
+      addPngButtons();
+      addNyquistButtons();
+      hideLogBoxes();
+      if (Object.keys(want).length) restore();
+      syncUrl();
+    } catch (err) {
+      console.error("dobtune page script:", err);
+    }
+  }
+  function schedule() {
+    if (pending) return;
+    pending = true;
+    setTimeout(tick, 150);
+  }
+  function start() {
+    new MutationObserver(schedule).observe(document.body, {
+      childList: true, subtree: true, attributes: true, attributeFilter: ["aria-selected"],
+    });
+    setInterval(schedule, 1000);
+    schedule();
+  }
+  if (document.body) start();
+  else document.addEventListener("DOMContentLoaded", start);
+})();
