@@ -170,6 +170,9 @@ class Dashboard:
         """The candidate panels, one per browser (viser client id; -1: built on the shared
         GUI by `panel_in` without a browser, as scripts and tests do)."""
         self._panels_lock = threading.Lock()
+        self._build_lock = threading.Lock()
+        """A viser tab takes one `with` at a time: browsers that connect at once build their
+        panels one after the other."""
         self.active: LoopConfig | None = None
         self.active_version: int | None = None
         self.trajectory: Trajectory | None = None
@@ -222,6 +225,8 @@ class Dashboard:
         for panel in (self.live, *panels, self.identify, self.fleet):
             if panel is not None:
                 panel.stop()
+        if self.recordings is not None and self.recordings.recording_to is not None:
+            self.recordings.stop_recording()
         if self._fleet_monitor is not None:
             self._fleet_monitor.close()
         with self._views_lock:
@@ -394,7 +399,9 @@ class Dashboard:
             self.history_pick.on_update(lambda _e: self._show_version_diff())
             self.history_other.on_update(lambda _e: self._show_version_diff())
         with tabs.add_tab("Recordings"):
-            self.recordings = RecordingsPanel(gui, self.opts.recordings_dir)
+            self.recordings = RecordingsPanel(gui, self.opts.recordings_dir,
+                                              record_args=self._record_args(),
+                                              rig_name=self.opts.rig_name)
             self.recordings.build()
         with tabs.add_tab("Help"):
             gui.add_markdown(_asset("help.md", "Help texts are missing (web_assets/help.md)."))
@@ -418,6 +425,16 @@ class Dashboard:
             self.fleet.start()
         self._requests.submit(self._fetch_active)
 
+    def _record_args(self) -> list[str]:
+        """`dobtune record`'s arguments that reach this dashboard's rig as it does."""
+        o = self.opts
+        args = [a for ep in o.connect for a in ("--connect", ep)]
+        args += ["--rig-name", o.rig_name]
+        if o.auth is not None:
+            user = self.client.opts.user  # the streams' user: every role may record
+            args += ["--auth", str(o.auth), "--user", user]
+        return args
+
     # -- the candidates, one per browser --------------------------------------------------------
 
     def panel_in(self, gui: Any, browser: Any = None) -> NominalTuningPanel:
@@ -425,10 +442,11 @@ class Dashboard:
         without a browser): controls in the Tune tab, charts in the Bode tab, started on the
         active configuration when it is known."""
         t = NominalTuningPanel(gui, self.engine, self._apply_async)
-        with self.tune_tab:
-            t.build_controls()
-        with self.bode_tab:
-            t.build_charts()
+        with self._build_lock:
+            with self.tune_tab:
+                t.build_controls()
+            with self.bode_tab:
+                t.build_charts()
         key = getattr(browser, "client_id", -1)
         with self._panels_lock:
             old = self.panels.pop(key, None)

@@ -1,6 +1,8 @@
 """Recordings panel: the `.mcap` files of a directory (`dobtune record`, the black box) with
 their configuration and the article's metrics, and two of them overlaid (before / after):
-errors aligned on their reference trajectory, metrics side by side, the configuration diff.
+errors aligned on their reference trajectory, metrics side by side, the configuration diff;
+a time scrubber replays the overlay through a window; Record / Stop records the rig into the
+directory (the recorder of `dobtune record`, in a thread of this process).
 
 Reading and the metrics are `controller.recording` (the same as `dobtune report`); the
 alignment and the diff are `controller.recording.compare` (pure). Files are read in the
@@ -10,8 +12,13 @@ callback's thread (viser runs callbacks on a pool), and each file's summary is c
 
 from __future__ import annotations
 
+import argparse
+import io
+import logging
 import math
 import threading
+import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +31,8 @@ from server.charts import CANDIDATE, NO_DOB, ChartSpec, minmax_decimate
 from server.panels.widgets import NEUTRAL, add_chart, box, esc, set_html
 
 __all__ = ["OVERLAY_CHART", "RecordingsPanel", "compare_html", "list_html"]
+
+log = logging.getLogger(__name__)
 
 #: Error of run A and of run B (aligned) against A's time.
 OVERLAY_CHART = ChartSpec(
@@ -38,6 +47,8 @@ OVERLAY_CHART = ChartSpec(
 )
 _NONE = "-"
 _MAX_POINTS = 2000
+#: The replay window: the scrubber shows the overlay's last this many seconds up to its time.
+REPLAY_WINDOW_S = 10.0
 #: Configuration fields shown in the list (the rest are in the diff).
 _SHOWN = ("dob_on", "q_type", "q_cutoff_hz", "ff_on")
 
@@ -89,9 +100,21 @@ def compare_html(a: SummaryRow, b: SummaryRow, lag_s: float, correlation: float)
 class RecordingsPanel:
     """`build()` inside a tab; `refresh()` rereads the directory (also the Refresh button)."""
 
-    def __init__(self, gui: Any, directory: str | Path) -> None:
+    def __init__(self, gui: Any, directory: str | Path,
+                 record_args: Sequence[str] | None = None, rig_name: str = "rig") -> None:
+        """`record_args`: the `dobtune record` arguments that reach the rig (`--connect`,
+        `--rig-name`, credentials), without `--out`; None: no Record button."""
         self.gui = gui
         self.directory = Path(directory)
+        self._record_args = None if record_args is None else tuple(record_args)
+        self._rig_name = rig_name
+        self._rec_stop: threading.Event | None = None
+        self._rec_thread: threading.Thread | None = None
+        self.recording_to: Path | None = None
+        self.last_record_output = ""
+        self.record_box: Any = None
+        self.scrub: Any = None
+        self._aligned: Any = None
         self._lock = threading.Lock()
         self._cache: dict[Path, tuple[tuple[int, float], SummaryRow]] = {}
         self.rows: list[SummaryRow] = []
@@ -106,6 +129,13 @@ class RecordingsPanel:
         long recording takes seconds to read) or here."""
         gui = self.gui
         gui.add_markdown(f"Recordings in `{self.directory}` (`dobtune record`, black box).")
+        if self._record_args is not None:
+            rec = gui.add_button_group("Record", ("Record", "Stop recording"),
+                                       hint="record this rig (every tick, status, versions, "
+                                       "events) into a new .mcap file in the directory")
+            rec.on_click(lambda e: self.start_recording() if e.target.value == "Record"
+                         else self.stop_recording())
+            self.record_box = gui.add_html("<div class='dt-record'></div>")
         refresh = gui.add_button("Refresh", color="gray", hint="read the directory again")
         refresh.on_click(lambda _e: self.refresh())
         self.list_box = gui.add_html("")
@@ -116,6 +146,11 @@ class RecordingsPanel:
         compare.on_click(lambda _e: self.compare(self.pick_a.value, self.pick_b.value))
         self.compare_box = gui.add_html("")
         self.chart = add_chart(gui, OVERLAY_CHART, OVERLAY_CHART.placeholder([0.0, 1.0]))
+        self.scrub = gui.add_slider(
+            "Replay at (s)", min=0.0, max=1.0, step=0.1, initial_value=1.0,
+            hint=f"the overlay's last {REPLAY_WINDOW_S:g} s up to this time; the end shows the "
+            "whole run")
+        self.scrub.on_update(lambda _e: self.replay(float(self.scrub.value)))
         if background:
             set_html(self.list_box, box("dt-recordings", NEUTRAL, "Reading the recordings..."))
             threading.Thread(target=self.refresh, name="recordings-list", daemon=True).start()
@@ -175,10 +210,90 @@ class RecordingsPanel:
         row_a = summary_row(name_a, rec_a.configs, metrics(rec_a))
         row_b = summary_row(name_b, rec_b.configs, metrics(rec_b))
         html = compare_html(row_a, row_b, al.lag_s, al.correlation)
-        if self.chart is not None:
-            x, (ea, eb) = minmax_decimate(al.t_s, [al.error_a_deg, al.error_b_deg], _MAX_POINTS)
-            self.chart.data = (x, ea, eb)
+        self._aligned = al
+        if self.scrub is not None:
+            end = float(al.t_s[-1]) if len(al.t_s) else 1.0
+            self.scrub.max = round(max(end, 0.1), 1)
+            self.scrub.value = self.scrub.max  # the whole run
+        self.replay(math.inf)
         return self._say(html, raw=True)
+
+    def replay(self, t_s: float) -> tuple[np.ndarray, ...] | None:
+        """The overlay up to `t_s` in a REPLAY_WINDOW_S window (inf, or the end: all of it);
+        returns the chart's data (None: nothing compared yet)."""
+        al = self._aligned
+        if al is None or len(al.t_s) == 0:
+            return None
+        t, ea, eb = al.t_s, al.error_a_deg, al.error_b_deg
+        if t_s < float(t[-1]) - 1e-9:
+            keep = (t >= t_s - REPLAY_WINDOW_S) & (t <= t_s)
+            if np.count_nonzero(keep) >= 2:
+                t, ea, eb = t[keep], ea[keep], eb[keep]
+        x, (da, db) = minmax_decimate(t, [ea, eb], _MAX_POINTS)
+        data = (x, da, db)
+        if self.chart is not None:
+            self.chart.data = data
+        return data
+
+    # -- recording -----------------------------------------------------------------------------
+
+    def start_recording(self) -> Path | None:
+        """Record the rig into a new file of the directory until `stop_recording` (None:
+        already recording, or no Record button)."""
+        from controller.cli.record import add_arguments, record_main
+
+        if self._record_args is None:
+            return None
+        with self._lock:
+            if self._rec_thread is not None and self._rec_thread.is_alive():
+                self._say_record(f"Already recording to {self.recording_to}.")
+                return None
+            try:
+                self.directory.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                self._say_record(f"Cannot record into {self.directory}: {exc}", error=True)
+                return None
+            out = self.directory / f"{time.strftime('%Y%m%d-%H%M%S')}-{self._rig_name}.mcap"
+            parser = argparse.ArgumentParser(prog="record", exit_on_error=False)
+            add_arguments(parser)
+            args = parser.parse_args([*self._record_args, "--out", str(out)])
+            stop = threading.Event()
+
+            def run() -> None:
+                text = io.StringIO()
+                try:
+                    code = record_main(args, text, stop)
+                except Exception as exc:  # told in the panel and logged; never silent
+                    log.exception("recording to %s failed", out)
+                    code, text = 1, io.StringIO(f"recording failed: {exc}")
+                self.last_record_output = text.getvalue().strip()
+                self._say_record(self.last_record_output, error=code != 0)
+                self.refresh()
+
+            self._rec_stop, self.recording_to = stop, out
+            self._rec_thread = threading.Thread(target=run, name="recordings-record",
+                                                daemon=True)
+            self._rec_thread.start()
+        self._say_record(f"Recording to {out.name} (since {time.strftime('%H:%M:%S')}): press "
+                         "Stop recording to close the file.")
+        return out
+
+    def stop_recording(self, timeout_s: float = 30.0) -> bool:
+        """Close the recording (the file is complete when this returns True)."""
+        with self._lock:
+            stop, thread = self._rec_stop, self._rec_thread
+        if stop is None or thread is None:
+            self._say_record("Not recording.")
+            return False
+        stop.set()
+        thread.join(timeout_s)
+        return not thread.is_alive()
+
+    def _say_record(self, text: str, error: bool = False) -> None:
+        if self.record_box is not None:
+            color = "color:#d62728;" if error else ""
+            set_html(self.record_box, f"<div class='dt-record' style='font-size:12px;{color}'>"
+                     f"{esc(text)}</div>")
 
     def _say(self, text: str, raw: bool = False) -> str:
         html = text if raw else box("dt-compare", NEUTRAL, esc(text))

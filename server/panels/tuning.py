@@ -253,8 +253,8 @@ class TuningPanel:
         self.cutoff_log = gui.add_slider(
             "Q cut-off, log scale", min=round(_LOG_LO, 3), max=round(_LOG_HI, 3), step=0.005,
             initial_value=_cutoff_log(a.q_cutoff_hz), marks=_BASE_MARKS,
-            hint="-3 dB cut-off of Q: drag on a log scale (the box shows log10 of the Hz; the "
-            "Hz field below is the value). The mark 'max' is the gate's recommendation.",
+            hint="-3 dB cut-off of Q: drag on a log scale (the Hz field below is the value). "
+            "The mark 'max' is the gate's recommendation.",
         )
         # A text field, not a number field: the server never writes into it while the user
         # types (a number field's limits made the server clamp the first typed "0" and send

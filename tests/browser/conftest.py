@@ -119,6 +119,17 @@ def open_when_ready(page: Any, dashboard: Dashboard, timeout_s: float) -> None:
     page.wait_for_selector(".dt-banner", timeout=left_ms())
 
 
+#: JS: number of finite points of a series of any uPlot, by label.
+FINITE_JS = """(label) => {
+  const ups = Object.values(window.__viserTestpoints?.uplots || {});
+  for (const u of ups) {
+    const i = u.chart.series.findIndex(s => s.label === label);
+    if (i > 0) return Array.from(u.chart.data[i]).filter(v => v !== null && isFinite(v)).length;
+  }
+  return -1;
+}"""
+
+
 def slider_row(page: Any, label: str) -> Any:
     fid = page.locator("label", has_text=label).first.get_attribute("for")
     return page.locator(f"[id='{fid}']")

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import FIRST_LOAD_S, open_when_ready, set_number
+from conftest import FINITE_JS, FIRST_LOAD_S, open_when_ready, set_number
 
 from controller.client import ControllerClient
 from server.app import Dashboard
@@ -38,6 +38,17 @@ def _cutoff_field(page: Any) -> str:
 
 def _stale(page: Any) -> str:
     return str(page.locator(".dt-stale").first.inner_text()).strip()
+
+
+def _panels(dashboard: Dashboard, first: Any, second: Any) -> tuple[Any, Any]:
+    """The candidate panels of two pages, told apart by the cut-off each shows."""
+    shown = {id(p): float(_cutoff_field(p)) for p in (first, second)}
+    panels = list(dashboard.panels.values())
+    assert len(panels) == 2
+    a = [t for t in panels if t.cutoff_hz == shown[id(first)]]
+    b = [t for t in panels if t.cutoff_hz == shown[id(second)]]
+    assert len(a) == len(b) == 1 and a[0] is not b[0], (shown, [t.cutoff_hz for t in panels])
+    return a[0], b[0]
 
 
 def test_each_browser_edits_its_own_candidate(
@@ -88,6 +99,25 @@ def test_each_browser_edits_its_own_candidate(
         other.wait_for_selector(".dt-cutoff >> text=0.800 Hz", timeout=15_000)
         _wait(lambda: _stale(other) == "", 10.0, "the stale note stayed after Revert")
         assert float(_cutoff_field(other)) == 0.8
+
+        # Suggest in B: the search's curve is drawn in B and its result is B's candidate;
+        # A's candidate and the controller's configuration stay.
+        set_number(page, "Q cut-off (Hz)", 0.7)  # A's and B's candidates differ
+        page.wait_for_selector(".dt-cutoff >> text=0.700 Hz", timeout=15_000)
+        a_panel, b_panel = _panels(dashboard, page, other)
+        a_before = a_panel.candidate()
+        other.get_by_role("button", name="Suggest Q cut-off").click()
+        other.wait_for_selector(".dt-suggest-done", timeout=120_000)
+        assert b_panel.wait_idle(10.0)
+        res = b_panel.last_suggestion
+        assert res is not None
+        want = "DOB off" if not res.dob_helps else f"{res.best.q_cutoff_hz:.3g} Hz"
+        assert want in other.locator(".dt-suggest").first.inner_text()
+        other.wait_for_function(f"() => ({FINITE_JS})('Q31 RMSE (deg)') >= 4", timeout=15_000)
+        assert b_panel.candidate().dob_on == res.dob_helps
+        assert a_panel.candidate() == a_before
+        assert probe.get_config().version == v2.version
+        other.screenshot(path=str(artifacts / "candidates_3_suggest.png"))
     finally:
         other.context.close()
     _wait(lambda: len(dashboard.panels) == 1, 15.0, "the closed browser's candidate stayed")

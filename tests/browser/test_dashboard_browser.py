@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import set_number, slider_row
+from conftest import FINITE_JS, set_number, slider_row
 
 from controller.client import ControllerClient
 from server.app import Dashboard
@@ -66,6 +66,21 @@ def test_page_loads(page: Any, dashboard: Dashboard, artifacts: Path) -> None:
     page.wait_for_selector(".dt-nyquist polyline.dt-nyq-cand", state="attached", timeout=20_000)
     assert page.locator(".dt-nyquist .dt-nyq-critical").count() == 1
     assert page.locator(".dt-nyquist .dt-nyq-pm").count() >= 1
+    # ... beside the same view without the DOB (its own critical point and margins).
+    assert page.locator("svg.dt-nyq-panel").count() == 2
+    page.wait_for_selector(".dt-nyquist-nodob polyline.dt-nyq-cand", state="attached")
+    assert page.locator(".dt-nyquist-nodob .dt-nyq-critical").count() == 1
+    assert page.locator(".dt-nyquist-nodob .dt-nyq-pm").count() >= 1
+    titles = page.locator(".dt-nyq-title").all_text_contents()
+    assert [t.split(":")[0] for t in titles] == ["with DOB", "without DOB"], titles
+    # The plant the verdicts are judged on: its model drawn, with finite scales.
+    assert page.evaluate(f"() => ({FINITE_JS})('|M P| model')") > 50
+    # The log slider shows no number box of its own (it would show log10 of the Hz); the Hz
+    # field is the value.
+    log_box = slider_row(page, "Q cut-off, log scale").locator("xpath=..").locator(
+        "input:not([type=hidden])")
+    assert log_box.count() >= 1  # there, and hidden
+    log_box.last.wait_for(state="hidden", timeout=10_000)
     page.screenshot(path=str(artifacts / "browser_1_loaded.png"))
     assert "Connected" in _text(page, ".dt-banner")
 
@@ -73,6 +88,10 @@ def test_page_loads(page: Any, dashboard: Dashboard, artifacts: Path) -> None:
 def test_cutoff_slider_changes_bode_and_margins(page: Any, artifacts: Path) -> None:
     q_before = page.evaluate(Q_SERIES_JS)
     margins_before = _text(page, ".dt-verdict")
+    nyq_dob_before = page.locator(".dt-nyquist polyline.dt-nyq-cand").first.get_attribute(
+        "points")
+    nyq_nodob_before = page.locator(
+        ".dt-nyquist-nodob polyline.dt-nyq-cand").first.get_attribute("points")
     # Move the thumb from the keyboard (a click on the track can land on a mark label). In
     # headless Chromium with software WebGL an input event is now and then not delivered to
     # viser's slider: a second key press is a second move, as a user would make it.
@@ -92,6 +111,12 @@ def test_cutoff_slider_changes_bode_and_margins(page: Any, artifacts: Path) -> N
             if "Timeout" not in type(exc).__name__:
                 raise
     assert changed, "the |Q| chart never changed after moving the cut-off slider"
+    # Q moves the loop with the DOB, never the one without it (G Cv does not depend on Q).
+    page.wait_for_function(
+        "(before) => document.querySelector('.dt-nyquist polyline.dt-nyq-cand')"
+        ".getAttribute('points') !== before", arg=nyq_dob_before, timeout=15_000)
+    assert page.locator(".dt-nyquist-nodob polyline.dt-nyq-cand").first.get_attribute(
+        "points") == nyq_nodob_before
     page.wait_for_function(
         "(before) => document.querySelector('.dt-verdict').innerText !== before",
         arg=margins_before, timeout=15_000,

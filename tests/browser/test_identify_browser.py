@@ -10,23 +10,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import only_panel
+from conftest import FINITE_JS, only_panel
 
 from controller.client import ControllerClient
 from server.app import Dashboard
 
 pytestmark = pytest.mark.browser
-
-#: JS: number of finite points of a series of any uPlot, by label.
-FINITE_JS = """(label) => {
-  const ups = Object.values(window.__viserTestpoints?.uplots || {});
-  for (const u of ups) {
-    const i = u.chart.series.findIndex(s => s.label === label);
-    if (i > 0) return Array.from(u.chart.data[i]).filter(v => v !== null && isFinite(v)).length;
-  }
-  return -1;
-}"""
-
 
 def _input(page: Any, label: str) -> Any:
     fid = page.locator("label", has_text=label).first.get_attribute("for")
