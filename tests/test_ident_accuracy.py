@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 import pytest
+from rig_linear import linear_response, linear_rig
 
 from controller.core.config import LoopConfig
 from controller.ident.engine import run_identification
@@ -25,39 +26,8 @@ from controller.ident.model_fit import fit_second_order
 from controller.ident.plan import plan_program
 from controller.ident.result import IdentifyResult
 from controller.ident.spec import IdentifySpec
-from controller.sim.sim_rig import RigParams, SimRig
 
 CFG = LoopConfig()
-
-
-def linear_response(freq_hz: np.ndarray, p: RigParams | None = None) -> np.ndarray:
-    """u -> w of the simulated rig linearised about a one-way motion: G = Ki T / A with
-    T = (k + c s) / (Jl s^2 + (bl + c) s + k) (belt and load), A = Jm s^2 + bm s +
-    (k + c s)(1 - T) / N^2 + (Ki + Kp s) D (motor and drive), D = (1 - e^{-s Tw}) / (s Tw)
-    (the drive's speed estimate over its window Tw)."""
-    p = p or RigParams()
-    s = 2j * np.pi * np.asarray(freq_hz, dtype=np.float64)
-    n, k, c = p.gear_ratio, p.belt_stiffness_n_m_rad, p.belt_damping_n_m_s_rad
-    t = (k + c * s) / (p.load_inertia_kg_m2 * s**2 + (p.load_viscous_n_m_s_rad + c) * s + k)
-    tw = p.drive_speed_window_s
-    d = (1.0 - np.exp(-s * tw)) / (s * tw)
-    a = (
-        p.motor_inertia_kg_m2 * s**2
-        + p.motor_viscous_n_m_s_rad * s
-        + (k + c * s) * (1.0 - t) / n**2
-        + (p.drive_ki_n_m_rad + p.drive_kp_n_m_s_rad * s) * d
-    )
-    return np.asarray(p.drive_ki_n_m_rad * t / a)
-
-
-def _linear_rig() -> SimRig:
-    return SimRig(
-        RigParams(
-            backlash_deg=0.0, coulomb_torque_n_m=0.0, static_torque_n_m=0.0,
-            bias_torque_n_m=0.0, transmission_error_deg=0.0, ripple_torque_n_m=0.0,
-            position_noise_deg=0.0, load_encoder_bits=48, motor_encoder_counts_per_rev=2**30,
-        )
-    )  # fmt: skip
 
 
 def _errors(result: IdentifyResult, reference: np.ndarray | None = None) -> np.ndarray:
@@ -91,7 +61,7 @@ def default() -> IdentifyResult:
 
 
 def test_the_reference_is_the_rig_without_its_nonlinearities() -> None:
-    result = run_identification(IdentifySpec(positions=1), CFG, rig_factory=_linear_rig)
+    result = run_identification(IdentifySpec(positions=1), CFG, rig_factory=linear_rig)
     e = result.positions[0].estimate
     assert e is not None and e.freq_hz[0] == pytest.approx(0.1) and e.freq_hz[-1] > 19.0
     ratio = e.response / linear_response(e.freq_hz)
@@ -132,7 +102,7 @@ def test_the_spread_accounts_for_the_error(default: IdentifyResult) -> None:
     """Against the rig without nonlinearities measured by the same plan (the noise-free,
     distortion-free response on the same grid, through the same sampling): the reported
     spread covers the error (measured: median |error| / spread 0.6, 90th percentile 1.4)."""
-    clean = run_identification(IdentifySpec(positions=1), CFG, rig_factory=_linear_rig)
+    clean = run_identification(IdentifySpec(positions=1), CFG, rig_factory=linear_rig)
     reference = clean.positions[0].estimate.response  # type: ignore[union-attr]
     z = _errors(default, reference) / _spread(default)
     assert np.median(z) < 1.5 and np.percentile(z, 90) < 3.0

@@ -25,7 +25,8 @@ def poly_roots_gain(p: Poly2) -> tuple[list[complex], float]:
     return list(np.roots(coeffs).astype(complex)), float(coeffs[0])
 
 
-def _cancel(zeros: list[complex], poles: list[complex], rtol: float = 1e-9) -> None:
+def cancel_common_roots(zeros: list[complex], poles: list[complex], rtol: float = 1e-9) -> None:
+    """Remove the roots `zeros` and `poles` have in common (within `rtol`), in place."""
     for z in list(zeros):
         for i, p in enumerate(poles):
             if abs(z - p) <= rtol * max(1.0, abs(p)):
@@ -44,7 +45,7 @@ def f1_continuous_zpk(
     rn, kn = poly_roots_gain(nominal.pn_num)
     zeros = [complex(z) for z in qz] + rm + rd
     poles = [complex(p) for p in qp] + rn
-    _cancel(zeros, poles)
+    cancel_common_roots(zeros, poles)
     return zeros, poles, qk * km * kd / kn
 
 

@@ -24,7 +24,7 @@ from scipy import optimize
 
 from controller.core.config import LoopConfig
 from controller.core.discrete import SosFilter, tustin_zpk, zpk_to_sos
-from controller.core.dob import poly_roots_gain
+from controller.core.dob import cancel_common_roots, poly_roots_gain
 
 __all__ = ["PositionDobLoop", "position_dob_zpk", "q41_tau_s"]
 
@@ -39,15 +39,6 @@ def q41_tau_s(cutoff_hz: float) -> float:
     return float(x / (2.0 * math.pi * cutoff_hz))
 
 
-def _cancel(zeros: list[complex], poles: list[complex], rtol: float = 1e-7) -> None:
-    for z in list(zeros):
-        for i, p in enumerate(poles):
-            if abs(z - p) <= rtol * max(1.0, abs(p)):
-                zeros.remove(z)
-                del poles[i]
-                break
-
-
 def position_dob_zpk(cfg: LoopConfig) -> tuple[list[complex], list[complex], float]:
     """F1(s) = Q41(s) Tn^-1(s) as zeros, poles, gain."""
     nom = cfg.nominal
@@ -55,7 +46,7 @@ def position_dob_zpk(cfg: LoopConfig) -> tuple[list[complex], list[complex], flo
     pm, km = poly_roots_gain(nom.mn_den)
     pd, kd = poly_roots_gain(nom.pn_den)
     pg = pm + pd
-    _cancel(zg, pg)
+    cancel_common_roots(zg, pg, rtol=1e-7)
     kg = kn / (km * kd)
     num_g = kg * np.real(np.poly(zg)) if zg else np.array([kg])
     den_g = np.real(np.poly(pg))

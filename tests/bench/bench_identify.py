@@ -31,9 +31,11 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -46,7 +48,9 @@ from controller.ident.model_fit import fit_second_order
 from controller.ident.plan import plan_program
 from controller.ident.result import IdentifyResult
 from controller.ident.spec import IdentifySpec, OfflineOptions
-from controller.sim.sim_rig import RigParams, SimRig
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: the shared reference
+from rig_linear import linear_response, linear_rig
 
 #: name -> IdentifySpec fields (the rest are the spec's defaults)
 PLANS: dict[str, dict[str, Any]] = {
@@ -55,43 +59,6 @@ PLANS: dict[str, dict[str, Any]] = {
     "multisine2": {"signal": "multisine", "multisine_periods": 2},
     "multisine3": {"signal": "multisine", "multisine_periods": 3},
 }
-
-
-def linear_response(freq_hz: np.ndarray, p: RigParams | None = None) -> np.ndarray:
-    """u -> w of the simulated rig linearised about a one-way motion (belt loaded, friction
-    constant, no ripple): G = Ki T / A with T = (k + c s) / (Jl s^2 + (bl + c) s + k) the belt
-    and load, A = Jm s^2 + bm s + (k + c s)(1 - T) / N^2 + (Ki + Kp s) D the motor with the
-    drive's I-P loop, D = (1 - e^{-s Tw}) / (s Tw) its speed estimate over the window Tw."""
-    p = p or RigParams()
-    s = 2j * np.pi * np.asarray(freq_hz, dtype=np.float64)
-    n, k, c = p.gear_ratio, p.belt_stiffness_n_m_rad, p.belt_damping_n_m_s_rad
-    t = (k + c * s) / (p.load_inertia_kg_m2 * s**2 + (p.load_viscous_n_m_s_rad + c) * s + k)
-    tw = p.drive_speed_window_s
-    d = (1.0 - np.exp(-s * tw)) / (s * tw)
-    a = (
-        p.motor_inertia_kg_m2 * s**2
-        + p.motor_viscous_n_m_s_rad * s
-        + (k + c * s) * (1.0 - t) / n**2
-        + (p.drive_ki_n_m_rad + p.drive_kp_n_m_s_rad * s) * d
-    )
-    return np.asarray(p.drive_ki_n_m_rad * t / a)
-
-
-def linear_rig() -> SimRig:
-    """The simulated rig with its nonlinearities and noise switched off (the reference check)."""
-    return SimRig(
-        RigParams(
-            backlash_deg=0.0,
-            coulomb_torque_n_m=0.0,
-            static_torque_n_m=0.0,
-            bias_torque_n_m=0.0,
-            transmission_error_deg=0.0,
-            ripple_torque_n_m=0.0,
-            position_noise_deg=0.0,
-            load_encoder_bits=48,
-            motor_encoder_counts_per_rev=2**30,
-        )
-    )
 
 
 @dataclass
