@@ -100,6 +100,12 @@ def test_summary_row_has_the_latest_configuration_and_numpys_metrics(tmp_path: P
     assert row.config_version == 1
     assert config_from_builtins(row.config) == cfg
     assert row.samples == 30000 and row.gaps == 0
+    # One configuration version: one segment, equal to the whole run.
+    assert len(row.segments) == 1
+    v, peak, rmse, n = row.segments[0]
+    assert (v, n) == (1, 30000)
+    assert peak == pytest.approx(row.peak_error_deg, rel=1e-12)
+    assert rmse == pytest.approx(row.rmse_deg, rel=1e-12)
 
 
 def _free_port() -> int:
@@ -136,6 +142,7 @@ def test_the_panel_lists_and_compares_two_runs(gui: object, tmp_path: Path) -> N
     assert panel.pick_b.value == "2-after.mcap"
     html = panel.compare("1-before.mcap", "2-after.mcap")
     assert "q_cutoff_hz" in html and "0.8" in html and "-3.70 s" in html
+    assert "Per configuration version" in html and "B v1" in html
     x, ea, eb = panel.chart.data
     assert len(x) <= 2000 and np.max(np.abs(eb)) == pytest.approx(
         0.5 * np.max(np.abs(ea)), rel=0.05)

@@ -142,6 +142,8 @@ class SummaryRow:
     rmse_deg: float
     reversal_peak_error_deg: float
     gaps: int
+    segments: tuple[tuple[int, float, float, int], ...] = ()
+    """Per configuration version, in order: (version, peak |error|, RMSE, samples)."""
 
 
 def summary_row(name: str, configs: dict[int, dict[str, Any]], m: Metrics) -> SummaryRow:
@@ -156,4 +158,5 @@ def summary_row(name: str, configs: dict[int, dict[str, Any]], m: Metrics) -> Su
         rmse_deg=m.rmse_deg,
         reversal_peak_error_deg=m.reversal_peak_error_deg,
         gaps=m.gaps,
+        segments=tuple((v, *m.segments[v]) for v in sorted(m.segments)),
     )

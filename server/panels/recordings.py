@@ -85,6 +85,12 @@ def compare_html(a: SummaryRow, b: SummaryRow, lag_s: float, correlation: float)
     metrics_rows = "".join(
         f"<tr><td>{esc(k)}</td><td>{_fmt(va)}</td><td>{_fmt(vb)}</td></tr>"
         for k, va, vb in rows)
+    seg_rows = "".join(
+        f"<tr><td>{esc(who)} v{v}</td><td>{_fmt(peak)}</td><td>{_fmt(rmse)}</td>"
+        f"<td>{n}</td></tr>"
+        for who, row in (("A", a), ("B", b)) for v, peak, rmse, n in row.segments)
+    segments = (f"<b>Per configuration version</b><table><tr><th>segment</th><th>peak</th>"
+                f"<th>RMSE</th><th>samples</th></tr>{seg_rows}</table>" if seg_rows else "")
     diff = config_diff(a.config, b.config)
     diff_rows = "".join(
         f"<tr><td>{esc(k)}</td><td>{esc(str(va))}</td><td>{esc(str(vb))}</td></tr>"
@@ -93,7 +99,7 @@ def compare_html(a: SummaryRow, b: SummaryRow, lag_s: float, correlation: float)
         f"<div class='dt-compare' style='font-size:12px'><b>A</b> {esc(a.name)} &nbsp; "
         f"<b>B</b> {esc(b.name)}<br>B shifted by {lag_s:+.2f} s onto A (reference "
         f"correlation {correlation:.3f})<table><tr><th></th><th>A</th><th>B</th></tr>"
-        f"{metrics_rows}</table><b>Configuration difference</b><table>"
+        f"{metrics_rows}</table>{segments}<b>Configuration difference</b><table>"
         f"<tr><th>field</th><th>A</th><th>B</th></tr>{diff_rows}</table></div>")
 
 
