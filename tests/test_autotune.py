@@ -67,3 +67,27 @@ def test_cli_json_has_best_baseline_and_curve() -> None:
     assert {"q_type", "q_cutoff_hz", "rmse_deg", "peak_error_deg", "verdict"} <= set(
         data["curve"][0])
     assert data["baseline"]["config"]["dob_on"] is False
+
+
+def test_cli_runs_with_the_named_belt_disturbances_and_names_a_bad_one() -> None:
+    import argparse
+
+    from controller.cli.autotune import autotune_main
+
+    def run(disturbance: list[str] | None) -> tuple[int, str]:
+        args = argparse.Namespace(
+            config=None, knowledge=None, trajectory="sine", disturbance=disturbance,
+            objective="rmse", noise_weight=0.001, duration=3.0, points=2, lowest_hz=0.2,
+            highest_hz=2.0, allow_caution=False, json=True)
+        out = io.StringIO()
+        return autotune_main(args, out, io.StringIO()), out.getvalue()
+
+    code, plain = run(None)
+    assert code == 0
+    code, belt = run(["tooth-meshing", "load-steps"])
+    assert code == 0
+    quiet, loud = json.loads(plain)["baseline"], json.loads(belt)["baseline"]
+    # A 0.5 N m tooth ripple and 1 N m load steps make the same loop track worse.
+    assert loud["rmse_deg"] > quiet["rmse_deg"]
+    code, bad = run(["belt-snap"])
+    assert code == 2 and "disturbance" in bad and "belt-snap" in bad

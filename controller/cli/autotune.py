@@ -1,7 +1,7 @@
 """`dobtune autotune`: search the Q type and cut-off on the simulated rig (command body).
 
     dobtune autotune [CONFIG] [--knowledge FILE] [--trajectory sine|step|ramp|hold]
-                     [--disturbance NAME] [--objective rmse|peak] [--noise-weight W]
+                     [--disturbance NAME ...] [--objective rmse|peak] [--noise-weight W]
                      [--duration S] [--points N] [--json]
 
 Every candidate is judged by the gate first (only accepted ones can be the best unless
@@ -48,17 +48,18 @@ def autotune_main(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     from controller.cli.experiment import progress_printer
     from controller.core.errors import ConfigError
     from controller.core.trajectory import default_trajectory
-    from controller.sim.disturbance import disturbance_from_name
     from controller.sim.nonlinear_check import findings
+    from controller.sim.rig_disturbances import rig_setup
     from controller.tune.autotune import autotune
 
     try:
         base = load_config(args.config)
         plant = load_knowledge(args.knowledge)
         traj = default_trajectory(args.trajectory)
-        dist = disturbance_from_name(args.disturbance)
+        names = [args.disturbance] if isinstance(args.disturbance, str) else args.disturbance
+        setup = rig_setup(tuple(names or ()))
         res = autotune(
-            base, plant, traj, duration_s=args.duration, disturbance=dist,
+            base, plant, traj, duration_s=args.duration, setup=setup,
             objective=args.objective, noise_weight=args.noise_weight, points=args.points,
             lowest_hz=args.lowest_hz, highest_hz=args.highest_hz, nonlinear=findings,
             allow_caution=args.allow_caution,
@@ -89,7 +90,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", nargs="?", type=Path, default=None, help="LoopConfig JSON")
     p.add_argument("--knowledge", type=Path, default=None, metavar="FILE")
     p.add_argument("--trajectory", choices=("sine", "step", "ramp", "hold"), default="sine")
-    p.add_argument("--disturbance", default="none")
+    p.add_argument("--disturbance", action="append", default=None, metavar="NAME",
+                   help="a named disturbance of the simulated rig, repeatable (as for "
+                   "`dobtune experiment`: tooth-meshing, cogging, load-steps, big-step, "
+                   "friction-change, stick-slip, sine-0.05hz, sine-0.5hz, step)")
     p.add_argument("--objective", choices=("rmse", "peak"), default="rmse")
     p.add_argument("--noise-weight", type=float, default=0.001,
                    help="deg of error a deg/s RMS of command noise (>20 Hz) costs")

@@ -179,37 +179,50 @@ def _messages(path: Path) -> Iterator[tuple[str, str, int, bytes]]:
             yield channel.topic, schema.name if schema else "", message.log_time, message.data
 
 
+#: One /state message as read back (a null column is a sample that was not finite).
+_StateMsg = msgspec.defstruct(
+    "StateMsg",
+    [("seq", int), *[(c, float | None, None) for c in STATE_COLUMNS],
+     ("config_version", int, 0), ("mode", str, "")],
+)
+_state_list = msgspec.json.Decoder(list[_StateMsg])  # type: ignore[valid-type]
+
+
 def read_recording(path: str | Path) -> Recording:
-    """Read a dobtune MCAP file. Raises ValueError naming the file for anything else."""
+    """Read a dobtune MCAP file. Raises ValueError naming the file for anything else.
+
+    The /state messages (one per tick: most of the file) are decoded in one msgspec call
+    rather than one `json.loads` each (a third of the read time of a long recording)."""
     path = Path(path)
-    cols: dict[str, list[Any]] = {c: [] for c in ("seq", *STATE_COLUMNS, "config_version")}
-    modes: list[str] = []
+    states: list[bytes] = []
     times: list[int] = []
     rec = Recording(state={}, log_time_s=np.empty(0))
     try:
         for topic, schema, t_ns, data in _messages(path):
             rec.channels[topic] = schema
-            obj = json.loads(data)
             if topic == "/state":
-                for k in cols:
-                    v = obj.get(k)
-                    cols[k].append(math.nan if v is None else v)
-                modes.append(obj.get("mode", ""))
+                states.append(data)
                 times.append(t_ns)
-            elif topic == "/config":
+                continue
+            obj = json.loads(data)
+            if topic == "/config":
                 rec.configs[int(obj["version"])] = obj["config"]
             elif topic == "/events":
                 rec.events.append({**obj, "log_time_s": t_ns / 1e9})
             elif topic == "/status":
                 rec.statuses.append(obj)
+        msgs: list[Any] = _state_list.decode(b"[" + b",".join(states) + b"]")
     except Exception as exc:  # mcap raises its own types for damaged files
         raise ValueError(f"{path}: not a readable dobtune recording: {exc}") from exc
     if "/state" not in rec.channels:
         raise ValueError(f"{path}: no /state channel (not a dobtune recording)")
-    order = np.argsort(np.asarray(cols["seq"], dtype=np.int64), kind="stable")
-    rec.state = {k: np.asarray(v, dtype=np.float64)[order] for k, v in cols.items()}
+    cols = {c: np.array([getattr(m, c) for m in msgs], dtype=np.float64)
+            for c in ("seq", *STATE_COLUMNS, "config_version")}
+    order = np.argsort(cols["seq"].astype(np.int64), kind="stable")
+    rec.state = {k: v[order] for k, v in cols.items()}
     rec.state["seq"] = rec.state["seq"].astype(np.int64)
     rec.state["config_version"] = rec.state["config_version"].astype(np.int64)
+    modes: list[str] = [m.mode for m in msgs]
     rec.state["mode"] = np.asarray(modes, dtype=object)[order]
     rec.log_time_s = np.asarray(times, dtype=np.float64)[order] / 1e9
     return rec

@@ -28,6 +28,7 @@ from controller.gate.knowledge import PlantKnowledge
 from controller.gate.verdict import NonlinearCheck, judge
 from controller.sim.disturbance import Disturbance
 from controller.sim.experiment import ExperimentResult, run_experiment
+from controller.sim.rig_disturbances import RigSetup, build_rig
 
 __all__ = ["NOISE_BAND_HZ", "Point", "TuneResult", "autotune"]
 
@@ -93,6 +94,7 @@ def autotune(
     *,
     duration_s: float = 15.0,
     disturbance: Disturbance | None = None,
+    setup: RigSetup | None = None,
     objective: str = "rmse",
     noise_weight: float = 0.001,
     q_types: tuple[str, ...] = ("q31", "q20"),
@@ -104,7 +106,11 @@ def autotune(
     allow_caution: bool = False,
     progress: Callable[[float], None] | None = None,
 ) -> TuneResult:
-    """Search the Q type and cut-off; see the module's docstring."""
+    """Search the Q type and cut-off; see the module's docstring. `setup`: the named belt
+    disturbances (`controller.sim.rig_disturbances.rig_setup`) the runs are made with, instead
+    of a load-torque `disturbance`."""
+    if setup is not None and disturbance is not None:
+        raise ValueError("disturbance: give a torque profile or a rig setup, not both")
     if objective not in OBJECTIVES:
         raise ValueError(f"objective: {objective!r} is not one of {', '.join(OBJECTIVES)}")
     if not (0.0 < lowest_hz < highest_hz < base.rate_hz / 2):
@@ -126,7 +132,10 @@ def autotune(
         if verdict == "reject":
             tick()
             return Point(cfg, verdict)
-        res = run_experiment(cfg, trajectory, duration_s, disturbance=disturbance)
+        rig = None if setup is None else build_rig(
+            setup, rate_hz=cfg.rate_hz, seed=0, initial_position_deg=trajectory.at(0.0)[0])
+        res = run_experiment(cfg, trajectory, duration_s, disturbance=disturbance, rig=rig,
+                             disturbance_name="none" if setup is None else setup.label)
         noise = _noise(res, cfg.rate_hz)
         err = res.rmse_deg if objective == "rmse" else res.peak_error_deg
         tick()
