@@ -190,9 +190,27 @@ def test_a_caution_applies_only_after_the_dialog(
     page.wait_for_selector("text=Accepted", timeout=10_000)
     after = probe.get_config()
     assert after.version == before.version + 1 and math.isclose(after.config.q_cutoff_hz, 5.0)
-    # Back to a calm configuration for the tests that follow.
-    set_number(page, "Q cut-off (Hz)", 0.5)
-    _apply(page, "accept", "text=Accepted", artifacts / "browser_4c_back.png")
+    # Back to a calm configuration for the tests that follow. The 5 Hz chatters at standstill,
+    # so the watchdog may roll it back at any moment (a new version): this browser's candidate
+    # is then based on an old version and the controller refuses it (compare-and-set). As a
+    # user would: Revert (loads the active version) and send again.
+    for _attempt in range(3):
+        page.get_by_role("button", name="Revert to active").click()
+        page.wait_for_selector(".dt-apply >> text=Reverted", timeout=10_000)
+        set_number(page, "Q cut-off (Hz)", 0.5)
+        page.wait_for_selector(".dt-cutoff >> text=0.500 Hz", timeout=15_000)
+        page.wait_for_selector(".dt-verdict.dt-accept", timeout=15_000)
+        page.get_by_role("button", name="Apply candidate").click()
+        page.wait_for_selector(".dt-apply >> text=/Accepted|Rejected by the controller/",
+                               timeout=10_000)
+        reply = _text(page, ".dt-apply")
+        if "Accepted" in reply:
+            break
+        assert "expect_version" in reply, reply  # only the rollback race may refuse it
+    else:
+        raise AssertionError("the calm configuration was refused three times")
+    page.screenshot(path=str(artifacts / "browser_4c_back.png"))
+    assert math.isclose(probe.get_config().config.q_cutoff_hz, 0.5)
 
 
 LIVE_X_JS = """() => {
