@@ -18,6 +18,7 @@ from pathlib import Path
 import control
 import numpy as np
 import pytest
+from identify_from_common import RTOL, SMALL, same_structure
 
 from controller import protocol as proto
 from controller.cli.identify import EXIT_BAD_INPUT, EXIT_OK, identify_main
@@ -35,32 +36,9 @@ from controller.recording.mcap_io import Recorder
 from controller.sim.sim_rig import SimRig
 
 #: A small plan: 2 stepped sines (1 and 3 Hz) at one position, about 10 s of ticks (the tests
-#: compare with the live analysis, whatever the planning code makes of it).
-SMALL = IdentifySpec(
-    f_min_hz=1.0, f_max_hz=3.0, points_per_decade=2, positions=1, amplitude_deg_s=5.0,
-    min_measure_s=1.0, settle_s=0.2,
-)
 MP = control.tf([1.0], list(ARTICLE_MN_DEN)) * control.tf(
     list(ARTICLE_PN_NUM), list(ARTICLE_PN_DEN)
 )
-#: The re-analysis is the same code on the same float64 values: equal to rounding.
-RTOL = 1e-9
-
-
-def _same(a: object, b: object, rtol: float) -> None:
-    """Equal structures whose numbers agree to `rtol` (strings, bools and None exactly)."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        assert a.keys() == b.keys()
-        for k in a:
-            _same(a[k], b[k], rtol)
-    elif isinstance(a, list) and isinstance(b, list):
-        assert len(a) == len(b)
-        for x, y in zip(a, b, strict=True):
-            _same(x, y, rtol)
-    elif isinstance(a, float) and isinstance(b, float):
-        assert a == pytest.approx(b, rel=rtol, abs=1e-300)
-    else:
-        assert a == b
 
 
 @dataclass
@@ -176,8 +154,8 @@ def test_from_gives_the_live_estimates(ran: Ran, live: dict[str, object],
     assert st.zeta == pytest.approx(live["zeta"], rel=RTOL)
     assert st.recommended_cutoff_hz == pytest.approx(live["recommended_cutoff_hz"], rel=RTOL)
     ours, theirs = json.loads(st.summary_json), json.loads(str(live["summary_json"]))
-    _same(ours["fit"], theirs["fit"], RTOL)
-    _same(ours["gate_checks"], theirs["gate_checks"], RTOL)
+    same_structure(ours["fit"], theirs["fit"], RTOL)
+    same_structure(ours["gate_checks"], theirs["gate_checks"], RTOL)
     # independent reference: the article's M(s)P(s) (the simulated rig's low-frequency model)
     f = np.asarray(pos.freq_hz)
     h = 10.0 ** (np.asarray(pos.mag_db) / 20.0) * np.exp(1j * np.radians(pos.phase_deg))

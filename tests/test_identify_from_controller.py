@@ -19,6 +19,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
+from identify_from_common import RTOL, SMALL, same_structure
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "integration"))
 
@@ -27,34 +28,10 @@ from procs import Client, ControllerProcess, start_controller, wait_until
 from controller.cli.identify import EXIT_OK, identify_main
 from controller.cli.record import record_main
 from controller.gate.frd_csv import read_frd_csv
-from controller.ident.spec import IdentifySpec
 from controller.recording.mcap_io import read_recording
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 
-#: 2 stepped sines (1 and 3 Hz) at one position: about 9 s in the loop.
-SMALL = IdentifySpec(
-    f_min_hz=1.0, f_max_hz=3.0, points_per_decade=2, positions=1, amplitude_deg_s=5.0,
-    min_measure_s=1.0, settle_s=0.2,
-)
-#: The same code on the same float64 values (the gate's worker process against this one).
-RTOL = 1e-9
-
-
-def _same(a: object, b: object, rtol: float) -> None:
-    """Equal structures whose numbers agree to `rtol` (strings, bools and None exactly)."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        assert a.keys() == b.keys()
-        for k in a:
-            _same(a[k], b[k], rtol)
-    elif isinstance(a, list) and isinstance(b, list):
-        assert len(a) == len(b)
-        for x, y in zip(a, b, strict=True):
-            _same(x, y, rtol)
-    elif isinstance(a, float) and isinstance(b, float):
-        assert a == pytest.approx(b, rel=rtol, abs=1e-300)
-    else:
-        assert a == b
 
 
 @pytest.fixture
@@ -102,8 +79,8 @@ def test_identify_from_a_recording_gives_the_runs_estimates(
     again = json.loads(out.getvalue())
     assert again["complete"] is True
     for key in ("fit", "recommended_cutoff_hz", "nominal", "gate_checks", "agreement"):
-        _same(again[key], live[key], RTOL)
-    _same([p["min_coherence"] for p in again["positions"]],
+        same_structure(again[key], live[key], RTOL)
+    same_structure([p["min_coherence"] for p in again["positions"]],
           [p["min_coherence"] for p in live["positions"]], RTOL)
     for a, b in zip(live["positions"], again["positions"], strict=True):
         fa = read_frd_csv(tmp_path / "live" / a["csv"])
