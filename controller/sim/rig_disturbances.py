@@ -20,6 +20,28 @@ bias torque 0.1 N m. The names below make these stronger or add what it lacks:
 | stick-slip | static friction 0.35 -> 0.8 N m, Stribeck speed 0.2 -> 1 deg/s |
 | sine-0.05hz, sine-0.5hz, step | the load-torque profiles of `controller.sim.disturbance` |
 
+The ones above are load-side: the stiff drive turns a load torque into belt deflection that the
+position loop sees, and the rate-difference DOB only a high-passed part of it. The article's
+d is a RATE disturbance at P's input (the motor and gearbox side); these names add it, and the
+plant variation with position that limits Q (the article's Fig. 13):
+
+Values (ours; the article gives none):
+- motor-friction: Coulomb 0.004 N m at the motor (no-load friction of a 40 W motor and a
+  gearhead's input; 1.6 % of the drive's torque limit).
+- gearbox: friction 25 % of the transmitted torque (efficiency 0.75, a 3-stage planetary) and
+  backlash 0.03 deg at its output (a 2 arcmin gearhead).
+- drive-offset: the drive's speed loop regulates to the command + 2 rpm (motor side; 0.09
+  deg/s at the load).
+- drive-droop: the drive's speed falls 500 rpm per N m of its torque (1 % of 5000 rpm at a
+  40 W motor's 0.1 N m).
+- ratio-ripple: transmission ratio 1 +- 0.2 % once per turntable revolution (belt tension,
+  pulley run-out).
+- belt-tension: belt stiffness 1 +- 20 % and damping 1 +- 30 % with cos(turntable angle): the
+  plant varies with position (u -> w agrees within 0.1 dB below 1 Hz, spreads ~2 dB at 5 Hz).
+- encoder: load encoder noise 3e-5 deg rms (0.1 arcsec) and interpolation error 5e-5 deg at
+  16384 periods/rev.
+- article-rig: all seven at once: the article's rig as we model it.
+
 Values are our choices (control.md gives none for these disturbances): large enough to matter
 next to the article's 0.02-0.1 deg errors, within what a 40 W drive and belt can meet.
 """
@@ -68,6 +90,49 @@ class RigDisturbance:
     friction_change: FrictionChange | None = None
 
 
+#: Rate disturbances at P's input, the position-dependent belt and the encoder's errors.
+_MOTOR_SIDE = (
+    RigDisturbance(
+        "motor-friction",
+        "Coulomb friction 0.004 N m at the motor and gearbox input (motor side)",
+        params=(("motor_coulomb_n_m", 0.004),),
+    ),
+    RigDisturbance(
+        "gearbox",
+        "gearbox friction 25 % of the transmitted torque, backlash 0.03 deg at its output",
+        params=(("gearbox_friction_fraction", 0.25), ("gearbox_backlash_deg", 0.03)),
+    ),
+    RigDisturbance(
+        "drive-offset",
+        "drive speed-loop offset +2 rpm (motor side)",
+        params=(("drive_offset_rpm", 2.0),),
+    ),
+    RigDisturbance(
+        "drive-droop",
+        "drive speed-loop droop 500 rpm per N m of drive torque (motor side)",
+        params=(("drive_droop_rpm_per_n_m", 500.0),),
+    ),
+    RigDisturbance(
+        "ratio-ripple",
+        "transmission ratio ripple +-0.2 % once per turntable revolution",
+        params=(("ratio_ripple_fraction", 0.002), ("ratio_ripple_periods_per_rev", 1)),
+    ),
+    RigDisturbance(
+        "belt-tension",
+        "belt stiffness +-20 % and damping +-30 % with the turntable angle",
+        params=(("belt_stiffness_variation", 0.2), ("belt_damping_variation", 0.3)),
+    ),
+    RigDisturbance(
+        "encoder",
+        "load encoder noise 3e-5 deg rms, interpolation error 5e-5 deg at 16384/rev",
+        params=(
+            ("position_noise_deg", 3e-5),
+            ("encoder_cyclic_error_deg", 5e-5),
+            ("encoder_cyclic_periods_per_rev", 16384),
+        ),
+    ),
+)
+
 RIG_DISTURBANCES: dict[str, RigDisturbance] = {
     d.name: d
     for d in (
@@ -100,6 +165,13 @@ RIG_DISTURBANCES: dict[str, RigDisturbance] = {
             "stick-slip",
             "stronger stick-slip at reversals: static friction 0.8 N m, Stribeck 1 deg/s",
             params=(("static_torque_n_m", 0.8), ("stribeck_speed_deg_s", 1.0)),
+        ),
+        *_MOTOR_SIDE,
+        RigDisturbance(
+            "article-rig",
+            "all of motor-friction, gearbox, drive-offset, drive-droop, ratio-ripple, "
+            "belt-tension, encoder",
+            params=tuple(kv for d in _MOTOR_SIDE for kv in d.params),
         ),
         *(
             RigDisturbance(name, f"load torque profile {name}", torque=d)

@@ -38,8 +38,31 @@ motor's cogging torque (`cogging_torque_n_m`, motor side, `cogging_periods_per_r
 revolution; 0 by default, and then the kernel skips it: runs are bit-identical to the model
 without it) and friction changes while running (`SimRig.set_friction`).
 
+Rate disturbances at P's input, the position-dependent belt and encoder errors (all 0 by
+default; then the kernel skips them and runs bit-identically to the reference model, checked
+against the kernel before they existed in tests/test_sim_rig_identity.py). The article's d is a
+rate added to the motor rate at P's input; these put one there:
+- motor and gearbox friction: Coulomb `motor_coulomb_n_m` plus `gearbox_friction_fraction` of
+  the transmitted torque (1 - efficiency), on the motor inertia at the velocity level like the
+  load's (the motor sticks at a reversal until the drive has built up the friction torque);
+- gearbox backlash `gearbox_backlash_deg` (massless gearbox and pulley: in series with the
+  belt's dead zone, so it adds to it);
+- the drive's speed loop regulating to ref + `drive_offset_rpm` - droop * torque
+  (`drive_droop_rpm_per_n_m`): a speed error that follows the load torque, flipping at each
+  reversal of the friction;
+- transmission-ratio ripple (`ratio_ripple_fraction`, `ratio_ripple_periods_per_rev` per load
+  revolution): the pulley angle seen by the belt is theta + (a/n) sin(n theta).
+The plant varies with the turntable's angle theta: belt stiffness k (1 + v_k cos theta) and
+damping c (1 + v_c cos theta) (`belt_stiffness_variation`, `belt_damping_variation`: the tight
+span and its tension change once per revolution). The load encoder adds an interpolation error
+`encoder_cyclic_error_deg` sin(`encoder_cyclic_periods_per_rev` theta) before quantisation.
+`controller.sim.rig_disturbances` names plausible values for each.
+
 The kernel is compiled with numba and works on two preallocated float64 arrays (parameters and
-state); `SimRig` wraps it. The external disturbance is sampled once per tick and held.
+state); `SimRig` wraps it. The external disturbance is sampled once per tick and held. One
+control tick is `_advance(x, p, command_deg_s, torque_n_m, noise_deg) -> (pos_deg, rate_deg_s)`
+(x: state array, p: parameter array, both float64 and written in place; no allocation), callable
+from other numba code.
 
 Runtime faults (`RigFaults`, `SimRig.set_faults` and its shortcuts), for testing what watches
 the loop: a plant-gain factor on the speed reference the drive receives (a wrong scaling in
@@ -126,6 +149,37 @@ class RigParams:
     """Amplitude of the motor's cogging torque, motor side (0 = none: the reference model)."""
     cogging_periods_per_rev: int = 12
     """Cogging periods per MOTOR revolution (slots and poles of the motor)."""
+    # -- rate disturbances at P's input (motor and gearbox side); 0 = off, the reference model
+    motor_coulomb_n_m: float = 0.0
+    """Coulomb friction of the motor and the gearbox input (no-load friction), motor side."""
+    gearbox_friction_fraction: float = 0.0
+    """Load-dependent gearbox friction: this share of the transmitted torque (belt torque / N)
+    is lost, motor side (1 - efficiency)."""
+    gearbox_backlash_deg: float = 0.0
+    """Gearbox backlash at its output, load side. The gearbox and pulley are massless here,
+    so it is in series with the belt's dead zone and adds to it."""
+    drive_offset_rpm: float = 0.0
+    """Speed offset of the drive's speed loop, motor side: the motor turns at this speed when
+    commanded zero (reference or speed-sensing offset)."""
+    drive_droop_rpm_per_n_m: float = 0.0
+    """Droop of the drive's speed loop, motor side: the regulated speed falls by this much per
+    N m of drive torque (a drive tuned with droop, or a finite low-frequency speed-loop gain)."""
+    ratio_ripple_fraction: float = 0.0
+    """Ripple of the transmission ratio (belt tension, pulley run-out), as a fraction: the
+    pulley angle seen by the belt is theta + (a / n) sin(n theta), n = the periods below."""
+    ratio_ripple_periods_per_rev: int = 1
+    """Ratio-ripple periods per LOAD revolution (1 = once per turn of the turntable)."""
+    # -- plant varying with the turntable's position (belt span and tension)
+    belt_stiffness_variation: float = 0.0
+    """Belt stiffness k(theta) = k (1 + v cos theta) with theta the load angle: the tight span
+    and its tension change once per turntable revolution."""
+    belt_damping_variation: float = 0.0
+    """Belt damping c(theta) = c (1 + v cos theta), like the stiffness."""
+    # -- load encoder errors beyond noise and quantisation
+    encoder_cyclic_error_deg: float = 0.0
+    """Amplitude of the load encoder's interpolation (sub-divisional) error, load side."""
+    encoder_cyclic_periods_per_rev: int = 16384
+    """Periods of that error per revolution (the encoder's signal periods)."""
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -146,6 +200,8 @@ class RigParams:
             "stribeck_speed_deg_s",
             "pulley_teeth",
             "cogging_periods_per_rev",
+            "ratio_ripple_periods_per_rev",
+            "encoder_cyclic_periods_per_rev",
         )
         for name in positive:
             if getattr(self, name) <= 0:
@@ -161,6 +217,12 @@ class RigParams:
             "ripple_torque_n_m",
             "position_noise_deg",
             "cogging_torque_n_m",
+            "motor_coulomb_n_m",
+            "gearbox_friction_fraction",
+            "gearbox_backlash_deg",
+            "drive_droop_rpm_per_n_m",
+            "ratio_ripple_fraction",
+            "encoder_cyclic_error_deg",
         )
         for name in non_negative:
             if getattr(self, name) < 0:
@@ -172,10 +234,15 @@ class RigParams:
                 f"got {self.static_torque_n_m!r}",
             )
         ints = ("motor_encoder_counts_per_rev", "pulley_teeth", "load_encoder_bits",
-                "cogging_periods_per_rev")
+                "cogging_periods_per_rev", "ratio_ripple_periods_per_rev",
+                "encoder_cyclic_periods_per_rev")
         for name in ints:
             if not isinstance(getattr(self, name), int):
                 raise ConfigError(name, f"must be an int, got {getattr(self, name)!r}")
+        for name in ("gearbox_friction_fraction", "ratio_ripple_fraction",
+                     "belt_stiffness_variation", "belt_damping_variation"):
+            if abs(getattr(self, name)) >= 0.9:
+                raise ConfigError(name, f"must be in (-0.9, 0.9), got {getattr(self, name)!r}")
         if not 1 <= self.load_encoder_bits <= 48:
             raise ConfigError(
                 "load_encoder_bits", f"must be in 1..48, got {self.load_encoder_bits}"
@@ -225,7 +292,22 @@ _P_PENDING = _P_NEW + len(_FAULT_SLOTS)
 # Motor cogging torque (motor side) and its periods per motor revolution; 0 = none.
 _P_COG = _P_PENDING + 1
 _P_NCOG = _P_PENDING + 2
-_P_LEN = _P_PENDING + 3
+# Rate disturbances at P's input, position-dependent belt, encoder error (all 0 = off: the
+# kernel skips them and runs bit-identically to the reference model). _P_MFRIC_ON is 1 when
+# either motor-side friction is on, _P_DRIVE_ON when offset or droop is.
+_P_MCOUL = _P_PENDING + 3  # motor + gearbox input Coulomb friction, N m motor side
+_P_GFRAC = _P_PENDING + 4  # gearbox friction, share of the transmitted torque
+_P_MFRIC_ON = _P_PENDING + 5
+_P_DOFF = _P_PENDING + 6  # drive speed offset, rad/s motor side
+_P_DROOP = _P_PENDING + 7  # drive droop, (rad/s) / (N m) motor side
+_P_DRIVE_ON = _P_PENDING + 8
+_P_RR = _P_PENDING + 9  # ratio ripple fraction
+_P_NRR = _P_PENDING + 10  # its periods per load revolution
+_P_KVAR = _P_PENDING + 11  # belt stiffness variation with the load angle
+_P_CVAR = _P_PENDING + 12  # belt damping variation with the load angle
+_P_ENC_CYC = _P_PENDING + 13  # encoder interpolation error amplitude, deg
+_P_ENC_N = _P_PENDING + 14  # its periods per revolution
+_P_LEN = _P_PENDING + 15
 
 # State array layout; the motor-encoder ring buffer (counts) follows _X_RING. _X_Q / _X_QD:
 # deflection of the extra mode's payload relative to the hub, and its rate.
@@ -248,6 +330,8 @@ def _param_array(
     a[_P_K] = p.belt_stiffness_n_m_rad
     a[_P_C] = p.belt_damping_n_m_s_rad
     a[_P_HALF_BL] = 0.5 * p.backlash_deg * _DEG
+    if p.gearbox_backlash_deg != 0.0:  # in series with the belt's dead zone
+        a[_P_HALF_BL] = 0.5 * (p.backlash_deg + p.gearbox_backlash_deg) * _DEG
     a[_P_JL] = p.load_inertia_kg_m2
     a[_P_BL] = p.load_viscous_n_m_s_rad
     a[_P_FC] = p.coulomb_torque_n_m
@@ -265,6 +349,18 @@ def _param_array(
     a[_P_GAIN] = 1.0
     a[_P_COG] = p.cogging_torque_n_m
     a[_P_NCOG] = p.cogging_periods_per_rev
+    a[_P_MCOUL] = p.motor_coulomb_n_m
+    a[_P_GFRAC] = p.gearbox_friction_fraction
+    a[_P_MFRIC_ON] = float(p.motor_coulomb_n_m > 0.0 or p.gearbox_friction_fraction > 0.0)
+    a[_P_DOFF] = p.drive_offset_rpm * _TWO_PI / 60.0
+    a[_P_DROOP] = p.drive_droop_rpm_per_n_m * _TWO_PI / 60.0
+    a[_P_DRIVE_ON] = float(p.drive_offset_rpm != 0.0 or p.drive_droop_rpm_per_n_m != 0.0)
+    a[_P_RR] = p.ratio_ripple_fraction
+    a[_P_NRR] = p.ratio_ripple_periods_per_rev
+    a[_P_KVAR] = p.belt_stiffness_variation
+    a[_P_CVAR] = p.belt_damping_variation
+    a[_P_ENC_CYC] = p.encoder_cyclic_error_deg
+    a[_P_ENC_N] = p.encoder_cyclic_periods_per_rev
     return a, nwin
 
 
@@ -283,13 +379,18 @@ def _fault_values(p: RigParams, f: RigFaults, substep_hz: float) -> tuple[float,
         w2 = w * w
         zw2 = 2.0 * f.resonance_damping * w
     half = 0.5 * (p.backlash_deg + f.extra_backlash_deg) * _DEG
+    if p.gearbox_backlash_deg != 0.0:  # in series with the belt's dead zone
+        half = 0.5 * (p.backlash_deg + p.gearbox_backlash_deg + f.extra_backlash_deg) * _DEG
     return (f.plant_gain, half, p.load_inertia_kg_m2 - jp, jp, w2, zw2)
 
 
 @numba.njit(cache=True)
 def _measure_deg(x: np.ndarray, p: np.ndarray, noise_deg: float) -> float:
     q = p[_P_QDEG]
-    return math.floor(((x[_X_THL] + x[_X_Q]) / _DEG + noise_deg) / q + 0.5) * q
+    th = x[_X_THL] + x[_X_Q]
+    if p[_P_ENC_CYC] != 0.0:  # interpolation error, periodic in the true angle
+        noise_deg += p[_P_ENC_CYC] * math.sin(p[_P_ENC_N] * th)
+    return math.floor((th / _DEG + noise_deg) / q + 0.5) * q
 
 
 @numba.njit(cache=True)
@@ -364,6 +465,16 @@ def _advance(
     res_zw2 = p[_P_RES_2ZW]
     cog = p[_P_COG]
     ncog = p[_P_NCOG]
+    mfric_on = p[_P_MFRIC_ON] != 0.0
+    mcoul = p[_P_MCOUL]
+    gfrac = p[_P_GFRAC]
+    drive_on = p[_P_DRIVE_ON] != 0.0
+    doff = p[_P_DOFF]
+    droop = p[_P_DROOP]
+    rr = p[_P_RR]
+    nrr = p[_P_NRR]
+    kvar = p[_P_KVAR]
+    cvar = p[_P_CVAR]
 
     thm = x[_X_THM]
     wm = x[_X_WM]
@@ -373,7 +484,7 @@ def _advance(
     q = x[_X_Q]
     qd = x[_X_QD]
     ridx = int(x[_X_RIDX])
-    tau = 0.0
+    tau = x[_X_TAU]  # the last sub-step's torque: the droop acts on it
     for _ in range(nsub):
         # Drive: speed from the count difference over the window, then I-P with clamping.
         count = math.floor(thm * cpr / _TWO_PI)
@@ -382,7 +493,10 @@ def _advance(
         ridx += 1
         if ridx == nwin:
             ridx = 0
-        err = ref - meas
+        if drive_on:  # offset and droop: the speed the drive regulates to moves
+            err = ref + doff - droop * tau - meas
+        else:
+            err = ref - meas
         xi_new = xi + err * dt
         tau = ki * xi_new - kp * meas
         if tau > tlim:
@@ -398,19 +512,37 @@ def _advance(
         # Belt: stretch through the backlash dead zone; a slack belt cannot pull.
         thp = thm / n
         wp = wm / n
+        if rr != 0.0:  # transmission-ratio ripple: a kinematic error periodic in the angle
+            arr = nrr * thp
+            thp += rr / nrr * math.sin(arr)
+            wp *= 1.0 + rr * math.cos(arr)
         zthp = z * thp
         stretch = thp + te * math.sin(zthp) - thl
         stretch_rate = wp * (1.0 + te * z * math.cos(zthp)) - wl
+        kb = k
+        cb = c
+        if kvar != 0.0 or cvar != 0.0:  # span and tension change with the turntable's angle
+            cos_l = math.cos(thl)
+            kb = k * (1.0 + kvar * cos_l)
+            cb = c * (1.0 + cvar * cos_l)
         tb = 0.0
         if stretch > half:
-            tb = max(0.0, k * (stretch - half) + c * stretch_rate)
+            tb = max(0.0, kb * (stretch - half) + cb * stretch_rate)
         elif stretch < -half:
-            tb = min(0.0, k * (stretch + half) + c * stretch_rate)
+            tb = min(0.0, kb * (stretch + half) + cb * stretch_rate)
 
         t_motor = tau - bm * wm - tb / n
         if cog != 0.0:  # skipped without cogging: the reference model stays bit-identical
             t_motor -= cog * math.sin(ncog * thm)
-        wm_new = wm + dt / jm * t_motor
+        if mfric_on:  # motor and gearbox friction, at the velocity level like the load's
+            fm = mcoul + gfrac * abs(tb) / n
+            mom_m = jm * wm + dt * t_motor
+            if abs(mom_m) <= dt * fm:
+                wm_new = 0.0
+            else:
+                wm_new = (mom_m - math.copysign(dt * fm, mom_m)) / jm
+        else:
+            wm_new = wm + dt / jm * t_motor
 
         # Load (hub): friction at the velocity level; stick when friction can absorb the
         # momentum. An extra mode's payload pulls through its spring; the payload's deflection

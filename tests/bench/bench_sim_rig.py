@@ -83,6 +83,18 @@ def main() -> None:
     _line("SimRig.step (nonlinear, 10 kHz sub-steps)", wall_rig)
     _line("SimRig.read + step", _best_of(plant_read_step), wall_rig)
 
+    from controller.sim.rig_disturbances import rig_setup
+
+    every = SimRig(rig_setup(["article-rig"]).params)  # every motor-side effect on
+
+    def plant_every_effect() -> None:
+        every.reset()
+        step = every.step
+        for c in u_list:
+            step(c)
+
+    _line("SimRig.step, article-rig (every effect on)", _best_of(plant_every_effect), wall_rig)
+
     import control as ct
 
     m = ct.tf([1.0], [1.013e-05, 0.004501, 1.0])
