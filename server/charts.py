@@ -472,6 +472,20 @@ def preview_data(
 
 #: The time axis of a live chart before any sample arrived, s.
 LIVE_EMPTY_T = (-1.0, 0.0)
+#: The live charts' time window when the page opens, s (the Window slider's initial value).
+LIVE_WINDOW_S = 10.0
+
+
+def live_scales(window_s: float) -> dict[str, dict[str, Any]]:
+    """The scales of a live chart showing the last `window_s` seconds: x fixed at
+    [-window_s, 0] (the newest sample at 0), y and the config version auto-ranged.
+
+    The x range is fixed, not auto: viser's uPlot component keeps an auto x scale's bounds
+    relative to the previous data's range, and a chart drawn once while its tab was hidden (or
+    before its first data) kept 0..1 s for good, one sample of the window on the axis
+    (issue 22)."""
+    return {"x": {"time": False, "auto": False, "range": (-float(window_s), 0.0)},
+            "y": {"auto": True}, "ver": {"auto": True}}
 
 
 def _live_spec(key: str, title: str, unit: str, *series: tuple[dict[str, Any], str]
@@ -482,7 +496,7 @@ def _live_spec(key: str, title: str, unit: str, *series: tuple[dict[str, Any], s
         key=key,
         title=title,
         series=({"label": "t (s)"}, *(s for s, _ in series), version),
-        scales={**_LIN_X, "ver": {"auto": True}},
+        scales=live_scales(LIVE_WINDOW_S),
         axes=(
             _T_AXIS,
             {"label": unit, "scale": "y"},

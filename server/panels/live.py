@@ -129,7 +129,7 @@ class LivePanel:
     def build_controls(self) -> None:
         gui = self.gui
         self.window_s = gui.add_slider("Window (s)", min=2.0, max=60.0, step=1.0,
-                                       initial_value=10.0)
+                                       initial_value=charts.LIVE_WINDOW_S)
         self.trajectory = gui.add_dropdown("Trajectory", TRAJECTORY_KINDS, initial_value="sine",
                                            hint="5 sin(0.5 t) deg, 5 deg step, 1 deg/s ramp, "
                                                 "hold at 40 deg")
@@ -196,7 +196,10 @@ class LivePanel:
         cols: dict[str, np.ndarray] | None = None
         if total != self._last_total or window != self._last_window:
             self._last_total = total
-            self._last_window = window
+            if window != self._last_window:
+                for handle in self._charts.values():  # the time axis spans the window
+                    handle.scales = charts.live_scales(window)
+                self._last_window = window
             cols, version = ring.window(window)
             data = charts.live_data(cols["t_s"], cols, version, self.max_points)
             for key, handle in self._charts.items():
