@@ -27,6 +27,7 @@ from controller.core.errors import ConfigError
 from controller.gate.frd import load_measured
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
 from controller.gate.margins import Margins
+from controller.gate.search import Recommendation, recommend
 from controller.gate.verdict import EXIT_CODES, Judgement, judge
 from controller.sim.nonlinear_check import findings
 
@@ -102,7 +103,26 @@ def _margins_json(m: Margins) -> dict[str, float | None]:
     }
 
 
-def report_json(j: Judgement) -> dict[str, Any]:
+def _recommendation_json(r: Recommendation | None) -> dict[str, Any]:
+    """The recommended cut-off's parts: the gate alone, the position spread's limit."""
+    if r is None:
+        return {}
+    sp = r.spread
+    return {
+        "recommended_gate_only_hz": r.gate_hz,
+        "spread_limited_cutoff_hz": r.spread_hz,
+        "spread_figure_max": None if sp is None else 1.0 / r.margin,
+        "position_spread": None if sp is None else {
+            "responses": list(sp.names),
+            "divergence_hz": sp.divergence_hz,
+            "freq_hz": sp.freq_hz.tolist(),
+            "relative": sp.relative.tolist(),
+            "mag_db": sp.mag_db.tolist(),
+        },
+    }
+
+
+def report_json(j: Judgement, rec: Recommendation | None = None) -> dict[str, Any]:
     """The JSON object printed by `dobtune check --json`."""
     a, recommended_hz = j.analysis, j.recommended_max_cutoff_hz
     config = config_to_builtins(a.config)
@@ -120,6 +140,7 @@ def report_json(j: Judgement) -> dict[str, Any]:
         "noise_to_command_peak_db": _finite(a.noise_to_command_peak_db),
         "recommended_max_cutoff_hz": recommended_hz,
         "recommended_for_q_type": a.config.q_type,
+        **_recommendation_json(rec),
         "sources": [
             {
                 "name": s.name,
@@ -146,7 +167,7 @@ def _fmt(v: float, unit: str, spec: str = ".1f") -> str:
     return f"{v:{spec}} {unit}" if math.isfinite(v) else "none"
 
 
-def report_text(j: Judgement) -> str:
+def report_text(j: Judgement, rec: Recommendation | None = None) -> str:
     """The readable table printed by `dobtune check`."""
     a, recommended_hz = j.analysis, j.recommended_max_cutoff_hz
     c, m = a.config, a.margins
@@ -188,12 +209,14 @@ def report_text(j: Judgement) -> str:
             f"{_fmt(sm.gain_margin_db, 'dB')} / {_fmt(sf.gain_margin_db, 'dB')} (speed / whole)"
             + ("" if s.base_loop_stable else "; NOT proven stable")
         )
-    rec = (
+    rec_text = (
         f"{recommended_hz:.3g} Hz"
         if recommended_hz is not None
         else "none (even the lowest is rejected)"
     )
-    lines.append(f"  recommended max cut-off ({c.q_type}): {rec}")
+    lines.append(f"  recommended max cut-off ({c.q_type}): {rec_text}")
+    if rec is not None and rec.spread is not None:
+        lines.append(f"    {rec.describe()}")
     lines.append(f"verdict: {j.verdict.upper()}")
     lines += [f"  - reject: {r}" for r in j.rejections]
     lines += [f"  - caution: {r}" for r in j.cautions]
@@ -237,6 +260,7 @@ def check_main(
                 f"{plant.source} + --frd",
             )
         j = judge(cfg, plant, nonlinear=findings)
+        rec = recommend(cfg, plant) if len(plant.measured) >= 2 else None
     except BadInput as exc:
         if as_json:
             out.write(json.dumps({"error": str(exc)}) + "\n")
@@ -244,9 +268,9 @@ def check_main(
             out.write(f"error: {exc}\n")
         return EXIT_BAD_INPUT
     if as_json:
-        out.write(json.dumps(report_json(j), allow_nan=False) + "\n")
+        out.write(json.dumps(report_json(j, rec), allow_nan=False) + "\n")
     else:
-        out.write(report_text(j))
+        out.write(report_text(j, rec))
     return EXIT_CODES[j.verdict]
 
 

@@ -7,6 +7,7 @@ judges a candidate against a `PlantKnowledge`.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import msgspec
@@ -22,15 +23,18 @@ TWO_PI = 2.0 * math.pi
 
 __all__ = [
     "COMMISSIONING_BOUND",
+    "DIVERGENCE_FRACTION",
     "MIN_ALLOWANCE",
     "BoundRecord",
     "KnowledgeRecord",
     "MeasuredRecord",
     "MeasuredResponse",
     "PlantKnowledge",
+    "PositionSpread",
     "SampledBound",
     "UncertaintyBound",
     "WeightBound",
+    "position_spread",
     "readonly",
 ]
 
@@ -218,6 +222,112 @@ class PlantKnowledge:
         )
         bound = self.bound.name if self.bound is not None else "no bound"
         return f"plant knowledge v{self.version} ({self.source}: model, {bound}, {measured})"
+
+
+# --------------------------------------------------------------------------- position spread
+
+#: Responses "agree" at a frequency while they differ from their common centre by at most this
+#: fraction (|H_i / H_ref - 1|): 1 dB in magnitude alone (10^(1/20) - 1), 7 deg in phase alone.
+DIVERGENCE_FRACTION = 10.0 ** (1.0 / 20.0) - 1.0
+
+
+@dataclass(frozen=True, eq=False)
+class PositionSpread:
+    """How far the measured responses (one per turntable position) differ from one another:
+    the article's Fig. 13 as evidence. On the band all of them cover, at every measured
+    frequency of any of them (each interpolated in log magnitude and unwrapped phase, linear
+    in log f, as the gate interpolates a response):
+
+        H_ref = exp(mean_i ln H_i)           (geometric mean: mean dB, mean phase)
+        relative(f) = max_i |H_i / H_ref - 1|
+
+    `relative` is a multiplicative plant error Delta that a single model of the plant must
+    allow wherever the turntable stands: the small-gain figure of the DOB, ||Delta Q||, uses it
+    (`controller.gate.search`). `divergence_hz` is the lowest frequency where `relative`
+    exceeds `DIVERGENCE_FRACTION` (interpolated in log f; None if the responses agree on the
+    whole band): the model is trusted below it.
+    """
+
+    names: tuple[str, ...]
+    freq_hz: FloatArray
+    relative: FloatArray
+    mag_db: FloatArray
+    """max - min of the magnitudes in dB."""
+    phase_deg: FloatArray
+    """max - min of the phases in deg."""
+    divergence_hz: float | None
+
+    def at(self, freq_hz: ArrayLike) -> FloatArray:
+        """`relative` at any frequency: linear in log f inside the band, held at the band's
+        edge values outside it."""
+        x = np.log(np.asarray(freq_hz, dtype=np.float64))
+        return np.asarray(np.interp(x, np.log(self.freq_hz), self.relative), dtype=np.float64)
+
+
+def position_spread(
+    measured: Sequence[MeasuredResponse],
+    to_continuous: Callable[[MeasuredResponse], ComplexArray] | None = None,
+) -> PositionSpread | None:
+    """The spread across `measured` (see `PositionSpread`); None with fewer than two responses.
+
+    `to_continuous(m)`: m's response on the continuous basis; needed only when the responses
+    mix sampled and continuous forms (the sampling factor cancels in the ratio otherwise).
+    Raises ValueError when the responses share no band of at least two frequencies.
+    """
+    if len(measured) < 2:
+        return None
+    mixed = len({m.sampled for m in measured}) > 1
+    if mixed and to_continuous is None:
+        raise ValueError("position spread: the responses mix sampled and continuous forms")
+    lo = max(float(m.freq_hz[0]) for m in measured)
+    hi = min(float(m.freq_hz[-1]) for m in measured)
+    f = np.unique(np.concatenate([m.freq_hz for m in measured]))
+    f = f[(f >= lo) & (f <= hi)]
+    if f.size < 2:
+        raise ValueError(
+            f"position spread: the responses {[m.name for m in measured]} share no band of at "
+            "least two frequencies"
+        )
+    x = np.log(f)
+    logs = []
+    for m in measured:
+        h = to_continuous(m) if mixed and to_continuous is not None else m.response
+        ph = np.unwrap(np.angle(h))
+        logs.append(
+            np.interp(x, np.log(m.freq_hz), np.log(np.abs(h)))
+            + 1j * np.interp(x, np.log(m.freq_hz), ph)
+        )
+    ln = np.array(logs)
+    # Whole turns between responses are not a difference of the plant: align each phase to
+    # the first response's at the lowest common frequency.
+    turns = np.round((ln[:, 0].imag - ln[0, 0].imag) / TWO_PI)
+    ln = ln - 1j * TWO_PI * turns[:, None]
+    ref = ln.mean(axis=0)
+    rel = np.max(np.abs(np.exp(ln - ref[None, :]) - 1.0), axis=0)
+    mag_db = 20.0 / math.log(10.0) * (ln.real.max(axis=0) - ln.real.min(axis=0))
+    phase_deg = np.degrees(ln.imag.max(axis=0) - ln.imag.min(axis=0))
+    return PositionSpread(
+        names=tuple(m.name for m in measured),
+        freq_hz=readonly(f),
+        relative=readonly(rel),
+        mag_db=readonly(mag_db),
+        phase_deg=readonly(phase_deg),
+        divergence_hz=_first_crossing(f, rel, DIVERGENCE_FRACTION),
+    )
+
+
+def _first_crossing(f: FloatArray, y: FloatArray, level: float) -> float | None:
+    """The lowest frequency where y rises above `level` (linear in log f between points; the
+    lowest frequency itself when y starts above it; None if it never does)."""
+    above = np.flatnonzero(y > level)
+    if above.size == 0:
+        return None
+    i = int(above[0])
+    if i == 0:
+        return float(f[0])
+    x0, x1 = math.log(f[i - 1]), math.log(f[i])
+    t = (level - y[i - 1]) / (y[i] - y[i - 1])
+    return float(math.exp(x0 + t * (x1 - x0)))
 
 
 # --------------------------------------------------------------------------- wire/persisted form

@@ -20,6 +20,9 @@ __all__ = ["EXIT_CODES", "Judgement", "NonlinearCheck", "judge", "recommended_cu
 #: `dobtune check` exit codes per verdict (2 is bad input).
 EXIT_CODES: dict[str, int] = {"accept": 0, "caution": 3, "reject": 1}
 
+#: The recommended cut-off with responses at several positions (`controller.gate.search`).
+_SPREAD_NOTE = ", held where |Delta Q| with the spread between the measured responses stays small"
+
 NonlinearCheck = Callable[[LoopConfig, NominalModel], tuple[str, ...]]
 """Runs a candidate on a nonlinear model of the rig with the knowledge's plant model; returns
 the findings (empty: none). `controller.sim.nonlinear_check.findings` is the one in use."""
@@ -85,7 +88,7 @@ def judge(
             cautions.append(
                 f"Q cut-off {cfg.q_cutoff_hz:g} Hz is above the recommended maximum "
                 f"{rec:.3g} Hz for {cfg.q_type} (the top of the accepted region from the lowest "
-                f"cut-off, {plant.describe()})"
+                f"cut-off{_SPREAD_NOTE if len(plant.measured) >= 2 else ''}, {plant.describe()})"
             )
     if nonlinear is not None:
         cautions += [f"nonlinear check: {r}" for r in nonlinear(cfg, plant.model)]

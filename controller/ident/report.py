@@ -11,6 +11,8 @@ from typing import Any
 import numpy as np
 
 from controller.core.config import NominalModel, config_to_builtins
+from controller.gate.knowledge import DIVERGENCE_FRACTION, PositionSpread
+from controller.gate.search import SPREAD_MARGIN
 from controller.ident.result import IdentifyResult, PositionRecord
 
 __all__ = [
@@ -130,6 +132,8 @@ def summary_json(
         "agreement_freq_hz": None if agree is None else agree.agree_below_hz,
         "recommended_cutoff_hz": dict(result.recommended_cutoff_hz),
         "recommended_cutoff_hz_config_nominal": dict(result.recommended_cutoff_hz_config),
+        "recommended_cutoff_hz_gate_only": dict(result.recommended_cutoff_hz_gate_only),
+        "position_spread": _spread_json(result.position_spread),
         "search_limit_hz": 0.1 * result.config.rate_hz,
         "fitted_config": files_config,
         "gate_checks": [
@@ -144,6 +148,21 @@ def summary_json(
         ],
         "notes": list(result.notes),
         "config": config_to_builtins(result.config),
+    }
+
+
+def _spread_json(sp: PositionSpread | None) -> dict[str, Any] | None:
+    """The position spread: where the responses diverge, and the spread by frequency."""
+    if sp is None:
+        return None
+    return {
+        "divergence_hz": sp.divergence_hz,
+        "divergence_fraction": DIVERGENCE_FRACTION,
+        "spread_margin": SPREAD_MARGIN,
+        "freq_hz": sp.freq_hz.tolist(),
+        "relative": sp.relative.tolist(),
+        "mag_db": sp.mag_db.tolist(),
+        "phase_deg": sp.phase_deg.tolist(),
     }
 
 
@@ -202,6 +221,27 @@ def report_text(summary: dict[str, Any], out_dir: Path) -> str:
             "  recommended max Q cut-off, fitted model + measured responses: "
             + cutoffs(summary["recommended_cutoff_hz"])
         )
+    sp = summary.get("position_spread")
+    if sp is not None:
+        div = sp["divergence_hz"]
+        f = np.asarray(sp["freq_hz"])
+        db = np.asarray(sp["mag_db"])
+        marks = [x for x in (0.5, 1.0, 2.0, 5.0, 10.0, 20.0) if f[0] <= x <= f[-1]]
+        by_f = ", ".join(
+            f"{x:g} Hz {np.interp(np.log(x), np.log(f), db):.2f} dB" for x in marks)
+        lines.append(
+            "  position spread (max - min |H|): " + (by_f or "outside the marks")
+            + "; responses diverge (> "
+            + f"{20 * math.log10(1 + sp['divergence_fraction']):.2g} dB) "
+            + (f"above {div:.3g} Hz" if div is not None else "nowhere on the band")
+        )
+        if summary.get("recommended_cutoff_hz_gate_only"):
+            lines.append(
+                "  without the spread as evidence (gate alone): "
+                + cutoffs(summary["recommended_cutoff_hz_gate_only"])
+                + f"; with it, |Delta Q| <= {1 / sp['spread_margin']:.3g}"
+                  " wherever the turntable stands"
+            )
     if summary["recommended_cutoff_hz_config_nominal"]:
         lines.append(
             "  (with the configured nominal instead: "

@@ -21,9 +21,14 @@ from numpy.typing import NDArray
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
 from controller.gate.analysis import analyse
-from controller.gate.knowledge import COMMISSIONING_BOUND, MeasuredResponse, PlantKnowledge
+from controller.gate.knowledge import (
+    COMMISSIONING_BOUND,
+    MeasuredResponse,
+    PlantKnowledge,
+    PositionSpread,
+)
 from controller.gate.loop_model import discrete_equivalent
-from controller.gate.search import recommended_max_cutoff_hz
+from controller.gate.search import recommend, recommended_max_cutoff_hz
 from controller.ident.estimate import (
     Agreement,
     FrdEstimate,
@@ -162,6 +167,11 @@ class IdentifyResult:
     even the lowest is rejected; the search stops at a tenth of the loop rate)."""
     recommended_cutoff_hz_config: dict[str, float | None] = field(default_factory=dict)
     """The same with the configuration's own nominal model (if the fit is not adopted)."""
+    recommended_cutoff_hz_gate_only: dict[str, float | None] = field(default_factory=dict)
+    """`recommended_cutoff_hz` without the position spread's limit (the gate's accepted
+    region alone): the recommendation without the spread as evidence."""
+    position_spread: PositionSpread | None = None
+    """The spread across the complete positions' responses (None with fewer than two)."""
     gate_checks: tuple[GateCheck, ...] = ()
     """Q31 at the recommended cut-off and at 1.5x it (fitted nominal)."""
     notes: tuple[str, ...] = ()
@@ -304,6 +314,8 @@ def analyse_result(result: IdentifyResult) -> IdentifyResult:
             notes.append(f"the fit is not a usable nominal model ({exc})")
     rec: dict[str, float | None] = {}
     rec_config: dict[str, float | None] = {}
+    rec_gate: dict[str, float | None] = {}
+    spread: PositionSpread | None = None
     checks: list[GateCheck] = []
     measured = result.measured_responses()
     try:
@@ -317,7 +329,8 @@ def analyse_result(result: IdentifyResult) -> IdentifyResult:
         if nominal is not None and measured:
             gate_cfg = cfg.with_(nominal=nominal, dob_on=True)
             for qt in ("q31", "q20"):
-                rec[qt] = recommended_max_cutoff_hz(gate_cfg, plant, q_type=qt)
+                r = recommend(gate_cfg, plant, q_type=qt)
+                rec[qt], rec_gate[qt], spread = r.recommended_hz, r.gate_hz, r.spread
             r31 = rec["q31"]
             if r31 is not None:
                 for fc in (r31, 1.5 * r31):
@@ -335,6 +348,8 @@ def analyse_result(result: IdentifyResult) -> IdentifyResult:
         nominal=nominal,
         recommended_cutoff_hz=rec,
         recommended_cutoff_hz_config=rec_config,
+        recommended_cutoff_hz_gate_only=rec_gate,
+        position_spread=spread,
         gate_checks=tuple(checks),
         notes=tuple(notes),
     )
