@@ -93,6 +93,44 @@ class PlantCurves:
     lower_db: FloatArray
     """min over responses of 20 log10(|H| max(1 - spread, SPREAD_FLOOR))."""
     n_measured: int = 0
+    positions_db: tuple[FloatArray, ...] = ()
+    """20 log10 |H| of each of the first `PLANT_POSITIONS` responses (one per position)."""
+    spread_db: FloatArray | None = None
+    """The spread between the responses, max - min |H| in dB (`PositionSpread.mag_db`), on
+    the band they share; None with fewer than two responses."""
+    divergence_hz: float | None = None
+    """Where the responses part by more than 1 dB (`PositionSpread.divergence_hz`)."""
+
+    def _position(self, i: int) -> FloatArray | None:
+        return self.positions_db[i] if i < len(self.positions_db) else None
+
+    @property
+    def pos1_db(self) -> FloatArray | None:
+        return self._position(0)
+
+    @property
+    def pos2_db(self) -> FloatArray | None:
+        return self._position(1)
+
+    @property
+    def pos3_db(self) -> FloatArray | None:
+        return self._position(2)
+
+    @property
+    def pos4_db(self) -> FloatArray | None:
+        return self._position(3)
+
+    @property
+    def divergence_marks(self) -> FloatArray | None:
+        """A vertical line at the divergence frequency (the "mark" scale)."""
+        if self.divergence_hz is None:
+            return None
+        return _marks(np.log(self.freq_hz) - np.log(self.divergence_hz))
+
+
+#: The plant chart draws this many measured responses one by one (the article's Fig. 13 has
+#: three positions); the mean and the band cover all of them.
+PLANT_POSITIONS = 4
 
 
 #: The lower edge of a measured band is drawn at most 20 dB below |H|: a spread near or
@@ -292,9 +330,12 @@ PLANT_MODEL = "#34495e"
 
 #: The plant itself: the model the gate judges on, and the measured responses with their
 #: spread as a band between the "+spread" and "-spread" series.
+_POSITION_COLORS = ("#8c564b", "#e377c2", "#17becf", "#bcbd22")
+
 PLANT_CHART = _bode_spec(
     "plant",
-    "Plant u -> speed: model and measured (band: measured |H| (1 +- spread))",
+    "Plant u -> speed: model and measured (band: measured |H| (1 +- spread)); each position, "
+    "the spread between positions (max - min, dB) and where they diverge (> 1 dB)",
     (_line("|M P| model", PLANT_MODEL), "plant.model_db"),
     (_measured_points("|H| measured", MEASURED), "plant.measured_db"),
     (_band_edge("|H| (1 + spread)"), "plant.upper_db"),
@@ -302,7 +343,11 @@ PLANT_CHART = _bode_spec(
     (_line("phase model", PLANT_MODEL, dash=(2, 3), width=1.0, scale="deg"),
      "plant.model_phase_deg"),
     (_measured_points("phase measured", "#7fbf7f", scale="deg"), "plant.measured_phase_deg"),
-    scales={**_LOG_X, "deg": {"auto": True}},
+    *((_measured_points(f"|H| position {i + 1}", c), f"plant.pos{i + 1}_db")
+      for i, c in enumerate(_POSITION_COLORS[:PLANT_POSITIONS])),
+    (_measured_points("spread between positions (dB)", "#d62728"), "plant.spread_db"),
+    (_marker("responses diverge (> 1 dB)", "#d62728"), "plant.divergence_marks"),
+    scales={**_LOG_X, "deg": {"auto": True}, MARK_SCALE: {"auto": False, "range": (0.0, 1.0)}},
     axes=(
         _HZ_AXIS,
         {"label": "dB", "scale": "y"},

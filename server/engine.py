@@ -28,6 +28,7 @@ from controller.gate.knowledge import (
     KnowledgeRecord,
     MeasuredResponse,
     PlantKnowledge,
+    PositionSpread,
 )
 from controller.gate.loop_model import (
     default_grid,
@@ -37,6 +38,7 @@ from controller.gate.loop_model import (
     nominal_continuous_response,
 )
 from controller.gate.margins import loop_tasks, margins_of, solve
+from controller.gate.search import knowledge_spread
 from controller.gate.verdict import judge, recommended_cutoff_hz
 from controller.sim.nonlinear_check import findings
 from server import charts
@@ -188,9 +190,7 @@ def plant_curves(plant: PlantKnowledge, freq_hz: FloatArray, rate_hz: float) -> 
     mag_sum, phase_sum, count = np.zeros(n), np.zeros(n), np.zeros(n)
     upper, lower = np.full(n, -np.inf), np.full(n, np.inf)
     for m in measured:
-        h = np.asarray(m.response, dtype=np.complex128)
-        if m.sampled:
-            h = h / discrete_equivalent(np.ones_like(h), m.freq_hz, rate_hz)
+        h = _continuous(m, rate_hz)
         idx = np.searchsorted(grid, m.freq_hz)
         ph = np.degrees(np.unwrap(np.angle(h)))
         ph = ph - 360.0 * np.round((ph[0] - model_phase[idx[0]]) / 360.0)  # near the model
@@ -202,6 +202,16 @@ def plant_curves(plant: PlantKnowledge, freq_hz: FloatArray, rate_hz: float) -> 
         upper[idx] = np.maximum(upper[idx], hi)
         lower[idx] = np.minimum(lower[idx], lo)
     have = count > 0
+    positions = []
+    for m in measured[: charts.PLANT_POSITIONS]:
+        col = np.full(n, np.nan)
+        col[np.searchsorted(grid, m.freq_hz)] = charts.db(_continuous(m, rate_hz))
+        positions.append(col)
+    spread = knowledge_spread(plant, rate_hz)
+    spread_db = None
+    if spread is not None:
+        spread_db = np.full(n, np.nan)
+        spread_db[np.searchsorted(grid, spread.freq_hz)] = spread.mag_db
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_db = np.where(have, mag_sum / count, np.nan)
         mean_phase = np.where(have, phase_sum / count, np.nan)
@@ -214,7 +224,19 @@ def plant_curves(plant: PlantKnowledge, freq_hz: FloatArray, rate_hz: float) -> 
         upper_db=np.where(have, upper, np.nan),
         lower_db=np.where(have, lower, np.nan),
         n_measured=len(measured),
+        positions_db=tuple(positions),
+        spread_db=spread_db,
+        divergence_hz=None if spread is None else spread.divergence_hz,
     )
+
+
+def _continuous(m: MeasuredResponse, rate_hz: float) -> npt.NDArray[np.complex128]:
+    """A response in the continuous basis (a sampled one with the ZOH + backward-difference
+    factor divided out)."""
+    h = np.asarray(m.response, dtype=np.complex128)
+    if m.sampled:
+        h = h / discrete_equivalent(np.ones_like(h), m.freq_hz, rate_hz)
+    return h
 
 
 def curves_from_analysis(a: Analysis, plant: PlantKnowledge) -> tuple[BodeCurves, GateView]:
@@ -359,6 +381,12 @@ class TuningEngine:
         return KnowledgeRecord.of(
             PlantKnowledge((*kept, m), p.bound, p.model, p.version, f"{p.source} + {m.name}")
         )
+
+    def position_spread(self) -> PositionSpread | None:
+        """The spread between the knowledge's measured responses (None with fewer than two;
+        a few ms: computed on each call)."""
+        _, plant = self._current()
+        return knowledge_spread(plant, LoopConfig().rate_hz)
 
     def cached_recommendation(self, cfg: LoopConfig) -> tuple[bool, float | None]:
         """(known, value) without computing."""

@@ -104,8 +104,9 @@ def test_spread_across_grids_and_forms() -> None:
     assert mixed is not None
     np.testing.assert_allclose(mixed.relative, sp.relative, rtol=1e-9, atol=1e-12)
     assert position_spread((a,)) is None
-    with pytest.raises(ValueError, match="share no band"):
-        position_spread((a, MeasuredResponse("c", np.array([25.0, 30.0]), np.ones(2) + 0j)))
+    # No band in common: the spread is not measured (no evidence either way).
+    far = MeasuredResponse("c", np.array([25.0, 30.0]), np.ones(2) + 0j)
+    assert position_spread((a, far)) is None
 
 
 def test_spread_limited_cutoff_matches_an_independent_search() -> None:
@@ -155,3 +156,36 @@ def test_recommended_cutoff_with_and_without_the_spread() -> None:
     assert j.analysis.verdict == "accept"  # the analysis alone takes it ...
     assert j.verdict == "caution"  # ... the recommendation does not
     assert any("spread between the measured responses" in c for c in j.cautions)
+
+
+def test_check_reports_the_spread_from_frd_files(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """`dobtune check --frd` with three positions: the recommendation with the spread, the
+    gate's alone and where the responses diverge, in the table and the JSON."""
+    import io
+    import json
+
+    from controller.cli.check import check_main
+    from controller.core.config import config_to_builtins
+    from controller.gate.frd_csv import write_frd_csv
+
+    f = np.geomspace(0.1, 20.0, 40)
+    paths = []
+    for m in responses(f):
+        p = tmp_path / f"{m.name}.csv"
+        write_frd_csv(p, m.freq_hz, m.response, np.ones(f.size))
+        paths.append(p)
+    cfg_path = tmp_path / "cfg.json"
+    cfg_path.write_text(json.dumps(config_to_builtins(CFG)))
+    out = io.StringIO()
+    check_main(cfg_path, "q31", 0.5, paths, True, out)
+    got = json.loads(out.getvalue())
+    r = recommend(CFG, PlantKnowledge(responses(f), COMMISSIONING_BOUND), q_type="q31")
+    assert got["recommended_max_cutoff_hz"] == pytest.approx(r.recommended_hz, rel=0.01)
+    assert got["recommended_gate_only_hz"] == pytest.approx(r.gate_hz, rel=0.01)
+    assert got["spread_limited_cutoff_hz"] < got["recommended_gate_only_hz"]
+    assert got["position_spread"]["divergence_hz"] == pytest.approx(
+        r.spread.divergence_hz, rel=0.01)  # type: ignore[union-attr]
+    out = io.StringIO()
+    check_main(cfg_path, "q31", 0.5, paths, False, out)
+    assert "responses diverge above" in out.getvalue()
+    assert f"gate alone {got['recommended_gate_only_hz']:.3g} Hz" in out.getvalue()

@@ -251,10 +251,15 @@ def _model_db(f: np.ndarray) -> np.ndarray:
 def _plant_chart(eng: TuningEngine) -> dict[str, np.ndarray]:
     spec = {s.key: s for s in charts.BODE_CHARTS}["plant"]
     data = eng.compare(LoopConfig(q_cutoff_hz=2.0), LoopConfig()).chart_data["plant"]
-    assert len(data) == len(spec.series) == 7
+    assert len(data) == len(spec.series) == 7 + charts.PLANT_POSITIONS + 2
     assert all(d.shape == data[0].shape for d in data)
     return {"f": data[0], **{c.split(".")[1]: d for c, d in zip(spec.columns, data[1:],
                                                                  strict=True)}}
+
+
+def _scaled(d: dict[str, np.ndarray]) -> list[np.ndarray]:
+    """The columns on auto scales (the divergence mark's scale is fixed: NaN is fine there)."""
+    return [c for k, c in d.items() if k != "divergence_marks"]
 
 
 def test_plant_chart_draws_measured_spread_over_the_model() -> None:
@@ -270,7 +275,7 @@ def test_plant_chart_draws_measured_spread_over_the_model() -> None:
     eng.set_knowledge(eng.with_measured(MeasuredResponse("pos0", f_m, h, spread=spread)))
     d = _plant_chart(eng)
     f = d["f"]
-    assert f[0] == f_m[0] and np.all(np.isfinite([col[0] for col in d.values()]))
+    assert f[0] == f_m[0] and np.all(np.isfinite([col[0] for col in _scaled(d)]))
     np.testing.assert_allclose(d["model_db"], _model_db(f), atol=1e-9)
     at = np.isin(f, f_m)
     assert at.sum() == f_m.size
@@ -317,9 +322,10 @@ def test_plant_chart_without_measured_responses_still_draws() -> None:
     eng = TuningEngine()
     d = _plant_chart(eng)
     np.testing.assert_array_equal(d["f"], eng.freq_hz)
-    assert all(np.isfinite(col[0]) for col in d.values())
+    assert all(np.isfinite(col[0]) for col in _scaled(d))
     np.testing.assert_allclose(d["model_db"], _model_db(d["f"]), atol=1e-9)
-    for name in ("measured_db", "upper_db", "lower_db", "measured_phase_deg"):
+    for name in ("measured_db", "upper_db", "lower_db", "measured_phase_deg", "pos1_db",
+                 "spread_db", "divergence_marks"):
         assert np.isnan(d[name][1:]).all(), name
 
 
@@ -341,3 +347,33 @@ def test_plant_chart_draws_a_sampled_response_in_the_continuous_basis() -> None:
     np.testing.assert_allclose(pc.measured_db[at], _model_db(f), atol=0.01)
     np.testing.assert_allclose(pc.measured_phase_deg[at], pc.model_phase_deg[at], atol=0.01)
     assert np.max(np.abs(20 * np.log10(np.abs(h)) - _model_db(f))) > 0.2  # the test can fail
+
+
+def test_plant_chart_shows_each_position_their_spread_and_where_they_diverge() -> None:
+    """Three responses (a belt mode at 4.9, 7 and 9.1 Hz): each drawn at its points as
+    20 log10 |H| (computed here), the spread between them (max - min dB, here) and a vertical
+    mark at the frequency where they part by more than 1 dB, the position spread's own."""
+    from controller.gate.knowledge import position_spread
+
+    f_m = np.geomspace(0.1, 20.0, 30)
+
+    def mode(fn: float) -> np.ndarray:
+        wn, s = 2 * np.pi * fn, 2j * np.pi * f_m
+        return wn * wn / (s * s + 1.414 * wn * s + wn * wn)
+
+    hs = [mode(7.0 * k) for k in (0.7, 1.0, 1.3)]
+    eng = TuningEngine()
+    for i, h in enumerate(hs, start=1):
+        eng.set_knowledge(eng.with_measured(MeasuredResponse(f"pos{i}", f_m, h)))
+    d = _plant_chart(eng)
+    at = np.isin(d["f"], f_m)
+    mags = np.array([20 * np.log10(np.abs(h)) for h in hs])
+    for i in range(3):
+        np.testing.assert_allclose(d[f"pos{i + 1}_db"][at], mags[i], rtol=1e-12)
+        assert np.isnan(d[f"pos{i + 1}_db"][~at]).all()
+    assert np.isnan(d["pos4_db"][1:]).all()
+    np.testing.assert_allclose(d["spread_db"][at], mags.max(0) - mags.min(0), atol=1e-9)
+    sp = position_spread(tuple(eng.plant.measured))
+    assert sp is not None and sp.divergence_hz is not None and 1.0 < sp.divergence_hz < 3.0
+    marks = np.flatnonzero(np.isfinite(d["divergence_marks"]))
+    assert marks.size == 2 and d["f"][marks[0]] <= sp.divergence_hz <= d["f"][marks[1]]

@@ -268,11 +268,12 @@ def position_spread(
     measured: Sequence[MeasuredResponse],
     to_continuous: Callable[[MeasuredResponse], ComplexArray] | None = None,
 ) -> PositionSpread | None:
-    """The spread across `measured` (see `PositionSpread`); None with fewer than two responses.
+    """The spread across `measured` (see `PositionSpread`); None with fewer than two.
 
     `to_continuous(m)`: m's response on the continuous basis; needed only when the responses
     mix sampled and continuous forms (the sampling factor cancels in the ratio otherwise).
-    Raises ValueError when the responses share no band of at least two frequencies.
+    None too when the responses share no band of at least two frequencies (the spread
+    between them is then not measured).
     """
     if len(measured) < 2:
         return None
@@ -283,11 +284,8 @@ def position_spread(
     hi = min(float(m.freq_hz[-1]) for m in measured)
     f = np.unique(np.concatenate([m.freq_hz for m in measured]))
     f = f[(f >= lo) & (f <= hi)]
-    if f.size < 2:
-        raise ValueError(
-            f"position spread: the responses {[m.name for m in measured]} share no band of at "
-            "least two frequencies"
-        )
+    if f.size < 2:  # nothing to compare: no evidence of spread either way
+        return None
     x = np.log(f)
     logs = []
     for m in measured:

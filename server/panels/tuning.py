@@ -18,6 +18,7 @@ from typing import Any
 from controller.core.config import LoopConfig
 from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
+from controller.gate.knowledge import PositionSpread
 from server import charts
 from server.engine import (
     CUTOFF_MAX_HZ,
@@ -150,6 +151,17 @@ def _preview_html(traj: Trajectory, p: PreviewComparison) -> str:
         f"active peak {pa.peak_error_deg:.4f} deg, RMSE {pa.rmse_deg:.4f} deg"
         f" <span style='color:#888'>({pc.elapsed_s * 1e3:.0f} ms)</span></div>"
     )
+
+
+def _divergence_html(sp: PositionSpread | None) -> str:
+    """Where the measured responses part (the recommendation keeps Q below it)."""
+    if sp is None:
+        return ""
+    n = len(sp.names)
+    if sp.divergence_hz is None:
+        return f" &middot; the {n} measured responses agree within 1 dB on their band"
+    return (f" &middot; the {n} measured responses diverge above "
+            f"<b>{sp.divergence_hz:.2f} Hz</b>")
 
 
 # -- the GUI panel ------------------------------------------------------------------------------
@@ -605,6 +617,7 @@ class TuningPanel:
                 "these gains</span>"
         else:
             rec_txt = f" &middot; gate's recommended max <b>{rec:.2f} Hz</b>"
+        rec_txt += _divergence_html(self.engine.position_spread())
         warn = ""
         if rec is not None and cutoff_hz > rec:
             warn = " <span style='color:#d62728'>(above the recommendation)</span>"
