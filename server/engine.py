@@ -207,11 +207,11 @@ def plant_curves(plant: PlantKnowledge, freq_hz: FloatArray, rate_hz: float) -> 
         col = np.full(n, np.nan)
         col[np.searchsorted(grid, m.freq_hz)] = charts.db(_continuous(m, rate_hz))
         positions.append(col)
-    spread = knowledge_spread(plant, rate_hz)
+    between = knowledge_spread(plant, rate_hz)
     spread_db = None
-    if spread is not None:
+    if between is not None:
         spread_db = np.full(n, np.nan)
-        spread_db[np.searchsorted(grid, spread.freq_hz)] = spread.mag_db
+        spread_db[np.searchsorted(grid, between.freq_hz)] = between.mag_db
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_db = np.where(have, mag_sum / count, np.nan)
         mean_phase = np.where(have, phase_sum / count, np.nan)
@@ -226,7 +226,7 @@ def plant_curves(plant: PlantKnowledge, freq_hz: FloatArray, rate_hz: float) -> 
         n_measured=len(measured),
         positions_db=tuple(positions),
         spread_db=spread_db,
-        divergence_hz=None if spread is None else spread.divergence_hz,
+        divergence_hz=None if between is None else between.divergence_hz,
     )
 
 

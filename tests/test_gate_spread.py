@@ -105,7 +105,7 @@ def test_spread_across_grids_and_forms() -> None:
     np.testing.assert_allclose(mixed.relative, sp.relative, rtol=1e-9, atol=1e-12)
     assert position_spread((a,)) is None
     # No band in common: the spread is not measured (no evidence either way).
-    far = MeasuredResponse("c", np.array([25.0, 30.0]), np.ones(2) + 0j)
+    far = MeasuredResponse("c", np.array([25.0, 30.0]), np.full(2, 1.0 + 0j))
     assert position_spread((a, far)) is None
 
 
@@ -123,7 +123,7 @@ def test_spread_limited_cutoff_matches_an_independent_search() -> None:
 
     want = brentq(excess, 0.05, 20.0, xtol=1e-6)
     got = spread_limited_cutoff_hz("q31", sp)
-    assert got == pytest.approx(want, rel=0.005)
+    assert got is not None and got == pytest.approx(want, rel=0.005)
     # Q rolls off where the responses part: the limit sits near the divergence frequency.
     assert sp.divergence_hz is not None and 0.5 * sp.divergence_hz < got < 2 * sp.divergence_hz
     # Responses that agree everywhere leave the cut-off free up to the search's top.
