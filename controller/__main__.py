@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 
-from controller.cli import add_log_level
 from controller.cli import controller as controller_cmd
+from controller.cli.common import IntermixedParser, add_log_level
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
+    parser = IntermixedParser(
         prog="python -m controller", description="dobtune controller process"
     )
     controller_cmd.add_arguments(parser)

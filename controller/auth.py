@@ -36,12 +36,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import zenoh
-
 from controller import protocol as proto
 from controller.protocol import USER_CHUNK, any_user_key, user_key, user_of_key
-from controller.tls import client_tls, server_tls
-from controller.zenoh_session import DEFAULT_LISTEN, zenoh_config
 
 __all__ = [
     "ALL_RIGS",
@@ -55,14 +51,12 @@ __all__ = [
     "acl_config",
     "any_user_key",
     "check_name",
-    "client_config",
     "init_auth_dir",
     "load_users",
     "new_users",
     "password_problem",
     "read_password_file",
     "requester",
-    "server_config",
     "user_key",
     "user_of_key",
     "users_toml",
@@ -442,49 +436,6 @@ def acl_config(users: Iterable[User], rig_names: Sequence[str]) -> dict[str, Any
     }
 
 
-def server_config(
-    directory: Path,
-    rig_names: Sequence[str],
-    listen: Iterable[str] = DEFAULT_LISTEN,
-    connect: Iterable[str] = (),
-    mode: str = "peer",
-) -> zenoh.Config:
-    """The configuration of a controller (mode "peer") or router serving `rig_names`.
-
-    Every session that connects must authenticate with a user of `directory/users.toml`; the
-    ACL (default deny) gives each user the rules of its role on its rigs. Rewrites the Zenoh
-    dictionary from the users file when they differ.
-
-    `connect` must be empty: user/password authenticates only the side that dials, so the ACL
-    of a session that dials out denies everything to the remote. A controller behind a router
-    uses `client_config(directory, <its "controller" user>, [router], mode="client")` and the
-    router (this function, mode "router") enforces the rules."""
-    if mode not in ("peer", "router"):
-        raise ValueError(f"mode {mode!r}: expected peer or router")
-    if list(connect):
-        raise ValueError(
-            "connect: a server with access control cannot dial out (the remote would be "
-            "unauthenticated and denied everything); behind a router, open the controller "
-            'with client_config(..., mode="client")'
-        )
-    for rig in rig_names:
-        proto.check_rig_name(rig)
-    users = load_users(directory)
-    try:
-        acl = acl_config(users, rig_names)
-    except ValueError as exc:
-        raise AuthError(f"{users.path}: {exc}") from None
-    dictionary = write_dictionary(users)
-    conf = zenoh_config(listen, ())
-    conf.insert_json5("mode", json.dumps(mode))
-    conf.insert_json5(
-        "transport/auth/usrpwd/dictionary_file", json.dumps(str(dictionary.resolve()))
-    )
-    conf.insert_json5("access_control", json.dumps(acl))
-    server_tls(conf, Path(directory))
-    return conf
-
-
 def read_password_file(path: Path) -> str:
     """The password in a private file (the whole file, without its final newline)."""
     path = Path(path)
@@ -497,50 +448,3 @@ def read_password_file(path: Path) -> str:
     if why:
         raise AuthError(f"{path}: password: {why}")
     return password
-
-
-def client_config(
-    credentials: Path | str,
-    user: str,
-    connect: Iterable[str],
-    listen: Iterable[str] = (),
-    fail_after_s: float | None = None,
-    mode: str | None = None,
-) -> zenoh.Config:
-    """A client's configuration: explicit endpoints, no multicast, logging in as `user`.
-
-    `credentials`: an auth directory (its users file has the password), a password file (a
-    Path), or the password itself (a str). `mode`: "client" (the default without `listen`)
-    reaches a controller directly or through a router (a router does not route between peers
-    that listen nowhere, and an authenticated controller behind a router listens nowhere);
-    "peer" (the default with `listen`) to be reachable itself.
-    `fail_after_s`: `zenoh.open` raises when no connection succeeded within that time
-    (unreachable or refused credentials look the same); by default it opens anyway and keeps
-    retrying."""
-    listen = tuple(listen)
-    if mode is None:
-        mode = "peer" if listen else "client"
-    if mode not in ("peer", "client"):
-        raise ValueError(f"mode {mode!r}: expected peer or client")
-    if isinstance(credentials, Path):
-        if credentials.is_dir():
-            password = load_users(credentials)[user].password
-        else:
-            password = read_password_file(credentials)
-    else:
-        password = credentials
-        why = password_problem(password)
-        if why:
-            raise AuthError(f"password of {user}: {why}")
-    conf = zenoh_config(listen, connect)
-    conf.insert_json5("mode", json.dumps(mode))
-    login = {"user": check_name(user, "user"), "password": password}
-    conf.insert_json5("transport/auth/usrpwd", json.dumps(login))
-    if isinstance(credentials, Path):
-        # The authority of the auth directory (or of the password file's directory): on tls/
-        # endpoints the client then accepts only the controller it certified.
-        client_tls(conf, credentials if credentials.is_dir() else credentials.parent)
-    if fail_after_s is not None:
-        conf.insert_json5("connect/exit_on_failure", "true")
-        conf.insert_json5("connect/timeout_ms", json.dumps(max(1, round(fail_after_s * 1000))))
-    return conf

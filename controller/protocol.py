@@ -97,6 +97,11 @@ def _split_rig_key(key: str) -> tuple[str, str]:
     return rig, rest
 
 
+def rig_of_key(key: object) -> str:
+    """The `<rig>` chunk of a `dobtune/<rig>/<what>` key (a key expression or its string)."""
+    return _split_rig_key(str(key))[0]
+
+
 def user_key(key: str, user: str) -> str:
     """`dobtune/<rig>/<what>` as sent by `user`: `dobtune/<rig>/@user/<user>/<what>`."""
     rig, rest = _split_rig_key(key)

@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from controller.cli import Command, add_log_level, build_parser, controller_commands
+from controller.cli.commands import controller_commands
+from controller.cli.common import Command, add_log_level, build_parser
 
 
 def add_dashboard_arguments(p: argparse.ArgumentParser) -> None:

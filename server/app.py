@@ -30,6 +30,7 @@ from typing import Any, NoReturn, TypeVar
 
 from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
+from controller.client.recorder import RecordOptions
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import MeasuredResponse
@@ -400,7 +401,7 @@ class Dashboard:
             self.history_other.on_update(lambda _e: self._show_version_diff())
         with tabs.add_tab("Recordings"):
             self.recordings = RecordingsPanel(gui, self.opts.recordings_dir,
-                                              record_args=self._record_args(),
+                                              record=self._record_options(),
                                               rig_name=self.opts.rig_name)
             self.recordings.build()
         with tabs.add_tab("Help"):
@@ -425,15 +426,13 @@ class Dashboard:
             self.fleet.start()
         self._requests.submit(self._fetch_active)
 
-    def _record_args(self) -> list[str]:
-        """`dobtune record`'s arguments that reach this dashboard's rig as it does."""
+    def _record_options(self) -> RecordOptions:
+        """The recorder's way to this dashboard's rig (its `out` is set per recording)."""
         o = self.opts
-        args = [a for ep in o.connect for a in ("--connect", ep)]
-        args += ["--rig-name", o.rig_name]
-        if o.auth is not None:
-            user = self.client.opts.user  # the streams' user: every role may record
-            args += ["--auth", str(o.auth), "--user", user]
-        return args
+        # With credentials: the streams' user (every role may record).
+        user = self.client.opts.user if o.auth is not None else ""
+        return RecordOptions(connect=tuple(o.connect), out=Path(o.recordings_dir),
+                             rig_name=o.rig_name, auth=o.auth, user=user)
 
     # -- the candidates, one per browser --------------------------------------------------------
 

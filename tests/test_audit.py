@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from controller.cli import controller_commands
 from controller.cli.audit import show_main, verify_main
+from controller.cli.commands import controller_commands
 from controller.process import audit as audit_mod
 from controller.process.audit import (
     AUDIT_FILE,

@@ -23,20 +23,20 @@ from controller.auth import (
     Users,
     acl_config,
     any_user_key,
-    client_config,
     init_auth_dir,
     load_users,
     new_users,
     read_password_file,
     requester,
-    server_config,
     user_key,
     user_of_key,
     users_toml,
     write_dictionary,
 )
-from controller.cli import build_parser, controller_commands
 from controller.cli.auth import init_main, show_main
+from controller.cli.commands import controller_commands
+from controller.cli.common import build_parser
+from controller.client.session import client_config, server_config
 
 
 def mode_of(path: Path) -> int:

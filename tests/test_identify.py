@@ -176,7 +176,7 @@ def test_cli_connect_without_a_controller_is_a_clear_error(tmp_path: Path) -> No
 def test_identify_subcommand_is_registered() -> None:
     import argparse
 
-    from controller.cli import controller_commands
+    from controller.cli.commands import controller_commands
 
     p = argparse.ArgumentParser()
     controller_commands()["identify"].add_arguments(p)
@@ -202,7 +202,7 @@ def test_identify_options_are_the_specs_with_their_defaults() -> None:
     placeholders as ever, and the spec's help text."""
     import argparse
 
-    from controller.cli import controller_commands
+    from controller.cli.commands import controller_commands
 
     p = argparse.ArgumentParser()
     controller_commands()["identify"].add_arguments(p)

@@ -23,7 +23,7 @@ from identify_from_common import RTOL, SMALL, same_structure
 from controller import protocol as proto
 from controller.cli.identify import EXIT_BAD_INPUT, EXIT_OK, identify_main
 from controller.cli.identify_from import RecordingProblem, recorded_run, status_from_recording
-from controller.cli.record import identify_event
+from controller.client.recorder import identify_event
 from controller.core.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM, LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.samples import STATE_COLUMNS

@@ -16,7 +16,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any, TextIO
 
-from controller.cli import Command
+from controller.cli.common import Command
 from controller.process.audit import (
     AUDIT_FILE,
     CORE_KEYS,

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
-from controller.cli import Command
+from controller.cli.common import Command
 
 if TYPE_CHECKING:
     from controller.auth import User

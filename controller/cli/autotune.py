@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 from typing import Any, TextIO
 
-from controller.cli import Command
+from controller.cli.common import Command
 
 __all__ = ["autotune_main"]
 
@@ -44,8 +44,8 @@ def _point(p: Any, with_config: bool = False) -> dict[str, Any]:
 
 
 def autotune_main(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
-    from controller.cli.check import BadInput, load_config, load_knowledge
-    from controller.cli.experiment import progress_printer
+    from controller.cli.common import progress_printer
+    from controller.cli.inputs import BadInput, load_config, load_knowledge
     from controller.core.errors import ConfigError
     from controller.core.trajectory import default_trajectory
     from controller.sim.nonlinear_check import findings

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from controller.cli import Command
+from controller.cli.common import Command
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -24,7 +24,7 @@ from typing import Any, TextIO
 
 import msgspec
 
-from controller.cli import Command
+from controller.cli.common import Command
 
 __all__ = ["ACTIONS", "ctl_main"]
 
@@ -235,31 +235,21 @@ def _rigs(args: argparse.Namespace, out: TextIO) -> int:
     import zenoh
 
     from controller import protocol as proto
-    from controller.client import ControllerUnavailable
+    from controller.client import ClientOptions, open_client_session
 
-    if args.auth is not None:
-        from controller.auth import client_config
-
-        conf = client_config(args.auth, args.user, args.connect, fail_after_s=args.timeout_s)
-    else:
-        from controller.zenoh_session import zenoh_config
-
-        conf = zenoh_config((), args.connect)
-    try:
-        session = zenoh.open(conf)
-    except zenoh.ZError as exc:
-        raise ControllerUnavailable(f"no connection to {', '.join(args.connect)}: {exc}") from exc
-    prefix = proto.KEY_PREFIX
+    session = open_client_session(ClientOptions(
+        connect=tuple(args.connect), auth=args.auth, user=args.user or "",
+        connect_timeout_s=args.timeout_s))
     statuses: dict[str, Any] = {}
     errors: dict[str, list[float]] = {}
     with session:
         alive = sorted({
-            str(r.ok.key_expr).split("/")[1]
-            for r in session.liveliness().get(f"{prefix}/*/alive", timeout=args.timeout_s)
+            proto.rig_of_key(r.ok.key_expr)
+            for r in session.liveliness().get(proto.key_alive("*"), timeout=args.timeout_s)
             if r.ok is not None
         })
-        st_sub = session.declare_subscriber(f"{prefix}/*/status", zenoh.handlers.FifoChannel(256))
-        sa_sub = session.declare_subscriber(f"{prefix}/*/state", zenoh.handlers.FifoChannel(4096))
+        st_sub = session.declare_subscriber(proto.key_status("*"), zenoh.handlers.FifoChannel(256))
+        sa_sub = session.declare_subscriber(proto.key_state("*"), zenoh.handlers.FifoChannel(4096))
         deadline = time.monotonic() + args.listen_s
         while time.monotonic() < deadline:
             got = False

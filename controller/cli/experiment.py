@@ -14,11 +14,11 @@ import json
 import math
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
-from controller.cli import Command, on_off
+from controller.cli.common import Command, on_off, progress_printer
 from controller.core.config import LoopConfig, config_to_builtins
 from controller.core.errors import ConfigError
 from controller.core.trajectory import default_trajectory
@@ -28,24 +28,6 @@ from controller.sim.rig_disturbances import RIG_DISTURBANCES, build_rig, rig_set
 
 TRAJECTORY_TESTS = ("sine", "step", "ramp", "hold", "compare")
 TESTS = (*TRAJECTORY_TESTS, *EXPERIMENTS)
-
-
-def progress_printer(err: TextIO, label: str) -> Callable[[float], None] | None:
-    if not err.isatty():
-        return None
-    last = [-1]
-
-    def show(fraction: float) -> None:
-        pct = int(fraction * 100)
-        if pct != last[0]:
-            last[0] = pct
-            bar = "#" * (pct // 4)
-            err.write(f"\r{label:<10} [{bar:<25}] {pct:3d} %")
-            if pct >= 100:
-                err.write("\n")
-            err.flush()
-
-    return show
 
 
 def result_to_json(res: ExperimentResult, wall_s: float) -> dict[str, Any]:
@@ -94,18 +76,6 @@ def figure_to_json(f: FigureResult) -> dict[str, Any]:
         "reason": f.reason,
         "numbers": {k: _finite(v) for k, v in f.numbers.items()},
     }
-
-
-def markdown_table(columns: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    """A GitHub-flavoured markdown table (pipes in cells escaped)."""
-
-    def cell(x: str) -> str:
-        return str(x).replace("|", "\\|")
-
-    lines = ["| " + " | ".join(cell(c) for c in columns) + " |",
-             "|" + "---|" * len(columns)]
-    lines += ["| " + " | ".join(cell(c) for c in r) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
 
 
 def print_figure(out: TextIO, f: FigureResult) -> None:
@@ -165,7 +135,7 @@ def experiment_main(
 ) -> int:
     """Exit code 0 on a completed run, 2 on bad input (message names the parameter).
     None for a setting: the configuration file's (or the default's) value."""
-    from controller.cli.check import BadInput, load_config
+    from controller.cli.inputs import BadInput, load_config
 
     try:
         if test not in TESTS:

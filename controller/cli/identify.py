@@ -22,7 +22,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from controller.cli import Command
+from controller.cli.common import Command
 from controller.core.config import LoopConfig, config_from_builtins, config_to_builtins
 from controller.core.errors import ConfigError
 from controller.gate.frd_csv import write_frd_csv
@@ -153,7 +153,7 @@ def _connection_error(plant: str | None, connect: str | None, rig_name: str | No
     if not rig_name:
         return "--connect needs --rig-name"
     from controller import protocol as proto
-    from controller.zenoh_session import check_endpoint
+    from controller.client.session import check_endpoint
 
     try:
         check_endpoint(connect)
@@ -186,6 +186,8 @@ def identify_main(
     cfg: LoopConfig | None = None,
     rig_factory: Callable[[], RigLike] | None = None,
     from_file: Path | None = None,
+    auth: Path | None = None,
+    user: str = "",
 ) -> int:
     """Run the identification and report; returns the exit code (0 ok, 1 aborted, 2 bad input).
 
@@ -217,7 +219,7 @@ def identify_main(
                 return _bad(f"--from: {exc}", as_json, out, err)
             summary = _write_remote(status, out_dir, time.perf_counter() - t0)
         elif connect is not None and rig_name is not None:
-            status = _remote(connect, rig_name, spec, progress)
+            status = _remote(connect, rig_name, spec, progress, auth=auth, user=user)
             if isinstance(status, str):
                 return _bad(status, as_json, out, err)
             summary = _write_remote(status, out_dir, time.perf_counter() - t0)
@@ -254,47 +256,43 @@ def _offline(
 
 
 def _remote(
-    endpoint: str, rig_name: str, spec: IdentifySpec, progress: _Progress, poll_s: float = 0.2
+    endpoint: str, rig_name: str, spec: IdentifySpec, progress: _Progress, poll_s: float = 0.2,
+    auth: Path | None = None, user: str = "",
 ) -> Any:
     """Start the run in the controller's loop and follow it: its final IdentifyStatus, or why
     not (a message naming the option)."""
     from controller import protocol as proto
-    from controller.zenoh_session import open_session
+    from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
 
-    timeout_s = 5.0
-
-    def query(session: Any, key: str, payload: bytes | None) -> bytes | None:
-        kw: dict[str, Any] = {"timeout": timeout_s}
-        if payload is not None:
-            kw["payload"] = payload
-        for reply in session.get(key, **kw):
-            if reply.ok is not None:
-                data: bytes = reply.ok.payload.to_bytes()
-                return data
-            return None
-        return None
-
-    with open_session(listen=(), connect=[endpoint]) as session:
-        cmd = proto.encode(proto.Command(body=proto.IdentifyStart(spec=spec), client="identify"))
-        raw = None
-        deadline = time.monotonic() + 10.0
-        while raw is None and time.monotonic() < deadline:  # the session may still connect
-            raw = query(session, proto.key_command(rig_name), cmd)
-        if raw is None:
-            return f"--connect: no reply from rig {rig_name!r} at {endpoint}"
-        reply = proto.decode(raw, proto.CommandReply)
-        if not reply.ok:
-            return f"controller refused: {reply.message}"
-        deadline = time.monotonic() + spec.max_duration_s + 300.0
-        status: proto.IdentifyStatus | None = None
-        while time.monotonic() < deadline:
-            data = query(session, proto.key_identify(rig_name), None)
-            if data is not None:
-                status = proto.decode(data, proto.IdentifyStatus)
-                progress(min(status.progress, 0.99), status.text)
-                if status.state in ("done", "aborted"):
-                    break
-            time.sleep(poll_s)
+    opts = ClientOptions(connect=(endpoint,), rig_name=rig_name, client_name="identify",
+                         auth=auth, user=user, subscribe=False, query_timeout_s=5.0)
+    status: proto.IdentifyStatus | None = None
+    try:
+        with ControllerClient(opts) as c:
+            reply = None
+            deadline = time.monotonic() + 10.0
+            while reply is None:  # the session may still connect
+                try:
+                    reply = c.command(proto.IdentifyStart(spec=spec))
+                except ControllerUnavailable:
+                    if time.monotonic() >= deadline:
+                        return f"--connect: no reply from rig {rig_name!r} at {endpoint}"
+            if not reply.ok:
+                return f"controller refused: {reply.message}"
+            deadline = time.monotonic() + spec.max_duration_s + 300.0
+            while time.monotonic() < deadline:
+                try:
+                    status = c.identify_status()
+                except ControllerUnavailable:
+                    pass  # a reply lost on a loaded machine: ask again
+                else:
+                    progress(min(status.progress, 0.99), status.text)
+                    if status.state in ("done", "aborted"):
+                        break
+                time.sleep(poll_s)
+    except ControllerUnavailable as exc:  # credentials that reach nothing
+        return f"--connect: {exc}"
+    finally:
         progress.done()
     if status is None or status.state not in ("done", "aborted"):
         return "controller: no result before the deadline"
@@ -305,6 +303,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plant", default=None, metavar="sim", help="offline simulated rig (default)")
     p.add_argument("--connect", default=None, metavar="ENDPOINT", help="running controller")
     p.add_argument("--rig-name", default=None, metavar="NAME", help="with --connect")
+    p.add_argument("--auth", type=Path, default=None, metavar="DIR",
+                   help="with --connect: credentials (an auth directory or a password file)")
+    p.add_argument("--user", default="", help="with --auth: the user to log in as")
     p.add_argument("--from", dest="from_file", type=Path, default=None, metavar="FILE.mcap",
                    help="analyse again an identification run recorded by `dobtune record`")
     for f in CLI_FIELDS:  # generated from the spec: flag, type, default, unit, help
@@ -331,6 +332,8 @@ def run(args: argparse.Namespace) -> int:
         out=sys.stdout,
         err=sys.stderr,
         from_file=args.from_file,
+        auth=args.auth,
+        user=args.user,
     )
 
 

@@ -21,7 +21,7 @@ from typing import TextIO
 
 import numpy as np
 
-from controller.cli import Command
+from controller.cli.common import Command
 from controller.core.config import LoopConfig, config_to_builtins
 from controller.core.errors import ConfigError
 from controller.sim.linear_rig import PlantVariant
@@ -125,7 +125,7 @@ def _report(
     figures: Sequence[object], cfg: LoopConfig, names: tuple[str, ...], quick: bool,
     checks: dict[str, float], wall_s: float,
 ) -> str:
-    from controller.cli.experiment import markdown_table
+    from controller.cli.common import markdown_table
     from controller.sim.paper import FigureResult
 
     figs = [f for f in figures if isinstance(f, FigureResult)]
@@ -214,7 +214,7 @@ def paper_main(
     out_dir: Path, *, quick: bool, config_path: Path | None, disturbances: Sequence[str],
     seed: int, err: TextIO,
 ) -> int:
-    from controller.cli.check import BadInput, load_config
+    from controller.cli.inputs import BadInput, load_config
     from controller.sim.paper import Options, run_paper
     from controller.sim.rig_disturbances import rig_setup
 

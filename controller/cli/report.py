@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import TextIO
 
-from controller.cli import Command
+from controller.cli.common import Command
 
 __all__ = ["report_main"]
 

@@ -12,45 +12,41 @@ Exit codes: 0 stopped (Ctrl-C / SIGTERM), 2 bad input or the endpoint is busy.
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import sys
 import threading
 from pathlib import Path
 from typing import Any
 
-from controller.cli import Command
+from controller.cli.common import Command
 
-__all__ = ["router_config"]
+__all__ = ["router_options"]
 
 DEFAULT_ROUTER_LISTEN = ("tcp/127.0.0.1:7446",)
 
 
-def router_config(listen: list[str], connect: list[str], auth: Path | None,
-                  rigs: list[str]) -> Any:
-    if auth is not None:
-        from controller.auth import server_config
+def router_options(listen: list[str], connect: list[str], auth: Path | None,
+                   rigs: list[str]) -> Any:
+    """The router's session: mode router; with `auth`, serving `rigs` with their access
+    control (ValueError when no rig is named)."""
+    from controller.client.session import SessionOptions
 
-        if not rigs:
-            raise ValueError("--rig-name: name the rigs the router serves (with --auth)")
-        return server_config(auth, rigs, listen, connect, mode="router")
-    from controller.zenoh_session import zenoh_config
-
-    conf = zenoh_config(listen, connect)
-    conf.insert_json5("mode", json.dumps("router"))
-    return conf
+    if auth is not None and not rigs:
+        raise ValueError("--rig-name: name the rigs the router serves (with --auth)")
+    return SessionOptions(listen=tuple(listen), connect=tuple(connect), mode="router",
+                          auth=auth, serve=tuple(rigs) if auth is not None else ())
 
 
 def run(args: argparse.Namespace) -> int:
     import zenoh
 
+    from controller.client.session import connect
     from controller.logs import setup_logging
 
     setup_logging(args.log_level, "router")
     listen = args.listen or list(DEFAULT_ROUTER_LISTEN)
     try:
-        conf = router_config(listen, args.connect, args.auth, args.rig_name)
-        session = zenoh.open(conf)
+        session = connect(router_options(listen, args.connect, args.auth, args.rig_name))
     except (ValueError, OSError) as exc:
         print(f"dobtune router: {exc}", file=sys.stderr, flush=True)
         return 2

@@ -22,6 +22,7 @@ from typing import Any
 import msgspec
 
 from controller import protocol as proto
+from controller.client.session import SessionOptions, check_endpoint, connect
 from controller.core.config import LoopConfig, NominalModel, config_from_builtins
 from controller.core.errors import ConfigError
 from controller.core.loop import LoopCoefficients, ServoLoop
@@ -41,7 +42,6 @@ from controller.process.runtime import (
     try_realtime_priority,
 )
 from controller.process.service import ControllerService
-from controller.zenoh_session import check_endpoint, open_session
 
 __all__ = ["StartupError", "run_controller"]
 
@@ -125,13 +125,13 @@ def _session(opts: ControllerOptions) -> Any:
 
     if opts.auth_dir is None:
         try:
-            return open_session(opts.listen, opts.connect)
+            return connect(SessionOptions(listen=opts.listen, connect=opts.connect))
         except zenoh.ZError as exc:
             raise StartupError(
                 f"--listen {', '.join(opts.listen)}: cannot open the Zenoh session (is the "
                 f"port in use by another controller? choose another with --listen): {exc}"
             ) from exc
-    from controller.auth import AuthError, client_config, load_users, server_config
+    from controller.auth import AuthError, load_users
 
     if opts.connect:  # behind an authenticating router, logged in as a "controller" account
         try:
@@ -139,19 +139,18 @@ def _session(opts: ControllerOptions) -> Any:
             if role != "controller":
                 raise AuthError(f"--user {opts.auth_user}: role {role!r}, expected controller "
                                 f"(add one with `dobtune auth init --user NAME=controller`)")
-            conf = client_config(opts.auth_dir, opts.auth_user, opts.connect,
-                                 fail_after_s=ROUTER_LOGIN_S)
+            return connect(SessionOptions(connect=opts.connect, auth=opts.auth_dir,
+                                          user=opts.auth_user, fail_after_s=ROUTER_LOGIN_S))
         except (AuthError, OSError, ValueError) as exc:
             raise StartupError(f"--auth {opts.auth_dir}: {exc}") from exc
-        try:
-            return zenoh.open(conf)
         except zenoh.ZError as exc:
             raise StartupError(
                 f"--connect {', '.join(opts.connect)}: no connection as {opts.auth_user!r} "
                 f"within {ROUTER_LOGIN_S:g} s (router unreachable, or it refused the "
                 f"credentials): {exc}") from exc
     try:
-        return zenoh.open(server_config(opts.auth_dir, [opts.rig_name], opts.listen))
+        return connect(SessionOptions(listen=opts.listen, auth=opts.auth_dir,
+                                      serve=(opts.rig_name,)))
     except (AuthError, OSError, ValueError) as exc:
         raise StartupError(f"--auth {opts.auth_dir}: {exc}") from exc
     except zenoh.ZError as exc:

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from controller.client.session import DEFAULT_LISTEN
 from controller.core.trajectory import Trajectory
-from controller.zenoh_session import DEFAULT_LISTEN
 
 __all__ = ["ControllerOptions"]
 

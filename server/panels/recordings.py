@@ -12,18 +12,18 @@ callback's thread (viser runs callbacks on a pool), and each file's summary is c
 
 from __future__ import annotations
 
-import argparse
-import io
+import dataclasses
 import logging
 import math
 import threading
 import time
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from controller.client import ControllerUnavailable
+from controller.client.recorder import Recorder, RecordOptions
 from controller.recording.compare import SummaryRow, align_runs, config_diff, summary_row
 from controller.recording.mcap_io import Recording, read_recording
 from controller.recording.report import REVERSAL_WINDOW_S, metrics
@@ -107,12 +107,12 @@ class RecordingsPanel:
     """`build()` inside a tab; `refresh()` rereads the directory (also the Refresh button)."""
 
     def __init__(self, gui: Any, directory: str | Path,
-                 record_args: Sequence[str] | None = None, rig_name: str = "rig") -> None:
-        """`record_args`: the `dobtune record` arguments that reach the rig (`--connect`,
-        `--rig-name`, credentials), without `--out`; None: no Record button."""
+                 record: RecordOptions | None = None, rig_name: str = "rig") -> None:
+        """`record`: how the recorder reaches the rig (endpoints, rig name, credentials; its
+        `out` is replaced by a new file of the directory); None: no Record button."""
         self.gui = gui
         self.directory = Path(directory)
-        self._record_args = None if record_args is None else tuple(record_args)
+        self._record = record
         self._rig_name = rig_name
         self._rec_stop: threading.Event | None = None
         self._rec_thread: threading.Thread | None = None
@@ -135,7 +135,7 @@ class RecordingsPanel:
         long recording takes seconds to read) or here."""
         gui = self.gui
         gui.add_markdown(f"Recordings in `{self.directory}` (`dobtune record`, black box).")
-        if self._record_args is not None:
+        if self._record is not None:
             rec = gui.add_button_group("Record", ("Record", "Stop recording"),
                                        hint="record this rig (every tick, status, versions, "
                                        "events) into a new .mcap file in the directory")
@@ -246,9 +246,7 @@ class RecordingsPanel:
     def start_recording(self) -> Path | None:
         """Record the rig into a new file of the directory until `stop_recording` (None:
         already recording, or no Record button)."""
-        from controller.cli.record import add_arguments, record_main
-
-        if self._record_args is None:
+        if self._record is None:
             return None
         with self._lock:
             if self._rec_thread is not None and self._rec_thread.is_alive():
@@ -260,20 +258,23 @@ class RecordingsPanel:
                 self._say_record(f"Cannot record into {self.directory}: {exc}", error=True)
                 return None
             out = self.directory / f"{time.strftime('%Y%m%d-%H%M%S')}-{self._rig_name}.mcap"
-            parser = argparse.ArgumentParser(prog="record", exit_on_error=False)
-            add_arguments(parser)
-            args = parser.parse_args([*self._record_args, "--out", str(out)])
+            try:
+                recorder = Recorder(dataclasses.replace(self._record, out=out))
+            except ValueError as exc:
+                self._say_record(f"Cannot record: {exc}", error=True)
+                return None
             stop = threading.Event()
 
             def run() -> None:
-                text = io.StringIO()
                 try:
-                    code = record_main(args, text, stop)
+                    text, failed = recorder.run(stop).summary(), False
+                except ControllerUnavailable as exc:
+                    text, failed = f"error: {exc}", True
                 except Exception as exc:  # told in the panel and logged; never silent
                     log.exception("recording to %s failed", out)
-                    code, text = 1, io.StringIO(f"recording failed: {exc}")
-                self.last_record_output = text.getvalue().strip()
-                self._say_record(self.last_record_output, error=code != 0)
+                    text, failed = f"recording failed: {exc}", True
+                self.last_record_output = text
+                self._say_record(text, error=failed)
                 self.refresh()
 
             self._rec_stop, self.recording_to = stop, out

@@ -30,7 +30,7 @@ import zenoh
 
 from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
-from controller.zenoh_session import zenoh_config
+from controller.client.session import zenoh_config
 from server.demo import DemoOptions, fleet_processes
 
 

@@ -21,11 +21,11 @@ import time
 import numpy as np
 
 from controller import protocol as proto
+from controller.client.session import SessionOptions, connect
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.process.runtime import Runtime, RuntimeOptions, try_realtime_priority
 from controller.sim.sim_rig import SimRig
-from controller.zenoh_session import open_session
 
 
 def run(duration_s: float, realtime: bool, publish: bool) -> dict[str, float]:
@@ -36,7 +36,7 @@ def run(duration_s: float, realtime: bool, publish: bool) -> dict[str, float]:
         options=RuntimeOptions(timing_capacity=1 << 22),
     )
     stop = threading.Event()
-    with open_session(listen=(), connect=()) as session:
+    with connect(SessionOptions()) as session:
         pub = session.declare_publisher(proto.key_state("bench"))
 
         def sink(seq0: int, version: int, mode: str, cols: list[list[float]]) -> None:

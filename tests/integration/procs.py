@@ -22,8 +22,8 @@ from typing import Any
 import zenoh
 
 from controller import protocol as proto
+from controller.client.session import SessionOptions, connect
 from controller.core.config import LoopConfig
-from controller.zenoh_session import open_session
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -195,7 +195,7 @@ class Client:
         self._status_lock = threading.Lock()
 
     def __enter__(self) -> Client:
-        self.session = self._stack.enter_context(open_session(listen=(), connect=[self.endpoint]))
+        self.session = self._stack.enter_context(connect(SessionOptions(connect=(self.endpoint,))))
         sub = self.session.declare_subscriber(proto.key_status(self.rig), self._on_status)
         self._stack.callback(sub.undeclare)
         return self
@@ -271,8 +271,10 @@ class Client:
     def put_estop(self, payload: bytes = b"") -> None:
         self.session.put(proto.key_estop(self.rig), payload)
 
-    def wait_ready(self, proc: ControllerProcess | None = None, timeout_s: float = 30.0) -> None:
-        """Until the controller answers a config GET (its queryable is up)."""
+    def wait_ready(self, proc: ControllerProcess | None = None, timeout_s: float = 120.0) -> None:
+        """Until the controller answers a config GET (its queryable is up). The deadline is
+        generous: start-up (the first gate run) takes 30-60 s at load 15 on 2 cores, and a
+        controller that exits is reported at once."""
         deadline = time.monotonic() + timeout_s
         last = ""
         while time.monotonic() < deadline:

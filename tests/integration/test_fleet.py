@@ -17,7 +17,8 @@ from typing import Any
 import pytest
 from procs import REPO, ControllerProcess, free_port, port_is_free, wait_until
 
-from controller.cli import build_parser, controller_commands
+from controller.cli.commands import controller_commands
+from controller.cli.common import build_parser
 
 ROUTER_CODE = ("import sys; from server.__main__ import dobtune_main; "
                "sys.exit(dobtune_main(['router', *sys.argv[1:]]))")

@@ -22,9 +22,10 @@ import zenoh
 from procs import ControllerProcess, start_controller, wait_until
 
 from controller import protocol as proto
-from controller.auth import client_config, init_auth_dir, new_users
+from controller.auth import init_auth_dir, new_users
 from controller.cli.audit import verify_main
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
+from controller.client.session import client_config
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import KnowledgeRecord

@@ -18,8 +18,8 @@ from procs import Client, ControllerProcess, wait_until
 from controller import protocol as proto
 from controller.cli.record import record_main
 from controller.cli.report import report_main
+from controller.client.session import SessionOptions, connect
 from controller.recording.mcap_io import read_recording
-from controller.zenoh_session import open_session
 
 
 def _record(controller: ControllerProcess, out: Path, seconds: float) -> tuple[int, str]:
@@ -82,7 +82,7 @@ def test_zenoh_samples_carry_their_encoding(
     controller: ControllerProcess, client: Client
 ) -> None:
     got: dict[str, str] = {}
-    with open_session(listen=(), connect=[controller.endpoint]) as s:
+    with connect(SessionOptions(connect=(controller.endpoint,))) as s:
         sub = s.declare_subscriber(proto.key_state(controller.rig),
                                    zenoh.handlers.FifoChannel(64))
         sub2 = s.declare_subscriber(proto.key_status(controller.rig),

@@ -17,8 +17,8 @@ from procs import ControllerProcess, free_port, wait_until
 from controller import protocol as proto
 from controller.auth import init_auth_dir, new_users
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
+from controller.client.session import zenoh_config
 from controller.tls import SERVER_CERT, SERVER_KEY, make_tls
-from controller.zenoh_session import zenoh_config
 
 
 def _auth(dir_: Path) -> Path:

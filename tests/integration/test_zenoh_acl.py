@@ -26,14 +26,12 @@ from procs import free_port, wait_until
 from controller import protocol as proto
 from controller.auth import (
     any_user_key,
-    client_config,
     init_auth_dir,
     new_users,
-    server_config,
     user_key,
     user_of_key,
 )
-from controller.zenoh_session import zenoh_config
+from controller.client.session import client_config, server_config, zenoh_config
 
 pytestmark = pytest.mark.integration
 

@@ -19,10 +19,16 @@ import msgspec
 import numpy as np
 
 from controller import protocol as proto
+from controller.client.session import SessionOptions, connect
 from controller.core.config import LoopConfig
-from controller.zenoh_session import open_session
 
-__all__ = ["ClientOptions", "ControllerClient", "ControllerUnavailable", "StateRing"]
+__all__ = [
+    "ClientOptions",
+    "ControllerClient",
+    "ControllerUnavailable",
+    "StateRing",
+    "open_client_session",
+]
 
 log = logging.getLogger(__name__)
 
@@ -386,23 +392,24 @@ class ControllerClient:
 def open_client_session(o: ClientOptions) -> Any:
     """A Zenoh session as `o` says (with `o.auth`: logged in as `o.user`); ControllerUnavailable
     when the credentials reach nothing within `o.connect_timeout_s`."""
-    if o.auth is None:
-        if o.user:
-            raise ValueError("user: needs auth (the credentials of that user)")
-        return open_session(o.listen, o.connect)
     import zenoh
 
-    from controller.auth import AuthError, client_config
+    from controller.auth import AuthError
 
+    so = SessionOptions(connect=tuple(o.connect), listen=tuple(o.listen), auth=o.auth,
+                        user=o.user, fail_after_s=o.connect_timeout_s if o.auth else None)
+    if o.auth is None:
+        try:
+            return connect(so)
+        except zenoh.ZError as exc:
+            raise ControllerUnavailable(
+                f"no connection to {', '.join(o.connect)}: {exc}") from exc
     if not o.user:
         raise ValueError("user: required with auth")
     try:
-        conf = client_config(o.auth, o.user, o.connect, o.listen,
-                             fail_after_s=o.connect_timeout_s)
+        return connect(so)
     except (AuthError, KeyError, OSError) as exc:
         raise ControllerUnavailable(f"credentials of {o.user!r}: {exc}") from exc
-    try:
-        return zenoh.open(conf)
     except zenoh.ZError as exc:
         raise ControllerUnavailable(
             f"no connection to {', '.join(o.connect)} as {o.user!r} within "

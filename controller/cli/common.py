@@ -1,0 +1,112 @@
+"""What every `dobtune` subcommand shares: the `Command` record, the parser that builds them
+(options anywhere on the line), `--log-level`, on/off switches, progress and tables."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, TextIO
+
+__all__ = [
+    "LOG_LEVELS",
+    "Command",
+    "IntermixedParser",
+    "add_log_level",
+    "build_parser",
+    "markdown_table",
+    "on_off",
+    "progress_printer",
+]
+
+
+@dataclass(frozen=True)
+class Command:
+    """One subcommand: `add_arguments` declares its options, `run` returns the exit code."""
+
+    name: str
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+    long_running: bool = False
+
+
+class IntermixedParser(argparse.ArgumentParser):
+    """A parser whose options may come anywhere among its positionals, as in every common CLI
+    (`dobtune ctl ... apply --expect-version 1 q_cutoff_hz=0.8`): its parses are
+    `parse_known_intermixed_args`, also when it is a subcommand's parser."""
+
+    _intermixing = False
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: Any = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        if self._intermixing or self._subparsers is not None:
+            return super().parse_known_args(args, namespace)
+        self._intermixing = True
+        try:
+            return self.parse_known_intermixed_args(args, namespace)
+        finally:
+            self._intermixing = False
+
+
+def on_off(value: str) -> bool:
+    """argparse type for `on|off` switches."""
+    if value not in ("on", "off"):
+        raise argparse.ArgumentTypeError(f"expected on or off, got {value!r}")
+    return value == "on"
+
+
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def add_log_level(p: argparse.ArgumentParser) -> None:
+    """`--log-level` for long-running commands (logs go to stderr)."""
+    p.add_argument(
+        "--log-level", choices=LOG_LEVELS, default="info", help="stderr log level (default info)"
+    )
+
+
+def build_parser(
+    prog: str, description: str | None, commands: dict[str, Command]
+) -> argparse.ArgumentParser:
+    """A parser with one subparser per command (each takes its options anywhere)."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=IntermixedParser)
+    for cmd in commands.values():
+        p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
+        cmd.add_arguments(p)
+        if cmd.long_running:
+            add_log_level(p)
+    return parser
+
+
+def progress_printer(err: TextIO, label: str) -> Callable[[float], None] | None:
+    """A progress bar on `err` when it is a terminal (None otherwise)."""
+    if not err.isatty():
+        return None
+    last = [-1]
+
+    def show(fraction: float) -> None:
+        pct = int(fraction * 100)
+        if pct != last[0]:
+            last[0] = pct
+            bar = "#" * (pct // 4)
+            err.write(f"\r{label:<10} [{bar:<25}] {pct:3d} %")
+            if pct >= 100:
+                err.write("\n")
+            err.flush()
+
+    return show
+
+
+def markdown_table(columns: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """A GitHub-flavoured markdown table (pipes in cells escaped)."""
+
+    def cell(x: str) -> str:
+        return str(x).replace("|", "\\|")
+
+    lines = ["| " + " | ".join(cell(c) for c in columns) + " |",
+             "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(cell(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"

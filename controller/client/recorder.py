@@ -1,0 +1,194 @@
+"""Recording a running controller into an MCAP file: a library object that returns a result.
+
+One message per loop tick on `/state`, every Status on `/status`, each configuration version
+on `/config`, and events (lost samples, mode changes, watchdog trips, identification runs with
+what they executed, for `dobtune identify --from`) on `/events`. `dobtune record` and the
+dashboard's Recordings tab are front ends over `Recorder`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from controller import protocol as proto
+from controller.client.controller_client import (
+    ClientOptions,
+    ControllerUnavailable,
+    open_client_session,
+)
+
+__all__ = ["RecordOptions", "RecordResult", "Recorder", "identify_event"]
+
+#: How often the recorder asks the controller for its identification status.
+IDENTIFY_POLL_S = 0.5
+
+
+@dataclass(frozen=True)
+class RecordOptions:
+    connect: tuple[str, ...]
+    out: Path
+    rig_name: str = "demo"
+    duration_s: float | None = None
+    """None: until `stop` is set."""
+    auth: Path | None = None
+    user: str = ""
+    timeout_s: float = 10.0
+    """Give up (ControllerUnavailable) when no state arrived within this long."""
+
+
+@dataclass(frozen=True)
+class RecordResult:
+    path: Path
+    samples: int
+    lost: int
+    """Samples missing by sequence number (recorded as events, not an error)."""
+    undecodable: int
+    duration_s: float
+    size_bytes: int
+
+    def summary(self) -> str:
+        bad = f", {self.undecodable} undecodable" if self.undecodable else ""
+        return (f"recorded {self.samples} samples ({self.lost} lost{bad}) in "
+                f"{self.duration_s:.1f} s to {self.path} ({self.size_bytes / 1e6:.2f} MB)")
+
+
+class _IdentifyWatch:
+    """Records an `identify` event whenever the controller's identification run changes state
+    (run id, state): the run's spec, configuration, start position and first tick
+    (`IdentifyRun`), which `dobtune identify --from` needs to analyse the run again."""
+
+    def __init__(self) -> None:
+        self.last: tuple[int, str] | None = None
+        self.failed = False
+
+    def poll(self, session: Any, key: str, rec: Any) -> None:
+        try:
+            replies = list(session.get(key, timeout=1.0))
+            ok = [r.ok for r in replies if r.ok is not None]
+            if not ok:
+                raise ValueError("no reply")
+            st = proto.decode(ok[0].payload.to_bytes(), proto.IdentifyStatus)
+        except Exception as exc:  # said once in the recording, the recording goes on
+            if not self.failed:
+                self.failed = True
+                rec.event("note", f"identification status unavailable: {exc}")
+            return
+        now = (st.run_id, st.state)
+        if st.run is None or now == self.last:
+            return
+        self.last = now
+        identify_event(rec, st)
+
+
+def identify_event(rec: Any, st: Any) -> None:
+    """Record the `identify` event of an IdentifyStatus `st` (which carries `run`) into the
+    MCAP writer `rec`: what `dobtune identify --from` reads."""
+    rec.event(
+        "identify",
+        f"identification {st.run_id}: {st.state}"
+        + (f" ({st.abort_reason})" if st.abort_reason else ""),
+        run_id=st.run_id,
+        state=st.state,
+        abort_reason=st.abort_reason,
+        run=msgspec.to_builtins(st.run),
+    )
+
+
+class Recorder:
+    """Records one rig until the duration is over or `stop` is set (`run`)."""
+
+    def __init__(self, opts: RecordOptions) -> None:
+        """ValueError naming the option when `opts` cannot work."""
+        if opts.duration_s is not None and not (0.0 < opts.duration_s <= 86_400.0):
+            raise ValueError(f"--duration: {opts.duration_s} not in (0, 86400] s")
+        try:
+            proto.check_rig_name(opts.rig_name)
+        except ValueError as exc:
+            raise ValueError(f"--rig-name: {exc}") from exc
+        if not Path(opts.out).parent.is_dir():
+            raise ValueError(f"--out: directory {Path(opts.out).parent} does not exist")
+        self.opts = opts
+
+    def run(self, stop: threading.Event | None = None) -> RecordResult:
+        """Record; ControllerUnavailable when there is no connection or no state arrived within
+        `timeout_s` (the file is then written, empty)."""
+        import zenoh
+
+        from controller.recording.mcap_io import Recorder as McapWriter
+
+        o = self.opts
+        stop = stop if stop is not None else threading.Event()
+        client = ClientOptions(connect=tuple(o.connect), rig_name=o.rig_name, auth=o.auth,
+                               user=o.user, connect_timeout_s=o.timeout_s, client_name="record")
+        try:
+            session = open_client_session(client)
+        except ControllerUnavailable:
+            raise
+        except Exception as exc:  # zenoh.ZError, AuthError: said plainly
+            raise ControllerUnavailable(
+                f"no connection to {', '.join(o.connect)}: {exc}") from exc
+        t0 = time.monotonic()
+        last_status = ""
+        bad = 0
+        identify_key = proto.key_identify(o.rig_name)
+        if o.auth is not None:
+            identify_key = proto.user_key(identify_key, o.user)
+        identify = _IdentifyWatch()
+        next_poll = t0
+        with session, McapWriter(Path(o.out), rig=o.rig_name) as rec:
+            state = session.declare_subscriber(proto.key_state(o.rig_name),
+                                               zenoh.handlers.FifoChannel(16384))
+            status = session.declare_subscriber(proto.key_status(o.rig_name),
+                                                zenoh.handlers.FifoChannel(256))
+            try:
+                while not stop.is_set():
+                    if o.duration_s is not None and time.monotonic() - t0 >= o.duration_s:
+                        break
+                    if rec.samples == 0 and time.monotonic() - t0 > o.timeout_s:
+                        break
+                    got = False
+                    for sample in iter(state.try_recv, None):
+                        got = True
+                        try:
+                            rec.state(proto.decode(sample.payload.to_bytes(), proto.StateBatch))
+                        except proto.ProtocolError as exc:
+                            bad += 1
+                            rec.event("note", f"undecodable state message: {exc}")
+                    for sample in iter(status.try_recv, None):
+                        got = True
+                        try:
+                            st = proto.decode(sample.payload.to_bytes(), proto.Status)
+                        except proto.ProtocolError as exc:
+                            bad += 1
+                            rec.event("note", f"undecodable status message: {exc}")
+                            continue
+                        rec.status(st, time.time())
+                        text = f"{st.mode}|{st.watchdog}|{';'.join(st.faults)}"
+                        if text != last_status and last_status:
+                            rec.event("status", f"mode {st.mode}; faults: "
+                                      f"{'; '.join(st.faults) or '-'}; {st.watchdog}",
+                                      time.time())
+                        last_status = text
+                    if time.monotonic() >= next_poll:
+                        next_poll = time.monotonic() + IDENTIFY_POLL_S
+                        identify.poll(session, identify_key, rec)
+                    if not got:
+                        stop.wait(0.01)
+                identify.poll(session, identify_key, rec)  # a run that ended in the last poll
+            finally:
+                state.undeclare()
+                status.undeclare()
+            n, gaps = rec.samples, rec.gaps
+        if n == 0:
+            raise ControllerUnavailable(
+                f"no state from rig {o.rig_name!r} on {', '.join(o.connect)} within "
+                f"{o.timeout_s:g} s (wrong endpoint, rig name or credentials)")
+        path = Path(o.out)
+        return RecordResult(path=path, samples=n, lost=gaps, undecodable=bad,
+                            duration_s=time.monotonic() - t0, size_bytes=path.stat().st_size)

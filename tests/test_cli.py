@@ -1,0 +1,54 @@
+"""The `dobtune` command line: options anywhere on the line, and an entry point that loads no
+dashboard for the controller's commands."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from controller.cli.commands import controller_commands
+from controller.cli.common import build_parser
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def parse(line: str) -> object:
+    return build_parser("dobtune", None, controller_commands()).parse_args(line.split())
+
+
+def test_options_anywhere_on_the_line() -> None:
+    a = parse("ctl --connect tcp/127.0.0.1:7447 apply --expect-version 1 q_cutoff_hz=0.8")
+    assert (a.action, a.args, a.expect_version) == ("apply", ["q_cutoff_hz=0.8"], 1)  # type: ignore[attr-defined]
+    b = parse("ctl apply q_cutoff_hz=0.8 --confirm dob_on=false --connect tcp/127.0.0.1:7447 "
+              "--rig-name r2")
+    assert b.args == ["q_cutoff_hz=0.8", "dob_on=false"] and b.confirm  # type: ignore[attr-defined]
+    assert b.rig_name == "r2" and b.connect == ["tcp/127.0.0.1:7447"]  # type: ignore[attr-defined]
+
+
+def test_unknown_options_are_still_refused() -> None:
+    with pytest.raises(SystemExit) as exc:
+        parse("ctl --connect tcp/127.0.0.1:7447 status --no-such-option")
+    assert exc.value.code == 2
+
+
+PROBE = """
+import sys
+from server.__main__ import dobtune_main
+for name in {names!r}:
+    try:
+        dobtune_main([name, "--help"])
+    except SystemExit:
+        pass
+print(sorted({{m.split(".")[0] for m in sys.modules}} & {{"viser", "zenoh"}}),
+      sorted(m for m in sys.modules if m.startswith("server.") and m != "server.__main__"))
+"""
+
+
+def test_the_entry_point_loads_no_dashboard_for_controller_commands() -> None:
+    names = sorted(controller_commands())
+    out = subprocess.run([sys.executable, "-c", PROBE.format(names=names)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120, check=True).stdout
+    assert out.strip().splitlines()[-1] == "[] []", out
