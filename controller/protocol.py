@@ -214,7 +214,7 @@ class Status(_Msg, frozen=True, kw_only=True):
     timing: Timing
     faults: list[str]
     operator: str = ""
-    estop_seq: int = -1  # sequence number of the first tick of the latest e-stop
+    estop_seq: int = -1  # first tick of the latest e-stop (each e-stop, also while latched)
     notes: list[str] = []  # non-fault information (e.g. real-time priority refused)
     knowledge_version: int = 0  # the plant knowledge every verdict is judged on
     knowledge: str = ""  # its one-line description (version, source, band)
@@ -354,7 +354,12 @@ class EStop(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=Tru
 class ResetFault(
     msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="reset"
 ):
-    pass
+    """Leave e-stop or fault. `estop_seq`: the latest e-stop its sender saw (Status.estop_seq,
+    -1 if none): a reset acknowledges only that e-stop and is refused when a newer one exists
+    (an e-stop pressed in another session a moment earlier). Required: a reset without it (an
+    older client) is refused, naming `body.estop_seq`."""
+
+    estop_seq: int | None = None
 
 
 class IdentifyStart(

@@ -72,7 +72,7 @@ def apply(node: ZenohNode, candidate: LoopConfig) -> proto.ConfigReply:
         (proto.Start(), rq.Start()),
         (proto.Stop(), rq.Stop()),
         (proto.EStop(), rq.EStop()),
-        (proto.ResetFault(), rq.ResetFault()),
+        (proto.ResetFault(estop_seq=3), rq.ResetFault(3)),
         (
             proto.SetTrajectory(trajectory=Trajectory(kind="hold")),
             rq.SetTrajectory(Trajectory(kind="hold")),
@@ -93,7 +93,7 @@ def test_commands_reach_the_tick_and_are_logged(
     estop = command(node, proto.EStop())
     assert estop.ok and estop.mode == "estop" and node.rt.estop_source == "command"
     assert not command(node, proto.Start()).ok
-    reset = command(node, proto.ResetFault())
+    reset = command(node, proto.ResetFault(estop_seq=node.rt.estop_seq))
     assert reset.ok and reset.mode == "stopped"
     node.events.poll()
     text = caplog.text
@@ -200,11 +200,37 @@ def test_a_reset_that_arrived_before_an_estop_is_refused(node: ZenohNode) -> Non
     assert command(node, proto.EStop()).ok
     reset_arrival = node.rt.next_arrival()  # the reset's query arrives first ...
     node.rt.estop("estop key", node.rt.next_arrival())  # ... then an e-stop on the key
-    query = FakeQuery(proto.encode(proto.Command(body=proto.ResetFault(), client="unit")))
+    seen = node.rt.estop_seq
+    query = FakeQuery(proto.encode(proto.Command(body=proto.ResetFault(estop_seq=seen),
+                                                 client="unit")))
     serve_one(node, query, reset_arrival, node.handle_command)
     reply = proto.decode(query.replies[0], proto.CommandReply)
     assert not reply.ok and "e-stop arrived after this reset" in reply.message
     assert node.rt.mode == "estop"
+
+
+def test_a_reset_is_refused_when_a_newer_estop_exists_and_without_estop_seq(
+    node: ZenohNode,
+) -> None:
+    """Issue 24: a reset clears only the e-stop its sender saw. An operator saw the e-stop at
+    seq S; a viewer's e-stop reaches the controller first; the operator's reset (carrying S)
+    is refused and the rig stays stopped. A reset without estop_seq (an older client) gets a
+    refusal naming the field."""
+    first = command(node, proto.EStop())
+    assert first.ok and node.rt.estop_seq == first.seq
+    seen = node.rt.estop_seq  # what the operator's Status showed
+    second = command(node, proto.EStop())  # another session, while latched
+    assert second.ok and second.seq > seen and node.rt.estop_seq == second.seq
+    stale = command(node, proto.ResetFault(estop_seq=seen))
+    assert not stale.ok and stale.mode == "estop" and stale.field == "body.estop_seq"
+    assert f"seq {seen}" in stale.message and f"seq {second.seq}" in stale.message
+    legacy = command(node, proto.ResetFault())
+    assert not legacy.ok and legacy.field == "body.estop_seq" and legacy.mode == "estop"
+    assert "estop_seq" in legacy.message
+    assert node.rt.mode == "estop"
+    # The reset that names the latest e-stop works.
+    assert command(node, proto.ResetFault(estop_seq=second.seq)).ok
+    assert node.rt.mode == "stopped"
 
 
 def test_handler_errors_never_reach_the_client_as_text(node: ZenohNode) -> None:
@@ -222,7 +248,7 @@ def test_the_latch_is_written_and_cleared(node: ZenohNode) -> None:
     node.write_latch()
     latch = store.load_latch()
     assert latch is not None and latch.mode == "estop" and latch.reason == "command"
-    assert command(node, proto.ResetFault()).ok
+    assert command(node, proto.ResetFault(estop_seq=node.rt.estop_seq)).ok
     node.write_latch()
     assert store.load_latch() is None
 

@@ -288,7 +288,7 @@ def test_estop_zeroes_the_command_from_the_next_tick_and_stops_the_drive() -> No
     assert rig.stops > stops + 1
     # Start is refused until reset; reset holds the present position.
     t_start = rt.submit(Start())
-    t_reset = rt.submit(ResetFault())
+    t_reset = rt.submit(ResetFault(rt.estop_seq))
     t_start2 = rt.submit(Start())
     more(rt, 1)
     assert not t_start.ok and "reset" in t_start.message
@@ -370,7 +370,7 @@ def test_an_estop_arriving_during_a_reset_is_not_lost() -> None:
     rt.estop("first")
     rt.run(max_ticks=3)
     assert rt.mode == ESTOP
-    reset = rt.submit(ResetFault())
+    reset = rt.submit(ResetFault(rt.estop_seq))
     more(rt, 2)
     assert reset.ok
     assert rt.mode == ESTOP and rt.estop_source == "during reset"
@@ -503,12 +503,12 @@ def test_a_reset_that_arrived_before_an_estop_never_clears_it() -> None:
     reset_arrival = rt.next_arrival()
     rt.estop("second", rt.next_arrival())
     with rt.arrival_scope(reset_arrival):
-        late_reset = rt.submit(ResetFault())
+        late_reset = rt.submit(ResetFault(rt.estop_seq))
     more(rt, 2)
     assert not late_reset.ok and "e-stop arrived after this reset" in late_reset.message
-    assert rt.mode == ESTOP and rt.estop_source == "first"
+    assert rt.mode == ESTOP and rt.estop_source == "second"
     # A reset that arrived after the e-stop works.
-    reset = rt.submit(ResetFault())
+    reset = rt.submit(ResetFault(rt.estop_seq))
     more(rt, 2)
     assert reset.ok and rt.mode == STOPPED
 
@@ -518,7 +518,7 @@ def test_a_reset_stamped_before_a_pending_estop_is_refused() -> None:
     rt.estop("first")
     rt.run(max_ticks=2)
     with rt.arrival_scope(rt.next_arrival()):
-        reset = rt.submit(ResetFault())
+        reset = rt.submit(ResetFault(rt.estop_seq))
     rt.estop("second")  # pending when the tick serves the reset
     more(rt, 1)
     assert not reset.ok and rt.mode == ESTOP
@@ -531,7 +531,7 @@ def test_latch_changes_are_signalled_and_a_restored_latch_holds() -> None:
     assert rt.mode == ESTOP and rig.stops >= 1 and set(rig.commands) == {0.0}
     assert not rt.submit(Start()).wait(0.0)
     rt.latch_changed.clear()
-    reset = rt.submit(ResetFault())
+    reset = rt.submit(ResetFault(rt.estop_seq))
     more(rt, 1)
     assert reset.ok and rt.mode == STOPPED and rt.latch_changed.is_set()
     rt.latch_changed.clear()
@@ -558,7 +558,7 @@ def test_start_after_a_reset_far_from_the_trajectory_approaches_with_bounded_spe
         # While e-stopped the load is moved far away (by hand): 150 deg off the trajectory.
         rig.reset(position_deg=150.0)
         more(rt, 5)
-        reset = rt.submit(ResetFault())
+        reset = rt.submit(ResetFault(rt.estop_seq))
         start = rt.submit(Start())
         more(rt, 12000)
     finally:

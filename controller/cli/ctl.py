@@ -212,8 +212,12 @@ def _change(
         except msgspec.ValidationError as exc:
             raise _BadInput(f"identify: {exc}") from exc
         body: Any = proto.IdentifyStart(spec=spec)
+    elif action == "reset":
+        # The reset acknowledges the latest e-stop this status shows (a newer one refuses it).
+        st = c.status or _wait_status(c)
+        body = proto.ResetFault(estop_seq=st.estop_seq)
     else:
-        body = {"start": proto.Start(), "stop": proto.Stop(), "reset": proto.ResetFault()}[action]
+        body = {"start": proto.Start(), "stop": proto.Stop()}[action]
     r = c.command(body)
     _emit(
         out,

@@ -360,6 +360,18 @@ class ControllerClient:
         msg = proto.Command(body=body, client=self.opts.client_name, lease=self.lease_token)
         return self.query(proto.key_command(self.opts.rig_name), msg, proto.CommandReply)
 
+    def reset(self, estop_seq: int | None = None) -> proto.CommandReply:
+        """ResetFault acknowledging the e-stop at `estop_seq` (default: the latest this client's
+        Status shows): refused when a newer e-stop exists. ControllerUnavailable when no Status
+        has arrived (what would the reset acknowledge?)."""
+        if estop_seq is None:
+            st = self._status
+            if st is None:
+                raise ControllerUnavailable("reset: no status received yet (the reset names the "
+                                            "latest e-stop seen in it)")
+            estop_seq = st.estop_seq
+        return self.command(proto.ResetFault(estop_seq=estop_seq))
+
     def lease(self, action: str = "status", duration_s: float = 60.0) -> proto.LeaseReply:
         """The operator lease: acquire / renew / release / takeover / status. A granted or
         renewed lease's token is kept and sent with every change from this client."""

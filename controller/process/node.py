@@ -53,7 +53,6 @@ _PLAIN_COMMANDS: dict[type, Callable[[], rq.RequestBody]] = {
     proto.Start: rq.Start,
     proto.Stop: rq.Stop,
     proto.EStop: rq.EStop,
-    proto.ResetFault: rq.ResetFault,
 }
 
 
@@ -63,6 +62,13 @@ def to_request(body: proto.CommandBody, client: str) -> rq.RequestBody:
     plain = _PLAIN_COMMANDS.get(type(body))
     if plain is not None:
         return plain()
+    if isinstance(body, proto.ResetFault):
+        if body.estop_seq is None:
+            raise ConfigError(
+                "estop_seq", "required: the latest e-stop the sender saw (Status.estop_seq, -1 "
+                "if none); a reset clears only that e-stop (update the client)"
+            )
+        return rq.ResetFault(body.estop_seq)
     if isinstance(body, proto.SetTrajectory):
         return rq.SetTrajectory(body.trajectory)
     if isinstance(body, proto.IdentifyAbort):

@@ -52,7 +52,11 @@ class EStop:
 
 @dataclass(frozen=True, slots=True)
 class ResetFault:
-    """Leave e-stop or fault: re-enable the drive, hold the present position (stopped)."""
+    """Leave e-stop or fault: re-enable the drive, hold the present position (stopped).
+    Refused unless `estop_seq` is the latest e-stop's (`Runtime.estop_seq`): a reset clears
+    only the e-stop its sender saw."""
+
+    estop_seq: int
 
 
 class ApplyCoefficients:

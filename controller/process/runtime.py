@@ -149,7 +149,9 @@ class TimingSnapshot:
 class Ticket:
     """One request to the tick; the tick fills the result and sets `done`."""
 
-    __slots__ = ("arrival", "body", "done", "message", "mode", "ok", "received_seq", "seq")
+    __slots__ = (
+        "arrival", "body", "done", "field", "message", "mode", "ok", "received_seq", "seq",
+    )
 
     def __init__(self, body: RequestBody, received_seq: int, arrival: int = -1) -> None:
         self.body = body
@@ -159,6 +161,8 @@ class Ticket:
         self.done = threading.Event()
         self.ok = False
         self.message = ""
+        self.field = ""
+        """The request's field a refusal is about ("" none)."""
         self.mode = ""
         self.seq = -1
 
@@ -669,6 +673,12 @@ class Runtime:
     def _enter_estop(self, source: str) -> None:
         self._estop_request = None
         if self.mode == ESTOP:
+            # Already latched: still a new e-stop. A reset acknowledges only the e-stop its
+            # sender saw (`estop_seq`), so one pressed meanwhile in another session is not
+            # cleared by a reset that was sent for the earlier one.
+            self.estop_seq = self.seq + 1
+            self.estop_source = source
+            self.latch_changed.set()
             return
         self.mode = ESTOP
         self.estop_seq = self.seq + 1
@@ -770,11 +780,11 @@ class Runtime:
             t.ok = self.mode == STOPPED
             t.message = "" if t.ok else f"mode is {self.mode}"
         elif isinstance(b, ResetFault):
-            self._reset(t, pos)
+            self._reset(t, b.estop_seq, pos)
         else:
             t.ok, t.message = False, f"unknown request {type(b).__name__}"
 
-    def _reset(self, t: Ticket, pos: float) -> None:
+    def _reset(self, t: Ticket, seen: int, pos: float) -> None:
         if t.arrival < self._estop_arrival:
             # Sent before the latest e-stop (served late only because the e-stop needs no
             # queue): it must not undo it. Also when that e-stop is still pending.
@@ -783,6 +793,14 @@ class Runtime:
             return
         if self.mode not in (ESTOP, FAULT):
             t.ok, t.message = True, f"nothing to reset (mode {self.mode})"
+            return
+        if seen != self.estop_seq:
+            t.ok, t.field = False, "estop_seq"
+            t.message = (
+                f"estop_seq: this reset acknowledges the e-stop at seq {seen}, the latest "
+                f"e-stop is at seq {self.estop_seq} ({self.estop_source}): it was not seen "
+                "by the sender; look at the rig and send reset again with that estop_seq"
+            )
             return
         if self._rig_start is not None:
             # Re-enabling a drive (CAN: NMT + enable state machine) blocks this tick; the

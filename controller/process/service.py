@@ -368,6 +368,7 @@ class ControllerService:
             ok=ticket.ok,
             message=ticket.message,
             mode=ticket.mode,
+            field=f"body.{ticket.field}" if ticket.field else "",
             seq=ticket.seq,
             received_seq=ticket.received_seq,
         )

@@ -150,7 +150,12 @@ class LivePanel:
                     f"<b>The axis moves</b>: from its present position onto {traj} (speed and "
                     "acceleration bounded).", "Start", lambda who: self._send(proto.Start(), who))
             return
-        body: proto.CommandBody = proto.Stop() if v == "Stop" else proto.ResetFault()
+        # A reset acknowledges the latest e-stop the dashboard shows: the controller refuses
+        # it when a newer one exists (pressed meanwhile, in another session).
+        st = self.client.status
+        body: proto.CommandBody = proto.Stop() if v == "Stop" else proto.ResetFault(
+            estop_seq=None if st is None else st.estop_seq
+        )
         self._send(body, event.client)
 
     def _confirm_trajectory(self, browser: Any) -> None:

@@ -61,7 +61,7 @@ def main() -> None:
                 lat_ms = []
                 with client.state() as col:
                     for i in range(args.n):
-                        client.command(proto.ResetFault())
+                        client.reset()
                         client.command(proto.Start())
                         assert wait_until(lambda: col.last_seq() >= 0, 5.0)
                         seq_before = col.last_seq()

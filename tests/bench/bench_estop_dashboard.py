@@ -72,7 +72,7 @@ def main() -> None:
                     live._send = timed
                     with client.state() as col:
                         for i in range(args.n):
-                            client.command(proto.ResetFault())
+                            client.reset()
                             client.command(proto.Start())
                             assert wait_until(lambda: col.last_seq() >= 0, 5.0)
                             before = col.last_seq()

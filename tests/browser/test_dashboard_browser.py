@@ -288,7 +288,7 @@ def test_the_big_estop_stays_in_view_when_everything_is_collapsed(
     the rig (a plain link to the dashboard's HTTP gate, not through viser's websocket)."""
     from controller import protocol as proto
 
-    assert probe.command(proto.ResetFault()).ok
+    assert probe.reset().ok
     assert probe.command(proto.Start()).ok
     _wait(lambda: probe.status is not None and probe.status.mode == "running", 10.0)
     for side in ("left", "right"):

@@ -268,6 +268,17 @@ class Client:
     def command(self, body: proto.CommandBody) -> proto.CommandReply:
         return self.command_raw(proto.encode(proto.Command(body=body, client="test")))
 
+    def reset(self, estop_seq: int | None = None) -> proto.CommandReply:
+        """ResetFault acknowledging `estop_seq` (default: the latest e-stop a status published
+        after this call shows; once more with the next status if an e-stop engaged between
+        that status and the reset)."""
+        if estop_seq is not None:
+            return self.command(proto.ResetFault(estop_seq=estop_seq))
+        reply = self.command(proto.ResetFault(estop_seq=self.fresh_status().estop_seq))
+        if reply.field == "body.estop_seq":
+            reply = self.command(proto.ResetFault(estop_seq=self.fresh_status().estop_seq))
+        return reply
+
     def put_estop(self, payload: bytes = b"") -> None:
         self.session.put(proto.key_estop(self.rig), payload)
 

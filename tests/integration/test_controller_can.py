@@ -109,7 +109,7 @@ def test_no_drive_on_the_bus_is_a_published_fault_and_zenoh_keeps_serving(
         assert all(u == 0.0 for _, b in col.batches() for u in b.command_deg_s)
         # Still serving: config, commands (a reset fails again: still no drive).
         assert c.get_config().accepted
-        reset = c.command(proto.ResetFault())
+        reset = c.reset()
         assert not reset.ok and reset.mode == "fault" and "did not enable" in reset.message
         assert not c.command(proto.Start()).ok
 

@@ -228,7 +228,7 @@ def test_estop_command_zeroes_the_command_at_the_next_tick(
     assert st.mode == "estop" and st.estop_seq == reply.seq
     # Start is refused until reset; reset -> stopped (holding), start -> running again.
     assert not client.command(proto.Start()).ok
-    reset = client.command(proto.ResetFault())
+    reset = client.reset()
     assert reset.ok and reset.mode == "stopped"
     start = client.command(proto.Start())
     assert start.ok and start.mode == "running"

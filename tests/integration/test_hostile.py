@@ -105,7 +105,7 @@ def _clean_lease(env: dict[str, Any]) -> Iterator[None]:
     with _client(env["auth"], env["proc"], "op1") as c:
         c.lease("takeover", 5.0)
         if _status(c).mode != "running":
-            c.command(proto.ResetFault())
+            c.reset()
             c.command(proto.Start())
         c.lease("release")
 
@@ -140,7 +140,7 @@ VIEWER_CHANGES: list[tuple[str, Callable[[ControllerClient], Any]]] = [
     ("apply confirmed", lambda c: c.apply(LoopConfig(q_cutoff_hz=5.0), confirm=True)),
     ("start", lambda c: c.command(proto.Start())),
     ("stop", lambda c: c.command(proto.Stop())),
-    ("reset", lambda c: c.command(proto.ResetFault())),
+    ("reset", lambda c: c.reset(-1)),
     ("trajectory", lambda c: c.command(proto.SetTrajectory(
         trajectory=Trajectory(kind="step", amplitude_deg=3000.0)))),
     ("identify", lambda c: c.command(proto.IdentifyStart())),
