@@ -68,9 +68,11 @@ def lines_of(path: Path) -> list[bytes]:
     return path.read_bytes().splitlines(keepends=True)
 
 
-def cli_verify(path: Path, anchor: str | None = None, as_json: bool = False) -> tuple[int, str]:
+def cli_verify(
+    path: Path, anchor: str | None = None, as_json: bool = False, accept_torn: bool = False
+) -> tuple[int, str]:
     out = io.StringIO()
-    return verify_main(path, anchor, as_json, out), out.getvalue()
+    return verify_main(path, anchor, as_json, out, accept_torn), out.getvalue()
 
 
 def cli_show(path: Path, as_json: bool = False, tail: int | None = None) -> tuple[int, str]:
@@ -357,13 +359,56 @@ def test_a_torn_last_line_is_kept_and_acknowledged_not_chained_over(tmp_path: Pa
     assert ack["damaged_bytes"] == len(torn) and ack["damaged_sha256"] == sha(torn)
     assert ack["prev"] == sha(lines[5].rstrip(b"\n"))  # chains from the last good record
     assert rec["seq"] == 7
+    # Acknowledged is not intact: a torn tail is also what erasing the last record leaves.
     result = verify(path)
-    assert result.ok and result.records == 8
-    assert len(result.damaged) == 1 and "line 7" in result.damaged[0]
+    assert not result.ok and result.bad_line == 7 and "torn tail" in result.reason
+    assert "--accept-torn-tail" in result.reason
     code, text = cli_verify(tmp_path)
-    assert code == 0 and "note: line 7" in text
+    assert code == 1 and "line 7: torn tail" in text
+    result = verify(path, accept_torn_tail=True)
+    assert result.ok and result.records == 8
+    assert len(result.accepted_torn) == 1 and "line 7" in result.accepted_torn[0]
+    code, text = cli_verify(tmp_path, accept_torn=True)
+    assert code == 0 and "ACCEPTED torn tail (--accept-torn-tail): line 7" in text
+    code, text = cli_verify(tmp_path, as_json=True, accept_torn=True)
+    assert code == 0 and len(json.loads(text)["accepted_torn"]) == 1
     _, shown = cli_show(tmp_path)
     assert "line 7: damaged" in shown
+
+
+def test_an_erased_last_record_is_not_acknowledged_away_by_a_restart(tmp_path: Path) -> None:
+    """Issue 24 item 6: cut the last record (an e-stop) to a torn tail, restart the controller
+    (it notes the torn tail), and the log still verified. Now `verify` fails at that line
+    until told to accept torn tails, and then says what it accepted."""
+    path = make_log(tmp_path, extra=1)
+    lines = lines_of(path)
+    assert json.loads(lines[-1])["action"] == "estop"
+    path.write_bytes(b"".join(lines[:-1]) + lines[-1][:40])  # the e-stop record erased
+    with AuditLog(path, rig="bench") as log:  # the controller restarts
+        assert log.recovered is not None and "torn" in log.recovered
+        log.record("controller.start", "controller", "noted")
+    code, text = cli_verify(tmp_path)
+    assert code == 1 and "line 7: torn tail: 40 damaged bytes after seq 5" in text
+    code, text = cli_verify(tmp_path, as_json=True)
+    assert code == 1 and json.loads(text)["bad_line"] == 7
+    code, text = cli_verify(tmp_path, accept_torn=True)
+    assert code == 0 and "ACCEPTED torn tail" in text and "40 damaged bytes" in text
+    # Before any restart (no acknowledgement) the same: fails, unless accepted.
+    (tmp_path / "b").mkdir()
+    other = make_log(tmp_path / "b", extra=1)
+    other.write_bytes(other.read_bytes()[:-30])
+    assert cli_verify(tmp_path / "b")[0] == 1
+    code, text = cli_verify(tmp_path / "b", accept_torn=True)
+    assert code == 0 and "torn last line" in text and "unacknowledged" in text
+
+
+def test_accepting_torn_tails_accepts_nothing_else(tmp_path: Path) -> None:
+    path = make_log(tmp_path)
+    path.write_bytes(path.read_bytes() + b"garbage\n")  # complete, not torn: not a crash
+    assert cli_verify(tmp_path, accept_torn=True)[0] == 1
+    path.write_bytes(b"".join(_replace_in(3, b'"bob"', b'"eve"')(lines_of(path)[:6])))
+    result = verify(path, accept_torn_tail=True)
+    assert not result.ok and result.bad_line == 4
 
 
 def test_tampering_with_the_acknowledgement_is_caught(tmp_path: Path) -> None:
@@ -410,8 +455,9 @@ def test_a_failed_write_is_acknowledged_by_the_next_record(
         assert not verify(path).ok
         log.record("estop", "a", "accepted")
         assert log.recovered is not None
-    result = verify(path)
-    assert result.ok and len(result.damaged) == 1
+    assert not verify(path).ok  # the half-written record stays evidence ...
+    result = verify(path, accept_torn_tail=True)  # ... accepted only when asked
+    assert result.ok and len(result.damaged) == 1 and len(result.accepted_torn) == 1
 
 
 @pytest.mark.parametrize(
@@ -458,7 +504,7 @@ def test_tail_recovery_reads_long_files_from_the_end(tmp_path: Path) -> None:
     with AuditLog(path) as log:
         assert log.recovered is not None
         assert log.record("estop", "a", "accepted")["seq"] == 307
-    assert verify(path).ok
+    assert verify(path, accept_torn_tail=True).ok
 
 
 # -- the command -----------------------------------------------------------------------------
@@ -501,7 +547,48 @@ def test_command_is_registered_with_its_subcommands() -> None:
     cmd.add_arguments(p)
     args = p.parse_args(["verify", "d", "--anchor", "ab"])
     assert (args.audit_command, args.dir, args.anchor) == ("verify", Path("d"), "ab")
+    assert not args.accept_torn_tail
+    assert p.parse_args(["verify", "d", "--accept-torn-tail"]).accept_torn_tail
     args = p.parse_args(["show", "d", "--json", "--tail", "5"])
     assert (args.audit_command, args.json, args.tail) == ("show", True, 5)
     with pytest.raises(SystemExit):
         p.parse_args(["show", "d", "--tail", "0"])
+
+
+# -- the controller's writer: nothing dropped while the file cannot be written ---------------
+
+
+def test_records_held_while_the_log_cannot_be_written_are_written_later_in_order(
+    tmp_path: Path,
+) -> None:
+    """Issue 24 item 9: records dropped while the file could not be written were lost. Now
+    they are held in order and retried; Status.notes (warn) says so, and when they are in."""
+    from controller.process.access import Access
+
+    path = tmp_path / AUDIT_FILE
+    audit = AuditLog(path, rig="r")
+    warnings: list[str] = []
+    access = Access(None, "r", audit, warnings.append)
+    access.start()
+    access.record("estop", "a", "accepted", n=0)
+    assert access.flush()
+    # The log's descriptor now refuses writes (what a full or failing disk does): the records
+    # pile up instead of being dropped.
+    good = os.dup(audit._fd)
+    bad = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(bad, audit._fd)
+    for n in range(1, 6):
+        access.record("estop", "a", "accepted", n=n)
+    assert not access.flush(0.5) and access.pending >= 5
+    assert any("cannot be written" in w and "held in order" in w for w in warnings)
+    assert len(lines_of(path)) == 1
+    os.dup2(good, audit._fd)  # writable again
+    os.close(bad)
+    os.close(good)
+    access.record("reset", "a", "accepted", n=6)
+    assert access.flush(10.0)
+    assert any("writable again" in w for w in warnings)
+    access.close()
+    recs = [json.loads(x) for x in lines_of(path)]
+    assert [r["n"] for r in recs] == list(range(7))  # none lost, in order
+    assert verify(path).ok

@@ -5,14 +5,24 @@ simulated rig against a fake clock (faster than real time)."""
 
 from __future__ import annotations
 
+import json
 import math
 import statistics
+from pathlib import Path
+from typing import Any
 
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
+from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
+from controller.process.access import Access
+from controller.process.audit import AuditLog, audit_path
+from controller.process.gate_worker import GateRunner
+from controller.process.options import ControllerOptions
+from controller.process.persistence import MAX_VERSION, StateStore
 from controller.process.requests import ApplyCoefficients, InjectFault
 from controller.process.runtime import FAULT, RUNNING, Runtime, RuntimeOptions
+from controller.process.service import ControllerService
 from controller.sim.sim_rig import RigFaults, SimRig
 
 GOOD = LoopConfig()
@@ -131,3 +141,118 @@ def test_fault_injection_reaches_only_the_simulated_rig() -> None:
     plain.run(max_ticks=2)
     assert not t.ok and "only the simulated rig" in t.message
     assert math.isfinite(rt.last_pos_deg)
+
+
+# -- the service's side: what is active is what is persisted (issue 24, items 4 and 5) ---------
+
+
+def _service(rt: Runtime, state: Path, version: int = 1) -> tuple[ControllerService, Access]:
+    store = StateStore(state)
+    store.save(rt.loop.active.config, version)
+    audit = AuditLog(audit_path(state), rig="unit")
+    access = Access(None, "unit", audit, lambda text: None)
+    access.start()
+    opts = ControllerOptions(rig_name="unit", state_dir=state, gate_in_subprocess=False)
+    k = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=1))
+    runner = GateRunner(subprocess=False)
+    margins = runner.check(rt.loop.active.config, k).margins
+    svc = ControllerService(opts, rt, store, runner, margins, [], k, access)
+    access.warn = svc.warn
+    return svc, access
+
+
+def _records(access: Access, state: Path) -> list[dict[str, Any]]:
+    assert access.flush()
+    return [json.loads(x) for x in audit_path(state).read_text().splitlines()]
+
+
+def _roll_back(rt: Runtime) -> None:
+    _more(rt, 500)
+    _apply(rt, BAD, GOOD)
+    for _ in range(20):  # until the trip (at most 10 s)
+        _more(rt, 500)
+        if rt.rollbacks:
+            break
+    assert rt.rollbacks == 1 and rt.mode == RUNNING and rt.loop.active.version == 3
+
+
+def test_a_rollback_that_cannot_be_saved_stops_the_loop_and_is_audited(tmp_path: Path) -> None:
+    """The rolled-back-to configuration cannot be written (the state file's place is taken by
+    a directory: what a read-only state directory does to a root process too): the loop
+    faults with command 0 and says why, the rollback and the fault are in the audit (user
+    `watchdog` / `controller`), and the save is retried until it succeeds."""
+    rt, rig = _runtime()
+    svc, access = _service(rt, tmp_path)
+    _roll_back(rt)
+    active_file = tmp_path / "active_config.json"
+    active_file.unlink()
+    active_file.mkdir()
+    (active_file / "blocker").write_text("x")
+    svc.poll_rollback()
+    _more(rt, 3)
+    assert rt.mode == FAULT and rt.fault is not None
+    assert "rollback to v3 could not be saved" in rt.fault and "bring back v2" in rt.fault
+    n = len(rig.commands)
+    _more(rt, 50)
+    assert all(u == 0.0 for u in rig.commands[n:])
+    svc.poll_faults()
+    recs = _records(access, tmp_path)
+    rb = [r for r in recs if r["action"] == "rollback"]
+    assert len(rb) == 1 and rb[0]["user"] == "watchdog" and rb[0]["outcome"] == "failed"
+    assert (rb[0]["version_before"], rb[0]["version_after"], rb[0]["persisted"]) == (2, 3, False)
+    faults = [r for r in recs if r["action"] == "fault"]
+    assert len(faults) == 1 and faults[0]["user"] == "controller"
+    assert "could not be saved" in faults[0]["reason"]
+    assert any("could not be saved" in e for e in svc.errors)
+    # The directory is writable again: the next poll saves the rollback.
+    (active_file / "blocker").unlink()
+    active_file.rmdir()
+    svc.poll_rollback()
+    saved = svc.store.load()
+    assert saved is not None and saved.version == 3 and saved.config == GOOD
+    access.close()
+
+
+def test_a_watchdog_rollback_and_fault_are_audited_with_user_watchdog(tmp_path: Path) -> None:
+    """Issue 24 item 4: 0 audit records for 4 rollbacks and a watchdog fault, before."""
+    rt, _rig = _runtime()
+    svc, access = _service(rt, tmp_path)
+    _more(rt, 500)
+    _apply(rt, BAD, BAD)  # the "previous" configuration misbehaves too: rollback, then fault
+    for _ in range(30):
+        _more(rt, 500)
+        svc.poll_rollback()
+        svc.poll_faults()
+        if rt.mode == FAULT:
+            break
+    assert rt.rollbacks == 1 and rt.mode == FAULT
+    saved = svc.store.load()
+    assert saved is not None and saved.version == 3  # persisted as soon as it was seen
+    recs = _records(access, tmp_path)
+    rb = [r for r in recs if r["action"] == "rollback"]
+    assert [(r["user"], r["outcome"], r["version_before"], r["version_after"]) for r in rb] == [
+        ("watchdog", "noted", 2, 3)]
+    assert rb[0]["trip"] in ("oscillation", "growing oscillation", "saturation")
+    faults = [r for r in recs if r["action"] == "fault"]
+    assert len(faults) == 1 and faults[0]["user"] == "watchdog"
+    assert "again after a rollback" in faults[0]["reason"]
+    access.close()
+
+
+def test_no_version_beyond_the_limit_is_made_by_an_apply_or_its_rollback(tmp_path: Path) -> None:
+    """Issue 24 item 5: at 2^53-2 an apply made 2^53-1 and the watchdog's rollback made 2^53
+    active (unsaveable). The apply is refused now, naming `version`: the rollback target's
+    version must fit too."""
+    top = MAX_VERSION - 1  # 2**53 - 2
+    c = Clock()
+    rt = Runtime(ServoLoop(LoopCoefficients.build(GOOD, top)), Recorded(), trajectory=HOLD,
+                 clock=c.clock, sleep=c.sleep)
+    svc, access = _service(rt, tmp_path, version=top)
+    reply = svc.apply(BAD, "op", confirm=True)
+    assert not reply.accepted and reply.field == "version" and reply.version == top
+    assert f"v{MAX_VERSION + 1}" in reply.reasons[0]
+    _more(rt, 2)
+    assert rt.loop.active.version == top
+    saved = svc.store.load()
+    assert saved is not None and saved.version == top
+    access.close()

@@ -2,8 +2,10 @@
 
 DIR is the controller's state directory (the log is `DIR/audit.jsonl`) or the log file itself.
 `verify` exit codes: 0 the chain is intact, 1 it is not (an edited, deleted, inserted or moved
-line, a truncated hash, a missing anchor, or a damaged log the controller set aside next to
-it), 2 bad input (no such log, unreadable).
+line, a truncated hash, a missing anchor, a torn line, or a damaged log the controller set
+aside next to it), 2 bad input (no such log, unreadable). A torn line (a crash while writing,
+or the last record erased) fails the check even when the controller acknowledged it on
+restart, unless `--accept-torn-tail` is given: it then lists what it accepted.
 `show` exits 0, or 2 on bad input.
 """
 
@@ -105,19 +107,23 @@ def _report_text(path: Path, r: VerifyResult, kept: list[str]) -> str:
         ]
     else:
         lines = [f"{path}: {r.reason}", f"  {r.records} records verified, head {r.head}"]
-    lines += [f"  note: {d}" for d in r.damaged]
+    lines += [f"  note: {d}" for d in r.damaged if d not in r.accepted_torn]
+    lines += [f"  ACCEPTED torn tail (--accept-torn-tail): {d}" for d in r.accepted_torn]
     lines += [f"  NOT INTACT: {name} is a damaged log the controller set aside (inspect it, then "
               "archive it elsewhere)" for name in kept]
     return "\n".join(lines) + "\n"
 
 
-def verify_main(target: Path, anchor: str | None, as_json: bool, out: TextIO) -> int:
-    """Check the chain; print the verdict. Returns the exit code."""
+def verify_main(
+    target: Path, anchor: str | None, as_json: bool, out: TextIO, accept_torn_tail: bool = False
+) -> int:
+    """Check the chain; print the verdict. Returns the exit code. A torn line fails the check
+    unless `accept_torn_tail` (then it is printed as accepted)."""
     path = log_file(target)
     if not path.is_file():
         return _missing(path, out, as_json)
     try:
-        result = verify(path, anchor=anchor)
+        result = verify(path, anchor=anchor, accept_torn_tail=accept_torn_tail)
     except OSError as exc:
         return _bad_input(f"{path}: cannot read: {exc.strerror or exc}", out, as_json)
     kept = _set_aside(path)
@@ -130,6 +136,7 @@ def verify_main(target: Path, anchor: str | None, as_json: bool, out: TextIO) ->
             "reason": result.reason,
             "head": result.head,
             "notes": list(result.damaged),
+            "accepted_torn": list(result.accepted_torn),
             "set_aside": kept,
         }
         out.write(json.dumps(doc) + "\n")
@@ -153,6 +160,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     check.add_argument("--anchor", default=None, metavar="HASH",
                        help="a record hash known from elsewhere that must be in the chain")
     check.add_argument("--json", action="store_true")
+    check.add_argument("--accept-torn-tail", action="store_true",
+                       help="accept torn lines (a crash while writing; also what erasing the "
+                       "last record leaves): listed as accepted instead of failing the check")
 
 
 def _positive_int(value: str) -> int:
@@ -168,7 +178,7 @@ def _positive_int(value: str) -> int:
 def run(args: argparse.Namespace) -> int:
     if args.audit_command == "show":
         return show_main(args.dir, args.json, args.tail, sys.stdout)
-    return verify_main(args.dir, args.anchor, args.json, sys.stdout)
+    return verify_main(args.dir, args.anchor, args.json, sys.stdout, args.accept_torn_tail)
 
 
 COMMAND = Command("audit", "show or verify a controller's audit log", add_arguments, run)

@@ -10,12 +10,14 @@
   The e-stop needs nothing: anyone who can reach the rig stops it.
 - Audit: every action, accepted or refused, goes through a queue to a writer thread that
   appends it to the hash-chained `<state-dir>/audit.jsonl` (`controller.process.audit`), so a
-  slow disk never delays a request or the e-stop; a write failure is reported (Status.notes)
-  and the controller runs on. The chain's head is published in Status (`audit_head`).
+  slow disk never delays a request or the e-stop; while the log cannot be written the records
+  are held in order and retried (none dropped; Status.notes says so, and when they are
+  written), and the controller runs on. The chain's head is published in Status (`audit_head`).
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import queue
@@ -49,6 +51,8 @@ ANONYMOUS = Who("anonymous", "viewer", False)
 """A request on a key that names no known user (cannot pass the access control): refused."""
 
 _STOP = object()
+#: While the audit log cannot be written, the held records are retried this often.
+RETRY_S = 1.0
 
 
 class Access:
@@ -76,6 +80,8 @@ class Access:
         self._q: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._writer: threading.Thread | None = None
         self._audit_error = ""
+        self._pending = 0
+        self._pending_lock = threading.Lock()
 
     # -- identity ----------------------------------------------------------------------------
 
@@ -177,6 +183,8 @@ class Access:
 
     def _enqueue(self, action: str, user: str, outcome: str, fields: dict[str, Any]) -> None:
         if self.audit is not None:
+            with self._pending_lock:
+                self._pending += 1
             self._q.put((action, user, outcome, fields))
 
     def start(self) -> None:
@@ -193,24 +201,52 @@ class Access:
             self.audit.close()
 
     def _write(self) -> None:
-        assert self.audit is not None
+        """Writer thread: records in the order they were queued. While the file cannot be
+        written they are held (in order, none dropped) and retried every RETRY_S."""
+        backlog: collections.deque[tuple[str, str, str, dict[str, Any]]] = collections.deque()
+        stopping = False
         while True:
-            item = self._q.get()
+            try:
+                item = self._q.get(timeout=RETRY_S if backlog else None)
+            except queue.Empty:
+                item = None
             if item is _STOP:
+                stopping = True
+            elif item is not None:
+                backlog.append(item)
+            self._drain(backlog)
+            if stopping:
+                if backlog:
+                    self.warn(f"audit: {len(backlog)} record(s) not written at shutdown: "
+                              f"{self._audit_error}")
                 return
-            action, user, outcome, fields = item
+
+    def _drain(self, backlog: collections.deque[tuple[str, str, str, dict[str, Any]]]) -> None:
+        assert self.audit is not None
+        while backlog:
+            action, user, outcome, fields = backlog[0]
+            fields = dict(fields)
             vb = fields.pop("version_before", None)
             va = fields.pop("version_after", None)
             try:
                 self.audit.record(
                     action, user, outcome, version_before=vb, version_after=va, **fields
                 )
+            except (AuditError, OSError) as exc:
+                if not self._audit_error:
+                    self.warn(f"audit: the log cannot be written ({exc}); records are held in "
+                              f"order and retried every {RETRY_S:g} s")
+                self._audit_error = str(exc)
+                return
+            except ValueError as exc:  # a record that can never be written (a bug): say so
+                self.warn(f"audit: a record was not written ({action} by {user}): {exc}")
+            backlog.popleft()
+            with self._pending_lock:
+                self._pending -= 1
+            if self._audit_error and not backlog:
                 self._audit_error = ""
-            except (AuditError, ValueError, OSError) as exc:
-                text = f"audit: a record was not written ({action} by {user}): {exc}"
-                if text != self._audit_error:
-                    self._audit_error = text
-                    self.warn(text)
+                self.warn("audit: the log is writable again; every held record is written, "
+                          "in order")
 
     @property
     def head(self) -> str:
@@ -219,9 +255,15 @@ class Access:
         seq, h = self.audit.head
         return f"{seq}:{h}"
 
+    @property
+    def pending(self) -> int:
+        """Records queued or held, not written yet."""
+        with self._pending_lock:
+            return self._pending
+
     def flush(self, timeout_s: float = 5.0) -> bool:
         """Wait until every queued record is written (tests, shutdown)."""
         deadline = time.monotonic() + timeout_s
-        while not self._q.empty() and time.monotonic() < deadline:
+        while self.pending and time.monotonic() < deadline:
             time.sleep(0.005)
-        return self._q.empty()
+        return not self.pending

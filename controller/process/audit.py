@@ -22,8 +22,11 @@ Crash policy, applied when the log is opened (only the end of the file is read):
 - last line torn (no final newline, not a record) and the line before it fine (or no line
   before it): what a crash during a write leaves. The damaged bytes stay in the file,
   terminated by a newline, and an `audit.recovered` record follows that names them (length,
-  SHA-256, the seq they follow) and chains from the last good record. `verify` accepts exactly
-  that acknowledged damage and reports it;
+  SHA-256, the seq they follow) and chains from the last good record. The acknowledgement
+  does not make the damage go away: a torn tail is also what erasing the last record leaves,
+  so `verify` reports every torn line (acknowledged or not) as not intact unless the reader
+  accepts torn tails explicitly (`accept_torn_tail`, `dobtune audit verify
+  --accept-torn-tail`), and then lists what it accepted;
 - anything else (a complete last line that is not a consistent record, or two bad lines: not
   what a crash leaves): the file is kept under a new name `audit.damaged-<UTC>.jsonl` and a
   new chain starts whose first record names it; `dobtune audit verify` fails while such a file
@@ -195,6 +198,8 @@ class VerifyResult:
     head: str
     #: crash damage the controller found and acknowledged in the log, human-readable
     damaged: tuple[str, ...] = ()
+    #: torn lines accepted (with `accept_torn_tail`), human-readable
+    accepted_torn: tuple[str, ...] = ()
 
 
 @dataclass
@@ -228,32 +233,46 @@ def _acknowledges(rec: Mapping[str, Any], damaged: bytes, after_seq: int) -> boo
     )
 
 
-def verify(path: str | os.PathLike[str], anchor: str | None = None) -> VerifyResult:
+def verify(
+    path: str | os.PathLike[str], anchor: str | None = None, *, accept_torn_tail: bool = False
+) -> VerifyResult:
     """Check the whole chain of the audit log at `path` (a file).
 
     `anchor`: a record `hash` known from elsewhere that must be in the chain (detects lines
-    cut off the end, or a rewritten chain). OSError if the file cannot be read."""
+    cut off the end, or a rewritten chain). A torn line (acknowledged by the controller or the
+    unterminated last line) is evidence, not intact: it fails the check unless
+    `accept_torn_tail`, and is then listed in `accepted_torn`. OSError if the file cannot be
+    read."""
     chain = _Chain()
     notes: list[str] = []
-    pending: tuple[int, bytes, str] | None = None  # a bad line: acknowledged by the next one?
+    accepted: list[str] = []
+    pending: tuple[int, bytes, str, bool] | None = None  # a bad line: acknowledged next?
     anchor_seen = anchor is None
 
     def bad(line_no: int, why: str) -> VerifyResult:
-        return VerifyResult(False, chain.records, line_no, why, chain.head, tuple(notes))
+        return VerifyResult(False, chain.records, line_no, why, chain.head, tuple(notes),
+                            tuple(accepted))
 
     for n, line, complete in iter_lines(Path(path)):
         rec, why = parse_record(line)
         if pending is not None:
-            bad_no, bad_bytes, bad_why = pending
+            bad_no, bad_bytes, bad_why, _ = pending
             if rec is None or not _acknowledges(rec, bad_bytes, chain.seq - 1):
                 return bad(bad_no, bad_why)
-            notes.append(
+            torn = (
                 f"line {bad_no}: {len(bad_bytes)} damaged bytes after seq {chain.seq - 1}, "
                 f"acknowledged by the controller at {rec['time']}"
             )
+            if not accept_torn_tail:
+                return bad(bad_no, f"torn tail: {len(bad_bytes)} damaged bytes after seq "
+                           f"{chain.seq - 1} (acknowledged by the controller at {rec['time']}): "
+                           "a crash while writing, or the last record erased; check against "
+                           "an anchor, then accept it explicitly (--accept-torn-tail)")
+            notes.append(torn)
+            accepted.append(torn)
             pending = None
         elif rec is None:
-            pending = (n, line, why)
+            pending = (n, line, why, complete)
             continue
         elif rec["action"] == RECOVERED and "damaged_after_seq" in rec:
             return bad(n, "acknowledges a damaged line that is not there")
@@ -267,15 +286,20 @@ def verify(path: str | os.PathLike[str], anchor: str | None = None) -> VerifyRes
         chain.advance(line, rec)
         anchor_seen = anchor_seen or rec["hash"] == anchor
     if pending is not None:
-        return bad(pending[0], pending[2] + "; unacknowledged (a crash while writing? the "
-                   "controller acknowledges a torn last line when it next starts)")
+        bad_no, bad_bytes, bad_why, complete = pending
+        if complete or not accept_torn_tail:
+            return bad(bad_no, bad_why + "; unacknowledged (a crash while writing, or the "
+                       "last record erased; the controller notes a torn last line when it next "
+                       "starts)")
+        accepted.append(f"line {bad_no}: torn last line, {len(bad_bytes)} bytes after seq "
+                        f"{chain.seq - 1}, unacknowledged")
     if not anchor_seen:
         return VerifyResult(
             False, chain.records, None,
             f"anchor {anchor} is not in the chain (lines cut off the end, or a rewritten log)",
-            chain.head, tuple(notes),
+            chain.head, tuple(notes), tuple(accepted),
         )
-    return VerifyResult(True, chain.records, None, "", chain.head, tuple(notes))
+    return VerifyResult(True, chain.records, None, "", chain.head, tuple(notes), tuple(accepted))
 
 
 # -- writing ---------------------------------------------------------------------------------

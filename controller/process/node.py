@@ -278,6 +278,7 @@ class ZenohNode:
             try:
                 self.events.poll()
                 self.service.poll_rollback()
+                self.service.poll_faults()
                 self.access.poll()
                 self._black_box()
                 self.status_pub.put(
@@ -318,6 +319,7 @@ class ZenohNode:
             changed.wait(1.0)
             changed.clear()
             try:
+                self.service.poll_rollback()  # a rollback is saved at once, not at the status
                 self.write_latch()
             except Exception as exc:  # never end this thread
                 self.service.warn(f"latch writer: {type(exc).__name__}: {exc}")

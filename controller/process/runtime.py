@@ -251,12 +251,14 @@ class Runtime:
         # arrival (`next_arrival`): a reset that arrived before an e-stop never clears it.
         self._inbox: deque[Ticket] = deque()
         self._estop_request: str | None = None
+        self._fault_request: str | None = None
         self._arrivals = itertools.count()
         self._arrival_local = threading.local()
         self._estop_lock = threading.Lock()
         self._estop_arrival = -1
         self.latch_changed = threading.Event()
-        """Set whenever the mode enters or leaves estop/fault (the latch is persisted)."""
+        """Set whenever the mode enters or leaves estop/fault (the latch is persisted), and on
+        a watchdog rollback (the configuration rolled back to is persisted)."""
         self._stop = False
         # Counters (written by the tick only).
         self.seq = -1  # sequence number of the last completed tick
@@ -341,6 +343,11 @@ class Runtime:
             if arrival > self._estop_arrival:
                 self._estop_arrival = arrival
             self._estop_request = source
+
+    def request_fault(self, reason: str) -> None:
+        """Fault from any thread (command 0 from the next tick, until reset): for what the
+        loop cannot see itself, e.g. a rollback that could not be persisted. Never blocks."""
+        self._fault_request = reason
 
     def restore_latch(self, mode: str, reason: str) -> None:
         """Before `run()`: come back in the e-stop or fault a previous run left latched
@@ -500,6 +507,9 @@ class Runtime:
     def _tick(self, t_s: float) -> None:
         if self._estop_request is not None:
             self._enter_estop(self._estop_request)
+        if self._fault_request is not None:
+            self._enter_fault(self._fault_request)
+            self._fault_request = None
         if self._inbox:
             self._serve_requests()
         rig = self.rig
@@ -636,6 +646,7 @@ class Runtime:
             self.rollbacks += 1
             wd.command_limit_deg_s = fallback.limit
             wd.reset(u)
+            self.latch_changed.set()  # wakes the thread that persists it (rare path)
             return
         why = (
             "no previous configuration to roll back to"

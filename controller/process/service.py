@@ -26,7 +26,7 @@ from controller.process.access import Access
 from controller.process.gate_worker import GateRunner, margins_dict
 from controller.process.identify_runs import IdentifyRuns
 from controller.process.options import ControllerOptions
-from controller.process.persistence import PersistenceError, StateStore
+from controller.process.persistence import MAX_VERSION, PersistenceError, StateStore
 from controller.process.requests import ApplyCoefficients, RequestBody, RunProgram
 from controller.process.runtime import ESTOP, FAULT, Runtime, Ticket
 
@@ -80,6 +80,10 @@ class ControllerService:
         #: Margins and verdict of the configuration the watchdog would roll back to.
         self._fallback_state: tuple[proto.Margins, str, LoopConfig] | None = None
         self._rollbacks_seen = 0
+        self._rollback_lock = threading.Lock()
+        #: A rollback not saved yet: (config, version, from version, bad config, trip kind).
+        self._unsaved: tuple[LoopConfig, int, int, LoopConfig | None, str] | None = None
+        self._fault_seen: str | None = None
         self.watchdog_text = ""
         self._identify_lock = threading.Lock()
         # The last rejection logged, when, and how many identical ones followed unlogged.
@@ -150,6 +154,14 @@ class ControllerService:
                 )
                 return self._rejected(client, [reason], field="candidate.rate_hz")
             version = active.version + 1
+            if version + 1 > MAX_VERSION:
+                # The watchdog's rollback target takes the version after the candidate's.
+                reason = (
+                    f"version: the active version {active.version} is at the limit: the "
+                    f"candidate (v{version}) and its rollback target (v{version + 1}) must not "
+                    f"exceed {MAX_VERSION}; restart with --config FILE to start a new count"
+                )
+                return self._rejected(client, [reason], field="version")
             same = candidate == active.config
             # The analysis and the filter design run in the gate's worker process.
             record = self.knowledge
@@ -169,7 +181,9 @@ class ControllerService:
             except PersistenceError as exc:
                 reason = f"state_dir: not applied, the configuration could not be saved: {exc}"
                 self.warn(reason)
-                return self.config_reply(accepted=False, reasons=[reason], margins=margins)
+                return self.config_reply(
+                    accepted=False, reasons=[reason], margins=margins, field="state_dir"
+                )
             # The filters are built here (this thread); the tick only swaps them in. The
             # configuration running now goes with them, under the next version, as the
             # watchdog's rollback target (its filters are designed already: no design work).
@@ -240,38 +254,93 @@ class ControllerService:
     # -- watchdog ------------------------------------------------------------------------------
 
     def poll_rollback(self) -> None:
-        """Persist and report what the watchdog did (status thread; the tick only counts)."""
+        """Persist, audit and report what the watchdog did (status and latch threads; the
+        tick only counts). What is active is what is persisted: a rollback that cannot be
+        saved faults the loop (command 0) and is retried here until it is saved."""
         rt = self.rt
         trip = rt.last_trip
         if trip is not None and rt.mode == FAULT and rt.fault and rt.fault.startswith("watchdog"):
             self.watchdog_text = rt.fault
-        if rt.rollbacks == self._rollbacks_seen or rt.last_rollback is None:
-            return
-        with self._apply_lock:
-            self._rollbacks_seen = rt.rollbacks
-            seq, from_v, to_v, trip = rt.last_rollback
-            self._wait_version(to_v)
-            active = rt.loop.active
-            text = (
-                f"watchdog: {trip.reason}; rolled back from v{from_v} to the previous "
-                f"configuration as v{to_v} at seq {seq}"
+        if not self._rollback_lock.acquire(blocking=False):
+            return  # another thread is at it
+        try:
+            if self._unsaved is not None:
+                self._save_rollback(*self._unsaved)
+            if rt.rollbacks == self._rollbacks_seen or rt.last_rollback is None:
+                return
+            with self._apply_lock:
+                self._rolled_back(rt.rollbacks - self._rollbacks_seen)
+        finally:
+            self._rollback_lock.release()
+
+    def _rolled_back(self, count: int) -> None:
+        rt = self.rt
+        self._rollbacks_seen = rt.rollbacks
+        seq, from_v, to_v, trip = rt.last_rollback  # type: ignore[misc]
+        self._wait_version(to_v)
+        active = rt.loop.active
+        text = (
+            f"watchdog: {trip.reason}; rolled back from v{from_v} to the previous "
+            f"configuration as v{to_v} at seq {seq}"
+        )
+        self.watchdog_text = text
+        self.warn(text)
+        bad: LoopConfig | None = None
+        if self._fallback_state is not None:
+            self.margins, self.running_verdict, bad = self._fallback_state
+            self._fallback_state = None
+        superseded = active.version != to_v  # another change came first; logged on its own
+        saved = superseded or self._save_rollback(active.config, to_v, from_v, bad, trip.kind)
+        self.access.record(
+            "rollback", "watchdog", "noted" if saved else "failed",
+            version_before=from_v, version_after=to_v, trip=trip.kind, reason=trip.reason,
+            loop_seq=seq, persisted=saved and not superseded, superseded=superseded,
+            rollbacks=count,
+        )
+
+    def _save_rollback(
+        self, config: LoopConfig, version: int, from_v: int, bad: LoopConfig | None, kind: str
+    ) -> bool:
+        """Save the configuration rolled back to; on failure fault the loop (a restart would
+        bring back v`from_v`, which the watchdog rolled back) and keep it for a retry."""
+        try:
+            self.store.save(config, version)
+        except PersistenceError as exc:
+            reason = (
+                f"state_dir: the rollback to v{version} could not be saved ({exc}): stopped "
+                f"(command 0), since a restart would bring back v{from_v}; retried until saved"
             )
-            self.watchdog_text = text
-            self.warn(text)
-            bad: LoopConfig | None = None
-            if self._fallback_state is not None:
-                self.margins, self.running_verdict, bad = self._fallback_state
-                self._fallback_state = None
-            if active.version != to_v:
-                return  # another change came first; it is logged on its own
-            try:
-                self.store.save(active.config, to_v)
-                self.store.append_change(
-                    old=bad, old_version=from_v, new=active.config, version=to_v,
-                    margins=margins_dict(self.margins), client=f"watchdog rollback: {trip.kind}",
-                )
-            except PersistenceError as exc:
-                self.warn(str(exc))
+            if self._unsaved is None or self.rt.mode != FAULT:
+                self.rt.request_fault(reason)
+            if self._unsaved is None:
+                self.warn(reason)
+            self._unsaved = (config, version, from_v, bad, kind)
+            return False
+        if self._unsaved is not None:
+            log.info("the rollback to v%d is saved now", version)
+        self._unsaved = None
+        try:
+            self.store.append_change(
+                old=bad, old_version=from_v, new=config, version=version,
+                margins=margins_dict(self.margins), client=f"watchdog rollback: {kind}",
+            )
+        except PersistenceError as exc:
+            self.warn(str(exc))
+        return True
+
+    def poll_faults(self) -> None:
+        """Audit every fault the loop entered (status thread): user `watchdog` for the
+        watchdog's, `controller` for the state directory's, `rig` for lost I/O."""
+        rt = self.rt
+        fault, mode = rt.fault, rt.mode
+        if fault and fault != self._fault_seen:
+            user = ("watchdog" if fault.startswith("watchdog") else
+                    "controller" if fault.startswith("state_dir") else "rig")
+            self.access.record(
+                "fault", user, "noted", version_before=rt.loop.active.version,
+                reason=fault[:500], mode=mode, loop_seq=rt.seq,
+            )
+        self._fault_seen = fault
 
     # -- plant knowledge -------------------------------------------------------------------------
 
@@ -308,6 +377,10 @@ class ControllerService:
         """Number, persist and use `rec`; re-judge the running configuration on it."""
         with self._apply_lock:
             version = self.knowledge.version + 1
+            if version > MAX_VERSION:
+                return self.knowledge_reply(
+                    False, f"version: the knowledge version {version - 1} is at the limit "
+                    f"{MAX_VERSION}", field="version")
             new = msgspec.structs.replace(rec, version=version, source=source[:200])
             try:
                 self.store.save_knowledge(new)

@@ -39,7 +39,7 @@ def main() -> None:
                                 extra_args=("--realtime-priority",))
         try:
             with Client(proc.endpoint, proc.rig) as probe:
-                probe.wait_ready(proc)
+                probe.wait_ready(proc, timeout_s=180.0)
             with open_session(listen=(), connect=[proc.endpoint]) as a, \
                     open_session(listen=(), connect=[proc.endpoint]) as b:
                 print(f"{'offset':>8} {'trials':>7} {'held':>6} {'not stopped':>12} "
