@@ -568,7 +568,7 @@ def test_records_held_while_the_log_cannot_be_written_are_written_later_in_order
     path = tmp_path / AUDIT_FILE
     audit = AuditLog(path, rig="r")
     warnings: list[str] = []
-    access = Access(None, "r", audit, warnings.append)
+    access = Access(None, "r", audit, lambda text, key=None: warnings.append(text))
     access.start()
     access.record("estop", "a", "accepted", n=0)
     assert access.flush()

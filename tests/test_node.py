@@ -265,14 +265,49 @@ def test_a_failing_state_dir_is_reported_and_the_loop_runs_on(
     monkeypatch.setattr(tempfile, "mkstemp", read_only)
     reply = apply(node, LoopConfig(q_cutoff_hz=1.0))
     assert not reply.accepted and reply.version == 1
+    assert reply.field == "state_dir"  # as knowledge says it (issue 24: apply said "")
     assert any("state_dir" in r and "OSError" not in r for r in reply.reasons)
+    k = node.service.handle_knowledge(proto.KnowledgeRequest(record=node.service.knowledge))
+    assert not k.ok and k.field == "state_dir"
+    node.service.warn("an unrelated problem")
     assert command(node, proto.EStop()).ok
-    node.write_latch()
+    for _ in range(30):  # the latch writer retries every second
+        node.write_latch()
     status = node.status()
-    assert any("latch was not saved" in n for n in status.notes)
+    latch_lines = [n for n in status.notes if "latch was not saved" in n]
+    assert len(latch_lines) == 1 and "(30 times)" in latch_lines[0], status.notes
+    assert "an unrelated problem" in status.notes  # not pushed out by the repeats
     assert any("state_dir" in n for n in status.notes)
     seq = node.rt.seq
     deadline = time.monotonic() + 5.0
     while node.rt.seq < seq + 20 and time.monotonic() < deadline:
         time.sleep(0.005)
     assert node.rt.seq >= seq + 20  # the loop runs on
+
+
+def test_a_note_about_older_knowledge_is_cleared_by_newer_knowledge(node: ZenohNode) -> None:
+    """Issue 24 item 9: "the running configuration is now judged reject" stayed in
+    Status.notes after newer knowledge judged it fine again."""
+    import numpy as np
+
+    from controller.core.config import NominalModel
+    from controller.gate.knowledge import MeasuredRecord
+    from controller.gate.loop_model import nominal_continuous_response
+
+    article = NominalModel()
+
+    svc = node.service
+    original = svc.knowledge
+    f = np.geomspace(0.05, 400.0, 120)
+    h = 15.0 * nominal_continuous_response(article, f)  # a plant 15x the model's gain
+    measured = MeasuredRecord(name="pos0", freq_hz=f.tolist(), re=h.real.tolist(),
+                              im=h.imag.tolist())
+    stiff = KnowledgeRecord(model=article, bound=original.bound, measured=[measured])
+    reply = svc.handle_knowledge(proto.KnowledgeRequest(record=stiff))
+    assert reply.ok and "now judged reject" in reply.message
+    assert sum("now judged" in n for n in node.status().notes) == 1
+    reply = svc.handle_knowledge(proto.KnowledgeRequest(record=original))
+    assert reply.ok and "now judged" not in reply.message, reply.message
+    notes = node.status().notes
+    assert not any("now judged" in n for n in notes), notes
+    assert node.status().knowledge_version == 3

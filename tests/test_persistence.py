@@ -204,3 +204,21 @@ def test_a_vanished_directory_is_made_again(tmp_path: Path) -> None:
     store.save(LoopConfig(), 3)
     loaded = store.load()
     assert loaded is not None and loaded.version == 3
+
+
+def test_unfinished_black_box_files_left_by_a_crash_are_removed_at_start(tmp_path: Path) -> None:
+    """Issue 24 item 9: `blackbox/*.mcap.tmp` (a crash while a black box file was written)
+    stayed forever. Complete files stay; unfinished ones go when the black box opens."""
+    from controller.process.blackbox import BlackBox
+
+    box = tmp_path / "blackbox"
+    box.mkdir()
+    done = box / "20260101T000000Z-estop.mcap"
+    done.write_bytes(b"\x89MCAP0\r\n complete")
+    torn = box / "20260101T000001Z-fault.mcap.tmp"
+    torn.write_bytes(b"\x89MCAP0\r\n half")
+    warnings: list[str] = []
+    bb = BlackBox(box, "r", warnings.append)
+    assert bb.removed_tmp == [torn.name] and not torn.exists()
+    assert done.exists() and warnings == []
+    assert BlackBox(box, "r", warnings.append).removed_tmp == []  # nothing left the next time

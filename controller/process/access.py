@@ -63,7 +63,7 @@ class Access:
         users: Any | None,
         rig: str,
         audit: AuditLog | None,
-        warn: Callable[[str], None],
+        warn: Callable[..., None],
         *,
         clock: Callable[[], float] = time.monotonic,
         max_lease_s: float = 600.0,
@@ -235,7 +235,7 @@ class Access:
             except (AuditError, OSError) as exc:
                 if not self._audit_error:
                     self.warn(f"audit: the log cannot be written ({exc}); records are held in "
-                              f"order and retried every {RETRY_S:g} s")
+                              f"order and retried every {RETRY_S:g} s", key="audit")
                 self._audit_error = str(exc)
                 return
             except ValueError as exc:  # a record that can never be written (a bug): say so
@@ -246,7 +246,7 @@ class Access:
             if self._audit_error and not backlog:
                 self._audit_error = ""
                 self.warn("audit: the log is writable again; every held record is written, "
-                          "in order")
+                          "in order", key="audit")
 
     @property
     def head(self) -> str:

@@ -1,6 +1,8 @@
 """The controller's black box: the last `seconds` of loop samples in memory, written to
 `<state-dir>/blackbox/<UTC time>-<reason>.mcap` on every e-stop, fault and watchdog rollback,
 with the event that caused it; the oldest files go when the directory exceeds `max_bytes`.
+A file is written as `<name>.mcap.tmp` and renamed when complete; unfinished ones (a crash
+while writing) are removed when the black box opens.
 
 The publisher thread hands every finished StateBatch to `add` (a deque append); `trigger`
 snapshots the deque and writes the file in a thread of its own: never on the loop's thread,
@@ -10,6 +12,7 @@ never delaying the publisher or the status thread. A failed write is reported th
 from __future__ import annotations
 
 import collections
+import logging
 import re
 import threading
 import time
@@ -18,6 +21,8 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["BlackBox"]
+
+log = logging.getLogger(__name__)
 
 
 class BlackBox:
@@ -41,6 +46,27 @@ class BlackBox:
         self._lock = threading.Lock()
         self._writers: list[threading.Thread] = []
         self.written: list[Path] = []
+        self.removed_tmp = self._remove_unfinished()
+        """Unfinished files (`*.mcap.tmp`, left by a crash while writing) removed at start."""
+
+    def _remove_unfinished(self) -> list[str]:
+        removed: list[str] = []
+        try:
+            unfinished = sorted(self.directory.glob("*.mcap.tmp"))
+        except OSError as exc:
+            self.warn(f"black box: {self.directory} cannot be listed: {exc}")
+            return removed
+        for p in unfinished:
+            try:
+                p.unlink()
+            except OSError as exc:
+                self.warn(f"black box: {p.name} (unfinished, left by a crash) not removed: {exc}")
+                continue
+            removed.append(p.name)
+        if removed:
+            log.info("black box: removed %d unfinished file(s) left by a crash: %s",
+                     len(removed), ", ".join(removed))
+        return removed
 
     def add(self, batch: Any) -> None:
         self._batches.append(batch)  # deque append: atomic, bounded

@@ -117,7 +117,6 @@ class ZenohNode:
         self.shed_queries = 0
         #: The latch as last written (the store's view at start).
         self._latch_written: Latch | None = service.store.load_latch_or_none()
-        self._latch_error = ""
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -305,12 +304,12 @@ class ZenohNode:
         try:
             self.service.store.save_latch(latch)
         except PersistenceError as exc:
-            if self._latch_error != str(exc):
-                self._latch_error = str(exc)
-                self.service.warn(f"state_dir: the e-stop/fault latch was not saved: {exc}")
+            # Retried every second: one Status.notes line, counted (never pushing others out).
+            self.service.warn(f"state_dir: the e-stop/fault latch was not saved: {exc}",
+                              key="latch")
             return
         self._latch_written = latch
-        self._latch_error = ""
+        self.service.clear_warning("latch")
 
     def _persist_latch(self) -> None:
         changed = self.rt.latch_changed

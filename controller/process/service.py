@@ -37,6 +37,10 @@ log = logging.getLogger(__name__)
 NOT_IN_TIME = "loop did not reach a tick boundary in time"
 #: Identical rejections within this time are counted, not logged one by one.
 REPEAT_LOG_S = 10.0
+#: Distinct warnings kept for Status.notes.
+MAX_WARNINGS = 8
+#: Status.notes key of the verdict on the running configuration under new plant knowledge.
+KNOWLEDGE_NOTE = "knowledge"
 
 
 def config_changes(old: LoopConfig, new: LoopConfig) -> str:
@@ -66,7 +70,8 @@ class ControllerService:
         self.gate = gate
         self.margins = margins
         self.notes = notes
-        self.errors: list[str] = []
+        self._warnings: dict[str, tuple[str, int]] = {}  # key -> (text, count)
+        self._warn_lock = threading.Lock()
         #: Roles, the operator lease and the audit trail (no users, no audit: local use).
         self.access = access if access is not None else Access(None, opts.rig_name, None, self.warn)
         self.stop_event = threading.Event()
@@ -91,11 +96,31 @@ class ControllerService:
         self._last_rejection_s = 0.0
         self._unlogged_rejections = 0
 
-    def warn(self, text: str) -> None:
-        """A problem worth a WARNING record and a line in Status.notes (the last 8 are kept)."""
-        self.errors.append(text)
-        del self.errors[:-8]
-        log.warning("%s", text)
+    def warn(self, text: str, key: str | None = None) -> None:
+        """A problem worth a WARNING record and a line in Status.notes. One line per `key`
+        (default: the text): a repeat replaces it and is counted, so a failure retried every
+        second never pushes the other lines out; the latest MAX_WARNINGS keys are kept."""
+        k = text if key is None else key
+        with self._warn_lock:
+            previous = self._warnings.pop(k, None)
+            self._warnings[k] = (text, 1 if previous is None else previous[1] + 1)
+            while len(self._warnings) > MAX_WARNINGS:
+                del self._warnings[next(iter(self._warnings))]
+        n = 1 if previous is None else previous[1] + 1
+        if n == 1 or n % 100 == 0:  # a repeat is logged again every 100th time
+            log.warning("%s%s", text, f" ({n} times)" if n > 1 else "")
+
+    def clear_warning(self, key: str) -> None:
+        """Drop the Status.notes line of `key` (what it said is no longer so)."""
+        with self._warn_lock:
+            self._warnings.pop(key, None)
+
+    @property
+    def errors(self) -> list[str]:
+        """The warnings for Status.notes, oldest first, repeats counted."""
+        with self._warn_lock:
+            items = list(self._warnings.values())
+        return [t if n == 1 else f"{t} ({n} times)" for t, n in items]
 
     # -- configuration ---------------------------------------------------------------------------
 
@@ -195,6 +220,7 @@ class ControllerService:
                 self.warn(reason)
                 return self.config_reply(accepted=False, reasons=[reason], margins=margins)
             self._wait_version(version)
+            self.clear_warning(KNOWLEDGE_NOTE)  # it judged the configuration replaced now
             self._fallback_state = (self.margins, self.running_verdict, candidate)
             self.margins = margins
             self.running_verdict = verdict.verdict
@@ -396,12 +422,13 @@ class ControllerService:
             self.margins = verdict.margins
             self.running_verdict = verdict.verdict
             message = f"plant knowledge v{version} adopted"
+            self.clear_warning(KNOWLEDGE_NOTE)  # about older knowledge: no longer so
             if verdict.verdict != "accept":
                 message += (
                     f"; the running configuration v{active.version} is now judged "
                     f"{verdict.verdict}: " + "; ".join(verdict.reasons)
                 )
-                self.warn(message)
+                self.warn(message, key=KNOWLEDGE_NOTE)
             return self.knowledge_reply(True, message)
 
     def _wait_version(self, version: int) -> None:

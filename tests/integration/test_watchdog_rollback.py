@@ -1,11 +1,15 @@
 """The watchdog in a real controller process: a fault injected into the simulated rig makes
-the applied configuration unstable; the controller rolls back to the previous one, persists
-and reports it; when the previous one misbehaves too, it faults with command 0."""
+the applied configuration unstable; the controller rolls back to the previous one, persists,
+audits and reports it; when the previous one misbehaves too, it faults with command 0 (in the
+audit too); a restart comes back on the configuration rolled back to."""
 
 from __future__ import annotations
 
 import json
+import signal
 import time
+from collections.abc import Callable
+from typing import Any
 
 from procs import Client, ControllerProcess, wait_until
 
@@ -22,8 +26,14 @@ def _status_until(c: Client, pred, timeout_s: float) -> proto.Status:  # type: i
     return st
 
 
+def _audit(proc: ControllerProcess) -> list[dict[str, Any]]:
+    return [json.loads(x) for x in (proc.state_dir / "audit.jsonl").read_text().splitlines()]
+
+
 def test_a_plant_change_trips_the_watchdog_rollback_then_fault(
-    controller: ControllerProcess, client: Client
+    controller: ControllerProcess,
+    client: Client,
+    start_controller_factory: Callable[..., ControllerProcess],
 ) -> None:
     first = client.get_config()
     # Cv 1.0: stable on the model, thin margins in the whole servo (a caution: confirmed) ...
@@ -63,6 +73,25 @@ def test_a_plant_change_trips_the_watchdog_rollback_then_fault(
         samples = col.samples()
     faulted = [v for v in samples.values() if v["mode"] == "fault"]
     assert len(faulted) >= 50 and all(v["command_deg_s"] == 0.0 for v in faulted)
+    # Both are in the audit, caused by the watchdog (issue 24: 0 records before).
+    assert wait_until(lambda: any(r["action"] == "fault" for r in _audit(controller)), 10.0)
+    records = _audit(controller)
+    rollbacks = [r for r in records if r["action"] == "rollback"]
+    assert [(r["user"], r["outcome"], r["version_before"], r["version_after"], r["persisted"])
+            for r in rollbacks] == [("watchdog", "noted", reply.version, reply.version + 1, True)]
+    faults = [r for r in records if r["action"] == "fault"]
+    assert len(faults) == 1 and faults[0]["user"] == "watchdog"
+    assert faults[0]["reason"].startswith("watchdog:")
+    # A restart (no chance to write anything on the way out) comes back on the configuration
+    # rolled back to, never on the one the watchdog rolled back, and latched in the fault.
+    controller.stop(signal.SIGKILL)
+    again = start_controller_factory(controller.state_dir, extra_args=("--realtime-priority",))
+    with Client(again.endpoint, again.rig) as c:
+        c.wait_ready(again, timeout_s=120.0)
+        back = c.get_config()
+        assert back.config == first.config and back.version == reply.version + 1
+        assert back.config.cv_kp != stiff.cv_kp
+        assert c.fresh_status().mode == "fault"
 
 
 def test_sim_fault_fields_are_validated_and_named(
