@@ -42,11 +42,21 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     init_auth_dir(auth, new_users([("op1", "operator"), ("op2", "operator"), ("view", "viewer")]))
     proc = start_controller(base / "state", rig=RIG, extra_args=("--auth", str(auth)))
     try:
-        with _client(auth, proc, "op1") as c:  # ready: the first query gets a reply
-            assert wait_until(lambda: _answers(c), 60.0), proc.log()
+        # Ready: a client logs in and its first query gets a reply (under load the controller
+        # may take a minute to listen: the gate's first check).
+        assert wait_until(lambda: _ready(auth, proc), 180.0, poll_s=0.5), proc.log()
         yield {"auth": auth, "proc": proc}
     finally:
         proc.stop()
+
+
+def _ready(auth: Path, proc: ControllerProcess) -> bool:
+    assert proc.proc.poll() is None, proc.log()
+    try:
+        with _client(auth, proc, "op1") as c:
+            return _answers(c)
+    except ControllerUnavailable:
+        return False
 
 
 def _answers(c: ControllerClient) -> bool:
