@@ -399,14 +399,19 @@ class ZenohNode:
         further than its type, from anyone; every other command needs the lease."""
         reply = self._command(data, who)
         body_type = ""
+        extra: dict[str, Any] = {}
         with contextlib.suppress(Exception):
-            body = msgspec.msgpack.decode(data)["body"]["type"]
-            body_type = body if isinstance(body, str) else ""
+            body = msgspec.msgpack.decode(data)["body"]
+            body_type = body["type"] if isinstance(body["type"], str) else ""
+            seen = body.get("estop_seq")
+            if body_type == "reset" and type(seen) is int:
+                extra["estop_seq"] = seen  # the e-stop the reset acknowledged
         action = {"estop": "estop", "reset": "reset", "identify_start": "identify",
                   "identify_abort": "identify"}.get(body_type, "command")
         self.access.record(
             action, who, "accepted" if reply.ok else "refused", command=body_type[:40],
             message=reply.message, field=reply.field, mode=reply.mode, loop_seq=reply.seq,
+            **extra,
         )
         return proto.encode(reply)
 
