@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
 from procs import Client, start_controller
 from reset_race import run_trials
 
-from controller.zenoh_session import open_session
+from controller.client.session import SessionOptions, connect
 
 
 def main() -> None:
@@ -40,8 +40,8 @@ def main() -> None:
         try:
             with Client(proc.endpoint, proc.rig) as probe:
                 probe.wait_ready(proc, timeout_s=180.0)
-            with open_session(listen=(), connect=[proc.endpoint]) as a, \
-                    open_session(listen=(), connect=[proc.endpoint]) as b:
+            where = SessionOptions(connect=(proc.endpoint,))
+            with connect(where) as a, connect(where) as b:
                 print(f"{'offset':>8} {'trials':>7} {'held':>6} {'not stopped':>12} "
                       f"{'reset served':>13} {'reset refused':>14} {'s':>6}")
                 for off in offsets:

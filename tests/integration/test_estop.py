@@ -15,7 +15,7 @@ from procs import Client, ControllerProcess, wait_until
 from reset_race import run_trials
 
 from controller import protocol as proto
-from controller.zenoh_session import open_session
+from controller.client.session import SessionOptions, connect
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 
@@ -69,7 +69,7 @@ def test_an_estop_from_another_session_always_beats_a_reset(
     rig ended not stopped in 100/200 trials at 0 ms. Now the reset names the e-stop its sender
     saw: a newer one refuses it, one that arrives after it engages after it. The full figures
     (1000 trials per offset): tests/bench/bench_reset_race.py."""
-    with open_session(listen=(), connect=[controller.endpoint]) as other:
+    with connect(SessionOptions(connect=(controller.endpoint,))) as other:
         for offset_ms, trials in RACE_TRIALS.items():
             r = run_trials(client.session, other, controller.rig, trials, offset_ms / 1000.0)
             assert r.trials == trials
