@@ -8,6 +8,7 @@ changed properties.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,6 +20,7 @@ from controller import protocol as proto
 from controller.client import ControllerClient
 from controller.core.trajectory import TRAJECTORY_KINDS, default_trajectory
 from server import charts
+from server.alarms import AlarmBoard, alarms_html
 from server.panels.widgets import add_chart, confirm, esc, set_html
 from server.workers import Periodic
 
@@ -56,12 +58,12 @@ def banner_html(client: ControllerClient) -> str:
                        "dt-banner dt-fault")
     auth = f"authenticated as {esc(client.opts.user)}" if st.auth else "no authentication"
     lease = f", lease: {esc(st.operator)}" if st.operator else ""
-    watchdog = f"<br>{esc(st.watchdog)}" if st.watchdog else ""
+    # (What the watchdog did is an alarm of its own, server/alarms.py: never in green.)
     return _banner(
         "#2e7d32",
         f"Connected: rig <b>{esc(st.rig)}</b> ({esc(st.plant)}), {esc(st.mode)}, config "
         f"v{st.config_version} ({esc(st.verdict or '-')} on knowledge "
-        f"{esc(st.knowledge or '-')}); {auth}{lease}{watchdog}",
+        f"{esc(st.knowledge or '-')}); {auth}{lease}",
         "dt-banner dt-ok",
     )
 
@@ -112,13 +114,37 @@ class LivePanel:
         self._last_status_seen: proto.Status | None = None
         self._controller_traj_kind = ""
         self.trajectory: Any = None
+        self.alarm_board = AlarmBoard()
+        self._alarm_lock = threading.Lock()
         self._slow_every = max(1, int(rate_hz / 5))
         self._updater = Periodic(self._refresh, 1.0 / rate_hz, name="live-updater")
 
     # -- building --------------------------------------------------------------------------
 
     def build_banner(self) -> None:
+        """The connection banner, and under it the alarms not yet acknowledged (a rollback
+        amber, a fault or an e-stop red, each with its reason and time) and their
+        Acknowledge button."""
         self.banner = self.gui.add_html(banner_html(self.client))
+        self.alarms = self.gui.add_html(alarms_html(self.alarm_board))
+        self.ack_button = self.gui.add_button(
+            "Acknowledge alarms", color="yellow", visible=False,
+            hint="the alarms above are seen: clear them (History keeps every change)")
+        self.ack_button.on_click(lambda _e: self.acknowledge_alarms())
+
+    def acknowledge_alarms(self) -> None:
+        with self._alarm_lock:
+            self.alarm_board.acknowledge()
+            self._show_alarms()
+
+    def _observe_alarms(self, st: proto.Status) -> None:
+        with self._alarm_lock:
+            if self.alarm_board.observe(st):
+                self._show_alarms()
+
+    def _show_alarms(self) -> None:
+        set_html(self.alarms, alarms_html(self.alarm_board))
+        self.ack_button.visible = bool(self.alarm_board.alarms)
 
     def build_estop(self) -> None:
         self.estop_button = self.gui.add_button(
@@ -218,6 +244,7 @@ class LivePanel:
         st = self.client.status
         if st is not None and st is not self._last_status_seen:
             self._last_status_seen = st
+            self._observe_alarms(st)
             kind = st.trajectory.kind
             if kind != self._controller_traj_kind and kind in TRAJECTORY_KINDS:
                 # The drop-down follows the controller's trajectory when that changes (a

@@ -235,6 +235,8 @@ class TuningPanel:
         """The active version this candidate was made against (None: not known yet)."""
         self.trajectory = Trajectory()
         self._suppress = False
+        self._reply_version: int | None = None
+        """The active version the apply box last announced (None: it announces none)."""
         self.last_update_s = 0.0
         self.last_evaluation: Evaluation | None = None
         self.last_preview: PreviewResult | None = None
@@ -432,6 +434,16 @@ class TuningPanel:
         self.active = cfg
         self.active_version = version
         self.active_text.content = self._active_html()
+        shown = self._reply_version
+        if shown is not None and version is not None and version > shown:
+            # The apply box spoke of v{shown}; the controller has moved on (a rollback, or
+            # another browser): no success text stands for a state that is gone.
+            self._reply_version = None
+            self.apply_result.content = box(
+                "dt-apply dt-apply-superseded", CAUTION,
+                f"<b>Active config is now v{version}</b>, no longer v{shown} of your last "
+                "apply: changed since (a watchdog rollback or another client; see the alarms "
+                "and History).")
         if self.base_version is None and version is not None:
             self.load(cfg, version)
         else:
@@ -470,6 +482,7 @@ class TuningPanel:
         if ev.gate.verdict == "caution":
             self._confirm_caution(cand, ev.gate.reasons, browser)
             return
+        self._reply_version = None
         self.apply_result.content = box("dt-apply", NEUTRAL, "Sending the candidate...")
         self._apply_fn(self, cand, False, browser)
 
@@ -478,6 +491,7 @@ class TuningPanel:
         sends (with confirm)."""
 
         def go(who: Any) -> None:
+            self._reply_version = None
             self.apply_result.content = box("dt-apply", NEUTRAL,
                                             "Sending the candidate (confirmed)...")
             self._apply_fn(self, cand, True, who)
@@ -487,6 +501,7 @@ class TuningPanel:
                 f"{_reason_list(reasons, 'dt-caution-reason')}", "Apply anyway", go)
 
     def show_reply(self, accepted: bool, version: int, reasons: list[str], note: str = "") -> None:
+        self._reply_version = version
         if accepted:
             self.apply_result.content = box(
                 "dt-apply", ACCEPT, f"<b>Accepted</b>: active config is now version {version}."
@@ -520,6 +535,7 @@ class TuningPanel:
             self._cutoff_hz = float(a.q_cutoff_hz)
             self._cutoff_error = ""
             if say_text:  # (a reply box from an earlier candidate no longer applies)
+                self._reply_version = None
                 self.apply_result.content = box("dt-apply", NEUTRAL, esc(say_text))
             for attr, _label in _SWITCHES:
                 getattr(self, attr).value = bool(getattr(a, attr))
@@ -630,7 +646,8 @@ class TuningPanel:
         return box(
             "dt-stale", CAUTION,
             f"<b>Based on v{self.base_version}</b>: the active configuration is now "
-            f"v{self.active_version} (applied elsewhere). Apply would be refused (it carries "
+            f"v{self.active_version} (changed since: another client, or a watchdog rollback). "
+            f"Apply would be refused (it carries "
             f"v{self.base_version}); <b>Revert</b> loads v{self.active_version}.")
 
     def _active_html(self) -> str:

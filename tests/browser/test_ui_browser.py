@@ -4,6 +4,7 @@ controller: live traces that draw over the window after tab round trips and relo
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -11,6 +12,8 @@ from typing import Any
 import pytest
 from conftest import ARTIFACTS, FIRST_LOAD_S, _wait_until, set_number
 
+from controller import protocol as proto
+from controller.client import ControllerClient
 from server.app import Dashboard
 from server.charts import LIVE_WINDOW_S
 
@@ -90,3 +93,60 @@ def test_live_traces_draw_the_window_after_a_tab_round_trip_and_a_reload(
         c = got[0]
         print(f"live x range {name}: drawn {c['min']:.2f}..{c['max']:.2f} s, data "
               f"{c['first']:.2f}..{c['last']:.2f} s, {c['inside']}/{c['n']} samples drawn")
+
+
+def _status_until(probe: ControllerClient, pred: Any, timeout_s: float, what: str) -> Any:
+    _wait_until(lambda: probe.status is not None and pred(probe.status), timeout_s, what)
+    return probe.status
+
+
+def test_a_rollback_is_an_amber_alarm_and_no_success_text_stands(
+    page: Any, probe: ControllerClient, artifacts: Path
+) -> None:
+    """Apply a caution (Cv Kp 1.0: thin margins), then the drive gain x5 makes it oscillate:
+    the watchdog rolls it back. The page shows an amber alarm with the reason and the time,
+    the apply box no longer says "Accepted", the green banner carries no rollback; the alarm
+    goes when acknowledged. An E-STOP is a red alarm."""
+    page.get_by_role("tab", name="Tune").click()
+    set_number(page, "Cv Kp", 1.0)
+    page.wait_for_selector(".dt-verdict >> text=caution", timeout=60_000)
+    page.get_by_role("button", name="Apply candidate").click()
+    page.get_by_role("button", name="Apply anyway").click()
+    page.wait_for_selector(".dt-apply >> text=Accepted", timeout=60_000)
+    applied = _status_until(probe, lambda s: s.config.cv_kp == 1.0, 30.0, "not applied")
+    v = applied.config_version
+    rollbacks = applied.rollbacks
+    assert probe.command(proto.SimFault(plant_gain=5.0)).ok
+    st = _status_until(probe, lambda s: s.rollbacks > rollbacks, 60.0, "no rollback")
+    assert st.config_version > v
+    alarm = page.locator(".dt-alarm-rollback")
+    alarm.wait_for(timeout=30_000)
+    text = alarm.inner_text()
+    assert "ROLLBACK" in text and "rolled back" in text, text
+    assert re.search(r"at \d\d:\d\d:\d\d", text), text
+    assert alarm.evaluate("e => getComputedStyle(e).borderTopColor") == "rgb(178, 106, 0)"
+    page.wait_for_selector(f".dt-apply-superseded >> text=now v{st.config_version}",
+                           timeout=30_000)
+    assert "Accepted" not in page.locator(".dt-apply").first.inner_text()
+    banner = page.locator(".dt-banner").first.inner_text()
+    assert "rolled back" not in banner and "watchdog" not in banner, banner
+    alarm.scroll_into_view_if_needed()
+    page.screenshot(path=str(artifacts / "ui_alarm_rollback.png"))
+    page.get_by_role("button", name="Acknowledge alarms").click()
+    alarm.wait_for(state="detached", timeout=30_000)
+    page.get_by_role("button", name="Acknowledge alarms").wait_for(state="hidden",
+                                                                   timeout=30_000)
+    assert probe.command(proto.SimFault()).ok
+    # An E-STOP: a red alarm.
+    page.get_by_role("button", name="E-STOP", exact=True).first.click()
+    estop = page.locator(".dt-alarm-estop")
+    estop.wait_for(timeout=30_000)
+    assert "E-STOP" in estop.inner_text()
+    assert estop.evaluate("e => getComputedStyle(e).borderTopColor") == "rgb(183, 28, 28)"
+    estop.scroll_into_view_if_needed()
+    page.screenshot(path=str(artifacts / "ui_alarm_estop.png"))
+    page.get_by_role("button", name="Acknowledge alarms").click()
+    estop.wait_for(state="detached", timeout=30_000)
+    assert probe.command(proto.ResetFault()).ok
+    assert probe.command(proto.Start()).ok
+    _status_until(probe, lambda s: s.mode == "running", 30.0, "did not run again")

@@ -1,0 +1,94 @@
+"""Alarms: what the controller did that an operator must see and acknowledge (a watchdog
+rollback, a fault, an e-stop), found in the stream of its status messages.
+
+Pure: `AlarmBoard.observe(status, now)` returns nothing and keeps the alarms not yet
+acknowledged; `alarms_html` draws them. The live panel feeds it and shows the board.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+from controller import protocol as proto
+from server.panels.widgets import esc
+
+__all__ = ["Alarm", "AlarmBoard", "alarms_html"]
+
+#: (border, background, text) per level.
+_LEVEL_COLORS = {"amber": ("#b26a00", "#fff4e0", "#6b3f00"),
+                 "red": ("#b71c1c", "#fdecea", "#7f0000")}
+
+
+@dataclass(frozen=True)
+class Alarm:
+    kind: str  # "rollback" | "fault" | "estop"
+    level: str  # "amber" | "red"
+    title: str
+    reason: str
+    at_s: float  # wall-clock time it was seen (time.time())
+
+
+@dataclass
+class AlarmBoard:
+    """The alarms not yet acknowledged, newest last."""
+
+    alarms: list[Alarm] = field(default_factory=list)
+    _rollbacks: int | None = None
+    _estop_seq: int | None = None
+    _fault_key: tuple[str, ...] | None = None
+    _mode: str = ""
+
+    def observe(self, st: proto.Status, now_s: float | None = None) -> bool:
+        """Note the alarms `st` raises against the previous status; True if any was added.
+        The first status sets what counts as known, except an e-stop or a fault in force,
+        which is an alarm at once."""
+        now = time.time() if now_s is None else now_s
+        added = False
+        first = self._rollbacks is None
+        if not first and st.rollbacks > (self._rollbacks or 0):
+            self.alarms.append(Alarm(
+                "rollback", "amber", f"WATCHDOG ROLLBACK to v{st.config_version}",
+                st.watchdog or "the watchdog rolled the configuration back", now))
+            added = True
+        self._rollbacks = st.rollbacks
+        if st.mode == "estop" and (self._mode != "estop" or st.estop_seq != self._estop_seq):
+            self.alarms.append(Alarm("estop", "red", "E-STOP",
+                                     "speed command 0, drive disabled", now))
+            added = True
+        faults = tuple(st.faults)
+        fault_key = faults if st.mode != "estop" and (st.mode == "fault" or faults) else None
+        if fault_key is not None and fault_key != self._fault_key:
+            self.alarms.append(Alarm("fault", "red", "FAULT",
+                                     "; ".join(faults) or "the controller is in fault", now))
+            added = True
+        self._fault_key = fault_key
+        self._mode = st.mode
+        self._estop_seq = st.estop_seq
+        return added
+
+    def acknowledge(self) -> int:
+        """Clear the alarms shown; returns how many."""
+        n = len(self.alarms)
+        self.alarms.clear()
+        return n
+
+
+def _clock(at_s: float) -> str:
+    return time.strftime("%H:%M:%S", time.localtime(at_s))
+
+
+def alarms_html(board: AlarmBoard) -> str:
+    """The unacknowledged alarms, newest first (an empty block when there are none)."""
+    if not board.alarms:
+        return "<div class='dt-alarms'></div>"
+    rows = []
+    for a in reversed(board.alarms):
+        border, bg, ink = _LEVEL_COLORS[a.level]
+        rows.append(
+            f"<div class='dt-alarm dt-alarm-{a.kind} dt-alarm-{a.level}' style='border:2px "
+            f"solid {border};background:{bg};color:{ink};padding:5px 7px;border-radius:4px;"
+            f"margin:3px 0;font-size:13px'><b>&#9888; {esc(a.title)}</b> "
+            f"<span class='dt-alarm-time'>at {_clock(a.at_s)}</span><br>"
+            f"<span class='dt-alarm-reason'>{esc(a.reason)}</span></div>")
+    return "<div class='dt-alarms'>" + "".join(rows) + "</div>"

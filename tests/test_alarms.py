@@ -1,0 +1,58 @@
+"""The alarm board (server/alarms.py) on sequences of controller status messages."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from controller import protocol as proto
+from controller.core.config import LoopConfig
+from controller.core.trajectory import Trajectory
+from server.alarms import AlarmBoard, alarms_html
+
+TIMING = proto.Timing(period_p50_us=1000.0, period_p99_us=1000.0, period_max_us=1000.0,
+                      compute_p50_us=10.0, compute_p99_us=10.0, compute_max_us=10.0,
+                      ticks=1, overruns=0, skipped_ticks=0)
+
+
+def status(**kw: Any) -> proto.Status:
+    base: dict[str, Any] = dict(rig="r", plant="sim", mode="running", t_s=0.0, seq=0,
+                                trajectory=Trajectory(), config_version=1, config=LoopConfig(),
+                                timing=TIMING, faults=[])
+    return proto.Status(**{**base, **kw})
+
+
+def test_a_rollback_raises_one_amber_alarm_with_its_reason_until_acknowledged() -> None:
+    b = AlarmBoard()
+    assert not b.observe(status(rollbacks=0), 100.0)
+    assert not b.observe(status(rollbacks=0, t_s=1.0), 101.0)
+    why = "watchdog: oscillates at 11 Hz; rolled back from v2 to the previous configuration as v3"
+    assert b.observe(status(rollbacks=1, config_version=3, watchdog=why), 102.0)
+    assert not b.observe(status(rollbacks=1, config_version=3, watchdog=why, t_s=2.0), 103.0)
+    [a] = b.alarms
+    assert (a.kind, a.level, a.at_s) == ("rollback", "amber", 102.0)
+    assert "v3" in a.title and a.reason == why
+    html = alarms_html(b)
+    assert "dt-alarm-rollback" in html and "rolled back from v2" in html
+    assert b.acknowledge() == 1 and b.alarms == [] and "dt-alarm " not in alarms_html(b)
+
+
+def test_a_rollback_before_the_dashboard_started_is_no_alarm_an_estop_in_force_is() -> None:
+    b = AlarmBoard()
+    assert b.observe(status(rollbacks=4, mode="estop", estop_seq=7), 1.0)
+    assert [a.kind for a in b.alarms] == ["estop"]
+    assert not b.observe(status(rollbacks=4, mode="estop", estop_seq=7), 2.0)  # the same one
+    b.observe(status(rollbacks=4, mode="running"), 3.0)
+    assert b.observe(status(rollbacks=4, mode="estop", estop_seq=99), 4.0)  # a new one
+    assert [a.level for a in b.alarms] == ["red", "red"]
+
+
+def test_a_fault_is_red_once_per_fault_set() -> None:
+    b = AlarmBoard()
+    b.observe(status(), 0.0)
+    assert b.observe(status(mode="fault", faults=["watchdog: no config left"]), 1.0)
+    assert not b.observe(status(mode="fault", faults=["watchdog: no config left"]), 2.0)
+    assert b.observe(status(mode="fault", faults=["drive: lost"]), 3.0)
+    assert [(a.kind, a.reason) for a in b.alarms] == [
+        ("fault", "watchdog: no config left"), ("fault", "drive: lost")]
+    b.observe(status(), 4.0)
+    assert b.observe(status(mode="fault", faults=["drive: lost"]), 5.0)  # again after a clear
