@@ -56,6 +56,10 @@ def add_demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig-name", default="demo")
     p.add_argument("--rigs", type=int, default=1,
                    help="more than 1: a router on --zenoh-port and this many simulated rigs")
+    p.add_argument("--disturbance", action="append", default=None, metavar="NAME",
+                   help="the simulated rig's named disturbances (repeatable; default: "
+                   "article-rig, the rate disturbances at P's input and the belt varying with "
+                   "position; 'none' for the plain rig); the previews and Suggest use the same")
 
 
 def run_demo_args(args: argparse.Namespace) -> int:
@@ -71,6 +75,8 @@ def run_demo_args(args: argparse.Namespace) -> int:
             rig_name=args.rig_name,
             log_level=args.log_level,
             rigs=args.rigs,
+            disturbances=(DemoOptions.disturbances if args.disturbance is None else
+                          tuple(d for d in args.disturbance if d != "none")),
         )
     )
 

@@ -87,6 +87,9 @@ class DashboardOptions:
     fleet: bool = False
     """Also the fleet overview: every rig reachable through `connect` (a router), each with an
     E-STOP and a full view of its own."""
+    sim_disturbances: tuple[str, ...] = ()
+    """The named disturbances of the simulated rig the previews and Suggest run on (the
+    demo's: the same as its controller's simulated rig)."""
 
 
 def dashboard_users(opts: DashboardOptions) -> dict[str, Any]:
@@ -162,7 +165,7 @@ class Dashboard:
         self.gate.on_estop = self._estop_from_link
         self.gate.page_extra = ESTOP_LINK_HTML
         self.server: Any = None
-        self.engine = TuningEngine()
+        self.engine = TuningEngine(sim_disturbances=opts.sim_disturbances)
         self._knowledge_version = -1  # the plant knowledge fetched from the controller
         self._history_version = -1
         self._history: dict[int, LoopConfig] = {}

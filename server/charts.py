@@ -483,6 +483,7 @@ PREVIEW_CHART = ChartSpec(
         {"label": "t (s)"},
         _line("candidate", CANDIDATE),
         _line("active", ACTIVE, dash=_DASH_ACTIVE),
+        _line("candidate, DOB off", NO_DOB, dash=_DASH_NO_DOB),
     ),
     scales=_LIN_X,
     axes=(_T_AXIS, {"label": "deg", "scale": "y"}),
@@ -507,11 +508,14 @@ STEP_CHART = ChartSpec(
 
 def preview_data(
     t_s: FloatArray, cand_error_deg: FloatArray, active_error_deg: FloatArray | None,
-    max_points: int = 1500,
+    no_dob_error_deg: FloatArray | None = None, max_points: int = 1500,
 ) -> tuple[FloatArray, ...]:
+    """The preview chart's columns: t, the candidate's error, the active's, the candidate's
+    with the DOB off (NaN when a run is missing)."""
     act = active_error_deg if active_error_deg is not None else np.full_like(t_s, np.nan)
-    n = min(len(t_s), len(cand_error_deg), len(act))
-    x, ys = minmax_decimate(t_s[:n], [cand_error_deg[:n], act[:n]], max_points)
+    off = no_dob_error_deg if no_dob_error_deg is not None else np.full_like(t_s, np.nan)
+    n = min(len(t_s), len(cand_error_deg), len(act), len(off))
+    x, ys = minmax_decimate(t_s[:n], [cand_error_deg[:n], act[:n], off[:n]], max_points)
     return (x, *ys)
 
 

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from controller.core.errors import ConfigError
+from controller.sim.rig_disturbances import rig_setup
 from server.app import Dashboard, DashboardOptions, PortBusy, check_port_free, stop_requested
 
 __all__ = ["DemoOptions", "controller_command", "controller_process", "run_demo", "stop_process"]
@@ -43,6 +45,9 @@ class DemoOptions:
     #: each listening on zenoh_port + i, different noise seeds and drive gains) behind it; the
     #: dashboard shows rig1 through the router (`dobtune ctl --connect ... rigs` lists all).
     rigs: int = 1
+    #: The simulated rig's named disturbances (`controller.sim.rig_disturbances`), given to
+    #: the controller and to the dashboard's previews and Suggest alike.
+    disturbances: tuple[str, ...] = ("article-rig",)
 
 
 def controller_command(
@@ -58,6 +63,10 @@ def controller_command(
         "--log-level", log_level,
         *extra,
     ]
+
+
+def _disturbance_args(names: tuple[str, ...]) -> tuple[str, ...]:
+    return tuple(a for n in names for a in ("--disturbance", n))
 
 
 def router_command(endpoint: str, log_level: str = "info") -> list[str]:
@@ -77,7 +86,8 @@ def fleet_processes(opts: DemoOptions, state_root: Path) -> Iterator[list[subpro
             ep = f"tcp/127.0.0.1:{opts.zenoh_port + i}"
             procs.append(subprocess.Popen(controller_command(
                 ep, f"rig{i}", state_root / f"rig{i}", opts.log_level,
-                ("--connect", router_ep, "--seed", str(i)),
+                ("--connect", router_ep, "--seed", str(i),
+                 *_disturbance_args(opts.disturbances)),
             )))
         yield procs
     finally:
@@ -105,13 +115,16 @@ def stop_process(proc: subprocess.Popen[Any], timeout_s: float = 5.0) -> int:
 
 @contextlib.contextmanager
 def controller_process(
-    endpoint: str, rig_name: str, state_dir: Path | None = None, log_level: str = "info"
+    endpoint: str, rig_name: str, state_dir: Path | None = None, log_level: str = "info",
+    disturbances: tuple[str, ...] = (),
 ) -> Iterator[subprocess.Popen[Any]]:
-    """The simulated controller as a child process, stopped on exit."""
+    """The simulated controller as a child process (with the simulated rig's named
+    `disturbances`), stopped on exit."""
     with contextlib.ExitStack() as stack:
         if state_dir is None:
             state_dir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="dobtune-")))
-        proc = subprocess.Popen(controller_command(endpoint, rig_name, state_dir, log_level))
+        proc = subprocess.Popen(controller_command(
+            endpoint, rig_name, state_dir, log_level, _disturbance_args(disturbances)))
         try:
             yield proc
         finally:
@@ -125,6 +138,11 @@ def run_demo(opts: DemoOptions) -> int:
     ports = [("--port", opts.host, opts.port), ("--zenoh-port", "127.0.0.1", opts.zenoh_port)]
     ports += [("--zenoh-port", "127.0.0.1", opts.zenoh_port + i)
               for i in range(1, opts.rigs + 1) if opts.rigs > 1]
+    try:
+        rig_setup(list(opts.disturbances))
+    except ConfigError as exc:
+        print(f"dobtune demo: --disturbance: {exc}", flush=True)
+        return 2
     for what, host, port in ports:
         try:
             check_port_free(host, port, what)
@@ -134,11 +152,11 @@ def run_demo(opts: DemoOptions) -> int:
     if opts.rigs > 1:
         return _run_fleet(opts, endpoint)
     with stop_requested() as stop, controller_process(
-        endpoint, opts.rig_name, opts.state_dir, opts.log_level
+        endpoint, opts.rig_name, opts.state_dir, opts.log_level, opts.disturbances
     ) as proc, Dashboard(
         DashboardOptions(
             connect=(endpoint,), rig_name=opts.rig_name, host=opts.host, port=opts.port,
-            verbose=opts.verbose,
+            verbose=opts.verbose, sim_disturbances=opts.disturbances,
         )
     ) as dash:
         deadline = time.monotonic() + opts.startup_timeout_s
@@ -152,6 +170,7 @@ def run_demo(opts: DemoOptions) -> int:
                 return 1
             stop.wait(0.1)
         print(f"dobtune demo: open {dash.url}  (simulated rig '{opts.rig_name}', "
+              f"disturbances: {'+'.join(opts.disturbances) or 'none'}, "
               f"controller on {endpoint}; Ctrl-C stops both)", flush=True)
         while not stop.wait(0.5):
             if proc.poll() is not None:
@@ -170,7 +189,7 @@ def _run_fleet(opts: DemoOptions, router_ep: str) -> int:
         procs = stack.enter_context(fleet_processes(opts, root))
         dash = stack.enter_context(Dashboard(DashboardOptions(
             connect=(router_ep,), rig_name="rig1", host=opts.host, port=opts.port,
-            verbose=opts.verbose, fleet=True)))
+            verbose=opts.verbose, fleet=True, sim_disturbances=opts.disturbances)))
         print(f"dobtune demo: {opts.rigs} rigs behind the router {router_ep}; dashboard of rig1 "
               "(its Fleet tab shows them all): "
               f"{dash.url}; list them with: dobtune ctl --connect {router_ep} rigs", flush=True)

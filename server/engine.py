@@ -41,6 +41,7 @@ from controller.gate.margins import loop_tasks, margins_of, solve
 from controller.gate.search import knowledge_spread
 from controller.gate.verdict import judge, recommended_cutoff_hz
 from controller.sim.nonlinear_check import findings
+from controller.sim.rig_disturbances import RigSetup, rig_setup
 from server import charts
 from server.charts import BodeCurves, FloatArray, NyquistLoop, PlantCurves
 
@@ -118,15 +119,23 @@ class PreviewResult:
     peak_error_deg: float
     rmse_deg: float
     elapsed_s: float
+    command_noise_deg_s: float = math.nan
+    """RMS of the speed command above 20 Hz (`controller.tune.autotune.command_noise_deg_s`):
+    what the DOB costs in the drive."""
+    disturbances: str = "none"
+    """The simulated rig's named disturbances in the run."""
 
 
 @dataclass(frozen=True)
 class PreviewComparison:
-    """The previews of the candidate and the active configuration, and the chart data."""
+    """The previews of the candidate, the same gains with the DOB off, and the active
+    configuration, and the chart data."""
 
     candidate: PreviewResult
     active: PreviewResult
     chart_data: tuple[FloatArray, ...]
+    no_dob: PreviewResult | None = None
+    """The candidate's run with the DOB off (its price and value side by side)."""
 
 
 def freq_grid_hz(rate_hz: float = 1000.0, n: int = 240) -> FloatArray:
@@ -329,6 +338,13 @@ class _Cache(Generic[K, V]):
             self._items.clear()
 
 
+def _without_dob(cfg: LoopConfig) -> LoopConfig:
+    """`cfg` with the DOB off and its Q settings at the defaults (unused with the DOB off: one
+    run, and one cache entry, for every cut-off)."""
+    d = LoopConfig()
+    return cfg.with_(dob_on=False, q_type=d.q_type, q_cutoff_hz=d.q_cutoff_hz)
+
+
 def _recommendation_key(cfg: LoopConfig) -> LoopConfig:
     """The recommendation depends on everything but the cut-off and the DOB switch."""
     return cfg.with_(q_cutoff_hz=1.0, dob_on=True)
@@ -337,10 +353,15 @@ def _recommendation_key(cfg: LoopConfig) -> LoopConfig:
 class TuningEngine:
     """Evaluates candidates; caches the evaluation of configurations seen before."""
 
-    def __init__(self, n_freq: int = 240, preview_duration_s: float = 12.6):
+    def __init__(self, n_freq: int = 240, preview_duration_s: float = 12.6,
+                 sim_disturbances: tuple[str, ...] = ()):
         self.n_freq = n_freq
         self.freq_hz = freq_grid_hz(1000.0, n_freq)
         self.preview_duration_s = preview_duration_s
+        #: The simulated rig's named disturbances for the previews and Suggest (the demo's:
+        #: those its controller's simulated rig runs with). ConfigError for an unknown name.
+        self.sim_setup: RigSetup | None = (
+            rig_setup(list(sim_disturbances)) if sim_disturbances else None)
         #: The controller's plant knowledge (`set_knowledge`), the same record its gate
         #: judges on; until it is fetched, the simulated rig's model with the commissioning
         #: bound (what a fresh controller starts with).
@@ -430,12 +451,17 @@ class TuningEngine:
         """The offline experiment over one sine period (12.6 s) or `preview_duration_s`."""
         return self._previews.get((cfg, trajectory), lambda: self._preview(cfg, trajectory))
 
+    def preview_run_s(self, trajectory: Trajectory) -> float:
+        """How long a preview runs: one period of a periodic trajectory, else
+        `preview_duration_s`, at most 30 s (Suggest runs as long, so its numbers are the
+        preview's)."""
+        return min(trajectory.period_s or self.preview_duration_s, 30.0)
+
     def _preview(self, cfg: LoopConfig, trajectory: Trajectory) -> PreviewResult:
-        from controller.sim.experiment import run_experiment
+        from controller.tune.autotune import command_noise_deg_s, run_point
 
         t0 = time.perf_counter()
-        duration = trajectory.period_s or self.preview_duration_s
-        res = run_experiment(cfg, trajectory, min(duration, 30.0), seed=0)
+        res = run_point(cfg, trajectory, self.preview_run_s(trajectory), setup=self.sim_setup)
         return PreviewResult(
             config=cfg,
             trajectory=trajectory,
@@ -444,6 +470,8 @@ class TuningEngine:
             peak_error_deg=float(res.peak_error_deg),
             rmse_deg=float(res.rmse_deg),
             elapsed_s=time.perf_counter() - t0,
+            command_noise_deg_s=command_noise_deg_s(res.command_deg_s, cfg.rate_hz),
+            disturbances="none" if self.sim_setup is None else self.sim_setup.label,
         )
 
     def steps(self, cfg: LoopConfig) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -462,6 +490,10 @@ class TuningEngine:
     def compare_preview(
         self, candidate: LoopConfig, active: LoopConfig, trajectory: Trajectory
     ) -> PreviewComparison:
-        """The previews of both configurations and the preview chart's data."""
+        """The previews of both configurations and of the candidate with the DOB off (its Q
+        settings are not used then: the run is cached whatever the cut-off), and the preview
+        chart's data."""
         pc, pa = self.preview(candidate, trajectory), self.preview(active, trajectory)
-        return PreviewComparison(pc, pa, charts.preview_data(pc.t_s, pc.error_deg, pa.error_deg))
+        pn = self.preview(_without_dob(candidate), trajectory)
+        return PreviewComparison(
+            pc, pa, charts.preview_data(pc.t_s, pc.error_deg, pa.error_deg, pn.error_deg), pn)

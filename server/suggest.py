@@ -18,6 +18,7 @@ import numpy as np
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PlantKnowledge
+from controller.sim.rig_disturbances import RigSetup
 from controller.tune.autotune import Point, TuneResult, autotune
 from server.charts import ChartSpec, FloatArray, uplot_column
 
@@ -43,11 +44,12 @@ class SuggestSettings:
 
 def suggest(base: LoopConfig, plant: PlantKnowledge, trajectory: Trajectory,
             settings: SuggestSettings = SuggestSettings(),
-            progress: Any = None) -> TuneResult:
-    """The autotune of `base`'s Q type and cut-off (its gains kept) on `trajectory`."""
+            progress: Any = None, setup: RigSetup | None = None) -> TuneResult:
+    """The autotune of `base`'s Q type and cut-off (its gains kept) on `trajectory`, on the
+    simulated rig with `setup`'s named disturbances (the preview's)."""
     from controller.sim.nonlinear_check import findings
 
-    return autotune(base, plant, trajectory, duration_s=settings.duration_s,
+    return autotune(base, plant, trajectory, duration_s=settings.duration_s, setup=setup,
                     objective=settings.objective, points=settings.points,
                     refine=settings.refine, lowest_hz=settings.lowest_hz,
                     highest_hz=settings.highest_hz, nonlinear=findings, q_types=Q_TYPES,

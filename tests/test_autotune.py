@@ -91,3 +91,15 @@ def test_cli_runs_with_the_named_belt_disturbances_and_names_a_bad_one() -> None
     assert loud["rmse_deg"] > quiet["rmse_deg"]
     code, bad = run(["belt-snap"])
     assert code == 2 and "disturbance" in bad and "belt-snap" in bad
+
+
+def test_command_noise_is_the_rms_above_20_hz() -> None:
+    """A 1 Hz command with a 50 Hz component of amplitude 2 deg/s: the noise figure is that
+    component's RMS through a 2nd-order Butterworth high-pass at 20 Hz, closed form
+    2 / sqrt(2) / sqrt(1 + (20/50)^4); the 1 Hz part (100x larger) passes at (1/20)^2."""
+    from controller.tune.autotune import command_noise_deg_s
+
+    t = np.arange(20000) / 1000.0
+    u = 100.0 * np.sin(2 * np.pi * 1.0 * t) + 2.0 * np.sin(2 * np.pi * 50.0 * t)
+    want = math.hypot(2.0 / math.sqrt(1 + (20 / 50) ** 4), 100.0 / math.sqrt(1 + 20.0**4))
+    assert command_noise_deg_s(u, 1000.0) == pytest.approx(want / math.sqrt(2), rel=0.01)

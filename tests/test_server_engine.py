@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from controller.core.config import LoopConfig, NominalModel
+from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import MeasuredResponse
 from controller.gate.loop_model import nominal_continuous_response
@@ -48,9 +49,37 @@ def test_compare_preview_draws_both_runs() -> None:
     eng = TuningEngine()
     active = LoopConfig()
     p = eng.compare_preview(active.with_(dob_on=False), active, Trajectory())
-    x, cand, act = p.chart_data
-    assert len(x) == len(cand) == len(act) <= 1500
+    x, cand, act, off = p.chart_data
+    assert len(x) == len(cand) == len(act) == len(off) <= 1500
     assert p.candidate.config.dob_on is False and p.active.config == active
+    assert p.no_dob is not None and p.no_dob.config.dob_on is False
+
+
+def test_preview_runs_the_rigs_disturbances_and_the_dob_off_beside() -> None:
+    """With the demo's disturbances: the candidate's preview and its DOB-off run are the runs
+    the autotune makes (same numbers, command noise included); the DOB-off run is one cached
+    run whatever the candidate's cut-off; the rig's disturbances change the numbers."""
+    from controller.sim.rig_disturbances import rig_setup
+    from controller.tune.autotune import command_noise_deg_s, run_point
+
+    traj = Trajectory()
+    eng = TuningEngine(sim_disturbances=("drive-offset",))
+    base = LoopConfig().with_(cv_kp=1.0, cv_ki_per_s=10.0)
+    cand = base.with_(q_type="q20", q_cutoff_hz=6.0)
+    p = eng.compare_preview(cand, base, traj)
+    assert p.no_dob is not None and p.candidate.disturbances == "drive-offset"
+    setup = rig_setup(["drive-offset"])
+    for shown, cfg in ((p.candidate, cand), (p.no_dob, base.with_(dob_on=False))):
+        r = run_point(cfg, traj, eng.preview_run_s(traj), setup=setup)
+        assert shown.rmse_deg == r.rmse_deg and shown.peak_error_deg == r.peak_error_deg
+        assert shown.command_noise_deg_s == command_noise_deg_s(r.command_deg_s, 1000.0)
+    assert p.candidate.command_noise_deg_s > p.no_dob.command_noise_deg_s  # the DOB's price
+    again = eng.compare_preview(cand.with_(q_cutoff_hz=2.0), base, traj)
+    assert again.no_dob is p.no_dob
+    plain = TuningEngine().preview(base.with_(dob_on=False), traj)
+    assert plain.rmse_deg != p.no_dob.rmse_deg and plain.disturbances == "none"
+    with pytest.raises(ConfigError, match="disturbance"):
+        TuningEngine(sim_disturbances=("no-such",))
 
 
 def test_recommendation_is_cached_per_gains() -> None:

@@ -32,6 +32,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="simulated plant noise seed")
     p.add_argument("--realtime-priority", action="store_true", help="try SCHED_FIFO")
     p.add_argument(
+        "--disturbance",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="with --plant sim: a named disturbance of the simulated rig (repeatable; those of "
+        "dobtune experiment, e.g. article-rig: the rate disturbances at P's input and the "
+        "belt varying with position)",
+    )
+    p.add_argument(
         "--auth",
         type=Path,
         default=None,
@@ -82,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
         state_dir=args.state_dir,
         rate_hz=args.rate_hz,
         seed=args.seed,
+        sim_disturbances=tuple(args.disturbance),
         realtime_priority=args.realtime_priority,
         sim_drive_node=args.sim_drive_node,
         auth_dir=args.auth,

@@ -17,7 +17,7 @@ import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 
@@ -43,6 +43,9 @@ from controller.process.runtime import (
 )
 from controller.process.service import ControllerService
 
+if TYPE_CHECKING:
+    from controller.sim.rig_disturbances import RigSetup
+
 __all__ = ["StartupError", "run_controller"]
 
 log = logging.getLogger(__name__)
@@ -65,6 +68,8 @@ def _check_options(opts: ControllerOptions) -> None:
             check_endpoint(e)
     except ValueError as exc:
         raise StartupError(str(exc)) from exc
+    if opts.sim_disturbances:
+        _sim_setup(opts)
     if opts.rate_hz is not None and not math.isfinite(opts.rate_hz):
         raise StartupError(f"--rate-hz: must be finite, got {opts.rate_hz}")
     if not (0.01 <= opts.status_period_s <= 10.0):
@@ -254,13 +259,36 @@ def _rig_command_limit(opts: ControllerOptions) -> float | None:
         raise StartupError(f"--rig {opts.rig_file}: {exc}") from exc
 
 
+def _sim_setup(opts: ControllerOptions) -> RigSetup:
+    """The simulated rig's named disturbances; StartupError naming --disturbance."""
+    from controller.sim.rig_disturbances import rig_setup
+
+    if opts.plant != "sim":
+        raise StartupError("--disturbance: only with --plant sim (a real rig has its own)")
+    try:
+        setup = rig_setup(list(opts.sim_disturbances))
+    except ConfigError as exc:
+        raise StartupError(f"--disturbance: {exc}") from exc
+    if setup.friction_changes:
+        raise StartupError(
+            f"--disturbance: {setup.label} schedules a friction change (offline experiments "
+            "only: dobtune experiment)"
+        )
+    return setup
+
+
 @contextlib.contextmanager
 def _open_rig(opts: ControllerOptions, rate_hz: float) -> Iterator[tuple[Rig, list[str]]]:
     """The plant, with anything it needs running; yields (rig, startup faults)."""
     if opts.plant == "sim":
         from controller.sim.sim_rig import SimRig
 
-        yield SimRig(rate_hz=rate_hz, seed=opts.seed), []
+        if opts.sim_disturbances:
+            setup = _sim_setup(opts)
+            yield SimRig(setup.params, rate_hz=rate_hz, seed=opts.seed,
+                         disturbance=setup.torque), []
+        else:
+            yield SimRig(rate_hz=rate_hz, seed=opts.seed), []
         return
     from controller.rig.can_rig import CanRig, RigFault
     from controller.rig.rig_file import load_rig_file

@@ -59,6 +59,10 @@ class ControllerOptions:
     insecure: bool = False
     """Allow a non-loopback listen endpoint without `auth_dir` (anyone who reaches it can
     change the rig while nobody holds the lease)."""
+    sim_disturbances: tuple[str, ...] = ()
+    """plant="sim" only: named disturbances of the simulated rig
+    (`controller.sim.rig_disturbances`: rig parameters and load-torque profiles; scheduled
+    friction changes are for offline experiments), e.g. the demo's rate disturbances."""
     sim_drive_node: bool = False
     """plant="can" only: run a simulated CiA 402 drive node in this process on the rig
     file's bus (python-can `virtual`): the whole CAN path without hardware."""

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 from scipy import signal
 
 from controller.core.config import LoopConfig
@@ -30,7 +31,8 @@ from controller.sim.disturbance import Disturbance
 from controller.sim.experiment import ExperimentResult, run_experiment
 from controller.sim.rig_disturbances import RigSetup, build_rig
 
-__all__ = ["NOISE_BAND_HZ", "Point", "TuneResult", "autotune"]
+__all__ = ["NOISE_BAND_HZ", "Point", "TuneResult", "autotune", "command_noise_deg_s",
+           "run_point"]
 
 NOISE_BAND_HZ = 20.0
 OBJECTIVES = ("rmse", "peak")
@@ -80,11 +82,32 @@ class TuneResult:
                 f"{b.rmse_deg:.4g} deg, peak {b.peak_error_deg:.4g} deg")
 
 
-def _noise(res: ExperimentResult, rate_hz: float) -> float:
+def command_noise_deg_s(command_deg_s: npt.ArrayLike, rate_hz: float) -> float:
+    """RMS of the speed command above `NOISE_BAND_HZ` (2nd-order Butterworth high-pass), deg/s,
+    after the first fifth of the run (the start-up transient): the DOB's price in the drive."""
     sos = signal.butter(2, NOISE_BAND_HZ, btype="highpass", fs=rate_hz, output="sos")
-    hp = signal.sosfilt(sos, res.command_deg_s)
+    hp = signal.sosfilt(sos, command_deg_s)
     n0 = len(hp) // 5  # skip the start-up transient
     return float(np.sqrt(np.mean(hp[n0:] ** 2)))
+
+
+def run_point(
+    cfg: LoopConfig,
+    trajectory: Trajectory,
+    duration_s: float,
+    *,
+    setup: RigSetup | None = None,
+    disturbance: Disturbance | None = None,
+) -> ExperimentResult:
+    """One run as the autotune makes it: the nonlinear simulated rig (with `setup`'s named
+    disturbances, noise seed 0, starting on the trajectory) and `cfg`'s loop. The dashboard's
+    preview makes the same run, so its numbers are the search's."""
+    if setup is not None and disturbance is not None:
+        raise ValueError("disturbance: give a torque profile or a rig setup, not both")
+    rig = None if setup is None else build_rig(
+        setup, rate_hz=cfg.rate_hz, seed=0, initial_position_deg=trajectory.at(0.0)[0])
+    return run_experiment(cfg, trajectory, duration_s, disturbance=disturbance, rig=rig,
+                          disturbance_name="none" if setup is None else setup.label)
 
 
 def autotune(
@@ -132,11 +155,8 @@ def autotune(
         if verdict == "reject":
             tick()
             return Point(cfg, verdict)
-        rig = None if setup is None else build_rig(
-            setup, rate_hz=cfg.rate_hz, seed=0, initial_position_deg=trajectory.at(0.0)[0])
-        res = run_experiment(cfg, trajectory, duration_s, disturbance=disturbance, rig=rig,
-                             disturbance_name="none" if setup is None else setup.label)
-        noise = _noise(res, cfg.rate_hz)
+        res = run_point(cfg, trajectory, duration_s, setup=setup, disturbance=disturbance)
+        noise = command_noise_deg_s(res.command_deg_s, cfg.rate_hz)
         err = res.rmse_deg if objective == "rmse" else res.peak_error_deg
         tick()
         return Point(cfg, verdict, res.rmse_deg, res.peak_error_deg, noise,

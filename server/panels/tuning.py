@@ -40,7 +40,14 @@ from server.panels.widgets import (
     esc,
     set_html,
 )
-from server.suggest import SUGGEST_CHART, suggest, suggest_data, suggest_html, suggested_config
+from server.suggest import (
+    SUGGEST_CHART,
+    SuggestSettings,
+    suggest,
+    suggest_data,
+    suggest_html,
+    suggested_config,
+)
 from server.workers import LatestWins
 
 __all__ = ["TuningPanel", "cutoff_marks", "format_gate_html"]
@@ -143,13 +150,34 @@ def _cutoff_log(hz: float) -> float:
 
 
 def _preview_html(traj: Trajectory, p: PreviewComparison) -> str:
-    pc, pa = p.candidate, p.active
+    """The preview's numbers: the candidate, the same gains with the DOB off (the DOB's value
+    and its price: the command noise above 20 Hz), the active configuration."""
+    pc, pa, pn = p.candidate, p.active, p.no_dob
+
+    def run(label: str, r: PreviewResult, cls: str) -> str:
+        return (f"<li class='{cls}'>{label}: peak <b>{r.peak_error_deg:.4f}</b> deg, RMSE "
+                f"<b>{r.rmse_deg:.4f}</b> deg, command noise &gt;20 Hz "
+                f"{r.command_noise_deg_s:.3g} deg/s</li>")
+
+    c = pc.config
+    dob = f"DOB {c.q_type.upper()} at {c.q_cutoff_hz:.3g} Hz" if c.dob_on else "DOB off"
+    rows = [run(f"candidate ({dob})", pc, "dt-preview-cand")]
+    if pn is not None:
+        rows.append(run("candidate, DOB off", pn, "dt-preview-nodob"))
+    rows.append(run("active", pa, "dt-preview-active"))
+    verdict = ""
+    if pn is not None and c.dob_on:
+        better = pc.rmse_deg < pn.rmse_deg
+        verdict = (f"<div class='dt-preview-verdict'>DOB {'beats' if better else 'does not beat'}"
+                   f" DOB off here: RMSE {pc.rmse_deg / pn.rmse_deg - 1.0:+.1%}, peak "
+                   f"{pc.peak_error_deg / pn.peak_error_deg - 1.0:+.1%}, command noise "
+                   f"x{pc.command_noise_deg_s / max(pn.command_noise_deg_s, 1e-12):.2g}</div>")
     return (
         "<div class='dt-preview' style='font-size:13px'>"
-        f"<b>Preview</b> ({traj.kind}, {pc.t_s[-1] + pc.t_s[1]:.1f} s simulated): "
-        f"candidate peak {pc.peak_error_deg:.4f} deg, RMSE {pc.rmse_deg:.4f} deg; "
-        f"active peak {pa.peak_error_deg:.4f} deg, RMSE {pa.rmse_deg:.4f} deg"
-        f" <span style='color:#888'>({pc.elapsed_s * 1e3:.0f} ms)</span></div>"
+        f"<b>Preview</b> ({esc(traj.kind)}, {pc.t_s[-1] + pc.t_s[1]:.1f} s simulated, "
+        f"disturbances: {esc(pc.disturbances)}) "
+        f"<span style='color:#888'>({pc.elapsed_s * 1e3:.0f} ms)</span>"
+        f"<ul style='margin:2px 0 0 16px;padding:0'>{''.join(rows)}</ul>{verdict}</div>"
     )
 
 
@@ -616,7 +644,9 @@ class TuningPanel:
                 set_html(self.suggest_text, "<div class='dt-suggest dt-suggest-running'>"
                          f"Suggest: searching on the simulated rig... {100 * frac:.0f} %</div>")
 
-        result = suggest(base, self.engine.plant, traj, progress=progress)
+        settings = SuggestSettings(duration_s=self.engine.preview_run_s(traj))
+        result = suggest(base, self.engine.plant, traj, settings, progress=progress,
+                         setup=self.engine.sim_setup)
         self.last_suggestion = result
         if self._suggest_chart is not None:
             self._suggest_chart.data = suggest_data(result)
