@@ -14,6 +14,7 @@ from pathlib import Path
 import control as ct
 import numpy as np
 import pytest
+from old_loop import OLD_LOOP
 
 from controller.core.config import LoopConfig
 from controller.core.dob import design_dob
@@ -148,7 +149,7 @@ def test_margins_agree_with_python_control(cfg: LoopConfig) -> None:
 
 def test_article_controller_margins_match_control_md() -> None:
     # control.md: Cv = 0.5 (1 + 55/s): crossover 4.5 Hz, PM 58 deg, GM 22 dB (DOB off).
-    m = analyse(LoopConfig(dob_on=False)).margins
+    m = analyse(OLD_LOOP.with_(dob_on=False)).margins
     assert m.gain_crossover_hz == pytest.approx(4.5, abs=0.1)
     assert m.phase_margin_deg == pytest.approx(58.0, abs=1.0)
     assert m.gain_margin_db == pytest.approx(22.0, abs=0.5)
@@ -195,7 +196,7 @@ def test_rejection_gain_is_one_over_one_minus_q_at_low_frequency() -> None:
 
 
 def test_bandwidth_is_the_minus_3_db_point() -> None:
-    cfg = LoopConfig()
+    cfg = OLD_LOOP  # its bandwidth, 7.96 Hz, was worked out by hand
     a = analyse(cfg)
     ref = Ref(cfg)
     g = abs(_resp(ref.gyw(), np.array([a.bandwidth_hz]), cfg.period_s)[0])
@@ -227,7 +228,7 @@ def test_closed_loop_poles_agree_with_python_control(cfg: LoopConfig) -> None:
 
 
 def test_unstable_nominal_loop_is_rejected_by_its_poles() -> None:
-    cfg = LoopConfig(cv_kp=8.0, dob_on=False)
+    cfg = OLD_LOOP.with_(cv_kp=8.0, dob_on=False)  # GM 22 dB: 16x its Kp is unstable
     a = analyse(cfg)
     assert a.max_pole_radius > 1.0
     assert np.max(np.abs(Ref(cfg).full_loop_poles())) == pytest.approx(a.max_pole_radius)
@@ -255,7 +256,7 @@ def test_weight_bound_shape() -> None:
 
 def test_control_md_counter_example_is_rejected() -> None:
     """||W Q|| < 1 with W 0.2 -> 1 at 15 Hz and Q31 at 19.8 Hz, yet Delta = -W destabilises."""
-    cfg = LoopConfig(q_cutoff_hz=19.8)
+    cfg = OLD_LOOP.with_(q_cutoff_hz=19.8)  # control.md's counter-example used this loop
     bound = WeightBound(0.2, 15.0)
     a = analyse(cfg, PlantKnowledge(bound=bound))
     src = a.sources[0]
@@ -334,7 +335,7 @@ def test_sampled_response_equal_to_the_exact_plant_has_no_model_error() -> None:
 
 
 def test_measured_plant_that_destabilises_the_plain_loop_is_rejected() -> None:
-    cfg = LoopConfig()
+    cfg = OLD_LOOP  # gain margin 22 dB: a plant 15x the model destabilises it
     f = np.geomspace(0.01, 450.0, 300)
     m = MeasuredResponse("x15", f, 15.0 * nominal_continuous_response(cfg.nominal, f))
     a = analyse(cfg, PlantKnowledge(measured=(m,)))

@@ -40,7 +40,7 @@ def test_best_is_the_best_of_an_explicit_sweep() -> None:
 
 
 def test_rejected_candidates_are_not_run_and_bad_input_is_named() -> None:
-    stiff = LoopConfig(cv_kp=8.0)  # unstable whatever the Q: everything rejected
+    stiff = LoopConfig(cv_kp=30.0)  # unstable whatever the Q (pole radius 1.007): all rejected
     res = autotune(stiff, K, default_trajectory("sine"), duration_s=2.0, points=2, refine=0,
                    q_types=("q31",))
     assert res.best is None and all(p.verdict == "reject" for p in res.curve)

@@ -9,6 +9,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
+from old_loop import OLD_LOOP, OLD_LOOP_PATH
 
 from controller.cli.check import check_main
 from controller.core.config import LoopConfig, config_to_builtins
@@ -51,7 +52,8 @@ def test_default_config_is_accepted_with_a_table() -> None:
 
 def test_json_output_has_the_keys_and_the_effective_config(tmp_path: Path) -> None:
     path = tmp_path / "cfg.json"
-    path.write_text(json.dumps(config_to_builtins(LoopConfig(cv_kp=0.45))), encoding="utf-8")
+    # A softer variant of the earlier default loop (examples/loop_cv_0.5_55.json).
+    path.write_text(json.dumps(config_to_builtins(OLD_LOOP.with_(cv_kp=0.45))), encoding="utf-8")
     code, text = _run(True, config_path=path, q_type="q20", cutoff_hz=0.5)
     data = json.loads(text)
     assert code == 0 and data["verdict"] == "accept", data["reasons"]
@@ -64,20 +66,22 @@ def test_json_output_has_the_keys_and_the_effective_config(tmp_path: Path) -> No
 
 
 def test_caution_exits_3_and_names_the_loop_and_the_evidence() -> None:
-    code, text = _run(cutoff_hz=5.0)  # stable, but the whole servo's margins are thin
+    # The earlier default loop with Q31 at 5 Hz: stable, but the whole servo's margins are thin.
+    code, text = _run(config_path=OLD_LOOP_PATH, cutoff_hz=5.0)
     assert code == 3
     assert "verdict: CAUTION" in text
     assert "caution: peak sensitivity" in text and "whole servo, plant model" in text
     assert "above the recommended maximum" in text
-    code, text = _run(True, cutoff_hz=5.0)
+    code, text = _run(True, config_path=OLD_LOOP_PATH, cutoff_hz=5.0)
     data = json.loads(text)
     assert code == 3 and data["verdict"] == "caution" and not data["rejections"]
 
 
 def test_rejected_candidate_exits_1_with_reasons(tmp_path: Path) -> None:
     path = tmp_path / "cfg.json"
-    path.write_text(json.dumps(config_to_builtins(LoopConfig(cv_kp=8.0))), encoding="utf-8")
-    code, text = _run(config_path=path)  # the speed loop is unstable on the model
+    # The earlier default loop with 16x its Kp (gain margin 22 dB): unstable on the model.
+    path.write_text(json.dumps(config_to_builtins(OLD_LOOP.with_(cv_kp=8.0))), encoding="utf-8")
+    code, text = _run(config_path=path)
     assert code == 1
     assert "verdict: REJECT" in text and "reject: closed-loop pole radius" in text
     code, text = _run(True, config_path=path)

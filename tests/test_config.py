@@ -16,10 +16,11 @@ from controller.core.errors import ConfigError
 
 def test_defaults_are_the_article_rig_and_starting_controller() -> None:
     c = LoopConfig()
+    # Cv: docs/starting_loop.md's procedure (tests/test_starting_loop.py checks the numbers).
     assert (c.rate_hz, c.cv_kp, c.cv_ki_per_s, c.pos_kp_per_s, c.pos_ki_per_s) == (
         1000.0,
-        0.5,
-        55.0,
+        1.35,
+        10.8,
         9.0,
         3.5,
     )

@@ -24,6 +24,7 @@ from fuzz_truth import (
     sampled_response,
     truth,
 )
+from old_loop import OLD_LOOP
 
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.loop import LoopCoefficients, ServoLoop
@@ -105,7 +106,7 @@ def test_unstable_loop_grows_like_the_largest_pole() -> None:
 
 
 def test_article_configuration_margins_as_control_md_states() -> None:
-    t = truth(TruePlant(), ARTICLE)
+    t = truth(TruePlant(), OLD_LOOP)  # control.md's margins are those of Cv = 0.5 (1 + 55/s)
     assert t.stable and t.comfortable()
     m = t.margins_speed
     assert m is not None

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from old_loop import OLD_LOOP
 
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
@@ -33,7 +34,7 @@ def test_gate_accepts_the_default_and_rejects_an_unstable_candidate() -> None:
 
 
 def test_a_caution_may_be_applied_and_says_why() -> None:
-    v = gate(LoopConfig(q_cutoff_hz=5.0), K)
+    v = gate(OLD_LOOP.with_(q_cutoff_hz=5.0), K)  # thin whole-servo margins on the earlier loop
     assert v.accepted and v.verdict == "caution"
     assert any("whole servo" in r for r in v.reasons)
 

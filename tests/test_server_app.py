@@ -131,7 +131,7 @@ def test_history_lists_versions_and_loads_one_as_the_candidate(tmp_path: Path) -
         with Dashboard(opts) as d:
             wait_for(lambda: d.client.connected, CONTROLLER_START_S)
             first = d.client.get_config()
-            reply = d.client.apply(first.config.with_(q_cutoff_hz=0.8, cv_kp=0.5))
+            reply = d.client.apply(first.config.with_(q_cutoff_hz=0.8, cv_kp=1.2))
             assert reply.accepted, reply.reasons
             wait_for(lambda: "v2" in d.history_html.content and "v1" in d.history_html.content)
             # The History tab shows the difference between any two versions (newest vs the one

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from old_loop import OLD_LOOP
 
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
@@ -314,8 +315,11 @@ def _gain(factor: float) -> Fault:
     return lambda rig, loop, wd: rig.set_plant_gain(factor)
 
 
-Q31_10HZ = LoopConfig(q_cutoff_hz=10.0)
-CV_KP_2 = LoopConfig(cv_kp=2.0)
+# The faults below were worked out on the earlier default loop, Cv = 0.5 (1 + 55/s)
+# (examples/loop_cv_0.5_55.json): its 4.5 Hz crossover and 22 dB gain margin set which modes
+# and gains make it oscillate.
+Q31_10HZ = OLD_LOOP.with_(q_cutoff_hz=10.0)
+CV_KP_2 = OLD_LOOP.with_(cv_kp=2.0)
 OSC, GROW = TripCode.OSCILLATION, TripCode.GROWING_OSCILLATION
 
 
@@ -336,7 +340,7 @@ def _case(
     freq_hz: tuple[float, float] | None = None,
     cfg: LoopConfig | None = None,
 ) -> object:
-    return pytest.param(cfg or LoopConfig(), kind, fault, code, ticks, freq_hz, id=name)
+    return pytest.param(cfg or OLD_LOOP, kind, fault, code, ticks, freq_hz, id=name)
 
 
 def _mode(freq_hz: float) -> Fault:
@@ -354,8 +358,8 @@ TRIP_CASES = [
     _case("q31-10hz-sine", "sine", _apply(Q31_10HZ), OSC, (1000, 3500), (3, 8)),
     _case("gain-x3-10dB-margin", "sine", _both(_apply(CV_KP_2), _gain(3.0)), GROW, (200, 600),
           (10, 20)),
-    _case("cv-kp-6", "sine", _apply(LoopConfig(cv_kp=6.0)), GROW, (200, 500), (12, 30)),
-    _case("cv-kp-12", "sine", _apply(LoopConfig(cv_kp=12.0)), GROW, (200, 500), (12, 30)),
+    _case("cv-kp-6", "sine", _apply(OLD_LOOP.with_(cv_kp=6.0)), GROW, (200, 500), (12, 30)),
+    _case("cv-kp-12", "sine", _apply(OLD_LOOP.with_(cv_kp=12.0)), GROW, (200, 500), (12, 30)),
     # Modes near the speed loop's crossover.
     _case("mode-10hz-sine", "sine", _mode(10.0), OSC, (1000, 3500), (8, 12)),
     _case("mode-8hz-ramp", "ramp", _mode(8.0), GROW, (200, 2500), (6.4, 9.6)),
@@ -363,7 +367,7 @@ TRIP_CASES = [
     _case("drive-stops", "sine", _gain(0.0), TripCode.SATURATION, (1000, 2000)),
     # Nothing saturates: the 1 deg/s ramp runs 2 deg away in ~2 s, then 1 s beyond.
     _case("drive-stops-no-limit", "ramp", _gain(0.0), TripCode.TRACKING_ERROR, (2500, 3500),
-          cfg=LoopConfig(command_limit_deg_s=1e4)),
+          cfg=OLD_LOOP.with_(command_limit_deg_s=1e4)),
 ]  # fmt: skip
 
 

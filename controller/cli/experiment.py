@@ -22,8 +22,9 @@ from controller.cli.common import Command, on_off, progress_printer
 from controller.core.config import LoopConfig, config_to_builtins
 from controller.core.errors import ConfigError
 from controller.core.trajectory import default_trajectory
+from controller.ident.paper_fig13 import EXPERIMENTS
 from controller.sim.experiment import ARTICLE_SINE, ExperimentResult, run_experiment
-from controller.sim.paper import EXPERIMENTS, FigureResult, Options
+from controller.sim.paper import FigureResult, Options
 from controller.sim.rig_disturbances import RIG_DISTURBANCES, build_rig, rig_setup
 
 TRAJECTORY_TESTS = ("sine", "step", "ramp", "hold", "compare")

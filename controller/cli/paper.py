@@ -64,7 +64,10 @@ def python_control_check(cfg: LoopConfig) -> dict[str, float]:
             loop = cv * m * p
             d = 1 + loop + (p / pn - 1) * q
             ours = suppression_curve(cfg, qt, cfg.q_cutoff_hz, v, f).gain_db
-            diff = float(np.max(np.abs(mag_db((1 - q) * (1 + loop) / d) - ours)))
+            # eq. 23 with the article's names: E1 (eq. 18, no DOB) over E2 (eq. 16, DOB)
+            e1 = p / (1 + loop)
+            e2 = p * (1 - q) / d
+            diff = float(np.max(np.abs(mag_db(e1 / e2) - ours)))
             out["eq23_max_diff_db"] = max(out["eq23_max_diff_db"], diff)
     # Sensitivity: relative change of W per relative change of P, by finite difference.
     q = ct.tf(*design_q(cfg.q_type, cutoff_hz=cfg.q_cutoff_hz).tf())  # type: ignore[arg-type]
@@ -215,7 +218,8 @@ def paper_main(
     seed: int, err: TextIO,
 ) -> int:
     from controller.cli.inputs import BadInput, load_config
-    from controller.sim.paper import Options, run_paper
+    from controller.ident.paper_fig13 import run_paper
+    from controller.sim.paper import Options
     from controller.sim.rig_disturbances import rig_setup
 
     t0 = time.perf_counter()

@@ -98,8 +98,13 @@ class LoopConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
 
     rate_hz: float = 1000.0
     nominal: NominalModel = msgspec.field(default_factory=NominalModel)
-    cv_kp: float = 0.5
-    cv_ki_per_s: float = 55.0
+    # The starting speed PI (controller.tune.starting_loop, docs/starting_loop.md): crossover
+    # placed for a phase margin on Mn Pn with one tick of delay (60 deg, raised until the
+    # article's uncertainty case leaves ||W T|| <= 0.7: 75 deg), integral corner at a quarter
+    # of it. The article gives no Cv; the older guess 0.5 (1 + 55/s) is
+    # examples/loop_cv_0.5_55.json.
+    cv_kp: float = 1.35
+    cv_ki_per_s: float = 10.8
     pos_kp_per_s: float = 9.0
     pos_ki_per_s: float = 3.5
     ff_on: bool = False

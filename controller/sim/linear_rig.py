@@ -133,3 +133,91 @@ class LinearRig:
         self._rate = (pos - self._pos) / self._ts
         self._pos = pos
         self._k += 1
+
+
+def _zoh(a: np.ndarray, b: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray]:
+    n, m = a.shape[0], b.shape[1]
+    big = np.zeros((n + m, n + m))
+    big[:n, :n] = a
+    big[:n, n:] = b
+    e = linalg.expm(big * ts)
+    return e[:n, :n], e[:n, n:]
+
+
+class BacklashRig:
+    """The linear rig with backlash at P's input: the motor angle (integral of M u + d) drives
+    P's input angle through a play of total width `backlash_deg` (the input stays put until
+    the motor has crossed the gap, then follows it), the article's backlash as a rate
+    disturbance at P's input. Integrated with `substeps` ZOH sub-steps per period (M and P
+    exact per sub-step, P's input rate held over a sub-step); the rate is the backward
+    difference of the load position over one period, as on the other rigs."""
+
+    __slots__ = (
+        "_d",
+        "_half",
+        "_k",
+        "_m",
+        "_p",
+        "_pos",
+        "_rate",
+        "_sub",
+        "_th_in",
+        "_th_m",
+        "_ts",
+        "_xm",
+        "_xp",
+    )
+
+    def __init__(
+        self,
+        variant: PlantVariant,
+        nominal: NominalModel | None = None,
+        *,
+        backlash_deg: float,
+        rate_hz: float = 1000.0,
+        substeps: int = 10,
+        speed_disturbance: Callable[[float], float] | None = None,
+    ) -> None:
+        if not (math.isfinite(backlash_deg) and backlash_deg >= 0.0):
+            raise ConfigError("backlash_deg", f"must be finite and >= 0, got {backlash_deg!r}")
+        nominal = nominal or NominalModel()
+        self._ts = 1.0 / rate_hz
+        self._sub = substeps
+        dt = self._ts / substeps
+        a1, b1, c1, d1 = _ss(np.array([1.0]), np.asarray(nominal.mn_den, float))
+        a2, b2, c2, d2 = _ss(*variant.p_polys(nominal))
+        self._m = (*_zoh(a1, b1, dt), c1[0], float(d1[0, 0]))
+        self._p = (*_zoh(a2, b2, dt), c2[0], float(d2[0, 0]))
+        self._xm = np.zeros(a1.shape[0])
+        self._xp = np.zeros(a2.shape[0])
+        self._half = 0.5 * backlash_deg
+        self._th_m = 0.0
+        self._th_in = 0.0
+        self._d = speed_disturbance
+        self._k = 0
+        self._pos = 0.0
+        self._rate = 0.0
+
+    def read(self) -> tuple[float, float]:
+        return self._pos, self._rate
+
+    def step(self, command_deg_s: float) -> None:
+        t = self._k * self._ts
+        d = 0.0 if self._d is None else self._d(t)
+        dt = self._ts / self._sub
+        am, bm, cm, dm = self._m
+        ap, bp, cp, dp = self._p
+        pos = self._pos
+        for _ in range(self._sub):
+            v = float(cm @ self._xm) + dm * command_deg_s + d  # motor rate + d (P's input)
+            self._xm = am @ self._xm + bm[:, 0] * command_deg_s
+            th_m = self._th_m + v * dt
+            th_in = min(max(self._th_in, th_m - self._half), th_m + self._half)
+            v_in = (th_in - self._th_in) / dt
+            self._th_m, self._th_in = th_m, th_in
+            w = float(cp @ self._xp) + dp * v_in
+            self._xp = ap @ self._xp + bp[:, 0] * v_in
+            pos += w * dt
+        self._rate = (pos - self._pos) / self._ts
+        self._pos = pos
+        self._k += 1

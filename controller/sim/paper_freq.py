@@ -1,8 +1,10 @@
 """Frequency-domain results of the article (continuous time, control.md's formulas).
 
-- Disturbance suppression, eq. (23): E1/E2 = Gdw(with DOB) / Gdw(without DOB)
-  = (1 - Q)(1 + Cv M P) / D, D = 1 + Cv M P + (P Pn^-1 - 1) Q (eq. 19). With P = Pn it is 1 - Q.
-  |E1/E2| < 1 (negative dB): the DOB rejects better; > 1: it amplifies (the waterbed).
+- Disturbance responses, eqs. (16) and (18): E2 = Gdw with the DOB = P (1 - Q) / D,
+  D = 1 + Cv M P + (P Pn^-1 - 1) Q (eq. 19); E1 = Gdw without it = P / (1 + Cv M P).
+- Disturbance suppression, eq. (23), with the article's names: E1/E2 = Gdw(without DOB) /
+  Gdw(with DOB) = D / ((1 - Q)(1 + Cv M P)); with P = Pn it is 1/(1 - Q). |E1/E2| > 1
+  (positive dB): the DOB rejects better; < 1: it rejects worse (the waterbed near the cut-off).
 - Parameter sensitivity, eqs. (28)-(29): the relative change of the reference-to-rate transfer
   function per relative change of P, at the plant P':
   S_P'^W1 = 1 / (1 + Cv M P')                 (no DOB, W1 = Cv M P / (1 + Cv M P))
@@ -20,13 +22,14 @@ import numpy as np
 import numpy.typing as npt
 
 from controller.core.config import LoopConfig
-from controller.core.qfilter import QType, design_q
+from controller.core.qfilter import design_q
 from controller.sim.linear_rig import PlantVariant
 
 __all__ = [
+    "DisturbanceResponses",
     "SensitivityCurves",
     "SuppressionCurve",
-    "cutoff_for_waterbed_at",
+    "disturbance_responses",
     "loop_parts",
     "sensitivity_curves",
     "suppression_curve",
@@ -59,15 +62,16 @@ class SuppressionCurve:
     plant: str
     freq_hz: FloatArray
     gain_db: FloatArray
-    """20 log10 |E1/E2| (eq. 23)."""
+    """20 log10 |E1/E2| (eq. 23): > 0 where the DOB rejects better."""
 
     @property
-    def peak_db(self) -> float:
-        return float(np.max(self.gain_db))
+    def waterbed_db(self) -> float:
+        """The lowest |E1/E2| in dB: how much worse the DOB rejects at its worst."""
+        return float(np.min(self.gain_db))
 
     @property
-    def peak_hz(self) -> float:
-        return float(self.freq_hz[int(np.argmax(self.gain_db))])
+    def waterbed_hz(self) -> float:
+        return float(self.freq_hz[int(np.argmin(self.gain_db))])
 
     def at(self, f_hz: float) -> float:
         """|E1/E2| in dB at `f_hz` (interpolated on log f)."""
@@ -75,9 +79,9 @@ class SuppressionCurve:
 
     @property
     def crossover_hz(self) -> float:
-        """Lowest frequency where |E1/E2| reaches 0 dB: below it the DOB helps."""
-        above = np.nonzero(self.gain_db >= 0.0)[0]
-        return float(self.freq_hz[above[0]]) if above.size else math.inf
+        """Lowest frequency where |E1/E2| falls to 0 dB: below it the DOB helps."""
+        below = np.nonzero(self.gain_db <= 0.0)[0]
+        return float(self.freq_hz[below[0]]) if below.size else math.inf
 
 
 def suppression_curve(
@@ -88,17 +92,43 @@ def suppression_curve(
     freq_hz: FloatArray | None = None,
 ) -> SuppressionCurve:
     f = np.geomspace(0.01, 100.0, 2000) if freq_hz is None else np.asarray(freq_hz, float)
+    r = disturbance_responses(cfg, q_type, cutoff_hz, variant, f)
+    return SuppressionCurve(q_type, cutoff_hz, variant.label, f, r.e1_db - r.e2_db)
+
+
+@dataclass(frozen=True)
+class DisturbanceResponses:
+    q_type: str
+    cutoff_hz: float
+    plant: str
+    freq_hz: FloatArray
+    e1_db: FloatArray
+    """|Gdw| without the DOB, eq. (18), in dB."""
+    e2_db: FloatArray
+    """|Gdw| with the DOB, eq. (16), in dB."""
+
+    def peak(self, which: str) -> tuple[float, float]:
+        """(peak dB, its frequency Hz) of 'e1' or 'e2'."""
+        g = self.e1_db if which == "e1" else self.e2_db
+        i = int(np.argmax(g))
+        return float(g[i]), float(self.freq_hz[i])
+
+
+def disturbance_responses(
+    cfg: LoopConfig,
+    q_type: str,
+    cutoff_hz: float,
+    variant: PlantVariant = NOMINAL,
+    freq_hz: FloatArray | None = None,
+) -> DisturbanceResponses:
+    """Eqs. (16) and (18) at `freq_hz` (default 0.01-100 Hz)."""
+    f = np.geomspace(0.01, 100.0, 2000) if freq_hz is None else np.asarray(freq_hz, float)
     lp, ppn, q, _ = loop_parts(cfg, q_type, cutoff_hz, variant, f)
-    d = 1.0 + lp + (ppn - 1.0) * q
-    ratio = (1.0 - q) * (1.0 + lp) / d
-    return SuppressionCurve(q_type, cutoff_hz, variant.label, f, 20.0 * np.log10(np.abs(ratio)))
-
-
-def cutoff_for_waterbed_at(q_type: QType, peak_hz: float, cfg: LoopConfig) -> float:
-    """The cut-off whose eq. (23) peak (P = Pn: 1 - Q) lies at `peak_hz`: the peak scales
-    with 1/tau, so one curve gives the ratio peak/cut-off."""
-    ref = suppression_curve(cfg, q_type, 1.0, freq_hz=np.geomspace(0.05, 50.0, 20001))
-    return peak_hz / ref.peak_hz
+    p = variant.response(cfg.nominal, f)
+    e2 = p * (1.0 - q) / (1.0 + lp + (ppn - 1.0) * q)
+    e1 = p / (1.0 + lp)
+    return DisturbanceResponses(q_type, cutoff_hz, variant.label, f,
+                                20.0 * np.log10(np.abs(e1)), 20.0 * np.log10(np.abs(e2)))
 
 
 @dataclass(frozen=True)

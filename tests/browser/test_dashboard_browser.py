@@ -150,7 +150,7 @@ def test_apply_stable_candidate_changes_controller_config(
     before = probe.get_config()
     set_number(page, "Q cut-off (Hz)", 1.0)  # typed in Hz; the log slider follows
     page.wait_for_selector(".dt-cutoff >> text=1.000 Hz", timeout=15_000)
-    set_number(page, "Cv Kp", 0.5)
+    set_number(page, "Cv Kp", 1.2)
     _apply(page, "accept", "text=Accepted", artifacts / "browser_3_apply_accepted.png")
     after = probe.get_config()  # through Zenoh, not through the page
     assert after.version > before.version
@@ -162,6 +162,7 @@ def test_apply_unstable_candidate_is_refused_and_config_unchanged(
     page: Any, probe: ControllerClient, artifacts: Path
 ) -> None:
     before = probe.get_config()
+    set_number(page, "Cv Ki (1/s)", 55.0)  # the earlier default's integral: with Kp 3, unstable
     set_number(page, "Cv Kp", 3.0)
     _apply(page, "reject", ".dt-apply-rejected", artifacts / "browser_4_apply_rejected.png")
     reasons = page.locator(".dt-reject-reason").all_inner_texts()
@@ -177,7 +178,9 @@ def test_a_caution_applies_only_after_the_dialog(
 ) -> None:
     before = probe.get_config()
     set_number(page, "Cv Kp", before.config.cv_kp)
-    set_number(page, "Q cut-off (Hz)", 5.0)  # stable; thin margins, chatter at standstill
+    set_number(page, "Cv Ki (1/s)", before.config.cv_ki_per_s)
+    # Stable; above the recommended maximum (8.8 Hz), chatter at standstill (nonlinear check).
+    set_number(page, "Q cut-off (Hz)", 10.0)
     page.wait_for_selector(".dt-verdict.dt-caution", timeout=15_000)
     assert "nonlinear check" in _text(page, ".dt-verdict")
     page.get_by_role("button", name="Apply candidate").click()
@@ -189,8 +192,8 @@ def test_a_caution_applies_only_after_the_dialog(
     page.get_by_role("button", name="Apply anyway").click()
     page.wait_for_selector("text=Accepted", timeout=10_000)
     after = probe.get_config()
-    assert after.version == before.version + 1 and math.isclose(after.config.q_cutoff_hz, 5.0)
-    # Back to a calm configuration for the tests that follow. The 5 Hz chatters at standstill,
+    assert after.version == before.version + 1 and math.isclose(after.config.q_cutoff_hz, 10.0)
+    # Back to a calm configuration for the tests that follow. The 10 Hz chatters at standstill,
     # so the watchdog may roll it back at any moment (a new version): this browser's candidate
     # is then based on an old version and the controller refuses it (compare-and-set). As a
     # user would: Revert (loads the active version) and send again.

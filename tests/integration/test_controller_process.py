@@ -108,7 +108,7 @@ def test_rejected_candidate_leaves_the_active_config_byte_identical(
 ) -> None:
     before = client.get_config()
     file_before = _active_file(controller)
-    reply = client.apply(before.config.with_(cv_kp=20.0))
+    reply = client.apply(before.config.with_(cv_kp=30.0))  # unstable: pole radius 1.007
     assert not reply.accepted
     assert reply.reasons and any("unstable" in r or "margin" in r for r in reply.reasons)
     assert reply.version == before.version
@@ -274,7 +274,7 @@ def test_restart_restores_the_last_accepted_config(
         candidate = LoopConfig(q_cutoff_hz=0.8, ff_on=True)
         reply = c.apply(candidate)
         assert reply.accepted, reply.reasons
-        rejected = c.apply(candidate.with_(cv_kp=20.0))
+        rejected = c.apply(candidate.with_(cv_kp=30.0))
         assert not rejected.accepted
     assert first.stop(signal.SIGTERM) == 0, first.log()
     assert wait_until(lambda: port_is_free(first.port), 5.0)
@@ -306,7 +306,7 @@ def test_a_config_the_gate_rejects_does_not_start(
     start_controller_factory: Callable[..., ControllerProcess], tmp_path: Path
 ) -> None:
     bad = tmp_path / "bad.json"
-    bad.write_text(json.dumps({"cv_kp": 20.0}))
+    bad.write_text(json.dumps({"cv_kp": 30.0}))  # unstable with the default Cv integral
     proc = start_controller_factory(extra_args=("--config", str(bad)))
     assert proc.proc.wait(timeout=60) == 2
     assert "stability gate" in proc.log()
@@ -337,7 +337,7 @@ def _flood(controller: ControllerProcess, client: Client, threading: Any) -> Non
     counts = [0] * 4
     payloads = [
         None,
-        ENC({"v": 1, "candidate": {"cv_kp": 20.0}}),
+        ENC({"v": 1, "candidate": {"cv_kp": 30.0}}),
         b"\xc1garbage",
         ENC({"v": 1, "body": {"type": "launch"}}),
     ]

@@ -201,7 +201,7 @@ def test_a_fleet_behind_an_authenticating_router(tmp_path: Path) -> None:
         with ControllerClient(copts) as op:
             assert op.lease("acquire", 60.0).ok
             before = op.get_config()
-            reply = op.apply(before.config.with_(cv_kp=0.45), expect_version=before.version)
+            reply = op.apply(before.config.with_(cv_kp=1.2), expect_version=before.version)
             assert reply.accepted, reply
             last = op.history(1).entries[-1]
             assert last.version == reply.version and "op1" in last.client

@@ -65,7 +65,7 @@ def test_a_lying_nominal_is_judged_on_the_controllers_model(
 
 def test_a_caution_applies_only_with_confirm(controller: ControllerProcess, client: Client) -> None:
     before = client.get_config()
-    cand = before.config.with_(q_cutoff_hz=5.0)  # stable, thin margins in the whole servo
+    cand = before.config.with_(q_cutoff_hz=12.0)  # stable, thin margins in the whole servo
     reply = _apply(client, cand)
     assert not reply.accepted and reply.verdict == "caution" and reply.field == "confirm"
     assert client.get_config().version == before.version
@@ -85,7 +85,8 @@ def test_knowledge_is_adopted_numbered_persisted_and_hostile_records_refused(
     state = tmp_path / "k"
     first = start_controller_factory(state_dir=state)
     f = np.geomspace(0.05, 400.0, 120)
-    h = 15.0 * nominal_continuous_response(ARTICLE, f)  # a plant 15x the model's gain
+    # A plant 40x the model's gain (the default loop's gain margin is 26 dB, 20x).
+    h = 40.0 * nominal_continuous_response(ARTICLE, f)
     measured = MeasuredRecord(name="pos0", freq_hz=f.tolist(), re=h.real.tolist(),
                               im=h.imag.tolist())
     with Client(first.endpoint, first.rig) as c:
@@ -99,7 +100,7 @@ def test_knowledge_is_adopted_numbered_persisted_and_hostile_records_refused(
         assert reply.ok and reply.record.version == 2, reply.message
         # The running (default) configuration is unstable on such a plant: said at once.
         assert "now judged reject" in reply.message
-        assert not truth(TruePlant(gain=15.0), LoopConfig()).stable
+        assert not truth(TruePlant(gain=40.0), LoopConfig()).stable
         st = c.fresh_status()
         assert st.knowledge_version == 2 and st.verdict == "reject"
         assert any("now judged reject" in n for n in st.notes)
@@ -141,12 +142,12 @@ def test_knowledge_is_adopted_numbered_persisted_and_hostile_records_refused(
 
 
 def _stable_on(tmp_path: Path) -> Path:
-    """A configuration stable on the 15x plant (the saved config is not): a quarter of the
-    speed gain, checked against the truth."""
-    cfg = LoopConfig(cv_kp=0.45 / 15.0, cv_ki_per_s=20.0, pos_kp_per_s=3.0, pos_ki_per_s=0.5,
+    """A configuration stable on the 40x plant (the saved config is not): a low speed gain,
+    checked against the truth."""
+    cfg = LoopConfig(cv_kp=0.45 / 40.0, cv_ki_per_s=20.0, pos_kp_per_s=3.0, pos_ki_per_s=0.5,
                      q_cutoff_hz=0.3)
-    assert truth(TruePlant(gain=15.0), cfg).stable
-    path = tmp_path / "stable15.json"
+    assert truth(TruePlant(gain=40.0), cfg).stable
+    path = tmp_path / "stable40.json"
     path.write_text(json.dumps({"cv_kp": cfg.cv_kp, "cv_ki_per_s": cfg.cv_ki_per_s,
                                 "pos_kp_per_s": cfg.pos_kp_per_s,
                                 "pos_ki_per_s": cfg.pos_ki_per_s, "q_cutoff_hz": 0.3}))

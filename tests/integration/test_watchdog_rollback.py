@@ -9,12 +9,24 @@ import json
 import signal
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
+import pytest
 from procs import Client, ControllerProcess, wait_until
 
 from controller import protocol as proto
-from controller.core.config import LoopConfig
+from controller.cli.inputs import load_config
+
+#: The faults below were worked out on the earlier default loop, Cv = 0.5 (1 + 55/s): its
+#: margins decide which drive gains and modes make it oscillate. The controller starts on it.
+OLD_LOOP_PATH = Path(__file__).resolve().parents[2] / "examples" / "loop_cv_0.5_55.json"
+
+
+@pytest.fixture
+def controller(start_controller_factory: Callable[..., ControllerProcess]) -> ControllerProcess:
+    return start_controller_factory(
+        extra_args=("--realtime-priority", "--config", str(OLD_LOOP_PATH)))
 
 
 def _status_until(c: Client, pred, timeout_s: float) -> proto.Status:  # type: ignore[no-untyped-def]
@@ -101,4 +113,4 @@ def test_sim_fault_fields_are_validated_and_named(
     assert not r.ok and r.field == "body.plant_gain"
     r = client.command(proto.SimFault(resonance_damping=0.0))
     assert not r.ok and r.field == "body.resonance_damping"
-    assert LoopConfig() == client.get_config().config
+    assert load_config(OLD_LOOP_PATH) == client.get_config().config
