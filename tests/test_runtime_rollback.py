@@ -11,6 +11,8 @@ import statistics
 from pathlib import Path
 from typing import Any
 
+from old_loop import OLD_LOOP
+
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
@@ -26,7 +28,9 @@ from controller.process.service import ControllerService
 from controller.sim.sim_rig import RigFaults, SimRig
 
 GOOD = LoopConfig()
-BAD = LoopConfig(q_cutoff_hz=10.0)  # chatters against stick-slip at standstill (watchdog tests)
+# Chatters against stick-slip at standstill (watchdog tests): Q31 at 10 Hz on the earlier
+# default loop, Cv = 0.5 (1 + 55/s).
+BAD = OLD_LOOP.with_(q_cutoff_hz=10.0)
 HOLD = Trajectory(kind="hold", offset_deg=10.0)
 
 

@@ -103,11 +103,13 @@ def _status_until(probe: ControllerClient, pred: Any, timeout_s: float, what: st
 def test_a_rollback_is_an_amber_alarm_and_no_success_text_stands(
     page: Any, probe: ControllerClient, artifacts: Path
 ) -> None:
-    """Apply a caution (Cv Kp 1.0: thin margins), then the drive gain x5 makes it oscillate:
+    """Apply a caution (Cv 1.0 (1 + 55/s), the earlier default's integral: thin margins), then
+    the drive gain x5 makes it oscillate:
     the watchdog rolls it back. The page shows an amber alarm with the reason and the time,
     the apply box no longer says "Accepted", the green banner carries no rollback; the alarm
     goes when acknowledged. An E-STOP is a red alarm."""
     page.get_by_role("tab", name="Tune").click()
+    set_number(page, "Cv Ki (1/s)", 55.0)
     set_number(page, "Cv Kp", 1.0)
     page.wait_for_selector(".dt-verdict >> text=caution", timeout=60_000)
     page.get_by_role("button", name="Apply candidate").click()
