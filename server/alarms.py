@@ -11,7 +11,7 @@ import time
 from dataclasses import dataclass, field
 
 from controller import protocol as proto
-from server.panels.widgets import esc
+from server.escape import esc
 
 __all__ = ["Alarm", "AlarmBoard", "alarms_html"]
 

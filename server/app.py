@@ -35,6 +35,7 @@ from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import MeasuredResponse
 from server.engine import TuningEngine, measured_from_csv
+from server.escape import esc
 from server.fleet import FleetMonitor, FleetPanel
 from server.gate import ESTOP_LINK_HTML, Gate, Refused
 from server.measured import read_measured
@@ -42,7 +43,6 @@ from server.panels.identify import IdentifyPanel, NominalTuningPanel
 from server.panels.live import LivePanel
 from server.panels.recordings import RecordingsPanel
 from server.panels.tuning import config_diff_html
-from server.panels.widgets import esc
 from server.scene3d import TurntableScene
 from server.workers import Requests, run_logged
 

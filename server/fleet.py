@@ -12,7 +12,6 @@ Zenoh callbacks only decode and store under a lock; the panel redraws at a few h
 
 from __future__ import annotations
 
-import html
 import logging
 import math
 import threading
@@ -23,7 +22,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from controller import protocol as proto
-from server.panels.widgets import esc, set_html
+from server.escape import esc, href
+from server.panels.widgets import set_html
 from server.workers import Periodic, run_logged
 
 __all__ = ["FleetMonitor", "FleetPanel", "RigRow", "sparkline_svg"]
@@ -108,23 +108,31 @@ class FleetMonitor:
                 self._alive.add(parts[1])
 
     def _on_status(self, sample: Any) -> None:
+        rig = _rig_of(sample)
         try:
             st = proto.decode(sample.payload.to_bytes(), proto.Status)
         except proto.ProtocolError:
             self.decode_errors += 1
             return
+        if st.rig != rig:  # a rig speaking for another (the key is what the access control
+            self.decode_errors += 1  # checks: a controller may put on its own rig's keys only)
+            return
         with self._lock:
-            r = self._rigs.setdefault(st.rig, _Rig())
+            r = self._rigs.setdefault(rig, _Rig())
             r.status, r.status_at = st, time.monotonic()
 
     def _on_state(self, sample: Any) -> None:
+        rig = _rig_of(sample)
         try:
             b = proto.decode(sample.payload.to_bytes(), proto.StateBatch)
         except proto.ProtocolError:
             self.decode_errors += 1
             return
+        if b.rig != rig:
+            self.decode_errors += 1
+            return
         with self._lock:
-            r = self._rigs.setdefault(b.rig, _Rig())
+            r = self._rigs.setdefault(rig, _Rig())
             if r.trace is None:
                 r.trace = deque(maxlen=TRACE_POINTS)
             n = len(b.error_deg)
@@ -168,6 +176,11 @@ class FleetMonitor:
         proto.check_rig_name(rig)
         msg = proto.Command(body=proto.EStop(), client="dashboard fleet overview")
         self._session.put(self._estop_key(rig), proto.encode(msg))
+
+
+def _rig_of(sample: Any) -> str:
+    """The rig of a `dobtune/<rig>/<what>` sample: its key (what the access control checks)."""
+    return str(sample.key_expr).split("/")[1]
 
 
 def sparkline_svg(trace: tuple[float, ...], width: int = 160, height: int = 28) -> str:
@@ -266,14 +279,14 @@ class FleetPanel:
             return ""
         try:
             url = self._open_view(rig, browser)
+            link = href(url)
         except Exception as exc:  # shown and logged: the overview goes on
             log.exception("full view of %s not opened", rig)
             self.result.content = (f"<div class='dt-fleet-result' style='color:#d62728'>Full "
                                    f"view of {esc(rig)} not opened: {esc(str(exc))}</div>")
             return ""
-        href = html.escape(url, quote=True)
         self.result.content = (f"<div class='dt-fleet-result'>Full view of {esc(rig)}: "
-                               f"<a href='{href}' target='_blank' rel='noopener'>open it</a>"
+                               f"<a href='{link}' target='_blank' rel='noopener'>open it</a>"
                                "</div>")
         return url
 

@@ -27,7 +27,6 @@ import contextlib
 import dataclasses
 import gzip
 import hmac
-import html
 import http
 import logging
 import secrets
@@ -38,6 +37,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
+
+from server.escape import esc
 
 __all__ = ["COOKIE", "ESTOP_LINK_HTML", "ESTOP_PATH", "PAGE_SCRIPT_FILE", "Gate", "Refused",
            "install", "page_script_html"]
@@ -193,7 +194,7 @@ class Gate:
             if urlsplit(request.path).path == ESTOP_PATH and self.on_estop is not None:
                 text = self.on_estop(user)
                 body = (f"<!doctype html><meta charset=utf-8><title>E-STOP</title>"
-                        f"<p>{html.escape(text)}</p>").encode()
+                        f"<p>{esc(text)}</p>").encode()
                 return Response(200, "OK", Headers(**{
                     "Content-Type": "text/html; charset=utf-8",
                     "Content-Length": str(len(body)), "Cache-Control": "no-store",

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import html
 import json
 from typing import Any
 
@@ -20,12 +19,12 @@ from controller.gate.knowledge import MeasuredResponse
 from controller.ident.report import nominal_from_summary
 from controller.ident.result import IdentifyResult, PositionRecord, position_name
 from server import charts
+from server.escape import esc
 
 __all__ = [
     "FitView",
     "IdentifyView",
     "curve_of",
-    "escape",
     "format_result_html",
     "view_from_result",
     "view_from_status",
@@ -65,11 +64,6 @@ def curve_of(p: PositionRecord) -> charts.MeasuredCurve | None:
         p.index, p.center_deg, e.freq_hz, e.mag_db, e.phase_deg, e.mag_std_db, e.coherence,
         p.complete,
     )
-
-
-def escape(text: str) -> str:
-    """Text for HTML (&, <, >)."""
-    return html.escape(text, quote=False)
 
 
 def _hz(v: float | None) -> str:
@@ -257,7 +251,7 @@ def format_result_html(view: IdentifyView | None) -> str:
         rows.append(
             "<div class='dt-id-incomplete' style='color:#d62728'><b>INCOMPLETE</b>: "
             f"{view.positions_done} of {view.n_positions} position(s) measured"
-            + (f" ({escape(view.abort_reason)})" if view.abort_reason else "")
+            + (f" ({esc(view.abort_reason)})" if view.abort_reason else "")
             + "; nothing fitted.</div>"
         )
     fit = view.fit
@@ -291,9 +285,9 @@ def format_result_html(view: IdentifyView | None) -> str:
             )
         for c in view.checks:
             rows.append(
-                f"<div class='dt-id-check' style='font-size:11px;color:#555'>{escape(c)}</div>")
+                f"<div class='dt-id-check' style='font-size:11px;color:#555'>{esc(c)}</div>")
     for note in view.notes:
-        rows.append(f"<div class='dt-id-note' style='color:#b36b00'>{escape(note)}</div>")
+        rows.append(f"<div class='dt-id-note' style='color:#b36b00'>{esc(note)}</div>")
     if view.simulated_s is not None:
         rows.append(
             f"<div style='font-size:11px;color:#888'>{view.simulated_s:.1f} s on the rig</div>"

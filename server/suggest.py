@@ -8,7 +8,6 @@ present trajectory; here are the settings, the chart and the text.
 
 from __future__ import annotations
 
-import html
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -21,6 +20,7 @@ from controller.gate.knowledge import PlantKnowledge
 from controller.sim.rig_disturbances import RigSetup
 from controller.tune.autotune import Point, TuneResult, autotune
 from server.charts import ChartSpec, FloatArray, uplot_column
+from server.escape import esc
 
 __all__ = ["SUGGEST_CHART", "SuggestSettings", "suggest", "suggest_data", "suggest_html",
            "suggested_config"]
@@ -120,5 +120,5 @@ def suggest_html(result: TuneResult, trajectory: Trajectory, elapsed_s: float) -
             "yours)." if result.dob_helps else
             "The candidate now has the <b>DOB off</b> (not applied).")
     return (f"<div class='dt-suggest dt-suggest-done' style='font-size:12px'><b>Suggest</b> "
-            f"({html.escape(trajectory.kind)}, {tried} cut-offs tried, {rejected} rejected by the "
-            f"gate, {elapsed_s:.1f} s): {html.escape(result.summary())}. {what}</div>")
+            f"({esc(trajectory.kind)}, {tried} cut-offs tried, {rejected} rejected by the "
+            f"gate, {elapsed_s:.1f} s): {esc(result.summary())}. {what}</div>")

@@ -51,18 +51,18 @@ from controller.ident.plan import check_rate
 from controller.ident.result import IdentifyAborted, IdentifyResult, analyse_result
 from controller.ident.spec import IDENTIFY_FIELDS, IdentifySpec, OfflineOptions
 from server import charts
+from server.escape import esc
 from server.gate import Refused
 from server.identify_view import (
     FitView,
     IdentifyView,
     curve_of,
-    escape,
     format_result_html,
     view_from_result,
     view_from_status,
 )
 from server.panels.tuning import TuningPanel
-from server.panels.widgets import add_chart, confirm, esc
+from server.panels.widgets import add_chart, confirm
 
 __all__ = [
     "ABORTED",
@@ -167,7 +167,7 @@ def _status_html(state: str, text: str, where: str = OFFLINE_NOTE) -> str:
     )
     return (
         f"<div class='dt-identify-status dt-id-{state}' style='font-size:12px;color:{color}'>"
-        f"<b>{state}</b> &middot; {escape(text)} <span style='color:#888'>({escape(where)})"
+        f"<b>{state}</b> &middot; {esc(text)} <span style='color:#888'>({esc(where)})"
         "</span></div>"
     )
 
@@ -621,8 +621,8 @@ class IdentifyPanel:
             self.chart_note.content = (
                 f"<div class='dt-identify-charts dt-id-{state}' style='font-size:12px;"
                 f"color:{'#555' if done else '#d62728'}'>"
-                + ("Identification complete" if done else f"<b>INCOMPLETE</b> ({escape(text)})")
-                + f" &middot; {escape(self.where_note)}</div>")
+                + ("Identification complete" if done else f"<b>INCOMPLETE</b> ({esc(text)})")
+                + f" &middot; {esc(self.where_note)}</div>")
         self.progress_bar.animated = False
         if state == DONE:
             self.progress_bar.value = 100.0

@@ -21,7 +21,8 @@ from controller.client import ControllerClient
 from controller.core.trajectory import TRAJECTORY_KINDS, default_trajectory
 from server import charts
 from server.alarms import AlarmBoard, alarms_html
-from server.panels.widgets import add_chart, confirm, esc, set_html
+from server.escape import esc
+from server.panels.widgets import add_chart, confirm, set_html
 from server.workers import Periodic
 
 __all__ = ["LivePanel", "LiveStats", "banner_html", "window_metrics"]

@@ -28,7 +28,8 @@ from controller.recording.compare import SummaryRow, align_runs, config_diff, su
 from controller.recording.mcap_io import Recording, read_recording
 from controller.recording.report import REVERSAL_WINDOW_S, metrics
 from server.charts import CANDIDATE, NO_DOB, ChartSpec, minmax_decimate
-from server.panels.widgets import NEUTRAL, add_chart, box, esc, set_html
+from server.escape import esc
+from server.panels.widgets import NEUTRAL, add_chart, box, set_html
 
 __all__ = ["OVERLAY_CHART", "RecordingsPanel", "compare_html", "list_html"]
 
@@ -134,7 +135,9 @@ class RecordingsPanel:
         """The widgets; the directory is then read in a thread of its own (`background`: a
         long recording takes seconds to read) or here."""
         gui = self.gui
-        gui.add_markdown(f"Recordings in `{self.directory}` (`dobtune record`, black box).")
+        gui.add_html(f"<div class='dt-recordings-dir'>Recordings in <code>"
+                     f"{esc(str(self.directory))}</code> (<code>dobtune record</code>, black "
+                     "box).</div>")
         if self._record is not None:
             rec = gui.add_button_group("Record", ("Record", "Stop recording"),
                                        hint="record this rig (every tick, status, versions, "

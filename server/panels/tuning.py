@@ -29,6 +29,7 @@ from server.engine import (
     TuningEngine,
     candidate_from_values,
 )
+from server.escape import esc
 from server.panels.widgets import (
     ACCEPT,
     CAUTION,
@@ -37,7 +38,6 @@ from server.panels.widgets import (
     add_chart,
     box,
     confirm,
-    esc,
     set_html,
 )
 from server.suggest import (

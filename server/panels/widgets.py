@@ -3,7 +3,6 @@ that is only sent when it changes, and the bordered status boxes (accept / rejec
 
 from __future__ import annotations
 
-import html
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -12,7 +11,7 @@ from server.charts import ChartSpec, FloatArray
 from server.export import chart_csv, export_filename
 
 __all__ = ["ACCEPT", "EXPORT_LABEL", "NEUTRAL", "REJECT", "add_chart", "add_export_row", "box",
-           "confirm", "esc", "set_html"]
+           "confirm", "set_html"]
 
 log = logging.getLogger(__name__)
 
@@ -77,11 +76,6 @@ def set_html(handle: Any, content: str) -> None:
     every browser)."""
     if handle.content != content:
         handle.content = content
-
-
-def esc(text: str) -> str:
-    """Text for HTML content (quotes stay: the text never goes into an attribute)."""
-    return html.escape(text, quote=False)
 
 
 def box(cls: str, colors: tuple[str, str], content: str, font_px: int | None = 13) -> str:
