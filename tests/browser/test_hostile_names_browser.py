@@ -27,9 +27,9 @@ from test_fleet_browser import _free_run, _wait
 
 from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient
+from controller.client.session import zenoh_config
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import KnowledgeRecord
-from controller.zenoh_session import zenoh_config
 from server.app import Dashboard, DashboardOptions
 from server.demo import DemoOptions, fleet_processes
 
@@ -111,7 +111,7 @@ SHOWS_JS = """([sel, t]) => Array.from(document.querySelectorAll(sel)).some(
 def _shows(page: Any, selector: str, text: str) -> None:
     """Wait until an element of `selector` shows `text` (as text: what a user reads)."""
     try:
-        page.wait_for_function(SHOWS_JS, arg=[selector, text], timeout=20_000, polling=100)
+        page.wait_for_function(SHOWS_JS, arg=[selector, text], timeout=60_000, polling=100)
     except Exception:
         print("SHOWN", selector, page.evaluate("(s) => Array.from(document.querySelectorAll(s))"
                                                ".map(e => e.innerText)", selector))
@@ -151,7 +151,7 @@ def test_hostile_names_run_no_script_and_show_as_text(hostile: dict[str, Any],
             # Fleet: one row per rig, its name shown and in data-rig letter for letter.
             _tab(page, "Fleet")
             page.wait_for_function("(n) => document.querySelectorAll('.dt-fleet-row').length"
-                                   " === n", arg=1 + len(HOSTILE_RIGS), timeout=20_000)
+                                   " === n", arg=1 + len(HOSTILE_RIGS), timeout=60_000)
             rows = page.evaluate("() => Array.from(document.querySelectorAll('.dt-fleet-row'))"
                                  ".map(r => [r.dataset.rig, r.cells[0].innerText, "
                                  "r.innerText, r.attributes.length])")
@@ -185,7 +185,7 @@ def test_hostile_names_run_no_script_and_show_as_text(hostile: dict[str, Any],
             _tab(page, "Recordings")
             page.wait_for_function(
                 "(t) => Array.from(document.querySelectorAll('div')).some("
-                "d => d.innerText.startsWith(t + ':'))", arg=HOSTILE_FILE, timeout=20_000)
+                "d => d.innerText.startsWith(t + ':'))", arg=HOSTILE_FILE, timeout=60_000)
             page.screenshot(path=str(artifacts / "hostile_recordings.png"))
 
             # Give any injected handler (onerror of an image) a chance to have run: a round
