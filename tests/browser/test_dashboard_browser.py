@@ -260,6 +260,29 @@ def test_estop_from_page_stops_the_controller(
     page.screenshot(path=str(artifacts / "browser_6_estop.png"))
 
 
+def test_reset_button_acknowledges_the_estop_the_dashboard_shows(
+    page: Any, probe: ControllerClient, dashboard: Dashboard, artifacts: Path
+) -> None:
+    """Issue 24: a reset names the e-stop its sender saw. A second e-stop (another session)
+    while latched: once the dashboard shows it, its Reset fault button clears it (the reset
+    carries that e-stop's seq); the rig ends stopped and the page says so."""
+    _wait(lambda: probe.status is not None and probe.status.mode == "estop", 10.0)
+    assert probe.status is not None
+    first = probe.status.estop_seq
+    probe.put_estop()  # another session presses e-stop while the rig is latched
+    _wait(lambda: probe.status is not None and probe.status.estop_seq > first, 10.0)
+    # The dashboard has seen the second e-stop (its reset names the latest it saw).
+    _wait(lambda: dashboard.client.status is not None
+          and dashboard.client.status.estop_seq > first, 10.0)
+    page.wait_for_selector(".dt-banner.dt-estop", timeout=15_000)
+    page.get_by_role("tab", name="Live", exact=True).click()
+    page.get_by_role("button", name="Reset fault").click()
+    _wait(lambda: probe.status is not None and probe.status.mode == "stopped", 15.0)
+    page.wait_for_selector(".dt-banner:not(.dt-estop)", timeout=15_000)
+    page.screenshot(path=str(artifacts / "browser_6b_reset.png"))
+    page.get_by_role("tab", name="Tune").click()
+
+
 XSS = '<img src=x onerror="window.__xss=1">'
 
 
