@@ -28,3 +28,32 @@ def test_bad_disturbances_are_refused_naming_the_flag(
     with pytest.raises(StartupError, match=match):
         run_controller(opts)
     assert not any(tmp_path.iterdir())  # refused before the state directory was touched
+
+
+def test_identify_takes_the_simulated_rigs_disturbances() -> None:
+    """`dobtune identify --disturbance NAME`: the offline rig gets the named parameters (the belt
+    varying with position); with --connect, or an unknown name, a message naming the flag."""
+    import argparse
+    import io
+    import json
+    from contextlib import redirect_stdout
+
+    from controller.cli.identify import _sim_rig_factory, add_arguments, run
+    from controller.core.errors import ConfigError
+    from controller.sim.rig_disturbances import rig_setup
+
+    factory = _sim_rig_factory(["belt-tension"], None, None)
+    assert factory is not None
+    rig = factory()
+    assert rig.params == rig_setup(["belt-tension"]).params  # type: ignore[attr-defined]
+    assert rig.params.belt_stiffness_variation > 0  # type: ignore[attr-defined]
+    assert _sim_rig_factory([], None, None) is None
+    with pytest.raises(ConfigError, match="only with the offline"):
+        _sim_rig_factory(["belt-tension"], "tcp/127.0.0.1:1", None)
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    out = io.StringIO()
+    with redirect_stdout(out):
+        code = run(p.parse_args(["--disturbance", "no-such", "--json"]))
+    assert code == 2
+    assert "--disturbance" in json.loads(out.getvalue())["error"]

@@ -317,11 +317,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
             metavar=f.metavar,
             help=f"{f.param.help} (default: {f.default})",
         )
+    p.add_argument("--disturbance", action="append", default=[], metavar="NAME",
+                   help="offline simulated rig only: its named disturbances (repeatable; those "
+                   "of dobtune experiment, e.g. belt-tension: the plant varies with position)")
     p.add_argument("--out", type=Path, default=Path("identify-out"), metavar="DIR")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
 
 
+def _sim_rig_factory(
+    names: list[str], connect: str | None, from_file: Path | None
+) -> Callable[[], RigLike] | None:
+    """The offline simulated rig with the named disturbances (None without names); ConfigError
+    naming --disturbance for an unknown name or a run that is not offline."""
+    if not names:
+        return None
+    if connect is not None or from_file is not None:
+        raise ConfigError("disturbance", "only with the offline simulated rig (--plant sim)")
+    from controller.sim.rig_disturbances import build_rig, rig_setup
+
+    setup = rig_setup(names)
+    return lambda: build_rig(setup, rate_hz=LoopConfig().rate_hz, seed=0,
+                             initial_position_deg=0.0)
+
+
 def run(args: argparse.Namespace) -> int:
+    try:
+        factory = _sim_rig_factory(args.disturbance, args.connect, args.from_file)
+    except ConfigError as exc:
+        return _bad(f"--disturbance: {exc}", args.json, sys.stdout, sys.stderr)
     return identify_main(
         plant=args.plant,
         connect=args.connect,
@@ -334,6 +357,7 @@ def run(args: argparse.Namespace) -> int:
         from_file=args.from_file,
         auth=args.auth,
         user=args.user,
+        rig_factory=factory,
     )
 
 
