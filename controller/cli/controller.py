@@ -58,7 +58,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--insecure",
         action="store_true",
-        help="allow a non-loopback --listen without --auth (anyone who reaches it may act)",
+        help="allow a non-loopback --listen or --connect without --auth (anyone who reaches "
+        "it may act)",
     )
     p.add_argument(
         "--sim-drive-node",

@@ -1,11 +1,13 @@
 """`dobtune router`: a Zenoh router (Zenoh's own router mode) for a lab or a site (command body).
 
-    dobtune router [--listen EP ...] [--connect EP ...] [--auth DIR --rig-name R ...]
+    dobtune router [--listen EP ...] [--connect EP ...] [--auth DIR --rig-name R ... | --insecure]
 
 Controllers connect to it (`dobtune controller --connect ROUTER_EP`, each still listening on its
 own endpoint), clients too (`dobtune ctl --connect ROUTER_EP rigs`, the dashboard); routers link
 sites with `--connect` to each other. With `--auth`, the router enforces the users and access
 control of DIR for the rigs named (then it cannot dial out: the sites' routers connect to it).
+Without `--auth`, a --listen or --connect endpoint that is not loopback (by what its host
+resolves to) is refused unless `--insecure`: anyone who reaches the router may act on every rig.
 Exit codes: 0 stopped (Ctrl-C / SIGTERM), 2 bad input or the endpoint is busy.
 """
 
@@ -26,7 +28,7 @@ DEFAULT_ROUTER_LISTEN = ("tcp/127.0.0.1:7446",)
 
 
 def router_options(listen: list[str], connect: list[str], auth: Path | None,
-                   rigs: list[str]) -> Any:
+                   rigs: list[str], insecure: bool = False) -> Any:
     """The router's session: mode router; with `auth`, serving `rigs` with their access
     control (ValueError when no rig is named)."""
     from controller.client.session import SessionOptions
@@ -34,7 +36,8 @@ def router_options(listen: list[str], connect: list[str], auth: Path | None,
     if auth is not None and not rigs:
         raise ValueError("--rig-name: name the rigs the router serves (with --auth)")
     return SessionOptions(listen=tuple(listen), connect=tuple(connect), mode="router",
-                          auth=auth, serve=tuple(rigs) if auth is not None else ())
+                          auth=auth, serve=tuple(rigs) if auth is not None else (),
+                          insecure=insecure)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -46,7 +49,8 @@ def run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level, "router")
     listen = args.listen or list(DEFAULT_ROUTER_LISTEN)
     try:
-        session = connect(router_options(listen, args.connect, args.auth, args.rig_name))
+        session = connect(router_options(listen, args.connect, args.auth, args.rig_name,
+                                                 args.insecure))
     except (ValueError, OSError) as exc:
         print(f"dobtune router: {exc}", file=sys.stderr, flush=True)
         return 2
@@ -77,6 +81,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="another site's router")
     p.add_argument("--auth", type=Path, default=None, metavar="DIR")
+    p.add_argument("--insecure", action="store_true",
+                   help="allow a non-loopback --listen or --connect without --auth (anyone "
+                   "who reaches the router may act on every rig behind it)")
     p.add_argument("--rig-name", action="append", default=[], metavar="R",
                    help="with --auth: a rig the router serves (repeatable)")
 

@@ -14,7 +14,9 @@ are those of the parts: ValueError / AuthError / OSError for bad options or cred
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import socket
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +41,8 @@ __all__ = [
     "check_endpoint",
     "client_config",
     "connect",
+    "exposure_problem",
+    "is_loopback",
     "server_config",
     "session_config",
     "zenoh_config",
@@ -69,6 +73,9 @@ class SessionOptions:
     these rigs (a controller, a router)."""
     fail_after_s: float | None = None
     """With `auth` as a client: opening raises when no connection is made within this long."""
+    insecure: bool = False
+    """Without `auth`: accept listening on (or, listening or as a router, linking to) an
+    endpoint that is not loopback, where anyone who reaches it may act (`--insecure`)."""
 
 
 def check_endpoint(endpoint: str) -> str:
@@ -78,6 +85,48 @@ def check_endpoint(endpoint: str) -> str:
             f"endpoint {endpoint!r}: expected <proto>/<address>, e.g. tcp/127.0.0.1:7447"
         )
     return endpoint
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether `endpoint` (proto/host:port, proto/[v6]:port, unixsock-stream/path) is local:
+    every address its host resolves to is a loopback address (`tcp/127.example.com:P` is
+    whatever DNS says, not loopback by its spelling). A host that does not resolve is not."""
+    proto_, _, rest = check_endpoint(endpoint).partition("/")
+    if proto_ == "unixsock-stream":
+        return True
+    address = rest.split("#", 1)[0].split("?", 1)[0]
+    host, _, port = address.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not host:
+        return False
+    try:
+        infos = socket.getaddrinfo(host, port or None, proto=socket.IPPROTO_TCP)
+    except (OSError, UnicodeError):
+        return False
+    addresses = {str(info[4][0]).split("%", 1)[0] for info in infos}
+    return bool(addresses) and all(ipaddress.ip_address(a).is_loopback for a in addresses)
+
+
+def exposure_problem(listen: Iterable[str], connect: Iterable[str], insecure: bool,
+                     serves: bool = True) -> str:
+    """Why a session without authentication must not open this way ("" if it may).
+
+    Without `--auth`, anyone who reaches a listening endpoint, or a router this session links
+    to, may act (apply, start, reset, take the lease, impersonate streams). So a listen
+    endpoint, and for a session that serves others (a controller, a router: `serves`) a
+    connect endpoint, must be loopback unless `insecure`. The one check of the controller,
+    the router and every client that listens."""
+    if insecure:
+        return ""
+    for flag, endpoints in (("--listen", listen), ("--connect", connect if serves else ())):
+        for e in endpoints:
+            if not is_loopback(e):
+                return (
+                    f"{flag} {e}: not loopback (its host does not resolve to loopback "
+                    "addresses only); without --auth DIR (see `dobtune auth init`) anyone who "
+                    "reaches it could move the rig. Give --auth, or --insecure to accept that"
+                )
+    return ""
 
 
 def zenoh_config(
@@ -102,6 +151,10 @@ def session_config(o: SessionOptions) -> zenoh.Config:
     if o.auth is None:
         if o.user:
             raise ValueError("user: needs auth (the credentials of that user)")
+        serves = bool(o.listen) or o.mode == "router"
+        why = exposure_problem(o.listen, o.connect, o.insecure, serves)
+        if why:
+            raise ValueError(why)
         conf = zenoh_config(o.listen, o.connect)
         if o.mode is not None and o.mode != "peer":
             conf.insert_json5("mode", json.dumps(o.mode))

@@ -22,7 +22,13 @@ from typing import TYPE_CHECKING, Any
 import msgspec
 
 from controller import protocol as proto
-from controller.client.session import SessionOptions, check_endpoint, connect
+from controller.client.session import (
+    SessionOptions,
+    check_endpoint,
+    connect,
+    exposure_problem,
+    is_loopback,
+)
 from controller.core.config import LoopConfig, NominalModel, config_from_builtins
 from controller.core.errors import ConfigError
 from controller.core.loop import LoopCoefficients, ServoLoop
@@ -74,12 +80,10 @@ def _check_options(opts: ControllerOptions) -> None:
         raise StartupError(f"--rate-hz: must be finite, got {opts.rate_hz}")
     if not (0.01 <= opts.status_period_s <= 10.0):
         raise StartupError(f"status_period_s: {opts.status_period_s} out of range [0.01, 10]")
-    exposed = [e for e in opts.listen if not _loopback(e)]
-    if exposed and opts.auth_dir is None and not opts.insecure:
-        raise StartupError(
-            f"--listen {exposed[0]}: not loopback; without --auth DIR (see `dobtune auth init`) "
-            "anyone who reaches it could move the rig. Give --auth, or --insecure to accept that"
-        )
+    if opts.auth_dir is None:
+        why = exposure_problem(opts.listen, opts.connect, opts.insecure)
+        if why:
+            raise StartupError(why)
     if opts.auth_dir is not None and opts.connect:
         if not opts.auth_user:
             raise StartupError(
@@ -95,15 +99,6 @@ def _check_options(opts: ControllerOptions) -> None:
             )
     elif opts.auth_user:
         raise StartupError("--user: only with --auth and --connect (a router to log in to)")
-
-
-def _loopback(endpoint: str) -> bool:
-    """tcp/127.0.0.1:7447, tcp/localhost:7447, tcp/[::1]:7447, unixsock-stream/...: local."""
-    proto_, _, addr = endpoint.partition("/")
-    if proto_ == "unixsock-stream":
-        return True
-    host = addr.rsplit(":", 1)[0].strip("[]").split("#", 1)[0]
-    return host == "localhost" or host == "::1" or host.startswith("127.")
 
 
 def _open_access(opts: ControllerOptions, warn: Callable[[str], None]) -> Access:
@@ -130,7 +125,8 @@ def _session(opts: ControllerOptions) -> Any:
 
     if opts.auth_dir is None:
         try:
-            return connect(SessionOptions(listen=opts.listen, connect=opts.connect))
+            return connect(SessionOptions(listen=opts.listen, connect=opts.connect,
+                                          insecure=opts.insecure))
         except zenoh.ZError as exc:
             raise StartupError(
                 f"--listen {', '.join(opts.listen)}: cannot open the Zenoh session (is the "
@@ -420,7 +416,7 @@ def _run(
                           auth=access.auth, listen=list(opts.listen))
             if access.auth:
                 notes.append(f"authentication on ({opts.auth_dir}): requests on per-user scopes")
-                plain = [e for e in opts.listen if not _loopback(e) and not e.startswith("tls/")]
+                plain = [e for e in opts.listen if not is_loopback(e) and not e.startswith("tls/")]
                 if plain:
                     notes.append(
                         f"{', '.join(plain)}: not TLS: the traffic is not encrypted and clients "

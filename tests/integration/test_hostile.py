@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -19,16 +22,23 @@ from typing import Any
 import msgspec
 import pytest
 import zenoh
-from procs import ControllerProcess, start_controller, wait_until
+from procs import REPO, ControllerProcess, free_port, start_controller, wait_until
 
 from controller import protocol as proto
 from controller.auth import init_auth_dir, new_users
 from controller.cli.audit import verify_main
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
-from controller.client.session import client_config
+from controller.client.session import (
+    SessionOptions,
+    client_config,
+    exposure_problem,
+    is_loopback,
+    session_config,
+)
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import KnowledgeRecord
+from server.demo import router_command
 
 RIG = "hostile"
 ENC = msgspec.msgpack.encode
@@ -109,9 +119,12 @@ def _status(c: ControllerClient) -> proto.Status:
 
 
 @pytest.fixture(autouse=True)
-def _clean_lease(env: dict[str, Any]) -> Iterator[None]:
-    """Every case starts with nobody holding the lease and the rig running."""
+def _clean_lease(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Every case on the controller starts with nobody holding the lease and the rig running."""
     yield
+    if "env" not in request.fixturenames:
+        return
+    env = request.getfixturevalue("env")
     with _client(env["auth"], env["proc"], "op1") as c:
         c.lease("takeover", 5.0)
         if _status(c).mode != "running":
@@ -393,3 +406,69 @@ def test_the_audit_trail_recorded_the_refusals_and_is_intact(
     assert "a record was not written" not in env["proc"].log()
     out = io.StringIO()
     assert verify_main(path, None, False, out) == 0, out.getvalue()
+
+
+# -- exposure without authentication (issue 24 item 2) -------------------------------------------
+
+#: Not loopback, whatever the spelling: all interfaces, a documentation address, and a name that
+#: starts like loopback but is whatever DNS says (here: nothing).
+EXPOSED = ("tcp/0.0.0.0:{p}", "tcp/192.0.2.1:{p}", "tcp/127.example.com:{p}")
+
+
+def _dobtune(args: list[str], timeout_s: float = 120.0) -> subprocess.CompletedProcess[str]:
+    code = ("import sys; from server.__main__ import dobtune_main; "
+            "sys.exit(dobtune_main(sys.argv[1:]))")
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
+                          timeout=timeout_s, cwd=REPO)
+
+
+@pytest.mark.parametrize("flag", ["--listen", "--connect"])
+@pytest.mark.parametrize("endpoint", EXPOSED)
+@pytest.mark.parametrize("command", ["controller", "router"])
+def test_no_exposure_without_auth_or_insecure(tmp_path: Path, command: str, endpoint: str,
+                                              flag: str) -> None:
+    ep = endpoint.format(p=free_port())
+    args = [command, flag, ep, "--log-level", "warning"]
+    if command == "controller":
+        args += ["--rig-name", "exposed", "--state-dir", str(tmp_path / "state")]
+    r = _dobtune(args)
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    assert f"{flag} {ep}: not loopback" in r.stderr and "--insecure" in r.stderr, r.stderr
+    assert not (tmp_path / "state" / "audit.jsonl").exists()  # refused before anything started
+
+
+@pytest.mark.parametrize("endpoint, local", [
+    ("tcp/127.0.0.1:7447", True), ("tcp/localhost:7447", True), ("tcp/[::1]:7447", True),
+    ("udp/127.0.0.2:7447", True), ("unixsock-stream//tmp/z.sock", True),
+    ("tcp/127.0.0.1:7447#iface=lo", True),
+    ("tcp/0.0.0.0:7447", False), ("tcp/[::]:7447", False), ("tcp/127.example.com:7447", False),
+    ("tcp/192.0.2.1:7447", False), ("tls/example.com:7447", False),
+])
+def test_loopback_is_what_the_host_resolves_to(endpoint: str, local: bool) -> None:
+    assert is_loopback(endpoint) is local
+    assert (exposure_problem([endpoint], [], insecure=False) == "") is local
+    assert (exposure_problem([], [endpoint], insecure=False) == "") is local
+    assert exposure_problem([], [endpoint], insecure=False, serves=False) == ""  # a client
+    assert exposure_problem([endpoint], [endpoint], insecure=True) == ""
+
+
+def test_a_client_that_listens_is_checked_too() -> None:
+    with pytest.raises(ValueError, match=re.escape("--listen tcp/0.0.0.0:1: not loopback")):
+        session_config(SessionOptions(listen=("tcp/0.0.0.0:1",)))
+    with pytest.raises(ValueError, match=re.escape("--connect tcp/192.0.2.1:1: not loopback")):
+        session_config(SessionOptions(connect=("tcp/192.0.2.1:1",), mode="router"))
+    session_config(SessionOptions(connect=("tcp/192.0.2.1:1",)))  # connects only: its own risk
+    session_config(SessionOptions(listen=("tcp/0.0.0.0:1",), insecure=True))
+
+
+def test_an_insecure_router_on_all_interfaces_starts(tmp_path: Path) -> None:
+    port = free_port()
+    proc = subprocess.Popen([*router_command(f"tcp/0.0.0.0:{port}", "warning"), "--insecure"],
+                            stderr=subprocess.PIPE, text=True, cwd=REPO)
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        assert f"listening on tcp/0.0.0.0:{port}" in line, line
+    finally:
+        proc.terminate()
+        proc.wait(30)
