@@ -7,7 +7,6 @@ numbers the page shows.
 
 from __future__ import annotations
 
-import json
 import re
 import subprocess
 from collections.abc import Iterator
@@ -17,7 +16,7 @@ from typing import Any
 import pytest
 
 from controller.client import ClientOptions, ControllerClient
-from controller.core.config import LoopConfig, config_to_builtins
+from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.sim.rig_disturbances import rig_setup
 from controller.tune.autotune import command_noise_deg_s, run_point
@@ -38,19 +37,18 @@ from tests.browser.conftest import (
 
 RIG = "demovalue"
 DISTURBANCES = DemoOptions.disturbances
-#: A conventional speed PI (integral corner 1.6 Hz, a third of the crossover or below).
-LOOP = LoopConfig().with_(cv_kp=1.0, cv_ki_per_s=10.0)
+#: The demo's loop: the default starting loop (a conventional speed PI, docs/starting_loop.md).
+LOOP = LoopConfig()
 
 _RUN = re.compile(r"peak ([0-9.]+) deg, RMSE ([0-9.]+) deg, command noise >20 Hz ([0-9.e+-]+)")
 
 
 @pytest.fixture(scope="module")
 def endpoint(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """The demo's controller: the default loop, the simulated rig with the demo's disturbances."""
     d = tmp_path_factory.mktemp("demovalue")
-    cfg = d / "loop.json"
-    cfg.write_text(json.dumps(config_to_builtins(LOOP)))
     ep = f"tcp/127.0.0.1:{free_port()}"
-    args = ("--config", str(cfg), *(a for n in DISTURBANCES for a in ("--disturbance", n)))
+    args = tuple(a for n in DISTURBANCES for a in ("--disturbance", n))
     proc = subprocess.Popen(controller_command(ep, RIG, d / "state", "warning", args))
     try:
         yield ep
@@ -79,7 +77,7 @@ def page(dash: Dashboard) -> Iterator[Any]:
                                     timeout=FIRST_LOAD_S * 1000)
         try:
             pg = browser.new_page(viewport={"width": 1600, "height": 1000})
-            open_when_ready(pg, dash, FIRST_LOAD_S)
+            open_when_ready(pg, dash, 3 * FIRST_LOAD_S)  # a loaded machine: the condition decides
             yield pg
         finally:
             browser.close()
