@@ -40,6 +40,9 @@ Public API (used by tests/bench/fuzz_gate.py and the gate's tests):
     disturbance_loop(plant, cfg, position=True) -> StateSpace from an input disturbance d
         (added to the command at the plant input) to [w, theta]
     discrete_plant(plant, rate_hz) -> DiscretePlant (the sampled plant as StateSpace)
+    edge_plant(plant, cfg, radius, near_hz=None) -> (TruePlant, float) | None: the plant's
+        gain scaled so the loop's largest pole radius is just past `radius` (loops built to
+        sit at the stability boundary)
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from typing import Literal
 
@@ -67,6 +70,7 @@ __all__ = [
     "continuous_response",
     "discrete_plant",
     "disturbance_loop",
+    "edge_plant",
     "frequency_response",
     "loop_margins",
     "margin_grid",
@@ -518,3 +522,60 @@ def truth(
         margins_speed=loop_margins(l_speed) if want else None,
         margins_full=loop_margins(l_full) if want else None,
     )
+
+
+def _pole_radius_and_hz(plant: TruePlant, cfg: LoopConfig) -> tuple[float, float]:
+    """Largest closed-loop pole radius over both loops and that pole's frequency."""
+    poles = np.concatenate([ct.feedback(lp, 1).poles() for lp in open_loops(plant, cfg)])
+    k = int(np.argmax(np.abs(poles)))
+    return float(np.abs(poles[k])), abs(float(np.angle(poles[k]))) * cfg.rate_hz / _TWO_PI
+
+
+def edge_plant(
+    plant: TruePlant,
+    cfg: LoopConfig,
+    radius: float,
+    near_hz: float | None = None,
+    span: float = 30.0,
+) -> tuple[TruePlant, float] | None:
+    """`plant` with its gain scaled (within x1/span..x span) so that the largest closed-loop
+    pole radius of `cfg`'s loops is in [radius, radius + 1e-9 * radius]: a loop just past the
+    boundary when radius > 1. Of the boundary crossings found, the one whose critical pole
+    lies nearest `near_hz` (e.g. a resonance) is taken, else the one nearest the original
+    gain. Returns (plant, its radius), or None when no gain in the range crosses `radius`."""
+    gains = np.geomspace(1.0 / span, span, 49) * plant.gain
+
+    def rad(g: float) -> tuple[float, float]:
+        return _pole_radius_and_hz(replace(plant, gain=float(g)), cfg)
+
+    scan = [rad(float(g)) for g in gains]
+    crossings = [
+        i for i in range(len(gains) - 1) if (scan[i][0] < radius) != (scan[i + 1][0] < radius)
+    ]
+    if not crossings:
+        return None
+
+    def score(i: int) -> float:
+        hz = scan[i][1] if scan[i][0] >= radius else scan[i + 1][1]
+        if near_hz is not None:
+            return abs(math.log(max(hz, 1e-3) / near_hz))
+        return abs(math.log(math.sqrt(gains[i] * gains[i + 1]) / plant.gain))
+
+    i = min(crossings, key=score)
+    lo, hi = float(gains[i]), float(gains[i + 1])
+    lo_stable = scan[i][0] < radius
+    best: tuple[TruePlant, float] | None = None
+    for _ in range(200):
+        mid = math.sqrt(lo * hi)
+        if not lo < mid < hi:
+            break
+        r = rad(mid)[0]
+        if r >= radius:
+            best = (replace(plant, gain=mid), r)
+            if r <= radius * (1.0 + 1e-9):
+                break
+        if (r < radius) == lo_stable:
+            lo = mid
+        else:
+            hi = mid
+    return best

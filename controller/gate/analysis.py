@@ -36,8 +36,14 @@ every piece of evidence:
     - between two points a = the larger point allowance + |ln R_(i+1) - ln R_i| (the
       assumption: between two points the plant departs from the interpolation by no more than
       it changes across the interval); an interval across which R changes by more than
-      UNRESOLVED_CHANGE holds a mode the points do not resolve: a = UNRESOLVED_ALLOWANCE
-      there, and a loop with gain there is rejected with "measure denser";
+      UNRESOLVED_CHANGE, or turns much faster than its neighbours (SHARP_TURN), holds a mode
+      the points do not resolve: a = UNRESOLVED_ALLOWANCE there, and a loop with gain there
+      is rejected with "measure denser"; a rejection whose peak lies in an interval whose
+      allowance comes mostly from the interpolation says so and names the interval too;
+    - the test is the supremum of a |T| over every interval, ends included (at a measured
+      point the larger allowance of the intervals meeting there), on a grid that holds every
+      measured point, every interval's middle and is refined where the loop turns fast (the
+      phase of D_m moves > 20 deg between neighbours);
     - beyond the band R is held at the edge and a = the edge allowance + |W| (the plant is
       known there only within the bound; unknown without one): a loop that needs more is
       rejected with "measure up to X Hz first".
@@ -46,9 +52,15 @@ every piece of evidence:
 Measured continuous responses G_c(jw) become discrete by the ZOH + backward-difference
 equivalent G_c(jw) e^{-jwTs} sinc^2(w Ts/2), valid well below Nyquist (aliasing neglected).
 
-Verdicts: `reject` (unstable or not proven stable on some evidence, or a robust-stability
-figure >= 1), `caution` (stable on all evidence but a gain margin < 6 dB, a phase margin
-< 30 deg, peak sensitivity > 6 dB in any loop on any evidence, conditionally stable within
+The margin from instability, on every loop and every deciding piece of evidence: model poles
+with radius < exp(-Ts / pole_time_constant_max_s) (1 - 1e-5 at 1 kHz, 100 s), the Nyquist
+curve at least stability_margin_min (0.1) from -1, and for measured responses the allowance
+(>= 5 % at every frequency) a disk around each measured point the loop must not reach.
+
+Verdicts: `reject` (unstable or not proven stable on some evidence, a robust-stability
+figure >= 1, or no margin from instability as above), `caution` (stable on all evidence but
+a gain margin < 6 dB, a phase margin < 30 deg, peak sensitivity > 6 dB in any loop on any
+evidence, conditionally stable within
 6 dB of gain reduction, a robust figure >= 0.8, noise to command > 20 dB: applied only with
 confirmation), `accept` otherwise. The controller adds the nonlinear check and the recommended
 cut-off (`controller.gate.verdict`).
@@ -117,6 +129,16 @@ Verdict = Literal["accept", "caution", "reject"]
 #: in it) and the plant there is taken as unknown up to `UNRESOLVED_ALLOWANCE`.
 UNRESOLVED_CHANGE = 1.0
 UNRESOLVED_ALLOWANCE = 100.0
+#: An interval across which the response turns fast compared with its neighbours holds a
+#: feature the points do not resolve either: a lightly damped pole-zero pair between two
+#: points shows at the points only as a kink (a 4.3 Hz mode of damping 0.014 with its zeros at
+#: 4.5 Hz, between points at 4.0 and 5.0 Hz, 36x at its peak: changes of 0.12, 0.75, 1.2, 0.7,
+#: 0.05 across successive intervals). The measure is the interval's departure from the mean of
+#: its neighbours' changes, |d_i - (d_(i-1) + d_(i+1)) / 2| of d = diff(ln R) (complex); above
+#: SHARP_TURN the interval is unresolved like one that changes by more than UNRESOLVED_CHANGE.
+#: (Resolved modes turn less: the belt mode at 0.3x its damping, 0.5-2x its frequency, on 10
+#: points per decade, up to 0.54.)
+SHARP_TURN = 0.75
 #: Winding-number refinement: adjacent points whose phase differs by more than this are split.
 _MAX_PHASE_STEP_RAD = math.radians(20.0)
 _MAX_WINDING_POINTS = 40000
@@ -140,6 +162,14 @@ class GateLimits:
     allowance a); at or above 1 the loop is not proven stable: reject."""
     pole_radius_max: float = 1.0
     """Strict: every closed-loop pole radius with the plant model must be < this."""
+    pole_time_constant_max_s: float = 100.0
+    """The margin from instability on the model's poles: every closed-loop mode must decay
+    with a time constant below this, radius < exp(-Ts / this) (1 - 1e-5 at 1 kHz); a pole
+    at radius 1 - 1e-6 is as good as unstable (a 0.0001 % plant change moves it out)."""
+    stability_margin_min: float = 0.1
+    """The margin from instability on every loop and every piece of evidence that decides:
+    the Nyquist curve must keep this distance from -1 (min |1 + L| at the plant input, the
+    inverse of the peak sensitivity: 0.1 is 20 dB; a loop closer is rejected, not cautioned)."""
     check_measured_margins: bool = True
     """Also hold the margins computed with each measured response to the limits."""
     noise_to_command_max_db: float = 20.0
@@ -156,7 +186,14 @@ class GateLimits:
         need(0.0 < self.peak_sensitivity_max_db < 60.0, "peak_sensitivity_max_db in (0, 60)")
         need(0.0 < self.small_gain_max <= 1.0, "small_gain_max in (0, 1]")
         need(0.0 < self.pole_radius_max <= 1.0, "pole_radius_max in (0, 1]")
+        need(0.0 < self.pole_time_constant_max_s <= 1e6, "pole_time_constant_max_s in (0, 1e6]")
+        need(0.0 <= self.stability_margin_min < 1.0, "stability_margin_min in [0, 1)")
         need(0.0 < self.noise_to_command_max_db <= 80.0, "noise_to_command_max_db in (0, 80]")
+
+    def pole_radius_limit(self, rate_hz: float) -> float:
+        """Every closed-loop pole radius must be strictly below this at `rate_hz`."""
+        tau = self.pole_time_constant_max_s
+        return min(self.pole_radius_max, math.exp(-1.0 / (rate_hz * tau)))
 
 
 # --------------------------------------------------------------------------- result objects
@@ -306,10 +343,16 @@ class _MeasuredModel:
         self.point = np.maximum(spread, MIN_ALLOWANCE)
         change = np.abs(np.diff(self.logmag + 1j * self.phase))
         seg = np.maximum(self.point[:-1], self.point[1:]) + change
-        self.segment = np.where(change > UNRESOLVED_CHANGE, UNRESOLVED_ALLOWANCE, seg)
+        d = np.diff(self.logmag + 1j * self.phase)
+        sharp = np.zeros(change.shape, dtype=bool)
+        if d.size > 2:
+            sharp[1:-1] = np.abs(d[1:-1] - 0.5 * (d[:-2] + d[2:])) > SHARP_TURN
+        bad = (change > UNRESOLVED_CHANGE) | sharp
+        self.segment = np.where(bad, UNRESOLVED_ALLOWANCE, seg)
+        self.change = change
         self.unresolved = [
             (float(self.fm[i]), float(self.fm[i + 1]), float(change[i]))
-            for i in np.nonzero(change > UNRESOLVED_CHANGE)[0]
+            for i in np.nonzero(bad)[0]
         ]
 
     @property
@@ -329,17 +372,18 @@ class _MeasuredModel:
         return discrete_equivalent(gc, f, self.cfg.rate_hz)
 
     def allowance(self, f: FloatArray) -> FloatArray:
-        """a(f): the point allowance at measured points, the segment's between them, and
-        beyond the band the edge's allowance plus the bound (unknown without a bound)."""
+        """a(f): the segment's allowance between measured points, beyond the band the edge's
+        allowance plus the bound (unknown without a bound), and at a measured point the
+        largest allowance of the intervals meeting there: the robust test takes the supremum
+        of a |T| over each interval, and |T| is continuous, so an interval's allowance holds
+        up to its ends (with the point's own allowance there, a segment's peak at a measured
+        point was sampled at the point's smaller allowance only and missed)."""
         f = np.asarray(f, dtype=np.float64)
         i = np.searchsorted(self.fm, f, side="right") - 1
         inside = (i >= 0) & (i < self.fm.size - 1)
         a = np.empty_like(f)
         ii = np.clip(i, 0, self.fm.size - 2)
         a[inside] = self.segment[ii[inside]]
-        exact = np.isin(f, self.fm)
-        if np.any(exact):
-            a[exact] = self.point[np.searchsorted(self.fm, f[exact])]
         if self.bound is not None:
             w = self.bound.magnitude(f)
         else:
@@ -347,7 +391,30 @@ class _MeasuredModel:
         below, above = f < self.fm[0], f > self.fm[-1]
         a[below] = self.point[0] + w[below]
         a[above] = self.point[-1] + w[above]
+        exact = np.isin(f, self.fm)
+        if np.any(exact):
+            j = np.searchsorted(self.fm, f[exact])
+            # (The band's edges keep their point allowance: beyond them the analysis grid
+            # samples the allowance of the outside, which starts there.)
+            seg = np.concatenate([[0.0], self.segment, [0.0]])
+            left, right = seg[j], seg[j + 1]
+            a[exact] = np.maximum(self.point[j], np.maximum(left, right))
         return a
+
+    def sparse_segment(self, freq_hz: float) -> tuple[float, float, float] | None:
+        """(lo, hi, change) of the measured interval at `freq_hz` when its allowance comes
+        mostly from the interpolation (the response changes across it by more than the
+        points' own allowance: the points do not resolve it), else None."""
+        i = int(np.searchsorted(self.fm, freq_hz, side="right")) - 1
+        if freq_hz == self.fm[min(max(i, 0), self.fm.size - 1)] and i > 0:
+            # At a point the interval with the larger allowance holds the supremum.
+            i = i if i < self.fm.size - 1 and self.segment[i] >= self.segment[i - 1] else i - 1
+        if not 0 <= i < self.fm.size - 1:
+            return None
+        point = max(float(self.point[i]), float(self.point[i + 1]))
+        if not self.change[i] > point:
+            return None
+        return float(self.fm[i]), float(self.fm[i + 1]), float(self.change[i])
 
 
 def _integrators(cfg: LoopConfig, with_position: bool) -> int:
@@ -366,28 +433,39 @@ def _controller_parts(b: LoopBlocks, on: bool) -> tuple[ComplexArray, ComplexArr
     return 1.0 - b.f2d, b.cv + b.f1, b.ctot + b.f1
 
 
+def refine_by_phase(
+    d_of: Callable[[FloatArray], ComplexArray], f: FloatArray
+) -> tuple[FloatArray, ComplexArray] | None:
+    """(f, D(f)) on `f` refined until the phase of D moves less than 20 deg between
+    neighbours: where the loop turns fast (a sharp resonance, a pass close to -1) the grid
+    follows it. None if D is not finite and non-zero everywhere or the refinement takes more
+    than a bounded number of points."""
+    f = np.asarray(f, dtype=np.float64)
+    d = d_of(f)
+    while True:
+        if not np.all(np.isfinite(d)) or np.any(d == 0):
+            return None
+        step = np.abs(np.angle(d[1:] / d[:-1]))
+        bad = np.nonzero(step > _MAX_PHASE_STEP_RAD)[0]
+        if bad.size == 0:
+            return f, d
+        if f.size + bad.size > _MAX_WINDING_POINTS:
+            return None
+        fm = np.sqrt(f[bad] * f[bad + 1])
+        if np.any(fm <= f[bad]) or np.any(fm >= f[bad + 1]):
+            return None  # no resolution left between two floats
+        f = np.insert(f, bad + 1, fm)
+        d = np.insert(d, bad + 1, d_of(fm))
+
+
 def refined_winding_ok(
     d_of: Callable[[FloatArray], ComplexArray], f: FloatArray, m_integrators: int
 ) -> bool:
     """The argument-principle test (`winding_ok`) on a grid refined until the phase of D moves
     less than 20 deg between neighbours (a curve passing close to 0 is resolved, not stepped
     over); False (not proven) if that takes more than a bounded number of points."""
-    f = np.asarray(f, dtype=np.float64)
-    d = d_of(f)
-    while True:
-        if not np.all(np.isfinite(d)) or np.any(d == 0):
-            return False
-        step = np.abs(np.angle(d[1:] / d[:-1]))
-        bad = np.nonzero(step > _MAX_PHASE_STEP_RAD)[0]
-        if bad.size == 0:
-            return winding_ok(d, m_integrators)
-        if f.size + bad.size > _MAX_WINDING_POINTS:
-            return False
-        fm = np.sqrt(f[bad] * f[bad + 1])
-        if np.any(fm <= f[bad]) or np.any(fm >= f[bad + 1]):
-            return False  # no resolution left between two floats
-        f = np.insert(f, bad + 1, fm)
-        d = np.insert(d, bad + 1, d_of(fm))
+    r = refine_by_phase(d_of, f)
+    return r is not None and winding_ok(r[1], m_integrators)
 
 
 # --------------------------------------------------------------------------- analyse
@@ -520,14 +598,29 @@ def _margin_reasons(m: Margins, limits: GateLimits, where: str, out: list[str]) 
         )
 
 
+def _distance_reasons(m: Margins, limits: GateLimits, where: str, out: list[str]) -> None:
+    """A rejection when the Nyquist curve passes closer to -1 than the stated margin."""
+    sm = 10.0 ** (-m.peak_sensitivity_db / 20.0)
+    if not sm >= limits.stability_margin_min:
+        out.append(
+            f"no margin from instability: the Nyquist curve passes within {sm:.3g} of -1"
+            f" (< {limits.stability_margin_min:g}; peak sensitivity"
+            f" {m.peak_sensitivity_db:.1f} dB at {_fmt_hz(m.peak_sensitivity_hz)}; {where})"
+        )
+
+
 def _robust_reasons(
     task: RefineTask, which: str, evidence: str, limits: GateLimits,
     band_top_hz: float | None, a_of: Callable[[FloatArray], FloatArray],
     t_of: Callable[[FloatArray], FloatArray], f: FloatArray,
     rejections: list[str], cautions: list[str], symbol: str = "|a T|",
+    sparse: tuple[float, float, float] | None = None,
 ) -> None:
     """Reject when max |a T| >= 1 (not proven stable for every plant the evidence allows),
-    caution at >= small_gain_max. Beyond a measured band the reason says how far to measure."""
+    caution at >= small_gain_max. Beyond a measured band the reason says how far to measure;
+    inside it, where the allowance comes from the interpolation between two measured points
+    (`sparse`: the interval and the change across it), that the points do not resolve the
+    response there and where to measure denser."""
     v = task.value
     if v < limits.small_gain_max:
         return
@@ -547,6 +640,15 @@ def _robust_reasons(
             text + f": the loop depends on the plant above the measured band "
             f"({_fmt_hz(band_top_hz)}), known there only within the bound; "
             f"measure up to {_round_up(top)} Hz first"
+        )
+        return
+    if sparse is not None:
+        lo, hi, change = sparse
+        rejections.append(
+            text + f" >= 1: the measured points do not resolve the response there (it changes"
+            f" by a factor {math.exp(change):.3g} between {_fmt_hz(lo)} and {_fmt_hz(hi)},"
+            f" a sharp mode may sit between them): measure denser between {_fmt_hz(lo)} and"
+            f" {_fmt_hz(hi)} first"
         )
         return
     rejections.append(text + " >= 1: not proven stable for every plant this evidence allows")
@@ -616,11 +718,17 @@ def _model_evidence(
     margins, margins_full = margins_of(lt), margins_of(ltf)
     bw = bw_task.freq_hz if bw_task is not None else math.nan
     where = f"plant model ({plant.source})"
-    unstable = not max_radius < limits.pole_radius_max
+    limit = limits.pole_radius_limit(cfg.rate_hz)
+    unstable = not max_radius < limit
     if unstable:
         text = (
-            f"closed-loop pole radius {max_radius:.5f} >= {limits.pole_radius_max:g}"
-            + (" (unstable)" if max_radius >= 1.0 else "")
+            f"closed-loop pole radius {max_radius:.6f} >= {limit:.6g}"
+            + (
+                " (unstable)"
+                if max_radius >= 1.0
+                else f" (a mode decaying slower than {limits.pole_time_constant_max_s:g} s:"
+                " no margin from instability)"
+            )
             + f" with the {where}"
         )
         # Measured responses supersede the model in their band: then the model's own
@@ -629,6 +737,9 @@ def _model_evidence(
     else:
         _margin_reasons(margins, limits, f"speed loop, {where}", cautions)
         _margin_reasons(margins_full, limits, f"whole servo, {where}", cautions)
+        if not has_measured:
+            _distance_reasons(margins, limits, f"speed loop, {where}", rejections)
+            _distance_reasons(margins_full, limits, f"whole servo, {where}", rejections)
     nan = math.nan
     sg = (nan, nan, nan, nan)
     dq_peak = dq_f = nan
@@ -672,12 +783,6 @@ def _measured_evidence(
     on = cfg.dob_on
     dob = used if on else None
     model = mm.model
-    # The grid: the analysis grid plus every measured point (the allowance jumps there).
-    f = np.union1d(f0, mm.fm[(mm.fm > f0[0]) & (mm.fm < f0[-1])])
-    x = np.log(f)
-    bk = loop_blocks(cfg, dob, f, model)  # type: ignore[arg-type]
-    one, ks, kf = _controller_parts(bk, on)
-    gm = mm.plant(f, bk.g)
     where = f"measured response {mm.name!r}"
 
     def blocks(ff: FloatArray) -> tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray]:
@@ -693,11 +798,30 @@ def _measured_evidence(
         g2, o, _, f_ = blocks(ff)
         return o + g2 * f_
 
-    stable = refined_winding_ok(d_speed, f, _integrators(cfg, False)) and refined_winding_ok(
-        d_full, f, _integrators(cfg, True)
+    # The grid: the analysis grid, every measured point (the allowance jumps there) and the
+    # middle of every measured interval (each interval's allowance sampled inside it, also
+    # when the points coincide with the analysis grid), refined where the loop turns fast
+    # (the phase of 1 + L moves more than 20 deg between neighbours: a sharp resonance or a
+    # pass close to -1 between grid points is followed, not stepped over).
+    inner = (mm.fm > f0[0]) & (mm.fm < f0[-1])
+    mid = np.sqrt(mm.fm[:-1] * mm.fm[1:])
+    f = np.union1d(f0, np.concatenate([mm.fm[inner], mid[(mid > f0[0]) & (mid < f0[-1])]]))
+    r_speed = refine_by_phase(d_speed, f)
+    r_full = refine_by_phase(d_full, f)
+    stable = (
+        r_speed is not None
+        and r_full is not None
+        and winding_ok(r_speed[1], _integrators(cfg, False))
+        and winding_ok(r_full[1], _integrators(cfg, True))
     )
     if not stable:
         rejections.append(f"unstable or not proven stable with the {where} (argument principle)")
+    if r_speed is not None and r_full is not None:
+        f = np.union1d(r_speed[0], r_full[0])
+    x = np.log(f)
+    bk = loop_blocks(cfg, dob, f, model)  # type: ignore[arg-type]
+    one, ks, kf = _controller_parts(bk, on)
+    gm = mm.plant(f, bk.g)
 
     def ev(ff: FloatArray) -> Outputs:
         g2, o, s_, f_ = blocks(ff)
@@ -722,6 +846,8 @@ def _measured_evidence(
         if limits.check_measured_margins:
             _margin_reasons(margins, limits, f"speed loop, {where}", cautions)
             _margin_reasons(margins_full, limits, f"whole servo, {where}", cautions)
+        _distance_reasons(margins, limits, f"speed loop, {where}", rejections)
+        _distance_reasons(margins_full, limits, f"whole servo, {where}", rejections)
         hi = mm.band_hz[1]
         for t, which, tt in ((sp, "speed loop", t_speed), (fp, "whole servo", t_full)):
             unresolved = [u for u in mm.unresolved if u[0] <= t.freq_hz <= u[1]]
@@ -738,6 +864,7 @@ def _measured_evidence(
             _robust_reasons(
                 t, which, where, limits, hi, mm.allowance,
                 _on_grid(x, tt), f, rejections, cautions,
+                sparse=mm.sparse_segment(t.freq_hz),
             )
     dq = a * np.abs(bk.f2d)
     j = int(np.argmax(dq))

@@ -1,7 +1,7 @@
 """Independent fuzz of the stability gate: does it ever accept a loop that is not stable?
 
     .venv/bin/python tests/bench/fuzz_gate.py [--n 10000] [--seed 0] [--workers 2]
-        [--ident-every K] [--csv FAILURES.csv] [--json] [--case I]
+        [--ident-every K] [--csv FAILURES.csv] [--json] [--case I] [--edge]
 
 Each case draws a true plant (M P with gain x0.3-3, natural frequency x0.5-2, damping x0.3-2
 of the article's belt mode, half the time an extra resonance 2-60 Hz with damping 0.01-0.2 and
@@ -28,6 +28,15 @@ be 0) and outside it, share of comfortably stable cases
 stable cases rejected, runtime; `--json` adds a one-line JSON summary. Unstable accepted
 cases go to `--csv` for debugging; `--case I` re-runs one case and prints everything.
 A "caution" verdict counts as accepted (it is applied after a confirmation).
+
+`--edge`: loops built to sit just past the stability boundary instead. Each case takes the
+candidate and plant of a normal case, adds a sharp resonance (even cases: 20-200 Hz, damping
+0.005-0.03, between two points of the dense evidence; odd cases: 2-20 Hz, damping 0.01-0.1,
+between two points of the identification grid) and scales the plant's gain so that the
+largest closed-loop pole radius is 1 + eps, eps log-uniform 1e-6..1e-4, at the boundary
+crossing whose critical pole lies nearest the resonance (`fuzz_truth.edge_plant`). Judged on
+the evidence the resonance was placed for (dense or ident); printed: edge loops accepted of
+those built. Every one is unstable: the count must be 0.
 """
 
 from __future__ import annotations
@@ -56,6 +65,7 @@ from fuzz_truth import (
     Resonance,
     TruePlant,
     Truth,
+    edge_plant,
     sampled_response,
     truth,
 )
@@ -207,6 +217,95 @@ def _second_order_part(plant: TruePlant, lie: float) -> NominalModel:
         pn_num=(g * ARTICLE.pn_num[0], g * ARTICLE.pn_num[1], g * ARTICLE.pn_num[2]),
         pn_den=(a2 / (k * k), d * a1 / k, a0),
     )
+
+
+@dataclass(frozen=True)
+class EdgeCase:
+    index: int
+    kind: str
+    """The evidence the resonance was placed for: "dense" or "ident"."""
+    plant: TruePlant
+    config: LoopConfig
+    radius: float
+
+
+def make_edge_case(seed: int, index: int) -> EdgeCase | None:
+    """A normal case's candidate and plant, plus a sharp resonance between two measured
+    points, the gain scaled to put the loop just past the boundary (None: no gain in
+    x1/30..x30 crosses it)."""
+    base = make_case(seed, index)
+    rng = np.random.default_rng([seed, index, 2])
+    kind = "dense" if index % 2 == 0 else "ident"
+    grid, (lo, hi), damping = (
+        (DENSE_HZ, (20.0, 200.0), (0.005, 0.03)) if kind == "dense"
+        else (IDENT_HZ, (2.0, 20.0), (0.01, 0.1))
+    )
+    k = int(rng.integers(np.searchsorted(grid, lo), np.searchsorted(grid, hi) - 1))
+    x = math.log(grid[k]) + rng.uniform(0.2, 0.8) * math.log(grid[k + 1] / grid[k])
+    res = Resonance(
+        freq_hz=math.exp(x),
+        damping=_log_uniform(rng, *damping),
+        zero_ratio=_log_uniform(rng, 0.5, 2.0),
+    )
+    eps = _log_uniform(rng, 1e-6, 1e-4)
+    plant = TruePlant(
+        gain=base.plant.gain, wn_scale=base.plant.wn_scale,
+        damping_scale=base.plant.damping_scale, resonance=res,
+        delay_ticks=base.plant.delay_ticks,
+    )
+    found = edge_plant(plant, base.config, 1.0 + eps, near_hz=res.freq_hz)
+    if found is None:
+        return None
+    return EdgeCase(index, kind, found[0], base.config, found[1])
+
+
+def run_edge_case(seed: int, index: int) -> tuple[EdgeCase, bool | None, str] | None:
+    case = make_edge_case(seed, index)
+    if case is None:
+        return None
+    rng = np.random.default_rng([seed, index, 1])
+    try:
+        ok, why = gate_verdict(case.config, evidence(case.kind, case.plant, rng))
+    except Exception as exc:  # a gate that raises applies nothing: not accepted
+        return case, None, f"error: {type(exc).__name__}: {exc}"
+    return case, ok, why
+
+
+def _edge_work(job: tuple[int, int, int]) -> tuple[EdgeCase, bool | None, str] | None:
+    return run_edge_case(job[0], job[1])
+
+
+def main_edge(cfg: FuzzConfig) -> dict[str, Any]:
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    t0 = time.perf_counter()
+    done: list[tuple[EdgeCase, bool | None, str]] = []
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(cfg.workers, initializer=_quiet) as pool:
+        jobs = [(cfg.seed, i, 1) for i in range(cfg.n)]
+        for r in pool.imap_unordered(_edge_work, jobs, chunksize=4):
+            if r is not None:
+                done.append(r)
+    out: dict[str, Any] = {"seconds": round(time.perf_counter() - t0, 1), "kinds": {}}
+    for kind in ("dense", "ident"):
+        rs = [r for r in done if r[0].kind == kind]
+        acc = sorted((r for r in rs if r[1]), key=lambda r: r[0].index)
+        out["kinds"][kind] = {"built": len(rs), "accepted": len(acc),
+                              "errors": sum(r[1] is None for r in rs)}
+        for case, _, why in acc:
+            res = case.plant.resonance
+            assert res is not None
+            print(f"  accepted {kind} case {case.index}: radius 1{case.radius - 1:+.2e}, "
+                  f"resonance {res.freq_hz:.4g} Hz damping {res.damping:.3g}, "
+                  f"gain x{case.plant.gain:.4g}; {why[:160]}")
+    total = sum(k["built"] for k in out["kinds"].values())
+    bad = sum(k["accepted"] for k in out["kinds"].values())
+    print(f"{cfg.n} edge cases tried, {total} built (radius 1 + 1e-6..1e-4) in "
+          f"{out['seconds']} s: {bad} accepted "
+          + ", ".join(f"{k} {v['accepted']}/{v['built']}" for k, v in out["kinds"].items()))
+    if cfg.json:
+        print(json.dumps(out, sort_keys=True))
+    return out
 
 
 # ------------------------------------------------------------------------------ one case
@@ -394,6 +493,7 @@ class FuzzConfig:
     ident_every: int = 1
     csv_path: Path | None = None
     json: bool = False
+    edge: bool = False
 
 
 def main(cfg: FuzzConfig) -> dict[str, Any]:
@@ -436,8 +536,10 @@ def _parse(argv: list[str]) -> tuple[FuzzConfig, int | None]:
     ap.add_argument("--csv", type=Path, default=None, help="write unstable accepted cases here")
     ap.add_argument("--json", action="store_true", help="print a one-line JSON summary")
     ap.add_argument("--case", type=int, default=None, help="show one case in detail and exit")
+    ap.add_argument("--edge", action="store_true",
+                    help="loops built just past the stability boundary (see the docstring)")
     a = ap.parse_args(argv)
-    fc = FuzzConfig(a.n, a.seed, a.workers, max(1, a.ident_every), a.csv, a.json)
+    fc = FuzzConfig(a.n, a.seed, a.workers, max(1, a.ident_every), a.csv, a.json, a.edge)
     return fc, a.case
 
 
@@ -446,5 +548,7 @@ if __name__ == "__main__":
     if one is not None:
         _quiet()
         show_case(fuzz_cfg.seed, one)
+    elif fuzz_cfg.edge:
+        main_edge(fuzz_cfg)
     else:
         main(fuzz_cfg)
