@@ -68,7 +68,10 @@ USERS_FILE = "users.toml"
 DICTIONARY_FILE = "zenoh-usrpwd.txt"
 #: operator: changes its rigs; viewer: watches, reads, may e-stop; controller: the account a
 #: controller uses to connect through a router (full access to its rigs' keys, every user's
-#: scope included: trusted like the controller itself).
+#: scope included: trusted like the controller itself). Only a controller puts on a rig's
+#: published keys (state, status, liveliness): a controller that listens itself (peer mode)
+#: is the session enforcing the rules, so its own puts need no rule and no login; behind a
+#: router it logs in with its `controller` account.
 ROLES = ("operator", "viewer", "controller")
 #: `rigs = ["*"]`: every rig the server serves.
 ALL_RIGS = "*"
@@ -314,10 +317,6 @@ def init_auth_dir(directory: Path, users: Sequence[User], force: bool = False) -
 
 # -- Zenoh configurations ------------------------------------------------------------------------
 
-_CLIENT_IN = (
-    "put", "delete", "query", "declare_subscriber",
-    "liveliness_token", "declare_liveliness_subscriber", "liveliness_query",
-)
 _ALL_MESSAGES = (
     "put", "delete", "query", "reply", "declare_subscriber", "declare_queryable",
     "liveliness_token", "declare_liveliness_subscriber", "liveliness_query",
@@ -377,13 +376,18 @@ def _viewer(rig: str, user: str) -> list[_Grant]:
 
 
 def _operator(rig: str, user: str) -> list[_Grant]:
-    """Everything a client does, on every key of the rig and in the user's own scope only."""
+    """Every request on the rig, in the user's own scope (and the public keys); puts on the
+    e-stop only. The rig's published keys (state, status, its liveliness) are the controller's:
+    no user may put on them (or declare the rig alive), so a subscriber of them receives the
+    controller's samples and no one else's."""
     rig_all = f"{proto.KEY_PREFIX}/{rig}/**"
     mine = (rig_all, f"{proto.KEY_PREFIX}/{rig}/{USER_CHUNK}/{user}/**")
     seen = (rig_all, f"{proto.KEY_PREFIX}/{rig}/{USER_CHUNK}/*/**")
+    asks = ("query", "declare_subscriber", "declare_liveliness_subscriber", "liveliness_query")
     return [
         *_fleet(rig),
-        _Grant(("ingress",), _CLIENT_IN, mine),
+        _Grant(("ingress",), asks, mine),
+        _Grant(("ingress",), ("put",), _own((proto.key_estop(rig),), user)),
         _Grant(("egress",), ("put", "delete", "reply"), mine),
         _Grant(("egress",), ("declare_subscriber", "declare_queryable", "liveliness_token"), seen),
     ]

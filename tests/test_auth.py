@@ -288,7 +288,10 @@ def test_viewer_rules(auth_dir: Path) -> None:
 def test_operator_rules_cover_its_rig_and_only_its_own_scope(auth_dir: Path) -> None:
     rules = rules_of(acl_config(load_users(auth_dir), ["a", "b"]), "op_a")
     assert keys_for(rules, "ingress", "query") == {"dobtune/a/**", "dobtune/a/@user/op_a/**"}
-    assert keys_for(rules, "ingress", "put") == {"dobtune/a/**", "dobtune/a/@user/op_a/**"}
+    # Puts on the e-stop only: the published keys (state, status) are the controller's.
+    assert keys_for(rules, "ingress", "put") == {"dobtune/a/estop", "dobtune/a/@user/op_a/estop"}
+    assert keys_for(rules, "ingress", "delete") == set()
+    assert keys_for(rules, "ingress", "liveliness_token") == set()  # it cannot fake the rig alive
     assert keys_for(rules, "ingress", "declare_queryable") == set()  # it cannot serve the rig
 
 

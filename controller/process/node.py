@@ -42,7 +42,7 @@ from controller.process.persistence import Latch, PersistenceError
 from controller.process.runtime import ESTOP, FAULT
 from controller.process.service import ControllerService, RuntimeEvents
 
-__all__ = ["SHUTDOWN", "ZenohNode", "to_request"]
+__all__ = ["PUBLIC", "SHUTDOWN", "ZenohNode", "estop_claims", "to_request"]
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,29 @@ _PLAIN_COMMANDS: dict[type, Callable[[], rq.RequestBody]] = {
     proto.Stop: rq.Stop,
     proto.EStop: rq.EStop,
 }
+
+
+#: The sender of an e-stop on the public key under authentication: any authenticated user may
+#: put there and Zenoh does not say who did (a user's own scope names the user).
+PUBLIC = "public"
+#: Largest e-stop payload whose claims are read for the audit (the e-stop itself ignores it).
+_CLAIMS_MAX_BYTES = 4096
+
+
+def estop_claims(sample: Any) -> dict[str, str]:
+    """What an e-stop sample claims about its sender, for the audit (claims, not identity):
+    the client name of its Command and the Zenoh session id the sender set (source_info)."""
+    out: dict[str, str] = {}
+    data = sample.payload.to_bytes()
+    if len(data) <= _CLAIMS_MAX_BYTES:
+        try:
+            out["claimed_client"] = proto.decode(data, proto.Command).client
+        except proto.ProtocolError:
+            out["claimed_client"] = f"(not a Command: {len(data)} bytes)"
+    info = sample.source_info
+    if info is not None and info.source_id is not None:
+        out["claimed_session"] = str(info.source_id)
+    return out
 
 
 def to_request(body: proto.CommandBody, client: str) -> rq.RequestBody:
@@ -155,8 +178,9 @@ class ZenohNode:
         def estop(sample: Any) -> None:
             rt.estop("estop key", rt.next_arrival())
             key = str(sample.key_expr)
-            who = proto.user_of_key(key) or ("local" if not access.auth else "unnamed")
-            access.record("estop", who, "accepted", source="estop key", key=key)
+            who = proto.user_of_key(key) or (PUBLIC if access.auth else LOCAL.user)
+            access.record("estop", who, "accepted", source="estop key", key=key,
+                          **estop_claims(sample))
 
         # Anyone who reaches the rig stops it: the public key, and (with authentication) every
         # user's own scope.

@@ -209,6 +209,36 @@ def test_a_viewer_can_estop(view: ControllerClient) -> None:
                       and view.status.estop_seq != seq, 5.0)
 
 
+def _audit_records(env: dict[str, Any]) -> list[dict[str, Any]]:
+    import json
+
+    path = env["proc"].state_dir / "audit.jsonl"
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+
+
+@pytest.mark.parametrize("user", ["view", "op2"])
+def test_an_estop_on_the_public_key_is_audited_as_public_with_its_claims(
+    env: dict[str, Any], user: str
+) -> None:
+    """Under --auth, who put on the public e-stop key is unknown to the controller (Zenoh does
+    not say); the audit says `public`, with what the sample claimed, never `unnamed`."""
+    claim = f"claims-{user}-{time.monotonic_ns()}"
+    conf = client_config(env["auth"], user, [env["proc"].endpoint], fail_after_s=10.0)
+    with _client(env["auth"], env["proc"], "op1") as c, zenoh.open(conf) as s:
+        seq = _status(c).estop_seq
+        s.put(proto.key_estop(RIG), proto.encode(proto.Command(body=proto.EStop(), client=claim)))
+        assert wait_until(lambda: c.status is not None and c.status.estop_seq != seq, 10.0)
+
+    def recorded() -> list[dict[str, Any]]:
+        return [r for r in _audit_records(env) if r["action"] == "estop"
+                and r.get("claimed_client") == claim]
+
+    assert wait_until(lambda: bool(recorded()), 10.0), _audit_records(env)[-3:]
+    (rec,) = recorded()
+    assert rec["user"] == "public" and rec["key"] == proto.key_estop(RIG), rec
+    assert not [r for r in _audit_records(env) if r["user"] == "unnamed"]
+
+
 # -- the lease ------------------------------------------------------------------------------
 
 
@@ -472,3 +502,54 @@ def test_an_insecure_router_on_all_interfaces_starts(tmp_path: Path) -> None:
     finally:
         proc.terminate()
         proc.wait(30)
+
+
+# -- only the controller publishes its streams (issue 24 item 3) ---------------------------------
+
+
+@pytest.mark.parametrize("forger", ["op2", "view"])
+def test_nobody_but_the_controller_reaches_a_viewer_on_its_streams(
+    env: dict[str, Any], forger: str
+) -> None:
+    """A user (an operator without the lease, a viewer) puts fake Status and state on the rig's
+    published keys and declares its liveliness; a viewer subscribed to them receives the
+    controller's samples only (before: 343 fake against 32 real Status in 8 s)."""
+    with _client(env["auth"], env["proc"], "op1") as c:
+        real = _status(c)
+    fake_status = proto.encode(msgspec.structs.replace(real, mode="running", operator="FAKE",
+                                                       faults=[], notes=["FAKE"]))
+    fake_state = proto.encode(proto.StateBatch(
+        rig=RIG, seq0=0, rate_hz=1000.0, config_version=real.config_version, t_s=[0.0],
+        ref_deg=[0.0], pos_deg=[0.0], speed_deg_s=[0.0], speed_ref_deg_s=[0.0],
+        command_deg_s=[0.0], d_hat_deg_s=[0.0], error_deg=[0.0]))
+    viewer_conf = client_config(env["auth"], "view", [env["proc"].endpoint], fail_after_s=10.0)
+    forger_conf = client_config(env["auth"], forger, [env["proc"].endpoint], fail_after_s=10.0)
+    with zenoh.open(viewer_conf) as viewer, zenoh.open(forger_conf) as forge:
+        statuses = viewer.declare_subscriber(proto.key_status(RIG),
+                                             zenoh.handlers.FifoChannel(4096))
+        states = viewer.declare_subscriber(proto.key_state(RIG), zenoh.handlers.FifoChannel(4096))
+        alive = viewer.liveliness().declare_subscriber(proto.key_alive(RIG),
+                                                       zenoh.handlers.FifoChannel(64))
+        token = forge.liveliness().declare_token(proto.key_alive(RIG))
+        got: dict[str, int] = {"real": 0, "fake": 0, "fake_state": 0, "real_state": 0}
+
+        def twenty_real_statuses_while_forging() -> bool:
+            forge.put(proto.key_status(RIG), fake_status)
+            forge.put(proto.key_state(RIG), fake_state)
+            while (s := statuses.try_recv()) is not None:
+                st = proto.decode(s.payload.to_bytes(), proto.Status)
+                got["fake" if "FAKE" in st.notes else "real"] += 1
+            while (s := states.try_recv()) is not None:
+                b = proto.decode(s.payload.to_bytes(), proto.StateBatch)
+                got["fake_state" if b.seq0 == 0 else "real_state"] += 1
+            return got["real"] >= 20
+
+        assert wait_until(twenty_real_statuses_while_forging, 60.0, poll_s=0.02), got
+        token.undeclare()
+        assert got["fake"] == 0 and got["fake_state"] == 0, got
+        assert got["real_state"] > 0, got
+        # The liveliness the viewer saw is the controller's alone: one token, never dropped.
+        kinds = []
+        while (s := alive.try_recv()) is not None:
+            kinds.append(str(s.kind))
+        assert "SampleKind.DELETE" not in kinds, kinds
