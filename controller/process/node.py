@@ -342,8 +342,8 @@ class ZenohNode:
             changed.wait(1.0)
             changed.clear()
             try:
+                self.write_latch()  # first: a rollback's save may wait for an apply's lock
                 self.service.poll_rollback()  # a rollback is saved at once, not at the status
-                self.write_latch()
             except Exception as exc:  # never end this thread
                 self.service.warn(f"latch writer: {type(exc).__name__}: {exc}")
 
