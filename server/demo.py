@@ -36,8 +36,9 @@ class DemoOptions:
     rig_name: str = "demo"
     #: Where the controller keeps its active config; a temporary directory when None.
     state_dir: Path | None = None
-    #: How long to wait for the controller's first status before giving up.
-    startup_timeout_s: float = 30.0
+    #: While the controller starts (however long it takes: it is never given up on while its
+    #: process runs), a progress line this often.
+    progress_every_s: float = 5.0
     verbose: bool = True
     #: The controller's --log-level.
     log_level: str = "info"
@@ -159,19 +160,11 @@ def run_demo(opts: DemoOptions) -> int:
             verbose=opts.verbose, sim_disturbances=opts.disturbances,
         )
     ) as dash:
-        deadline = time.monotonic() + opts.startup_timeout_s
-        while not dash.client.connected and not stop.is_set():
-            if proc.poll() is not None:
-                log.error("the controller exited with code %s", proc.returncode)
-                return 1
-            if time.monotonic() > deadline:
-                log.error("no status from the controller within %.0f s",
-                          opts.startup_timeout_s)
-                return 1
-            stop.wait(0.1)
         print(f"dobtune demo: open {dash.url}  (simulated rig '{opts.rig_name}', "
               f"disturbances: {'+'.join(opts.disturbances) or 'none'}, "
               f"controller on {endpoint}; Ctrl-C stops both)", flush=True)
+        if not wait_for_controller(dash, proc, stop, opts.progress_every_s) and proc.poll():
+            return 1
         while not stop.wait(0.5):
             if proc.poll() is not None:
                 log.error("the controller exited with code %s", proc.returncode)
@@ -179,6 +172,29 @@ def run_demo(opts: DemoOptions) -> int:
                 break
     print("dobtune demo: stopped", flush=True)
     return code
+
+
+def wait_for_controller(
+    dash: Dashboard, proc: subprocess.Popen[Any], stop: Any, progress_every_s: float
+) -> bool:
+    """Wait for the controller's first status however long its start takes (a busy machine
+    can make it tens of seconds), saying so every `progress_every_s`; False when its process
+    exited (logged) or a stop was requested first."""
+    t0 = time.monotonic()
+    next_note = 0.0
+    while not dash.client.connected:
+        if proc.poll() is not None:
+            log.error("the controller exited with code %s before it was ready", proc.returncode)
+            return False
+        waited = time.monotonic() - t0
+        if waited >= next_note:
+            print(f"dobtune demo: controller starting ({waited:.0f} s): waiting for its first "
+                  "status (the dashboard shows it when it answers)", flush=True)
+            next_note = waited + progress_every_s
+        if stop.wait(0.1):
+            return False
+    print(f"dobtune demo: controller ready after {time.monotonic() - t0:.1f} s", flush=True)
+    return True
 
 
 def _run_fleet(opts: DemoOptions, router_ep: str) -> int:

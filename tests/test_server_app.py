@@ -81,6 +81,53 @@ def test_two_dashboards_watch_one_controller_then_it_goes_away(tmp_path: Path) -
         wait_for(lambda p=p: port_is_free(p), 10.0)
 
 
+@pytest.mark.integration
+def test_a_dashboard_started_first_says_starting_and_connects_when_the_controller_comes(
+    tmp_path: Path,
+) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    opts = DashboardOptions(connect=(endpoint,), rig_name="latetest", port=free_port(),
+                            verbose=False, query_timeout_s=1.0)
+    with Dashboard(opts) as d:
+        assert d.live is not None
+        wait_for(lambda: "dt-starting" in d.live.banner.content)
+        assert "CONTROLLER STARTING" in d.live.banner.content
+        assert "latetest" in d.live.banner.content and not d.client.connected
+        with controller_process(endpoint, "latetest", tmp_path / "state"):
+            wait_for(lambda: d.client.connected, CONTROLLER_START_S)
+            wait_for(lambda: "dt-ok" in d.live.banner.content)
+            # The controller's configuration reaches the candidate panel, as at a normal start.
+            t = d.panel_in(d.server.gui)
+            wait_for(lambda: t.active_version == 1)
+
+
+@pytest.mark.integration
+def test_the_demo_waits_for_its_controller_however_long_and_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`dobtune demo`'s wait: progress lines while the (real) controller starts, "ready" when
+    its first status comes; no deadline. A controller that exits ends the wait (False)."""
+    import threading
+
+    from server.demo import controller_command, wait_for_controller
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    opts = DashboardOptions(connect=(endpoint,), rig_name="demowait", port=free_port(),
+                            verbose=False, query_timeout_s=1.0)
+    with Dashboard(opts) as d, controller_process(endpoint, "demowait", tmp_path / "s") as proc:
+        assert wait_for_controller(d, proc, threading.Event(), progress_every_s=0.2)
+    out = capsys.readouterr().out
+    assert out.count("dobtune demo: controller starting (") >= 2, out  # it said so, and waited
+    ready = [x for x in out.splitlines() if x.startswith("dobtune demo: controller")][-1]
+    assert ready.startswith("dobtune demo: controller ready after"), out
+    # --rate-hz nan: refused at start, exits 2.
+    bad = subprocess.Popen([*controller_command(endpoint, "demowait", tmp_path / "s2"),
+                            "--rate-hz", "nan"])
+    with Dashboard(opts) as d:
+        assert not wait_for_controller(d, bad, threading.Event(), progress_every_s=0.2)
+    assert bad.wait() == 2
+
+
 def test_bad_upload_is_reported_not_raised() -> None:
     opts = DashboardOptions(port=free_port(), connect=(f"tcp/127.0.0.1:{free_port()}",),
                             verbose=False)

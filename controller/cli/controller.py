@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from controller.cli.common import Command
@@ -70,14 +71,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    def say(text: str) -> None:
+        print(f"dobtune controller: {text}", file=sys.stderr, flush=True)
+
+    try:
+        return _run(args, say)
+    except KeyboardInterrupt:  # Ctrl-C while it was still loading: nothing runs yet
+        say("stopped (interrupted while starting)")
+        return 0
+
+
+def _run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     from controller.logs import setup_logging
     from controller.process.main import StartupError, run_controller
     from controller.process.options import ControllerOptions
 
     setup_logging(args.log_level, args.rig_name)
-
-    def say(text: str) -> None:
-        print(f"dobtune controller: {text}", file=sys.stderr, flush=True)
 
     behind_router = args.auth is not None and bool(args.connect)
     default_listen = [] if behind_router else ["tcp/127.0.0.1:7447"]

@@ -142,6 +142,10 @@ def zenoh_config(
     conf.insert_json5("scouting/multicast/enabled", "false")
     # A peer that connects to a controller not yet up keeps retrying instead of failing.
     conf.insert_json5("connect/exit_on_failure", "false")
+    # ... and finds it within a second of it listening (Zenoh's default backs off to 4 s).
+    conf.insert_json5(
+        "connect/retry", "{period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2}"
+    )
     conf.insert_json5("listen/exit_on_failure", "true")
     return conf
 

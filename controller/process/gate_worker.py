@@ -14,9 +14,7 @@ import contextlib
 import dataclasses
 import logging
 import os
-import signal
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -27,6 +25,7 @@ from controller import protocol as proto
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients
 from controller.gate.knowledge import KnowledgeRecord
+from controller.process.worker_start import worker_init
 
 __all__ = ["GateRunner", "GateVerdict", "gate", "gate_and_build", "margins_dict", "nan_margins"]
 
@@ -117,44 +116,6 @@ def gate_and_build(cfg: LoopConfig, version: int, record: KnowledgeRecord) -> Ga
         return GateVerdict(False, (reason,), verdict.margins, knowledge_version=record.version)
 
 
-PR_SET_PDEATHSIG = 1
-
-
-def _end_with_parent(parent_pid: int, death_signal: bool, poll_s: float = 0.5) -> None:
-    """This worker ends when the controller does, even if it was SIGKILLed: a thread watches
-    the parent's pid (the worker is re-parented when the parent dies), and with
-    `death_signal` the kernel also sends SIGKILL at once (Linux prctl PR_SET_PDEATHSIG; only
-    for a worker started by the main thread: the signal follows the thread that started it)."""
-    if death_signal:
-        _set_death_signal()
-
-    def watch() -> None:
-        while True:
-            if os.getppid() != parent_pid:
-                os._exit(1)
-            time.sleep(poll_s)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-
-
-def _set_death_signal() -> None:
-    with contextlib.suppress(Exception):
-        import ctypes
-        import ctypes.util
-
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-
-
-def _worker_init(parent_pid: int, death_signal: bool) -> None:
-    # Ctrl-C in a terminal reaches the whole process group: the parent decides, not us.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _end_with_parent(parent_pid, death_signal)
-    # The loop's process wins the CPU over an analysis on a busy machine.
-    with contextlib.suppress(OSError):
-        os.nice(10)
-
-
 def _warm_up() -> None:
     """A new worker's first job: load the analysis code (seconds on a busy machine)."""
     import controller.gate.verdict  # noqa: F401
@@ -187,6 +148,8 @@ class GateRunner:
         #: The worker has not finished a job yet: its first job also gets the start-up time
         #: (a slow start on a loaded machine is not a rejection).
         self._fresh = True
+        #: A new worker's warm-up (imports, the rig kernel), waited for by the first call.
+        self._warming: concurrent.futures.Future[None] | None = None
         self._lock = threading.Lock()
 
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
@@ -196,21 +159,32 @@ class GateRunner:
             self._pool = concurrent.futures.ProcessPoolExecutor(
                 max_workers=1,
                 mp_context=multiprocessing.get_context("spawn"),
-                initializer=_worker_init,
+                initializer=worker_init,
                 initargs=(os.getpid(), threading.current_thread() is threading.main_thread()),
             )
             self._fresh = True
-            self._pool.submit(_warm_up).result(timeout=self._start_timeout_s)
+            self._warming = self._pool.submit(_warm_up)
         return self._pool
+
+    def start(self) -> None:
+        """Start the worker process now and let it load the analysis while the caller goes on
+        (the controller's start-up); the first `call` waits for it. Nothing without a worker."""
+        if self._subprocess:
+            with self._lock:
+                self._executor()
 
     def check(self, cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
         """The gate's verdict on `cfg` against the plant knowledge (no filters built)."""
         return self.check_and_build(cfg, 0, record, build=False)
 
-    def check_and_build(
-        self, cfg: LoopConfig, version: int, record: KnowledgeRecord, *, build: bool = True
-    ) -> GateVerdict:
-        """The gate's verdict and, if it may be applied and `build`, the coefficients."""
+    def check_here(self, cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
+        """`check` in this process (the same gate and rig limit): for the controller's
+        start-up, before its loop runs, when the worker is still loading and a niced worker
+        would wait behind a busy machine."""
+        refused = self._over_rig_limit(cfg)
+        return refused if refused is not None else gate(cfg, record)
+
+    def _over_rig_limit(self, cfg: LoopConfig) -> GateVerdict | None:
         rig_max = self.command_limit_max_deg_s
         if rig_max is not None and cfg.command_limit_deg_s > rig_max:
             reason = (
@@ -219,6 +193,15 @@ class GateRunner:
                 "clamp commands the DOB believes were sent"
             )
             return GateVerdict(False, (reason,), nan_margins())
+        return None
+
+    def check_and_build(
+        self, cfg: LoopConfig, version: int, record: KnowledgeRecord, *, build: bool = True
+    ) -> GateVerdict:
+        """The gate's verdict and, if it may be applied and `build`, the coefficients."""
+        refused = self._over_rig_limit(cfg)
+        if refused is not None:
+            return refused
         try:
             if build:
                 verdict: GateVerdict = self.call(
@@ -241,6 +224,9 @@ class GateRunner:
         with self._lock:
             try:
                 pool = self._executor()
+                warming, self._warming = self._warming, None
+                if warming is not None:
+                    warming.result(timeout=self._start_timeout_s)
                 if self._fresh:
                     # The first real job pays for the imports and caches the warm-up did not
                     # touch: it gets the start-up time too, not just the job's timeout.
@@ -269,6 +255,14 @@ class GateRunner:
             pool.shutdown(wait=False, cancel_futures=True)
 
     def close(self) -> None:
+        warming = self._warming
+        if warming is not None and not warming.done():
+            # Still loading (a stop right after the start, on a busy machine: the niced worker
+            # may need many seconds more): nothing to finish, do not wait for it.
+            with self._lock:
+                self._warming = None
+                self._kill()
+            return
         with self._lock:
             pool, self._pool = self._pool, None
         if pool is not None:

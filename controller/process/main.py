@@ -375,14 +375,17 @@ def _run(
 ) -> None:
     _check_options(opts)
     runner.command_limit_max_deg_s = _rig_command_limit(opts)
+    # The gate's worker starts loading now, beside the rest of the start-up; the first check
+    # runs here, before the loop, at this process's priority (the worker is niced: behind a
+    # busy machine it took tens of seconds to give the first verdict).
+    runner.start()
     try:
         store = StateStore(opts.state_path)
         knowledge = initial_knowledge(opts, store)
-        # The first check also starts the gate's worker process, before the loop runs.
         cfg, version, margins = _initial_config(
             opts,
             store,
-            lambda c: runner.check(c, knowledge),
+            lambda c: runner.check_here(c, knowledge),
             runner.command_limit_max_deg_s,
         )
     except PersistenceError as exc:

@@ -38,12 +38,22 @@ def window_metrics(error_deg: np.ndarray) -> tuple[float, float]:
 def banner_html(client: ControllerClient) -> str:
     """The connection / mode banner: red when the controller is gone or e-stopped."""
     st = client.status
-    if st is None or not client.connected:
-        age = client.status_age_s
-        since = "never heard from it" if st is None else f"no status for {age:.1f} s"
+    if st is None:
+        return _banner(
+            "#616161",
+            f"CONTROLLER STARTING &mdash; waiting for rig '{esc(client.opts.rig_name)}' on "
+            f"{esc(', '.join(client.opts.connect))}"
+            + (f" as user {esc(client.opts.user)}" if client.opts.user else "")
+            + ": no status yet (it may still be starting: seconds, longer on a busy machine; "
+            "or it is not reachable). The dashboard keeps waiting and connects when it "
+            "answers; nothing can be applied until then.",
+            "dt-banner dt-starting",
+        )
+    if not client.connected:
         return _banner(
             "#b71c1c",
-            f"CONTROLLER NOT REACHABLE ({since}) &mdash; rig '{esc(client.opts.rig_name)}' on "
+            f"CONTROLLER NOT REACHABLE (no status for {client.status_age_s:.1f} s) &mdash; "
+            f"rig '{esc(client.opts.rig_name)}' on "
             f"{esc(', '.join(client.opts.connect))}"
             + (f" as user {esc(client.opts.user)} (wrong credentials look the same)"
                if client.opts.user else "")

@@ -44,6 +44,9 @@ def test_demo_starts_serves_and_stops_cleanly(how: str) -> None:
                 url = line.split("open ", 1)[1].split()[0]
                 break
         assert url.startswith(f"http://127.0.0.1:{http_port}/?token=")  # the access token
+        for line in proc.stdout:  # the URL comes at once; the controller may still start
+            if "dobtune demo: controller ready after" in line:
+                break
         with urllib.request.urlopen(url, timeout=10) as resp:
             assert resp.status == 200
         if how == "ctrl-c":
@@ -59,3 +62,4 @@ def test_demo_starts_serves_and_stops_cleanly(how: str) -> None:
     assert "Traceback" not in rest, rest
     assert "dobtune controller: stopped" in rest and "dobtune demo: stopped" in rest
     assert wait_until(lambda: port_is_free(http_port) and port_is_free(zenoh_port), 10.0)
+
