@@ -61,8 +61,10 @@ def dash(endpoint: str) -> Iterator[Dashboard]:
     with ControllerClient(ClientOptions(connect=(endpoint,), rig_name=RIG,
                                         client_name="probe")) as c:
         _wait_until(lambda: c.connected, CONTROLLER_START_S, "the controller did not come up")
+    # Adopting measured responses makes the controller judge on them (seconds on a loaded
+    # machine): the dashboard's queries wait for it.
     opts = DashboardOptions(connect=(endpoint,), rig_name=RIG, port=free_port(), verbose=False,
-                            sim_disturbances=DISTURBANCES)
+                            sim_disturbances=DISTURBANCES, query_timeout_s=30.0)
     with Dashboard(opts) as d:
         yield d
 
@@ -126,3 +128,36 @@ def test_preview_shows_dob_off_beside_and_suggest_beats_it(
         noise = command_noise_deg_s(r.command_deg_s, cfg.rate_hz)
         assert shown[2] == pytest.approx(noise, rel=0.01)
     page.screenshot(path=str(artifacts / "demo_value_suggest.png"))
+
+
+def test_plant_chart_shows_the_positions_their_spread_and_the_divergence(
+    page: Any, dash: Dashboard, tmp_path: Path, artifacts: Path
+) -> None:
+    """Three responses measured at three positions (a belt mode at 4.9, 7 and 9.1 Hz), uploaded
+    as a user does: the plant chart draws each position and the spread between them, and the
+    cut-off line says where they diverge (the frequency the gate's own computation gives)."""
+    import numpy as np
+
+    from controller.gate.frd_csv import write_frd_csv
+    from controller.gate.knowledge import MeasuredResponse, position_spread
+
+    f = np.geomspace(0.1, 20.0, 30)
+    responses = []
+    for i, k in enumerate((0.7, 1.0, 1.3), start=1):
+        wn, s = 2 * np.pi * 7.0 * k, 2j * np.pi * f
+        h = wn * wn / (s * s + 1.414 * wn * s + wn * wn)
+        path = tmp_path / f"position{i}.csv"
+        write_frd_csv(path, f, h, np.ones(f.size))
+        responses.append(MeasuredResponse(path.stem, f, h))
+        page.locator("input[type=file]").first.set_input_files(str(path))
+        page.wait_for_selector(f".dt-measured >> text={i} measured response(s)",
+                               timeout=60_000)
+    sp = position_spread(tuple(responses))
+    assert sp is not None and sp.divergence_hz is not None
+    page.wait_for_selector(
+        f".dt-cutoff >> text=the 3 measured responses diverge above {sp.divergence_hz:.2f} Hz",
+        timeout=60_000)
+    for label in ("|H| position 1", "|H| position 2", "|H| position 3",
+                  "spread between positions (dB)"):
+        page.wait_for_function(f"() => ({FINITE_JS})('{label}') >= 25", timeout=60_000)
+    page.screenshot(path=str(artifacts / "demo_value_plant_positions.png"))
