@@ -34,6 +34,7 @@ from controller.client.recorder import RecordOptions
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import MeasuredResponse
+from server.assets import web_asset
 from server.engine import TuningEngine, measured_from_csv
 from server.escape import esc
 from server.fleet import FleetMonitor, FleetPanel
@@ -57,7 +58,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-WEB_ASSETS = Path(__file__).resolve().parent.parent / "web_assets"
 #: How long a lease the dashboard takes for its user's changes (renewed on the next change).
 LEASE_S = 300.0
 R = TypeVar("R")
@@ -112,7 +112,7 @@ def dashboard_users(opts: DashboardOptions) -> dict[str, Any]:
 
 def _asset(name: str, default: str = "") -> str:
     try:
-        return (WEB_ASSETS / name).read_text(encoding="utf-8")
+        return web_asset(name).read_text(encoding="utf-8")
     except OSError as exc:
         log.warning("web asset %s unreadable (%s); showing a placeholder", name, exc)
         return default

@@ -13,174 +13,17 @@ Zenoh callbacks only decode and store under a lock; the panel redraws at a few h
 from __future__ import annotations
 
 import logging
-import math
-import threading
-import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
-from controller import protocol as proto
+from controller.client.fleet import FleetMonitor, RigRow
 from server.escape import esc, href
 from server.panels.widgets import set_html
-from server.workers import Periodic, run_logged
+from server.workers import Periodic
 
 __all__ = ["FleetMonitor", "FleetPanel", "RigRow", "sparkline_svg"]
 
 log = logging.getLogger(__name__)
-
-#: Error trace kept per rig: every DECIMATE-th sample, TRACE_POINTS of them (3 s at 1 kHz).
-DECIMATE = 10
-TRACE_POINTS = 300
-
-
-@dataclass(frozen=True)
-class RigRow:
-    rig: str
-    alive: bool  #: its liveliness token is present
-    mode: str
-    plant: str
-    config_version: int | None
-    error_rms_deg: float | None  #: over the trace
-    faults: tuple[str, ...]
-    operator: str
-    status_age_s: float | None
-    trace: tuple[float, ...]  #: the latest error samples (decimated), oldest first
-
-
-@dataclass
-class _Rig:
-    status: proto.Status | None = None
-    status_at: float = 0.0
-    trace: deque[float] | None = None
-    next_keep: int = 0  #: the next sequence number kept in the trace
-
-
-class FleetMonitor:
-    """Liveliness, status and state of every rig through one Zenoh session (not owned)."""
-
-    def __init__(self, session: Any, estop_key: Callable[[str], str] = proto.key_estop) -> None:
-        self._session = session
-        self._estop_key = estop_key
-        self._lock = threading.Lock()
-        self._alive: set[str] = set()
-        self._rigs: dict[str, _Rig] = {}
-        self._entities: list[Any] = []
-        self.decode_errors = 0
-
-    def __enter__(self) -> FleetMonitor:
-        import zenoh
-
-        s, p = self._session, proto.KEY_PREFIX
-        try:
-            self._entities.append(s.liveliness().declare_subscriber(
-                f"{p}/*/alive", zenoh.handlers.Callback(self._on_alive), history=True))
-            self._entities.append(s.declare_subscriber(
-                f"{p}/*/status", zenoh.handlers.Callback(self._on_status)))
-            self._entities.append(s.declare_subscriber(
-                f"{p}/*/state", zenoh.handlers.Callback(self._on_state)))
-        except BaseException:
-            self.close()
-            raise
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        for e in self._entities:
-            run_logged(e.undeclare, what="undeclaring a fleet subscriber")
-        self._entities = []
-
-    # -- Zenoh callbacks (short) ---------------------------------------------------------------
-
-    def _on_alive(self, sample: Any) -> None:
-        import zenoh
-
-        parts = str(sample.key_expr).split("/")
-        if len(parts) != 3:
-            return
-        with self._lock:
-            if sample.kind == zenoh.SampleKind.DELETE:
-                self._alive.discard(parts[1])
-            else:
-                self._alive.add(parts[1])
-
-    def _on_status(self, sample: Any) -> None:
-        rig = _rig_of(sample)
-        try:
-            st = proto.decode(sample.payload.to_bytes(), proto.Status)
-        except proto.ProtocolError:
-            self.decode_errors += 1
-            return
-        if st.rig != rig:  # a rig speaking for another (the key is what the access control
-            self.decode_errors += 1  # checks: a controller may put on its own rig's keys only)
-            return
-        with self._lock:
-            r = self._rigs.setdefault(rig, _Rig())
-            r.status, r.status_at = st, time.monotonic()
-
-    def _on_state(self, sample: Any) -> None:
-        rig = _rig_of(sample)
-        try:
-            b = proto.decode(sample.payload.to_bytes(), proto.StateBatch)
-        except proto.ProtocolError:
-            self.decode_errors += 1
-            return
-        if b.rig != rig:
-            self.decode_errors += 1
-            return
-        with self._lock:
-            r = self._rigs.setdefault(rig, _Rig())
-            if r.trace is None:
-                r.trace = deque(maxlen=TRACE_POINTS)
-            n = len(b.error_deg)
-            i = max(0, r.next_keep - b.seq0)
-            if i > n + DECIMATE or r.next_keep - b.seq0 > 10 * TRACE_POINTS * DECIMATE:
-                i = 0  # the controller restarted (its sequence began again)
-            while i < n:
-                r.trace.append(b.error_deg[i])
-                i += DECIMATE
-            r.next_keep = b.seq0 + i
-
-    # -- reading -------------------------------------------------------------------------------
-
-    def rigs(self) -> list[str]:
-        """The rigs alive now (liveliness), sorted."""
-        with self._lock:
-            return sorted(self._alive)
-
-    def rows(self) -> list[RigRow]:
-        """One row per rig alive (and per rig heard of that is no longer: alive False)."""
-        now = time.monotonic()
-        with self._lock:
-            names = sorted(self._alive | set(self._rigs))
-            out = []
-            for name in names:
-                r = self._rigs.get(name, _Rig())
-                st = r.status
-                trace = tuple(r.trace) if r.trace else ()
-                rms = math.sqrt(sum(e * e for e in trace) / len(trace)) if trace else None
-                out.append(RigRow(
-                    rig=name, alive=name in self._alive, mode=st.mode if st else "",
-                    plant=st.plant if st else "",
-                    config_version=st.config_version if st else None,
-                    error_rms_deg=rms, faults=tuple(st.faults) if st else (),
-                    operator=st.operator if st else "",
-                    status_age_s=(now - r.status_at) if st else None, trace=trace))
-        return out
-
-    def estop(self, rig: str) -> None:
-        """The e-stop put on `rig` (any payload stops its loop; no reply needed)."""
-        proto.check_rig_name(rig)
-        msg = proto.Command(body=proto.EStop(), client="dashboard fleet overview")
-        self._session.put(self._estop_key(rig), proto.encode(msg))
-
-
-def _rig_of(sample: Any) -> str:
-    """The rig of a `dobtune/<rig>/<what>` sample: its key (what the access control checks)."""
-    return str(sample.key_expr).split("/")[1]
 
 
 def sparkline_svg(trace: tuple[float, ...], width: int = 160, height: int = 28) -> str:

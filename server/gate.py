@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
+from server.assets import web_asset
 from server.escape import esc
 
 __all__ = ["COOKIE", "ESTOP_LINK_HTML", "ESTOP_PATH", "PAGE_SCRIPT_FILE", "Gate", "Refused",
@@ -63,7 +64,7 @@ ESTOP_LINK_HTML = (
 )
 #: The page's own script: a PNG button beside every chart's CSV button, and the selected tabs
 #: kept in the URL's fragment (put into the page after `Gate.page_extra`).
-PAGE_SCRIPT_FILE = Path(__file__).resolve().parent.parent / "web_assets" / "dashboard.js"
+PAGE_SCRIPT_FILE = web_asset("dashboard.js")
 _lock = threading.Lock()
 #: One server start at a time: the gate a starting server takes is the one being installed.
 _starting = threading.Lock()

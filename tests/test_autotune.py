@@ -52,6 +52,7 @@ def test_rejected_candidates_are_not_run_and_bad_input_is_named() -> None:
         autotune(LoopConfig(), K, default_trajectory("sine"), lowest_hz=5.0, highest_hz=1.0)
 
 
+@pytest.mark.slow
 def test_cli_json_has_best_baseline_and_curve() -> None:
     import argparse
 
@@ -69,6 +70,7 @@ def test_cli_json_has_best_baseline_and_curve() -> None:
     assert data["baseline"]["config"]["dob_on"] is False
 
 
+@pytest.mark.slow
 def test_cli_runs_with_the_named_belt_disturbances_and_names_a_bad_one() -> None:
     import argparse
 

@@ -47,6 +47,7 @@ print(sorted({{m.split(".")[0] for m in sys.modules}} & {{"viser", "zenoh"}}),
 """
 
 
+@pytest.mark.slow
 def test_the_entry_point_loads_no_dashboard_for_controller_commands() -> None:
     names = sorted(controller_commands())
     out = subprocess.run([sys.executable, "-c", PROBE.format(names=names)], cwd=ROOT,

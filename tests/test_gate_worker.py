@@ -46,6 +46,7 @@ def test_the_rigs_command_limit_is_checked_first() -> None:
     assert math.isnan(verdict.margins.gain_margin_db)
 
 
+@pytest.mark.slow
 def test_a_hanging_worker_is_killed_and_the_next_call_gets_a_fresh_one() -> None:
     runner = GateRunner(subprocess=True)
     try:
@@ -58,6 +59,7 @@ def test_a_hanging_worker_is_killed_and_the_next_call_gets_a_fresh_one() -> None
         runner.close()
 
 
+@pytest.mark.slow
 def test_a_slow_start_of_the_worker_is_not_a_rejection() -> None:
     """A fresh worker's first job gets the start-up time (a loaded machine), later jobs only
     their own timeout."""
@@ -96,6 +98,7 @@ def _alive(pid: int) -> bool:
     return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
+@pytest.mark.slow
 def test_the_worker_ends_when_the_controller_is_killed(tmp_path: Path) -> None:
     code = (
         "import os, sys, time\n"

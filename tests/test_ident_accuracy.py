@@ -78,6 +78,7 @@ def test_the_default_plan_takes_a_tenth_of_the_stepped_sines_rig_time() -> None:
         assert fast <= 65.0 and fast <= slow / 10.0, (mode, fast, slow)  # 45.5 / 655.5 s open
 
 
+@pytest.mark.slow
 def test_the_default_plan_is_at_least_as_accurate_as_the_stepped_sine(
     stepped: IdentifyResult, default: IdentifyResult
 ) -> None:
@@ -128,6 +129,7 @@ def test_the_fitted_model_is_as_close_as_the_stepped_sines(
     assert default.nominal is not None and default.recommended_cutoff_hz["q31"] is not None
 
 
+@pytest.mark.slow
 def test_closed_loop_default_plan_on_the_simulated_rig() -> None:
     """Closed mode: the speed loop runs, the excitation is added to its command (measured:
     47.9 s, 0.04 % rms / 0.14 % max against the linear rig)."""

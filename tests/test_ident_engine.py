@@ -72,6 +72,7 @@ def closed_sine() -> IdentifyResult:
 # ----------------------------------------------------------------------- simulated rig
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["open_sine", "closed_sine"])
 def test_response_matches_mp_within_1p5_db_and_10_deg(
     which: str, request: pytest.FixtureRequest

@@ -158,6 +158,7 @@ def test_cli_bad_input_names_the_field(tmp_path: Path, kw: dict[str, object], ne
     assert not (tmp_path / "id").exists()
 
 
+@pytest.mark.slow
 def test_cli_connect_without_a_controller_is_a_clear_error(tmp_path: Path) -> None:
     """--connect to an endpoint where no controller answers: exit 2 naming the option."""
     import socket

@@ -40,6 +40,7 @@ def _section(report: str, figure: str) -> str:
     return report[start : nxt if nxt >= 0 else len(report)]
 
 
+@pytest.mark.slow
 def test_quick_mode_is_quick(quick_report: tuple[Path, str, float, str]) -> None:
     # CPU time of this process (the machine may be shared: wall time is printed).
     assert quick_report[2] < 30.0

@@ -7,12 +7,12 @@ peak / RMSE on the samples written.
 
 from __future__ import annotations
 
-import socket
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import free_port
 
 from controller import protocol as proto
 from controller.core.config import LoopConfig, config_from_builtins
@@ -108,23 +108,20 @@ def test_summary_row_has_the_latest_configuration_and_numpys_metrics(tmp_path: P
     assert rmse == pytest.approx(row.rmse_deg, rel=1e-12)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture
 def gui() -> Iterator[object]:
     import viser
 
-    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     try:
         yield server.gui
     finally:
         server.stop()
 
 
+@pytest.mark.slow
 def test_the_panel_lists_and_compares_two_runs(gui: object, tmp_path: Path) -> None:
     from server.panels.recordings import RecordingsPanel
 

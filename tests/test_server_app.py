@@ -3,15 +3,13 @@ upload, the 'controller gone' banner, ports released on exit, dependency directi
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import free_port, port_is_free, wait_for
 
 from controller.core.config import NominalModel
 from controller.gate.frd_csv import write_frd_csv
@@ -23,26 +21,10 @@ from server.demo import controller_process, stop_process
 CONTROLLER_START_S = 60.0
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
-def wait_for(cond: Callable[[], bool], timeout_s: float = 15.0) -> None:
-    end = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < end, "timed out"
-        time.sleep(0.05)
 
 
-def port_is_free(port: int) -> bool:
-    with socket.socket() as s:
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-        return True
 
 
 @pytest.mark.integration
@@ -137,6 +119,7 @@ def test_bad_upload_is_reported_not_raised() -> None:
         assert len(d.engine.measured) == 0
 
 
+@pytest.mark.slow
 def test_controller_never_imports_server_or_viser() -> None:
     code = (
         "import sys, controller.core.loop, controller.protocol, controller.gate.analysis, "

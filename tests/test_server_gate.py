@@ -9,6 +9,7 @@ import urllib.request
 from collections.abc import Iterator
 
 import pytest
+from helpers import free_port
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
@@ -16,16 +17,10 @@ from server.app import Dashboard, DashboardOptions
 from server.gate import COOKIE, ESTOP_PATH, Gate
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(scope="module")
 def dash() -> Iterator[Dashboard]:
-    opts = DashboardOptions(connect=(f"tcp/127.0.0.1:{_free_port()}",), rig_name="gate",
-                            port=_free_port(), verbose=False, query_timeout_s=0.5)
+    opts = DashboardOptions(connect=(f"tcp/127.0.0.1:{free_port()}",), rig_name="gate",
+                            port=free_port(), verbose=False, query_timeout_s=0.5)
     with Dashboard(opts) as d:
         yield d
 

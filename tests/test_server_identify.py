@@ -12,15 +12,14 @@ IdentifyStart and the identify queryable; Abort through IdentifyAbort keeps the 
 from __future__ import annotations
 
 import dataclasses
-import socket
 import subprocess
 import tempfile
 import time
 from collections.abc import Iterator
-from typing import Any
 
 import numpy as np
 import pytest
+from helpers import free_port, wait_for
 
 from controller import protocol as proto
 from controller.core.config import LoopConfig
@@ -42,17 +41,8 @@ SHORT = IdentifySettings(dict(mode="open", signal="multisine", f_min_hz=1.0, f_m
                               points_per_decade=4, positions=1, amplitude_deg_s=10.0))
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
-def wait_for(cond: Any, timeout_s: float = 20.0) -> None:
-    end = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < end, "timed out"
-        time.sleep(0.02)
 
 
 @pytest.fixture(scope="module")

@@ -9,23 +9,17 @@ path does not need one.
 from __future__ import annotations
 
 import math
-import socket
 import time
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from helpers import free_port
 
 from controller.core.config import LoopConfig
 from server.app import Dashboard, DashboardOptions
 from server.engine import TuningEngine
 from server.panels.tuning import format_gate_html
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="module")

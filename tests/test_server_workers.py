@@ -19,8 +19,10 @@ def _boom(_item: object) -> None:
 def test_latest_wins_runs_only_the_newest_item() -> None:
     seen: list[int] = []
     gate = threading.Event()
+    running = threading.Event()
 
     def slow(item: int) -> None:
+        running.set()
         gate.wait(5.0)
         seen.append(item)
 
@@ -28,7 +30,7 @@ def test_latest_wins_runs_only_the_newest_item() -> None:
     w.start()
     try:
         w.submit(0)
-        time.sleep(0.05)  # 0 is running and blocked
+        assert running.wait(10.0)  # 0 is running and blocked
         for k in range(1, 10):
             w.submit(k)
         gate.set()

@@ -16,7 +16,6 @@ reachable or the credentials reach nothing.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
 from pathlib import Path
@@ -231,59 +230,27 @@ def _change(
 
 def _rigs(args: argparse.Namespace, out: TextIO) -> int:
     """The rigs reachable through the endpoints (their liveliness tokens), with the state each
-    publishes: mode, configuration version, error RMS over the listening time, faults, lease."""
+    publishes: mode, configuration version, error RMS over the listening time (the fleet
+    watcher's decimated trace), faults, lease."""
     import math
     import time
 
-    import numpy as np
-    import zenoh
-
-    from controller import protocol as proto
     from controller.client import ClientOptions, open_client_session
+    from controller.client.fleet import FleetMonitor
+
+    def finite(v: float | None) -> float | None:
+        return v if v is not None and math.isfinite(v) else None
 
     session = open_client_session(ClientOptions(
         connect=tuple(args.connect), auth=args.auth, user=args.user or "",
         connect_timeout_s=args.timeout_s))
-    statuses: dict[str, Any] = {}
-    errors: dict[str, list[float]] = {}
-    with session:
-        alive = sorted({
-            proto.rig_of_key(r.ok.key_expr)
-            for r in session.liveliness().get(proto.key_alive("*"), timeout=args.timeout_s)
-            if r.ok is not None
-        })
-        st_sub = session.declare_subscriber(proto.key_status("*"), zenoh.handlers.FifoChannel(256))
-        sa_sub = session.declare_subscriber(proto.key_state("*"), zenoh.handlers.FifoChannel(4096))
-        deadline = time.monotonic() + args.listen_s
-        while time.monotonic() < deadline:
-            got = False
-            for s in iter(st_sub.try_recv, None):
-                got = True
-                with contextlib.suppress(proto.ProtocolError):
-                    st = proto.decode(s.payload.to_bytes(), proto.Status)
-                    statuses[st.rig] = st
-            for s in iter(sa_sub.try_recv, None):
-                got = True
-                with contextlib.suppress(proto.ProtocolError):
-                    b = proto.decode(s.payload.to_bytes(), proto.StateBatch)
-                    errors.setdefault(b.rig, []).extend(b.error_deg)
-            if not got:
-                time.sleep(0.02)
-        st_sub.undeclare()
-        sa_sub.undeclare()
-    rows: list[dict[str, Any]] = []
-    for rig in alive:
-        st_rig = statuses.get(rig)
-        e = np.asarray(errors.get(rig, []), dtype=float)
-        rms = float(np.sqrt(np.mean(e**2))) if e.size else math.nan
-        rows.append({
-            "rig": rig, "mode": st_rig.mode if st_rig else "",
-            "plant": st_rig.plant if st_rig else "",
-            "config_version": st_rig.config_version if st_rig else None,
-            "error_rms_deg": rms if math.isfinite(rms) else None,
-            "faults": list(st_rig.faults) if st_rig else [],
-            "operator": st_rig.operator if st_rig else "",
-        })
+    with session, FleetMonitor(session) as fleet:
+        time.sleep(args.listen_s)  # the listening time the command was given
+        rows: list[dict[str, Any]] = [{
+            "rig": r.rig, "mode": r.mode, "plant": r.plant,
+            "config_version": r.config_version, "error_rms_deg": finite(r.error_rms_deg),
+            "faults": list(r.faults), "operator": r.operator,
+        } for r in fleet.rows() if r.alive]
     if args.json:
         out.write(json.dumps(rows) + "\n")
     else:

@@ -28,6 +28,7 @@ __all__ = [
     "ControllerUnavailable",
     "StateRing",
     "open_client_session",
+    "quietly",
 ]
 
 log = logging.getLogger(__name__)
@@ -212,10 +213,10 @@ class ControllerClient:
             self._thread.join(timeout=5.0)
             self._thread = None
         for s in self._subs:
-            _quietly("undeclaring a subscriber", s.undeclare)
+            quietly("undeclaring a subscriber", s.undeclare)
         self._subs = []
         if self._session is not None:
-            _quietly("closing the Zenoh session", self._session.close)
+            quietly("closing the Zenoh session", self._session.close)
             self._session = None
 
     # -- the reader thread ---------------------------------------------------------------------
@@ -430,7 +431,7 @@ def open_client_session(o: ClientOptions) -> Any:
         ) from exc
 
 
-def _quietly(what: str, fn: Callable[[], Any]) -> None:
+def quietly(what: str, fn: Callable[[], Any]) -> None:
     """Teardown that must go on: a failure is logged, not raised."""
     try:
         fn()

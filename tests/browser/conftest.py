@@ -10,13 +10,13 @@ that, so the first load has its own generous timeout instead of the tests' short
 from __future__ import annotations
 
 import os
-import socket
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers import free_port, wait_for
 
 from controller.client import ClientOptions, ControllerClient
 from server.app import Dashboard, DashboardOptions
@@ -39,10 +39,6 @@ FIRST_LOAD_S = 60.0
 CONTROLLER_START_S = 60.0
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _require_chromium() -> None:
@@ -73,7 +69,7 @@ def probe(controller_endpoint: str) -> Iterator[ControllerClient]:
     with ControllerClient(
         ClientOptions(connect=(controller_endpoint,), rig_name=RIG, client_name="probe")
     ) as c:
-        _wait_until(lambda: c.connected, CONTROLLER_START_S, "the controller did not come up")
+        wait_for(lambda: c.connected, CONTROLLER_START_S, "the controller did not come up")
         yield c
 
 
@@ -112,7 +108,7 @@ def open_when_ready(page: Any, dashboard: Dashboard, timeout_s: float) -> None:
     assert dashboard.server is not None
     before = set(dashboard.server.get_clients())
     page.goto(dashboard.url, wait_until="domcontentloaded", timeout=left_ms())
-    _wait_until(lambda: set(dashboard.server.get_clients()) - before,
+    wait_for(lambda: set(dashboard.server.get_clients()) - before,
                 deadline - time.monotonic(), "the page's websocket never connected")
     page.wait_for_selector("text=E-STOP", timeout=left_ms())
     page.wait_for_selector(".dt-verdict", timeout=left_ms())
@@ -154,10 +150,3 @@ def only_panel(dashboard: Dashboard) -> Any:
     panels = list(dashboard.panels.values())
     assert len(panels) == 1, f"{len(panels)} candidate panels: one browser expected"
     return panels[0]
-
-
-def _wait_until(cond: Callable[[], object], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, what
-        time.sleep(0.05)

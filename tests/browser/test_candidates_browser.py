@@ -9,12 +9,12 @@ configuration stays. What is checked is what each page shows, and what the contr
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Any
 
 import pytest
 from conftest import FINITE_JS, FIRST_LOAD_S, open_when_ready, set_number
+from helpers import wait_for
 
 from controller.client import ControllerClient
 from server.app import Dashboard
@@ -22,11 +22,6 @@ from server.app import Dashboard
 pytestmark = pytest.mark.browser
 
 
-def _wait(cond: Any, timeout_s: float, what: str) -> None:
-    end = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < end, what
-        time.sleep(0.05)
 
 
 def _cutoff_field(page: Any) -> str:
@@ -57,7 +52,7 @@ def test_each_browser_edits_its_own_candidate(
     other = page.context.browser.new_context(viewport={"width": 1600, "height": 1000}).new_page()
     try:
         open_when_ready(other, dashboard, FIRST_LOAD_S)
-        _wait(lambda: len(dashboard.panels) == 2, 10.0, "the second browser has no candidate")
+        wait_for(lambda: len(dashboard.panels) == 2, 10.0, "the second browser has no candidate")
         start = probe.get_config()
         hz0 = start.config.q_cutoff_hz
         assert hz0 != 0.8
@@ -97,7 +92,7 @@ def test_each_browser_edits_its_own_candidate(
         # Revert: B's candidate is the active v2, nothing stale.
         other.get_by_role("button", name="Revert to active").click()
         other.wait_for_selector(".dt-cutoff >> text=0.800 Hz", timeout=15_000)
-        _wait(lambda: _stale(other) == "", 10.0, "the stale note stayed after Revert")
+        wait_for(lambda: _stale(other) == "", 10.0, "the stale note stayed after Revert")
         assert float(_cutoff_field(other)) == 0.8
 
         # Suggest in B: the search's curve is drawn in B and its result is B's candidate;
@@ -120,4 +115,4 @@ def test_each_browser_edits_its_own_candidate(
         other.screenshot(path=str(artifacts / "candidates_3_suggest.png"))
     finally:
         other.context.close()
-    _wait(lambda: len(dashboard.panels) == 1, 15.0, "the closed browser's candidate stayed")
+    wait_for(lambda: len(dashboard.panels) == 1, 15.0, "the closed browser's candidate stayed")

@@ -7,12 +7,12 @@ Screenshots of every step go to test-artifacts/.
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 from typing import Any
 
 import pytest
 from conftest import FINITE_JS, set_number, slider_row
+from helpers import wait_for
 
 from controller.client import ControllerClient
 from server.app import Dashboard
@@ -128,11 +128,6 @@ def test_cutoff_slider_changes_bode_and_margins(page: Any, artifacts: Path) -> N
     assert _text(page, ".dt-verdict") != margins_before
 
 
-def _wait(cond: Any, timeout_s: float = 10.0) -> None:
-    end = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < end, "timed out"
-        time.sleep(0.05)
 
 
 def _apply(page: Any, verdict: str, answer: str, screenshot: Path) -> None:
@@ -155,7 +150,7 @@ def test_apply_stable_candidate_changes_controller_config(
     after = probe.get_config()  # through Zenoh, not through the page
     assert after.version > before.version
     assert math.isclose(after.config.q_cutoff_hz, 1.0, rel_tol=1e-3)
-    _wait(lambda: probe.status is not None and probe.status.config_version == after.version)
+    wait_for(lambda: probe.status is not None and probe.status.config_version == after.version)
 
 
 def test_apply_unstable_candidate_is_refused_and_config_unchanged(
@@ -250,9 +245,10 @@ def test_estop_from_page_stops_the_controller(
     page: Any, probe: ControllerClient, artifacts: Path
 ) -> None:
     page.get_by_role("button", name="E-STOP").click()
-    _wait(lambda: probe.status is not None and probe.status.mode == "estop", 5.0)
-    # Every sample after the stop commands zero speed.
-    time.sleep(0.3)
+    wait_for(lambda: probe.status is not None and probe.status.mode == "estop", 5.0)
+    # Every sample after the stop commands zero speed (the window read once 300 more arrived).
+    stopped_at = probe.ring.total
+    wait_for(lambda: probe.ring.total >= stopped_at + 300, 10.0, "no samples after the stop")
     cols, _ = probe.ring.window(0.1)
     assert len(cols["command_deg_s"]) > 0
     assert all(u == 0.0 for u in cols["command_deg_s"])
@@ -266,18 +262,18 @@ def test_reset_button_acknowledges_the_estop_the_dashboard_shows(
     """Issue 24: a reset names the e-stop its sender saw. A second e-stop (another session)
     while latched: once the dashboard shows it, its Reset fault button clears it (the reset
     carries that e-stop's seq); the rig ends stopped and the page says so."""
-    _wait(lambda: probe.status is not None and probe.status.mode == "estop", 10.0)
+    wait_for(lambda: probe.status is not None and probe.status.mode == "estop", 10.0)
     assert probe.status is not None
     first = probe.status.estop_seq
     probe.put_estop()  # another session presses e-stop while the rig is latched
-    _wait(lambda: probe.status is not None and probe.status.estop_seq > first, 10.0)
+    wait_for(lambda: probe.status is not None and probe.status.estop_seq > first, 10.0)
     # The dashboard has seen the second e-stop (its reset names the latest it saw).
-    _wait(lambda: dashboard.client.status is not None
+    wait_for(lambda: dashboard.client.status is not None
           and dashboard.client.status.estop_seq > first, 10.0)
     page.wait_for_selector(".dt-banner.dt-estop", timeout=15_000)
     page.get_by_role("tab", name="Live", exact=True).click()
     page.get_by_role("button", name="Reset fault").click()
-    _wait(lambda: probe.status is not None and probe.status.mode == "stopped", 15.0)
+    wait_for(lambda: probe.status is not None and probe.status.mode == "stopped", 15.0)
     page.wait_for_selector(".dt-banner:not(.dt-estop)", timeout=15_000)
     page.screenshot(path=str(artifacts / "browser_6b_reset.png"))
     page.get_by_role("tab", name="Tune").click()
@@ -316,7 +312,7 @@ def test_the_big_estop_stays_in_view_when_everything_is_collapsed(
 
     assert probe.reset().ok
     assert probe.command(proto.Start()).ok
-    _wait(lambda: probe.status is not None and probe.status.mode == "running", 10.0)
+    wait_for(lambda: probe.status is not None and probe.status.mode == "running", 10.0)
     for side in ("left", "right"):
         page.locator(f"[data-dock-region-collapse='{side}']").first.click()
     page.mouse.wheel(0, 2000)
@@ -331,7 +327,7 @@ def test_the_big_estop_stays_in_view_when_everything_is_collapsed(
         [box["x"] + box["width"] / 2, box["y"] + box["height"] / 2])
     page.screenshot(path=str(artifacts / "browser_10_collapsed_estop.png"))
     link.click()
-    _wait(lambda: probe.status is not None and probe.status.mode == "estop", 5.0)
+    wait_for(lambda: probe.status is not None and probe.status.mode == "estop", 5.0)
     expand = page.get_by_role("button", name="Expand column")
     while expand.count():
         expand.first.click()

@@ -42,11 +42,6 @@ ERROR = next(s for s in LIVE_CHARTS if s.key == "error")
 CANDIDATE_RGB = (0x1F, 0x77, 0xB4)
 
 
-def _wait(cond: Any, timeout_s: float, what: str) -> None:
-    end = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < end, what
-        time.sleep(0.05)
 
 
 def _export_button(page: Any, title: str, label: str) -> Any:

@@ -9,13 +9,12 @@ from __future__ import annotations
 import re
 import socket
 import tempfile
-import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 from conftest import CHROMIUM, CHROMIUM_ARGS, CONTROLLER_START_S, FIRST_LOAD_S, free_port
+from helpers import wait_for
 
 from server.app import Dashboard, DashboardOptions
 from server.demo import DemoOptions, fleet_processes
@@ -45,11 +44,6 @@ def _free_run(n: int) -> int:
             return p
 
 
-def _wait(cond: Any, timeout_s: float, what: str) -> None:
-    end = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < end, what
-        time.sleep(0.05)
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +56,7 @@ def fleet() -> Iterator[Dashboard]:
         with Dashboard(opts) as dash:
             mon = dash._fleet_monitor
             assert mon is not None
-            _wait(lambda: [(r.rig, r.mode) for r in mon.rows()]
+            wait_for(lambda: [(r.rig, r.mode) for r in mon.rows()]
                   == [("rig1", "running"), ("rig2", "running")],
                   CONTROLLER_START_S, "the two rigs did not come up")
             yield dash
@@ -98,7 +92,7 @@ def test_the_fleet_tab_shows_every_rig_and_stops_one(fleet: Dashboard, artifacts
             page.get_by_role("option", name="rig1", exact=True).click()
             panel = fleet.fleet
             assert panel is not None
-            _wait(lambda: str(panel.pick.value) == "rig1", 10.0, "the choice never arrived")
+            wait_for(lambda: str(panel.pick.value) == "rig1", 10.0, "the choice never arrived")
             page.get_by_role("button", name="E-STOP this rig").click()
             page.wait_for_function(
                 f"() => ({ROWS_JS})().map(r => r[1]).join() === 'estop,running'",

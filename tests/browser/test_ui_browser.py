@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import ARTIFACTS, FIRST_LOAD_S, _wait_until, set_number
+from conftest import ARTIFACTS, FIRST_LOAD_S, set_number
+from helpers import wait_for
 
 from controller import protocol as proto
 from controller.client import ControllerClient
@@ -78,7 +79,7 @@ def test_live_traces_draw_the_window_after_a_tab_round_trip_and_a_reload(
     assert "plot=Live+traces" in page.url
     before = set(dashboard.server.get_clients())
     page.reload(wait_until="domcontentloaded")
-    _wait_until(lambda: set(dashboard.server.get_clients()) - before, FIRST_LOAD_S,
+    wait_for(lambda: set(dashboard.server.get_clients()) - before, FIRST_LOAD_S,
                 "the reloaded page never connected")
     reload = _live_ok(page, LIVE_WINDOW_S)
     page.screenshot(path=str(artifacts / "ui_live_reload.png"))
@@ -96,7 +97,7 @@ def test_live_traces_draw_the_window_after_a_tab_round_trip_and_a_reload(
 
 
 def _status_until(probe: ControllerClient, pred: Any, timeout_s: float, what: str) -> Any:
-    _wait_until(lambda: probe.status is not None and pred(probe.status), timeout_s, what)
+    wait_for(lambda: probe.status is not None and pred(probe.status), timeout_s, what)
     return probe.status
 
 

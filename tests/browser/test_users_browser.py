@@ -14,7 +14,6 @@ again by the controller, which sees the real user behind each change):
 from __future__ import annotations
 
 import subprocess
-import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -23,6 +22,7 @@ from typing import Any
 
 import pytest
 from conftest import CHROMIUM, CHROMIUM_ARGS, CONTROLLER_START_S, FIRST_LOAD_S, free_port
+from helpers import wait_for
 
 from controller.auth import init_auth_dir, new_users
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
@@ -33,11 +33,6 @@ pytestmark = pytest.mark.browser
 RIG = "usertest"
 
 
-def _wait(cond: Any, timeout_s: float, what: str) -> None:
-    end = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < end, what
-        time.sleep(0.05)
 
 
 def _answers(c: ControllerClient) -> bool:
@@ -60,7 +55,7 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         opts = ClientOptions(connect=(endpoint,), rig_name=RIG, auth=auth, user="view",
                              client_name="probe", connect_timeout_s=CONTROLLER_START_S)
         with ControllerClient(opts) as probe:
-            _wait(lambda: _answers(probe), CONTROLLER_START_S, "the controller did not answer")
+            wait_for(lambda: _answers(probe), CONTROLLER_START_S, "the controller did not answer")
             dopts = DashboardOptions(connect=(endpoint,), rig_name=RIG, port=free_port(),
                                      verbose=False, auth=auth)
             with Dashboard(dopts) as dash:
@@ -123,7 +118,7 @@ def test_the_viewer_cannot_apply_or_start(env: dict[str, Any], pages: dict[str, 
     page.get_by_role("button", name="Start", exact=True).click()
     page.wait_for_selector("text=Start the loop?", timeout=10_000)  # the axis would move
     page.locator(".mantine-Modal-content").get_by_role("button", name="Start", exact=True).click()
-    _wait(lambda: dash.refusals >= refusals + 2, 10.0, "the viewer's Start was not refused")
+    wait_for(lambda: dash.refusals >= refusals + 2, 10.0, "the viewer's Start was not refused")
     assert "view is a viewer" not in pages["op1"].content()  # told to the viewer only
     after = probe.get_config()
     assert after.version == before.version and after.config == before.config
@@ -155,5 +150,5 @@ def test_the_operator_applies_as_itself(env: dict[str, Any], pages: dict[str, An
 def test_the_viewer_can_estop(env: dict[str, Any], pages: dict[str, Any]) -> None:
     probe: ControllerClient = env["probe"]
     pages["view"].get_by_role("button", name="E-STOP").click()
-    _wait(lambda: probe.status is not None and probe.status.mode == "estop", 10.0,
+    wait_for(lambda: probe.status is not None and probe.status.mode == "estop", 10.0,
           "the viewer's E-STOP did not stop the rig")

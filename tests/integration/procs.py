@@ -9,51 +9,32 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import zenoh
+from helpers import free_port, port_is_free, wait_until
 
 from controller import protocol as proto
 from controller.client.session import SessionOptions, connect
 from controller.core.config import LoopConfig
 
+__all__ = ["REPO", "Client", "ControllerProcess", "free_port", "port_is_free",
+           "start_controller", "wait_until"]
+
 REPO = Path(__file__).resolve().parents[2]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
-def port_is_free(port: int) -> bool:
-    """True if nothing listens on 127.0.0.1:port: we can bind it ourselves (SO_REUSEADDR, so
-    connections of the old process lingering in TIME_WAIT do not count)."""
-    with socket.socket() as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
 
 
-def wait_until(condition: Callable[[], bool], timeout_s: float, poll_s: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if condition():
-            return True
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(poll_s)
 
 
 @dataclass

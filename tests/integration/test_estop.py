@@ -53,6 +53,7 @@ def test_a_reset_sent_just_before_an_estop_never_clears_it(
     reset = _command(proto.ResetFault(estop_seq=client.fresh_status().estop_seq))
     held = 0
     reset_ok = 0
+    undone: list[str] = []
     for i in range(PAIRS):
         # The reset goes out first (its reply is not awaited), the e-stop right behind it.
         pending = session.get(cmd_key, payload=reset, timeout=10.0)
@@ -62,11 +63,13 @@ def test_a_reset_sent_just_before_an_estop_never_clears_it(
         reset_ok += proto.decode(replies[0].ok.payload.to_bytes(), proto.CommandReply).ok
         # Whatever the reset did, the e-stop that followed it holds: Start is refused.
         after = client.command_raw(start)
-        assert after.mode == "estop" and not after.ok, f"pair {i}: e-stop undone: {after}"
-        held += 1
+        if after.mode == "estop" and not after.ok:
+            held += 1
+        else:
+            undone.append(f"pair {i}: e-stop undone: {after}")
         seen = client.command(proto.EStop()).seq  # the latest e-stop, as the client sees it
         reset = _command(proto.ResetFault(estop_seq=seen))
-    assert held == PAIRS
+    assert held == PAIRS, undone
     # Both orders at the tick occurred or not, the count is reported for the log.
     print(f"{held} of {PAIRS} e-stops held; {reset_ok} resets were served before their e-stop")
 

@@ -421,9 +421,18 @@ def test_the_audit_trail_recorded_the_refusals_and_is_intact(
     import json
 
     op1.lease("status")
-    time.sleep(0.2)  # the writer thread catches up (a queue; nothing else to wait on)
     path = env["proc"].state_dir / "audit.jsonl"
-    records = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+
+    def read() -> list[dict[str, Any]]:
+        try:
+            return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+        except ValueError:  # a line being written
+            return []
+
+    # The writer thread catches up (a queue): wait for the last records the checks need.
+    wait_until(lambda: any(r["action"] == "reset" and r["outcome"] == "accepted"
+                           for r in read()), 10.0)
+    records = read()
     refused = [r for r in records if r["outcome"] == "refused"]
     users = {r["user"] for r in refused}
     assert len(refused) >= 20 and {"view", "op1", "op2"} <= users
