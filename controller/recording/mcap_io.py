@@ -1,5 +1,6 @@
 """Recordings as MCAP files (the robotics log format Foxglove and PlotJuggler open directly),
-written and read with the `mcap` library.
+written with the `mcap` library and read by walking the file's chunks directly (`_messages`:
+the library's pure-Python reader took 17 s for a 10-minute recording).
 
 Channels (message encoding "json", schemas embedded as JSON Schema, zstd-compressed chunks):
 
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -170,13 +172,73 @@ class Recording:
         return int(self.state["seq"].size)
 
 
-def _messages(path: Path) -> Iterator[tuple[str, str, int, bytes]]:
-    from mcap.reader import make_reader
+_MAGIC = b"\x89MCAP0\r\n"
+_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_DATA_END = 0x03, 0x04, 0x05, 0x06, 0x0F
+_U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, content length
 
-    with open(path, "rb") as f:
-        reader = make_reader(f)
-        for schema, channel, message in reader.iter_messages(log_time_order=False):
-            yield channel.topic, schema.name if schema else "", message.log_time, message.data
+
+def _string(buf: memoryview | bytes, at: int) -> tuple[str, int]:
+    (n,) = _U32.unpack_from(buf, at)
+    return bytes(buf[at + 4 : at + 4 + n]).decode(), at + 4 + n
+
+
+def _messages(path: Path) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, schema name, log time ns, data) of every message, in file order: the data
+    section's records walked directly (MCAP spec: opcode, length, content), each chunk
+    decompressed whole (zstd, lz4 or none). The `mcap` library's reader builds an object per
+    record in Python: a 10-minute recording took it 17 s."""
+    buf = memoryview(path.read_bytes())
+    if bytes(buf[:8]) != _MAGIC:
+        raise ValueError("not an MCAP file (no magic)")
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str]] = {}  # id -> (topic, schema name)
+
+    def records(data: memoryview, out_of_chunk: bool) -> Iterator[tuple[str, str, int, bytes]]:
+        at, end = 0, len(data)
+        while at < end:
+            op, n = _RECORD_HEAD.unpack_from(data, at)
+            body = at + 9
+            at = body + n
+            if at > end:
+                raise ValueError("truncated record")
+            if op == _OP_MESSAGE:
+                cid, _seq, t_ns, _pub = _MESSAGE_HEAD.unpack_from(data, body)
+                topic, schema = channels[cid]
+                yield topic, schema, t_ns, bytes(data[body + 22 : at])
+            elif op == _OP_CHUNK and out_of_chunk:
+                yield from records(_chunk(data, body), False)
+            elif op == _OP_SCHEMA:
+                (sid,) = _U16.unpack_from(data, body)
+                schemas[sid] = _string(data, body + 2)[0]
+            elif op == _OP_CHANNEL:
+                cid, sid = struct.unpack_from("<HH", data, body)
+                topic = _string(data, body + 4)[0]
+                channels[cid] = (topic, schemas.get(sid, ""))
+            elif op == _OP_DATA_END and out_of_chunk:
+                return
+
+    yield from records(buf[8:], True)
+
+
+def _chunk(data: memoryview, at: int) -> memoryview:
+    """A chunk record's records, decompressed."""
+    size = _U64.unpack_from(data, at + 16)[0]
+    compression, at = _string(data, at + 28)
+    (n,) = _U64.unpack_from(data, at)
+    raw = data[at + 8 : at + 8 + n]
+    if compression == "zstd":
+        import zstandard
+
+        return memoryview(zstandard.ZstdDecompressor().decompress(raw, max_output_size=size))
+    if compression == "lz4":
+        import lz4.frame
+
+        return memoryview(lz4.frame.decompress(raw))
+    if compression == "":
+        return raw
+    raise ValueError(f"chunk compression {compression!r} not supported")
 
 
 #: One /state message as read back (a null column is a sample that was not finite).
