@@ -65,16 +65,37 @@ def test_json_output_has_the_keys_and_the_effective_config(tmp_path: Path) -> No
     assert data["recommended_max_cutoff_hz"] > 0
 
 
-def test_caution_exits_3_and_names_the_loop_and_the_evidence() -> None:
-    # The earlier default loop with Q31 at 5 Hz: stable, but the whole servo's margins are thin.
-    code, text = _run(config_path=OLD_LOOP_PATH, cutoff_hz=5.0)
-    assert code == 3
+def test_caution_exits_3_and_names_the_loop_and_the_evidence(tmp_path: Path) -> None:
+    # The procedure's PI loop, written out, with Q20 at 30 Hz: stable with margins, but noisy,
+    # above the recommended cut-off, and it rings after a reversal (a transient: a caution).
+    path = tmp_path / "pi.json"
+    pi = LoopConfig(cv_kp=1.35, cv_ki_per_s=10.8, pos_kp_per_s=9.0, pos_ki_per_s=3.5)
+    path.write_text(json.dumps(config_to_builtins(pi)), encoding="utf-8")
+    code, text = _run(config_path=path, q_type="q20", cutoff_hz=30.0)
+    assert code == 3, text
     assert "verdict: CAUTION" in text
-    assert "caution: peak sensitivity" in text and "whole servo, plant model" in text
+    assert "caution: noise to command gain" in text and "plant model" in text
     assert "above the recommended maximum" in text
-    code, text = _run(True, config_path=OLD_LOOP_PATH, cutoff_hz=5.0)
+    assert "caution: nonlinear check: ringing after a velocity reversal" in text
+    code, text = _run(True, config_path=path, q_type="q20", cutoff_hz=30.0)
     data = json.loads(text)
     assert code == 3 and data["verdict"] == "caution" and not data["rejections"]
+
+
+def test_sustained_chatter_exits_1_and_names_the_conditional_stability() -> None:
+    """Issue 22: the earlier default loop with Q31 at 15 Hz (gain margin -10.8 dB, chatter at
+    standstill that does not decay) is rejected, not cautioned, and says why."""
+    code, text = _run(config_path=OLD_LOOP_PATH, cutoff_hz=15.0)
+    assert code == EXIT_CODES["reject"] == 1, text
+    assert "verdict: REJECT" in text
+    assert "reject: nonlinear check: chatter at standstill" in text and "sustained" in text
+    assert "conditionally stable: a gain reduction of 10.8 dB destabilises the speed loop" in text
+    # At 5 Hz the same: the linear margins stay cautions beside the rejection.
+    code, text = _run(True, config_path=OLD_LOOP_PATH, cutoff_hz=5.0)
+    data = json.loads(text)
+    assert code == 1 and data["verdict"] == "reject"
+    assert any(r.startswith("nonlinear check: chatter") for r in data["rejections"])
+    assert any("whole servo, plant model" in r for r in data["cautions"])
 
 
 def test_rejected_candidate_exits_1_with_reasons(tmp_path: Path) -> None:

@@ -34,9 +34,15 @@ def test_gate_accepts_the_default_and_rejects_an_unstable_candidate() -> None:
 
 
 def test_a_caution_may_be_applied_and_says_why() -> None:
-    v = gate(OLD_LOOP.with_(q_cutoff_hz=5.0), K)  # thin whole-servo margins on the earlier loop
-    assert v.accepted and v.verdict == "caution"
+    # Thin whole-servo margins, calm on the nonlinear rig (the earlier loop at 5 Hz chatters at
+    # standstill without decaying: rejected, and the verdict says so).
+    v = gate(LoopConfig(cv_kp=2.0, cv_ki_per_s=10.8, pos_kp_per_s=9.0, pos_ki_per_s=3.5,
+                        q_type="q31", q_cutoff_hz=5.0), K)
+    assert v.accepted and v.verdict == "caution", v.reasons
     assert any("whole servo" in r for r in v.reasons)
+    chatter = gate(OLD_LOOP.with_(q_cutoff_hz=5.0), K)
+    assert not chatter.accepted and chatter.verdict == "reject"
+    assert any(r.startswith("nonlinear check: chatter at standstill") for r in chatter.reasons)
 
 
 def test_the_rigs_command_limit_is_checked_first() -> None:

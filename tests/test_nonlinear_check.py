@@ -1,9 +1,11 @@
 """The gate's nonlinear check on the simulated rig: the article's configuration passes, a fast
-Q chatters at standstill and is flagged (a caution of the verdict), deterministic."""
+Q chatters at standstill and is flagged (a sustained oscillation rejects the candidate,
+ringing that decays is a caution), deterministic."""
 
 from __future__ import annotations
 
 import pytest
+from fuzz_truth import TruePlant, truth
 from old_loop import OLD_LOOP
 
 from controller.core.config import LoopConfig, NominalModel
@@ -12,6 +14,7 @@ from controller.gate.verdict import judge
 from controller.sim.nonlinear_check import (
     HUNTING_P2P_DEG,
     OSCILLATION_RMS_DEG_S,
+    SUSTAINED_RATIO,
     findings,
     nonlinear_check,
 )
@@ -55,9 +58,56 @@ def test_deterministic_and_the_plant_gain_follows_the_model() -> None:
         nonlinear_check(LoopConfig(), huge)  # 1000x the rig: beyond what it can simulate
 
 
-def test_a_finding_is_a_caution_of_the_verdict() -> None:
+#: The speed PI of the procedure's default loop, written out (the defaults may change).
+PI_LOOP = LoopConfig(cv_kp=1.35, cv_ki_per_s=10.8, pos_kp_per_s=9.0, pos_ki_per_s=3.5,
+                     ff_on=False, dob_on=True)
+
+
+def test_sustained_chatter_is_a_rejection_of_the_verdict() -> None:
+    """Chatter at standstill that does not decay (the earlier loop at Q31 4 Hz: a limit cycle
+    the watchdog would roll back) rejects the candidate; the hunting beside it stays a
+    caution; the article's configuration on that loop is accepted."""
     k = PlantKnowledge(bound=COMMISSIONING_BOUND)
-    j = judge(OLD_LOOP.with_(q_cutoff_hz=4.0), k, nonlinear=findings)  # the earlier loop
-    assert j.verdict == "caution"
-    assert any(r.startswith("nonlinear check: chatter at standstill") for r in j.cautions)
-    assert judge(LoopConfig(), k, nonlinear=findings).verdict == "accept"
+    cfg = OLD_LOOP.with_(q_cutoff_hz=4.0)
+    r = nonlinear_check(cfg)
+    chatter = [f for f in r.findings if f.text.startswith("chatter at standstill")]
+    assert chatter and chatter[0].sustained and r.hold_decay_ratio >= SUSTAINED_RATIO
+    j = judge(cfg, k, nonlinear=findings)
+    assert j.verdict == "reject" and not j.analysis.rejections  # linear analysis: stable
+    assert any(x.startswith("nonlinear check: chatter at standstill") and "sustained" in x
+               for x in j.rejections), j.rejections
+    assert all(not x.startswith("nonlinear check: hunting") for x in j.rejections)
+    assert judge(OLD_LOOP, k, nonlinear=findings).verdict == "accept"
+
+
+def test_ringing_that_decays_stays_a_caution() -> None:
+    """Q20 at 30 Hz on the PI loop rings after the reversal (a transient) and is calm at
+    hold: a caution, not a rejection."""
+    k = PlantKnowledge(bound=COMMISSIONING_BOUND)
+    cfg = PI_LOOP.with_(q_type="q20", q_cutoff_hz=30.0)
+    r = nonlinear_check(cfg)
+    assert [f.sustained for f in r.findings] == [False], r.findings
+    assert r.findings[0].text.startswith("ringing after a velocity reversal")
+    j = judge(cfg, k, nonlinear=findings)
+    assert j.verdict == "caution", j.reasons
+    assert any(x.startswith("nonlinear check: ringing after") for x in j.cautions)
+
+
+def test_a_conditionally_stable_loop_is_named_with_its_gain_reduction_margin() -> None:
+    """Issue 22: Q31 at 15 Hz on the earlier loop has a gain margin of -10.8 dB (python-control
+    on the independent loop says the same); its verdict (rejected: sustained chatter) names it
+    conditionally stable with the 10.8 dB a gain reduction may take."""
+    cfg = OLD_LOOP.with_(q_cutoff_hz=15.0)
+    t = truth(TruePlant(), cfg)
+    assert t.margins_speed is not None
+    gm = t.margins_speed.gain_margin_db
+    assert gm == pytest.approx(-10.8, abs=0.1)
+    j = judge(cfg, PlantKnowledge(bound=COMMISSIONING_BOUND), nonlinear=findings)
+    assert j.verdict == "reject"
+    cond = [x for x in j.reasons if x.startswith("conditionally stable")]
+    assert any(f"gain reduction of {-gm:.1f} dB destabilises the speed loop" in x
+               for x in cond), j.reasons
+    # An accepted loop carries no such note (the whole servo is conditionally stable by its
+    # two integrators; that alone is no reason).
+    assert not any("conditionally" in x
+                   for x in judge(OLD_LOOP, PlantKnowledge(bound=COMMISSIONING_BOUND)).reasons)

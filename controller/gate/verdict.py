@@ -6,16 +6,26 @@ evidence. The controller (its gate worker), `dobtune check` and the dashboard al
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Protocol
 
 from controller.core.config import LoopConfig, NominalModel
 from controller.gate.analysis import Analysis, GateLimits, Verdict, analyse
 from controller.gate.knowledge import PlantKnowledge
+from controller.gate.margins import Margins
 from controller.gate.search import recommended_max_cutoff_hz
 
-__all__ = ["EXIT_CODES", "Judgement", "NonlinearCheck", "judge", "recommended_cutoff_hz"]
+__all__ = [
+    "EXIT_CODES",
+    "Judgement",
+    "NonlinearCheck",
+    "NonlinearFinding",
+    "conditional_stability",
+    "judge",
+    "recommended_cutoff_hz",
+]
 
 #: `dobtune check` exit codes per verdict (2 is bad input).
 EXIT_CODES: dict[str, int] = {"accept": 0, "caution": 3, "reject": 1}
@@ -23,7 +33,21 @@ EXIT_CODES: dict[str, int] = {"accept": 0, "caution": 3, "reject": 1}
 #: The recommended cut-off with responses at several positions (`controller.gate.search`).
 _SPREAD_NOTE = ", held where |Delta Q| with the spread between the measured responses stays small"
 
-NonlinearCheck = Callable[[LoopConfig, NominalModel], tuple[str, ...]]
+
+
+class NonlinearFinding(Protocol):
+    """One finding of a nonlinear check (`controller.sim.nonlinear_check.Finding`)."""
+
+    @property
+    def text(self) -> str: ...
+
+    @property
+    def sustained(self) -> bool:
+        """An oscillation that does not decay: the candidate is rejected."""
+        ...
+
+
+NonlinearCheck = Callable[[LoopConfig, NominalModel], Sequence[NonlinearFinding]]
 """Runs a candidate on a nonlinear model of the rig with the knowledge's plant model; returns
 the findings (empty: none). `controller.sim.nonlinear_check.findings` is the one in use."""
 
@@ -61,6 +85,26 @@ def recommended_cutoff_hz(
     return _recommended(base, plant, limits if limits is not None else GateLimits())
 
 
+def conditional_stability(a: Analysis, limits: GateLimits) -> tuple[str, ...]:
+    """The loops (plant model) that are conditionally stable, each with its gain-reduction
+    margin: a negative gain margin means the loop goes unstable when its gain falls by that
+    much (a saturating command, a weaker drive). Margins within `gain_margin_min_db` are
+    already cautions of the analysis and are not repeated."""
+    out = []
+    loops: tuple[tuple[str, Margins | None], ...] = (
+        ("speed loop", a.margins), ("whole servo", a.margins_full))
+    for which, m in loops:
+        if m is None or not m.gain_margin_db < 0 or -m.gain_margin_db < limits.gain_margin_min_db:
+            continue
+        out.append(
+            f"conditionally stable: a gain reduction of {-m.gain_margin_db:.1f} dB destabilises"
+            f" the {which} (gain margin {m.gain_margin_db:.1f} dB at"
+            f" {m.phase_crossover_hz:.3g} Hz, plant model): a saturating command or a weaker"
+            f" drive lowers the loop gain that far"
+        )
+    return tuple(out)
+
+
 def judge(
     cfg: LoopConfig,
     plant: PlantKnowledge,
@@ -68,14 +112,19 @@ def judge(
     *,
     nonlinear: NonlinearCheck | None = None,
 ) -> Judgement:
-    """The verdict on `cfg` against `plant`: reject on any rejection of the analysis; else
-    caution for any caution of the analysis, a Q cut-off above the recommended maximum (the top
-    of the continuous accepted region from the lowest cut-off) or a finding of the nonlinear
-    check; else accept."""
+    """The verdict on `cfg` against `plant`: reject on any rejection of the analysis or a
+    sustained oscillation in the nonlinear check (chatter that does not decay: the loop
+    watchdog would roll it back); else caution for any caution of the analysis, a Q cut-off
+    above the recommended maximum (the top of the continuous accepted region from the lowest
+    cut-off) or another finding of the nonlinear check (ringing that decays, hunting); else
+    accept. A verdict other than accept also names every conditionally stable loop with its
+    gain-reduction margin (`conditional_stability`)."""
     limits = limits if limits is not None else GateLimits()
     a = analyse(cfg, plant, limits)
     if a.verdict == "reject":
-        return Judgement(a, "reject", a.rejections, a.cautions, None)
+        cond = conditional_stability(a, limits)
+        return Judgement(a, "reject", a.rejections, a.cautions + cond, None)
+    rejections: list[str] = []
     cautions = list(a.cautions)
     rec = recommended_cutoff_hz(cfg, plant, limits)
     if cfg.dob_on:
@@ -91,6 +140,11 @@ def judge(
                 f"cut-off{_SPREAD_NOTE if len(plant.measured) >= 2 else ''}, {plant.describe()})"
             )
     if nonlinear is not None:
-        cautions += [f"nonlinear check: {r}" for r in nonlinear(cfg, plant.model)]
-    verdict: Verdict = "caution" if cautions else "accept"
-    return Judgement(a, verdict, (), tuple(cautions), rec)
+        for finding in nonlinear(cfg, plant.model):
+            (rejections if finding.sustained else cautions).append(
+                f"nonlinear check: {finding.text}"
+            )
+    verdict: Verdict = "reject" if rejections else "caution" if cautions else "accept"
+    if verdict != "accept":
+        cautions += conditional_stability(a, limits)
+    return Judgement(a, verdict, tuple(rejections), tuple(cautions), rec)

@@ -25,7 +25,15 @@ integrator against static friction, not a DOB finding). Q31 from ~4 Hz and Q20 f
 chatter at standstill (2.6-6 deg/s RMS, 3-6 Hz) and hunt up to 0.32 deg. A finding is a band
 RMS above `OSCILLATION_RMS_DEG_S` (2 deg/s: the watchdog's own oscillation threshold, so a
 configuration flagged here is one the watchdog would roll back) or hunting above
-`HUNTING_P2P_DEG` (0.25 deg: twice the article configuration's own limit cycle). The plant's
+`HUNTING_P2P_DEG` (0.25 deg: twice the article configuration's own limit cycle).
+
+Each finding says whether the oscillation is sustained: chatter at standstill whose band RMS
+over the last 0.5 s is still at least `SUSTAINED_RATIO` (0.7) of the 0.5 s before it (it does
+not decay: a limit cycle, 2.9-4.5 s after the stop; Q31 at 10-15 Hz on the default loop holds
+its RMS within 2 % there) is sustained; the gate rejects a candidate with a sustained
+oscillation (`controller.gate.verdict.judge`). Ringing after the reversal (a transient),
+chatter that decays and hunting (a slow position limit cycle of the size the article's own
+configuration shows) stay cautions. The plant's
 gain follows the plant knowledge's model (its DC gain relative to the simulated rig's), the
 rest is the simulated rig's.
 """
@@ -46,6 +54,8 @@ from controller.sim.sim_rig import RigFaults, RigParams, SimRig
 __all__ = [
     "HUNTING_P2P_DEG",
     "OSCILLATION_RMS_DEG_S",
+    "SUSTAINED_RATIO",
+    "Finding",
     "NonlinearResult",
     "findings",
     "nonlinear_check",
@@ -53,10 +63,21 @@ __all__ = [
 
 OSCILLATION_RMS_DEG_S = 2.0
 HUNTING_P2P_DEG = 0.25
+SUSTAINED_RATIO = 0.7
 _AMPLITUDE_DEG = 5.0
 _OMEGA_RAD_S = 2.0
 _DURATION_S = 4.5
 _BAND_HZ = (4.0, 150.0)
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One finding of the nonlinear check (`controller.gate.verdict.NonlinearFinding`)."""
+
+    text: str
+    sustained: bool
+    """An oscillation that does not decay (the gate rejects); False: a transient or a slow
+    limit cycle (a caution)."""
 
 
 @dataclass(frozen=True)
@@ -70,6 +91,10 @@ class NonlinearResult:
     run_time_s: float
     reasons: tuple[str, ...]
     """One sentence per finding with its figures; empty when nothing was found."""
+    findings: tuple[Finding, ...] = ()
+    """The reasons with whether each oscillation is sustained."""
+    hold_decay_ratio: float = float("nan")
+    """Band RMS of u over the last 0.5 s over that of the 0.5 s before (< 1: decaying)."""
 
 
 def _freq(x: np.ndarray, rate_hz: float) -> float | None:
@@ -124,31 +149,37 @@ def nonlinear_check(
     k_rev = round(0.5 * t_stop * rate)
     rev = band[k_rev : k_rev + round(0.4 * rate)]
     hold = band[n - round(1.0 * rate) :]
+    half = hold.size // 2
+    early = float(np.sqrt(np.mean(hold[:half] ** 2)))
+    late = float(np.sqrt(np.mean(hold[half:] ** 2)))
+    decay = late / early if early > 0.0 else 0.0
     hold_err = err[n - round(1.0 * rate) :]
     rev_rms = float(np.sqrt(np.mean(rev * rev)))
     hold_rms = float(np.sqrt(np.mean(hold * hold)))
     p2p = float(np.ptp(hold_err))
     rev_f, hold_f = _freq(rev, rate), _freq(hold, rate)
-    reasons = []
+    found: list[Finding] = []
 
     def at(f: float | None) -> str:
         return f" at {f:.3g} Hz" if f is not None else ""
 
     if not rev_rms < OSCILLATION_RMS_DEG_S:
-        reasons.append(
+        found.append(Finding(
             f"ringing after a velocity reversal: the speed command oscillates{at(rev_f)}, "
-            f"{rev_rms:.3g} deg/s RMS (4-150 Hz) > {OSCILLATION_RMS_DEG_S:g}"
-        )
+            f"{rev_rms:.3g} deg/s RMS (4-150 Hz) > {OSCILLATION_RMS_DEG_S:g}", False))
     if not hold_rms < OSCILLATION_RMS_DEG_S:
-        reasons.append(
+        sustained = decay >= SUSTAINED_RATIO
+        found.append(Finding(
             f"chatter at standstill: the speed command oscillates{at(hold_f)}, "
             f"{hold_rms:.3g} deg/s RMS (4-150 Hz) > {OSCILLATION_RMS_DEG_S:g}"
-        )
+            + (f", sustained: it does not decay ({decay:.2f} of its RMS 0.5 s earlier,"
+               f" 3-4.5 s after the stop)" if sustained
+               else f", decaying ({decay:.2f} of its RMS 0.5 s earlier)"),
+            sustained))
     if not p2p < HUNTING_P2P_DEG:
-        reasons.append(
+        found.append(Finding(
             f"hunting at hold: the position error swings {p2p:.3g} deg peak to peak "
-            f"> {HUNTING_P2P_DEG:g} deg (backlash and friction limit cycle)"
-        )
+            f"> {HUNTING_P2P_DEG:g} deg (backlash and friction limit cycle)", False))
     return NonlinearResult(
         reversal_rms_deg_s=rev_rms,
         reversal_freq_hz=rev_f,
@@ -157,10 +188,12 @@ def nonlinear_check(
         hold_error_p2p_deg=p2p,
         peak_command_deg_s=float(np.max(np.abs(cmd))),
         run_time_s=time.perf_counter() - t0,
-        reasons=tuple(reasons),
+        reasons=tuple(x.text for x in found),
+        findings=tuple(found),
+        hold_decay_ratio=decay,
     )
 
 
-def findings(cfg: LoopConfig, model: NominalModel) -> tuple[str, ...]:
-    """The reasons of `nonlinear_check` (the gate's `judge(..., nonlinear=findings)`)."""
-    return nonlinear_check(cfg, model).reasons
+def findings(cfg: LoopConfig, model: NominalModel) -> tuple[Finding, ...]:
+    """The findings of `nonlinear_check` (the gate's `judge(..., nonlinear=findings)`)."""
+    return nonlinear_check(cfg, model).findings

@@ -65,7 +65,9 @@ def test_a_lying_nominal_is_judged_on_the_controllers_model(
 
 def test_a_caution_applies_only_with_confirm(controller: ControllerProcess, client: Client) -> None:
     before = client.get_config()
-    cand = before.config.with_(q_cutoff_hz=12.0)  # stable, thin margins in the whole servo
+    # Stable, calm on the nonlinear rig, thin margins in the whole servo (a Q31 at 12 Hz
+    # chatters at standstill without decaying: rejected since, not cautioned).
+    cand = before.config.with_(cv_kp=2.0, q_cutoff_hz=5.0)
     reply = _apply(client, cand)
     assert not reply.accepted and reply.verdict == "caution" and reply.field == "confirm"
     assert client.get_config().version == before.version
