@@ -52,16 +52,18 @@ def test_csv_round_trips_every_chart_exactly(key: str) -> None:
 
 
 def test_nan_is_an_empty_cell_and_infinities_survive() -> None:
-    spec = charts.PREVIEW_CHART  # t, candidate, active
+    spec = charts.PREVIEW_CHART  # t, candidate, active, candidate with the DOB off
     t = np.array([0.0, 0.5, 1.0, 1.5])
     cand = np.array([1.0, math.nan, -math.inf, 2.5e-300])
     act = np.array([math.nan, 3.0, math.nan, math.inf])
-    _, rows = _read(chart_csv(spec, (t, cand, act)))
+    off = np.array([0.25, 0.5, 0.75, 1.0])
+    _, rows = _read(chart_csv(spec, (t, cand, act, off)))
     assert [r[1] for r in rows] == ["1.0", "", "-inf", "2.5e-300"]
     assert [r[2] for r in rows] == ["", "3.0", "", "inf"]
     back = _floats(rows)
     np.testing.assert_array_equal(back[:, 1], cand)
     np.testing.assert_array_equal(back[:, 2], act)
+    np.testing.assert_array_equal(back[:, 3], off)
 
 
 def test_header_carries_the_units_of_the_axes() -> None:
@@ -102,10 +104,11 @@ def test_the_placeholder_that_holds_a_scale_up_is_no_data() -> None:
 
 def test_bad_data_is_refused_naming_the_chart_and_series() -> None:
     spec = charts.PREVIEW_CHART
-    with pytest.raises(ValueError, match=r"data: 2 columns for the 3 series of chart 'preview'"):
+    assert len(spec.series) == 4  # t, candidate, active, candidate with the DOB off
+    with pytest.raises(ValueError, match=r"data: 2 columns for the 4 series of chart 'preview'"):
         chart_csv(spec, (np.zeros(3), np.zeros(3)))
     with pytest.raises(ValueError, match=r"series 'active' of chart 'preview'"):
-        chart_csv(spec, (np.zeros(3), np.zeros(3), np.zeros(4)))
+        chart_csv(spec, (np.zeros(3), np.zeros(3), np.zeros(4), np.zeros(3)))
 
 
 def test_file_names_follow_the_title() -> None:
@@ -170,7 +173,8 @@ def test_every_chart_gets_an_export_row_whose_csv_goes_to_the_browser_that_asked
     assert [h.kind for h in gui.made] == ["uplot", "row"]  # the row right under its chart
     row = gui.made[1]
     assert row.label == EXPORT_LABEL and row.options == ("CSV",) and len(row.clicks) == 1
-    data = (np.array([0.0, 1.0, 2.0]), np.array([0.1, 0.2, math.nan]), np.array([1.0, 2.0, 3.0]))
+    data = (np.array([0.0, 1.0, 2.0]), np.array([0.1, 0.2, math.nan]), np.array([1.0, 2.0, 3.0]),
+            np.array([0.3, 0.2, 0.1]))
     chart.data = data  # what the panels do afterwards
     asker, other = _Browser(), _Browser()
     # Whatever a (forged) message carried as the value, a press sends this chart's data.
