@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers import wait_for
 
 from controller.client import ClientOptions, ControllerClient
 from controller.core.config import LoopConfig
@@ -29,7 +30,6 @@ from tests.browser.conftest import (
     FINITE_JS,
     FIRST_LOAD_S,
     _require_chromium,
-    _wait_until,
     free_port,
     only_panel,
     open_when_ready,
@@ -60,7 +60,7 @@ def endpoint(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
 def dash(endpoint: str) -> Iterator[Dashboard]:
     with ControllerClient(ClientOptions(connect=(endpoint,), rig_name=RIG,
                                         client_name="probe")) as c:
-        _wait_until(lambda: c.connected, CONTROLLER_START_S, "the controller did not come up")
+        wait_for(lambda: c.connected, CONTROLLER_START_S, "the controller did not come up")
     # Adopting measured responses makes the controller judge on them (seconds on a loaded
     # machine): the dashboard's queries wait for it.
     opts = DashboardOptions(connect=(endpoint,), rig_name=RIG, port=free_port(), verbose=False,

@@ -23,7 +23,8 @@ import msgspec
 import pytest
 import zenoh
 from conftest import CHROMIUM, CHROMIUM_ARGS, CONTROLLER_START_S, FIRST_LOAD_S, free_port
-from test_fleet_browser import _free_run, _wait
+from helpers import wait_for
+from test_fleet_browser import _free_run
 
 from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient
@@ -63,7 +64,7 @@ def hostile() -> Iterator[dict[str, Any]]:
         opts = ClientOptions(connect=(router,), rig_name="rig1", client_name=HOSTILE_TEXT,
                              query_timeout_s=10.0)
         with ControllerClient(opts) as c:
-            _wait(lambda: c.status is not None, CONTROLLER_START_S, "rig1 did not come up")
+            wait_for(lambda: c.status is not None, CONTROLLER_START_S, "rig1 did not come up")
             assert c.apply(LoopConfig(q_cutoff_hz=0.65)).accepted
             k = c.knowledge(proto.KnowledgeRequest(record=KnowledgeRecord(source=HOSTILE_TEXT)))
             assert k.ok, k
@@ -93,7 +94,7 @@ def hostile() -> Iterator[dict[str, Any]]:
                 mon = dash._fleet_monitor
                 assert mon is not None
                 want = sorted(["rig1", *HOSTILE_RIGS])
-                _wait(lambda: sorted(r.rig for r in mon.rows() if r.operator or r.mode) == want,
+                wait_for(lambda: sorted(r.rig for r in mon.rows() if r.operator or r.mode) == want,
                       CONTROLLER_START_S, f"the rigs never showed: {mon.rows()}")
                 yield {"dash": dash}
         finally:
