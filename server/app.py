@@ -291,12 +291,22 @@ class Dashboard:
             self._refuse(browser, f"{action}: this browser is not signed in")
         if action == "e-stop":
             return self._estop_client(user)
-        if self.users[user].role != "operator":
-            self._refuse(browser, f"{action}: {user} is a viewer: viewers watch and may E-STOP, "
-                         f"not change the rig")
+        self.check_may_change(browser, action)
         with self._acting_lock:
             c = self._acting.get(user)
         return c if c is not None else self._open_acting(user)
+
+    def check_may_change(self, browser: Any, action: str) -> None:
+        """`Refused` (told to that browser alone) unless the user at `browser` may change the
+        rig: an operator, or anyone without users (one identity for every browser)."""
+        if not self.users:
+            return
+        user = self.user_of(browser)
+        if user is None:
+            self._refuse(browser, f"{action}: this browser is not signed in")
+        if self.users[user].role != "operator":
+            self._refuse(browser, f"{action}: {user} is a viewer: viewers watch and may E-STOP, "
+                         f"not change the rig")
 
     def _estop_client(self, user: str) -> ControllerClient:
         """`user`'s own session when it is open; else, never waiting for a login, the
@@ -405,7 +415,8 @@ class Dashboard:
         with tabs.add_tab("Recordings"):
             self.recordings = RecordingsPanel(gui, self.opts.recordings_dir,
                                               record=self._record_options(),
-                                              rig_name=self.opts.rig_name)
+                                              rig_name=self.opts.rig_name,
+                                              authorize=self.check_may_change)
             self.recordings.build()
         with tabs.add_tab("Help"):
             gui.add_markdown(_asset("help.md", "Help texts are missing (web_assets/help.md)."))

@@ -63,6 +63,7 @@ from server.identify_view import (
 )
 from server.panels.tuning import TuningPanel
 from server.panels.widgets import add_chart, confirm
+from server.workers import run_logged
 
 __all__ = [
     "ABORTED",
@@ -388,13 +389,14 @@ class IdentifyPanel:
             check_rate(spec, cfg.rate_hz)
             acting = (self._client_for(browser, "identification")
                       if s.where == WHERE_CONTROLLER and self.client is not None else None)
-        except (ConfigError, Refused, ControllerUnavailable) as exc:
-            self.status.content = _status_html(self.state, f"not started: {exc}")
+        except Refused:
+            return False  # told to that browser alone (the dashboard's refusal notification)
+        except (ConfigError, ControllerUnavailable) as exc:
+            self._tell(browser, f"not started: {exc}")
             return False
         with self._lock:
             if self.state == RUNNING:
-                self.status.content = _status_html(
-                    RUNNING, "a run is already in progress", self.where_note)
+                self._tell(browser, "a run is already in progress")
                 return False
             self.state = RUNNING
             self._abort.clear()
@@ -425,17 +427,28 @@ class IdentifyPanel:
         self._thread.start()
         return True
 
+    def _tell(self, browser: Any, text: str) -> None:
+        """The outcome of one browser's press, to that browser only (the status box is every
+        browser's: the run's state); without a browser (the API), in the status box."""
+        if browser is None:
+            self.status.content = _status_html(self.state, text, self.where_note)
+            return
+        run_logged(lambda: browser.add_notification("Identification", text, color="orange",
+                                                     auto_close_seconds=8.0),
+                   what="telling a browser")
+
     def abort(self, browser: Any = None) -> bool:
         if self._run_client is not None and self.state == RUNNING:
             try:
                 self._client_for(browser, "abort")
-            except (Refused, ControllerUnavailable) as exc:
-                self.status.content = _status_html(RUNNING, f"not aborted: {exc}",
-                                                   self.where_note)
+            except Refused:
+                return False  # told to that browser alone
+            except ControllerUnavailable as exc:
+                self._tell(browser, f"not aborted: {exc}")
                 return False
         with self._lock:
             if self.state != RUNNING:
-                self.status.content = _status_html(self.state, "nothing to abort")
+                self._tell(browser, "nothing to abort")
                 return False
             self._abort.set()
         self.status.content = _status_html(RUNNING, "aborting...", self.where_note)

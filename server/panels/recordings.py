@@ -17,6 +17,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +30,7 @@ from controller.recording.mcap_io import Recording, read_recording
 from controller.recording.report import REVERSAL_WINDOW_S, metrics
 from server.charts import CANDIDATE, NO_DOB, ChartSpec, minmax_decimate
 from server.escape import esc
+from server.gate import Refused
 from server.panels.widgets import NEUTRAL, add_chart, box, set_html
 
 __all__ = ["OVERLAY_CHART", "RecordingsPanel", "compare_html", "list_html"]
@@ -108,10 +110,14 @@ class RecordingsPanel:
     """`build()` inside a tab; `refresh()` rereads the directory (also the Refresh button)."""
 
     def __init__(self, gui: Any, directory: str | Path,
-                 record: RecordOptions | None = None, rig_name: str = "rig") -> None:
+                 record: RecordOptions | None = None, rig_name: str = "rig",
+                 authorize: Callable[[Any, str], object] | None = None) -> None:
         """`record`: how the recorder reaches the rig (endpoints, rig name, credentials; its
-        `out` is replaced by a new file of the directory); None: no Record button."""
+        `out` is replaced by a new file of the directory); None: no Record button.
+        `authorize(browser, action)`: raises `Refused` (told to that browser) unless the user
+        at `browser` may start or stop a recording (operators; a viewer watches)."""
         self.gui = gui
+        self._authorize = authorize
         self.directory = Path(directory)
         self._record = record
         self._rig_name = rig_name
@@ -142,8 +148,7 @@ class RecordingsPanel:
             rec = gui.add_button_group("Record", ("Record", "Stop recording"),
                                        hint="record this rig (every tick, status, versions, "
                                        "events) into a new .mcap file in the directory")
-            rec.on_click(lambda e: self.start_recording() if e.target.value == "Record"
-                         else self.stop_recording())
+            rec.on_click(lambda e: self.press(str(e.target.value), e.client))
             self.record_box = gui.add_html("<div class='dt-record'></div>")
         refresh = gui.add_button("Refresh", color="gray", hint="read the directory again")
         refresh.on_click(lambda _e: self.refresh())
@@ -245,6 +250,17 @@ class RecordingsPanel:
         return data
 
     # -- recording -----------------------------------------------------------------------------
+
+    def press(self, button: str, browser: Any = None) -> Path | bool | None:
+        """Record or Stop recording pressed in `browser`: refused here, in the server, for a
+        user who may not change the rig (a viewer's websocket message reaches this too)."""
+        action = "start a recording" if button == "Record" else "stop the recording"
+        if self._authorize is not None:
+            try:
+                self._authorize(browser, action)
+            except Refused:
+                return None
+        return self.start_recording() if button == "Record" else self.stop_recording()
 
     def start_recording(self) -> Path | None:
         """Record the rig into a new file of the directory until `stop_recording` (None:

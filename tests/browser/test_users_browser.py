@@ -57,9 +57,10 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         with ControllerClient(opts) as probe:
             wait_for(lambda: _answers(probe), CONTROLLER_START_S, "the controller did not answer")
             dopts = DashboardOptions(connect=(endpoint,), rig_name=RIG, port=free_port(),
-                                     verbose=False, auth=auth)
+                                     verbose=False, auth=auth, recordings_dir=base / "rec")
             with Dashboard(dopts) as dash:
-                yield {"auth": auth, "endpoint": endpoint, "probe": probe, "dash": dash}
+                yield {"auth": auth, "endpoint": endpoint, "probe": probe, "dash": dash,
+                       "recordings": base / "rec"}
     finally:
         stop_process(proc)
 
@@ -122,6 +123,57 @@ def test_the_viewer_cannot_apply_or_start(env: dict[str, Any], pages: dict[str, 
     assert "view is a viewer" not in pages["op1"].content()  # told to the viewer only
     after = probe.get_config()
     assert after.version == before.version and after.config == before.config
+
+
+def _browser_of(dash: Dashboard, user: str) -> Any:
+    """The viser client (a browser's websocket) signed in as `user`."""
+    assert dash.server is not None
+    return next(c for cid, c in dash.server.get_clients().items()
+                if dash._browser_users.get(cid) == user)
+
+
+def test_the_viewer_cannot_start_or_stop_a_recording(env: dict[str, Any],
+                                                     pages: dict[str, Any]) -> None:
+    """Refused in the server (issue 24 item 9), told to the viewer alone; the same press as a
+    raw websocket message would make it is refused too."""
+    dash: Dashboard = env["dash"]
+    rec = dash.recordings
+    assert rec is not None
+    refusals = dash.refusals
+    page = pages["view"]
+    page.get_by_role("tab", name="Recordings", exact=True).click()
+    page.get_by_role("button", name="Record", exact=True).click()
+    page.wait_for_selector("text=start a recording: view is a viewer", timeout=10_000)
+    _wait(lambda: dash.refusals >= refusals + 1, 10.0, "the viewer's Record was not refused")
+    viewer = _browser_of(dash, "view")
+    assert rec.press("Record", viewer) is None
+    assert rec.press("Stop recording", viewer) is None
+    assert dash.refusals == refusals + 3
+    assert rec.recording_to is None
+    assert not list(env["recordings"].glob("*.mcap*"))
+    assert "start a recording" not in pages["op1"].content()  # told to the viewer only
+
+
+def test_a_refused_identification_is_told_to_that_browser_alone(
+    env: dict[str, Any], pages: dict[str, Any]
+) -> None:
+    """The Identify status box is every browser's (the run's state): the viewer's refusal goes
+    to the viewer's page, not into the box the operator reads (issue 24 item 9)."""
+    dash: Dashboard = env["dash"]
+    refusals = dash.refusals
+    page = pages["view"]
+    page.get_by_role("tab", name="Identify", exact=True).click()
+    page.get_by_role("button", name="Start identification").click()
+    page.wait_for_selector("text=Start the identification?", timeout=10_000)
+    page.get_by_role("button", name="Start identification").last.click()
+    page.wait_for_selector("text=identification: view is a viewer", timeout=10_000)
+    _wait(lambda: dash.refusals >= refusals + 1, 10.0, "the viewer's start was not refused")
+    assert "viewer" not in dash.identify.status.content
+    op = pages["op1"]
+    op.get_by_role("tab", name="Identify", exact=True).click()
+    op.wait_for_selector(".dt-identify-status", timeout=10_000)
+    assert "viewer" not in op.locator(".dt-identify-status").first.inner_text()
+    assert "identification: view is a viewer" not in op.content()
 
 
 def test_the_operator_applies_as_itself(env: dict[str, Any], pages: dict[str, Any],
