@@ -162,7 +162,7 @@ def test_a_refused_identification_is_told_to_that_browser_alone(
     dash: Dashboard = env["dash"]
     refusals = dash.refusals
     page = pages["view"]
-    page.get_by_role("tab", name="Identify", exact=True).click()
+    page.get_by_role("tab", name="Identify", exact=True).first.click()
     page.get_by_role("button", name="Start identification").click()
     page.wait_for_selector("text=Start the identification?", timeout=10_000)
     page.get_by_role("button", name="Start identification").last.click()
@@ -170,7 +170,7 @@ def test_a_refused_identification_is_told_to_that_browser_alone(
     _wait(lambda: dash.refusals >= refusals + 1, 10.0, "the viewer's start was not refused")
     assert "viewer" not in dash.identify.status.content
     op = pages["op1"]
-    op.get_by_role("tab", name="Identify", exact=True).click()
+    op.get_by_role("tab", name="Identify", exact=True).first.click()
     op.wait_for_selector(".dt-identify-status", timeout=10_000)
     assert "viewer" not in op.locator(".dt-identify-status").first.inner_text()
     assert "identification: view is a viewer" not in op.content()
