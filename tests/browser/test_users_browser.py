@@ -144,7 +144,7 @@ def test_the_viewer_cannot_start_or_stop_a_recording(env: dict[str, Any],
     page.get_by_role("tab", name="Recordings", exact=True).click()
     page.get_by_role("button", name="Record", exact=True).click()
     page.wait_for_selector("text=start a recording: view is a viewer", timeout=10_000)
-    _wait(lambda: dash.refusals >= refusals + 1, 10.0, "the viewer's Record was not refused")
+    wait_for(lambda: dash.refusals >= refusals + 1, 10.0, "the viewer's Record was not refused")
     viewer = _browser_of(dash, "view")
     assert rec.press("Record", viewer) is None
     assert rec.press("Stop recording", viewer) is None
@@ -167,7 +167,7 @@ def test_a_refused_identification_is_told_to_that_browser_alone(
     page.wait_for_selector("text=Start the identification?", timeout=10_000)
     page.get_by_role("button", name="Start identification").last.click()
     page.wait_for_selector("text=identification: view is a viewer", timeout=10_000)
-    _wait(lambda: dash.refusals >= refusals + 1, 10.0, "the viewer's start was not refused")
+    wait_for(lambda: dash.refusals >= refusals + 1, 10.0, "the viewer's start was not refused")
     assert "viewer" not in dash.identify.status.content
     op = pages["op1"]
     op.get_by_role("tab", name="Identify", exact=True).first.click()
