@@ -28,9 +28,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "tests" / "integration"))
+sys.path.insert(0, str(REPO / "tests"))
 
-from procs import free_port  # noqa: E402
+from helpers import free_port  # noqa: E402
 
 from controller import protocol as proto  # noqa: E402
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable  # noqa: E402
