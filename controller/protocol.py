@@ -224,6 +224,8 @@ class Status(_Msg, frozen=True, kw_only=True):
     audit_head: str = ""  # "<seq>:<sha256>" of the newest audit record (anchors the log)
     auth: bool = False  # requests are authenticated (per-user key scopes, access control)
     rollbacks: int = 0  # watchdog rollbacks since the controller started
+    # What Start runs (`trajectory` is what the loop follows now: a hold while stopped).
+    run_trajectory: Trajectory | None = None
 
 
 # -- config queryable -------------------------------------------------------------------------

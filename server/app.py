@@ -584,12 +584,23 @@ class Dashboard:
         """Load the chosen version into the candidate of the browser that asked."""
         t = self.panel_of(browser)
         value = str(self.history_pick.value)
-        if t is None or not value.startswith("v"):
+        cfg = self._history.get(int(value[1:])) if value.startswith("v") else None
+        if t is None or cfg is None:
+            self._tell(browser, "Nothing loaded", "Choose a version first." if t is not None
+                       else "This browser has no candidate panel.", "red")
             return
-        cfg = self._history.get(int(value[1:]))
-        if cfg is not None:
-            t.load(cfg, self.active_version,
-                   say_text=f"Loaded {value} from the history as the candidate.")
+        t.load(cfg, self.active_version,
+               say_text=f"Loaded {value} from the history as the candidate.")
+        self._tell(browser, f"{value} is now your candidate",
+                   "See the Tune tab: its verdict, then Apply sends it through the gate.", "blue")
+
+    @staticmethod
+    def _tell(browser: Any, title: str, body: str, color: str) -> None:
+        """A notification in the browser that asked (nothing without one)."""
+        if browser is not None:
+            run_logged(lambda: browser.add_notification(title, body, color=color,
+                                                        auto_close_seconds=8.0),
+                       what="telling a browser")
 
     def _on_status(self, st: proto.Status) -> None:
         if st.config_version != self._history_version:

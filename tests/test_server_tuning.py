@@ -8,6 +8,7 @@ path does not need one.
 
 from __future__ import annotations
 
+import html
 import math
 import time
 from collections.abc import Iterator
@@ -167,3 +168,20 @@ def test_suggest_puts_the_best_accepted_setting_into_the_candidate_never_applies
     finally:
         t._apply_fn = apply_fn
         t.revert(say=False)
+
+
+@pytest.mark.parametrize("typed", ["abc", "0", "-1", "1e3"])
+def test_an_invalid_cutoff_names_the_field_and_disables_apply(dash: Dashboard, typed: str
+                                                              ) -> None:
+    t = dash.panel_of(None)
+    assert t is not None
+    t.cutoff_hz_input.value = typed
+    assert t.wait_idle(2.0)
+    shown = html.unescape(t.cutoff_text.content)
+    assert "Q cut-off (Hz) rejected" in shown and repr(typed) in shown
+    assert "accepts no cut-off" not in t.cutoff_text.content
+    assert "same as" not in t.diff_text.content
+    assert t.apply_button.disabled and not t.computing_verdict
+    t.revert()
+    assert t.wait_idle(2.0)
+    assert not t.apply_button.disabled and "dt-computing-on" not in t.computing.content

@@ -519,6 +519,7 @@ class ControllerService:
             t_s=time.perf_counter() - rt.t0,
             seq=rt.seq,
             trajectory=rt.trajectory,
+            run_trajectory=rt.run_trajectory,
             config_version=active.version,
             config=active.config,
             timing=timing,

@@ -118,8 +118,9 @@ class NominalTuningPanel(TuningPanel):
         self.nominal_override = None
         super().revert(say)
 
-    def _cutoff_html(self, cutoff_hz: float, rec: float | None, known: bool = True) -> str:
-        html = super()._cutoff_html(cutoff_hz, rec, known)
+    def _cutoff_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
+                     error: str = "") -> str:
+        html = super()._cutoff_html(cutoff_hz, rec, known, error)
         n = self.nominal_override
         if n is None:
             return html

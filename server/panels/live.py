@@ -181,8 +181,9 @@ class LivePanel:
     def _on_run(self, event: Any) -> None:
         v = event.target.value
         if v == "Start":  # the axis moves: asked first, in the browser that pressed it
-            st = self.client.status
-            traj = esc(st.trajectory.kind) if st is not None else "the set trajectory"
+            # The trajectory Start runs (while stopped the loop follows a hold).
+            run = _run_trajectory(self.client.status)
+            traj = f"<b class='dt-start-traj'>{esc(run.kind)}</b>" if run else "the set trajectory"
             confirm(self.gui, event.client, "Start the loop?",
                     f"<b>The axis moves</b>: from its present position onto {traj} (speed and "
                     "acceleration bounded).", "Start", lambda who: self._send(proto.Start(), who))
@@ -256,7 +257,8 @@ class LivePanel:
         if st is not None and st is not self._last_status_seen:
             self._last_status_seen = st
             self._observe_alarms(st)
-            kind = st.trajectory.kind
+            run = _run_trajectory(st)
+            kind = run.kind if run is not None else ""
             if kind != self._controller_traj_kind and kind in TRAJECTORY_KINDS:
                 # The drop-down follows the controller's trajectory when that changes (a
                 # selection not yet sent stays until then).
@@ -317,6 +319,13 @@ class LivePanel:
             f"{tm.compute_p99_us:.0f} us<br>overruns {tm.overruns}, skipped {tm.skipped_ticks}, "
             f"faults: {faults}<br>{stream}</div>"
         )
+
+
+def _run_trajectory(st: proto.Status | None) -> Any:
+    """The trajectory Start runs (a controller without `run_trajectory`: the present one)."""
+    if st is None:
+        return None
+    return st.run_trajectory if st.run_trajectory is not None else st.trajectory
 
 
 def _num(v: float) -> str:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -264,6 +265,11 @@ class TuningPanel:
         self.trajectory = Trajectory()
         self._suppress = False
         self._reply_version: int | None = None
+        self._gen_lock = threading.Lock()
+        self._submitted_gen = 0
+        self._done_gen = 0
+        self._invalid = False
+        self.verdict: Any = None
         """The active version the apply box last announced (None: it announces none)."""
         self.last_update_s = 0.0
         self.last_evaluation: Evaluation | None = None
@@ -319,6 +325,7 @@ class TuningPanel:
             setattr(self, g.attr, gui.add_slider(g.label, g.lo, g.hi, g.step, g.position(a),
                                                  hint=g.hint))
             controls.append(getattr(self, g.attr))
+        self.computing = gui.add_html(_computing_html(True))
         self.verdict = gui.add_html('<div class="dt-verdict">evaluating...</div>')
         self.stale_text = gui.add_html('<div class="dt-stale"></div>')
         self.diff_text = gui.add_html('<div class="dt-diff"></div>')
@@ -445,7 +452,38 @@ class TuningPanel:
             self.request_update()
 
     def request_update(self) -> None:
-        self._worker.submit(time.perf_counter())
+        with self._gen_lock:
+            self._submitted_gen += 1
+            gen = self._submitted_gen
+        if self.verdict is not None:
+            set_html(self.computing, _computing_html(True))
+            self._refresh_apply()
+        self._worker.submit(gen)
+
+    @property
+    def computing_verdict(self) -> bool:
+        """A change is not evaluated yet: the verdict shown is of an earlier candidate."""
+        with self._gen_lock:
+            return self._done_gen < self._submitted_gen
+
+    def _refresh_apply(self) -> None:
+        """Apply is enabled only for a current (evaluated), valid, non-stale candidate."""
+        why = ("computing the verdict" if self.computing_verdict
+               else "invalid candidate" if self._invalid
+               else "based on an older version (Revert first)" if self.stale else "")
+        disabled = bool(why)
+        if self.apply_button.disabled != disabled:
+            self.apply_button.disabled = disabled
+
+    def _evaluated(self, gen: int, invalid: bool) -> None:
+        """`_update` for submission `gen` is done (`invalid`: the controls give no config)."""
+        with self._gen_lock:
+            self._done_gen = max(self._done_gen, gen)
+            current = self._done_gen >= self._submitted_gen
+        self._invalid = invalid
+        if current:
+            set_html(self.computing, _computing_html(False))
+        self._refresh_apply()
 
     def wait_idle(self, timeout_s: float = 5.0) -> bool:
         return self._worker.wait_idle(timeout_s)
@@ -575,13 +613,17 @@ class TuningPanel:
 
     # -- the workers -------------------------------------------------------------------------
 
-    def _update(self, _submitted: Any) -> None:
+    def _update(self, gen: int) -> None:
         t0 = time.perf_counter()
         try:
             cand = self.candidate()
         except ConfigError as exc:
             set_html(self.verdict, format_gate_html(None, str(exc)))
-            set_html(self.cutoff_text, self._cutoff_html(self.cutoff_hz, None, True))
+            set_html(self.cutoff_text, self._cutoff_html(self.cutoff_hz, None, True,
+                                                         error=self._cutoff_error))
+            set_html(self.diff_text, "<div class='dt-diff'></div>")
+            self.apply_button.color = "red"
+            self._evaluated(gen, invalid=True)
             return
         cmp = self.engine.compare(cand, self.active)
         for key, handle in self._charts.items():
@@ -601,6 +643,7 @@ class TuningPanel:
         self.last_evaluation = ev
         self.last_update_s = time.perf_counter() - t0
         self.update_count += 1
+        self._evaluated(gen, invalid=False)
         self._preview_worker.submit((cand, self.active, self.trajectory))
 
     def _update_marks(self, rec: float | None) -> None:
@@ -655,7 +698,12 @@ class TuningPanel:
 
     # -- text --------------------------------------------------------------------------------
 
-    def _cutoff_html(self, cutoff_hz: float, rec: float | None, known: bool = True) -> str:
+    def _cutoff_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
+                     error: str = "") -> str:
+        if error:
+            return ("<div class='dt-cutoff dt-cutoff-invalid' style='font-size:13px;"
+                    "color:#d62728'><b>Q cut-off (Hz) rejected</b>: "
+                    f"{esc(error)}. Apply is disabled until it is a number in range.</div>")
         if not known:
             rec_txt = " &middot; recommended max: computing..."
         elif rec is None:
@@ -689,6 +737,13 @@ class TuningPanel:
             f"FF {'on' if a.ff_on else 'off'}, Cv {a.cv_kp:g}(1+{a.cv_ki_per_s:g}/s), "
             f"Cp {a.pos_kp_per_s:g}(1+{a.pos_ki_per_s:g}/s)</div>"
         )
+
+
+def _computing_html(on: bool) -> str:
+    if not on:
+        return "<div class='dt-computing'></div>"
+    return ("<div class='dt-computing dt-computing-on' style='font-size:12px;color:#555;"
+            "font-style:italic'>computing the verdict...</div>")
 
 
 def _label_of(q_type: str) -> str:

@@ -77,11 +77,17 @@ def test_each_browser_edits_its_own_candidate(
         assert float(_cutoff_field(other)) == hz0  # B's candidate is still its own
         other.screenshot(path=str(artifacts / "candidates_1_stale.png"))
 
-        # B's Apply carries the version it was made against: refused, A's config stays.
+        # B's candidate is based on an old version: its Apply is disabled (issue 22: it would
+        # be refused) ...
         set_number(other, "Q cut-off (Hz)", 0.6)
         other.wait_for_selector(".dt-cutoff >> text=0.600 Hz", timeout=15_000)
         other.wait_for_selector(".dt-verdict.dt-accept", timeout=15_000)
-        other.get_by_role("button", name="Apply candidate").click()
+        other.wait_for_selector(".dt-computing-on", state="detached", timeout=30_000)
+        assert other.get_by_role("button", name="Apply candidate").is_disabled()
+        # ... and sent anyway (what a forged press does), it carries the version it was made
+        # against: refused, A's config stays.
+        _, b_panel = _panels(dashboard, page, other)
+        b_panel.apply()
         other.wait_for_selector(".dt-apply-rejected", timeout=15_000)
         refusal = other.locator(".dt-apply-rejected").first.inner_text()
         assert f"based on version {start.version}" in refusal, refusal

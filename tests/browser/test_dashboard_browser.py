@@ -201,6 +201,14 @@ def test_a_caution_applies_only_after_the_dialog(
         set_number(page, "Q cut-off (Hz)", 0.5)
         page.wait_for_selector(".dt-cutoff >> text=0.500 Hz", timeout=15_000)
         page.wait_for_selector(".dt-verdict.dt-accept", timeout=15_000)
+        # Apply is enabled once the verdict is current, unless a rollback made the candidate
+        # stale meanwhile (then Revert again).
+        page.wait_for_function("""() => document.querySelector('.dt-stale')?.innerText.trim()
+          || [...document.querySelectorAll('button')].find(
+               b => b.textContent.trim() === 'Apply candidate')?.disabled === false""",
+                               timeout=30_000)
+        if _text(page, ".dt-stale").strip():
+            continue
         page.get_by_role("button", name="Apply candidate").click()
         page.wait_for_selector(".dt-apply >> text=/Accepted|Rejected by the controller/",
                                timeout=10_000)

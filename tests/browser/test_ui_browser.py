@@ -5,12 +5,13 @@ controller: live traces that draw over the window after tab round trips and relo
 from __future__ import annotations
 
 import re
+import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import ARTIFACTS, FIRST_LOAD_S, set_number
+from conftest import ARTIFACTS, FIRST_LOAD_S, only_panel, set_number
 from helpers import wait_for
 
 from controller import protocol as proto
@@ -153,3 +154,97 @@ def test_a_rollback_is_an_amber_alarm_and_no_success_text_stands(
     assert probe.command(proto.ResetFault()).ok
     assert probe.command(proto.Start()).ok
     _status_until(probe, lambda s: s.mode == "running", 30.0, "did not run again")
+
+
+def test_the_start_dialog_names_the_trajectory_start_runs(
+    page: Any, probe: ControllerClient, artifacts: Path
+) -> None:
+    """Stopped, the loop holds its position (the status's trajectory is a hold); Start runs the
+    set trajectory: the dialog names that one, and it is what runs after Start."""
+    assert probe.command(proto.Stop()).ok
+    st = _status_until(probe, lambda s: s.mode == "stopped" and s.trajectory.kind == "hold",
+                       30.0, "did not stop")
+    assert st.run_trajectory is not None and st.run_trajectory.kind != "hold"
+    runs = st.run_trajectory.kind
+    page.get_by_role("tab", name="Live", exact=True).click()
+    page.locator("button", has_text=re.compile(r"^Start$")).first.click()
+    dialog = page.get_by_role("dialog")
+    dialog.locator(".dt-start-traj").wait_for(timeout=30_000)
+    named = dialog.locator(".dt-start-traj").inner_text()
+    text = dialog.locator(".dt-confirm").inner_text()
+    assert named == runs and "hold" not in text, text
+    page.screenshot(path=str(artifacts / "ui_start_dialog.png"))
+    dialog.get_by_role("button", name="Start").click()
+    st = _status_until(probe, lambda s: s.mode == "running", 30.0, "did not start")
+    assert st.trajectory.kind == named
+
+
+def _apply_button(page: Any) -> Any:
+    return page.get_by_role("button", name="Apply candidate")
+
+
+def test_an_invalid_cutoff_is_rejected_by_name_and_apply_is_disabled(
+    page: Any, dashboard: Dashboard, artifacts: Path
+) -> None:
+    page.get_by_role("tab", name="Tune").click()
+    # While the verdict is recomputed (up to seconds on a loaded machine; held here until the
+    # page has been looked at), the page says so and Apply is disabled.
+    engine = only_panel(dashboard).engine
+    release = threading.Event()
+    started = threading.Event()
+    compare = engine.compare
+
+    def held_compare(*args: Any, **kw: Any) -> Any:
+        started.set()
+        release.wait(120.0)
+        return compare(*args, **kw)
+
+    engine.compare = held_compare  # type: ignore[method-assign]
+    try:
+        set_number(page, "Q cut-off (Hz)", 0.7)
+        wait_for(started.is_set, 60.0, "the verdict was not recomputed")
+        note = page.locator(".dt-computing-on")
+        note.wait_for(timeout=30_000)
+        assert "computing" in note.inner_text()
+        page.wait_for_function("""() => [...document.querySelectorAll('button')].find(
+          x => x.textContent.trim() === 'Apply candidate')?.disabled""", timeout=30_000)
+        note.scroll_into_view_if_needed()
+        page.screenshot(path=str(artifacts / "ui_computing.png"))
+    finally:
+        engine.compare = compare  # type: ignore[method-assign]
+        release.set()
+    page.wait_for_selector(".dt-cutoff >> text=0.700 Hz", timeout=60_000)
+    page.wait_for_selector(".dt-computing-on", state="detached", timeout=60_000)
+    page.wait_for_function("""() => [...document.querySelectorAll('button')].find(
+      x => x.textContent.trim() === 'Apply candidate')?.disabled === false""", timeout=30_000)
+    for typed in ("abc", "0", "-1", "1e3"):
+        set_number(page, "Q cut-off (Hz)", typed)  # type: ignore[arg-type]
+        box = page.locator(".dt-cutoff-invalid")
+        box.wait_for(timeout=60_000)
+        page.wait_for_function(
+            "(t) => document.querySelector('.dt-cutoff-invalid')?.innerText.includes(t)",
+            arg=repr(typed), timeout=60_000)
+        text = box.inner_text()
+        assert "Q cut-off (Hz) rejected" in text, text
+        assert "accepts no cut-off" not in text
+        assert "same as active" not in page.locator(".dt-diff").first.inner_text()
+        page.wait_for_function("""() => [...document.querySelectorAll('button')].find(
+          x => x.textContent.trim() === 'Apply candidate')?.disabled""", timeout=30_000)
+        if typed == "abc":
+            box.scroll_into_view_if_needed()
+            page.screenshot(path=str(artifacts / "ui_invalid_cutoff.png"))
+    set_number(page, "Q cut-off (Hz)", 0.5)
+    page.wait_for_selector(".dt-cutoff >> text=0.500 Hz", timeout=60_000)
+    page.wait_for_selector(".dt-computing-on", state="detached", timeout=60_000)
+    _apply_button(page).wait_for(timeout=10_000)
+    page.wait_for_function("""() => [...document.querySelectorAll('button')].find(
+      x => x.textContent.trim() === 'Apply candidate')?.disabled === false""", timeout=30_000)
+
+
+def test_use_as_candidate_says_what_it_did(page: Any, probe: ControllerClient) -> None:
+    page.get_by_role("tab", name="History").click()
+    v = probe.get_config().version
+    page.wait_for_selector(".dt-history >> text=v" + str(v), timeout=60_000)
+    page.get_by_role("button", name="Use as candidate").click()
+    page.wait_for_selector(f"text=v{v} is now your candidate", timeout=30_000)
+    page.get_by_role("tab", name="Tune").click()
