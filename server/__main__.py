@@ -29,9 +29,10 @@ def add_dashboard_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --auth: every browser acts as this one user")
     p.add_argument("--fleet", action="store_true",
                    help="also a Fleet tab: every rig reachable through --connect (a router)")
-    p.add_argument("--recordings", type=Path, default=Path("recordings"), metavar="DIR",
+    p.add_argument("--recordings", type=Path, default=None, metavar="DIR",
                    help="the .mcap recordings the Recordings tab lists and compares "
-                   "(default ./recordings)")
+                   "(default $XDG_DATA_HOME/dobtune/recordings, else "
+                   "~/.local/share/dobtune/recordings)")
 
 
 def run_dashboard_args(args: argparse.Namespace) -> int:
@@ -44,7 +45,7 @@ def run_dashboard_args(args: argparse.Namespace) -> int:
         DashboardOptions(
             connect=tuple(connect), rig_name=args.rig_name, host=args.host, port=args.port,
             auth=args.auth, user=args.user, fleet=args.fleet,
-            recordings_dir=args.recordings,
+            **({"recordings_dir": args.recordings} if args.recordings is not None else {}),
         )
     )
 

@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import secrets
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
@@ -63,6 +64,13 @@ LEASE_S = 300.0
 R = TypeVar("R")
 
 
+def default_recordings_dir() -> Path:
+    """Where recordings go unless told: a data directory of the user's, outside any working
+    tree ($XDG_DATA_HOME/dobtune/recordings, else ~/.local/share/dobtune/recordings)."""
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "dobtune" / "recordings"
+
+
 @dataclass(frozen=True)
 class DashboardOptions:
     connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
@@ -81,7 +89,7 @@ class DashboardOptions:
     file, and `user`, whose role and lease the controller enforces. A directory without
     `user`: every user in it who may reach the rig, each in their own browser."""
     user: str = ""
-    recordings_dir: Path = Path("recordings")
+    recordings_dir: Path = field(default_factory=lambda: default_recordings_dir())
     """The .mcap files the Recordings tab lists and compares (`dobtune record --out`, a
     controller's `<state-dir>/blackbox`)."""
     fleet: bool = False

@@ -223,3 +223,16 @@ def test_record_from_the_dashboard_then_replay(tmp_path: Path) -> None:
             assert window is not None
             assert window[0][0] >= t_end / 2 - 10.0 - 1e-9 and window[0][-1] <= t_end / 2 + 1e-9
             np.testing.assert_array_equal(window[1], window[2])  # A and B are the same run
+
+
+def test_recordings_go_to_a_data_directory_outside_the_working_tree(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from server.app import DashboardOptions
+
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    assert DashboardOptions().recordings_dir == tmp_path / "data" / "dobtune" / "recordings"
+    monkeypatch.delenv("XDG_DATA_HOME")
+    d = DashboardOptions().recordings_dir
+    assert d == Path.home() / ".local" / "share" / "dobtune" / "recordings"
+    assert not d.is_relative_to(Path.cwd())
