@@ -39,7 +39,7 @@ from server.assets import web_asset
 from server.engine import TuningEngine, measured_from_csv
 from server.escape import esc
 from server.fleet import FleetMonitor, FleetPanel
-from server.gate import ESTOP_LINK_HTML, Gate, Refused
+from server.gate import ESTOP_LINK_HTML, Gate, Refused, title_html
 from server.measured import read_measured
 from server.panels.identify import IdentifyPanel, NominalTuningPanel
 from server.panels.live import LivePanel
@@ -171,7 +171,7 @@ class Dashboard:
         self.refusals = 0
         """Actions refused here (a viewer's change, an unknown browser)."""
         self.gate.on_estop = self._estop_from_link
-        self.gate.page_extra = ESTOP_LINK_HTML
+        self.gate.page_extra = ESTOP_LINK_HTML + title_html(opts.rig_name)
         self.server: Any = None
         self.engine = TuningEngine(sim_disturbances=opts.sim_disturbances)
         self._knowledge_version = -1  # the plant knowledge fetched from the controller

@@ -42,7 +42,7 @@ from server.assets import web_asset
 from server.escape import esc
 
 __all__ = ["COOKIE", "ESTOP_LINK_HTML", "ESTOP_PATH", "PAGE_SCRIPT_FILE", "Gate", "Refused",
-           "install", "page_script_html"]
+           "install", "page_script_html", "title_html"]
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +76,14 @@ _DENIED_PAGE = (
     "<p style='font:16px sans-serif;margin:2em'>This dashboard needs its access token: open "
     "the URL the dashboard printed when it started (it ends in <code>?token=...</code>).</p>"
 )
+
+
+def title_html(rig_name: str) -> str:
+    """A script element naming the browser tab after the rig: "dobtune - <rig>"."""
+    import json
+
+    title = json.dumps(f"dobtune - {rig_name}").replace("<", "\\u003c")
+    return f"<script>document.title = {title};</script>"
 
 
 def page_script_html(path: Path = PAGE_SCRIPT_FILE) -> str:

@@ -248,3 +248,7 @@ def test_use_as_candidate_says_what_it_did(page: Any, probe: ControllerClient) -
     page.get_by_role("button", name="Use as candidate").click()
     page.wait_for_selector(f"text=v{v} is now your candidate", timeout=30_000)
     page.get_by_role("tab", name="Tune").click()
+
+
+def test_the_browser_tab_is_named_after_the_rig(page: Any) -> None:
+    page.wait_for_function("() => document.title === 'dobtune - browsertest'", timeout=30_000)
