@@ -49,8 +49,9 @@ def main() -> int:
         env_dir = tmp / "fresh"
         venv.create(env_dir, with_pip=False)
         py = env_dir / "bin" / "python"
-        fresh_site = Path(subprocess.run([str(py), "-c", "import site; print(site.getsitepackages()[0])"],
-                                         capture_output=True, text=True, check=True).stdout.strip())
+        fresh_site = Path(subprocess.run(
+            [str(py), "-c", "import site; print(site.getsitepackages()[0])"],
+            capture_output=True, text=True, check=True).stdout.strip())
         (fresh_site / "dobtune-deps.pth").write_text(site.getsitepackages()[0] + "\n")
         subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "-q",
                         "--no-deps", "--no-index", str(wheel)], check=True)
