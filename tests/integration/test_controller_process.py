@@ -69,8 +69,15 @@ def test_state_stream_delivers_every_sample_in_order(
 def test_accepted_candidate_shows_in_the_stream_within_100_ms(
     controller: ControllerProcess, client: Client
 ) -> None:
+    first = client.get_config()
+    assert first.accepted and first.version >= 1
+    # The gate worker loads in the background after start-up (the controller is ready before
+    # it: fe1c9a5) and the first apply waits for it; this test times an apply to a running
+    # controller, so one apply goes first (and must be accepted like any other).
+    warm = client.apply(first.config.with_(q_cutoff_hz=0.8))
+    assert warm.accepted and warm.version == first.version + 1, warm.reasons
     before = client.get_config()
-    assert before.accepted and before.version >= 1
+    assert before.version == warm.version
     candidate = before.config.with_(q_cutoff_hz=1.0)
     with client.state() as col:
         assert wait_until(lambda: len(col.batches()) > 0, 5.0)
@@ -99,7 +106,7 @@ def test_accepted_candidate_shows_in_the_stream_within_100_ms(
     assert saved["version"] == reply.version and saved["config"]["q_cutoff_hz"] == 1.0
     log = (controller.state_dir / "applied_changes.jsonl").read_text().splitlines()
     last = json.loads(log[-1])
-    assert last["version"] == reply.version and last["old"]["q_cutoff_hz"] == 0.5
+    assert last["version"] == reply.version and last["old"]["q_cutoff_hz"] == 0.8
     assert last["new"]["q_cutoff_hz"] == 1.0 and last["margins"]["phase_margin_deg"] > 30
 
 
