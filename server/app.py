@@ -18,6 +18,7 @@ so the controller's access control, lease and audit see the real user, never the
 from __future__ import annotations
 
 import contextlib
+import io
 import logging
 import os
 import secrets
@@ -81,6 +82,8 @@ class DashboardOptions:
     live_max_points: int = 600
     query_timeout_s: float = 3.0
     verbose: bool = True
+    """Kept for callers; viser's own banner is never printed (its URL carries no token: it opens
+    a 401 page). run_dashboard prints the URL with the token."""
     client_name: str = "dashboard"
     token: str | None = None
     """The browser access token (None: a random one, in the printed URL)."""
@@ -217,9 +220,11 @@ class Dashboard:
         with contextlib.ExitStack() as undo:
             self.client.__enter__()
             undo.push(self)  # a failure below closes what is open so far
-            with self.gate.serving():
+            # viser's banner (printed whatever `verbose` says) shows a URL without the token,
+            # which opens a 401 page: it goes nowhere; run_dashboard prints the URL.
+            with self.gate.serving(), contextlib.redirect_stdout(io.StringIO()):
                 server = viser.ViserServer(host=self.opts.host, port=self.opts.port,
-                                           verbose=self.opts.verbose)
+                                           verbose=False)
             self.gate.port = server.get_port()
             # Never open a public share tunnel from this app.
             server.request_share_url = lambda *a, **k: None  # type: ignore[method-assign]

@@ -236,3 +236,33 @@ def test_recordings_go_to_a_data_directory_outside_the_working_tree(
     d = DashboardOptions().recordings_dir
     assert d == Path.home() / ".local" / "share" / "dobtune" / "recordings"
     assert not d.is_relative_to(Path.cwd())
+
+
+def test_the_dashboard_prints_only_the_url_with_the_token(tmp_path: Path) -> None:
+    """viser's own banner printed http://host:port without the token (a 401 page) before the
+    dashboard's URL: every http URL the dashboard prints must carry ?token=."""
+    import os
+    import re
+    import threading
+
+    port = free_port()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "XDG_DATA_HOME": str(tmp_path)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "server", "--port", str(port),
+         "--connect", f"tcp/127.0.0.1:{free_port()}"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    lines: list[str] = []
+    assert proc.stdout is not None
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout or ()), daemon=True)
+    reader.start()
+    try:
+        wait_for(lambda: any("?token=" in ln for ln in lines) or proc.poll() is not None,
+                 CONTROLLER_START_S, "no URL printed")
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+        reader.join(timeout=10)
+    out = "".join(lines)
+    urls = re.findall(r"https?://\S+", out)
+    assert any(f":{port}/?token=" in u for u in urls), out
+    assert all("?token=" in u for u in urls), out
