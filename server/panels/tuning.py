@@ -112,10 +112,18 @@ _BASE_MARKS: tuple[tuple[float, str], ...] = ((-1.0, "0.1 Hz"), (0.0, "1 Hz"), (
 _LOG_LO, _LOG_HI = math.log10(CUTOFF_MIN_HZ), math.log10(CUTOFF_MAX_HZ)
 
 
+#: The closest a decade mark may sit to 'max' (decades): nearer, their labels overlapped (1.34 Hz
+#: next to "1 Hz": 0.13 decade, ~10 px apart on the sidebar's slider), and the decade goes.
+_MARK_GAP_DEC = 0.45
+
+
 def cutoff_marks(rec_hz: float | None) -> tuple[tuple[float, str], ...]:
-    """The cut-off slider's marks: decades, and 'max' at the gate's recommendation."""
+    """The cut-off slider's marks: decades, and 'max' at the gate's recommendation (a decade
+    too close to it left out, so that no two labels overlap)."""
     if rec_hz is not None and CUTOFF_MIN_HZ < rec_hz < CUTOFF_MAX_HZ:
-        return (*_BASE_MARKS, (round(math.log10(rec_hz), 3), "max"))
+        at = round(math.log10(rec_hz), 3)
+        decades = tuple(m for m in _BASE_MARKS if abs(m[0] - at) >= _MARK_GAP_DEC)
+        return tuple(sorted((*decades, (at, "max"))))
     return _BASE_MARKS
 
 

@@ -271,3 +271,36 @@ def test_use_as_candidate_says_what_it_did(page: Any, probe: ControllerClient) -
 
 def test_the_browser_tab_is_named_after_the_rig(page: Any) -> None:
     page.wait_for_function("() => document.title === 'dobtune - browsertest'", timeout=30_000)
+
+
+#: JS: the text and bounding box of each mark label of the log cut-off slider.
+MARK_LABELS_JS = """(fid) => {
+  const row = document.getElementById(fid);
+  const root = row?.closest('.mantine-Slider-root') || row?.parentElement?.parentElement;
+  return Array.from((root || document).querySelectorAll('.mantine-Slider-markLabel')).map(e => {
+    const r = e.getBoundingClientRect();
+    return {text: e.textContent, left: r.left, right: r.right, top: r.top, bottom: r.bottom};
+  });
+}"""
+
+
+def test_the_cutoff_slider_mark_labels_do_not_overlap(page: Any) -> None:
+    """'max' (the gate's recommendation, ~1.3 Hz on the demo) sat on top of '1 Hz'."""
+    page.get_by_role("tab", name="Tune").click()
+    fid = page.locator("label", has_text="Q cut-off, log scale").first.get_attribute("for")
+    labels: list[dict[str, Any]] = []
+
+    def read() -> bool:
+        nonlocal labels
+        labels = page.evaluate(MARK_LABELS_JS, fid)
+        return any(m["text"] == "max" for m in labels) and all(
+            m["right"] > m["left"] for m in labels)
+
+    wait_for(read, 90.0, "no 'max' mark on the cut-off slider")
+    page.screenshot(path=str(ARTIFACTS / "ui_slider_marks.png"))
+    assert len(labels) >= 3, labels
+    for i, a in enumerate(labels):
+        for b in labels[i + 1:]:
+            overlap = (a["left"] < b["right"] and b["left"] < a["right"]
+                       and a["top"] < b["bottom"] and b["top"] < a["bottom"])
+            assert not overlap, f"{a['text']!r} overlaps {b['text']!r}: {labels}"
