@@ -227,6 +227,26 @@ def uplot_column(y: FloatArray, fallback: float) -> FloatArray:
     return y
 
 
+def ranged_scales(spec: ChartSpec, data: Sequence[npt.ArrayLike]) -> dict[str, dict[str, Any]]:
+    """`spec.scales` with every y scale fixed (auto off) to the finite range of its series in
+    `data` (5 % margin; 0..1 with no finite value): on a fixed scale uPlot draws a NaN as
+    nothing, so a column needs no stand-in first value (`uplot_column`), which a series that
+    shows its points drew as a point (an empty chart's red "suggested" dot at (0.1 Hz, 0))."""
+    out = dict(spec.scales)
+    for name in spec.scales:
+        if name == "x":
+            continue
+        cols = [np.asarray(c, dtype=np.float64) for c, ser in zip(data[1:], spec.series[1:],
+                                                                    strict=False)
+                if ser.get("scale", "y") == name]
+        vals = np.concatenate(cols) if cols else np.empty(0)
+        vals = vals[np.isfinite(vals)]
+        lo, hi = (float(vals.min()), float(vals.max())) if vals.size else (0.0, 1.0)
+        pad = 0.05 * (hi - lo) if hi > lo else max(abs(lo), 1.0) * 0.05
+        out[name] = {**spec.scales[name], "auto": False, "range": (lo - pad, hi + pad)}
+    return out
+
+
 def _marker(label: str, color: str) -> dict[str, Any]:
     return {"label": label, "stroke": color, "width": 2, "scale": MARK_SCALE, "dash": (3, 3)}
 

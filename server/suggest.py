@@ -19,7 +19,7 @@ from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PlantKnowledge
 from controller.sim.rig_disturbances import RigSetup
 from controller.tune.autotune import Point, TuneResult, autotune
-from server.charts import ChartSpec, FloatArray, uplot_column
+from server.charts import ChartSpec, FloatArray
 from server.escape import esc
 
 __all__ = ["SUGGEST_CHART", "SuggestSettings", "suggest", "suggest_data", "suggest_html",
@@ -88,11 +88,12 @@ SUGGEST_CHART = ChartSpec(
 def suggest_data(result: TuneResult | None) -> tuple[FloatArray, ...]:
     """The chart's columns: the cut-offs tried (both Q types, sorted), each type's error where
     it was run (NaN where it was not, or the gate rejected it), the DOB-off level, the
-    suggested point. Without a result: a placeholder that draws nothing."""
+    suggested point. Without a result: a placeholder that draws nothing. NaN stays NaN: the
+    chart's y scale is fixed by `charts.ranged_scales` (a stand-in first value drew a fake
+    "suggested" dot)."""
     if result is None or not result.curve:
         x = np.array([0.1, 20.0])
-        nan = np.full(2, math.nan)
-        return (x, *(uplot_column(nan, 0.0) for _ in range(len(SUGGEST_CHART.series) - 1)))
+        return (x, *(np.full(2, math.nan) for _ in range(len(SUGGEST_CHART.series) - 1)))
     x = np.array(sorted({p.q_cutoff_hz for p in result.curve}), dtype=np.float64)
     index = {f: i for i, f in enumerate(x)}
     cols = {q: np.full(len(x), math.nan) for q in Q_TYPES}
@@ -103,9 +104,7 @@ def suggest_data(result: TuneResult | None) -> tuple[FloatArray, ...]:
     best = np.full(len(x), math.nan)
     if result.dob_helps and result.best is not None:
         best[index[result.best.q_cutoff_hz]] = _metric(result.best, result.objective)
-    fallback = float(base[0]) if np.isfinite(base[0]) else 0.0
-    return (x, *(uplot_column(cols[q], fallback) for q in Q_TYPES), base,
-            uplot_column(best, fallback))
+    return (x, *(cols[q] for q in Q_TYPES), base, best)
 
 
 def _metric(p: Point, objective: str) -> float:

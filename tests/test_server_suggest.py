@@ -9,6 +9,7 @@ import pytest
 
 from controller.core.config import LoopConfig
 from controller.tune.autotune import Point, TuneResult
+from server.charts import ranged_scales
 from server.suggest import SUGGEST_CHART, suggest_data, suggested_config
 
 
@@ -25,11 +26,14 @@ def test_columns_follow_the_points_and_start_finite() -> None:
     assert len(data) == len(SUGGEST_CHART.series)
     x, q31, q20, off, mark = data
     np.testing.assert_array_equal(x, [0.1, 1.0, 5.0])
-    # q31 at 0.1 Hz was rejected: not drawn, but the first value is finite for uPlot's scale.
-    assert np.isfinite(q31[0]) and q31[1] == 0.02 and math.isnan(q31[2])
+    # q31 at 0.1 Hz was rejected: not drawn (NaN: the y scale is fixed, no stand-in value).
+    assert math.isnan(q31[0]) and q31[1] == 0.02 and math.isnan(q31[2])
     assert q20[0] == 0.03 and math.isnan(q20[1]) and q20[2] == 0.01
     np.testing.assert_array_equal(off, [0.025] * 3)
-    assert mark[1] == 0.02 and np.isfinite(mark[0]) and math.isnan(mark[2])
+    # The suggested dot only at the suggested cut-off (a stand-in at 0.1 Hz drew a second one).
+    assert mark[1] == 0.02 and math.isnan(mark[0]) and math.isnan(mark[2])
+    lo, hi = ranged_scales(SUGGEST_CHART, data)["y"]["range"]
+    assert lo < 0.01 and hi > 0.03 and hi - lo < 0.03
 
 
 def test_the_dob_goes_off_when_no_setting_beats_it() -> None:
@@ -45,8 +49,11 @@ def test_the_dob_goes_off_when_no_setting_beats_it() -> None:
 
 
 def test_no_result_draws_nothing_but_has_a_finite_scale() -> None:
-    x, *cols = suggest_data(None)
+    data = suggest_data(None)
+    x, *cols = data
     assert len(cols) == len(SUGGEST_CHART.series) - 1
     for c in cols:
-        assert np.isfinite(c[0]) and not np.isfinite(c[1:]).any()
+        assert not np.isfinite(c).any()
+    scale = ranged_scales(SUGGEST_CHART, data)["y"]
+    assert scale["auto"] is False and scale["range"] == pytest.approx((-0.05, 1.05))
     assert x[0] == pytest.approx(0.1)

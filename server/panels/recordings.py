@@ -28,7 +28,7 @@ from controller.client.recorder import Recorder, RecordOptions
 from controller.recording.compare import SummaryRow, align_runs, config_diff, summary_row
 from controller.recording.mcap_io import Recording, read_recording
 from controller.recording.report import REVERSAL_WINDOW_S, metrics
-from server.charts import CANDIDATE, NO_DOB, ChartSpec, minmax_decimate
+from server.charts import CANDIDATE, NO_DOB, ChartSpec, minmax_decimate, ranged_scales
 from server.escape import esc
 from server.gate import Refused
 from server.panels.widgets import NEUTRAL, add_chart, box, set_html
@@ -159,7 +159,10 @@ class RecordingsPanel:
                                  "reference trajectory; metrics and configuration diff")
         compare.on_click(lambda _e: self.compare(self.pick_a.value, self.pick_b.value))
         self.compare_box = gui.add_html("")
-        self.chart = add_chart(gui, OVERLAY_CHART, OVERLAY_CHART.placeholder([0.0, 1.0]))
+        # Empty: NaN on a fixed y scale draws nothing (zeros drew a flat line that read as data).
+        empty = (np.array([0.0, 1.0]), np.full(2, np.nan), np.full(2, np.nan))
+        self.chart = add_chart(gui, OVERLAY_CHART, empty)
+        self.chart.scales = ranged_scales(OVERLAY_CHART, empty)
         self.scrub = gui.add_slider(
             "Replay at (s)", min=0.0, max=1.0, step=0.1, initial_value=1.0,
             hint=f"the overlay's last {REPLAY_WINDOW_S:g} s up to this time; the end shows the "
@@ -246,6 +249,7 @@ class RecordingsPanel:
         x, (da, db) = minmax_decimate(t, [ea, eb], _MAX_POINTS)
         data = (x, da, db)
         if self.chart is not None:
+            self.chart.scales = ranged_scales(OVERLAY_CHART, data)
             self.chart.data = data
         return data
 

@@ -364,7 +364,9 @@ class TuningPanel:
         for spec in charts.BODE_CHARTS:
             self._charts[spec.key] = add_chart(gui, spec, spec.placeholder(self.engine.freq_hz))
         self.nyquist = gui.add_html("<div class='dt-nyquist-box'></div>")
-        self._suggest_chart = add_chart(gui, SUGGEST_CHART, suggest_data(None))
+        empty = suggest_data(None)
+        self._suggest_chart = add_chart(gui, SUGGEST_CHART, empty)
+        self._suggest_chart.scales = charts.ranged_scales(SUGGEST_CHART, empty)
 
     def start(self) -> None:
         self._worker.start()
@@ -700,7 +702,9 @@ class TuningPanel:
                          setup=self.engine.sim_setup)
         self.last_suggestion = result
         if self._suggest_chart is not None:
-            self._suggest_chart.data = suggest_data(result)
+            data = suggest_data(result)
+            self._suggest_chart.scales = charts.ranged_scales(SUGGEST_CHART, data)
+            self._suggest_chart.data = data
         self.load(suggested_config(base, result), self.base_version)
         set_html(self.suggest_text, suggest_html(result, traj, time.perf_counter() - t0))
 

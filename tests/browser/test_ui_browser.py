@@ -304,3 +304,37 @@ def test_the_cutoff_slider_mark_labels_do_not_overlap(page: Any) -> None:
             overlap = (a["left"] < b["right"] and b["left"] < a["right"]
                        and a["top"] < b["bottom"] and b["top"] < a["bottom"])
             assert not overlap, f"{a['text']!r} overlaps {b['text']!r}: {labels}"
+
+
+#: JS: per uPlot titled like one of `titles`: its y scale as drawn and the finite values of
+#: each of its y series (what uPlot can draw as a point or a line).
+EMPTY_CHARTS_JS = """(titles) => {
+  const ups = Object.values(window.__viserTestpoints?.uplots || {});
+  return ups.map(u => u.chart).filter(c => titles.some(
+      t => (c.root.querySelector('.u-title')?.textContent || '').startsWith(t))).map(c => ({
+    title: c.root.querySelector('.u-title').textContent, ymin: c.scales.y.min,
+    ymax: c.scales.y.max,
+    finite: c.series.slice(1).map((s, i) => ({label: s.label,
+      n: Array.from(c.data[i + 1]).filter(v => v != null && Number.isFinite(v)).length}))}));
+}"""
+
+
+def test_empty_charts_draw_no_fake_data(page: Any) -> None:
+    """Before any Suggest or comparison: no red 'suggested' dot at (0.1 Hz, 0) and no flat
+    overlay line; the empty charts still have a finite y axis (they draw their grid)."""
+    titles = ["Suggest:", "Position error, before (A)"]
+    got: list[dict[str, Any]] = []
+
+    def read() -> bool:
+        nonlocal got
+        got = page.evaluate(EMPTY_CHARTS_JS, titles)
+        return len(got) == 2
+
+    page.get_by_role("tab", name="Recordings").click()
+    page.get_by_text(titles[0], exact=False).first.scroll_into_view_if_needed(timeout=90_000)
+    wait_for(read, 90.0, f"the Suggest and the overlay charts never appeared: {got}")
+    page.screenshot(path=str(ARTIFACTS / "ui_empty_charts.png"))
+    for chart in got:
+        assert all(s["n"] == 0 for s in chart["finite"]), chart
+        assert chart["ymin"] is not None and chart["ymax"] is not None, chart
+        assert chart["ymax"] > chart["ymin"], chart
