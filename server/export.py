@@ -26,18 +26,13 @@ __all__ = ["chart_csv", "column_header", "export_filename", "exported_columns"]
 
 #: The unit written for the crossover-mark series (a fixed 0..1 scale without an axis).
 MARK_UNIT = "mark 0/1"
-#: File names: "dobtune-<the chart title, lower case, non-alphanumerics as '-'>", cut to at
-#: most this many characters at a word boundary.
-_NAME_CHARS = 48
 
 
 def export_filename(spec: ChartSpec, ext: str) -> str:
-    """`dobtune-<title slug>.<ext>`: the same stem for the chart's CSV (made here) and its
-    PNG (made in the browser by web_assets/dashboard.js with the same rule)."""
+    """`dobtune-<title slug>.<ext>` (the whole title, lower case, non-alphanumerics as '-': a
+    name cut at 48 characters lost what told two exports apart): the same stem for the chart's
+    CSV (made here) and its PNG (made in the browser by web_assets/dashboard.js, same rule)."""
     slug = re.sub(r"[^a-z0-9]+", "-", spec.title.lower()).strip("-")
-    if len(slug) > _NAME_CHARS:  # cut at the last whole word that fits
-        cut = slug[:_NAME_CHARS + 1]
-        slug = cut.rsplit("-", 1)[0] if "-" in cut else slug[:_NAME_CHARS]
     return f"dobtune-{slug or 'chart'}.{ext}"
 
 

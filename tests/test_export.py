@@ -116,8 +116,8 @@ def test_file_names_follow_the_title() -> None:
     assert export_filename(open_loop, "csv") == "dobtune-open-loop-cv-m-p-speed-loop.csv"
     long = next(s for s in BODE_CHARTS if s.key == "rejection")
     name = export_filename(long, "png")
-    assert name == "dobtune-dob-rejection-gain-e-without-e-with-23-0-db.png"
-    assert len(name) <= len("dobtune-") + 48 + len(".png")
+    # The whole title (a cut at 48 characters left out "where the DOB helps").
+    assert name == "dobtune-dob-rejection-gain-e-without-e-with-23-0-db-where-the-dob-helps.png"
     assert export_filename(ChartSpec("k", "!!!", ({"label": "x"},), {}, ()), "csv") == (
         "dobtune-chart.csv")
 

@@ -25,11 +25,7 @@
 
   function slug(title) {
     // The same rule as server/export.py export_filename.
-    let s = title.toLowerCase().replace(/[^a-z0-9]+/g, "-").replace(/^-+|-+$/g, "");
-    if (s.length > 48) {
-      const cut = s.slice(0, 49);
-      s = cut.includes("-") ? cut.slice(0, cut.lastIndexOf("-")) : s.slice(0, 48);
-    }
+    const s = title.toLowerCase().replace(/[^a-z0-9]+/g, "-").replace(/^-+|-+$/g, "");
     return "dobtune-" + (s || "chart");
   }
 

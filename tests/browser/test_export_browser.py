@@ -387,3 +387,22 @@ def test_a_csv_press_gets_only_that_charts_data_for_the_client_that_pressed(
         page.remove_listener("download", on_download)
     after = probe.get_config()
     assert after.version == config_before.version and after.config == config_before.config
+
+
+def test_png_of_a_long_titled_chart_has_the_whole_title_in_its_name(
+    page: Any, dashboard: Dashboard
+) -> None:
+    """The browser's download name of the rejection chart's PNG carries its whole title (the
+    name was cut at 48 characters)."""
+    from server.charts import BODE_CHARTS
+
+    _ready(page, dashboard)
+    spec = next(s for s in BODE_CHARTS if s.key == "rejection")
+    button = _export_button(page, spec.title, "PNG")
+    button.wait_for(timeout=15_000)
+    button.scroll_into_view_if_needed(timeout=15_000)
+    with page.expect_download(timeout=15_000) as got:
+        button.click()
+    name = got.value.suggested_filename
+    assert name == "dobtune-dob-rejection-gain-e-without-e-with-23-0-db-where-the-dob-helps.png"
+    assert name == export_filename(spec, "png")  # the CSV's stem
