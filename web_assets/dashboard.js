@@ -181,7 +181,19 @@
       rows[rows.length - 1].push({ ...it, x });
       x += w;
     }
-    const titleH = title ? 22 * k : 0;
+    // The title wrapped at whole words to the chart's width (one line ran off both edges of a
+    // narrow chart).
+    ctx0.font = font(13, true);
+    const titleLines = [];
+    for (const word of title ? title.split(/\s+/) : []) {
+      const last = titleLines.length ? titleLines[titleLines.length - 1] : null;
+      if (last !== null && ctx0.measureText(last + " " + word).width <= canvas.width - 2 * pad) {
+        titleLines[titleLines.length - 1] = last + " " + word;
+      } else titleLines.push(word);
+    }
+    ctx0.font = font(12, false);
+    const titleLineH = 18 * k;
+    const titleH = titleLines.length ? titleLines.length * titleLineH + 4 * k : 0;
     const legendH = items.length ? rows.length * lineH + pad : 0;
     const out = document.createElement("canvas");
     out.width = canvas.width;
@@ -195,7 +207,8 @@
       ctx.font = font(13, true);
       ctx.textAlign = "center";
       ctx.textBaseline = "middle";
-      ctx.fillText(title, out.width / 2, titleH / 2 + 2 * k);
+      titleLines.forEach((line, i) =>
+        ctx.fillText(line, out.width / 2, (i + 0.5) * titleLineH + 2 * k));
     }
     ctx.drawImage(canvas, 0, titleH);
     ctx.font = font(12, false);

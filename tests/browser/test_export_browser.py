@@ -406,3 +406,25 @@ def test_png_of_a_long_titled_chart_has_the_whole_title_in_its_name(
     name = got.value.suggested_filename
     assert name == "dobtune-dob-rejection-gain-e-without-e-with-23-0-db-where-the-dob-helps.png"
     assert name == export_filename(spec, "png")  # the CSV's stem
+
+
+def test_png_of_a_narrow_chart_has_its_whole_title(page: Any, dashboard: Dashboard,
+                                                    artifacts: Path) -> None:
+    """The recordings overlay sits in the narrow sidebar; its one-line title ran off both
+    edges of the PNG. Wrapped, the title's ink keeps off the image's left and right edges."""
+    from server.panels.recordings import OVERLAY_CHART
+
+    _ready(page, dashboard)
+    page.get_by_role("tab", name="Recordings").click()
+    button = _export_button(page, OVERLAY_CHART.title, "PNG")
+    button.wait_for(timeout=30_000)
+    with page.expect_download(timeout=15_000) as got:
+        button.click()
+    blob = Path(got.value.path()).read_bytes()
+    (artifacts / "export_overlay.png").write_bytes(blob)
+    px = _png(blob).astype(int)
+    top = px[: px.shape[0] // 6]  # the title band (the chart below is taller than the title)
+    ink = (top.sum(axis=2) < 3 * 160)  # dark text on the light background
+    assert ink.any(), "no title drawn"
+    edge = max(4, px.shape[1] // 100)
+    assert not ink[:, :edge].any() and not ink[:, -edge:].any(), "the title runs off the image"
