@@ -260,3 +260,19 @@ def test_no_version_beyond_the_limit_is_made_by_an_apply_or_its_rollback(tmp_pat
     saved = svc.store.load()
     assert saved is not None and saved.version == top
     access.close()
+
+
+def test_a_status_never_carries_a_rollback_count_without_its_text(tmp_path: Path) -> None:
+    """Status.rollbacks is the count the service has reported, with its `watchdog` text: it
+    was the loop's count, which moves at the trip, while the text came when the service
+    noticed the rollback (a Status between them had the new count and no text)."""
+    rt, _rig = _runtime()
+    svc, access = _service(rt, tmp_path)
+    _roll_back(rt)
+    before = svc.status()
+    assert (before.rollbacks, before.watchdog) == (0, "")  # the loop rolled back, not reported
+    svc.poll_rollback()
+    after = svc.status()
+    assert after.rollbacks == 1
+    assert after.watchdog.startswith("watchdog: ") and "rolled back from v2" in after.watchdog
+    access.close()

@@ -301,7 +301,7 @@ class ControllerService:
 
     def _rolled_back(self, count: int) -> None:
         rt = self.rt
-        self._rollbacks_seen = rt.rollbacks
+        seen = rt.rollbacks
         seq, from_v, to_v, trip = rt.last_rollback  # type: ignore[misc]
         self._wait_version(to_v)
         active = rt.loop.active
@@ -310,6 +310,9 @@ class ControllerService:
             f"configuration as v{to_v} at seq {seq}"
         )
         self.watchdog_text = text
+        # The count Status publishes, set after its text: a Status never carries a rollback
+        # count without the text that reports it (`status` reads the count first).
+        self._rollbacks_seen = seen
         self.warn(text)
         bad: LoopConfig | None = None
         if self._fallback_state is not None:
@@ -512,6 +515,9 @@ class ControllerService:
         if rt.mode == ESTOP:
             faults.append(f"e-stop ({rt.estop_source}) at seq {rt.estop_seq}")
         active = rt.loop.active
+        # The rollbacks this service has reported (with their `watchdog` text), not the loop's
+        # count, which moves first. Read before the text (which is set before it).
+        rollbacks = self._rollbacks_seen
         return proto.Status(
             rig=self.opts.rig_name,
             plant=self.opts.plant,
@@ -531,7 +537,7 @@ class ControllerService:
             margins=self.margins,
             verdict=self.running_verdict,
             watchdog=self.watchdog_text,
-            rollbacks=rt.rollbacks,
+            rollbacks=rollbacks,
             operator=self.access.holder,
             audit_head=self.access.head,
             auth=self.access.auth,
