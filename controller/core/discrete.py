@@ -1,9 +1,10 @@
 """Discretisation (off the tick) and the scalar filter runtime (on the tick).
 
 Method: Tustin (bilinear) with frequency prewarping at a chosen frequency (for the DOB filters:
-the Q cut-off), applied to poles and zeros directly (`scipy.signal.bilinear_zpk`) and realised
-as second-order sections (`zpk2sos`) in float64. No high-order polynomial is ever formed, so
-a Q31 triple pole near z = 1 keeps its exact DC gain (control.md, mistake 3).
+the Q cut-off), applied to poles and zeros directly (`lti.bilinear_zpk`, scipy's bit for bit)
+and realised as second-order sections (`lti.zpk2sos`, scipy's 'nearest' pairing) in float64.
+No high-order polynomial is ever formed, so a Q31 triple pole near z = 1 keeps its exact DC
+gain (control.md, mistake 3).
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import signal
+
+from controller.core import lti
 
 SosArray = np.ndarray  # shape (n_sections, 6): b0 b1 b2 a0(=1) a1 a2
 
@@ -33,14 +35,12 @@ def tustin_zpk(
     prewarp_hz: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     fs = prewarped_fs(rate_hz, prewarp_hz)
-    zd, pd, kd = signal.bilinear_zpk(
-        np.asarray(zeros, complex), np.asarray(poles, complex), gain, fs
-    )
+    zd, pd, kd = lti.bilinear_zpk(np.asarray(zeros, complex), np.asarray(poles, complex), gain, fs)
     return zd, pd, float(np.real(kd))
 
 
 def zpk_to_sos(zd: np.ndarray, pd: np.ndarray, kd: float) -> SosArray:
-    sos = signal.zpk2sos(zd, pd, kd, pairing="nearest")
+    sos = lti.zpk2sos(zd, pd, kd)
     return np.ascontiguousarray(sos, dtype=np.float64)
 
 

@@ -37,9 +37,9 @@ import math
 from enum import IntEnum
 
 import msgspec
-from scipy import signal
 
 from controller.core.errors import ConfigError
+from controller.core.lti import butter_sos
 from controller.core.validate import in_range, number, positive
 
 __all__ = ["TripCode", "Watchdog", "WatchdogLimits", "WatchdogTrip"]
@@ -220,9 +220,7 @@ class Watchdog:
         self.limits = lim
         self.rate_hz = rate
         self.command_limit_deg_s = float(command_limit_deg_s)
-        sos = signal.butter(
-            2, (lim.band_low_hz, lim.band_high_hz), btype="bandpass", fs=rate, output="sos"
-        )
+        sos = butter_sos(2, (lim.band_low_hz, lim.band_high_hz), "bandpass", rate)
         self._c1, self._c2 = (
             (float(b0), float(b1), float(b2), float(a1), float(a2))
             for b0, b1, b2, _a0, a1, a2 in sos

@@ -11,11 +11,12 @@ from functools import lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import linalg, signal
+from scipy import linalg
 
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.discrete import SosArray, sos_response
 from controller.core.dob import design_dob
+from controller.core.lti import ss2tf, zpk2ss
 from controller.gate.knowledge import (
     TWO_PI,
     readonly,
@@ -93,7 +94,7 @@ class DiscretePlant:
 def discrete_plant(nominal: NominalModel, rate_hz: float) -> DiscretePlant:
     ts = 1.0 / rate_hz
     z, p, k = mp_zpk(nominal)
-    a, b, c, d = signal.zpk2ss(np.array(z), np.array(p), k)
+    a, b, c, d = zpk2ss(np.array(z), np.array(p), k)
     a, b, c, d = (np.real(np.atleast_2d(m)).astype(np.float64) for m in (a, b, c, d))
     n = a.shape[0]
     # Augment with theta' = C x + D u, then ZOH over one period (matrix exponential).
@@ -118,7 +119,7 @@ def discrete_plant(nominal: NominalModel, rate_hz: float) -> DiscretePlant:
     ct[n + 1] = 1.0
     ag, bg = ax[: n + 1, : n + 1], bx[: n + 1]
     cg = cw[: n + 1]
-    num, den = signal.ss2tf(ag, bg[:, None], cg[None, :], np.zeros((1, 1)))
+    num, den = ss2tf(ag, bg[:, None], cg[None, :], np.zeros((1, 1)))
     # In z: num(z)/den(z) with equal lengths; as polynomials in z^-1 the same arrays apply.
     return DiscretePlant(
         a=readonly(ax),

@@ -19,10 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import linalg, signal
+from scipy import linalg
 
 from controller.core.config import NominalModel
 from controller.core.errors import ConfigError
+from controller.core.lti import tf2ss
 
 __all__ = ["LinearRig", "PlantVariant"]
 
@@ -73,7 +74,7 @@ class PlantVariant:
 
 
 def _ss(num: npt.NDArray[np.float64], den: npt.NDArray[np.float64]) -> tuple[np.ndarray, ...]:
-    a, b, c, d = signal.tf2ss(num, den)
+    a, b, c, d = tf2ss(num, den)
     return tuple(np.atleast_2d(np.asarray(m, float)) for m in (a, b, c, d))
 
 

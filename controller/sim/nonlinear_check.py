@@ -45,10 +45,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import signal
 
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.core.lti import butter_sos, sosfilt
 from controller.sim.sim_rig import RigFaults, RigParams, SimRig
 
 __all__ = [
@@ -144,8 +144,7 @@ def nonlinear_check(
         step(u)
         cmd[k] = u
         err[k] = r - p
-    sos = signal.butter(2, _BAND_HZ, btype="bandpass", fs=rate, output="sos")
-    band = signal.sosfilt(sos, cmd)
+    band = sosfilt(butter_sos(2, _BAND_HZ, "bandpass", rate), cmd)
     k_rev = round(0.5 * t_stop * rate)
     rev = band[k_rev : k_rev + round(0.4 * rate)]
     hold = band[n - round(1.0 * rate) :]

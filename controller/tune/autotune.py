@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-from scipy import signal
 
 from controller.core.config import LoopConfig
+from controller.core.lti import butter_sos, sosfilt
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PlantKnowledge
 from controller.gate.verdict import NonlinearCheck, judge
@@ -85,8 +85,7 @@ class TuneResult:
 def command_noise_deg_s(command_deg_s: npt.ArrayLike, rate_hz: float) -> float:
     """RMS of the speed command above `NOISE_BAND_HZ` (2nd-order Butterworth high-pass), deg/s,
     after the first fifth of the run (the start-up transient): the DOB's price in the drive."""
-    sos = signal.butter(2, NOISE_BAND_HZ, btype="highpass", fs=rate_hz, output="sos")
-    hp = signal.sosfilt(sos, command_deg_s)
+    hp = sosfilt(butter_sos(2, NOISE_BAND_HZ, "highpass", rate_hz), command_deg_s)
     n0 = len(hp) // 5  # skip the start-up transient
     return float(np.sqrt(np.mean(hp[n0:] ** 2)))
 
