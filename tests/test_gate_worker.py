@@ -17,7 +17,7 @@ from old_loop import OLD_LOOP
 
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
-from controller.process.gate_worker import GateRunner, gate, gate_and_build
+from controller.process.gate_worker import GateRunner, clear_caches, gate, gate_and_build
 
 K = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=3, source="test"))
 
@@ -86,6 +86,7 @@ def test_analysis_failures_carry_no_internal_text(monkeypatch: pytest.MonkeyPatc
         raise np.linalg.LinAlgError("Array must not contain infs or NaNs")
 
     monkeypatch.setattr(verdict_module, "analyse", broken)
+    clear_caches()  # (the default was judged by the tests before, with the real analysis)
     verdict = gate(LoopConfig(), K)
     assert not verdict.accepted
     assert verdict.reasons[0].startswith("candidate: ")

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -34,8 +35,11 @@ from controller.gate.loop_model import TWO_PI, ComplexArray, discrete_equivalent
 __all__ = [
     "SPREAD_MARGIN",
     "Recommendation",
+    "RecommendationSearch",
+    "TopSearch",
     "knowledge_spread",
     "recommend",
+    "recommendation_search",
     "recommended_max_cutoff_hz",
     "spread_figure",
     "spread_limited_cutoff_hz",
@@ -159,21 +163,122 @@ def recommend(
 ) -> Recommendation:
     """The gate's top cut-off and, with two or more measured responses, the position spread's
     limit (`spread_margin` None: the gate alone)."""
-    qt: QType = check_q_type(q_type if q_type is not None else cfg.q_type)
-    gate_hz = _gate_top_hz(cfg, plant, limits, qt, lowest_hz, highest_hz, coarse_points,
-                           rel_tol)
-    spread = None
-    spread_hz = None
-    if spread_margin is not None and plant is not None:
-        spread = knowledge_spread(plant, cfg.rate_hz)
-    if spread is not None:
-        assert spread_margin is not None
-        spread_hz = spread_limited_cutoff_hz(qt, spread, spread_margin)
-    rec = gate_hz
-    if rec is not None and spread is not None:
-        rec = None if spread_hz is None else min(rec, spread_hz)
-    return Recommendation(qt, rec, gate_hz, spread_hz, spread,
-                          spread_margin if spread_margin is not None else math.nan)
+    return RecommendationSearch(
+        cfg, plant, limits, q_type, spread_margin=spread_margin, lowest_hz=lowest_hz,
+        highest_hz=highest_hz, coarse_points=coarse_points, rel_tol=rel_tol,
+    ).recommendation()
+
+
+class RecommendationSearch:
+    """`recommend` for one configuration's gains and one plant knowledge, searched only as far
+    as each question needs (`decide`: is a cut-off above the recommendation?) and completed
+    on demand (`recommendation`, `value`); what was evaluated is kept for the next question.
+
+    The answers are the whole search's, exactly: the gate's accepted region is searched by a
+    `TopSearch` (the same evaluations, in the same order, as the whole search) and the
+    position spread's limit, which does not depend on the gains, is computed once per plant
+    knowledge and Q type (`_spread_limit`)."""
+
+    def __init__(
+        self,
+        cfg: LoopConfig,
+        plant: PlantKnowledge | None = None,
+        limits: GateLimits | None = None,
+        q_type: str | None = None,
+        *,
+        spread_margin: float | None = SPREAD_MARGIN,
+        lowest_hz: float = 0.02,
+        highest_hz: float | None = None,
+        coarse_points: int = 16,
+        rel_tol: float = 0.01,
+    ) -> None:
+        qt: QType = check_q_type(q_type if q_type is not None else cfg.q_type)
+        self.q_type = qt
+        self.gate = _gate_search(cfg, plant, limits, qt, lowest_hz, highest_hz, coarse_points,
+                                 rel_tol)
+        self.spread: PositionSpread | None = None
+        self.spread_hz: float | None = None
+        self.margin = spread_margin if spread_margin is not None else math.nan
+        if spread_margin is not None and plant is not None:
+            self.spread, self.spread_hz = _spread_limit(plant, cfg.rate_hz, qt, spread_margin)
+
+    def none(self) -> bool:
+        """No recommendation: the gate accepts not even the lowest cut-off, or the position
+        spread allows none (one evaluation at most)."""
+        if self.spread is not None and self.spread_hz is None:
+            return True
+        return self.gate.none()
+
+    def decide(self, holds: Callable[[float], bool]) -> bool | None:
+        """`holds(recommended_hz)` (None when there is no recommendation) for a `holds` that
+        is monotone non-decreasing in the cut-off (once true, true for every larger one),
+        evaluating the gate's region only until the answer is certain."""
+        if self.none():
+            return None
+        if self.spread is not None:
+            assert self.spread_hz is not None
+            if not holds(self.spread_hz):
+                return False  # min(gate, spread) <= spread
+        return self.gate.decide(holds)
+
+    def value(self) -> float | None:
+        """The recommended maximum cut-off (the whole search)."""
+        gate_hz = self.gate.value()
+        if gate_hz is None or self.spread is None:
+            return gate_hz
+        return None if self.spread_hz is None else min(gate_hz, self.spread_hz)
+
+    def recommendation(self) -> Recommendation:
+        return Recommendation(self.q_type, self.value(), self.gate.value(), self.spread_hz,
+                              self.spread, self.margin)
+
+
+#: Recommendation searches by (configuration without its cut-off and DOB switch, plant
+#: knowledge object, limits): everything the recommendation depends on (the knowledge object
+#: stands for its evidence: a new record is a new object). Bounded.
+_SEARCHES: dict[tuple[LoopConfig, PlantKnowledge, GateLimits], RecommendationSearch] = {}
+_SEARCHES_MAX = 64
+
+
+def recommendation_search(
+    cfg: LoopConfig, plant: PlantKnowledge, limits: GateLimits | None = None
+) -> RecommendationSearch:
+    """The `RecommendationSearch` for cfg's Q type, gains and limits on `plant`, shared by
+    every configuration that differs from cfg only in the cut-off or the DOB switch: moving
+    the cut-off costs at most the rest of one search; new gains, knowledge or limits start a
+    new one."""
+    limits = limits if limits is not None else GateLimits()
+    key = (cfg.with_(q_cutoff_hz=1.0, dob_on=True), plant, limits)
+    found = _SEARCHES.get(key)
+    if found is None:
+        # (Two threads may both start one: each is right; one is kept.)
+        found = RecommendationSearch(key[0], plant, limits)
+        if len(_SEARCHES) >= _SEARCHES_MAX:
+            _SEARCHES.clear()  # what a tuning session revisits is recent: it comes back
+        _SEARCHES[key] = found
+    return found
+
+
+_SPREADS: dict[tuple[PlantKnowledge, float, str, float],
+               tuple[PositionSpread | None, float | None]] = {}
+_SPREADS_MAX = 16
+
+
+def _spread_limit(
+    plant: PlantKnowledge, rate_hz: float, q_type: QType, margin: float
+) -> tuple[PositionSpread | None, float | None]:
+    """(knowledge_spread, spread_limited_cutoff_hz) per (plant knowledge object, rate, Q type,
+    margin): the gains do not enter it."""
+    key = (plant, rate_hz, q_type, margin)
+    got = _SPREADS.get(key)
+    if got is None:
+        spread = knowledge_spread(plant, rate_hz)
+        got = (spread, None if spread is None else spread_limited_cutoff_hz(q_type, spread,
+                                                                              margin))
+        if len(_SPREADS) >= _SPREADS_MAX:
+            _SPREADS.clear()
+        _SPREADS[key] = got
+    return got
 
 
 def recommended_max_cutoff_hz(
@@ -197,11 +302,11 @@ def recommended_max_cutoff_hz(
     ).recommended_hz
 
 
-def _gate_top_hz(
+def _gate_search(
     cfg: LoopConfig, plant: PlantKnowledge | None, limits: GateLimits | None, qt: QType,
     lowest_hz: float, highest_hz: float | None, coarse_points: int, rel_tol: float,
-) -> float | None:
-    """Largest Q cut-off (Hz) the gate accepts, DOB on.
+) -> TopSearch:
+    """The search for the largest Q cut-off (Hz) the gate accepts, DOB on.
 
     Acceptance is assumed to hold on an interval from low cut-offs up to a limit (robustness
     and margins degrade as the Q bandwidth grows), though not strictly monotone. Guard: scan
@@ -217,28 +322,110 @@ def _gate_top_hz(
     def ok(fc: float) -> bool:
         return analyse(base.with_(q_cutoff_hz=fc), plant, limits).accepted
 
-    return _top_of(ok, np.geomspace(lowest_hz, top, coarse_points), rel_tol)
+    return TopSearch(ok, np.geomspace(lowest_hz, top, coarse_points), rel_tol)
 
 
 def _top_of(ok: Callable[[float], bool], grid: np.ndarray, rel_tol: float) -> float | None:
     """The first ok -> not ok transition on `grid` from below, bisected in log to `rel_tol`
     (the grid's top if there is none; None if its first point is not ok)."""
-    if not ok(float(grid[0])):
-        return None
-    lo = float(grid[0])
-    hi: float | None = None
-    for fc in grid[1:]:
-        if ok(float(fc)):
-            lo = float(fc)
-        else:
-            hi = float(fc)
-            break
-    if hi is None:
-        return lo
-    while hi / lo > 1.0 + rel_tol:
-        mid = math.sqrt(lo * hi)
-        if ok(mid):
-            lo = mid
-        else:
-            hi = mid
-    return lo
+    return TopSearch(ok, grid, rel_tol).value()
+
+
+class _TopState(NamedTuple):
+    """Where a `TopSearch` stands (immutable: a step makes a new one)."""
+
+    next: int
+    """Coarse points evaluated."""
+    lo: float | None
+    """The largest point known ok on the way (the answer is at least this)."""
+    hi: float | None
+    """The transition's upper end (not ok), once the coarse scan found it."""
+    done: bool
+    value: float | None
+
+
+class TopSearch:
+    """`_top_of` one evaluation at a time: ok() is evaluated only as far as a question needs,
+    each point once, in the order of the whole search (so every answer is the whole search's:
+    the coarse scan from below up to the first point that is not ok, then the bisection of
+    that transition in log to `rel_tol`).
+
+    Safe to share between threads without a lock (this package runs none): a step is a pure
+    function of the state it starts from and ok() (deterministic), so two threads stepping
+    from the same state make the same next state, and a thread that stepped from an older
+    one sets a state the search has passed through (its work is redone, never wrong)."""
+
+    def __init__(self, ok: Callable[[float], bool], grid: np.ndarray, rel_tol: float) -> None:
+        self._ok = ok
+        self._grid = tuple(float(g) for g in grid)
+        self._rel_tol = rel_tol
+        self._state = _TopState(0, None, None, False, None)
+        self._seen: dict[float, bool] = {}
+
+    @property
+    def evaluations(self) -> int:
+        """Points evaluated so far."""
+        return len(self._seen)
+
+    def _good(self, fc: float) -> bool:
+        good = self._seen.get(fc)
+        if good is None:
+            good = self._seen[fc] = bool(self._ok(fc))
+        return good
+
+    def _step(self, st: _TopState) -> _TopState:
+        """The state after one more evaluation (`st` not done)."""
+        if st.hi is None:  # the coarse scan
+            fc = self._grid[st.next]
+            n = st.next + 1
+            if self._good(fc):
+                done = n == len(self._grid)
+                return _TopState(n, fc, None, done, fc if done else None)
+            if st.lo is None:
+                return _TopState(n, None, None, True, None)
+            lo, hi = st.lo, fc
+        else:  # the bisection
+            assert st.lo is not None
+            n, lo, hi = st.next, st.lo, st.hi
+            mid = math.sqrt(lo * hi)
+            if self._good(mid):
+                lo = mid
+            else:
+                hi = mid
+        if not hi / lo > 1.0 + self._rel_tol:
+            return _TopState(n, lo, hi, True, lo)
+        return _TopState(n, lo, hi, False, None)
+
+    def _advance(self, st: _TopState) -> _TopState:
+        new = self._step(st)
+        if self._state is st:
+            self._state = new
+        return new
+
+    def none(self) -> bool:
+        """The first point is not ok (no top)."""
+        st = self._state
+        while not st.done and st.lo is None:
+            st = self._advance(st)
+        return st.done and st.value is None
+
+    def decide(self, holds: Callable[[float], bool]) -> bool | None:
+        """`holds(value)` (None if there is no top) for a `holds` monotone non-decreasing in
+        the cut-off, from the bracket known so far where it settles the answer: the value is
+        at least the largest ok point and at most the transition's upper end (the grid's top
+        during the coarse scan)."""
+        st = self._state
+        while not st.done:
+            if st.lo is not None:
+                if holds(st.lo):
+                    return True
+                if not holds(st.hi if st.hi is not None else self._grid[-1]):
+                    return False
+            st = self._advance(st)
+        return None if st.value is None else holds(st.value)
+
+    def value(self) -> float | None:
+        st = self._state
+        while not st.done:
+            st = self._advance(st)
+        return st.value

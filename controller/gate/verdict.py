@@ -8,14 +8,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Protocol
 
 from controller.core.config import LoopConfig, NominalModel
 from controller.gate.analysis import Analysis, GateLimits, Verdict, analyse
 from controller.gate.knowledge import PlantKnowledge
 from controller.gate.margins import Margins
-from controller.gate.search import recommended_max_cutoff_hz
+from controller.gate.search import recommendation_search
 
 __all__ = [
     "EXIT_CODES",
@@ -59,8 +58,9 @@ class Judgement:
     rejections: tuple[str, ...]
     cautions: tuple[str, ...]
     recommended_max_cutoff_hz: float | None
-    """For the candidate's Q type (None: even the lowest cut-off is not accepted, or the
-    candidate was rejected before the search was worth running)."""
+    """For the candidate's Q type (None: even the lowest cut-off is not accepted, the
+    candidate was rejected before the search was worth running, or `judge` was asked for the
+    verdict alone: `recommendation` False)."""
 
     @property
     def reasons(self) -> tuple[str, ...]:
@@ -71,18 +71,12 @@ class Judgement:
         return self.verdict != "reject"
 
 
-@lru_cache(maxsize=64)
-def _recommended(base: LoopConfig, plant: PlantKnowledge, limits: GateLimits) -> float | None:
-    return recommended_max_cutoff_hz(base, plant, limits)
-
-
 def recommended_cutoff_hz(
     cfg: LoopConfig, plant: PlantKnowledge, limits: GateLimits | None = None
 ) -> float | None:
     """`recommended_max_cutoff_hz` for cfg's Q type, cached per (configuration without the
     cut-off, plant knowledge object, limits): moving the cut-off slider costs one search."""
-    base = cfg.with_(q_cutoff_hz=1.0, dob_on=True)
-    return _recommended(base, plant, limits if limits is not None else GateLimits())
+    return recommendation_search(cfg, plant, limits).value()
 
 
 def conditional_stability(a: Analysis, limits: GateLimits) -> tuple[str, ...]:
@@ -111,6 +105,7 @@ def judge(
     limits: GateLimits | None = None,
     *,
     nonlinear: NonlinearCheck | None = None,
+    recommendation: bool = True,
 ) -> Judgement:
     """The verdict on `cfg` against `plant`: reject on any rejection of the analysis or a
     sustained oscillation in the nonlinear check (chatter that does not decay: the loop
@@ -118,7 +113,12 @@ def judge(
     above the recommended maximum (the top of the continuous accepted region from the lowest
     cut-off) or another finding of the nonlinear check (ringing that decays, hunting); else
     accept. A verdict other than accept also names every conditionally stable loop with its
-    gain-reduction margin (`conditional_stability`)."""
+    gain-reduction margin (`conditional_stability`).
+
+    The recommended cut-off is searched only as far as the verdict needs (for a cut-off
+    below it, the coarse scan up to the cut-off; `RecommendationSearch`), and to the end for
+    the result's `recommended_max_cutoff_hz` unless `recommendation` is False (the
+    controller's gate: the verdict alone)."""
     limits = limits if limits is not None else GateLimits()
     a = analyse(cfg, plant, limits)
     if a.verdict == "reject":
@@ -126,14 +126,19 @@ def judge(
         return Judgement(a, "reject", a.rejections, a.cautions + cond, None)
     rejections: list[str] = []
     cautions = list(a.cautions)
-    rec = recommended_cutoff_hz(cfg, plant, limits)
+    search = recommendation_search(cfg, plant, limits)
     if cfg.dob_on:
-        if rec is None:
+        # Searched only as far as the answer needs (a cut-off well below the recommendation
+        # needs the coarse scan up to it), to the end only for a caution's text.
+        fits = search.decide(lambda r: not cfg.q_cutoff_hz > r * 1.0001)
+        if fits is None:
             cautions.append(
                 f"Q cut-off {cfg.q_cutoff_hz:g} Hz: no {cfg.q_type} cut-off is accepted without "
                 f"reservation on {plant.describe()}"
             )
-        elif cfg.q_cutoff_hz > rec * 1.0001:
+        elif not fits:
+            rec = search.value()
+            assert rec is not None
             cautions.append(
                 f"Q cut-off {cfg.q_cutoff_hz:g} Hz is above the recommended maximum "
                 f"{rec:.3g} Hz for {cfg.q_type} (the top of the accepted region from the lowest "
@@ -147,4 +152,5 @@ def judge(
     verdict: Verdict = "reject" if rejections else "caution" if cautions else "accept"
     if verdict != "accept":
         cautions += conditional_stability(a, limits)
+    rec = search.value() if recommendation else None
     return Judgement(a, verdict, tuple(rejections), tuple(cautions), rec)

@@ -27,7 +27,10 @@ from controller.core.loop import LoopCoefficients
 from controller.gate.knowledge import KnowledgeRecord
 from controller.process.worker_start import worker_init
 
-__all__ = ["GateRunner", "GateVerdict", "gate", "gate_and_build", "margins_dict", "nan_margins"]
+__all__ = [
+    "GateRunner", "GateVerdict", "clear_caches", "gate", "gate_and_build", "margins_dict",
+    "nan_margins",
+]
 
 log = logging.getLogger(__name__)
 
@@ -63,32 +66,73 @@ def margins_dict(m: proto.Margins | None) -> dict[str, float] | None:
     return None if m is None else msgspec.to_builtins(m)  # type: ignore[no-any-return]
 
 
-#: The worker's converted plant knowledge, per record version (one at a time): the
-#: recommended cut-off's cache is keyed on the knowledge object, so it must stay the same.
-_knowledge: dict[tuple[int, str], Any] = {}
+#: The worker's converted plant knowledge (one record at a time) and its verdicts: the caches
+#: of the analysis (the recommended cut-off's search, `gate`'s verdicts) are keyed on the
+#: knowledge object, so it stays the same while the record is equal, every field of it (not
+#: only its version and source: a record is judged on its evidence, whatever it is named).
+_knowledge: list[tuple[KnowledgeRecord, Any]] = []
+#: The gate's verdicts by (candidate, knowledge object): a candidate sent again (a
+#: confirmation after a caution, a re-apply) is not analysed again. Everything a verdict
+#: depends on is in the key: the whole configuration (gains, filters, limits, rate), the
+#: knowledge (its evidence and version); the gate's limits are the defaults, the rig's
+#: command limit is checked before (`GateRunner`).
+_verdicts: dict[tuple[LoopConfig, Any], GateVerdict] = {}
+_VERDICTS_MAX = 64
+_cache_lock = threading.Lock()
 
 
 def _plant(record: KnowledgeRecord) -> Any:
-    key = (record.version, record.source)
-    k = _knowledge.get(key)
-    if k is None:
-        _knowledge.clear()
-        k = _knowledge[key] = record.to_knowledge()
+    with _cache_lock:
+        if _knowledge and _knowledge[0][0] == record:
+            return _knowledge[0][1]
+    k = record.to_knowledge()
+    with _cache_lock:
+        _knowledge[:] = [(record, k)]
+        _verdicts.clear()
     return k
+
+
+def clear_caches() -> None:
+    """Forget the converted knowledge and the verdicts (for tests that change the code the
+    gate runs; the caches' keys hold every input)."""
+    with _cache_lock:
+        _knowledge.clear()
+        _verdicts.clear()
 
 
 def gate(cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
     """The gate's verdict (`controller.gate.verdict.judge`) on `cfg` against the plant
     knowledge `record`. Never raises."""
-    from controller.gate.verdict import judge
-    from controller.sim.nonlinear_check import findings
-
     try:
-        j = judge(cfg, _plant(record), nonlinear=findings)
-    except Exception as exc:  # the details go to the log, never to the client
-        log.warning("analysis failed on %r: %s: %s", cfg, type(exc).__name__, exc)
-        reason = "candidate: the stability analysis cannot evaluate this configuration"
+        plant = _plant(record)
+    except Exception as exc:
+        log.warning("plant knowledge v%d failed to convert: %s: %s", record.version,
+                    type(exc).__name__, exc)
+        reason = "knowledge: the plant knowledge cannot be used"
         return GateVerdict(False, (reason,), nan_margins(), knowledge_version=record.version)
+    key = (cfg, plant)
+    with _cache_lock:
+        verdict = _verdicts.get(key)
+    if verdict is None:
+        from controller.gate.verdict import judge
+        from controller.sim.nonlinear_check import findings
+
+        try:
+            j = judge(cfg, plant, nonlinear=findings, recommendation=False)
+        except Exception as exc:  # the details go to the log, never to the client
+            log.warning("analysis failed on %r: %s: %s", cfg, type(exc).__name__, exc)
+            reason = "candidate: the stability analysis cannot evaluate this configuration"
+            return GateVerdict(False, (reason,), nan_margins(), knowledge_version=record.version)
+        verdict = _verdict(j, record.version)
+        with _cache_lock:
+            if len(_verdicts) >= _VERDICTS_MAX:
+                del _verdicts[next(iter(_verdicts))]
+            _verdicts[key] = verdict
+    return verdict
+
+
+def _verdict(j: Any, knowledge_version: int) -> GateVerdict:
+    """The GateVerdict of a Judgement."""
     a = j.analysis
     margins = proto.Margins(
         gain_margin_db=float(a.gain_margin_db),
@@ -97,7 +141,7 @@ def gate(cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
         small_gain_peak=float(a.small_gain_peak),
         max_pole_radius=float(a.max_pole_radius),
     )
-    kv = record.version
+    kv = knowledge_version
     if j.verdict == "reject":
         reasons = j.reasons or ("rejected by the stability analysis",)
         return GateVerdict(False, reasons, margins, verdict="reject", knowledge_version=kv)

@@ -43,6 +43,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -193,6 +194,10 @@ def nonlinear_check(
     )
 
 
+@lru_cache(maxsize=128)
 def findings(cfg: LoopConfig, model: NominalModel) -> tuple[Finding, ...]:
-    """The findings of `nonlinear_check` (the gate's `judge(..., nonlinear=findings)`)."""
+    """The findings of `nonlinear_check` (the gate's `judge(..., nonlinear=findings)`), cached
+    per (configuration, plant model): everything the run depends on (the simulated rig's
+    parameters and the seed are the defaults). A candidate judged again, or on new plant
+    knowledge with the same model (new measured responses), is not simulated again."""
     return nonlinear_check(cfg, model).findings
