@@ -1,6 +1,7 @@
 """Recordings as MCAP files (the robotics log format Foxglove and PlotJuggler open directly),
 written with the `mcap` library and read by walking the file's chunks directly (`_messages`:
-the library's pure-Python reader took 17 s for a 10-minute recording).
+the library's pure-Python reader took 17 s for a 10-minute recording), the /state messages
+taken straight into columns (`state_scan`).
 
 Channels (message encoding "json", schemas embedded as JSON Schema, zstd-compressed chunks):
 
@@ -253,40 +254,127 @@ _state_list = msgspec.json.Decoder(list[_StateMsg])  # type: ignore[valid-type]
 def read_recording(path: str | Path) -> Recording:
     """Read a dobtune MCAP file. Raises ValueError naming the file for anything else.
 
-    The /state messages (one per tick: most of the file) are decoded in one msgspec call
-    rather than one `json.loads` each (a third of the read time of a long recording)."""
+    The /state messages (one per tick: most of the file) go straight into columns
+    (`state_scan`); a file whose /state messages are not in `Recorder.state`'s exact form is
+    read by the general decoder (`_read_general`), which gives the same arrays."""
     path = Path(path)
-    states: list[bytes] = []
-    times: list[int] = []
-    rec = Recording(state={}, log_time_s=np.empty(0))
     try:
-        for topic, schema, t_ns, data in _messages(path):
-            rec.channels[topic] = schema
-            if topic == "/state":
-                states.append(data)
-                times.append(t_ns)
-                continue
-            obj = json.loads(data)
-            if topic == "/config":
-                rec.configs[int(obj["version"])] = obj["config"]
-            elif topic == "/events":
-                rec.events.append({**obj, "log_time_s": t_ns / 1e9})
-            elif topic == "/status":
-                rec.statuses.append(obj)
-        msgs: list[Any] = _state_list.decode(b"[" + b",".join(states) + b"]")
-    except Exception as exc:  # mcap raises its own types for damaged files
+        rec = _read_scanned(path)
+        if rec is None:
+            rec = _read_general(path)
+    except Exception as exc:  # damaged files raise struct, zstd, msgspec errors
         raise ValueError(f"{path}: not a readable dobtune recording: {exc}") from exc
     if "/state" not in rec.channels:
         raise ValueError(f"{path}: no /state channel (not a dobtune recording)")
-    cols = {c: np.array([getattr(m, c) for m in msgs], dtype=np.float64)
-            for c in ("seq", *STATE_COLUMNS, "config_version")}
-    order = np.argsort(cols["seq"].astype(np.int64), kind="stable")
-    rec.state = {k: v[order] for k, v in cols.items()}
+    return rec
+
+
+def _take_other(rec: Recording, topic: str, t_ns: int, data: bytes | memoryview) -> None:
+    """A message that is not /state, into the recording."""
+    obj = json.loads(bytes(data))
+    if topic == "/config":
+        rec.configs[int(obj["version"])] = obj["config"]
+    elif topic == "/events":
+        rec.events.append({**obj, "log_time_s": t_ns / 1e9})
+    elif topic == "/status":
+        rec.statuses.append(obj)
+
+
+def _sorted_state(rec: Recording, cols: dict[str, np.ndarray], times_ns: np.ndarray) -> None:
+    seq = cols["seq"].astype(np.int64)
+    if seq.size and np.all(seq[1:] >= seq[:-1]):  # in order already (the usual case): the
+        rec.state = dict(cols)  # stable sort's permutation is the identity
+        log_time_s = np.asarray(times_ns, dtype=np.float64) / 1e9
+    else:
+        order = np.argsort(seq, kind="stable")
+        rec.state = {k: v[order] for k, v in cols.items()}
+        log_time_s = np.asarray(times_ns, dtype=np.float64)[order] / 1e9
     rec.state["seq"] = rec.state["seq"].astype(np.int64)
     rec.state["config_version"] = rec.state["config_version"].astype(np.int64)
-    modes: list[str] = [m.mode for m in msgs]
-    rec.state["mode"] = np.asarray(modes, dtype=object)[order]
-    rec.log_time_s = np.asarray(times, dtype=np.float64)[order] / 1e9
+    rec.log_time_s = log_time_s
+
+
+def _read_scanned(path: Path) -> Recording | None:
+    """The file's records walked as `_messages` walks them, runs of /state messages scanned
+    by `state_scan` (None: a /state message not in the recorder's form)."""
+    from controller.recording import state_scan
+
+    buf = memoryview(path.read_bytes())
+    if bytes(buf[:8]) != _MAGIC:
+        raise ValueError("not an MCAP file (no magic)")
+    rec = Recording(state={}, log_time_s=np.empty(0))
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str]] = {}
+    state = state_scan.StateColumns()
+    state_cid = -1
+
+    def records(data: memoryview, out_of_chunk: bool) -> bool:
+        nonlocal state_cid
+        arr = np.frombuffer(data, dtype=np.uint8)
+        at, end = 0, len(data)
+        while at < end:
+            if state_cid >= 0:
+                before = state.n
+                at, status = state.take(arr, at, end, state_cid)
+                if status == state_scan.SHAPE_MISMATCH:
+                    return False
+                if status == state_scan.TRUNCATED:
+                    raise ValueError("truncated record")
+                if state.n > before:
+                    rec.channels["/state"] = channels[state_cid][1]
+                if at >= end:
+                    break
+            op, n = _RECORD_HEAD.unpack_from(data, at)
+            body = at + 9
+            at = body + n
+            if at > end:
+                raise ValueError("truncated record")
+            if op == _OP_MESSAGE:
+                cid, _seq, t_ns, _pub = _MESSAGE_HEAD.unpack_from(data, body)
+                topic, schema = channels[cid]
+                if topic == "/state":  # not the channel the scan takes
+                    return False
+                rec.channels[topic] = schema
+                _take_other(rec, topic, t_ns, data[body + 22 : at])
+            elif op == _OP_CHUNK and out_of_chunk:
+                if not records(_chunk(data, body), False):
+                    return False
+            elif op == _OP_SCHEMA:
+                (sid,) = _U16.unpack_from(data, body)
+                schemas[sid] = _string(data, body + 2)[0]
+            elif op == _OP_CHANNEL:
+                cid, sid = struct.unpack_from("<HH", data, body)
+                topic = _string(data, body + 4)[0]
+                channels[cid] = (topic, schemas.get(sid, ""))
+                if topic == "/state" and state_cid < 0:
+                    state_cid = cid
+            elif op == _OP_DATA_END and out_of_chunk:
+                return True
+        return True
+
+    if not records(buf[8:], True):
+        return None
+    _sorted_state(rec, *state.columns())
+    return rec
+
+
+def _read_general(path: Path) -> Recording:
+    """Every message through `_messages`; the /state messages decoded in one msgspec call."""
+    states: list[bytes] = []
+    times: list[int] = []
+    rec = Recording(state={}, log_time_s=np.empty(0))
+    for topic, schema, t_ns, data in _messages(path):
+        rec.channels[topic] = schema
+        if topic == "/state":
+            states.append(data)
+            times.append(t_ns)
+            continue
+        _take_other(rec, topic, t_ns, data)
+    msgs: list[Any] = _state_list.decode(b"[" + b",".join(states) + b"]")
+    cols = {c: np.array([getattr(m, c) for m in msgs], dtype=np.float64)
+            for c in ("seq", *STATE_COLUMNS, "config_version")}
+    cols["mode"] = np.asarray([m.mode for m in msgs], dtype=object)
+    _sorted_state(rec, cols, np.asarray(times, dtype=np.float64))
     return rec
 
 
