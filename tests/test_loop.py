@@ -12,8 +12,7 @@ from scipy import signal
 
 from controller.core import loop as loop_module
 from controller.core.config import LoopConfig
-from controller.core.discrete import SosFilter
-from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.core.loop import LoopCoefficients, PreparedCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
 from controller.sim.experiment import run_experiment
 from controller.sim.sim_rig import SimRig
@@ -119,9 +118,7 @@ def _sine_run_with_swap(new_cfg: LoopConfig, naive: bool = False) -> tuple[np.nd
     for k in range(n):
         if k == k_swap:
             if naive:  # what a naive implementation does: new filters with zero states
-                coeffs = LoopCoefficients.build(new_cfg)
-                loop._f1 = SosFilter(coeffs.dob.f1_sos)
-                loop._f2 = SosFilter(coeffs.dob.f2_sos)
+                loop._take(PreparedCoefficients(LoopCoefficients.build(new_cfg)))
             else:
                 loop.request(LoopCoefficients.build(new_cfg, version=1))
         r, rr = traj.at(k * TS)

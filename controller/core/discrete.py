@@ -10,7 +10,7 @@ gain (control.md, mistake 3).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import MutableSequence, Sequence
 
 import numpy as np
 
@@ -60,6 +60,46 @@ def sos_response(sos: SosArray, freq_hz: np.ndarray, rate_hz: float) -> np.ndarr
     return h
 
 
+# -- the tick's filter arithmetic: plain functions of flat sequences (a tuple and a list in the
+# live loop, float64 arrays in the compiled offline loop, `controller.sim.offline`), so that
+# both run this one definition.
+
+#: Coefficients b0 b1 b2 a1 a2 per section, and two states per section.
+SosCoefficients = Sequence[float] | np.ndarray
+SosStates = MutableSequence[float] | np.ndarray
+
+
+def sos_step(c: SosCoefficients, s: SosStates, n: int, x: float) -> float:
+    """One sample through `n` second-order sections, transposed direct form II: `c` holds
+    b0 b1 b2 a1 a2 of each section in turn, `s` its two states (updated in place)."""
+    j = 0
+    m = 0
+    for _ in range(n):
+        y = c[j] * x + s[m]
+        s[m] = c[j + 1] * x - c[j + 3] * y + s[m + 1]
+        s[m + 1] = c[j + 2] * x - c[j + 4] * y
+        x = y
+        j += 5
+        m += 2
+    return x
+
+
+def sos_set_steady(c: SosCoefficients, s: SosStates, n: int, x: float) -> float:
+    """Put the states `s` at the steady state for a constant input x; returns the output."""
+    for i in range(n):
+        j = 5 * i
+        b0 = c[j]
+        b1 = c[j + 1]
+        b2 = c[j + 2]
+        a1 = c[j + 3]
+        a2 = c[j + 4]
+        y = x * (b0 + b1 + b2) / (1.0 + a1 + a2)
+        s[2 * i + 1] = b2 * x - a2 * y
+        s[2 * i] = y - b0 * x
+        x = y
+    return x
+
+
 class SosFilter:
     """Cascade of second-order sections, transposed direct form II, scalar float64 arithmetic.
 
@@ -87,18 +127,7 @@ class SosFilter:
         return self._n
 
     def step(self, x: float) -> float:
-        c = self._c
-        s = self._s
-        j = 0
-        m = 0
-        for _ in range(self._n):
-            y = c[j] * x + s[m]
-            s[m] = c[j + 1] * x - c[j + 3] * y + s[m + 1]
-            s[m + 1] = c[j + 2] * x - c[j + 4] * y
-            x = y
-            j += 5
-            m += 2
-        return x
+        return sos_step(self._c, self._s, self._n, x)
 
     def dc_gain(self) -> float:
         c = self._c
@@ -110,16 +139,17 @@ class SosFilter:
 
     def set_steady(self, x: float) -> float:
         """States for a constant input x held forever; returns the steady output."""
-        c = self._c
-        s = self._s
-        for i in range(self._n):
-            j = 5 * i
-            b0, b1, b2, a1, a2 = c[j : j + 5]
-            y = x * (b0 + b1 + b2) / (1.0 + a1 + a2)
-            s[2 * i + 1] = b2 * x - a2 * y
-            s[2 * i] = y - b0 * x
-            x = y
-        return x
+        return sos_set_steady(self._c, self._s, self._n, x)
+
+    @property
+    def coefficients(self) -> tuple[float, ...]:
+        """b0 b1 b2 a1 a2 of each section in turn (what `sos_step` takes)."""
+        return self._c
+
+    @property
+    def states(self) -> list[float]:
+        """The two states of each section in turn, live (what `sos_step` updates)."""
+        return self._s
 
     def reset(self) -> None:
         for i in range(len(self._s)):

@@ -16,6 +16,11 @@ and prepared off the tick (`PreparedCoefficients`: the tick's scalars and fresh 
 made in the requesting thread); the swap at the next tick boundary only takes the prepared
 objects and re-initialises the new DOB states from the present d_hat and speed (a few float
 operations per filter section), so that d_hat and u do not jump (bumpless transfer).
+
+The arithmetic is in two plain-float functions, `servo_law` (the whole tick) and `speed_law`
+(Cv and the DOB, the position loop open); `ServoLoop` keeps the state and calls them. The
+compiled offline loop (`controller.sim.offline`) compiles these same functions with numba, and
+is tested bit for bit against `ServoLoop` (tests/test_offline.py).
 """
 
 from __future__ import annotations
@@ -23,8 +28,90 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from controller.core.config import LoopConfig
-from controller.core.discrete import SosFilter
+from controller.core.discrete import SosCoefficients, SosFilter, SosStates, sos_step
 from controller.core.dob import DobDesign, design_dob
+
+# -- the tick's arithmetic: plain-float functions (no state of their own, no allocation
+# beyond the returned tuple) that `ServoLoop` calls per tick and that the compiled offline
+# loop (`controller.sim.offline`) compiles with numba: one definition for both.
+
+
+def speed_law(
+    r: float,
+    w: float,
+    u_prev: float,
+    cv_int: float,
+    e_speed_prev: float,
+    cv_kp: float,
+    cv_half: float,
+    limit: float,
+    dob_on: bool,
+    f1c: SosCoefficients,
+    f1s: SosStates,
+    f1n: int,
+    f2c: SosCoefficients,
+    f2s: SosStates,
+    f2n: int,
+) -> tuple[float, float, float, float]:
+    """Cv and the DOB for one period: (u, d_hat, new cv_int, speed error e). The DOB filters'
+    states (f1s, f2s) are updated in place; u is saturated at +-limit, and Cv's integrator
+    does not integrate further into a saturated command."""
+    e = r - w
+    cv_int_new = cv_int + cv_half * (e + e_speed_prev)
+    v = cv_kp * e + cv_int_new
+    if dob_on:
+        d_hat = sos_step(f1c, f1s, f1n, w) - sos_step(f2c, f2s, f2n, u_prev)
+    else:
+        d_hat = 0.0
+    u = v - d_hat
+    if u > limit:
+        u = limit
+        if cv_int_new > cv_int:
+            cv_int_new = cv_int
+    elif u < -limit:
+        u = -limit
+        if cv_int_new < cv_int:
+            cv_int_new = cv_int
+    return u, d_hat, cv_int_new, e
+
+
+def servo_law(
+    ref_deg: float,
+    ref_rate_deg_s: float,
+    pos_deg: float,
+    speed_deg_s: float,
+    pos_int: float,
+    e_pos_prev: float,
+    pos_kp: float,
+    pos_half: float,
+    ff: float,
+    u_prev: float,
+    cv_int: float,
+    e_speed_prev: float,
+    cv_kp: float,
+    cv_half: float,
+    limit: float,
+    dob_on: bool,
+    f1c: SosCoefficients,
+    f1s: SosStates,
+    f1n: int,
+    f2c: SosCoefficients,
+    f2s: SosStates,
+    f2n: int,
+) -> tuple[float, float, float, float, float, float, float]:
+    """The whole servo for one period (position PI with feedforward, then `speed_law`):
+    (u, d_hat, speed reference r, speed error e, new pos_int, new cv_int, position error)."""
+    e_pos = ref_deg - pos_deg
+    pos_int_new = pos_int + pos_half * (e_pos + e_pos_prev)
+    r = pos_kp * e_pos + pos_int_new + ff * ref_rate_deg_s
+    u, d_hat, cv_int_new, e = speed_law(
+        r, speed_deg_s, u_prev, cv_int, e_speed_prev, cv_kp, cv_half, limit, dob_on,
+        f1c, f1s, f1n, f2c, f2s, f2n,
+    )
+    # Anti-windup: no integration further into a saturated command.
+    if (u >= limit and pos_int_new > pos_int) or (u <= -limit and pos_int_new < pos_int):
+        pos_int_new = pos_int
+    return u, d_hat, r, e, pos_int_new, cv_int_new, e_pos
 
 
 @dataclass(frozen=True)
@@ -85,7 +172,13 @@ class ServoLoop:
         "_cv_kp",
         "_dob_on",
         "_f1",
+        "_f1c",
+        "_f1n",
+        "_f1s",
         "_f2",
+        "_f2c",
+        "_f2n",
+        "_f2s",
         "_ff",
         "_limit",
         "_pending",
@@ -132,6 +225,8 @@ class ServoLoop:
         self._dob_on = p.dob_on
         self._f1 = p.f1
         self._f2 = p.f2
+        self._f1c, self._f1s, self._f1n = p.f1.coefficients, p.f1.states, p.f1.n_sections
+        self._f2c, self._f2s, self._f2n = p.f2.coefficients, p.f2.states, p.f2.n_sections
 
     def request(self, coefficients: LoopCoefficients | PreparedCoefficients) -> None:
         """Ask for `coefficients` to take effect at the next tick boundary (thread-safe).
@@ -177,17 +272,21 @@ class ServoLoop:
             self._pending = None
             self._swap(pending)
 
-        e_pos = ref_deg - pos_deg
-        pos_int_new = self.pos_int + self._pos_half * (e_pos + self.e_pos_prev)
-        r = self._pos_kp * e_pos + pos_int_new + self._ff * ref_rate_deg_s
-        u = self._speed(r, speed_deg_s)
-        # Anti-windup: no integration further into a saturated command.
-        if (u >= self._limit and pos_int_new > self.pos_int) or (
-            u <= -self._limit and pos_int_new < self.pos_int
-        ):
-            pos_int_new = self.pos_int
-        self.pos_int = pos_int_new
+        u, d_hat, r, e, pos_int, cv_int, e_pos = servo_law(
+            ref_deg, ref_rate_deg_s, pos_deg, speed_deg_s, self.pos_int, self.e_pos_prev,
+            self._pos_kp, self._pos_half, self._ff, self.u_prev, self.cv_int,
+            self.e_speed_prev, self._cv_kp, self._cv_half, self._limit, self._dob_on,
+            self._f1c, self._f1s, self._f1n, self._f2c, self._f2s, self._f2n,
+        )
+        self.pos_int = pos_int
         self.e_pos_prev = e_pos
+        self.cv_int = cv_int
+        self.e_speed_prev = e
+        self.w_prev = speed_deg_s
+        self.u_prev = u
+        self.d_hat = d_hat
+        self.speed_ref_deg_s = r
+        self.speed_error_deg_s = e
         return u
 
     def tick_speed(self, speed_ref_deg_s: float, speed_deg_s: float) -> float:
@@ -200,24 +299,12 @@ class ServoLoop:
         return self._speed(speed_ref_deg_s, speed_deg_s)
 
     def _speed(self, r: float, speed_deg_s: float) -> float:
-        e = r - speed_deg_s
-        cv_int_new = self.cv_int + self._cv_half * (e + self.e_speed_prev)
-        v = self._cv_kp * e + cv_int_new
-        if self._dob_on:
-            d_hat = self._f1.step(speed_deg_s) - self._f2.step(self.u_prev)
-        else:
-            d_hat = 0.0
-        u = v - d_hat
-        limit = self._limit
-        if u > limit:
-            u = limit
-            if cv_int_new > self.cv_int:
-                cv_int_new = self.cv_int
-        elif u < -limit:
-            u = -limit
-            if cv_int_new < self.cv_int:
-                cv_int_new = self.cv_int
-        self.cv_int = cv_int_new
+        u, d_hat, cv_int, e = speed_law(
+            r, speed_deg_s, self.u_prev, self.cv_int, self.e_speed_prev, self._cv_kp,
+            self._cv_half, self._limit, self._dob_on,
+            self._f1c, self._f1s, self._f1n, self._f2c, self._f2s, self._f2n,
+        )
+        self.cv_int = cv_int
         self.e_speed_prev = e
         self.w_prev = speed_deg_s
         self.u_prev = u

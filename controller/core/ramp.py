@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["Ramp"]
+__all__ = ["Ramp", "ramp_step"]
 
 
 class Ramp:
@@ -61,26 +61,41 @@ class Ramp:
         """Advance one period towards (`target_deg`, `target_speed_deg_s`); returns the
         reference position; `speed_deg_s` is the reference speed. Once caught, `active` turns
         False and the target itself is returned."""
-        dt = self.period_s
-        a_dt = self.accel_max_deg_s2 * dt
-        vmax = self.speed_max_deg_s
-        # The distance left if the ramp moved at the target's speed this period.
-        err = target_deg - (self.pos_deg + target_speed_deg_s * dt)
-        v = self.speed_deg_s
-        # Caught: stepping onto the target changes the speed by at most one period's worth
-        # of the acceleration bound.
-        if abs(target_speed_deg_s - v) + abs(err) / dt <= a_dt:
-            self.active = False
-            self.pos_deg = target_deg
-            self.speed_deg_s = target_speed_deg_s
-            return target_deg
-        # The speed to aim at: the target's speed plus what still stops in the distance left.
-        brake = math.sqrt(2.0 * self.accel_max_deg_s2 * abs(err))
-        want = target_speed_deg_s + (brake if err > 0.0 else -brake)
-        want = vmax if want > vmax else -vmax if want < -vmax else want
-        dv = want - v
-        dv = a_dt if dv > a_dt else -a_dt if dv < -a_dt else dv
-        v += dv
-        self.speed_deg_s = v
-        self.pos_deg += v * dt
-        return self.pos_deg
+        ref, self.pos_deg, self.speed_deg_s, self.active = ramp_step(
+            self.pos_deg, self.speed_deg_s, target_deg, target_speed_deg_s, self.period_s,
+            self.speed_max_deg_s, self.accel_max_deg_s2,
+        )
+        return ref
+
+
+def ramp_step(
+    pos_deg: float,
+    speed_deg_s: float,
+    target_deg: float,
+    target_speed_deg_s: float,
+    period_s: float,
+    speed_max_deg_s: float,
+    accel_max_deg_s2: float,
+) -> tuple[float, float, float, bool]:
+    """`Ramp.step` as a plain-float function (the compiled offline loop,
+    `controller.sim.offline`, runs it too): (reference, new position, new speed, still
+    active)."""
+    dt = period_s
+    a_dt = accel_max_deg_s2 * dt
+    vmax = speed_max_deg_s
+    # The distance left if the ramp moved at the target's speed this period.
+    err = target_deg - (pos_deg + target_speed_deg_s * dt)
+    v = speed_deg_s
+    # Caught: stepping onto the target changes the speed by at most one period's worth
+    # of the acceleration bound.
+    if abs(target_speed_deg_s - v) + abs(err) / dt <= a_dt:
+        return target_deg, target_deg, target_speed_deg_s, False
+    # The speed to aim at: the target's speed plus what still stops in the distance left.
+    brake = math.sqrt(2.0 * accel_max_deg_s2 * abs(err))
+    want = target_speed_deg_s + (brake if err > 0.0 else -brake)
+    want = vmax if want > vmax else -vmax if want < -vmax else want
+    dv = want - v
+    dv = a_dt if dv > a_dt else -a_dt if dv < -a_dt else dv
+    v += dv
+    pos = pos_deg + v * dt
+    return pos, pos, v, True

@@ -12,6 +12,31 @@ from controller.core.validate import in_range
 
 TrajectoryKind = Literal["sine", "step", "ramp", "hold"]
 TRAJECTORY_KINDS: tuple[str, ...] = ("sine", "step", "ramp", "hold")
+#: The kind as the number `trajectory_at` takes.
+KIND_CODE: dict[str, int] = {k: i for i, k in enumerate(TRAJECTORY_KINDS)}
+
+
+def trajectory_at(
+    kind_code: int,
+    amplitude_deg: float,
+    omega_rad_s: float,
+    offset_deg: float,
+    slope_deg_s: float,
+    step_time_s: float,
+    t_s: float,
+) -> tuple[float, float]:
+    """(position deg, rate deg/s) at time t_s of the trajectory with these fields (`KIND_CODE`
+    numbers the kind): a plain-float function, so that the compiled offline loop
+    (`controller.sim.offline`) runs this one definition too."""
+    if kind_code == 0:  # sine
+        wt = omega_rad_s * t_s
+        return (offset_deg + amplitude_deg * math.sin(wt),
+                amplitude_deg * omega_rad_s * math.cos(wt))
+    if kind_code == 1:  # step
+        return offset_deg + (amplitude_deg if t_s >= step_time_s else 0.0), 0.0
+    if kind_code == 2:  # ramp
+        return offset_deg + slope_deg_s * t_s, slope_deg_s
+    return offset_deg, 0.0
 
 
 class Trajectory(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -49,16 +74,8 @@ class Trajectory(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
 
     def at(self, t_s: float) -> tuple[float, float]:
         """(position deg, rate deg/s) at time t_s."""
-        k = self.kind
-        if k == "sine":
-            wt = self.omega_rad_s * t_s
-            a = self.amplitude_deg
-            return self.offset_deg + a * math.sin(wt), a * self.omega_rad_s * math.cos(wt)
-        if k == "step":
-            return (self.offset_deg + (self.amplitude_deg if t_s >= self.step_time_s else 0.0), 0.0)
-        if k == "ramp":
-            return self.offset_deg + self.slope_deg_s * t_s, self.slope_deg_s
-        return self.offset_deg, 0.0
+        return trajectory_at(KIND_CODE[self.kind], self.amplitude_deg, self.omega_rad_s,
+                             self.offset_deg, self.slope_deg_s, self.step_time_s, t_s)
 
 
 def default_trajectory(kind: str) -> Trajectory:

@@ -4,7 +4,8 @@ noise) through a velocity reversal, a stop and a hold, looking for what the line
 cannot see: ringing after the reversal, chatter and hunting at standstill.
 
 The loop is the controller's own (`controller.core.loop.ServoLoop`), ticked against `SimRig`
-exactly as `controller.sim.experiment` does. The scenario (2.5 s simulated):
+exactly as `controller.sim.experiment` does (compiled: `controller.sim.offline`). The scenario
+(2.5 s simulated):
 
     0 - 1.571 s   reference 5 sin(2 t) deg: up to the reversal at 0.785 s, back to 0
     1.571 - 4.5 s hold at 0 deg (a stop from 10 deg/s; stick-slip chatter needs seconds)
@@ -50,6 +51,8 @@ import numpy as np
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.lti import butter_sos, sosfilt
+from controller.core.trajectory import Trajectory
+from controller.sim.offline import ROWS, OfflineRun, run_ticks
 from controller.sim.sim_rig import RigFaults, RigParams, SimRig
 
 __all__ = [
@@ -130,21 +133,19 @@ def nonlinear_check(
     if gain != 1.0:
         rig.set_faults(RigFaults(plant_gain=gain))
     loop = ServoLoop(LoopCoefficients.build(cfg))
-    cmd = np.empty(n)
-    err = np.empty(n)
-    tick, read, step = loop.tick, rig.read, rig.step
-    a, om = _AMPLITUDE_DEG, _OMEGA_RAD_S
-    for k in range(n):
-        t = k * ts
-        if t < t_stop:
-            r, rr = a * math.sin(om * t), a * om * math.cos(om * t)
-        else:
-            r, rr = 0.0, 0.0
-        p, w = read()
-        u = tick(r, rr, p, w)
-        step(u)
-        cmd[k] = u
-        err[k] = r - p
+    # The sine up to the stop (the ticks whose time k ts is before t_stop), then a hold at 0.
+    k_stop = min(n, math.ceil(t_stop * rate))
+    while k_stop > 0 and (k_stop - 1) * ts >= t_stop:
+        k_stop -= 1
+    while k_stop < n and k_stop * ts < t_stop:
+        k_stop += 1
+    run = OfflineRun(np.empty((len(ROWS), n)))
+    sine = Trajectory(kind="sine", amplitude_deg=_AMPLITUDE_DEG, omega_rad_s=_OMEGA_RAD_S)
+    run_ticks(loop, rig, sine, k_stop, out=run, period_s=ts)
+    run_ticks(loop, rig, Trajectory(kind="hold", offset_deg=0.0), n - k_stop, out=run,
+              at=k_stop, period_s=ts)
+    cmd = run.command_deg_s
+    err = run.ref_deg - run.pos_deg
     band = sosfilt(butter_sos(2, _BAND_HZ, "bandpass", rate), cmd)
     k_rev = round(0.5 * t_stop * rate)
     rev = band[k_rev : k_rev + round(0.4 * rate)]

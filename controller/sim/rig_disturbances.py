@@ -233,7 +233,7 @@ def rig_setup(names: tuple[str, ...] | list[str], base: RigParams | None = None)
 class ScheduledRig:
     """A SimRig whose friction changes at given times (the `Rig` protocol: read, step)."""
 
-    __slots__ = ("_events", "_next", "_tick", "rig")
+    __slots__ = ("_events", "_next", "rig", "tick")
 
     def __init__(self, rig: SimRig, changes: tuple[FrictionChange, ...]) -> None:
         self.rig = rig
@@ -242,19 +242,28 @@ class ScheduledRig:
             (round(c.time_s / rig.period_s), fc * c.factor, fs * c.factor) for c in changes
         ]
         self._next = 0
-        self._tick = 0
+        self.tick = 0
+        """Steps taken (the compiled offline loop advances it for the steps it makes)."""
 
     def read(self) -> tuple[float, float]:
         return self.rig.read()
 
     def step(self, command_deg_s: float) -> None:
+        self.apply_due()
+        self.rig.step(command_deg_s)
+        self.tick += 1
+
+    def apply_due(self) -> None:
+        """Make the friction changes due at the present tick (before its step)."""
         ev = self._events
-        while self._next < len(ev) and ev[self._next][0] <= self._tick:
+        while self._next < len(ev) and ev[self._next][0] <= self.tick:
             _, fc, fs = ev[self._next]
             self.rig.set_friction(fc, fs)
             self._next += 1
-        self.rig.step(command_deg_s)
-        self._tick += 1
+
+    def next_event_tick(self) -> int | None:
+        """The tick of the next friction change not yet made (None: none left)."""
+        return self._events[self._next][0] if self._next < len(self._events) else None
 
 
 def build_rig(

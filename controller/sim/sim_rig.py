@@ -60,7 +60,7 @@ span and its tension change once per revolution). The load encoder adds an inter
 
 The kernel is compiled with numba and works on two preallocated float64 arrays (parameters and
 state); `SimRig` wraps it. The external disturbance is sampled once per tick and held. One
-control tick is `_advance(x, p, command_deg_s, torque_n_m, noise_deg) -> (pos_deg, rate_deg_s)`
+control tick is `advance_tick(x, p, command_deg_s, torque_n_m, noise_deg) -> (pos_deg, rate_deg_s)`
 (x: state array, p: parameter array, both float64 and written in place; no allocation), callable
 from other numba code.
 
@@ -426,7 +426,7 @@ def _reset_kernel(x: np.ndarray, p: np.ndarray, position_deg: float, noise_deg: 
 
 
 @numba.njit(cache=True)
-def _advance(
+def advance_tick(
     x: np.ndarray, p: np.ndarray, command_deg_s: float, torque_n_m: float, noise_deg: float
 ) -> tuple[float, float]:
     """Advance one control tick holding the command; return (measured pos deg, rate deg/s)."""
@@ -661,8 +661,44 @@ class SimRig:
             self._refill_noise()
             i = 0
         self._noise_i = i + 1
-        self._pos, self._rate = _advance(self._x, self._p, command_deg_s, torque, self._noise[i])
+        self._pos, self._rate = advance_tick(
+            self._x, self._p, command_deg_s, torque, self._noise[i]
+        )
         self._tick += 1
+
+    # -- for the compiled offline loop (`controller.sim.offline`), which steps the kernel itself
+
+    def torques(self, n: int) -> npt.NDArray[np.float64]:
+        """The load torque of the next `n` steps, sampled as `step` samples it."""
+        d = self._disturbance
+        if d is None:
+            return np.zeros(n)
+        k0, ts = self._tick, self._period_s
+        return np.array([d.torque_n_m(k * ts) for k in range(k0, k0 + n)], dtype=np.float64)
+
+    def take_noise(self, n: int) -> npt.NDArray[np.float64]:
+        """The encoder noise of the next `n` steps, consumed from the stream as `n` calls of
+        `step` would consume it."""
+        out = np.empty(n)
+        done = 0
+        i = self._noise_i
+        while done < n:
+            if i == _NOISE_BLOCK:
+                self._refill_noise()
+                i = 0
+            m = min(n - done, _NOISE_BLOCK - i)
+            out[done : done + m] = self._noise[i : i + m]
+            i += m
+            done += m
+        self._noise_i = i
+        return out
+
+    def advanced(self, n: int, pos_deg: float, rate_deg_s: float) -> None:
+        """The kernel was stepped `n` times outside (with `torques(n)` and `take_noise(n)`)
+        and read (pos_deg, rate_deg_s) last: the rig's time and reading follow."""
+        self._tick += n
+        self._pos = pos_deg
+        self._rate = rate_deg_s
 
     def set_disturbance(self, d: Disturbance | None) -> None:
         """Swap the external load-torque profile (None = no disturbance); time is the rig's."""

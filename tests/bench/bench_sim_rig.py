@@ -53,7 +53,7 @@ def main() -> None:
     rig = SimRig()
     rig.step(0.0)
     t_first = time.perf_counter() - t0
-    fresh = numba.njit(cache=False)(sim_rig._advance.py_func)
+    fresh = numba.njit(cache=False)(sim_rig.advance_tick.py_func)
     x, p = np.zeros_like(rig._x), rig._p.copy()
     sim_rig._reset_kernel(x, p, 0.0, 0.0)
     t0 = time.perf_counter()

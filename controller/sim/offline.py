@@ -1,0 +1,264 @@
+"""The compiled offline loop: the controller's own tick and the simulated rig, compiled
+together with numba, for runs that need no clock (experiments, `dobtune paper`, the autotune,
+Suggest, the gate's nonlinear check).
+
+One definition of the arithmetic: the tick is `controller.core.loop.servo_law` (with
+`speed_law` and the DOB filters' `controller.core.discrete.sos_step`), the reference
+`controller.core.trajectory.trajectory_at` and `controller.core.ramp.ramp_step`, the rig
+`controller.sim.sim_rig.advance_tick`: the plain-float functions the live `ServoLoop`,
+`Trajectory` and `Ramp` call (and `SimRig` steps), compiled here into one loop
+(`numba.extending.register_jitable` leaves the functions themselves as they are). The live
+loop never imports this module. `run_ticks` takes its state from the Python objects and gives
+it back: a run can be split anywhere, and between the pieces the Python objects do what the
+runtime does between ticks (coefficient swaps, faults, friction changes, a new trajectory or a
+ramp), with the same result bit for bit as ticking `ServoLoop` against `SimRig` in Python
+(tests/test_offline.py).
+
+The rig's inputs that are Python objects are sampled in Python before the run: the load
+torque profile (`Disturbance.torque_n_m` at each tick's time, as `SimRig.step` does) and the
+encoder noise (taken from the rig's own stream, `SimRig.take_noise`).
+
+Compiled once per machine and cached (numba `cache=True`, in `__pycache__`). numba checks only
+the cached function's own file for changes; the kernel is therefore a closure over a digest
+of every function it compiles in (bytecode, constants, the module values they read), which
+numba's cache key includes: an edit of any of them compiles afresh.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import CodeType, FunctionType
+from typing import Any
+
+import numba
+import numpy as np
+import numpy.typing as npt
+from numba.extending import register_jitable
+
+from controller.core import discrete, ramp, trajectory
+from controller.core import loop as loop_module
+from controller.core.loop import ServoLoop
+from controller.core.ramp import Ramp
+from controller.core.trajectory import KIND_CODE, Trajectory
+from controller.sim import sim_rig
+from controller.sim.rig_disturbances import ScheduledRig
+from controller.sim.sim_rig import SimRig
+
+__all__ = ["OfflineRun", "run_ticks", "supported"]
+
+FloatArray = npt.NDArray[np.float64]
+
+for _f in (discrete.sos_step, loop_module.speed_law, loop_module.servo_law,
+           trajectory.trajectory_at, ramp.ramp_step):
+    register_jitable(_f)
+
+_servo_law = loop_module.servo_law
+_trajectory_at = trajectory.trajectory_at
+_ramp_step = ramp.ramp_step
+_advance = sim_rig.advance_tick
+
+# Loop state (st) and coefficient (co) arrays: the ServoLoop attributes, in this order.
+_STATE = ("pos_int", "e_pos_prev", "cv_int", "e_speed_prev", "u_prev", "w_prev", "d_hat",
+          "speed_ref_deg_s", "speed_error_deg_s")
+_COEFFS = ("_pos_kp", "_pos_half", "_ff", "_cv_kp", "_cv_half", "_limit", "_dob_on")
+#: Rows of the output array.
+ROWS = ("ref_deg", "pos_deg", "speed_deg_s", "speed_ref_deg_s", "command_deg_s", "d_hat_deg_s")
+
+
+def _fingerprint(roots: tuple[Callable[..., Any], ...]) -> str:
+    """A digest of the functions the kernel calls, transitively (their bytecode, constants and
+    names), and of the plain values (numbers, strings, tuples) they read from their modules:
+    what numba compiles into the kernel."""
+    h = hashlib.sha256()
+    seen: set[int] = set()
+    todo = [getattr(f, "py_func", f) for f in roots]
+    while todo:
+        f = todo.pop()
+        if id(f) in seen:
+            continue
+        seen.add(id(f))
+        codes = [f.__code__]
+        while codes:
+            c = codes.pop()
+            h.update(c.co_code)
+            h.update(repr([k for k in c.co_consts if not isinstance(k, CodeType)]).encode())
+            h.update(repr(c.co_names).encode())
+            codes += [k for k in c.co_consts if isinstance(k, CodeType)]
+            for name in c.co_names:
+                v = f.__globals__.get(name)
+                v = getattr(v, "py_func", v)
+                if isinstance(v, FunctionType):
+                    todo.append(v)
+                elif isinstance(v, int | float | str | tuple):
+                    h.update(f"{name}={v!r}".encode())
+    return h.hexdigest()
+
+
+def _make_kernel(digest: str) -> Callable[..., Any]:
+    def kernel(
+        x: FloatArray, p: FloatArray, noise: FloatArray, torque: FloatArray, tr: FloatArray,
+        k0: int, rp: FloatArray, st: FloatArray, co: FloatArray, f1c: FloatArray,
+        f1s: FloatArray, f2c: FloatArray, f2s: FloatArray, rd: FloatArray, out: FloatArray,
+        j0: int, n: int,
+    ) -> None:
+        if len(digest) == 0:  # the digest only keys numba's cache
+            raise ValueError("no source digest")
+        kind = int(tr[0])
+        amp, om, off, slope, t_step, period = tr[1], tr[2], tr[3], tr[4], tr[5], tr[6]
+        ramp_on = rp[0] != 0.0
+        ramp_pos, ramp_speed = rp[1], rp[2]
+        ramp_period, ramp_vmax, ramp_amax = rp[3], rp[4], rp[5]
+        pos_int, e_pos_prev, cv_int, e_speed_prev = st[0], st[1], st[2], st[3]
+        u_prev, w_prev, d_hat, sref, serr = st[4], st[5], st[6], st[7], st[8]
+        pos_kp, pos_half, ff, cv_kp, cv_half, limit = co[0], co[1], co[2], co[3], co[4], co[5]
+        dob_on = co[6] != 0.0
+        f1n = len(f1c) // 5
+        f2n = len(f2c) // 5
+        pos, w = rd[0], rd[1]
+        for i in range(n):
+            ref, ref_rate = _trajectory_at(kind, amp, om, off, slope, t_step, (k0 + i) * period)
+            if ramp_on:
+                ref, ramp_pos, ramp_speed, ramp_on = _ramp_step(
+                    ramp_pos, ramp_speed, ref, ref_rate, ramp_period, ramp_vmax, ramp_amax)
+                ref_rate = ramp_speed
+            u, d_hat, sref, serr, pos_int, cv_int, e_pos_prev = _servo_law(
+                ref, ref_rate, pos, w, pos_int, e_pos_prev, pos_kp, pos_half, ff, u_prev,
+                cv_int, e_speed_prev, cv_kp, cv_half, limit, dob_on, f1c, f1s, f1n, f2c, f2s,
+                f2n)
+            e_speed_prev = serr
+            u_prev = u
+            w_prev = w
+            j = j0 + i
+            out[0, j] = ref
+            out[1, j] = pos
+            out[2, j] = w
+            out[3, j] = sref
+            out[4, j] = u
+            out[5, j] = d_hat
+            pos, w = _advance(x, p, u, torque[i], noise[i])
+        rp[0] = 1.0 if ramp_on else 0.0
+        rp[1] = ramp_pos
+        rp[2] = ramp_speed
+        st[0], st[1], st[2], st[3] = pos_int, e_pos_prev, cv_int, e_speed_prev
+        st[4], st[5], st[6], st[7], st[8] = u_prev, w_prev, d_hat, sref, serr
+        rd[0] = pos
+        rd[1] = w
+
+    return numba.njit(cache=True)(kernel)  # type: ignore[no-any-return]
+
+
+_kernel = _make_kernel(_fingerprint((_servo_law, _trajectory_at, _ramp_step, _advance)))
+
+
+@dataclass
+class OfflineRun:
+    """The recorded signals of a run (one column per tick; `ROWS` names the rows)."""
+
+    out: FloatArray
+
+    @property
+    def ref_deg(self) -> FloatArray:
+        return self.out[0]
+
+    @property
+    def pos_deg(self) -> FloatArray:
+        return self.out[1]
+
+    @property
+    def speed_deg_s(self) -> FloatArray:
+        return self.out[2]
+
+    @property
+    def speed_ref_deg_s(self) -> FloatArray:
+        return self.out[3]
+
+    @property
+    def command_deg_s(self) -> FloatArray:
+        return self.out[4]
+
+    @property
+    def d_hat_deg_s(self) -> FloatArray:
+        return self.out[5]
+
+
+def supported(loop: object, rig: object) -> bool:
+    """Whether `run_ticks` can run this pair (the runtime's `ServoLoop` itself, not a variant;
+    the simulated rig, with or without scheduled friction changes)."""
+    return type(loop) is ServoLoop and type(rig) in (SimRig, ScheduledRig)
+
+
+def run_ticks(
+    loop: ServoLoop,
+    rig: SimRig | ScheduledRig,
+    traj: Trajectory,
+    n: int,
+    *,
+    traj_tick: int = 0,
+    approach: Ramp | None = None,
+    out: OfflineRun | None = None,
+    at: int = 0,
+    period_s: float | None = None,
+) -> OfflineRun:
+    """Run `n` ticks as the runtime does with the clock taken away: per tick the reference is
+    `traj` at (traj_tick + i) x `period_s` (default: the loop's period), through `approach`
+    while it is active, then `loop.tick` on the rig's reading, then `rig.step` with the
+    command. The objects' states are taken and given back (they continue exactly as if they
+    had been ticked); a pending coefficient swap is taken at the first tick, as
+    `ServoLoop.tick` does. Records into `out` (a new one with n columns if None) from column
+    `at` on."""
+    if not supported(loop, rig):
+        raise TypeError(f"run_ticks: needs ServoLoop and SimRig, got {type(loop).__name__} "
+                        f"and {type(rig).__name__}")
+    if out is None:
+        out = OfflineRun(np.empty((len(ROWS), n)))
+    if n < 0 or at < 0 or at + n > out.out.shape[1]:
+        raise ValueError(f"run_ticks: {n} ticks from column {at} do not fit the output")
+    pending = loop._pending
+    if pending is not None and n > 0:
+        loop._pending = None
+        loop._swap(pending)
+    period = loop.active.config.period_s if period_s is None else period_s
+    tr = np.array([KIND_CODE[traj.kind], traj.amplitude_deg, traj.omega_rad_s, traj.offset_deg,
+                   traj.slope_deg_s, traj.step_time_s, period])
+    if approach is not None:
+        rp = np.array([float(approach.active), approach.pos_deg, approach.speed_deg_s,
+                       approach.period_s, approach.speed_max_deg_s, approach.accel_max_deg_s2])
+    else:
+        rp = np.zeros(6)
+    st = np.array([getattr(loop, a) for a in _STATE], dtype=np.float64)
+    co = np.array([getattr(loop, a) for a in _COEFFS], dtype=np.float64)
+    f1c, f2c = np.array(loop._f1c), np.array(loop._f2c)
+    f1s, f2s = np.array(loop._f1s), np.array(loop._f2s)
+    done = 0
+    while done < n:
+        # A ScheduledRig's friction changes fall between pieces, exactly where its step
+        # would make them.
+        m = n - done
+        base = rig
+        if isinstance(rig, ScheduledRig):
+            rig.apply_due()
+            nxt = rig.next_event_tick()
+            if nxt is not None:
+                m = min(m, nxt - rig.tick)
+            base = rig.rig
+        assert isinstance(base, SimRig)
+        torque = base.torques(m)
+        noise = base.take_noise(m)
+        rd = np.array(base.read())
+        _kernel(base._x, base._p, noise, torque, tr, traj_tick + done, rp, st, co, f1c, f1s,
+                f2c, f2s, rd, out.out, at + done, m)
+        base.advanced(m, float(rd[0]), float(rd[1]))
+        if isinstance(rig, ScheduledRig):
+            rig.tick += m
+        done += m
+    for a, v in zip(_STATE, st.tolist(), strict=True):
+        setattr(loop, a, v)
+    loop._f1s[:] = f1s.tolist()
+    loop._f2s[:] = f2s.tolist()
+    if approach is not None:
+        approach.active = bool(rp[0] != 0.0)
+        approach.pos_deg = float(rp[1])
+        approach.speed_deg_s = float(rp[2])
+    return out
