@@ -17,6 +17,7 @@ from controller.core.config import LoopConfig
 from controller.core.samples import STATE_COLUMNS
 from controller.core.trajectory import Trajectory
 from controller.core.validate import split_msgspec_error
+from controller.core.verdict import VerdictMargins
 from controller.gate.knowledge import KnowledgeRecord
 from controller.ident.spec import IdentifySpec
 
@@ -218,7 +219,7 @@ class Status(_Msg, frozen=True, kw_only=True):
     notes: list[str] = []  # non-fault information (e.g. real-time priority refused)
     knowledge_version: int = 0  # the plant knowledge every verdict is judged on
     knowledge: str = ""  # its one-line description (version, source, band)
-    margins: Margins | None = None  # the running configuration's, on that knowledge
+    margins: VerdictMargins | None = None  # the running configuration's, on that knowledge
     verdict: str = ""  # the gate's verdict on the running configuration, on that knowledge
     watchdog: str = ""  # the latest watchdog trip and what was done (rollback or fault)
     audit_head: str = ""  # "<seq>:<sha256>" of the newest audit record (anchors the log)
@@ -229,14 +230,6 @@ class Status(_Msg, frozen=True, kw_only=True):
 
 
 # -- config queryable -------------------------------------------------------------------------
-
-
-class Margins(msgspec.Struct, frozen=True, kw_only=True):
-    gain_margin_db: float
-    phase_margin_deg: float
-    peak_sensitivity_db: float
-    small_gain_peak: float
-    max_pole_radius: float
 
 
 class ConfigRequest(_Msg, frozen=True, kw_only=True):
@@ -256,7 +249,7 @@ class ConfigReply(_Msg, frozen=True, kw_only=True):
     version: int  # the active version after this request
     config: LoopConfig  # the active configuration after this request
     reasons: list[str] = []
-    margins: Margins | None = None
+    margins: VerdictMargins | None = None
     field: str = ""  # for a malformed request: the offending field ("payload", "candidate.x")
     verdict: str = ""  # the gate's verdict on the candidate: accept | caution | reject
     knowledge_version: int = 0  # the plant knowledge it was judged on
@@ -275,7 +268,7 @@ class HistoryEntry(msgspec.Struct, frozen=True, kw_only=True):
     client: str  # who: the authenticated user, "startup (...)" or "watchdog rollback: ..."
     verdict: str  # the gate's verdict then ("" for entries from before verdicts were logged)
     config: LoopConfig
-    margins: Margins | None = None
+    margins: VerdictMargins | None = None
 
 
 class HistoryReply(_Msg, frozen=True, kw_only=True):

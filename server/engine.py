@@ -22,6 +22,7 @@ import numpy.typing as npt
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
+from controller.core.verdict import Verdict
 from controller.gate.analysis import Analysis, analyse
 from controller.gate.knowledge import (
     COMMISSIONING_BOUND,
@@ -38,8 +39,8 @@ from controller.gate.loop_model import (
     nominal_continuous_response,
 )
 from controller.gate.margins import loop_tasks, margins_of, solve
-from controller.gate.search import knowledge_spread
-from controller.gate.verdict import judge, recommended_cutoff_hz
+from controller.gate.search import cached_recommendation, knowledge_spread
+from controller.gate.verdict import recommended_cutoff_hz, verdict_of
 from controller.sim.nonlinear_check import findings
 from controller.sim.rig_disturbances import RigSetup, rig_setup
 from server import charts
@@ -51,11 +52,12 @@ __all__ = [
     "Comparison",
     "ConfigError",
     "Evaluation",
-    "GateView",
     "PreviewComparison",
     "PreviewResult",
     "TuningEngine",
+    "analysis_loop",
     "candidate_from_values",
+    "chart_index",
     "curves_from_analysis",
     "freq_grid_hz",
     "measured_from_csv",
@@ -69,32 +71,13 @@ CUTOFF_MAX_HZ = 50.0
 
 
 @dataclass(frozen=True)
-class GateView:
-    """What the stability check says about one configuration, ready to display."""
-
-    verdict: str  # "accept" | "caution" | "reject"
-    reasons: tuple[str, ...]
-    margins: dict[str, float]
-    recommended_max_cutoff_hz: float | None = None
-    knowledge: str = ""  # the plant knowledge the verdict was judged on
-
-    @property
-    def accepted(self) -> bool:
-        return self.verdict == "accept"
-
-    @property
-    def applicable(self) -> bool:
-        """accept, or caution (applied only after the user confirms the reasons)."""
-        return self.verdict != "reject"
-
-
-@dataclass(frozen=True)
 class Evaluation:
-    """One configuration's curves and verdict, and how long the check took."""
+    """One configuration's curves and verdict (both from its one analysis), and how long the
+    evaluation took."""
 
     config: LoopConfig
     curves: BodeCurves
-    gate: GateView
+    verdict: Verdict
     elapsed_s: float
 
 
@@ -138,9 +121,22 @@ class PreviewComparison:
     """The candidate's run with the DOB off (its price and value side by side)."""
 
 
-def freq_grid_hz(rate_hz: float = 1000.0, n: int = 240) -> FloatArray:
-    """Log grid of the Bode plots: 0.01 Hz to just under Nyquist (the gate's own grid)."""
-    return np.asarray(default_grid(rate_hz, n), dtype=np.float64)
+#: The charts draw every CHART_STEP-th point of the gate's grid (and its last): the 500-point
+#: grid the verdict is computed on, thinned to ~250 points for the browser.
+CHART_STEP = 2
+
+
+def chart_index(n: int) -> npt.NDArray[np.intp]:
+    """The indices of the gate's n-point grid the charts draw."""
+    idx = np.arange(0, n, CHART_STEP)
+    return idx if idx[-1] == n - 1 else np.append(idx, n - 1)
+
+
+def freq_grid_hz(rate_hz: float = 1000.0) -> FloatArray:
+    """The Bode plots' grid: the gate's own grid (0.01 Hz to just under Nyquist), thinned
+    (`chart_index`)."""
+    f = default_grid(rate_hz)
+    return np.asarray(f[chart_index(f.size)], dtype=np.float64)
 
 
 def candidate_from_values(base: LoopConfig, values: dict[str, Any]) -> LoopConfig:
@@ -178,6 +174,28 @@ def speed_loop(cfg: LoopConfig, model: NominalModel, freq_hz: FloatArray, *, dob
         phase_margin_deg=m.phase_margin_deg,
         gain_margin_db=m.gain_margin_db,
     )
+
+
+def analysis_loop(a: Analysis, idx: npt.NDArray[np.intp]) -> NyquistLoop:
+    """The speed loop of `a` (with the DOB as `a.config.dob_on` says) for the Nyquist view,
+    straight from the analysis: its loop on the grid points `idx`, and the crossings and
+    margins the analysis refined (the gate's own figures, not a second computation)."""
+    c = a.crossings
+    assert c is not None, "an Analysis from analyse() carries its crossings"
+    return NyquistLoop(
+        response=np.asarray(a.open_loop[idx], dtype=np.complex128),
+        gain_crossover_hz=np.array(c.gain_crossover_hz, dtype=np.float64),
+        gain_crossings=np.array(c.gain_crossings, dtype=np.complex128),
+        phase_crossover_hz=np.array(c.phase_crossover_hz, dtype=np.float64),
+        phase_crossings=np.array(c.phase_crossings, dtype=np.complex128),
+        phase_margin_deg=a.margins.phase_margin_deg,
+        gain_margin_db=a.margins.gain_margin_db,
+    )
+
+
+def thinned(loop: NyquistLoop, idx: npt.NDArray[np.intp]) -> NyquistLoop:
+    """`loop` with its response at the grid points `idx` only (the crossings stay)."""
+    return dataclasses.replace(loop, response=np.asarray(loop.response[idx]))
 
 
 def plant_curves(plant: PlantKnowledge, freq_hz: FloatArray, rate_hz: float) -> PlantCurves:
@@ -248,44 +266,51 @@ def _continuous(m: MeasuredResponse, rate_hz: float) -> npt.NDArray[np.complex12
     return h
 
 
-def curves_from_analysis(a: Analysis, plant: PlantKnowledge) -> tuple[BodeCurves, GateView]:
-    """Adapter: the gate's Analysis (of `a.config` on `plant`) -> what the charts draw and
-    the verdict box shows."""
-    bound = [src.inv_delta_db for src in a.sources if src.kind == "bound"]
-    measured = [src.inv_delta_db for src in a.sources if src.kind == "measured"]
-    curves = BodeCurves(
-        freq_hz=a.freq_hz,
-        open_loop_db=a.open_loop_mag_db,
-        open_loop_phase_deg=_wrap_start(a.open_loop_phase_deg),
-        closed_dob_db=charts.db(a.closed_loop_dob),
-        closed_nodob_db=charts.db(a.closed_loop_no_dob),
-        dist_dob_db=charts.db(a.disturbance_dob),
-        dist_nodob_db=charts.db(a.disturbance_no_dob),
-        noise_dob_db=charts.db(a.noise_dob),
-        noise_nodob_db=charts.db(a.noise_no_dob),
-        q_db=a.q_mag_db,
-        rejection_db=a.rejection_db,
+def curves_from_analysis(
+    a: Analysis,
+    plant: PlantKnowledge,
+    *,
+    other_loop: NyquistLoop | None = None,
+    plant_chart: PlantCurves | None = None,
+) -> BodeCurves:
+    """Adapter: the gate's Analysis (of `a.config` on `plant`, on the gate's grid) -> what the
+    charts draw, on every `CHART_STEP`-th point of that grid. The Nyquist view's loop in the
+    configured DOB state is the analysis's own; `other_loop` (the other DOB state, on the
+    analysis grid) and `plant_chart` (the plant chart's curves on the charts' grid) are
+    computed here when not given (the engine caches what does not depend on the cut-off)."""
+    idx = chart_index(a.freq_hz.size)
+    f = np.asarray(a.freq_hz[idx], dtype=np.float64)
+    if other_loop is None:
+        other_loop = speed_loop(a.config, plant.model, a.freq_hz, dob=not a.config.dob_on)
+    own, other = analysis_loop(a, idx), thinned(other_loop, idx)
+    bound = [src.inv_delta_db[idx] for src in a.sources if src.kind == "bound"]
+    measured = [src.inv_delta_db[idx] for src in a.sources if src.kind == "measured"]
+    loop = a.open_loop[idx]
+    loop_full = None if a.open_loop_full is None else a.open_loop_full[idx]
+    return BodeCurves(
+        freq_hz=f,
+        open_loop_db=a.open_loop_mag_db[idx],
+        open_loop_phase_deg=_wrap_start(a.open_loop_phase_deg[idx]),
+        closed_dob_db=charts.db(a.closed_loop_dob[idx]),
+        closed_nodob_db=charts.db(a.closed_loop_no_dob[idx]),
+        dist_dob_db=charts.db(a.disturbance_dob[idx]),
+        dist_nodob_db=charts.db(a.disturbance_no_dob[idx]),
+        noise_dob_db=charts.db(a.noise_dob[idx]),
+        noise_nodob_db=charts.db(a.noise_no_dob[idx]),
+        q_db=a.q_mag_db[idx],
+        rejection_db=a.rejection_db[idx],
         inv_delta_db=bound[0] if bound else None,
         # The worst measured response at each frequency (smallest 1/|Delta|).
         inv_delta_measured_db=np.min(np.stack(measured), axis=0) if measured else None,
-        s_db=charts.db(1.0 / (1.0 + a.open_loop)),
-        t_db=charts.db(a.open_loop / (1.0 + a.open_loop)),
-        s_full_db=None if a.open_loop_full is None else charts.db(1.0 / (1.0 + a.open_loop_full)),
-        t_full_db=None if a.open_loop_full is None else charts.db(
-            a.open_loop_full / (1.0 + a.open_loop_full)),
-        nyquist_dob=speed_loop(a.config, plant.model, a.freq_hz, dob=True),
-        nyquist_nodob=speed_loop(a.config, plant.model, a.freq_hz, dob=False),
-        plant=plant_curves(plant, a.freq_hz, a.config.rate_hz),
+        s_db=charts.db(1.0 / (1.0 + loop)),
+        t_db=charts.db(loop / (1.0 + loop)),
+        s_full_db=None if loop_full is None else charts.db(1.0 / (1.0 + loop_full)),
+        t_full_db=None if loop_full is None else charts.db(loop_full / (1.0 + loop_full)),
+        nyquist_dob=own if a.config.dob_on else other,
+        nyquist_nodob=other if a.config.dob_on else own,
+        plant=plant_chart if plant_chart is not None else plant_curves(
+            plant, f, a.config.rate_hz),
     )
-    margins = {
-        "gain_margin_db": a.gain_margin_db,
-        "phase_margin_deg": a.phase_margin_deg,
-        "peak_sensitivity_db": a.peak_sensitivity_db,
-        "small_gain_peak": a.small_gain_peak,
-        "max_pole_radius": a.max_pole_radius,
-        "noise_to_command_peak_db": a.noise_to_command_peak_db,
-    }
-    return curves, GateView(a.verdict, tuple(a.reasons), margins)
 
 
 def _wrap_start(phase_deg: FloatArray) -> FloatArray:
@@ -345,18 +370,13 @@ def _without_dob(cfg: LoopConfig) -> LoopConfig:
     return cfg.with_(dob_on=False, q_type=d.q_type, q_cutoff_hz=d.q_cutoff_hz)
 
 
-def _recommendation_key(cfg: LoopConfig) -> LoopConfig:
-    """The recommendation depends on everything but the cut-off and the DOB switch."""
-    return cfg.with_(q_cutoff_hz=1.0, dob_on=True)
-
-
 class TuningEngine:
     """Evaluates candidates; caches the evaluation of configurations seen before."""
 
-    def __init__(self, n_freq: int = 240, preview_duration_s: float = 12.6,
+    def __init__(self, preview_duration_s: float = 12.6,
                  sim_disturbances: tuple[str, ...] = ()):
-        self.n_freq = n_freq
-        self.freq_hz = freq_grid_hz(1000.0, n_freq)
+        #: The charts' grid (the gate's grid, thinned: `freq_grid_hz`).
+        self.freq_hz = freq_grid_hz(1000.0)
         self.preview_duration_s = preview_duration_s
         #: The simulated rig's named disturbances for the previews and Suggest (the demo's:
         #: those its controller's simulated rig runs with). ConfigError for an unknown name.
@@ -371,7 +391,10 @@ class TuningEngine:
         #: old plant while the new one arrived is never served for the new one.
         self._generation = 0
         self._evaluations: _Cache[tuple[int, LoopConfig], Evaluation] = _Cache(64)
-        self._recommendations: _Cache[tuple[int, LoopConfig], float | None] = _Cache(64)
+        #: What does not depend on the cut-off: the Nyquist view's loop in the other DOB state
+        #: when the DOB is on (G Cv: the gains and the plant), and the plant chart's curves.
+        self._loops_without_dob: _Cache[tuple[int, LoopConfig], NyquistLoop] = _Cache(64)
+        self._plant_charts: _Cache[tuple[int, float], PlantCurves] = _Cache(4)
         self._previews: _Cache[tuple[LoopConfig, Trajectory], PreviewResult] = _Cache(16)
         self._steps: _Cache[tuple[LoopConfig, Any], tuple[FloatArray, FloatArray, FloatArray]] = (
             _Cache(32))
@@ -388,7 +411,8 @@ class TuningEngine:
             self.plant = plant
             self._generation += 1
             self._evaluations.clear()
-            self._recommendations.clear()
+            self._loops_without_dob.clear()
+            self._plant_charts.clear()
 
     def _current(self) -> tuple[int, PlantKnowledge]:
         with self._plant_lock:
@@ -410,35 +434,41 @@ class TuningEngine:
         return knowledge_spread(plant, LoopConfig().rate_hz)
 
     def cached_recommendation(self, cfg: LoopConfig) -> tuple[bool, float | None]:
-        """(known, value) without computing."""
-        gen, _ = self._current()
-        return self._recommendations.lookup((gen, _recommendation_key(cfg)))
+        """(known, value) without computing (the gate's one cache, `recommended_cutoff_hz`)."""
+        _, plant = self._current()
+        return cached_recommendation(cfg, plant)
 
     def recommended_max_cutoff_hz(self, cfg: LoopConfig) -> float | None:
         """The gate's largest accepted Q cut-off for this candidate's other settings (cached;
         ~0.1 s, so call it off the slider path)."""
-        key = _recommendation_key(cfg)
-        gen, plant = self._current()
-        return self._recommendations.get((gen, key), lambda: recommended_cutoff_hz(key, plant))
+        _, plant = self._current()
+        return recommended_cutoff_hz(cfg, plant)
 
     def evaluate(self, cfg: LoopConfig) -> Evaluation:
         """The gate's verdict and curves for `cfg` (cached)."""
         gen, plant = self._current()
-        return self._evaluations.get((gen, cfg), lambda: self._evaluate(cfg, plant))
+        return self._evaluations.get((gen, cfg), lambda: self._evaluate(cfg, gen, plant))
 
-    def _evaluate(self, cfg: LoopConfig, plant: PlantKnowledge) -> Evaluation:
+    def _evaluate(self, cfg: LoopConfig, gen: int, plant: PlantKnowledge) -> Evaluation:
+        """One analysis on the gate's grid (the controller's own, `analyse` with its
+        defaults): the verdict (`verdict_of`, the controller's function on the controller's
+        knowledge: both sides say the same) and every chart come from it."""
         t0 = time.perf_counter()
-        grid = freq_grid_hz(cfg.rate_hz, self.n_freq)
-        curves, view = curves_from_analysis(analyse(cfg, plant, freq_hz=grid), plant)
-        # The verdict: the controller's own function on the controller's knowledge (its
-        # default grid, not the charts'), so both sides say the same.
-        j = judge(cfg, plant, nonlinear=findings)
-        gate = dataclasses.replace(
-            view, verdict=j.verdict, reasons=j.reasons,
-            recommended_max_cutoff_hz=j.recommended_max_cutoff_hz,
-            knowledge=j.analysis.knowledge,
-        )
-        return Evaluation(cfg, curves, gate, time.perf_counter() - t0)
+        a = analyse(cfg, plant)
+        # The verdict alone, as the controller's gate judges (the recommendation is searched
+        # only as far as the verdict needs); the whole search runs off the slider path
+        # (`recommended_max_cutoff_hz`, the same cache).
+        verdict = verdict_of(a, plant, nonlinear=findings, recommendation=False)
+        other = None
+        if cfg.dob_on:  # G Cv: the same for every cut-off
+            other = self._loops_without_dob.get(
+                (gen, _without_dob(cfg)),
+                lambda: speed_loop(cfg, plant.model, a.freq_hz, dob=False))
+        f = self.freq_hz if cfg.rate_hz == 1000.0 else freq_grid_hz(cfg.rate_hz)
+        plant_chart = self._plant_charts.get(
+            (gen, cfg.rate_hz), lambda: plant_curves(plant, f, cfg.rate_hz))
+        curves = curves_from_analysis(a, plant, other_loop=other, plant_chart=plant_chart)
+        return Evaluation(cfg, curves, verdict, time.perf_counter() - t0)
 
     def compare(self, candidate: LoopConfig, active: LoopConfig) -> Comparison:
         """Candidate and active evaluated, and the data of every Bode chart."""

@@ -24,13 +24,14 @@ K = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=3, sour
 
 def test_gate_accepts_the_default_and_rejects_an_unstable_candidate() -> None:
     ok = gate(LoopConfig(), K)
-    assert ok.accepted and ok.reasons == () and ok.margins.phase_margin_deg > 30.0
+    assert ok.applicable and ok.reasons == () and ok.margins.phase_margin_deg > 30.0
     assert ok.verdict == "accept" and ok.knowledge_version == 3
     bad = gate(LoopConfig(cv_kp=20.0), K)
-    assert not bad.accepted and bad.reasons and bad.coefficients is None
+    assert not bad.applicable and bad.reasons
+    assert gate_and_build(LoopConfig(cv_kp=20.0), 7, K)[1] is None
     assert bad.verdict == "reject"
-    built = gate_and_build(LoopConfig(q_cutoff_hz=1.0), 7, K)
-    assert built.coefficients is not None and built.coefficients.version == 7
+    built, coefficients = gate_and_build(LoopConfig(q_cutoff_hz=1.0), 7, K)
+    assert built.applicable and coefficients is not None and coefficients.version == 7
 
 
 def test_a_caution_may_be_applied_and_says_why() -> None:
@@ -38,17 +39,17 @@ def test_a_caution_may_be_applied_and_says_why() -> None:
     # standstill without decaying: rejected, and the verdict says so).
     v = gate(LoopConfig(cv_kp=2.0, cv_ki_per_s=10.8, pos_kp_per_s=9.0, pos_ki_per_s=3.5,
                         q_type="q31", q_cutoff_hz=5.0), K)
-    assert v.accepted and v.verdict == "caution", v.reasons
+    assert v.applicable and v.verdict == "caution", v.reasons
     assert any("whole servo" in r for r in v.reasons)
     chatter = gate(OLD_LOOP.with_(q_cutoff_hz=5.0), K)
-    assert not chatter.accepted and chatter.verdict == "reject"
+    assert not chatter.applicable and chatter.verdict == "reject"
     assert any(r.startswith("nonlinear check: chatter at standstill") for r in chatter.reasons)
 
 
 def test_the_rigs_command_limit_is_checked_first() -> None:
     runner = GateRunner(subprocess=False, command_limit_max_deg_s=30.0)
     verdict = runner.check(LoopConfig(command_limit_deg_s=40.0), K)
-    assert not verdict.accepted and "rig's limit" in verdict.reasons[0]
+    assert not verdict.applicable and "rig's limit" in verdict.reasons[0]
     assert math.isnan(verdict.margins.gain_margin_db)
 
 
@@ -56,11 +57,11 @@ def test_the_rigs_command_limit_is_checked_first() -> None:
 def test_a_hanging_worker_is_killed_and_the_next_call_gets_a_fresh_one() -> None:
     runner = GateRunner(subprocess=True)
     try:
-        assert runner.check(LoopConfig(), K).accepted  # (a fresh worker's first job may be slow)
+        assert runner.check(LoopConfig(), K).applicable  # (a fresh worker's first job may be slow)
         with pytest.raises(concurrent.futures.TimeoutError):
             runner.call(time.sleep, 30.0, timeout_s=0.5)
-        verdict = runner.check_and_build(LoopConfig(), 3, K)
-        assert verdict.accepted and verdict.coefficients is not None
+        verdict, coefficients = runner.check_and_build(LoopConfig(), 3, K)
+        assert verdict.applicable and coefficients is not None
     finally:
         runner.close()
 
@@ -72,7 +73,7 @@ def test_a_slow_start_of_the_worker_is_not_a_rejection() -> None:
     runner = GateRunner(subprocess=True, timeout_s=1.5, start_timeout_s=30.0)
     try:
         runner.call(time.sleep, 2.0, timeout_s=1.5)  # the first job: slow, still served
-        assert runner.check(LoopConfig(), K).accepted  # a verdict takes ~0.1 s (1.5 s here)
+        assert runner.check(LoopConfig(), K).applicable  # a verdict takes ~0.1 s (1.5 s here)
         with pytest.raises(concurrent.futures.TimeoutError):
             runner.call(time.sleep, 2.0, timeout_s=1.5)
     finally:
@@ -88,7 +89,7 @@ def test_analysis_failures_carry_no_internal_text(monkeypatch: pytest.MonkeyPatc
     monkeypatch.setattr(verdict_module, "analyse", broken)
     clear_caches()  # (the default was judged by the tests before, with the real analysis)
     verdict = gate(LoopConfig(), K)
-    assert not verdict.accepted
+    assert not verdict.applicable
     assert verdict.reasons[0].startswith("candidate: ")
     assert "LinAlgError" not in verdict.reasons[0] and "NaN" not in verdict.reasons[0]
 

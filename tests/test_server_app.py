@@ -53,7 +53,7 @@ def test_two_dashboards_watch_one_controller_then_it_goes_away(tmp_path: Path) -
             assert ta.wait_idle(5.0)
             ev = ta.last_evaluation
             assert ev is not None and ev.curves.inv_delta_measured_db is not None
-            assert np.isfinite(ev.gate.margins["small_gain_peak"])
+            assert np.isfinite(ev.verdict.margins.small_gain_peak)
             # The controller goes away: both show the banner.
             stop_process(proc)
             for d in (a, b):

@@ -11,7 +11,7 @@ from controller.core.config import LoopConfig
 from controller.gate.analysis import analyse
 from controller.gate.knowledge import PlantKnowledge
 from server import charts
-from server.engine import curves_from_analysis, freq_grid_hz
+from server.engine import curves_from_analysis
 
 MODEL_ONLY = PlantKnowledge()
 
@@ -46,9 +46,8 @@ def test_bode_specs_use_log_frequency_axis() -> None:
 @pytest.mark.parametrize("spec", charts.BODE_CHARTS, ids=lambda s: s.key)
 def test_bode_data_matches_series(spec: charts.ChartSpec) -> None:
     cfg = LoopConfig()
-    cand, _ = curves_from_analysis(analyse(cfg, freq_hz=freq_grid_hz()), MODEL_ONLY)
-    act, _ = curves_from_analysis(
-        analyse(cfg.with_(q_cutoff_hz=2.0), freq_hz=freq_grid_hz()), MODEL_ONLY)
+    cand = curves_from_analysis(analyse(cfg), MODEL_ONLY)
+    act = curves_from_analysis(analyse(cfg.with_(q_cutoff_hz=2.0)), MODEL_ONLY)
     data = charts.bode_data(spec.key, cand, act)
     assert len(data) == len(spec.series) == len(spec.columns) + 1
     assert all(d.shape == data[0].shape for d in data)
@@ -57,7 +56,7 @@ def test_bode_data_matches_series(spec: charts.ChartSpec) -> None:
 
 
 def test_disturbance_chart_shows_dob_rejection_at_low_frequency() -> None:
-    cand, _ = curves_from_analysis(analyse(LoopConfig(), freq_hz=freq_grid_hz()), MODEL_ONLY)
+    cand = curves_from_analysis(analyse(LoopConfig()), MODEL_ONLY)
     f, with_dob, without, _active = charts.bode_data("disturbance", cand, None)
     low = f < 0.05
     assert np.all(with_dob[low] < without[low] - 6.0)  # eq. 16 well below eq. 18
@@ -222,6 +221,6 @@ def test_plant_chart_without_plant_curves_names_the_field() -> None:
     empty chart."""
     import dataclasses
 
-    cand, _ = curves_from_analysis(analyse(LoopConfig(), freq_hz=freq_grid_hz()), MODEL_ONLY)
+    cand = curves_from_analysis(analyse(LoopConfig()), MODEL_ONLY)
     with pytest.raises(ValueError, match=r"BodeCurves\.plant"):
         charts.bode_data("plant", dataclasses.replace(cand, plant=None), None)

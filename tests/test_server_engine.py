@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -102,9 +103,9 @@ def test_measured_response_enters_the_verdict() -> None:
     eng.set_knowledge(eng.with_measured(MeasuredResponse(name="m", freq_hz=f, response=response)))
     ev = eng.evaluate(cfg)
     assert ev.curves.inv_delta_measured_db is not None
-    assert np.isfinite(ev.gate.margins["small_gain_peak"])
+    assert np.isfinite(ev.verdict.margins.small_gain_peak)
     assert len(eng.measured) == 1
-    assert "1 measured response(s) 0.1-20 Hz" in ev.gate.knowledge
+    assert "1 measured response(s) 0.1-20 Hz" in ev.verdict.knowledge
 
 
 @pytest.mark.slow
@@ -131,10 +132,12 @@ def test_the_dashboard_verdict_is_the_controllers() -> None:
             q_cutoff_hz=float(np.exp(rng.uniform(np.log(0.05), np.log(50.0)))),
             dob_on=bool(rng.uniform() < 0.85),
         )
-        mine = eng.evaluate(cfg).gate
+        mine = eng.evaluate(cfg).verdict
         theirs = gate(cfg, record)
         assert mine.verdict == theirs.verdict, cfg
         assert mine.reasons == theirs.reasons, cfg
+        # The whole verdict, margins and recommendation included, bit for bit (NaN == NaN).
+        np.testing.assert_equal(msgspec.to_builtins(mine), msgspec.to_builtins(theirs))
         seen[mine.verdict] += 1
     assert min(seen.values()) > 0, seen  # all three verdicts were exercised
 
@@ -148,7 +151,7 @@ def test_sensitivity_chart_matches_the_gates_margins() -> None:
     from controller.gate.analysis import analyse
     from controller.gate.knowledge import COMMISSIONING_BOUND, PlantKnowledge
 
-    eng = TuningEngine(n_freq=2000)
+    eng = TuningEngine()
     cfg = LoopConfig(q_cutoff_hz=2.0)
     c = eng.evaluate(cfg).curves
     a = analyse(cfg, PlantKnowledge(bound=COMMISSIONING_BOUND))
@@ -173,17 +176,17 @@ def test_a_verdict_computed_while_new_knowledge_arrives_is_not_served_for_it() -
     eng = TuningEngine()
     original = eng._evaluate
 
-    def racing(cfg: LoopConfig, plant: Any) -> Any:
+    def racing(cfg: LoopConfig, gen: int, plant: Any) -> Any:
         eng.set_knowledge(record)  # the fetch lands while this evaluation runs
-        return original(cfg, plant)
+        return original(cfg, gen, plant)
 
     eng._evaluate = racing  # type: ignore[method-assign]
     first = eng.evaluate(LoopConfig())
-    assert "not yet fetched" in first.gate.knowledge  # judged on what it started with
+    assert "not yet fetched" in first.verdict.knowledge  # judged on what it started with
     eng._evaluate = original  # type: ignore[method-assign]
     second = eng.evaluate(LoopConfig())
-    assert "not yet fetched" not in second.gate.knowledge
-    assert "1 measured response(s)" in second.gate.knowledge
+    assert "not yet fetched" not in second.verdict.knowledge
+    assert "1 measured response(s)" in second.verdict.knowledge
 
 
 # -- the Nyquist view's loops -------------------------------------------------------------------
@@ -242,19 +245,23 @@ def test_speed_loop_without_dob_is_python_controls_discrete_loop(cfg: LoopConfig
 
 
 def test_speed_loop_with_dob_is_the_gates_loop_and_margins() -> None:
-    """The with-DOB L equals the gate's L of a DOB-on candidate (the analysis and python-
-    control's loop, 1e-6: the DOB's poles near z = 1 cost digits) and carries the gate's
-    margins; a DOB-off candidate still gets the with-DOB loop its DOB would give."""
+    """The with-DOB L equals the gate's L of a DOB-on candidate (the analysis on the gate's
+    grid, thinned for the charts; python-control's loop, 1e-6: the DOB's poles near z = 1 cost
+    digits) and carries the gate's margins; a DOB-off candidate still gets the with-DOB loop
+    its DOB would give, with the same margins (computed apart: `speed_loop`)."""
     import fuzz_truth
 
     from controller.gate.analysis import analyse
+    from server.engine import chart_index
 
     eng = TuningEngine()
     cfg = LoopConfig(q_cutoff_hz=2.0)
     c = eng.evaluate(cfg).curves
-    a = analyse(cfg, eng.plant, freq_hz=c.freq_hz)
+    a = analyse(cfg, eng.plant)
+    idx = chart_index(a.freq_hz.size)
+    np.testing.assert_array_equal(c.freq_hz, a.freq_hz[idx])
     assert c.nyquist_dob is not None
-    np.testing.assert_allclose(c.nyquist_dob.response, a.open_loop, rtol=1e-12)
+    np.testing.assert_allclose(c.nyquist_dob.response, a.open_loop[idx], rtol=1e-12)
     ref = fuzz_truth.frequency_response(_reference_loop(cfg, dob=True), c.freq_hz)
     np.testing.assert_allclose(c.nyquist_dob.response, ref, rtol=1e-6)
     assert c.nyquist_dob.phase_margin_deg == pytest.approx(a.phase_margin_deg, abs=1e-9)
@@ -262,9 +269,17 @@ def test_speed_loop_with_dob_is_the_gates_loop_and_margins() -> None:
     off = eng.evaluate(cfg.with_(dob_on=False)).curves
     assert off.nyquist_dob is not None and off.nyquist_nodob is not None
     np.testing.assert_allclose(off.nyquist_dob.response, c.nyquist_dob.response, rtol=1e-12)
-    a_off = analyse(cfg.with_(dob_on=False), eng.plant, freq_hz=c.freq_hz)
-    np.testing.assert_allclose(off.nyquist_nodob.response, a_off.open_loop, rtol=1e-12)
+    assert off.nyquist_dob.phase_margin_deg == pytest.approx(a.phase_margin_deg, abs=1e-9)
+    assert off.nyquist_dob.gain_margin_db == pytest.approx(a.gain_margin_db, abs=1e-9)
+    np.testing.assert_allclose(off.nyquist_dob.gain_crossover_hz,
+                               c.nyquist_dob.gain_crossover_hz, rtol=1e-12)
+    a_off = analyse(cfg.with_(dob_on=False), eng.plant)
+    np.testing.assert_allclose(off.nyquist_nodob.response, a_off.open_loop[idx], rtol=1e-12)
     assert off.nyquist_nodob.phase_margin_deg == pytest.approx(a_off.phase_margin_deg, abs=1e-9)
+    # The DOB-on candidate's loop without the DOB (cached across cut-offs) is the same.
+    assert c.nyquist_nodob is not None
+    np.testing.assert_allclose(c.nyquist_nodob.response, a_off.open_loop[idx], rtol=1e-12)
+    assert c.nyquist_nodob.phase_margin_deg == pytest.approx(a_off.phase_margin_deg, abs=1e-9)
 
 
 # -- the plant chart ----------------------------------------------------------------------------

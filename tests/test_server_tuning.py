@@ -113,7 +113,7 @@ def test_rejected_candidate_is_highlighted(dash: Dashboard) -> None:
     t.cv_kp.value = 3.0
     assert t.wait_idle(2.0)
     ev = t.last_evaluation
-    assert ev is not None and not ev.gate.accepted
+    assert ev is not None and ev.verdict.verdict != "accept"
     assert "REJECT" in t.verdict.content and "dt-reject" in t.verdict.content
     t.revert()
     assert t.wait_idle(2.0)
@@ -123,7 +123,7 @@ def test_gate_html_lists_every_reason() -> None:
     eng = TuningEngine()
     ev = eng.evaluate(LoopConfig(cv_kp=3.0))
     html = format_gate_html(ev)
-    assert html.count("dt-reason") == len(ev.gate.reasons) >= 1
+    assert html.count("dt-reason") == len(ev.verdict.reasons) >= 1
 
 
 def test_suggest_puts_the_best_accepted_setting_into_the_candidate_never_applies(

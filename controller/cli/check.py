@@ -23,11 +23,13 @@ from controller.cli.common import Command
 from controller.cli.inputs import BadInput, load_config, load_knowledge
 from controller.core.config import config_to_builtins
 from controller.core.errors import ConfigError
+from controller.core.verdict import Verdict
+from controller.gate.analysis import Analysis, analyse
 from controller.gate.frd import load_measured
 from controller.gate.knowledge import PlantKnowledge
 from controller.gate.margins import Margins
 from controller.gate.search import Recommendation, recommend
-from controller.gate.verdict import EXIT_CODES, Judgement, judge
+from controller.gate.verdict import EXIT_CODES, verdict_of
 from controller.sim.nonlinear_check import findings
 
 __all__ = ["check_main"]
@@ -70,9 +72,10 @@ def _recommendation_json(r: Recommendation | None) -> dict[str, Any]:
     }
 
 
-def report_json(j: Judgement, rec: Recommendation | None = None) -> dict[str, Any]:
-    """The JSON object printed by `dobtune check --json`."""
-    a, recommended_hz = j.analysis, j.recommended_max_cutoff_hz
+def report_json(a: Analysis, j: Verdict, rec: Recommendation | None = None) -> dict[str, Any]:
+    """The JSON object printed by `dobtune check --json` (`j`: the verdict from analysis
+    `a`)."""
+    recommended_hz = j.recommended_max_cutoff_hz
     config = config_to_builtins(a.config)
     config["q_tau_s"] = a.tau_s  # derived from q_type and q_cutoff_hz (not a LoopConfig field)
     return {
@@ -115,9 +118,9 @@ def _fmt(v: float, unit: str, spec: str = ".1f") -> str:
     return f"{v:{spec}} {unit}" if math.isfinite(v) else "none"
 
 
-def report_text(j: Judgement, rec: Recommendation | None = None) -> str:
-    """The readable table printed by `dobtune check`."""
-    a, recommended_hz = j.analysis, j.recommended_max_cutoff_hz
+def report_text(a: Analysis, j: Verdict, rec: Recommendation | None = None) -> str:
+    """The readable table printed by `dobtune check` (`j`: the verdict from analysis `a`)."""
+    recommended_hz = j.recommended_max_cutoff_hz
     c, m = a.config, a.margins
     dob = f"{c.q_type} at {c.q_cutoff_hz:g} Hz (tau {a.tau_s:.4g} s)" if c.dob_on else "off"
 
@@ -207,7 +210,8 @@ def check_main(
                 (*plant.measured, *measured), plant.bound, plant.model, plant.version,
                 f"{plant.source} + --frd",
             )
-        j = judge(cfg, plant, nonlinear=findings)
+        a = analyse(cfg, plant)
+        j = verdict_of(a, plant, nonlinear=findings)
         rec = recommend(cfg, plant) if len(plant.measured) >= 2 else None
     except BadInput as exc:
         if as_json:
@@ -216,9 +220,9 @@ def check_main(
             out.write(f"error: {exc}\n")
         return EXIT_BAD_INPUT
     if as_json:
-        out.write(json.dumps(report_json(j, rec), allow_nan=False) + "\n")
+        out.write(json.dumps(report_json(a, j, rec), allow_nan=False) + "\n")
     else:
-        out.write(report_text(j, rec))
+        out.write(report_text(a, j, rec))
     return EXIT_CODES[j.verdict]
 
 

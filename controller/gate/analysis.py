@@ -77,6 +77,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from controller.core.config import LoopConfig, NominalModel
+from controller.core.verdict import VerdictKind
 from controller.gate.knowledge import (
     MIN_ALLOWANCE,
     MeasuredResponse,
@@ -98,10 +99,12 @@ from controller.gate.loop_model import (
     plant_response,
 )
 from controller.gate.margins import (
+    LoopCrossings,
     Margins,
     Outputs,
     RefineTask,
     bandwidth_of,
+    crossings_of,
     loop_tasks,
     margins_of,
     peak_task,
@@ -115,13 +118,11 @@ __all__ = [
     "Analysis",
     "GateLimits",
     "SourceResult",
-    "Verdict",
     "analyse",
 ]
 
 FloatArray = NDArray[np.float64]
 ComplexArray = NDArray[np.complex128]
-Verdict = Literal["accept", "caution", "reject"]
 
 #: Between two measured points the plant's ratio to the model is assumed to change by no more
 #: than it changes across the interval. When it changes by more than this (natural log units:
@@ -272,7 +273,7 @@ class Analysis:
     sources: tuple[SourceResult, ...]
     small_gain_peak: float
     """Largest robust-stability figure over all evidence and both loops (nan without)."""
-    verdict: Verdict
+    verdict: VerdictKind
     reasons: tuple[str, ...]
     """Rejections first, then cautions."""
     noise_to_command_peak_db: float = math.nan
@@ -285,6 +286,8 @@ class Analysis:
     """Which plant knowledge the verdict used (`PlantKnowledge.describe`)."""
     open_loop_full: ComplexArray | None = None
     """The whole servo's loop at the plant input, G (C_tot + F1) / (1 - F2 z^-1), plant model."""
+    crossings: LoopCrossings | None = None
+    """Where `margins` are read: the speed loop's refined crossings (plant model)."""
 
     @property
     def accepted(self) -> bool:
@@ -516,7 +519,7 @@ def analyse(
     poles = np.linalg.eigvals(closed_loop_matrix(cfg, used, model))
     poles_speed = np.linalg.eigvals(closed_loop_matrix(cfg, used, model, position=False))
     max_radius = float(max(np.max(np.abs(poles)), np.max(np.abs(poles_speed))))
-    model_src, margins, margins_full, bw = _model_evidence(
+    model_src, margins, margins_full, bw, crossings = _model_evidence(
         cfg, used, plant, f, x, bk, limits, max_radius, on, gyw, rejections, cautions
     )
 
@@ -538,7 +541,7 @@ def analyse(
     peaks = [p for p in peaks if math.isfinite(p)]
     with np.errstate(divide="ignore"):
         rejection = 20.0 * np.log10(np.abs(d_on / (one_on * d_off)))
-    verdict: Verdict = "reject" if rejections else ("caution" if cautions else "accept")
+    verdict: VerdictKind = "reject" if rejections else ("caution" if cautions else "accept")
     return Analysis(
         config=cfg,
         tau_s=dob.tau_s,
@@ -569,6 +572,7 @@ def analyse(
         margins_full=margins_full,
         knowledge=plant.describe(),
         open_loop_full=readonly(loop_full),
+        crossings=crossings,
     )
 
 
@@ -673,7 +677,7 @@ def _model_evidence(
     cfg: LoopConfig, used: object, plant: PlantKnowledge, f: FloatArray, x: FloatArray,
     bk: LoopBlocks, limits: GateLimits, max_radius: float, on: bool, gyw: ComplexArray,
     rejections: list[str], cautions: list[str],
-) -> tuple[SourceResult, Margins, Margins, float]:
+) -> tuple[SourceResult, Margins, Margins, float, LoopCrossings]:
     dob = used if on else None
     model = plant.model
     bound = plant.bound
@@ -773,7 +777,7 @@ def _model_evidence(
         inv_delta_db=readonly(inv),
         margins_full=margins_full,
     )
-    return src, margins, margins_full, bw
+    return src, margins, margins_full, bw, crossings_of(lt)
 
 
 def _measured_evidence(

@@ -181,6 +181,31 @@ def margins_of(t: LoopTasks) -> Margins:
     )
 
 
+@dataclass(frozen=True)
+class LoopCrossings:
+    """Where a loop's margins are read (the refined points): its gain crossovers (|L| = 1)
+    and its crossings of the negative real axis (the ones `margins_of` counts)."""
+
+    gain_crossover_hz: tuple[float, ...]
+    gain_crossings: tuple[complex, ...]
+    """L at each gain crossover."""
+    phase_crossover_hz: tuple[float, ...]
+    phase_crossings: tuple[complex, ...]
+    """L at each negative-real-axis crossing."""
+
+
+def crossings_of(t: LoopTasks) -> LoopCrossings:
+    """The refined crossings of `t` (after `solve`), with `margins_of`'s own filter on the
+    phase crossings (on the negative real axis)."""
+    phase = [p for p in t.phase if p.out.real <= 0.0]
+    return LoopCrossings(
+        gain_crossover_hz=tuple(g.freq_hz for g in t.gain),
+        gain_crossings=tuple(g.out for g in t.gain),
+        phase_crossover_hz=tuple(p.freq_hz for p in phase),
+        phase_crossings=tuple(p.out for p in phase),
+    )
+
+
 def peak_task(x: FloatArray, vals: FloatArray, key: str) -> RefineTask:
     i = int(np.argmax(np.where(np.isfinite(vals), vals, -np.inf)))
     t = RefineTask(key, 1, abs_of, float(x[max(i - 1, 0)]), float(x[min(i + 1, x.size - 1)]))

@@ -37,8 +37,10 @@ __all__ = [
     "Recommendation",
     "RecommendationSearch",
     "TopSearch",
+    "cached_recommendation",
     "knowledge_spread",
     "recommend",
+    "recommendation_key",
     "recommendation_search",
     "recommended_max_cutoff_hz",
     "spread_figure",
@@ -221,6 +223,11 @@ class RecommendationSearch:
                 return False  # min(gate, spread) <= spread
         return self.gate.decide(holds)
 
+    @property
+    def complete(self) -> bool:
+        """The search has run to its end (`value` evaluates nothing more)."""
+        return self.gate.done
+
     def value(self) -> float | None:
         """The recommended maximum cut-off (the whole search)."""
         gate_hz = self.gate.value()
@@ -248,7 +255,7 @@ def recommendation_search(
     the cut-off costs at most the rest of one search; new gains, knowledge or limits start a
     new one."""
     limits = limits if limits is not None else GateLimits()
-    key = (cfg.with_(q_cutoff_hz=1.0, dob_on=True), plant, limits)
+    key = (recommendation_key(cfg), plant, limits)
     found = _SEARCHES.get(key)
     if found is None:
         # (Two threads may both start one: each is right; one is kept.)
@@ -257,6 +264,24 @@ def recommendation_search(
             _SEARCHES.clear()  # what a tuning session revisits is recent: it comes back
         _SEARCHES[key] = found
     return found
+
+
+def recommendation_key(cfg: LoopConfig) -> LoopConfig:
+    """What the recommendation depends on in a configuration: all but the cut-off and the
+    DOB switch."""
+    return cfg.with_(q_cutoff_hz=1.0, dob_on=True)
+
+
+def cached_recommendation(
+    cfg: LoopConfig, plant: PlantKnowledge, limits: GateLimits | None = None
+) -> tuple[bool, float | None]:
+    """(known, value) of the recommended cut-off from the one cache, without evaluating
+    anything: known once a search for cfg's gains on `plant` has run to its end."""
+    limits = limits if limits is not None else GateLimits()
+    found = _SEARCHES.get((recommendation_key(cfg), plant, limits))
+    if found is None or not found.complete:
+        return False, None
+    return True, found.value()
 
 
 _SPREADS: dict[tuple[PlantKnowledge, float, str, float],
@@ -361,6 +386,11 @@ class TopSearch:
         self._rel_tol = rel_tol
         self._state = _TopState(0, None, None, False, None)
         self._seen: dict[float, bool] = {}
+
+    @property
+    def done(self) -> bool:
+        """The search has run to its end."""
+        return self._state.done
 
     @property
     def evaluations(self) -> int:

@@ -1,29 +1,33 @@
 """The gate's one verdict: the analysis on all the plant knowledge, the recommended cut-off and
 the nonlinear check, combined into accept / caution / reject with reasons that name their
-evidence. The controller (its gate worker), `dobtune check` and the dashboard all call
-`judge`, so a verdict is the same wherever it is computed from the same knowledge.
+evidence (`controller.core.verdict.Verdict`). The controller (its analysis worker) and
+`dobtune check` call `judge`; the dashboard calls `verdict_of` on the one analysis it also
+draws its charts from, so a verdict is the same wherever it is computed from the same
+knowledge.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Protocol
 
 from controller.core.config import LoopConfig, NominalModel
-from controller.gate.analysis import Analysis, GateLimits, Verdict, analyse
+from controller.core.verdict import Verdict, VerdictKind, VerdictMargins
+from controller.gate.analysis import Analysis, GateLimits, analyse
 from controller.gate.knowledge import PlantKnowledge
 from controller.gate.margins import Margins
 from controller.gate.search import recommendation_search
 
 __all__ = [
     "EXIT_CODES",
-    "Judgement",
     "NonlinearCheck",
     "NonlinearFinding",
+    "Verdict",
     "conditional_stability",
     "judge",
+    "margins_of_analysis",
     "recommended_cutoff_hz",
+    "verdict_of",
 ]
 
 #: `dobtune check` exit codes per verdict (2 is bad input).
@@ -49,26 +53,6 @@ class NonlinearFinding(Protocol):
 NonlinearCheck = Callable[[LoopConfig, NominalModel], Sequence[NonlinearFinding]]
 """Runs a candidate on a nonlinear model of the rig with the knowledge's plant model; returns
 the findings (empty: none). `controller.sim.nonlinear_check.findings` is the one in use."""
-
-
-@dataclass(frozen=True, eq=False)
-class Judgement:
-    analysis: Analysis
-    verdict: Verdict
-    rejections: tuple[str, ...]
-    cautions: tuple[str, ...]
-    recommended_max_cutoff_hz: float | None
-    """For the candidate's Q type (None: even the lowest cut-off is not accepted, the
-    candidate was rejected before the search was worth running, or `judge` was asked for the
-    verdict alone: `recommendation` False)."""
-
-    @property
-    def reasons(self) -> tuple[str, ...]:
-        return self.rejections + self.cautions
-
-    @property
-    def applicable(self) -> bool:
-        return self.verdict != "reject"
 
 
 def recommended_cutoff_hz(
@@ -99,6 +83,18 @@ def conditional_stability(a: Analysis, limits: GateLimits) -> tuple[str, ...]:
     return tuple(out)
 
 
+def margins_of_analysis(a: Analysis) -> VerdictMargins:
+    """The verdict's figures from the analysis (the plant model's loops)."""
+    return VerdictMargins(
+        gain_margin_db=float(a.gain_margin_db),
+        phase_margin_deg=float(a.phase_margin_deg),
+        peak_sensitivity_db=float(a.peak_sensitivity_db),
+        small_gain_peak=float(a.small_gain_peak),
+        max_pole_radius=float(a.max_pole_radius),
+        noise_to_command_peak_db=float(a.noise_to_command_peak_db),
+    )
+
+
 def judge(
     cfg: LoopConfig,
     plant: PlantKnowledge,
@@ -106,9 +102,23 @@ def judge(
     *,
     nonlinear: NonlinearCheck | None = None,
     recommendation: bool = True,
-) -> Judgement:
-    """The verdict on `cfg` against `plant`: reject on any rejection of the analysis or a
-    sustained oscillation in the nonlinear check (chatter that does not decay: the loop
+) -> Verdict:
+    """The verdict on `cfg` against `plant`: `verdict_of` its analysis on the gate's grid."""
+    return verdict_of(analyse(cfg, plant, limits), plant, limits, nonlinear=nonlinear,
+                      recommendation=recommendation)
+
+
+def verdict_of(
+    a: Analysis,
+    plant: PlantKnowledge,
+    limits: GateLimits | None = None,
+    *,
+    nonlinear: NonlinearCheck | None = None,
+    recommendation: bool = True,
+) -> Verdict:
+    """The verdict on `a.config` from its analysis `a` against `plant` (one analysis serves
+    the verdict and, in the dashboard, the charts): reject on any rejection of the analysis
+    or a sustained oscillation in the nonlinear check (chatter that does not decay: the loop
     watchdog would roll it back); else caution for any caution of the analysis, a Q cut-off
     above the recommended maximum (the top of the continuous accepted region from the lowest
     cut-off) or another finding of the nonlinear check (ringing that decays, hunting); else
@@ -120,10 +130,13 @@ def judge(
     the result's `recommended_max_cutoff_hz` unless `recommendation` is False (the
     controller's gate: the verdict alone)."""
     limits = limits if limits is not None else GateLimits()
-    a = analyse(cfg, plant, limits)
+    cfg = a.config
+    judged = {"margins": margins_of_analysis(a), "knowledge": a.knowledge,
+              "knowledge_version": plant.version}
     if a.verdict == "reject":
         cond = conditional_stability(a, limits)
-        return Judgement(a, "reject", a.rejections, a.cautions + cond, None)
+        return Verdict(verdict="reject", rejections=a.rejections, cautions=a.cautions + cond,
+                       **judged)  # type: ignore[arg-type]
     rejections: list[str] = []
     cautions = list(a.cautions)
     search = recommendation_search(cfg, plant, limits)
@@ -149,8 +162,9 @@ def judge(
             (rejections if finding.sustained else cautions).append(
                 f"nonlinear check: {finding.text}"
             )
-    verdict: Verdict = "reject" if rejections else "caution" if cautions else "accept"
+    verdict: VerdictKind = "reject" if rejections else "caution" if cautions else "accept"
     if verdict != "accept":
         cautions += conditional_stability(a, limits)
     rec = search.value() if recommendation else None
-    return Judgement(a, verdict, tuple(rejections), tuple(cautions), rec)
+    return Verdict(verdict=verdict, rejections=tuple(rejections), cautions=tuple(cautions),
+                   recommended_max_cutoff_hz=rec, **judged)  # type: ignore[arg-type]

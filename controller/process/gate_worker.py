@@ -11,59 +11,23 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
-import dataclasses
 import logging
 import os
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import msgspec
 
-from controller import protocol as proto
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients
+from controller.core.verdict import Verdict
 from controller.gate.knowledge import KnowledgeRecord
 from controller.process.worker_start import worker_init
 
-__all__ = [
-    "GateRunner", "GateVerdict", "clear_caches", "gate", "gate_and_build", "margins_dict",
-    "nan_margins",
-]
+__all__ = ["GateRunner", "clear_caches", "gate", "gate_and_build"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class GateVerdict:
-    """The gate's answer on one candidate."""
-
-    accepted: bool
-    """May be applied: the verdict is accept, or caution (then only with confirmation)."""
-    reasons: tuple[str, ...]
-    """Why it was rejected, or the cautions (empty when accepted without reservation)."""
-    margins: proto.Margins
-    coefficients: LoopCoefficients | None = None
-    """The filters designed for the candidate (accepted, and only when asked for)."""
-    verdict: str = "reject"
-    """accept | caution | reject."""
-    knowledge_version: int = 0
-
-
-def nan_margins() -> proto.Margins:
-    nan = float("nan")
-    return proto.Margins(
-        gain_margin_db=nan,
-        phase_margin_deg=nan,
-        peak_sensitivity_db=nan,
-        small_gain_peak=nan,
-        max_pole_radius=nan,
-    )
-
-
-def margins_dict(m: proto.Margins | None) -> dict[str, float] | None:
-    return None if m is None else msgspec.to_builtins(m)  # type: ignore[no-any-return]
 
 
 #: The worker's converted plant knowledge (one record at a time) and its verdicts: the caches
@@ -76,7 +40,7 @@ _knowledge: list[tuple[KnowledgeRecord, Any]] = []
 #: depends on is in the key: the whole configuration (gains, filters, limits, rate), the
 #: knowledge (its evidence and version); the gate's limits are the defaults, the rig's
 #: command limit is checked before (`GateRunner`).
-_verdicts: dict[tuple[LoopConfig, Any], GateVerdict] = {}
+_verdicts: dict[tuple[LoopConfig, Any], Verdict] = {}
 _VERDICTS_MAX = 64
 _cache_lock = threading.Lock()
 
@@ -100,7 +64,7 @@ def clear_caches() -> None:
         _verdicts.clear()
 
 
-def gate(cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
+def gate(cfg: LoopConfig, record: KnowledgeRecord) -> Verdict:
     """The gate's verdict (`controller.gate.verdict.judge`) on `cfg` against the plant
     knowledge `record`. Never raises."""
     try:
@@ -109,7 +73,7 @@ def gate(cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
         log.warning("plant knowledge v%d failed to convert: %s: %s", record.version,
                     type(exc).__name__, exc)
         reason = "knowledge: the plant knowledge cannot be used"
-        return GateVerdict(False, (reason,), nan_margins(), knowledge_version=record.version)
+        return Verdict.refused(reason, record.version)
     key = (cfg, plant)
     with _cache_lock:
         verdict = _verdicts.get(key)
@@ -118,12 +82,15 @@ def gate(cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
         from controller.sim.nonlinear_check import findings
 
         try:
-            j = judge(cfg, plant, nonlinear=findings, recommendation=False)
+            verdict = judge(cfg, plant, nonlinear=findings, recommendation=False)
         except Exception as exc:  # the details go to the log, never to the client
             log.warning("analysis failed on %r: %s: %s", cfg, type(exc).__name__, exc)
             reason = "candidate: the stability analysis cannot evaluate this configuration"
-            return GateVerdict(False, (reason,), nan_margins(), knowledge_version=record.version)
-        verdict = _verdict(j, record.version)
+            return Verdict.refused(reason, record.version)
+        if verdict.verdict == "reject" and not verdict.reasons:
+            verdict = msgspec.structs.replace(
+                verdict, rejections=("rejected by the stability analysis",))
+        verdict = msgspec.structs.replace(verdict, knowledge_version=record.version)
         with _cache_lock:
             if len(_verdicts) >= _VERDICTS_MAX:
                 del _verdicts[next(iter(_verdicts))]
@@ -131,33 +98,19 @@ def gate(cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
     return verdict
 
 
-def _verdict(j: Any, knowledge_version: int) -> GateVerdict:
-    """The GateVerdict of a Judgement."""
-    a = j.analysis
-    margins = proto.Margins(
-        gain_margin_db=float(a.gain_margin_db),
-        phase_margin_deg=float(a.phase_margin_deg),
-        peak_sensitivity_db=float(a.peak_sensitivity_db),
-        small_gain_peak=float(a.small_gain_peak),
-        max_pole_radius=float(a.max_pole_radius),
-    )
-    kv = knowledge_version
-    if j.verdict == "reject":
-        reasons = j.reasons or ("rejected by the stability analysis",)
-        return GateVerdict(False, reasons, margins, verdict="reject", knowledge_version=kv)
-    return GateVerdict(True, j.cautions, margins, verdict=j.verdict, knowledge_version=kv)
-
-
-def gate_and_build(cfg: LoopConfig, version: int, record: KnowledgeRecord) -> GateVerdict:
+def gate_and_build(
+    cfg: LoopConfig, version: int, record: KnowledgeRecord
+) -> tuple[Verdict, LoopCoefficients | None]:
     """`gate`, then (if it may be applied) the loop's filters for `version`. Never raises."""
     verdict = gate(cfg, record)
-    if not verdict.accepted:
-        return verdict
+    if not verdict.applicable:
+        return verdict, None
     try:
-        return dataclasses.replace(verdict, coefficients=LoopCoefficients.build(cfg, version))
+        return verdict, LoopCoefficients.build(cfg, version)
     except Exception as exc:
         reason = f"candidate: filters could not be built: {exc}"
-        return GateVerdict(False, (reason,), verdict.margins, knowledge_version=record.version)
+        return msgspec.structs.replace(
+            verdict, verdict="reject", rejections=(reason,), cautions=()), None
 
 
 def _warm_up() -> None:
@@ -217,18 +170,18 @@ class GateRunner:
             with self._lock:
                 self._executor()
 
-    def check(self, cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
+    def check(self, cfg: LoopConfig, record: KnowledgeRecord) -> Verdict:
         """The gate's verdict on `cfg` against the plant knowledge (no filters built)."""
-        return self.check_and_build(cfg, 0, record, build=False)
+        return self.check_and_build(cfg, 0, record, build=False)[0]
 
-    def check_here(self, cfg: LoopConfig, record: KnowledgeRecord) -> GateVerdict:
+    def check_here(self, cfg: LoopConfig, record: KnowledgeRecord) -> Verdict:
         """`check` in this process (the same gate and rig limit): for the controller's
         start-up, before its loop runs, when the worker is still loading and a niced worker
         would wait behind a busy machine."""
         refused = self._over_rig_limit(cfg)
         return refused if refused is not None else gate(cfg, record)
 
-    def _over_rig_limit(self, cfg: LoopConfig) -> GateVerdict | None:
+    def _over_rig_limit(self, cfg: LoopConfig) -> Verdict | None:
         rig_max = self.command_limit_max_deg_s
         if rig_max is not None and cfg.command_limit_deg_s > rig_max:
             reason = (
@@ -236,29 +189,29 @@ class GateRunner:
                 f"{rig_max:g} deg/s (rig file limits.command_limit_deg_s): the drive would "
                 "clamp commands the DOB believes were sent"
             )
-            return GateVerdict(False, (reason,), nan_margins())
+            return Verdict.refused(reason)
         return None
 
     def check_and_build(
         self, cfg: LoopConfig, version: int, record: KnowledgeRecord, *, build: bool = True
-    ) -> GateVerdict:
-        """The gate's verdict and, if it may be applied and `build`, the coefficients."""
+    ) -> tuple[Verdict, LoopCoefficients | None]:
+        """The gate's verdict and, if it may be applied and `build`, the coefficients (None
+        otherwise)."""
         refused = self._over_rig_limit(cfg)
         if refused is not None:
-            return refused
+            return refused, None
         try:
             if build:
-                verdict: GateVerdict = self.call(
+                built: tuple[Verdict, LoopCoefficients | None] = self.call(
                     gate_and_build, cfg, version, record, timeout_s=self._timeout_s
                 )
-            else:
-                verdict = self.call(gate, cfg, record, timeout_s=self._timeout_s)
-            return verdict
+                return built
+            return self.call(gate, cfg, record, timeout_s=self._timeout_s), None
         except concurrent.futures.TimeoutError:
             reason = f"analysis: no verdict within {self._timeout_s:g} s"
         except Exception as exc:  # a dead worker (BrokenProcessPool), pickling, ...
             reason = f"analysis worker failed: {type(exc).__name__}: {exc}"
-        return GateVerdict(False, (reason,), nan_margins())
+        return Verdict.refused(reason), None
 
     def call(self, fn: Callable[..., Any], *args: Any, timeout_s: float = 120.0) -> Any:
         """Run `fn(*args)` in the worker process (or here without one); raises on failure.

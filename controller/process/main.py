@@ -32,10 +32,11 @@ from controller.client.session import (
 from controller.core.config import LoopConfig, NominalModel, config_from_builtins
 from controller.core.errors import ConfigError
 from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.core.verdict import Verdict, margins_dict
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
 from controller.process.access import Access
 from controller.process.audit import AuditError, AuditLog, audit_path
-from controller.process.gate_worker import GateRunner, GateVerdict, margins_dict
+from controller.process.gate_worker import GateRunner
 from controller.process.node import ZenohNode
 from controller.process.options import ControllerOptions
 from controller.process.persistence import PersistenceError, StateStore
@@ -211,9 +212,9 @@ def initial_knowledge(opts: ControllerOptions, store: StateStore) -> KnowledgeRe
 def _initial_config(
     opts: ControllerOptions,
     store: StateStore,
-    check: Callable[[LoopConfig], GateVerdict],
+    check: Callable[[LoopConfig], Verdict],
     rig_limit_deg_s: float | None = None,
-) -> tuple[LoopConfig, int, proto.Margins]:
+) -> tuple[LoopConfig, int, proto.VerdictMargins]:
     """The configuration to start with; the gate must not reject it (a caution is started
     with and reported); a change is saved and logged."""
     saved = store.load()
@@ -221,7 +222,7 @@ def _initial_config(
         opts, None if saved is None else saved.config, store.active_path, rig_limit_deg_s
     )
     verdict = check(candidate)
-    if not verdict.accepted:
+    if not verdict.applicable:
         raise StartupError(
             f"{source}: rejected by the stability gate: " + "; ".join(verdict.reasons)
         )

@@ -21,9 +21,10 @@ import msgspec
 from controller import protocol as proto
 from controller.core.config import LoopConfig, config_from_builtins
 from controller.core.errors import ConfigError
+from controller.core.verdict import margins_dict
 from controller.gate.knowledge import KnowledgeRecord
 from controller.process.access import Access
-from controller.process.gate_worker import GateRunner, margins_dict
+from controller.process.gate_worker import GateRunner
 from controller.process.identify_runs import IdentifyRuns
 from controller.process.options import ControllerOptions
 from controller.process.persistence import MAX_VERSION, PersistenceError, StateStore
@@ -59,7 +60,7 @@ class ControllerService:
         runtime: Runtime,
         store: StateStore,
         gate: GateRunner,
-        margins: proto.Margins,
+        margins: proto.VerdictMargins,
         notes: list[str],
         knowledge: KnowledgeRecord | None = None,
         access: Access | None = None,
@@ -83,7 +84,7 @@ class ControllerService:
         #: The gate's verdict on the running configuration, on that knowledge.
         self.running_verdict = "accept"
         #: Margins and verdict of the configuration the watchdog would roll back to.
-        self._fallback_state: tuple[proto.Margins, str, LoopConfig] | None = None
+        self._fallback_state: tuple[proto.VerdictMargins, str, LoopConfig] | None = None
         self._rollbacks_seen = 0
         self._rollback_lock = threading.Lock()
         #: A rollback not saved yet: (config, version, from version, bad config, trip kind).
@@ -190,16 +191,17 @@ class ControllerService:
             same = candidate == active.config
             # The analysis and the filter design run in the gate's worker process.
             record = self.knowledge
-            verdict = self.gate.check_and_build(candidate, version, record, build=not same)
+            verdict, coefficients = self.gate.check_and_build(
+                candidate, version, record, build=not same)
             margins = verdict.margins
             judged = {"verdict": verdict.verdict, "knowledge_version": record.version}
-            if not verdict.accepted:
+            if not verdict.applicable:
                 return self._rejected(client, list(verdict.reasons), margins=margins, **judged)
             if verdict.verdict == "caution" and not confirm:
                 reasons = [*verdict.reasons, "confirm: the verdict is caution; send the request "
                            "again with confirm true to apply it anyway"]
                 return self._rejected(client, reasons, margins=margins, field="confirm", **judged)
-            if same or verdict.coefficients is None:
+            if same or coefficients is None:
                 return self.config_reply(accepted=True, margins=margins, **judged)
             try:
                 self.store.save(candidate, version)
@@ -213,7 +215,7 @@ class ControllerService:
             # configuration running now goes with them, under the next version, as the
             # watchdog's rollback target (its filters are designed already: no design work).
             fallback = dataclasses.replace(active, version=version + 1)
-            ticket = self.rt.submit(ApplyCoefficients(verdict.coefficients, fallback))
+            ticket = self.rt.submit(ApplyCoefficients(coefficients, fallback))
             if not ticket.wait(self.opts.apply_timeout_s) or not ticket.ok:
                 # Saved but not (yet) swapped: only while shutting down. Report it.
                 reason = f"loop: not applied at a tick boundary ({ticket.message or 'timeout'})"
@@ -271,7 +273,7 @@ class ControllerService:
                     config=config_from_builtins(item["new"]),
                     margins=None if not isinstance(m, dict) else msgspec.convert(
                         {k: (math.nan if v is None else v) for k, v in m.items()},
-                        proto.Margins),
+                        proto.VerdictMargins),
                 ))
             except (KeyError, TypeError, ValueError, ConfigError, msgspec.ValidationError):
                 continue  # a line this version cannot read is skipped, not fatal

@@ -81,17 +81,16 @@ def format_gate_html(ev: Evaluation | None, error: str | None = None) -> str:
         return box("dt-verdict dt-reject", REJECT, f"<b>Invalid candidate</b><br>{esc(error)}",
                    font_px=None)
     assert ev is not None
-    g = ev.gate
+    g = ev.verdict
     rows = "".join(
-        f"<tr><td>{label}</td><td style='text-align:right'>{_fmt(g.margins[key], d)} {unit}"
-        "</td></tr>"
+        f"<tr><td>{label}</td><td style='text-align:right'>"
+        f"{_fmt(getattr(g.margins, key), d)} {unit}</td></tr>"
         for key, label, unit, d in _MARGIN_LABELS
-        if key in g.margins
     )
     table = f"<table style='width:100%;font-size:12px'>{rows}</table>"
     judged = (f"<div class='dt-knowledge' style='font-size:11px;color:#555'>judged on "
               f"{esc(g.knowledge)}</div>" if g.knowledge else "")
-    if g.accepted:
+    if g.verdict == "accept":
         return box("dt-verdict dt-accept", ACCEPT, f"<b>Verdict: accept</b>{table}{judged}",
                    font_px=None)
     reasons = _reason_list(g.reasons, "dt-reason")
@@ -548,15 +547,15 @@ class TuningPanel:
             self.apply_result.content = box("dt-apply", REJECT, f"Not sent: {esc(str(exc))}")
             return
         ev = self.engine.evaluate(cand)
-        if ev.gate.verdict == "reject":
+        if ev.verdict.verdict == "reject":
             # Checked here, on the server, whatever the browser's button showed.
             self.apply_result.content = box(
                 "dt-apply dt-apply-rejected", REJECT,
                 "<b>Not sent</b>: the gate rejects this candidate"
-                f"{_reason_list(ev.gate.reasons, 'dt-reject-reason')}")
+                f"{_reason_list(ev.verdict.reasons, 'dt-reject-reason')}")
             return
-        if ev.gate.verdict == "caution":
-            self._confirm_caution(cand, ev.gate.reasons, browser)
+        if ev.verdict.verdict == "caution":
+            self._confirm_caution(cand, ev.verdict.reasons, browser)
             return
         self._reply_version = None
         self.apply_result.content = box("dt-apply", NEUTRAL, "Sending the candidate...")
@@ -649,7 +648,7 @@ class TuningPanel:
         if known:
             self._update_marks(rec)
         self.apply_button.color = {"accept": "green", "caution": "orange"}.get(
-            ev.gate.verdict, "red")
+            ev.verdict.verdict, "red")
         self.last_evaluation = ev
         self.last_update_s = time.perf_counter() - t0
         self.update_count += 1

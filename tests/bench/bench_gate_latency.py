@@ -66,7 +66,7 @@ def main(n: int) -> None:
                         cfg = cfg.with_(cv_kp=float(rng.uniform(0.2, 0.7)),
                                         pos_kp_per_s=float(rng.uniform(3.0, 12.0)))
                     t0 = time.perf_counter()
-                    v = runner.check_and_build(cfg, k + 10, record)
+                    v, _ = runner.check_and_build(cfg, k + 10, record)
                     times.append(time.perf_counter() - t0)
                     verdicts[v.verdict] = verdicts.get(v.verdict, 0) + 1
                 print(f"{name:<20} {label:<10} {_percentiles(times)}   verdicts {verdicts}")

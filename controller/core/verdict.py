@@ -1,0 +1,75 @@
+"""The gate's verdict on one configuration, as plain data: the one type (and its wire form) the
+controller's gate, its worker process, `dobtune check`, the dashboard and the protocol carry.
+
+`controller.gate.verdict.judge` makes it; `controller.protocol` sends it (MessagePack maps,
+msgspec). Plain data only (no analysis here), so that the wire contract can import it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import msgspec
+
+__all__ = ["VERDICT_KINDS", "Verdict", "VerdictKind", "VerdictMargins", "margins_dict"]
+
+VerdictKind = Literal["accept", "caution", "reject"]
+VERDICT_KINDS: tuple[VerdictKind, ...] = ("accept", "caution", "reject")
+
+
+class VerdictMargins(msgspec.Struct, frozen=True, kw_only=True):
+    """The figures a verdict shows, on the plant model (NaN: not computed, e.g. refused before
+    the analysis ran)."""
+
+    gain_margin_db: float
+    phase_margin_deg: float
+    peak_sensitivity_db: float
+    small_gain_peak: float
+    """The robust-stability figure: max over the evidence of |a T| (|W T| for the bound)."""
+    max_pole_radius: float
+    noise_to_command_peak_db: float = math.nan
+    """Peak gain from speed-measurement noise to the command, |(Cv + F1) / D|."""
+
+    @classmethod
+    def unknown(cls) -> VerdictMargins:
+        nan = math.nan
+        return cls(gain_margin_db=nan, phase_margin_deg=nan, peak_sensitivity_db=nan,
+                   small_gain_peak=nan, max_pole_radius=nan)
+
+
+class Verdict(msgspec.Struct, frozen=True, kw_only=True):
+    """accept / caution / reject on one configuration, with the reasons that name their
+    evidence, the margins, the recommended maximum Q cut-off and the knowledge judged on."""
+
+    verdict: VerdictKind
+    rejections: tuple[str, ...] = ()
+    cautions: tuple[str, ...] = ()
+    margins: VerdictMargins
+    recommended_max_cutoff_hz: float | None = None
+    """For the candidate's Q type (None: even the lowest cut-off is not accepted, or the
+    candidate was rejected before the search was worth running)."""
+    knowledge: str = ""
+    """The plant knowledge judged on, in one line (`PlantKnowledge.describe`)."""
+    knowledge_version: int = 0
+
+    @property
+    def reasons(self) -> tuple[str, ...]:
+        """The rejections, then the cautions."""
+        return self.rejections + self.cautions
+
+    @property
+    def applicable(self) -> bool:
+        """May be applied: accept, or caution (then only after the user confirms)."""
+        return self.verdict != "reject"
+
+    @classmethod
+    def refused(cls, reason: str, knowledge_version: int = 0) -> Verdict:
+        """A rejection before (or without) an analysis: margins unknown."""
+        return cls(verdict="reject", rejections=(reason,), margins=VerdictMargins.unknown(),
+                   knowledge_version=knowledge_version)
+
+
+def margins_dict(m: VerdictMargins | None) -> dict[str, float] | None:
+    """The margins as a plain dict (the change log's JSON)."""
+    return None if m is None else msgspec.structs.asdict(m)
