@@ -225,7 +225,7 @@ def test_the_gate_workers_verdicts_follow_every_input() -> None:
     assert v1.margins != v2.margins and v1.reasons != v3.reasons
     # The rig's limit is checked before any cached verdict.
     runner = GateRunner(subprocess=False, command_limit_max_deg_s=0.5 * cfg.command_limit_deg_s)
-    assert not runner.check(cfg, k1).accepted
+    assert not runner.check(cfg, k1).applicable
 
 
 def test_a_repeated_candidate_is_not_judged_again(monkeypatch: pytest.MonkeyPatch) -> None:

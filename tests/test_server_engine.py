@@ -136,7 +136,7 @@ def test_the_dashboard_verdict_is_the_controllers() -> None:
         theirs = gate(cfg, record)
         assert mine.verdict == theirs.verdict, cfg
         assert mine.reasons == theirs.reasons, cfg
-        # The whole verdict, margins and recommendation included, bit for bit (NaN == NaN).
+        # The whole verdict, margins included, bit for bit (NaN == NaN).
         np.testing.assert_equal(msgspec.to_builtins(mine), msgspec.to_builtins(theirs))
         seen[mine.verdict] += 1
     assert min(seen.values()) > 0, seen  # all three verdicts were exercised
