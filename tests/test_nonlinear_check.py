@@ -26,9 +26,8 @@ def test_the_article_configuration_has_no_finding() -> None:
     assert r.reasons == ()
     assert r.hold_rms_deg_s < 0.5 * OSCILLATION_RMS_DEG_S
     assert r.hold_error_p2p_deg < 0.75 * HUNTING_P2P_DEG
-    # Generous: the budget is measured in tests/bench. The first run in a process also pays
-    # numba's one-off start (its registries and the cached kernels: 1-3 s at load 20).
-    assert nonlinear_check(LoopConfig()).run_time_s < 1.0
+    # Its run time is a benchmark figure (tests/bench/bench_nonlinear_check.py), not a test:
+    # a wall-clock limit here failed at load 20.
 
 
 @pytest.mark.parametrize("q_type", ["q31", "q20"])
