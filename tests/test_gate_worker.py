@@ -17,7 +17,13 @@ from old_loop import OLD_LOOP
 
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
-from controller.process.gate_worker import GateRunner, clear_caches, gate, gate_and_build
+from controller.process.gate_worker import (
+    GateRunner,
+    clear_caches,
+    gate,
+    gate_and_build,
+    judged,
+)
 
 K = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=3, source="test"))
 
@@ -62,6 +68,22 @@ def test_a_hanging_worker_is_killed_and_the_next_call_gets_a_fresh_one() -> None
             runner.call(time.sleep, 30.0, timeout_s=0.5)
         verdict, coefficients = runner.check_and_build(LoopConfig(), 3, K)
         assert verdict.applicable and coefficients is not None
+    finally:
+        runner.close()
+
+
+@pytest.mark.slow
+def test_the_worker_judges_the_running_configuration_once_loaded() -> None:
+    """`prime` (the controller's start-up): the worker judges the running configuration on
+    its knowledge by itself, so the first apply finds it done."""
+    cfg = LoopConfig(q_cutoff_hz=0.6)
+    runner = GateRunner(subprocess=True)
+    try:
+        runner.start()
+        runner.prime(cfg, K)
+        assert runner.call(judged, cfg, K)  # (queued behind the prime job: done by now)
+        assert not runner.call(judged, cfg.with_(q_cutoff_hz=0.61), K)
+        assert runner.check(cfg, K) == gate(cfg, K)
     finally:
         runner.close()
 

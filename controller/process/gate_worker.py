@@ -23,9 +23,9 @@ from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients
 from controller.core.verdict import Verdict
 from controller.gate.knowledge import KnowledgeRecord
-from controller.process.worker_start import worker_init
+from controller.process.worker_start import lower_priority, worker_init
 
-__all__ = ["GateRunner", "clear_caches", "gate", "gate_and_build"]
+__all__ = ["GateRunner", "clear_caches", "gate", "gate_and_build", "judged"]
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +62,14 @@ def clear_caches() -> None:
     with _cache_lock:
         _knowledge.clear()
         _verdicts.clear()
+
+
+def judged(cfg: LoopConfig, record: KnowledgeRecord) -> bool:
+    """The gate's verdict on `cfg` against `record` is cached here (this process)."""
+    with _cache_lock:
+        if not (_knowledge and _knowledge[0][0] == record):
+            return False
+        return (cfg, _knowledge[0][1]) in _verdicts
 
 
 def gate(cfg: LoopConfig, record: KnowledgeRecord) -> Verdict:
@@ -147,6 +155,9 @@ class GateRunner:
         self._fresh = True
         #: A new worker's warm-up (imports, the rig kernel), waited for by the first call.
         self._warming: concurrent.futures.Future[None] | None = None
+        #: The worker was told to lower its priority (after its warm-up and `prime`; before
+        #: any other job).
+        self._settled = False
         self._lock = threading.Lock()
 
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
@@ -160,8 +171,15 @@ class GateRunner:
                 initargs=(os.getpid(), threading.current_thread() is threading.main_thread()),
             )
             self._fresh = True
+            self._settled = False
             self._warming = self._pool.submit(_warm_up)
         return self._pool
+
+    def _settle(self, pool: concurrent.futures.ProcessPoolExecutor) -> None:
+        """The worker's jobs from here on run niced (`lower_priority`), behind the loop."""
+        if not self._settled:
+            self._settled = True
+            pool.submit(lower_priority)
 
     def start(self) -> None:
         """Start the worker process now and let it load the analysis while the caller goes on
@@ -169,6 +187,18 @@ class GateRunner:
         if self._subprocess:
             with self._lock:
                 self._executor()
+
+    def prime(self, cfg: LoopConfig, record: KnowledgeRecord) -> None:
+        """Let the worker judge `cfg` (the running configuration) on `record` as soon as it
+        has loaded, while the caller goes on: it converts the knowledge and fills what the
+        first apply would otherwise wait for (the analysis's first run, the verdict, the
+        recommended cut-off's search for these gains). Nothing without a worker."""
+        if self._subprocess:
+            with self._lock:
+                pool = self._executor()
+                if not self._settled:  # (still at the start-up's priority)
+                    pool.submit(gate, cfg, record)
+                self._settle(pool)
 
     def check(self, cfg: LoopConfig, record: KnowledgeRecord) -> Verdict:
         """The gate's verdict on `cfg` against the plant knowledge (no filters built)."""
@@ -228,6 +258,7 @@ class GateRunner:
                     # The first real job pays for the imports and caches the warm-up did not
                     # touch: it gets the start-up time too, not just the job's timeout.
                     timeout_s = max(timeout_s, self._start_timeout_s)
+                self._settle(pool)
                 result = pool.submit(fn, *args).result(timeout=timeout_s)
                 self._fresh = False
                 return result

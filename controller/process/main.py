@@ -377,8 +377,8 @@ def _run(
     _check_options(opts)
     runner.command_limit_max_deg_s = _rig_command_limit(opts)
     # The gate's worker starts loading now, beside the rest of the start-up; the first check
-    # runs here, before the loop, at this process's priority (the worker is niced: behind a
-    # busy machine it took tens of seconds to give the first verdict).
+    # runs here, before the loop (the worker may still be loading: behind a busy machine it
+    # took tens of seconds to give the first verdict).
     runner.start()
     try:
         store = StateStore(opts.state_path)
@@ -391,6 +391,9 @@ def _run(
         )
     except PersistenceError as exc:
         raise StartupError(str(exc)) from exc
+    # The worker judges the running configuration once it has loaded, then lowers its
+    # priority: the first apply finds the knowledge converted and the analysis run.
+    runner.prime(cfg, knowledge)
     previous_switch = sys.getswitchinterval()
     sys.setswitchinterval(opts.switch_interval_s)
     try:

@@ -78,10 +78,12 @@ def start_controller(
     extra_args: tuple[str, ...] = (),
     python_code: str | None = None,
     listen: bool = True,
+    tree: Path | None = None,
 ) -> ControllerProcess:
     """Start a controller on 127.0.0.1:<free port> (`listen` False: none, for a controller
     behind an authenticating router). `python_code` replaces `-m controller` (for options the
-    command line does not expose); it gets the same arguments in argv."""
+    command line does not expose); it gets the same arguments in argv. `tree`: run the code of
+    that source tree (an older commit's, for benchmarks) instead of this repository's."""
     port = free_port() if port is None else port
     args = [
         *(("--listen", f"tcp/127.0.0.1:{port}") if listen else ()),
@@ -97,8 +99,11 @@ def start_controller(
     state_dir.mkdir(parents=True, exist_ok=True)
     log_path = state_dir.parent / f"controller-{rig}-{port}.log"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if tree is not None:
+        env["PYTHONPATH"] = str(tree)
     with open(log_path, "ab") as log:
-        proc = subprocess.Popen(cmd, cwd=REPO, stdout=log, stderr=subprocess.STDOUT, env=env)
+        proc = subprocess.Popen(cmd, cwd=tree or REPO, stdout=log, stderr=subprocess.STDOUT,
+                                env=env)
     return ControllerProcess(port=port, rig=rig, state_dir=state_dir, proc=proc, log_path=log_path)
 
 
