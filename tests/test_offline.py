@@ -18,7 +18,8 @@ from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.ramp import Ramp
 from controller.core.trajectory import Trajectory
-from controller.sim.offline import ROWS, OfflineRun, run_ticks, supported
+from controller.sim.linear_rig import BacklashRig, PlantVariant
+from controller.sim.offline import ROWS, OfflineRun, run_speed_ticks, run_ticks, supported
 from controller.sim.rig_disturbances import ScheduledRig, build_rig, rig_setup
 from controller.sim.sim_rig import RigFaults, SimRig
 
@@ -181,3 +182,52 @@ def test_what_it_runs() -> None:
         run_ticks(PositionDobLoop(LoopConfig()), SimRig(), Trajectory(), 10)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="do not fit"):
         run_ticks(loop, SimRig(), Trajectory(), 10, out=OfflineRun(np.empty((len(ROWS), 5))))
+
+
+def _python_speed_run(loop: ServoLoop, rig: BacklashRig, ref: np.ndarray) -> np.ndarray:
+    """As the paper's Figs. 8-9 ticked it before (`ServoLoop.tick_speed`, `BacklashRig.step`)."""
+    w = np.empty(len(ref))
+    for k in range(len(ref)):
+        _, wk = rig.read()
+        w[k] = wk
+        if not abs(wk) < 1e6:
+            w[k:] = np.nan
+            break
+        rig.step(loop.tick_speed(float(ref[k]), wk))
+    return w
+
+
+@pytest.mark.parametrize(
+    ("cfg", "variant"),
+    [
+        (LoopConfig(), PlantVariant("1.4 Pn R", 1.4, 5.0, 0.05, 4.0, 0.05)),
+        (LoopConfig(q_type="q20", q_cutoff_hz=4.0), PlantVariant("0.6 Pn R", 0.6, 5.0, 0.05,
+                                                                   4.0, 0.05)),
+        (LoopConfig(dob_on=False, command_limit_deg_s=9.0), PlantVariant("Pn")),
+        (LoopConfig(cv_kp=40.0), PlantVariant("Pn")),  # kicked past 1e6 deg/s: the stop
+    ],
+    ids=["q31-1.4", "q20-0.6", "off-saturating", "runaway"],
+)
+def test_compiled_rate_loop_on_the_backlash_rig_bit_for_bit(
+    cfg: LoopConfig, variant: PlantVariant
+) -> None:
+    runaway = cfg.cv_kp == 40.0
+    step = 5e6 if runaway else 5.0
+    n = 2000
+    ref = 10.0 * np.sin(2.0 * np.pi * 0.4 * np.arange(n) * TS)
+    outs, worlds = [], []
+    for compiled in (False, True):
+        loop = ServoLoop(LoopCoefficients.build(cfg))
+        rig = BacklashRig(variant, cfg.nominal, backlash_deg=0.05,
+                          speed_disturbance=lambda t: step if t >= 1.0 else 0.0)
+        outs.append(run_speed_ticks(loop, rig, ref) if compiled
+                    else _python_speed_run(loop, rig, ref))
+        worlds.append((loop, rig))
+    assert np.array_equal(outs[0], outs[1], equal_nan=True)
+    (lp, rp), (lc, rc) = worlds
+    assert _loop_state(lc) == _loop_state(lp)
+    assert rc.read() == rp.read() or not np.all(np.isfinite(outs[0]))
+    if runaway:
+        assert np.isnan(outs[0][-1]) and np.isfinite(outs[0][1000])
+    else:
+        assert np.all(np.isfinite(outs[0])) and np.max(np.abs(outs[0])) > 5.0

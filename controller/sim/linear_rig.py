@@ -25,7 +25,7 @@ from controller.core.config import NominalModel
 from controller.core.errors import ConfigError
 from controller.core.lti import tf2ss
 
-__all__ = ["LinearRig", "PlantVariant"]
+__all__ = ["BacklashRig", "LinearRig", "PlantVariant", "backlash_substeps"]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -153,21 +153,7 @@ class BacklashRig:
     exact per sub-step, P's input rate held over a sub-step); the rate is the backward
     difference of the load position over one period, as on the other rigs."""
 
-    __slots__ = (
-        "_d",
-        "_half",
-        "_k",
-        "_m",
-        "_p",
-        "_pos",
-        "_rate",
-        "_sub",
-        "_th_in",
-        "_th_m",
-        "_ts",
-        "_xm",
-        "_xp",
-    )
+    __slots__ = ("_d", "_half", "_k", "_m", "_p", "_pos", "_rate", "_sub", "_th", "_ts")
 
     def __init__(
         self,
@@ -187,17 +173,18 @@ class BacklashRig:
         dt = self._ts / substeps
         a1, b1, c1, d1 = _ss(np.array([1.0]), np.asarray(nominal.mn_den, float))
         a2, b2, c2, d2 = _ss(*variant.p_polys(nominal))
-        self._m = (*_zoh(a1, b1, dt), c1[0], float(d1[0, 0]))
-        self._p = (*_zoh(a2, b2, dt), c2[0], float(d2[0, 0]))
-        self._xm = np.zeros(a1.shape[0])
-        self._xp = np.zeros(a2.shape[0])
+        self._m = _flat_model(*_zoh(a1, b1, dt), c1[0], float(d1[0, 0]))
+        self._p = _flat_model(*_zoh(a2, b2, dt), c2[0], float(d2[0, 0]))
+        self._th = np.zeros(2)  # motor angle, P's input angle
         self._half = 0.5 * backlash_deg
-        self._th_m = 0.0
-        self._th_in = 0.0
         self._d = speed_disturbance
         self._k = 0
         self._pos = 0.0
         self._rate = 0.0
+
+    @property
+    def period_s(self) -> float:
+        return self._ts
 
     def read(self) -> tuple[float, float]:
         return self._pos, self._rate
@@ -205,20 +192,84 @@ class BacklashRig:
     def step(self, command_deg_s: float) -> None:
         t = self._k * self._ts
         d = 0.0 if self._d is None else self._d(t)
-        dt = self._ts / self._sub
-        am, bm, cm, dm = self._m
-        ap, bp, cp, dp = self._p
-        pos = self._pos
-        for _ in range(self._sub):
-            v = float(cm @ self._xm) + dm * command_deg_s + d  # motor rate + d (P's input)
-            self._xm = am @ self._xm + bm[:, 0] * command_deg_s
-            th_m = self._th_m + v * dt
-            th_in = min(max(self._th_in, th_m - self._half), th_m + self._half)
-            v_in = (th_in - self._th_in) / dt
-            self._th_m, self._th_in = th_m, th_in
-            w = float(cp @ self._xp) + dp * v_in
-            self._xp = ap @ self._xp + bp[:, 0] * v_in
-            pos += w * dt
+        pos = backlash_substeps(command_deg_s, d, self._sub, self._ts / self._sub, self._half,
+                                self._th, self._pos, *self._m, *self._p)
         self._rate = (pos - self._pos) / self._ts
         self._pos = pos
         self._k += 1
+
+    # -- for the compiled offline loop (`controller.sim.offline`)
+
+    def disturbances(self, n: int) -> npt.NDArray[np.float64]:
+        """d of the next `n` steps, sampled as `step` samples it."""
+        k0, ts = self._k, self._ts
+        if self._d is None:
+            return np.zeros(n)
+        return np.array([self._d(k * ts) for k in range(k0, k0 + n)], dtype=np.float64)
+
+    def arrays(self) -> tuple[object, ...]:
+        """(substeps, sub-step dt, half backlash, angles, the two models' flat arrays): the
+        arguments of `backlash_substeps` after the command, d and position."""
+        return (self._sub, self._ts / self._sub, self._half, self._th, *self._m, *self._p)
+
+    def advanced(self, n: int, pos_deg: float, rate_deg_s: float) -> None:
+        """`backlash_substeps` was run outside for `n` steps, the last reading (pos, rate)."""
+        self._k += n
+        self._pos = pos_deg
+        self._rate = rate_deg_s
+
+
+FlatModel = tuple[npt.NDArray[np.float64], ...]
+
+
+def _flat_model(ad: np.ndarray, bd: np.ndarray, c: np.ndarray, d: float) -> FlatModel:
+    """(state, A row-major, B's first column, C, [D], scratch) as float64 arrays."""
+    n = ad.shape[0]
+    return (np.zeros(n), np.ascontiguousarray(ad, dtype=np.float64).ravel(),
+            np.ascontiguousarray(bd[:, 0], dtype=np.float64),
+            np.ascontiguousarray(c, dtype=np.float64), np.array([d]), np.zeros(n))
+
+
+def ss_step(x: np.ndarray, a: np.ndarray, b: np.ndarray, u: float, tmp: np.ndarray) -> None:
+    """x <- A x + b u, in place (sums in index order)."""
+    n = len(x)
+    for i in range(n):
+        acc = 0.0
+        for j in range(n):
+            acc += a[i * n + j] * x[j]
+        tmp[i] = acc + b[i] * u
+    for i in range(n):
+        x[i] = tmp[i]
+
+
+def ss_out(x: np.ndarray, c: np.ndarray) -> float:
+    acc = 0.0
+    for i in range(len(x)):
+        acc += c[i] * x[i]
+    return acc
+
+
+def backlash_substeps(
+    u: float, d: float, sub: int, dt: float, half: float, th: np.ndarray, pos: float,
+    xm: np.ndarray, am: np.ndarray, bm: np.ndarray, cm: np.ndarray, dm: np.ndarray,
+    tm: np.ndarray, xp: np.ndarray, ap: np.ndarray, bp: np.ndarray, cp: np.ndarray,
+    dp: np.ndarray, tp: np.ndarray,
+) -> float:
+    """One period of `BacklashRig` (a plain function of floats and float64 arrays, updated in
+    place; the compiled offline loop runs it too): returns the new load position."""
+    th_m = th[0]
+    th_in = th[1]
+    for _ in range(sub):
+        v = ss_out(xm, cm) + dm[0] * u + d  # motor rate + d (P's input)
+        ss_step(xm, am, bm, u, tm)
+        th_m_new = th_m + v * dt
+        th_in_new = min(max(th_in, th_m_new - half), th_m_new + half)
+        v_in = (th_in_new - th_in) / dt
+        th_m = th_m_new
+        th_in = th_in_new
+        w = ss_out(xp, cp) + dp[0] * v_in
+        ss_step(xp, ap, bp, v_in, tp)
+        pos += w * dt
+    th[0] = th_m
+    th[1] = th_in
+    return pos

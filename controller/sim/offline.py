@@ -27,6 +27,7 @@ numba's cache key includes: an edit of any of them compiles afresh.
 from __future__ import annotations
 
 import hashlib
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import CodeType, FunctionType
@@ -37,27 +38,26 @@ import numpy as np
 import numpy.typing as npt
 from numba.extending import register_jitable
 
-from controller.core import discrete, ramp, trajectory
 from controller.core import loop as loop_module
+from controller.core import ramp, trajectory
 from controller.core.loop import ServoLoop
 from controller.core.ramp import Ramp
 from controller.core.trajectory import KIND_CODE, Trajectory
 from controller.sim import sim_rig
+from controller.sim.linear_rig import BacklashRig, backlash_substeps
 from controller.sim.rig_disturbances import ScheduledRig
 from controller.sim.sim_rig import SimRig
 
-__all__ = ["OfflineRun", "run_ticks", "supported"]
+__all__ = ["OfflineRun", "run_speed_ticks", "run_ticks", "supported"]
 
 FloatArray = npt.NDArray[np.float64]
 
-for _f in (discrete.sos_step, loop_module.speed_law, loop_module.servo_law,
-           trajectory.trajectory_at, ramp.ramp_step):
-    register_jitable(_f)
-
 _servo_law = loop_module.servo_law
+_speed_law = loop_module.speed_law
 _trajectory_at = trajectory.trajectory_at
 _ramp_step = ramp.ramp_step
 _advance = sim_rig.advance_tick
+_backlash_substeps = backlash_substeps
 
 # Loop state (st) and coefficient (co) arrays: the ServoLoop attributes, in this order.
 _STATE = ("pos_int", "e_pos_prev", "cv_int", "e_speed_prev", "u_prev", "w_prev", "d_hat",
@@ -67,18 +67,22 @@ _COEFFS = ("_pos_kp", "_pos_half", "_ff", "_cv_kp", "_cv_half", "_limit", "_dob_
 ROWS = ("ref_deg", "pos_deg", "speed_deg_s", "speed_ref_deg_s", "command_deg_s", "d_hat_deg_s")
 
 
-def _fingerprint(roots: tuple[Callable[..., Any], ...]) -> str:
-    """A digest of the functions the kernel calls, transitively (their bytecode, constants and
-    names), and of the plain values (numbers, strings, tuples) they read from their modules:
-    what numba compiles into the kernel."""
+def _compiled_in(roots: tuple[Callable[..., Any], ...]) -> str:
+    """Make the plain functions the kernels call, transitively, callable from numba code
+    (`register_jitable`: the functions themselves stay as they are); return a digest of all
+    of them (their bytecode, constants and names) and of the plain values (numbers, strings,
+    tuples) they read from their modules: what numba compiles into the kernels."""
     h = hashlib.sha256()
     seen: set[int] = set()
-    todo = [getattr(f, "py_func", f) for f in roots]
+    todo: list[Any] = list(roots)
     while todo:
-        f = todo.pop()
+        g = todo.pop()
+        f = getattr(g, "py_func", g)  # a numba function: its Python source
         if id(f) in seen:
             continue
         seen.add(id(f))
+        if f is g:
+            register_jitable(f)
         codes = [f.__code__]
         while codes:
             c = codes.pop()
@@ -88,8 +92,7 @@ def _fingerprint(roots: tuple[Callable[..., Any], ...]) -> str:
             codes += [k for k in c.co_consts if isinstance(k, CodeType)]
             for name in c.co_names:
                 v = f.__globals__.get(name)
-                v = getattr(v, "py_func", v)
-                if isinstance(v, FunctionType):
+                if isinstance(getattr(v, "py_func", v), FunctionType):
                     todo.append(v)
                 elif isinstance(v, int | float | str | tuple):
                     h.update(f"{name}={v!r}".encode())
@@ -149,7 +152,55 @@ def _make_kernel(digest: str) -> Callable[..., Any]:
     return numba.njit(cache=True)(kernel)  # type: ignore[no-any-return]
 
 
-_kernel = _make_kernel(_fingerprint((_servo_law, _trajectory_at, _ramp_step, _advance)))
+def _make_speed_kernel(digest: str) -> Callable[..., Any]:
+    def speed_kernel(
+        ref: FloatArray, dist: FloatArray, st: FloatArray, co: FloatArray, f1c: FloatArray,
+        f1s: FloatArray, f2c: FloatArray, f2s: FloatArray, rd: FloatArray, w_out: FloatArray,
+        ts: float, sub: int, dt: float, half: float, th: FloatArray, xm: FloatArray,
+        am: FloatArray, bm: FloatArray, cm: FloatArray, dm: FloatArray, tm: FloatArray,
+        xp: FloatArray, ap: FloatArray, bp: FloatArray, cp: FloatArray, dp: FloatArray,
+        tp: FloatArray,
+    ) -> int:
+        if len(digest) == 0:  # the digest only keys numba's cache
+            raise ValueError("no source digest")
+        cv_int, e_speed_prev = st[2], st[3]
+        u_prev, w_prev, d_hat, sref, serr = st[4], st[5], st[6], st[7], st[8]
+        cv_kp, cv_half, limit = co[3], co[4], co[5]
+        dob_on = co[6] != 0.0
+        f1n = len(f1c) // 5
+        f2n = len(f2c) // 5
+        pos, w = rd[0], rd[1]
+        done = len(ref)
+        for k in range(len(ref)):
+            w_out[k] = w
+            if not abs(w) < 1e6:  # diverged
+                done = k
+                break
+            r = ref[k]
+            u, d_hat, cv_int, serr = _speed_law(
+                r, w, u_prev, cv_int, e_speed_prev, cv_kp, cv_half, limit, dob_on, f1c, f1s,
+                f1n, f2c, f2s, f2n)
+            e_speed_prev = serr
+            u_prev = u
+            w_prev = w
+            sref = r
+            new_pos = _backlash_substeps(u, dist[k], sub, dt, half, th, pos, xm, am, bm, cm, dm,
+                                         tm, xp, ap, bp, cp, dp, tp)
+            w = (new_pos - pos) / ts
+            pos = new_pos
+        st[2], st[3] = cv_int, e_speed_prev
+        st[4], st[5], st[6], st[7], st[8] = u_prev, w_prev, d_hat, sref, serr
+        rd[0] = pos
+        rd[1] = w
+        return done
+
+    return numba.njit(cache=True)(speed_kernel)  # type: ignore[no-any-return]
+
+
+_DIGEST = _compiled_in(
+    (_servo_law, _speed_law, _trajectory_at, _ramp_step, _advance, _backlash_substeps))
+_kernel = _make_kernel(_DIGEST)
+_speed_kernel = _make_speed_kernel(_DIGEST)
 
 
 @dataclass
@@ -181,6 +232,56 @@ class OfflineRun:
     @property
     def d_hat_deg_s(self) -> FloatArray:
         return self.out[5]
+
+
+def _take_pending(loop: ServoLoop) -> None:
+    """The coefficient swap `ServoLoop.tick` would make first."""
+    pending = loop._pending
+    if pending is not None:
+        loop._pending = None
+        loop._swap(pending)
+
+
+def _loop_arrays(loop: ServoLoop) -> tuple[FloatArray, ...]:
+    """The loop's state, coefficients and DOB filters as the kernels take them."""
+    st = np.array([getattr(loop, a) for a in _STATE], dtype=np.float64)
+    co = np.array([getattr(loop, a) for a in _COEFFS], dtype=np.float64)
+    return (st, co, np.array(loop._f1c), np.array(loop._f1s), np.array(loop._f2c),
+            np.array(loop._f2s))
+
+
+def _loop_back(loop: ServoLoop, st: FloatArray, f1s: FloatArray, f2s: FloatArray) -> None:
+    """The kernels' final state back into the loop."""
+    for a, v in zip(_STATE, st.tolist(), strict=True):
+        setattr(loop, a, v)
+    loop._f1s[:] = f1s.tolist()
+    loop._f2s[:] = f2s.tolist()
+
+
+def run_speed_ticks(loop: ServoLoop, rig: BacklashRig, ref_deg_s: FloatArray) -> FloatArray:
+    """The rate loop alone on the linear rig with backlash, as the paper's Figs. 8-9 tick it:
+    per tick the rig's rate w is recorded, then `loop.tick_speed(ref[k], w)` and `rig.step`.
+    Stops when |w| reaches 1e6 deg/s (diverged): the rest of the record is NaN. The objects'
+    states are taken and given back."""
+    if type(loop) is not ServoLoop or type(rig) is not BacklashRig:
+        raise TypeError(f"run_speed_ticks: needs ServoLoop and BacklashRig, got "
+                        f"{type(loop).__name__} and {type(rig).__name__}")
+    ref = np.ascontiguousarray(ref_deg_s, dtype=np.float64)
+    n = len(ref)
+    w_out = np.full(n, math.nan)
+    if n == 0:
+        return w_out
+    _take_pending(loop)
+    st, co, f1c, f1s, f2c, f2s = _loop_arrays(loop)
+    rd = np.array(rig.read())
+    dist = rig.disturbances(n)
+    done = _speed_kernel(ref, dist, st, co, f1c, f1s, f2c, f2s, rd, w_out, rig.period_s,
+                         *rig.arrays())
+    rig.advanced(done, float(rd[0]), float(rd[1]))
+    _loop_back(loop, st, f1s, f2s)
+    if done < n:
+        w_out[done:] = math.nan
+    return w_out
 
 
 def supported(loop: object, rig: object) -> bool:
@@ -215,10 +316,8 @@ def run_ticks(
         out = OfflineRun(np.empty((len(ROWS), n)))
     if n < 0 or at < 0 or at + n > out.out.shape[1]:
         raise ValueError(f"run_ticks: {n} ticks from column {at} do not fit the output")
-    pending = loop._pending
-    if pending is not None and n > 0:
-        loop._pending = None
-        loop._swap(pending)
+    if n > 0:
+        _take_pending(loop)
     period = loop.active.config.period_s if period_s is None else period_s
     tr = np.array([KIND_CODE[traj.kind], traj.amplitude_deg, traj.omega_rad_s, traj.offset_deg,
                    traj.slope_deg_s, traj.step_time_s, period])
@@ -227,10 +326,7 @@ def run_ticks(
                        approach.period_s, approach.speed_max_deg_s, approach.accel_max_deg_s2])
     else:
         rp = np.zeros(6)
-    st = np.array([getattr(loop, a) for a in _STATE], dtype=np.float64)
-    co = np.array([getattr(loop, a) for a in _COEFFS], dtype=np.float64)
-    f1c, f2c = np.array(loop._f1c), np.array(loop._f2c)
-    f1s, f2s = np.array(loop._f1s), np.array(loop._f2s)
+    st, co, f1c, f1s, f2c, f2s = _loop_arrays(loop)
     done = 0
     while done < n:
         # A ScheduledRig's friction changes fall between pieces, exactly where its step
@@ -253,10 +349,7 @@ def run_ticks(
         if isinstance(rig, ScheduledRig):
             rig.tick += m
         done += m
-    for a, v in zip(_STATE, st.tolist(), strict=True):
-        setattr(loop, a, v)
-    loop._f1s[:] = f1s.tolist()
-    loop._f2s[:] = f2s.tolist()
+    _loop_back(loop, st, f1s, f2s)
     if approach is not None:
         approach.active = bool(rp[0] != 0.0)
         approach.pos_deg = float(rp[1])

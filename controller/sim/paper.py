@@ -23,6 +23,7 @@ from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory, default_trajectory
 from controller.sim.experiment import ExperimentResult, Loop, run_experiment
 from controller.sim.linear_rig import BacklashRig, LinearRig, PlantVariant
+from controller.sim.offline import run_speed_ticks
 from controller.sim.paper_freq import (
     disturbance_responses,
     sensitivity_curves,
@@ -323,7 +324,7 @@ def reversal_run(cfg: LoopConfig, variant: PlantVariant, duration_s: float) -> R
     """The article's Figs. 8-9 case on a linear plant with backlash (`BacklashRig`): the rate
     loop (Cv, and the DOB when cfg.dob_on; the runtime's `tick_speed`) follows a sine speed
     reference that reverses; a rate disturbance step at P's input at 1 s; the same run without
-    it for the difference."""
+    it for the difference. Compiled (`controller.sim.offline.run_speed_ticks`)."""
     n = round(duration_s * cfg.rate_hz)
     t = np.arange(n) / cfg.rate_hz
     ref = REVERSAL_AMPLITUDE_DEG_S * np.sin(2.0 * math.pi * REVERSAL_FREQ_HZ * t)
@@ -335,16 +336,7 @@ def reversal_run(cfg: LoopConfig, variant: PlantVariant, duration_s: float) -> R
 
         rig = BacklashRig(variant, cfg.nominal, backlash_deg=FIG89_BACKLASH_DEG,
                           rate_hz=cfg.rate_hz, speed_disturbance=dist)
-        loop = ServoLoop(LoopCoefficients.build(cfg))
-        w = np.empty(n)
-        for k in range(n):
-            _, wk = rig.read()
-            w[k] = wk
-            if not abs(wk) < 1e6:
-                w[k:] = math.nan
-                break
-            rig.step(loop.tick_speed(float(ref[k]), wk))
-        out.append(w)
+        out.append(run_speed_ticks(ServoLoop(LoopCoefficients.build(cfg)), rig, ref))
     dob = f"{cfg.q_type.upper()} {cfg.q_cutoff_hz:g} Hz" if cfg.dob_on else "off"
     return ReversalRun(variant.label, dob, t, ref, out[0], out[1])
 
