@@ -50,7 +50,7 @@ def test_two_dashboards_watch_one_controller_then_it_goes_away(tmp_path: Path) -
             f = np.geomspace(0.1, 20, 40)
             csv = tmp_path / "frf.csv"
             write_frd_csv(csv, f, 1.1 * nominal_continuous_response(NominalModel(), f))
-            a._load_measured("frf.csv", csv.read_bytes())
+            a.knowledge.load_csv("frf.csv", csv.read_bytes())
             assert len(a.engine.measured) == 1
             assert ta.wait_preview_idle(120.0)
             ta.request_update()
@@ -118,8 +118,8 @@ def test_bad_upload_is_reported_not_raised() -> None:
     opts = DashboardOptions(port=free_port(), connect=(f"tcp/127.0.0.1:{free_port()}",),
                             verbose=False)
     with Dashboard(opts) as d:
-        d._load_measured("x.csv", b"not,a,response\n1,2\n")
-        assert "x.csv" in d.measured_text.content
+        d.knowledge.load_csv("x.csv", b"not,a,response\n1,2\n")
+        assert "x.csv" in d.knowledge.text.content
         assert len(d.engine.measured) == 0
 
 
@@ -167,22 +167,22 @@ def test_history_lists_versions_and_loads_one_as_the_candidate(tmp_path: Path) -
             first = d.client.get_config()
             reply = d.client.apply(first.config.with_(q_cutoff_hz=0.8, cv_kp=1.2))
             assert reply.accepted, reply.reasons
-            wait_for(lambda: "v2" in d.history_html.content and "v1" in d.history_html.content)
+            wait_for(lambda: "v2" in d.history.table.content and "v1" in d.history.table.content)
             # The History tab shows the difference between any two versions (newest vs the one
             # before by default).
-            wait_for(lambda: "q_cutoff_hz" in d.version_diff.content)
-            diff = d.version_diff.content
+            wait_for(lambda: "q_cutoff_hz" in d.history.diff.content)
+            diff = d.history.diff.content
             assert "v2 vs v1" in diff and "q_cutoff_hz: 0.5 &rarr; <b>0.8</b>" in diff
-            assert "rate_hz" not in d.version_diff.content
-            d.history_other.value = "v2"
-            wait_for(lambda: "same as v2" in d.version_diff.content)
+            assert "rate_hz" not in d.history.diff.content
+            d.history.other.value = "v2"
+            wait_for(lambda: "same as v2" in d.history.diff.content)
             h = d.client.history(10)
             assert [e.version for e in h.entries] == [1, 2] and h.entries[1].verdict == "accept"
             assert h.entries[1].config.q_cutoff_hz == 0.8
             t = d.panel_in(d.server.gui)
             wait_for(lambda: t.active_version == 2)
-            d.history_pick.value = "v1"
-            d._use_version()
+            d.history.pick.value = "v1"
+            d.history.use_version()
             assert t.wait_idle(5.0)
             assert t.candidate() == first.config  # version 1, to go through the gate again
             assert "q_cutoff_hz" in t.diff_text.content and "active v2" in t.diff_text.content

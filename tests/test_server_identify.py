@@ -34,8 +34,8 @@ from server.panels.identify import (
     WHERE_CONTROLLER,
     IdentifyPanel,
     IdentifySettings,
-    NominalTuningPanel,
 )
+from server.panels.nominal_tuning import NominalTuningPanel
 
 SHORT = IdentifySettings(dict(mode="open", signal="multisine", f_min_hz=1.0, f_max_hz=8.0,
                               points_per_decade=4, positions=1, amplitude_deg_s=10.0))
@@ -128,7 +128,7 @@ def test_use_as_nominal_changes_candidate_and_reevaluates_without_apply(
     assert not dash.engine.measured
     assert "Apply" in short_run.use_result.content
     assert "dt-nominal-fitted" in t.cutoff_text.content  # the Tune tab says so
-    wait_for(lambda: "not adopted by the controller" in dash.measured_text.content, 15.0)
+    wait_for(lambda: "not adopted by the controller" in dash.knowledge.text.content, 15.0)
     # Revert drops it
     t.revert()
     assert t.wait_idle(5.0)

@@ -9,18 +9,17 @@ Two places to run, chosen on the panel (and always named in the status line):
   the run goes on, the status carries the frequencies finished so far with their per-point
   standard deviation: the curves build up on the charts, with their band, as they arrive.
 * **offline on the simulated rig**, in a worker thread of the dashboard
-  (`controller.ident.engine.run_identification` against a `SimRig`).
+  (`controller.ident.offline.run_offline`: position by position on a `SimRig`, paced and
+  stoppable).
 
 The spec's fields on the panel (`DASHBOARD_FIELDS`) are generated from the metadata of
 `controller.ident.spec.IdentifySpec` (label, unit, range, help); what the panel shows of a run
 comes from `server.identify_view`.
 
-Offline, it runs as one `run_identification` per measurement position on one simulated rig (the
-load moves on from where the previous position left it), so each position's response is drawn as
-soon as it is measured; the positions are then fitted together (fit, Delta, agreement, the
-gate's recommended cut-offs). An optional pace ("x real time") slows the simulation down so a
-run can be watched and aborted. Abort stops the simulation at the next tick; the positions
-measured so far stay on the charts, marked incomplete (the interrupted position is dropped).
+Offline, each position's response is drawn as soon as it is measured; an optional pace ("x real
+time") slows the simulation down so a run can be watched and aborted. Abort stops the simulation
+within 10 simulated ms; the positions measured so far stay on the charts, marked incomplete (the
+interrupted position is dropped).
 
 "Use as nominal model" never talks to the controller: it puts the fitted nominal (and the
 measured responses, as the gate's plant knowledge) into the tuning candidate, which is then
@@ -46,10 +45,11 @@ from controller.client import ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
 from controller.gate.knowledge import MeasuredResponse
-from controller.ident.engine import RigLike, run_identification
+from controller.ident.engine import RigLike
+from controller.ident.offline import run_offline, sim_rig
 from controller.ident.plan import check_rate
-from controller.ident.result import IdentifyAborted, IdentifyResult, analyse_result
-from controller.ident.spec import IDENTIFY_FIELDS, IdentifySpec, OfflineOptions
+from controller.ident.result import IdentifyResult
+from controller.ident.spec import IDENTIFY_FIELDS, IdentifySpec
 from server import charts
 from server.escape import esc
 from server.gate import Refused
@@ -61,9 +61,9 @@ from server.identify_view import (
     view_from_result,
     view_from_status,
 )
-from server.panels.tuning import TuningPanel
+from server.panels.nominal_tuning import NominalTuningPanel
 from server.panels.widgets import add_chart, confirm
-from server.workers import run_logged
+from server.session import tell
 
 __all__ = [
     "ABORTED",
@@ -74,62 +74,12 @@ __all__ = [
     "RUNNING",
     "IdentifyPanel",
     "IdentifySettings",
-    "NominalTuningPanel",
-    "UserAbort",
 ]
 
 IDLE, RUNNING, DONE, ABORTED, FAILED = "idle", "running", "done", "aborted", "failed"
 
 OFFLINE_NOTE = "offline on the simulated rig"
 WHERE_CONTROLLER, WHERE_OFFLINE = "controller", "offline simulation"
-
-
-class UserAbort(Exception):
-    """Raised inside the simulation when the user presses Abort."""
-
-
-# -- the tuning candidate's nominal -------------------------------------------------------------
-
-
-class NominalTuningPanel(TuningPanel):
-    """The tuning panel with a nominal-model slot in the candidate.
-
-    ``nominal_override`` (set by "Use as nominal model") replaces the active configuration's
-    nominal in the candidate; the gate evaluates it and Apply sends it like any other change.
-    Revert clears it.
-    """
-
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.nominal_override: NominalModel | None = None
-
-    def candidate(self) -> LoopConfig:
-        cand = super().candidate()
-        if self.nominal_override is not None:
-            cand = cand.with_(nominal=self.nominal_override)
-        return cand
-
-    def set_nominal(self, nominal: NominalModel | None) -> None:
-        """Use `nominal` in the candidate (None: the active one) and re-evaluate; no apply."""
-        self.nominal_override = nominal
-        self.request_update()
-
-    def revert(self, say: bool = True) -> None:
-        self.nominal_override = None
-        super().revert(say)
-
-    def _cutoff_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
-                     error: str = "") -> str:
-        html = super()._cutoff_html(cutoff_hz, rec, known, error)
-        n = self.nominal_override
-        if n is None:
-            return html
-        a2, a1, _ = n.pn_den
-        return html + (
-            "<div class='dt-nominal-fitted' style='font-size:12px;color:#1f77b4'>Candidate "
-            f"nominal: <b>fitted by Identify</b> (Pn den {a2:.3g} s&sup2; + {a1:.3g} s + 1); "
-            "Revert drops it.</div>"
-        )
 
 
 # -- pure helpers -------------------------------------------------------------------------------
@@ -174,57 +124,6 @@ def _status_html(state: str, text: str, where: str = OFFLINE_NOTE) -> str:
     )
 
 
-class _PacedRig:
-    """A rig wrapper: raises UserAbort at the next tick after `abort` is set and, with
-    ``pace > 0``, keeps simulated time at most `pace` x the wall time."""
-
-    def __init__(self, rig: RigLike, rate_hz: float, abort: threading.Event, pace: float) -> None:
-        self.rig = rig
-        self.read = rig.read  # no extra call layer on the hot path
-        self._step = rig.step
-        self.abort = abort
-        self.ts = 1.0 / rate_hz
-        self.pace = pace
-        self.ticks = 0
-        self.t0 = time.monotonic()
-        self.chunk = max(1, round(0.01 * rate_hz))  # abort within 10 simulated ms
-
-    def step(self, command_deg_s: float) -> None:
-        self._step(command_deg_s)
-        self.ticks += 1
-        if self.ticks % self.chunk == 0:
-            if self.abort.is_set():
-                raise UserAbort("aborted by the user")
-            if self.pace > 0.0:
-                ahead = self.ticks * self.ts / self.pace - (time.monotonic() - self.t0)
-                if ahead > 0.0:
-                    self.abort.wait(ahead)
-
-
-def _combine(spec: IdentifySpec, cfg: LoopConfig, results: list[IdentifyResult],
-             complete: bool, reason: str | None) -> IdentifyResult:
-    """One result from the per-position runs (`results` not empty), fitted together when
-    complete."""
-    positions = tuple(
-        dataclasses.replace(p, index=k) for k, r in enumerate(results) for p in r.positions[:1]
-    )
-    if complete and len(results) == 1:
-        return dataclasses.replace(results[0], spec=spec, positions=positions)
-    base = IdentifyResult(
-        spec=spec,
-        config=cfg,
-        excitation=results[0].excitation,
-        positions=positions,
-        complete=complete,
-        abort_reason=reason,
-        simulated_s=sum(r.simulated_s for r in results),
-    )
-    if not complete:
-        return base
-    # The positions were measured in separate runs: fit them together as one run does.
-    return analyse_result(base)
-
-
 # -- the panel ----------------------------------------------------------------------------------
 
 
@@ -251,7 +150,7 @@ class IdentifyPanel:
         self.gui = gui
         self._tuning_for = tuning_for
         self._config_fn = config_fn or LoopConfig
-        self._rig_factory = rig_factory or _sim_rig
+        self._rig_factory = rig_factory or sim_rig
         self._add_measured = add_measured
         self.client = client
         self._client_for = client_for or self._as_is
@@ -434,9 +333,7 @@ class IdentifyPanel:
         if browser is None:
             self.status.content = _status_html(self.state, text, self.where_note)
             return
-        run_logged(lambda: browser.add_notification("Identification", text, color="orange",
-                                                     auto_close_seconds=8.0),
-                   what="telling a browser")
+        tell(browser, "Identification", text, "orange")
 
     def abort(self, browser: Any = None) -> bool:
         if self._run_client is not None and self.state == RUNNING:
@@ -494,44 +391,21 @@ class IdentifyPanel:
         return self.state != RUNNING
 
     def _run(self, spec: IdentifySpec, cfg: LoopConfig, pace: float) -> None:
-        n = spec.positions
-        if self._chart_n != n:
-            self._make_charts(n)
+        if self._chart_n != spec.positions:
+            self._make_charts(spec.positions)
         self._publish_charts(None)
-        offline = OfflineOptions()
-        sim = self._rig_factory(cfg, offline.seed)
-        rig = _PacedRig(sim, cfg.rate_hz, self._abort, pace)
-        results: list[IdentifyResult] = []
-        reason: str | None = None
-        state = DONE
-        final: IdentifyResult | None = None
+
+        def on_position(r: IdentifyResult) -> None:
+            self.curves.append(curve_of(r.positions[0]))
+            self._publish_charts(None)
+
         try:
-            for k, c in enumerate(spec.centers_deg):
-                one = spec.with_(positions=1, first_position_deg=c, span_deg=spec.span_deg / n)
-
-                def progress(frac: float, text: str, k: int = k) -> None:
-                    self._on_progress((k + min(frac, 0.99)) / n,
-                                      text.replace("position 1/1", f"position {k + 1}/{n}"))
-
-                try:
-                    r = run_identification(one, cfg, lambda: rig, progress, offline)
-                except IdentifyAborted as exc:
-                    # a limit: keep what was measured, the position is incomplete
-                    results.append(exc.result)
-                    reason, state = exc.reason, ABORTED
-                    break
-                results.append(r)
-                self.curves.append(curve_of(r.positions[0]))
-                self._publish_charts(None)
-            if results:
-                final = _combine(spec, cfg, results, state == DONE, reason)
-        except UserAbort:
-            reason, state = "aborted by the user", ABORTED
-            if results:
-                final = _combine(spec, cfg, results, False, reason)
+            run = run_offline(spec, cfg, self._abort, pace, self._rig_factory,
+                              self._on_progress, on_position)
         except Exception as exc:  # show it; the worker must not die silently
-            reason, state = f"{type(exc).__name__}: {exc}", FAILED
-        self._finish(state, final, reason, spec)
+            self._finish(FAILED, None, f"{type(exc).__name__}: {exc}", spec)
+            return
+        self._finish(DONE if run.complete else ABORTED, run.result, run.reason, spec)
 
     def _run_remote(self, spec: IdentifySpec, cfg: LoopConfig, _pace: float) -> None:
         """Start the run on the controller, poll its status until it is over."""
@@ -651,8 +525,3 @@ class IdentifyPanel:
             state == DONE and view is not None and view.nominal is not None
         )
 
-
-def _sim_rig(cfg: LoopConfig, seed: int) -> RigLike:
-    from controller.sim.sim_rig import SimRig
-
-    return SimRig(rate_hz=cfg.rate_hz, seed=seed)

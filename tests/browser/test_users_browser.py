@@ -110,7 +110,7 @@ def test_the_viewer_cannot_apply_or_start(env: dict[str, Any], pages: dict[str, 
     dash: Dashboard = env["dash"]
     probe: ControllerClient = env["probe"]
     before = probe.get_config()
-    refusals = dash.refusals
+    refusals = dash.sessions.refusals
     page = pages["view"]
     page.get_by_role("button", name="Apply candidate").click()
     page.wait_for_selector("text=view is a viewer", timeout=10_000)
@@ -119,7 +119,8 @@ def test_the_viewer_cannot_apply_or_start(env: dict[str, Any], pages: dict[str, 
     page.get_by_role("button", name="Start", exact=True).click()
     page.wait_for_selector("text=Start the loop?", timeout=10_000)  # the axis would move
     page.locator(".mantine-Modal-content").get_by_role("button", name="Start", exact=True).click()
-    wait_for(lambda: dash.refusals >= refusals + 2, 10.0, "the viewer's Start was not refused")
+    wait_for(lambda: dash.sessions.refusals >= refusals + 2, 10.0,
+             "the viewer's Start was not refused")
     assert "view is a viewer" not in pages["op1"].content()  # told to the viewer only
     after = probe.get_config()
     assert after.version == before.version and after.config == before.config
@@ -128,8 +129,8 @@ def test_the_viewer_cannot_apply_or_start(env: dict[str, Any], pages: dict[str, 
 def _browser_of(dash: Dashboard, user: str) -> Any:
     """The viser client (a browser's websocket) signed in as `user`."""
     assert dash.server is not None
-    return next(c for cid, c in dash.server.get_clients().items()
-                if dash._browser_users.get(cid) == user)
+    return next(c for c in dash.server.get_clients().values()
+                if dash.sessions.user_of(c) == user)
 
 
 def test_the_viewer_cannot_start_or_stop_a_recording(env: dict[str, Any],
@@ -139,16 +140,17 @@ def test_the_viewer_cannot_start_or_stop_a_recording(env: dict[str, Any],
     dash: Dashboard = env["dash"]
     rec = dash.recordings
     assert rec is not None
-    refusals = dash.refusals
+    refusals = dash.sessions.refusals
     page = pages["view"]
     page.get_by_role("tab", name="Recordings", exact=True).click()
     page.get_by_role("button", name="Record", exact=True).click()
     page.wait_for_selector("text=start a recording: view is a viewer", timeout=10_000)
-    wait_for(lambda: dash.refusals >= refusals + 1, 10.0, "the viewer's Record was not refused")
+    wait_for(lambda: dash.sessions.refusals >= refusals + 1, 10.0,
+             "the viewer's Record was not refused")
     viewer = _browser_of(dash, "view")
     assert rec.press("Record", viewer) is None
     assert rec.press("Stop recording", viewer) is None
-    assert dash.refusals == refusals + 3
+    assert dash.sessions.refusals == refusals + 3
     assert rec.recording_to is None
     assert not list(env["recordings"].glob("*.mcap*"))
     assert "start a recording" not in pages["op1"].content()  # told to the viewer only
@@ -160,14 +162,15 @@ def test_a_refused_identification_is_told_to_that_browser_alone(
     """The Identify status box is every browser's (the run's state): the viewer's refusal goes
     to the viewer's page, not into the box the operator reads (issue 24 item 9)."""
     dash: Dashboard = env["dash"]
-    refusals = dash.refusals
+    refusals = dash.sessions.refusals
     page = pages["view"]
     page.get_by_role("tab", name="Identify", exact=True).first.click()
     page.get_by_role("button", name="Start identification").click()
     page.wait_for_selector("text=Start the identification?", timeout=10_000)
     page.get_by_role("button", name="Start identification").last.click()
     page.wait_for_selector("text=identification: view is a viewer", timeout=10_000)
-    wait_for(lambda: dash.refusals >= refusals + 1, 10.0, "the viewer's start was not refused")
+    wait_for(lambda: dash.sessions.refusals >= refusals + 1, 10.0,
+             "the viewer's start was not refused")
     assert "viewer" not in dash.identify.status.content
     op = pages["op1"]
     op.get_by_role("tab", name="Identify", exact=True).first.click()

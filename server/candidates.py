@@ -1,0 +1,101 @@
+"""The tuning candidates, one per browser: each browser edits its own candidate (controls in
+the Tune tab, charts in the Bode tab, built into that browser's `client.gui`), so two engineers
+never edit one candidate. Every candidate follows the controller's active configuration."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from controller.core.config import LoopConfig
+from controller.core.trajectory import Trajectory
+from server.engine import TuningEngine
+from server.panels.nominal_tuning import NominalTuningPanel
+
+__all__ = ["Candidates"]
+
+ApplyFn = Callable[[Any, LoopConfig, bool, Any], None]
+
+
+class Candidates:
+    """The candidate panels by browser (viser client id; -1: built on the shared GUI by
+    `panel_in` without a browser, as scripts and tests do) and the active configuration they
+    start from."""
+
+    def __init__(self, engine: TuningEngine, apply_fn: ApplyFn) -> None:
+        """`apply_fn(panel, candidate, confirm, browser)` sends a panel's candidate."""
+        self.engine = engine
+        self._apply_fn = apply_fn
+        self.panels: dict[int, NominalTuningPanel] = {}
+        self._lock = threading.Lock()
+        self._build_lock = threading.Lock()
+        """A viser tab takes one `with` at a time: browsers that connect at once build their
+        panels one after the other."""
+        self.tune_tab: Any = None
+        self.bode_tab: Any = None
+        """Where a candidate's controls and charts go (set when the shared GUI is built)."""
+        self.active: LoopConfig | None = None
+        self.active_version: int | None = None
+        self.trajectory: Trajectory | None = None
+
+    def panel_in(self, gui: Any, browser: Any = None) -> NominalTuningPanel:
+        """A candidate panel of its own in `gui` (a browser's `client.gui`; or the shared GUI
+        without a browser): controls in the Tune tab, charts in the Bode tab, started on the
+        active configuration when it is known."""
+        t = NominalTuningPanel(gui, self.engine, self._apply_fn)
+        with self._build_lock:
+            with self.tune_tab:
+                t.build_controls()
+            with self.bode_tab:
+                t.build_charts()
+        key = getattr(browser, "client_id", -1)
+        with self._lock:
+            old = self.panels.pop(key, None)
+            self.panels[key] = t
+            if self.active is not None:
+                t.set_active(self.active, self.active_version)
+            if self.trajectory is not None:
+                t.set_trajectory(self.trajectory)
+        if old is not None:
+            old.stop()
+        t.start()
+        return t
+
+    def panel_of(self, browser: Any) -> NominalTuningPanel | None:
+        """The candidate panel of `browser` (None: the one built without a browser)."""
+        with self._lock:
+            return self.panels.get(getattr(browser, "client_id", -1))
+
+    def drop(self, browser_id: int) -> None:
+        """The browser left: its panel stops."""
+        with self._lock:
+            t = self.panels.pop(browser_id, None)
+        if t is not None:
+            t.stop()
+
+    def stop_all(self) -> None:
+        with self._lock:
+            panels, self.panels = list(self.panels.values()), {}
+        for t in panels:
+            t.stop()
+
+    def set_active(self, cfg: LoopConfig, version: int,
+                   trajectory: Trajectory | None = None) -> None:
+        """The controller's active configuration (and trajectory), to every candidate panel."""
+        with self._lock:
+            self.active, self.active_version = cfg, version
+            if trajectory is not None:
+                self.trajectory = trajectory
+            panels = list(self.panels.values())
+        for t in panels:
+            t.set_active(cfg, version)
+            if trajectory is not None:
+                t.set_trajectory(trajectory)
+
+    def update_all(self) -> None:
+        """Every candidate re-evaluated (the plant knowledge changed)."""
+        with self._lock:
+            panels = list(self.panels.values())
+        for t in panels:
+            t.request_update()

@@ -1,0 +1,66 @@
+"""What a dashboard is started with (`DashboardOptions`) and who may use it (`dashboard_users`)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = ["DashboardOptions", "dashboard_users", "default_recordings_dir"]
+
+
+def default_recordings_dir() -> Path:
+    """Where recordings go unless told: a data directory of the user's, outside any working
+    tree ($XDG_DATA_HOME/dobtune/recordings, else ~/.local/share/dobtune/recordings)."""
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "dobtune" / "recordings"
+
+
+@dataclass(frozen=True)
+class DashboardOptions:
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    rig_name: str = "demo"
+    host: str = "127.0.0.1"
+    port: int = 8080
+    live_rate_hz: float = 25.0
+    live_max_points: int = 600
+    query_timeout_s: float = 3.0
+    verbose: bool = True
+    """Kept for callers; viser's own banner is never printed (its URL carries no token: it opens
+    a 401 page). run_dashboard prints the URL with the token."""
+    client_name: str = "dashboard"
+    token: str | None = None
+    """The browser access token (None: a random one, in the printed URL)."""
+    auth: Path | None = None
+    """With a controller that authenticates: the `dobtune auth init` directory or a password
+    file, and `user`, whose role and lease the controller enforces. A directory without
+    `user`: every user in it who may reach the rig, each in their own browser."""
+    user: str = ""
+    recordings_dir: Path = field(default_factory=lambda: default_recordings_dir())
+    """The .mcap files the Recordings tab lists and compares (`dobtune record --out`, a
+    controller's `<state-dir>/blackbox`)."""
+    fleet: bool = False
+    """Also the fleet overview: every rig reachable through `connect` (a router), each with an
+    E-STOP and a full view of its own."""
+    sim_disturbances: tuple[str, ...] = ()
+    """The named disturbances of the simulated rig the previews and Suggest run on (the
+    demo's: the same as its controller's simulated rig)."""
+
+
+def dashboard_users(opts: DashboardOptions) -> dict[str, Any]:
+    """The users who each get their own URL ({} : one identity for every browser)."""
+    if opts.auth is None or opts.user:
+        return {}
+    from controller.auth import load_users
+
+    if not opts.auth.is_dir():
+        raise ValueError(f"user: {opts.auth} is a password file: name its user with --user")
+    users = {u.name: u for u in load_users(opts.auth)
+             if u.role in ("operator", "viewer") and u.serves(opts.rig_name)}
+    if not users:
+        raise ValueError(f"auth: no operator or viewer in {opts.auth} may reach rig "
+                         f"{opts.rig_name!r}")
+    if opts.token is not None:
+        raise ValueError("token: one token per user is made with several users")
+    return users

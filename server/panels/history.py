@@ -1,0 +1,113 @@
+"""The History tab (shared by every browser): the controller's change log, the difference
+between two versions, and "Use as candidate" (into the candidate of the browser that asks)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+from controller import protocol as proto
+from controller.client import ControllerClient, ControllerUnavailable
+from controller.core.config import LoopConfig
+from server.escape import esc
+from server.panels.nominal_tuning import NominalTuningPanel
+from server.panels.tuning import config_diff_html
+from server.session import tell
+from server.workers import Requests
+
+__all__ = ["HistoryPanel"]
+
+log = logging.getLogger(__name__)
+
+
+class HistoryPanel:
+    """Fetched again whenever the controller's configuration version changes (`follow`)."""
+
+    def __init__(self, gui: Any, client: ControllerClient, requests: Requests,
+                 panel_of: Callable[[Any], NominalTuningPanel | None]) -> None:
+        """`panel_of(browser)`: that browser's candidate panel."""
+        self.gui = gui
+        self.client = client
+        self._requests = requests
+        self._panel_of = panel_of
+        self._version = -1
+        self.versions: dict[int, LoopConfig] = {}
+
+    def build(self) -> None:
+        gui = self.gui
+        self.table = gui.add_html("<div class='dt-history'>No history yet.</div>")
+        self.pick = gui.add_dropdown("Version", ("-",), initial_value="-")
+        self.other = gui.add_dropdown("Compare with", ("-",), initial_value="-",
+                                      hint="the fields in which Version differs from this one")
+        self.diff = gui.add_html("<div class='dt-version-diff'></div>")
+        use = gui.add_button("Use as candidate", color="gray",
+                             hint="load that version into the controls; Apply sends it "
+                             "through the gate like any candidate")
+        use.on_click(lambda e: self.use_version(e.client))
+        self.pick.on_update(lambda _e: self.show_diff())
+        self.other.on_update(lambda _e: self.show_diff())
+
+    def follow(self, config_version: int) -> None:
+        """The controller's configuration version (from a status): fetched if it moved."""
+        if config_version != self._version:
+            self._version = config_version
+            self._requests.submit(self.fetch)
+
+    def fetch(self) -> None:
+        try:
+            reply = self.client.history(50)
+        except (ControllerUnavailable, proto.ProtocolError) as exc:
+            log.warning("history not fetched: %s", exc)
+            self._version = -1
+            return
+        if not reply.ok:
+            self.table.content = f"<div class='dt-history'>{esc(reply.message)}</div>"
+            return
+        self.versions = {e.version: e.config for e in reply.entries}
+        rows = []
+        for e in reversed(reply.entries):
+            m = e.margins
+            pm = f"{m.phase_margin_deg:.1f}" if m is not None else "-"
+            gm = f"{m.gain_margin_db:.1f}" if m is not None else "-"
+            when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(e.time_s))
+            rows.append(f"<tr><td>v{e.version}</td><td>{esc(when)}</td><td>{esc(e.client)}</td>"
+                        f"<td>{esc(e.verdict or '-')}</td><td>{pm}</td><td>{gm}</td>"
+                        f"<td>{esc(e.config.q_type)} {e.config.q_cutoff_hz:g} Hz</td></tr>")
+        self.table.content = (
+            "<div class='dt-history' style='font-size:12px'><table><tr><th>ver</th><th>when"
+            "</th><th>who</th><th>verdict</th><th>PM</th><th>GM</th><th>Q</th></tr>"
+            + "".join(rows) + "</table></div>")
+        options = tuple(f"v{v}" for v in sorted(self.versions, reverse=True)) or ("-",)
+        self.pick.options = options
+        self.pick.value = options[0]
+        self.other.options = options
+        self.other.value = options[min(1, len(options) - 1)]
+        self.show_diff()
+
+    def _chosen(self, value: str) -> LoopConfig | None:
+        return self.versions.get(int(value[1:])) if value.startswith("v") else None
+
+    def show_diff(self) -> None:
+        """The difference between the two versions chosen."""
+        a, b = str(self.other.value), str(self.pick.value)
+        old, new = self._chosen(a), self._chosen(b)
+        if old is None or new is None:
+            self.diff.content = "<div class='dt-version-diff'></div>"
+            return
+        self.diff.content = config_diff_html(old, new, a, b, cls="dt-version-diff")
+
+    def use_version(self, browser: Any = None) -> None:
+        """Load the chosen version into the candidate of the browser that asked."""
+        t = self._panel_of(browser)
+        value = str(self.pick.value)
+        cfg = self._chosen(value)
+        if t is None or cfg is None:
+            tell(browser, "Nothing loaded", "Choose a version first." if t is not None
+                 else "This browser has no candidate panel.", "red")
+            return
+        t.load(cfg, t.active_version,
+               say_text=f"Loaded {value} from the history as the candidate.")
+        tell(browser, f"{value} is now your candidate",
+             "See the Tune tab: its verdict, then Apply sends it through the gate.", "blue")
