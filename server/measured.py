@@ -1,32 +1,25 @@
 """Measured frequency responses uploaded from the browser (CSV as in the gate: freq_hz,
-mag_db, phase_deg), parsed with the controller's own reader so both sides agree."""
+mag_db, phase_deg), parsed with the controller's own codec so both sides agree."""
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
-from typing import Any
+
+from controller.gate.frd_csv import FrdData, parse_frd_csv
 
 __all__ = ["read_measured"]
 
 MAX_BYTES = 5_000_000
 
 
-def read_measured(name: str, content: bytes) -> Any:
-    """Parse an uploaded CSV; ValueError with a readable message when it cannot be used."""
+def read_measured(name: str, content: bytes) -> FrdData:
+    """Parse an uploaded CSV; ValueError with a readable message (naming the file and line)
+    when it cannot be used."""
     if len(content) > MAX_BYTES:
         raise ValueError(f"file too large ({len(content)} bytes > {MAX_BYTES})")
-    reader = _reader()
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / (Path(name).name or "upload.csv")
-        path.write_bytes(content)
-        try:
-            return reader(path)
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ValueError(str(exc)) from exc
-
-
-def _reader() -> Any:
-    from controller.gate.frd_csv import read_frd_csv
-
-    return read_frd_csv
+    source = Path(name).name or "upload.csv"
+    try:
+        text = content.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{source}: not UTF-8 text ({exc})") from exc
+    return parse_frd_csv(text, source)

@@ -16,11 +16,10 @@ import numpy as np
 import pytest
 from old_loop import OLD_LOOP
 
+from controller.cli.frd_files import load_measured, write_frd_csv
 from controller.core.config import LoopConfig
 from controller.core.dob import design_dob
 from controller.gate.analysis import GateLimits, analyse
-from controller.gate.frd import load_measured
-from controller.gate.frd_csv import write_frd_csv
 from controller.gate.knowledge import (
     MIN_ALLOWANCE,
     MeasuredResponse,

@@ -12,8 +12,8 @@ import pytest
 from old_loop import OLD_LOOP, OLD_LOOP_PATH
 
 from controller.cli.check import check_main
+from controller.cli.frd_files import write_frd_csv
 from controller.core.config import LoopConfig, config_to_builtins
-from controller.gate.frd_csv import write_frd_csv
 from controller.gate.loop_model import nominal_continuous_response
 from controller.gate.verdict import EXIT_CODES
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controller.gate.frd import load_measured, measured_from_csv, measured_from_model
-from controller.gate.frd_csv import write_frd_csv
+from controller.cli.frd_files import load_measured, measured_from_csv, write_frd_csv
+from controller.gate.frd import measured_from_model
 
 
 def _write(tmp_path: Path, text: str, name: str = "resp.csv") -> Path:

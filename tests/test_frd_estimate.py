@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import scipy.signal as sig
 
-from controller.gate.frd_csv import FrdData, read_frd_csv, write_frd_csv
+from controller.cli.frd_files import read_frd_csv, write_frd_csv
+from controller.gate.frd_csv import FrdData
 from controller.ident.estimate import (
     agreement,
     coherence_std,

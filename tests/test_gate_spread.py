@@ -167,8 +167,8 @@ def test_check_reports_the_spread_from_frd_files(tmp_path) -> None:  # type: ign
     import json
 
     from controller.cli.check import check_main
+    from controller.cli.frd_files import write_frd_csv
     from controller.core.config import config_to_builtins
-    from controller.gate.frd_csv import write_frd_csv
 
     f = np.geomspace(0.1, 20.0, 40)
     paths = []

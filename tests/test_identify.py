@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from controller.cli.check import check_main
+from controller.cli.frd_files import read_frd_csv
 from controller.cli.identify import (
     EXIT_ABORTED,
     EXIT_BAD_INPUT,
@@ -24,7 +25,6 @@ from controller.cli.identify import (
     identify_main,
 )
 from controller.core.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM
-from controller.gate.frd_csv import read_frd_csv
 from controller.ident.spec import IdentifySpec
 from controller.sim.sim_rig import SimRig
 

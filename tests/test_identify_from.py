@@ -21,13 +21,13 @@ import pytest
 from identify_from_common import RTOL, SMALL, same_structure
 
 from controller import protocol as proto
+from controller.cli.frd_files import read_frd_csv
 from controller.cli.identify import EXIT_BAD_INPUT, EXIT_OK, identify_main
 from controller.cli.identify_from import RecordingProblem, recorded_run, status_from_recording
 from controller.client.recorder import identify_event
 from controller.core.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM, LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.samples import STATE_COLUMNS
-from controller.gate.frd_csv import read_frd_csv
 from controller.ident.plan import ProgramPlan, plan_program, to_program
 from controller.ident.program import ExcitationProgram
 from controller.ident.spec import IdentifySpec

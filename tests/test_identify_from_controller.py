@@ -25,9 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent / "integration"))
 
 from procs import Client, ControllerProcess, start_controller, wait_until
 
+from controller.cli.frd_files import read_frd_csv
 from controller.cli.identify import EXIT_OK, identify_main
 from controller.cli.record import record_main
-from controller.gate.frd_csv import read_frd_csv
 from controller.recording.mcap_io import read_recording
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]

@@ -240,9 +240,6 @@ CAN_IMPORTERS = ("controller.rig",)
 #: File I/O calls that a pure package may not make (it computes and returns result objects).
 FILE_IO_ATTRS = {"read_text", "write_text", "read_bytes", "write_bytes", "mkdir", "unlink",
                  "touch", "rmdir"}
-#: Known, not yet moved: the measured-response CSV reads and writes its files inside `gate`
-#: (issue 21: to move to the CLI edge). Listed here so no other module can join it.
-KNOWN_FILE_IO = {"controller.gate.frd_csv"}
 #: Where key strings (`dobtune/...`) may be written.
 KEY_OWNER = "controller.protocol"
 
@@ -255,8 +252,6 @@ def test_only_the_rig_package_imports_python_can() -> None:
 
 @pytest.mark.parametrize("mod", sorted(m for m in MODULES if within(m, PURE)))
 def test_pure_packages_do_no_file_io(mod: str) -> None:
-    if mod in KNOWN_FILE_IO:
-        pytest.xfail(f"{mod} still reads and writes its CSV files")
     tree = ast.parse(MODULES[mod].read_text())
     bad = []
     for node in ast.walk(tree):

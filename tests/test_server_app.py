@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from helpers import free_port, port_is_free, wait_for
 
+from controller.cli.frd_files import write_frd_csv
 from controller.core.config import NominalModel
-from controller.gate.frd_csv import write_frd_csv
 from controller.gate.loop_model import nominal_continuous_response
 from server.app import Dashboard, DashboardOptions
 from server.demo import controller_process, stop_process

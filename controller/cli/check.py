@@ -20,12 +20,12 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from controller.cli.common import Command
+from controller.cli.frd_files import load_measured
 from controller.cli.inputs import BadInput, load_config, load_knowledge
 from controller.core.config import config_to_builtins
 from controller.core.errors import ConfigError
 from controller.core.verdict import Verdict
 from controller.gate.analysis import Analysis, analyse
-from controller.gate.frd import load_measured
 from controller.gate.knowledge import PlantKnowledge
 from controller.gate.margins import Margins
 from controller.gate.search import Recommendation, recommend

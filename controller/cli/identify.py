@@ -23,9 +23,9 @@ from typing import Any, TextIO
 import numpy as np
 
 from controller.cli.common import Command
+from controller.cli.frd_files import write_frd_csv
 from controller.core.config import LoopConfig, config_from_builtins, config_to_builtins
 from controller.core.errors import ConfigError
-from controller.gate.frd_csv import write_frd_csv
 from controller.ident.engine import RigLike, run_identification
 from controller.ident.report import (
     FITTED_CONFIG_NAME,

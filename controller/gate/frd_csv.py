@@ -1,14 +1,13 @@
 """Measured frequency-response data and its CSV format ``freq_hz,mag_db,phase_deg[,coherence]``.
 
-Plain data and a codec: identification writes these files, the gate and the dashboard read
-them. Errors name the file and line.
+Plain data and a codec between text and data (no file I/O: `controller.cli.frd_files` reads and
+writes the files, the dashboard parses an upload). Errors name the source and line.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Protocol
 
 import numpy as np
@@ -23,10 +22,10 @@ __all__ = [
     "CSV_COLUMNS",
     "FrdData",
     "FrdLike",
+    "frd_csv_text",
     "mag_db_of",
+    "parse_frd_csv",
     "phase_deg_of",
-    "read_frd_csv",
-    "write_frd_csv",
 ]
 
 
@@ -60,7 +59,7 @@ class FrdData:
     coherence: FloatArray | None
     """None when the file has no coherence column."""
     source: str = field(default="")
-    """Where it came from (file name)."""
+    """Where it came from (a file name)."""
 
     @property
     def response(self) -> ComplexArray:
@@ -68,13 +67,12 @@ class FrdData:
         return (mag * np.exp(1j * np.radians(self.phase_deg))).astype(np.complex128)
 
 
-def write_frd_csv(
-    path: str | Path,
+def frd_csv_text(
     freq_hz: ArrayLike,
     response: ArrayLike,
     coherence: ArrayLike | None = None,
-) -> None:
-    """Write ``freq_hz,mag_db,phase_deg[,coherence]`` with the phase unwrapped."""
+) -> str:
+    """The text ``freq_hz,mag_db,phase_deg[,coherence]`` with the phase unwrapped."""
     f = np.asarray(freq_hz, dtype=np.float64)
     h = np.asarray(response, dtype=np.complex128)
     if f.ndim != 1 or h.shape != f.shape:
@@ -93,18 +91,17 @@ def write_frd_csv(
         header.append("coherence")
     lines = [",".join(header)]
     lines += [",".join(f"{v:.10g}" for v in row) for row in zip(*cols, strict=True)]
-    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return "\n".join(lines) + "\n"
 
 
-def read_frd_csv(path: str | Path) -> FrdData:
-    """Read a response written by :func:`write_frd_csv` (or by hand, same columns).
+def parse_frd_csv(text: str, source: str) -> FrdData:
+    """A response from the text of :func:`frd_csv_text` (or one written by hand, same columns).
 
     Blank lines and lines starting with ``#`` are skipped; extra columns are ignored. Any
-    problem raises ``ValueError("<file>:<line>: <what>")``.
+    problem raises ``ValueError("<source>:<line>: <what>")``.
     """
-    name = str(path)
-    text = Path(path).read_text(encoding="utf-8-sig")
-    lines = text.splitlines()
+    name = source
+    lines = text.removeprefix("\ufeff").splitlines()
 
     def fail(line_no: int, msg: str) -> ValueError:
         return ValueError(f"{name}:{line_no}: {msg}")

@@ -33,7 +33,8 @@ one that gives this spread in `coherence_std`: ``1 / (1 + P var H / |H|^2)``.
 
 CSV format (the project's measured-response files): header ``freq_hz,mag_db,phase_deg`` plus an
 optional ``coherence`` column; frequencies strictly increasing; phase unwrapped on write.
-:func:`read_frd_csv` is the single reader; errors name the file and the line.
+`controller.gate.frd_csv.parse_frd_csv` is the single parser (`controller.cli.frd_files` reads the
+files); errors name the file and the line.
 """
 
 from __future__ import annotations

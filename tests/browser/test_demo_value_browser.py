@@ -138,7 +138,7 @@ def test_plant_chart_shows_the_positions_their_spread_and_the_divergence(
     cut-off line says where they diverge (the frequency the gate's own computation gives)."""
     import numpy as np
 
-    from controller.gate.frd_csv import write_frd_csv
+    from controller.cli.frd_files import write_frd_csv
     from controller.gate.knowledge import MeasuredResponse, position_spread
 
     f = np.geomspace(0.1, 20.0, 30)

@@ -18,9 +18,9 @@ import pytest
 from procs import Client, ControllerProcess, wait_until
 
 from controller import protocol as proto
+from controller.cli.frd_files import read_frd_csv
 from controller.cli.identify import EXIT_OK, identify_main
 from controller.core.config import ARTICLE_MN_DEN, ARTICLE_PN_DEN, ARTICLE_PN_NUM
-from controller.gate.frd_csv import read_frd_csv
 from controller.ident.spec import IdentifySpec
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
