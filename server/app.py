@@ -351,9 +351,9 @@ class Dashboard:
 
     def _on_status(self, st: proto.Status) -> None:
         if self.history is not None:
-            self.history.follow(st.config_version)
+            self.history.follow.note(st.config_version)
         if self.knowledge is not None:
-            self.knowledge.follow(st.knowledge_version)
+            self.knowledge.follow.note(st.knowledge_version)
         self.candidates.set_active(st.config, st.config_version, st.trajectory)
 
     def _on_frame(self, latest: dict[str, float] | None) -> None:

@@ -3,6 +3,7 @@
 - `LatestWins`: runs a function on the newest submitted item only (slider moves).
 - `Periodic`: runs a function at a fixed rate (the live refresh).
 - `Requests`: a small pool for blocking controller queries (apply, commands, uploads).
+- `Refetch`: a query in that pool whenever a version the controller's status carries moves.
 A failing run is logged with its traceback; the worker carries on.
 """
 
@@ -16,7 +17,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["LatestWins", "Periodic", "Requests"]
+__all__ = ["LatestWins", "Periodic", "Refetch", "Requests"]
 
 log = logging.getLogger(__name__)
 
@@ -141,6 +142,25 @@ class Requests:
 
     def shutdown(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)
+
+
+class Refetch:
+    """`fetch()` in `requests` whenever the version seen moves (`note`, from each status);
+    `forget()` after a failed fetch makes the next status fetch again."""
+
+    def __init__(self, requests: Requests, fetch: Callable[[], None]) -> None:
+        self._requests = requests
+        self._fetch = fetch
+        self.version = -1
+        """The version last fetched, or being fetched (-1: none)."""
+
+    def note(self, version: int) -> None:
+        if version != self.version:
+            self.version = version
+            self._requests.submit(self._fetch)
+
+    def forget(self) -> None:
+        self.version = -1
 
 
 def run_logged(fn: Callable[..., Any], *args: Any, what: str) -> Any:

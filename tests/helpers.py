@@ -1,4 +1,5 @@
-"""Helpers every test folder shares: free loopback ports and waiting on conditions.
+"""Helpers every test folder shares: free loopback ports, waiting on conditions, whether a
+controller answers.
 
 Tests wait on a condition with a generous deadline, never a fixed sleep standing in for
 synchronisation (the machine may be at load 15).
@@ -9,8 +10,9 @@ from __future__ import annotations
 import socket
 import time
 from collections.abc import Callable
+from typing import Any
 
-__all__ = ["free_port", "port_is_free", "wait_for", "wait_until"]
+__all__ = ["answers", "free_port", "port_is_free", "wait_for", "wait_until"]
 
 
 def free_port() -> int:
@@ -47,3 +49,15 @@ def wait_for(condition: Callable[[], object], timeout_s: float = 20.0,
              what: str = "timed out", poll_s: float = 0.05) -> None:
     """Until `condition()` is true; fails the test with `what` after `timeout_s`."""
     assert wait_until(condition, timeout_s, poll_s), what
+
+
+def answers(client: Any) -> bool:
+    """True if the controller answers `client` (a `ControllerClient`) a configuration query
+    now; False if it is unavailable (not up yet, or gone)."""
+    from controller.client import ControllerUnavailable
+
+    try:
+        client.get_config()
+        return True
+    except ControllerUnavailable:
+        return False

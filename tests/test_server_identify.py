@@ -46,18 +46,6 @@ SHORT = IdentifySettings(dict(mode="open", signal="multisine", f_min_hz=1.0, f_m
 
 
 @pytest.fixture(scope="module")
-def dash() -> Iterator[Dashboard]:
-    opts = DashboardOptions(
-        port=free_port(), connect=(f"tcp/127.0.0.1:{free_port()}",), verbose=False
-    )
-    with Dashboard(opts) as d:
-        t = d.panel_in(d.server.gui)  # a candidate panel without a browser
-        assert d.identify is not None
-        assert t.wait_preview_idle(30.0)
-        yield d
-
-
-@pytest.fixture(scope="module")
 def short_run(dash: Dashboard) -> IdentifyPanel:
     p = dash.identify
     assert p is not None

@@ -11,28 +11,14 @@ from __future__ import annotations
 import html
 import math
 import time
-from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from helpers import free_port
 
 from controller.core.config import LoopConfig
-from server.app import Dashboard, DashboardOptions
+from server.app import Dashboard
 from server.engine import TuningEngine
 from server.panels.tuning import format_gate_html
-
-
-@pytest.fixture(scope="module")
-def dash() -> Iterator[Dashboard]:
-    opts = DashboardOptions(
-        port=free_port(), connect=(f"tcp/127.0.0.1:{free_port()}",), verbose=False
-    )
-    with Dashboard(opts) as d:
-        t = d.panel_in(d.server.gui)  # a candidate panel without a browser
-        assert d.panel_of(None) is t
-        assert t.wait_preview_idle(30.0)
-        yield d
 
 
 def test_slider_move_updates_plots_margins_verdict(dash: Dashboard) -> None:

@@ -15,7 +15,7 @@ from server.escape import esc
 from server.panels.nominal_tuning import NominalTuningPanel
 from server.panels.tuning import config_diff_html
 from server.session import tell
-from server.workers import Requests
+from server.workers import Refetch, Requests
 
 __all__ = ["HistoryPanel"]
 
@@ -23,16 +23,17 @@ log = logging.getLogger(__name__)
 
 
 class HistoryPanel:
-    """Fetched again whenever the controller's configuration version changes (`follow`)."""
+    """Fetched again whenever the controller's configuration version moves (`follow`)."""
 
     def __init__(self, gui: Any, client: ControllerClient, requests: Requests,
                  panel_of: Callable[[Any], NominalTuningPanel | None]) -> None:
         """`panel_of(browser)`: that browser's candidate panel."""
         self.gui = gui
         self.client = client
-        self._requests = requests
         self._panel_of = panel_of
-        self._version = -1
+        self.follow = Refetch(requests, self.fetch)
+        """`follow.note(version)`: the controller's configuration version (from a status);
+        fetched again when it moves."""
         self.versions: dict[int, LoopConfig] = {}
 
     def build(self) -> None:
@@ -49,18 +50,12 @@ class HistoryPanel:
         self.pick.on_update(lambda _e: self.show_diff())
         self.other.on_update(lambda _e: self.show_diff())
 
-    def follow(self, config_version: int) -> None:
-        """The controller's configuration version (from a status): fetched if it moved."""
-        if config_version != self._version:
-            self._version = config_version
-            self._requests.submit(self.fetch)
-
     def fetch(self) -> None:
         try:
             reply = self.client.history(50)
         except (ControllerUnavailable, proto.ProtocolError) as exc:
             log.warning("history not fetched: %s", exc)
-            self._version = -1
+            self.follow.forget()
             return
         if not reply.ok:
             self.table.content = f"<div class='dt-history'>{esc(reply.message)}</div>"

@@ -16,7 +16,7 @@ from server.escape import esc
 from server.gate import Refused
 from server.measured import read_measured
 from server.session import BrowserSessions
-from server.workers import Requests
+from server.workers import Refetch, Requests
 
 __all__ = ["ORDER_LAST", "KnowledgePanel"]
 
@@ -44,7 +44,9 @@ class KnowledgePanel:
         self.sessions = sessions
         self._requests = requests
         self._on_changed = on_changed
-        self._version = -1
+        self.follow = Refetch(requests, self.fetch)
+        """`follow.note(version)`: the controller's knowledge version (from a status);
+        fetched again when it moves."""
 
     def build(self) -> None:
         """Below each browser's own candidate controls (built when it connects)."""
@@ -56,12 +58,6 @@ class KnowledgePanel:
             "responses: 1/|Delta| is the stated bound.</div>", order=ORDER_LAST + 1)
         upload.on_upload(self._on_upload)
 
-    def follow(self, knowledge_version: int) -> None:
-        """The controller's knowledge version (from a status): fetched if it moved."""
-        if knowledge_version != self._version:
-            self._version = knowledge_version
-            self._requests.submit(self.fetch)
-
     def fetch(self) -> None:
         """The controller's plant knowledge: the dashboard judges on nothing else."""
         try:
@@ -69,7 +65,7 @@ class KnowledgePanel:
             self.engine.set_knowledge(reply.record)
         except (ControllerUnavailable, proto.ProtocolError, ValueError) as exc:
             log.warning("plant knowledge not fetched: %s", exc)
-            self._version = -1  # try again with the next status
+            self.follow.forget()  # try again with the next status
             return
         log.info("plant knowledge v%d fetched (%s)", reply.record.version, reply.record.source)
         self._on_changed()
@@ -109,7 +105,7 @@ class KnowledgePanel:
                 f"{esc(m.name)}: refused by the controller: {esc(reply.message)}", error=True)
             return
         self.engine.set_knowledge(reply.record)
-        self._version = reply.record.version
+        self.follow.version = reply.record.version
         n = len(reply.record.measured)
         log.info("measured response %s adopted (%s); plant knowledge v%d has %d", m.name,
                  source, reply.record.version, n)

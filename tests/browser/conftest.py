@@ -9,6 +9,7 @@ that, so the first load has its own generous timeout instead of the tests' short
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from collections.abc import Iterator
@@ -33,6 +34,7 @@ CHROMIUM_ARGS = [
 ]
 ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
 RIG = "browsertest"
+VIEWPORT = {"width": 1600, "height": 1000}
 #: The first load of the page: Chromium's cold start, the viser client's bundle, the websocket.
 FIRST_LOAD_S = 60.0
 #: The controller process's start (interpreter, imports, numba-compiled plant) on a cold machine.
@@ -81,20 +83,33 @@ def dashboard(controller_endpoint: str, probe: ControllerClient) -> Iterator[Das
         yield d
 
 
-@pytest.fixture(scope="module")
-def page(dashboard: Dashboard) -> Iterator[Any]:
-    _require_chromium()
+@contextlib.contextmanager
+def chromium() -> Iterator[Any]:
+    """The system's headless Chromium (a Playwright browser), closed on exit. Callers check
+    that it is installed first (`_require_chromium`, or their own failure)."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS,
                                     timeout=FIRST_LOAD_S * 1000)
         try:
-            pg = browser.new_page(viewport={"width": 1600, "height": 1000})
-            open_when_ready(pg, dashboard, FIRST_LOAD_S)
-            yield pg
+            yield browser
         finally:
             browser.close()
+
+
+def ready_page(dashboard: Dashboard, first_load_s: float = FIRST_LOAD_S) -> Iterator[Any]:
+    """A page of `dashboard` in a fresh Chromium, once it is usable (`open_when_ready`)."""
+    _require_chromium()
+    with chromium() as browser:
+        pg = browser.new_page(viewport=VIEWPORT)
+        open_when_ready(pg, dashboard, first_load_s)
+        yield pg
+
+
+@pytest.fixture(scope="module")
+def page(dashboard: Dashboard) -> Iterator[Any]:
+    yield from ready_page(dashboard)
 
 
 def open_when_ready(page: Any, dashboard: Dashboard, timeout_s: float) -> None:

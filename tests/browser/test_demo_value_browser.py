@@ -24,15 +24,12 @@ from controller.tune.autotune import command_noise_deg_s, run_point
 from server.app import Dashboard, DashboardOptions
 from server.demo import DemoOptions, controller_command, stop_process
 from tests.browser.conftest import (
-    CHROMIUM,
-    CHROMIUM_ARGS,
     CONTROLLER_START_S,
     FINITE_JS,
     FIRST_LOAD_S,
-    _require_chromium,
     free_port,
     only_panel,
-    open_when_ready,
+    ready_page,
 )
 
 RIG = "demovalue"
@@ -71,18 +68,7 @@ def dash(endpoint: str) -> Iterator[Dashboard]:
 
 @pytest.fixture(scope="module")
 def page(dash: Dashboard) -> Iterator[Any]:
-    _require_chromium()
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS,
-                                    timeout=FIRST_LOAD_S * 1000)
-        try:
-            pg = browser.new_page(viewport={"width": 1600, "height": 1000})
-            open_when_ready(pg, dash, 3 * FIRST_LOAD_S)  # a loaded machine: the condition decides
-            yield pg
-        finally:
-            browser.close()
+    yield from ready_page(dash, 3 * FIRST_LOAD_S)  # a loaded machine: the condition decides
 
 
 def _shown(page: Any, cls: str) -> tuple[float, float, float]:

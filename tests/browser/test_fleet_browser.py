@@ -13,7 +13,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import CHROMIUM, CHROMIUM_ARGS, CONTROLLER_START_S, FIRST_LOAD_S, free_port
+from conftest import (
+    CHROMIUM,
+    CONTROLLER_START_S,
+    FIRST_LOAD_S,
+    VIEWPORT,
+    chromium,
+    free_port,
+)
 from helpers import wait_for
 
 from server.app import Dashboard, DashboardOptions
@@ -65,40 +72,33 @@ def fleet() -> Iterator[Dashboard]:
 def test_the_fleet_tab_shows_every_rig_and_stops_one(fleet: Dashboard, artifacts: Path) -> None:
     if not CHROMIUM.exists():
         pytest.fail(f"{CHROMIUM} missing: run `bash .ci/setup --browser`")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS,
-                                    timeout=FIRST_LOAD_S * 1000)
-        try:
-            page = browser.new_page(viewport={"width": 1600, "height": 1000})
-            page.goto(fleet.url, wait_until="domcontentloaded", timeout=FIRST_LOAD_S * 1000)
-            page.wait_for_selector(".dt-banner", timeout=FIRST_LOAD_S * 1000)
-            page.get_by_role("tab", name="Fleet").click()
-            page.wait_for_function(f"() => ({ROWS_JS})().length === 2", timeout=20_000)
-            rows = page.evaluate(ROWS_JS)
-            assert [(r[0], r[1]) for r in rows] == [("rig1", "running"), ("rig2", "running")]
-            assert all(r[2].count(",") > 100 for r in rows)  # a trace of >100 points each
-            # The traces move (what is drawn changes, not only what was sent).
-            page.wait_for_function(
-                f"(a) => JSON.stringify(({ROWS_JS})()) !== JSON.stringify(a)", arg=rows,
-                timeout=10_000)
-            page.screenshot(path=str(artifacts / "fleet_1_overview.png"))
-            # Choose rig1 as a user does (the default is whichever rig appeared first).
-            label = page.locator("label").filter(has_text=re.compile(r"^Rig$")).first
-            box = page.locator(f"[id='{label.get_attribute('for')}']")
-            (box if box.evaluate("e => e.tagName") == "INPUT" else box.locator("input")).first \
-                .click()
-            page.get_by_role("option", name="rig1", exact=True).click()
-            panel = fleet.fleet
-            assert panel is not None
-            wait_for(lambda: str(panel.pick.value) == "rig1", 10.0, "the choice never arrived")
-            page.get_by_role("button", name="E-STOP this rig").click()
-            page.wait_for_function(
-                f"() => ({ROWS_JS})().map(r => r[1]).join() === 'estop,running'",
-                timeout=15_000)
-            page.wait_for_selector(".dt-fleet-result >> text=E-STOP sent to rig1",
-                                   timeout=10_000)
-            page.screenshot(path=str(artifacts / "fleet_2_estop_one.png"))
-        finally:
-            browser.close()
+    with chromium() as browser:
+        page = browser.new_page(viewport=VIEWPORT)
+        page.goto(fleet.url, wait_until="domcontentloaded", timeout=FIRST_LOAD_S * 1000)
+        page.wait_for_selector(".dt-banner", timeout=FIRST_LOAD_S * 1000)
+        page.get_by_role("tab", name="Fleet").click()
+        page.wait_for_function(f"() => ({ROWS_JS})().length === 2", timeout=20_000)
+        rows = page.evaluate(ROWS_JS)
+        assert [(r[0], r[1]) for r in rows] == [("rig1", "running"), ("rig2", "running")]
+        assert all(r[2].count(",") > 100 for r in rows)  # a trace of >100 points each
+        # The traces move (what is drawn changes, not only what was sent).
+        page.wait_for_function(
+            f"(a) => JSON.stringify(({ROWS_JS})()) !== JSON.stringify(a)", arg=rows,
+            timeout=10_000)
+        page.screenshot(path=str(artifacts / "fleet_1_overview.png"))
+        # Choose rig1 as a user does (the default is whichever rig appeared first).
+        label = page.locator("label").filter(has_text=re.compile(r"^Rig$")).first
+        box = page.locator(f"[id='{label.get_attribute('for')}']")
+        (box if box.evaluate("e => e.tagName") == "INPUT" else box.locator("input")).first \
+            .click()
+        page.get_by_role("option", name="rig1", exact=True).click()
+        panel = fleet.fleet
+        assert panel is not None
+        wait_for(lambda: str(panel.pick.value) == "rig1", 10.0, "the choice never arrived")
+        page.get_by_role("button", name="E-STOP this rig").click()
+        page.wait_for_function(
+            f"() => ({ROWS_JS})().map(r => r[1]).join() === 'estop,running'",
+            timeout=15_000)
+        page.wait_for_selector(".dt-fleet-result >> text=E-STOP sent to rig1",
+                               timeout=10_000)
+        page.screenshot(path=str(artifacts / "fleet_2_estop_one.png"))

@@ -22,7 +22,14 @@ from typing import Any
 import msgspec
 import pytest
 import zenoh
-from conftest import CHROMIUM, CHROMIUM_ARGS, CONTROLLER_START_S, FIRST_LOAD_S, free_port
+from conftest import (
+    CHROMIUM,
+    CONTROLLER_START_S,
+    FIRST_LOAD_S,
+    VIEWPORT,
+    chromium,
+    free_port,
+)
 from helpers import wait_for
 from test_fleet_browser import _free_run
 
@@ -127,15 +134,11 @@ def test_hostile_names_run_no_script_and_show_as_text(hostile: dict[str, Any],
                                                        artifacts: Path) -> None:
     if not CHROMIUM.exists():
         pytest.fail(f"{CHROMIUM} missing: run `bash .ci/setup --browser`")
-    from playwright.sync_api import sync_playwright
-
     dash = hostile["dash"]
     dialogs: list[str] = []
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS,
-                                    timeout=FIRST_LOAD_S * 1000)
+    with chromium() as browser:
+        page = browser.new_page(viewport=VIEWPORT)
         try:
-            page = browser.new_page(viewport={"width": 1600, "height": 1000})
 
             def on_dialog(d: Any) -> None:
                 dialogs.append(d.message)
@@ -202,8 +205,6 @@ def test_hostile_names_run_no_script_and_show_as_text(hostile: dict[str, Any],
         except Exception:
             page.screenshot(path=str(artifacts / "hostile_failed.png"))
             raise
-        finally:
-            browser.close()
     # What the server sent: the payloads as text, never as markup.
     assert dash.fleet is not None
     assert "<img src=x" not in dash.fleet.table.content

@@ -21,11 +21,18 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import CHROMIUM, CHROMIUM_ARGS, CONTROLLER_START_S, FIRST_LOAD_S, free_port
-from helpers import wait_for
+from conftest import (
+    CHROMIUM,
+    CONTROLLER_START_S,
+    FIRST_LOAD_S,
+    VIEWPORT,
+    chromium,
+    free_port,
+)
+from helpers import answers, wait_for
 
 from controller.auth import init_auth_dir, new_users
-from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
+from controller.client import ClientOptions, ControllerClient
 from server.app import Dashboard, DashboardOptions
 from server.demo import controller_command, stop_process
 
@@ -33,14 +40,6 @@ pytestmark = pytest.mark.browser
 RIG = "usertest"
 
 
-
-
-def _answers(c: ControllerClient) -> bool:
-    try:
-        c.get_config()
-        return True
-    except ControllerUnavailable:
-        return False
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +54,7 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         opts = ClientOptions(connect=(endpoint,), rig_name=RIG, auth=auth, user="view",
                              client_name="probe", connect_timeout_s=CONTROLLER_START_S)
         with ControllerClient(opts) as probe:
-            wait_for(lambda: _answers(probe), CONTROLLER_START_S, "the controller did not answer")
+            wait_for(lambda: answers(probe), CONTROLLER_START_S, "the controller did not answer")
             dopts = DashboardOptions(connect=(endpoint,), rig_name=RIG, port=free_port(),
                                      verbose=False, auth=auth, recordings_dir=base / "rec")
             with Dashboard(dopts) as dash:
@@ -69,25 +68,18 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
 def pages(env: dict[str, Any]) -> Iterator[dict[str, Any]]:
     if not CHROMIUM.exists():
         pytest.fail(f"{CHROMIUM} missing: run `bash .ci/setup --browser`")
-    from playwright.sync_api import sync_playwright
-
     dash: Dashboard = env["dash"]
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS,
-                                    timeout=FIRST_LOAD_S * 1000)
-        try:
-            out = {}
-            for user in ("op1", "view"):
-                # Separate contexts: separate cookie jars, as two people's browsers.
-                page = browser.new_context(viewport={"width": 1600, "height": 1000}).new_page()
-                page.goto(dash.url_for(user), wait_until="domcontentloaded",
-                          timeout=FIRST_LOAD_S * 1000)
-                page.wait_for_selector(".dt-whoami", timeout=FIRST_LOAD_S * 1000)
-                page.wait_for_selector(".dt-verdict", timeout=FIRST_LOAD_S * 1000)
-                out[user] = page
-            yield out
-        finally:
-            browser.close()
+    with chromium() as browser:
+        out = {}
+        for user in ("op1", "view"):
+            # Separate contexts: separate cookie jars, as two people's browsers.
+            page = browser.new_context(viewport=VIEWPORT).new_page()
+            page.goto(dash.url_for(user), wait_until="domcontentloaded",
+                      timeout=FIRST_LOAD_S * 1000)
+            page.wait_for_selector(".dt-whoami", timeout=FIRST_LOAD_S * 1000)
+            page.wait_for_selector(".dt-verdict", timeout=FIRST_LOAD_S * 1000)
+            out[user] = page
+        yield out
 
 
 def test_each_browser_is_signed_in_as_its_user(pages: dict[str, Any]) -> None:

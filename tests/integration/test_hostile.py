@@ -22,6 +22,7 @@ from typing import Any
 import msgspec
 import pytest
 import zenoh
+from helpers import answers
 from procs import REPO, ControllerProcess, free_port, start_controller, wait_until
 
 from controller import protocol as proto
@@ -64,15 +65,7 @@ def _ready(auth: Path, proc: ControllerProcess) -> bool:
     assert proc.proc.poll() is None, proc.log()
     try:
         with _client(auth, proc, "op1") as c:
-            return _answers(c)
-    except ControllerUnavailable:
-        return False
-
-
-def _answers(c: ControllerClient) -> bool:
-    try:
-        c.get_config()
-        return True
+            return answers(c)
     except ControllerUnavailable:
         return False
 

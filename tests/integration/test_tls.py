@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from helpers import answers
 from procs import ControllerProcess, free_port, wait_until
 
 from controller import protocol as proto
@@ -25,14 +26,6 @@ def _auth(dir_: Path) -> Path:
     init_auth_dir(dir_, new_users([("op", "operator"), ("view", "viewer")]))
     make_tls(dir_, ["127.0.0.1", "localhost"])
     return dir_
-
-
-def _answers(c: ControllerClient) -> bool:
-    try:
-        c.get_config()
-        return True
-    except ControllerUnavailable:
-        return False
 
 
 def _client(auth: Path, endpoint: str) -> ControllerClient:
@@ -58,7 +51,7 @@ def test_a_client_reaches_the_certified_controller_and_refuses_a_rogue(
         except ControllerUnavailable:
             assert time.monotonic() < deadline, proc.log()
     try:
-        assert wait_until(lambda: _answers(client), 30.0), proc.log()
+        assert wait_until(lambda: answers(client), 30.0), proc.log()
         assert client.knowledge().ok
     finally:
         client.__exit__(None, None, None)
