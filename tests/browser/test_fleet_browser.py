@@ -13,14 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import (
-    CHROMIUM,
-    CONTROLLER_START_S,
-    FIRST_LOAD_S,
-    VIEWPORT,
-    chromium,
-    free_port,
-)
+from conftest import CHROMIUM, CONTROLLER_START_S, FIRST_LOAD_S, VIEWPORT, chromium, free_port
 from helpers import wait_for
 
 from server.app import Dashboard, DashboardOptions

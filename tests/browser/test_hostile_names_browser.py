@@ -22,14 +22,7 @@ from typing import Any
 import msgspec
 import pytest
 import zenoh
-from conftest import (
-    CHROMIUM,
-    CONTROLLER_START_S,
-    FIRST_LOAD_S,
-    VIEWPORT,
-    chromium,
-    free_port,
-)
+from conftest import CHROMIUM, CONTROLLER_START_S, FIRST_LOAD_S, VIEWPORT, chromium, free_port
 from helpers import wait_for
 from test_fleet_browser import _free_run
 

@@ -21,14 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import (
-    CHROMIUM,
-    CONTROLLER_START_S,
-    FIRST_LOAD_S,
-    VIEWPORT,
-    chromium,
-    free_port,
-)
+from conftest import CHROMIUM, CONTROLLER_START_S, FIRST_LOAD_S, VIEWPORT, chromium, free_port
 from helpers import answers, wait_for
 
 from controller.auth import init_auth_dir, new_users
