@@ -1,6 +1,6 @@
 """What the gate caches, and that it answers as if it cached nothing: the recommended
 cut-off's search (`RecommendationSearch`: only as far as the verdict needs, the same answers
-as the whole search), the nonlinear check per (configuration, model), and the gate worker's
+as the whole search), the nonlinear check per (configuration, model), and the analysis worker's
 verdicts per (configuration, plant knowledge). Adversarial: a changed input (the gains at the
 same cut-off, the evidence under the same knowledge version) must miss."""
 
@@ -27,7 +27,7 @@ from controller.gate.knowledge import (
 from controller.gate.loop_model import nominal_continuous_response
 from controller.gate.search import TopSearch, recommendation_search
 from controller.gate.verdict import judge
-from controller.process.gate_worker import GateRunner, clear_caches, gate
+from controller.process.analysis_worker import AnalysisWorker, clear_caches, gate
 from controller.sim.nonlinear_check import findings, nonlinear_check
 
 GRID = np.geomspace(0.02, 100.0, 16)
@@ -200,7 +200,7 @@ def test_the_nonlinear_check_cache_misses_on_other_gains_and_another_model() -> 
     assert findings(cfg, model) is first  # the same inputs: served from the cache
 
 
-def test_the_gate_workers_verdicts_follow_every_input() -> None:
+def test_the_analysis_workers_verdicts_follow_every_input() -> None:
     """The worker's caches (converted knowledge, verdicts) are keyed on the whole record and
     the whole configuration: a record with the same version and source but other evidence,
     other gains at the same cut-off, or the rig's limit must each give the fresh verdict."""
@@ -224,7 +224,7 @@ def test_the_gate_workers_verdicts_follow_every_input() -> None:
     assert [v1, v2, v3] == fresh
     assert v1.margins != v2.margins and v1.reasons != v3.reasons
     # The rig's limit is checked before any cached verdict.
-    runner = GateRunner(subprocess=False, command_limit_max_deg_s=0.5 * cfg.command_limit_deg_s)
+    runner = AnalysisWorker(subprocess=False, command_limit_max_deg_s=0.5 * cfg.command_limit_deg_s)
     assert not runner.check(cfg, k1).applicable
 
 

@@ -171,7 +171,7 @@ def test_tf2ss_of_the_linear_rig_is_scipys(num: list[float], den: list[float]) -
 def test_the_start_path_does_not_import_scipy_signal() -> None:
     """`dobtune check`'s and the controller's imports (the gate, the loop, the watchdog, the
     nonlinear check) leave scipy.signal out: it is 0.5-0.7 s of every start."""
-    code = ("import sys, controller.cli.check, controller.process.gate_worker, "
+    code = ("import sys, controller.cli.check, controller.process.analysis_worker, "
             "controller.core.watchdog, controller.sim.nonlinear_check, controller.__main__; "
             "print('scipy.signal' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

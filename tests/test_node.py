@@ -19,7 +19,7 @@ from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
 from controller.process import requests as rq
-from controller.process.gate_worker import GateRunner
+from controller.process.analysis_worker import AnalysisWorker
 from controller.process.node import SHUTDOWN, ZenohNode, to_request
 from controller.process.options import ControllerOptions
 from controller.process.persistence import StateStore
@@ -41,7 +41,7 @@ def node(tmp_path: Path) -> Iterator[ZenohNode]:
     store = StateStore(tmp_path)
     store.save(cfg, 1)
     rt = Runtime(ServoLoop(LoopCoefficients.build(cfg, 1)), NullRig())
-    runner = GateRunner(subprocess=False)
+    runner = AnalysisWorker(subprocess=False)
     opts = ControllerOptions(rig_name="unit", state_dir=tmp_path, gate_in_subprocess=False)
     k = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=1))
     margins = runner.check(cfg, k).margins

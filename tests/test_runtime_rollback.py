@@ -18,8 +18,8 @@ from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
 from controller.process.access import Access
+from controller.process.analysis_worker import AnalysisWorker
 from controller.process.audit import AuditLog, audit_path
-from controller.process.gate_worker import GateRunner
 from controller.process.options import ControllerOptions
 from controller.process.persistence import MAX_VERSION, StateStore
 from controller.process.requests import ApplyCoefficients, InjectFault
@@ -158,7 +158,7 @@ def _service(rt: Runtime, state: Path, version: int = 1) -> tuple[ControllerServ
     access.start()
     opts = ControllerOptions(rig_name="unit", state_dir=state, gate_in_subprocess=False)
     k = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=1))
-    runner = GateRunner(subprocess=False)
+    runner = AnalysisWorker(subprocess=False)
     margins = runner.check(rt.loop.active.config, k).margins
     svc = ControllerService(opts, rt, store, runner, margins, [], k, access)
     access.warn = svc.warn

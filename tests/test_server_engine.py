@@ -110,10 +110,10 @@ def test_measured_response_enters_the_verdict() -> None:
 
 @pytest.mark.slow
 def test_the_dashboard_verdict_is_the_controllers() -> None:
-    """The dashboard's verdict equals the controller's gate (`gate_worker.gate`, what the
+    """The dashboard's verdict equals the controller's gate (`analysis_worker.gate`, what the
     controller runs before applying) on the same plant knowledge, for random candidates."""
     from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
-    from controller.process.gate_worker import gate
+    from controller.process.analysis_worker import gate
 
     f = np.geomspace(0.1, 20, 31)
     h = 1.3 * nominal_continuous_response(NominalModel(), f) * np.exp(-2j * np.pi * f * 0.002)
@@ -280,6 +280,85 @@ def test_speed_loop_with_dob_is_the_gates_loop_and_margins() -> None:
     assert c.nyquist_nodob is not None
     np.testing.assert_allclose(c.nyquist_nodob.response, a_off.open_loop[idx], rtol=1e-12)
     assert c.nyquist_nodob.phase_margin_deg == pytest.approx(a_off.phase_margin_deg, abs=1e-9)
+
+
+# -- one analysis per candidate ------------------------------------------------------------------
+
+ONE_PASS_CASES = [
+    LoopConfig(q_cutoff_hz=0.5),
+    LoopConfig(q_cutoff_hz=4.0),
+    LoopConfig(cv_kp=0.3, cv_ki_per_s=20.0, q_type="q20", q_cutoff_hz=0.3),
+]
+
+
+@pytest.mark.parametrize("cfg", ONE_PASS_CASES, ids=["q31-0.5", "q31-4", "soft-q20-0.3"])
+def test_the_one_analysis_gives_python_controls_margins(cfg: LoopConfig) -> None:
+    """The dashboard's single pass (one analysis: verdict box, charts, Nyquist view) against
+    an independent reference: python-control's state-space loop built from the tick's
+    equations, its margins with control.stability_margins' selection rules bisected on its
+    exact response (tests/fuzz_truth.py `loop_margins`, checked against stability_margins in
+    tests/test_fuzz_truth.py). PM 1e-3 deg, GM 1e-3 dB, peak sensitivity 1e-3 dB (the DOB's
+    poles near z = 1 cost digits: 1e-6 relative on the loop); the verdict box, the Nyquist
+    view and the open-loop chart say the same."""
+    import fuzz_truth
+
+    eng = TuningEngine()
+    ev = eng.evaluate(cfg)
+    ref = _reference_loop(cfg, dob=True)
+    r = fuzz_truth.loop_margins(ref)
+    m = ev.verdict.margins
+    assert m.phase_margin_deg == pytest.approx(r.phase_margin_deg, abs=1e-3)
+    assert m.gain_margin_db == pytest.approx(r.gain_margin_db, abs=1e-3)
+    assert m.peak_sensitivity_db == pytest.approx(-20 * np.log10(r.stability_margin), abs=1e-3)
+    nq = ev.curves.nyquist_dob
+    assert nq is not None
+    assert (nq.phase_margin_deg, nq.gain_margin_db) == (m.phase_margin_deg, m.gain_margin_db)
+
+    np.testing.assert_allclose(
+        ev.curves.open_loop_db,
+        20 * np.log10(np.abs(fuzz_truth.frequency_response(ref, ev.curves.freq_hz))),
+        atol=1e-4)
+
+
+def test_moving_the_cutoff_reuses_only_what_does_not_depend_on_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Incremental work: with the DOB on, a new cut-off computes the loop without the DOB and
+    the plant chart no more (cached); what is reused equals a fresh computation for the new
+    cut-off (nothing stale), and new gains compute it again (they change it)."""
+    import server.engine as engine_module
+    from server.engine import plant_curves, speed_loop
+
+    moved = LoopConfig(q_cutoff_hz=3.0)
+    f = TuningEngine().evaluate(moved).curves  # fresh: computed for this cut-off alone
+    eng = TuningEngine()
+    calls: list[bool] = []
+    real = engine_module.speed_loop
+
+    def counted(cfg: LoopConfig, *a: Any, dob: bool) -> Any:
+        calls.append(dob)
+        return real(cfg, *a, dob=dob)
+
+    monkeypatch.setattr(engine_module, "speed_loop", counted)
+    first = eng.evaluate(LoopConfig(q_cutoff_hz=0.5)).curves
+    assert calls == [False]
+    c = eng.evaluate(moved).curves
+    assert calls == [False]  # nothing recomputed for the cut-off
+    assert c.nyquist_nodob is not None and first.nyquist_nodob is not None
+    assert f.nyquist_nodob is not None and f.plant is not None and c.plant is not None
+    np.testing.assert_array_equal(c.nyquist_nodob.response, f.nyquist_nodob.response)
+    assert c.nyquist_nodob.phase_margin_deg == f.nyquist_nodob.phase_margin_deg
+    np.testing.assert_array_equal(c.plant.model_db,
+                                  plant_curves(eng.plant, c.freq_hz, 1000.0).model_db)
+    np.testing.assert_array_equal(c.plant.model_db, f.plant.model_db)
+    # The with-DOB loop does follow the cut-off.
+    assert c.nyquist_dob is not None and first.nyquist_dob is not None
+    assert not np.allclose(c.nyquist_dob.response, first.nyquist_dob.response)
+    stiff = eng.evaluate(moved.with_(cv_kp=0.9)).curves
+    assert calls == [False, False]
+    assert stiff.nyquist_nodob is not None
+    expect = speed_loop(moved.with_(cv_kp=0.9), eng.plant.model, eng.evaluate(moved).curves
+                        .freq_hz, dob=False)
+    np.testing.assert_allclose(stiff.nyquist_nodob.response, expect.response, rtol=1e-12)
 
 
 # -- the plant chart ----------------------------------------------------------------------------

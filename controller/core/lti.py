@@ -6,7 +6,7 @@ here, with the same operations in the same order, so the results are scipy's bit
 (tests/test_lti.py checks that against scipy itself); and `sosfilt` (transposed direct form II,
 the same arithmetic as scipy's and `discrete.SosFilter.step`), compiled with numba on first
 use. Off the
-tick; the start path of the controller, the gate worker and `dobtune check` imports this
+tick; the start path of the controller, the analysis worker and `dobtune check` imports this
 instead of scipy.signal.
 """
 

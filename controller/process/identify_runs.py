@@ -2,7 +2,7 @@
 
 The excitation program runs in the tick (`controller.ident.program`); here: planning it,
 watching it from a thread, estimating the segments it finished (live results) and, at its
-end, the estimate, fit and gate, all in the gate's worker process, never on the loop.
+end, the estimate, fit and gate, all in the analysis worker process, never on the loop.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from controller import protocol as proto
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import MeasuredRecord
 from controller.ident.program import ExcitationProgram
-from controller.process.gate_worker import GateRunner
+from controller.process.analysis_worker import AnalysisWorker
 
 __all__ = ["IdentifyJob", "IdentifyRuns", "identify_analysis", "identify_segments"]
 
@@ -75,7 +75,7 @@ def identify_analysis(
     wall_s: float,
 ) -> dict[str, Any]:
     """Estimate (fit and gate when complete) from a program's records; the IdentifyStatus
-    fields that carry results. Runs in the gate's worker process."""
+    fields that carry results. Runs in the analysis worker process."""
     import json
 
     from controller.ident.engine import result_from_program
@@ -113,7 +113,7 @@ def identify_analysis(
 def identify_segments(segments: Sequence[Any]) -> list[tuple[list[float], ...]]:
     """Estimate finished segments (`controller.ident.engine.SegmentData`) of a running program:
     per segment (freq_hz, mag_db, phase_deg, coherence, mag_std_db, phase_std_deg) lists.
-    Runs in the gate's worker process."""
+    Runs in the analysis worker process."""
     from controller.ident.engine import estimate_segment
 
     return [_response_columns(estimate_segment(seg)) for seg in segments]
@@ -167,12 +167,12 @@ class IdentifyRuns:
     def __init__(
         self,
         rig_name: str,
-        gate: GateRunner,
+        worker: AnalysisWorker,
         stop_event: threading.Event,
         warn: Callable[[str], None],
     ) -> None:
         self.rig_name = rig_name
-        self.gate = gate
+        self.worker = worker
         self.stop_event = stop_event
         self.warn = warn
         self.job: IdentifyJob | None = None
@@ -282,7 +282,7 @@ class IdentifyRuns:
         if aborted:
             log.warning("identification %d aborted: %s", job.run_id, prog.reason)
         try:
-            job.results = self.gate.call(
+            job.results = self.worker.call(
                 identify_analysis,
                 job.plan,
                 prog.rec_u,
@@ -314,7 +314,7 @@ class IdentifyRuns:
             return
         try:
             segs = [segment_data(job.plan, k, prog.rec_u, prog.rec_w) for k in range(first, done)]
-            estimates = self.gate.call(identify_segments, segs, timeout_s=30.0)
+            estimates = self.worker.call(identify_segments, segs, timeout_s=30.0)
             job.add_segments(first, estimates)
         except Exception as exc:  # the run goes on; the results come at its end
             job.partial_failed = True

@@ -3,7 +3,7 @@
 The loop's own thread is the main thread (`Runtime.run()`, optionally SCHED_FIFO), so signals
 stop it between ticks; the Zenoh side (`controller.process.node`) and the request handlers
 (`controller.process.service`) run in threads, the stability gate and the filter design in a
-worker process (`controller.process.gate_worker`).
+worker process (`controller.process.analysis_worker`).
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.verdict import Verdict, margins_dict
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
 from controller.process.access import Access
+from controller.process.analysis_worker import AnalysisWorker
 from controller.process.audit import AuditError, AuditLog, audit_path
-from controller.process.gate_worker import GateRunner
 from controller.process.node import ZenohNode
 from controller.process.options import ControllerOptions
 from controller.process.persistence import PersistenceError, StateStore
@@ -356,9 +356,9 @@ def run_controller(opts: ControllerOptions, *, ready: Callable[[str], None] | No
     # signals the whole process group, then a launcher may signal again) never interrupts
     # the shutdown half-way.
     previous = {s: signal.signal(s, stopper.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    runner: GateRunner | None = None
+    runner: AnalysisWorker | None = None
     try:
-        runner = GateRunner(subprocess=opts.gate_in_subprocess)
+        runner = AnalysisWorker(subprocess=opts.gate_in_subprocess)
         _run(opts, runner, stopper, ready)
     finally:
         if runner is not None:
@@ -370,13 +370,13 @@ def run_controller(opts: ControllerOptions, *, ready: Callable[[str], None] | No
 
 def _run(
     opts: ControllerOptions,
-    runner: GateRunner,
+    runner: AnalysisWorker,
     stopper: _Stopper,
     ready: Callable[[str], None] | None,
 ) -> None:
     _check_options(opts)
     runner.command_limit_max_deg_s = _rig_command_limit(opts)
-    # The gate's worker starts loading now, beside the rest of the start-up; the first check
+    # The analysis worker starts loading now, beside the rest of the start-up; the first check
     # runs here, before the loop (the worker may still be loading: behind a busy machine it
     # took tens of seconds to give the first verdict).
     runner.start()

@@ -48,7 +48,7 @@ class ControllerOptions:
     """sys.setswitchinterval for this process: bounds how long another Python thread can
     keep the loop's thread waiting for the interpreter lock."""
     gate_in_subprocess: bool = True
-    """Run the stability analysis in a worker process (see GateRunner)."""
+    """Run the stability analysis in a worker process (see AnalysisWorker)."""
     auth_dir: Path | None = None
     """`dobtune auth init` directory: user/password authentication, access control per role,
     requests on per-user key scopes, the operator lease enforced for every user."""

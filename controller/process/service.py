@@ -24,7 +24,7 @@ from controller.core.errors import ConfigError
 from controller.core.verdict import margins_dict
 from controller.gate.knowledge import KnowledgeRecord
 from controller.process.access import Access
-from controller.process.gate_worker import GateRunner
+from controller.process.analysis_worker import AnalysisWorker
 from controller.process.identify_runs import IdentifyRuns
 from controller.process.options import ControllerOptions
 from controller.process.persistence import MAX_VERSION, PersistenceError, StateStore
@@ -59,7 +59,7 @@ class ControllerService:
         opts: ControllerOptions,
         runtime: Runtime,
         store: StateStore,
-        gate: GateRunner,
+        worker: AnalysisWorker,
         margins: proto.VerdictMargins,
         notes: list[str],
         knowledge: KnowledgeRecord | None = None,
@@ -68,7 +68,7 @@ class ControllerService:
         self.opts = opts
         self.rt = runtime
         self.store = store
-        self.gate = gate
+        self.worker = worker
         self.margins = margins
         self.notes = notes
         self._warnings: dict[str, tuple[str, int]] = {}  # key -> (text, count)
@@ -76,7 +76,7 @@ class ControllerService:
         #: Roles, the operator lease and the audit trail (no users, no audit: local use).
         self.access = access if access is not None else Access(None, opts.rig_name, None, self.warn)
         self.stop_event = threading.Event()
-        self.identify = IdentifyRuns(opts.rig_name, gate, self.stop_event, self.warn)
+        self.identify = IdentifyRuns(opts.rig_name, worker, self.stop_event, self.warn)
         self._apply_lock = threading.Lock()
         #: The plant knowledge every candidate is judged on (the controller owns it; replaced
         #: whole under the apply lock, so an apply and a change of knowledge never interleave).
@@ -189,9 +189,9 @@ class ControllerService:
                 )
                 return self._rejected(client, [reason], field="version")
             same = candidate == active.config
-            # The analysis and the filter design run in the gate's worker process.
+            # The analysis and the filter design run in the analysis worker process.
             record = self.knowledge
-            verdict, coefficients = self.gate.check_and_build(
+            verdict, coefficients = self.worker.check_and_build(
                 candidate, version, record, build=not same)
             margins = verdict.margins
             judged = {"verdict": verdict.verdict, "knowledge_version": record.version}
@@ -423,7 +423,7 @@ class ControllerService:
             log.info("plant knowledge v%d adopted (%s) from %s", version, source,
                      client or "a client")
             active = self.rt.loop.active
-            verdict = self.gate.check(active.config, new)
+            verdict = self.worker.check(active.config, new)
             self.margins = verdict.margins
             self.running_verdict = verdict.verdict
             message = f"plant knowledge v{version} adopted"

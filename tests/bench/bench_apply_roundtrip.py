@@ -7,7 +7,7 @@ against an older commit in one run, and where an apply's time goes.
 Each controller (a fresh state directory) first adopts plant knowledge with three measured
 responses (0.1-20 Hz, 24 points each, as identification hands them over); then, timed:
 
-* first apply: the first apply after the controller answers (its gate worker may still be
+* first apply: the first apply after the controller answers (its analysis worker may still be
   loading);
 * new gains: every candidate has new gains (cv_kp 0.35-0.8, pos_kp 3-12 /s) and a cut-off
   below its recommendation (0.3-1.0 x, where there is one), sent with confirm: the verdict,

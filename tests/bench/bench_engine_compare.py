@@ -1,17 +1,19 @@
-"""Server-side slider latency of the tuning views: `TuningEngine.compare` (gate analysis,
-verdict, every Bode chart's data) plus `charts.nyquist_svg`, over slider-like candidate
-changes (a new Q cut-off each time, as the cut-off slider sends them), p50/p99.
+"""Slider to every chart and the verdict, server side: what the tuning panel does on a cut-off
+slider move (`TuningPanel._update`): `TuningEngine.compare` (the analysis, the verdict with
+the nonlinear check, every Bode chart's data), `charts.nyquist_svg` and the verdict box's
+HTML, over slider-like candidate changes (a new Q cut-off each time, as the slider sends
+them), p50/p99 wall and CPU.
 
-Run: .venv/bin/python tests/bench/bench_engine_compare.py [--n 200] [--baseline REV] [--rounds 4]
+Run: .venv/bin/python tests/bench/bench_engine_compare.py [--n 200] [--before REV] [--rounds 4]
 
-`--baseline REV` measures the same loop, in the same run, with `server/charts.py` and
-`server/engine.py` as they are at git revision REV (read with `git show`, run from a temporary
-directory in a subprocess; the controller side is the work tree's): the figure before a change.
-Before and now alternate in `--rounds` rounds of n / rounds candidates (the same candidates
-for both), so that a shared machine's load falls on both alike.
-Both are measured on the plant model alone and with three measured responses (one per
-position, as an identification run adopts them). Last, the new views' own share (both Nyquist
-loops, the plant chart, the two-panel SVG), timed alone.
+`--before REV` measures the same loop, in the same run, on the whole tree at git revision REV
+(`git archive` into a temporary directory, run there in a subprocess: controller and server
+as they were): the figure before a change. Before and now alternate in `--rounds` rounds of
+n / rounds candidates (the same candidates for both), so that a shared machine's load falls
+on both alike; the load average is printed before and after. Both are measured on the plant
+model alone and with three measured responses (one per position, as an identification run
+adopts them). Last, the Nyquist views' and the plant chart's own share, timed alone (work
+tree only).
 """
 
 from __future__ import annotations
@@ -21,16 +23,15 @@ import json
 import os
 import subprocess
 import sys
+import tarfile
 import tempfile
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-# A baseline run puts its own `server` package first (DOBTUNE_BENCH_SERVER_DIR).
-_FIRST = os.environ.get("DOBTUNE_BENCH_SERVER_DIR")
-sys.path.insert(0, str(ROOT))
-if _FIRST:
-    sys.path.insert(0, _FIRST)
+# A run of another revision puts its tree first (DOBTUNE_BENCH_TREE).
+_TREE = os.environ.get("DOBTUNE_BENCH_TREE")
+sys.path.insert(0, _TREE or str(ROOT))
 
 import numpy as np  # noqa: E402
 
@@ -54,11 +55,12 @@ def _knowledge(measured: bool) -> object:
 
 
 def latencies_ms(n: int, measured: bool, seed: int = 0) -> list[tuple[float, float]]:
-    """compare + nyquist_svg for `n` slider-like candidates: (wall, this process's CPU) ms
-    each (CPU time is what a loaded, shared machine disturbs least)."""
+    """compare + nyquist_svg + the verdict box for `n` slider-like candidates: (wall, this
+    process's CPU) ms each (CPU time is what a loaded, shared machine disturbs least)."""
     from controller.core.config import LoopConfig
     from server import charts
     from server.engine import TuningEngine
+    from server.panels.tuning import format_gate_html
 
     eng = TuningEngine()
     eng.set_knowledge(_knowledge(measured))  # type: ignore[arg-type]
@@ -71,6 +73,7 @@ def latencies_ms(n: int, measured: bool, seed: int = 0) -> list[tuple[float, flo
         t0, c0 = time.perf_counter(), time.process_time()
         cmp = eng.compare(cand, active)
         charts.nyquist_svg(cmp.candidate.curves, cmp.active.curves)
+        format_gate_html(cmp.candidate)
         lat.append(((time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3))
     return lat
 
@@ -83,11 +86,12 @@ def summary(ms: list[tuple[float, float]] | list[list[float]]) -> dict[str, floa
             "cpu_p99_ms": float(np.percentile(cpu, 99)), "n": int(a.shape[0])}
 
 
-def measure_new_parts(n: int, measured: bool) -> dict[str, float]:
-    """What the issue-13 views add to one uncached evaluation: both Nyquist loops with their
-    refined margins, the plant chart's curves and data, and the two-panel SVG (work tree
-    only: these do not exist before)."""
+def measure_views(n: int, measured: bool) -> dict[str, float]:
+    """The Nyquist views (the loop without the DOB, cached across cut-offs; the candidate's
+    own from its analysis), the plant chart's data and the two-panel SVG of one evaluation,
+    timed alone (work tree only)."""
     from controller.core.config import LoopConfig
+    from controller.gate.analysis import analyse
     from controller.gate.knowledge import KnowledgeRecord
     from server import charts, engine
 
@@ -97,16 +101,14 @@ def measure_new_parts(n: int, measured: bool) -> dict[str, float]:
     eng = engine.TuningEngine()
     eng.set_knowledge(record)
     active = eng.evaluate(LoopConfig()).curves
-    f = eng.freq_hz
+    nodob = engine.speed_loop(LoopConfig(), plant.model, engine.default_grid(1000.0), dob=False)
     rng = np.random.default_rng(1)
     lat = []
     for x in rng.uniform(-1.3, 1.6, n):
         cfg = LoopConfig(q_cutoff_hz=float(10.0 ** round(float(x), 3)))
-        cand = eng.evaluate(cfg).curves
+        a = analyse(cfg, plant)
         t0, c0 = time.perf_counter(), time.process_time()
-        engine.speed_loop(cfg, plant.model, f, dob=True)
-        engine.speed_loop(cfg, plant.model, f, dob=False)
-        engine.plant_curves(plant, f, cfg.rate_hz)
+        cand = engine.curves_from_analysis(a, plant, other_loop=nodob, plant_chart=active.plant)
         charts.bode_data("plant", cand, active)
         charts.nyquist_svg(cand, active)
         lat.append(((time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3))
@@ -116,32 +118,41 @@ def measure_new_parts(n: int, measured: bool) -> dict[str, float]:
 CASES = (("model only", False), ("3 measured responses", True))
 
 
-def _subprocess(server_dir: str | None, n: int, seed: int) -> dict[str, list[list[float]]]:
+def _subprocess(tree: str | None, n: int, seed: int) -> dict[str, list[list[float]]]:
     env = dict(os.environ)
-    env.pop("DOBTUNE_BENCH_SERVER_DIR", None)
-    if server_dir is not None:
-        env["DOBTUNE_BENCH_SERVER_DIR"] = server_dir
+    env.pop("DOBTUNE_BENCH_TREE", None)
+    env["PYTHONPATH"] = tree or str(ROOT)
+    if tree is not None:
+        env["DOBTUNE_BENCH_TREE"] = tree
     out = subprocess.run([sys.executable, __file__, "--n", str(n), "--seed", str(seed),
-                          "--inner"], env=env, check=True, capture_output=True, text=True).stdout
-    return json.loads(out)  # type: ignore[no-any-return]
+                          "--inner"], env=env, check=True, capture_output=True, text=True,
+                         cwd=tree or ROOT).stdout
+    return json.loads(out.splitlines()[-1])  # type: ignore[no-any-return]
 
 
-def _extract(rev: str, tmp: str) -> None:
-    """server/{__init__,charts,engine}.py of git revision `rev` into tmp/server."""
-    pkg = Path(tmp) / "server"
-    pkg.mkdir()
-    for name in ("__init__.py", "charts.py", "engine.py"):
-        text = subprocess.run(["git", "show", f"{rev}:server/{name}"], cwd=ROOT, check=True,
-                              capture_output=True, text=True).stdout
-        (pkg / name).write_text(text)
+def export_tree(rev: str, into: Path) -> str:
+    """`rev` of this repository as files under `into` (no .git)."""
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], check=True,
+                             capture_output=True).stdout
+    tar = into / "tree.tar"
+    tar.write_bytes(archive)
+    out = into / "tree"
+    out.mkdir()
+    with tarfile.open(tar) as t:
+        t.extractall(out, filter="data")
+    return str(out)
+
+
+def _load() -> str:
+    return "load average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=200, help="candidate changes per measurement")
-    ap.add_argument("--baseline", metavar="REV", help="also measure server/ at this revision")
+    ap.add_argument("--before", metavar="REV", help="also measure the tree at this revision")
     ap.add_argument("--rounds", type=int, default=4,
-                    help="with --baseline: alternate before/now in this many rounds (a shared "
+                    help="with --before: alternate before/now in this many rounds (a shared "
                          "machine's load then hits both alike)")
     ap.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--inner", action="store_true", help=argparse.SUPPRESS)
@@ -149,22 +160,24 @@ def main() -> int:
     if args.inner:
         print(json.dumps({name: latencies_ms(args.n, m, args.seed) for name, m in CASES}))
         return 0
-    out: dict[str, object] = {}
-    if args.baseline:
+    out: dict[str, object] = {"load before": _load(), "cpus": os.cpu_count()}
+    if args.before:
         before: dict[str, list[list[float]]] = {name: [] for name, _ in CASES}
         now: dict[str, list[list[float]]] = {name: [] for name, _ in CASES}
         per = max(1, args.n // args.rounds)
         with tempfile.TemporaryDirectory() as tmp:
-            _extract(args.baseline, tmp)
+            tree = export_tree(args.before, Path(tmp))
             for r in range(args.rounds):
-                for acc, where in ((before, tmp), (now, None)):
+                for acc, where in ((before, tree), (now, None)):
                     for name, lat in _subprocess(where, per, seed=r).items():
                         acc[name] += lat
-        out[f"before ({args.baseline})"] = {k: summary(v) for k, v in before.items()}
+        out[f"before ({args.before})"] = {k: summary(v) for k, v in before.items()}
         out["now (work tree)"] = {k: summary(v) for k, v in now.items()}
     else:
         out["now (work tree)"] = {name: summary(latencies_ms(args.n, m)) for name, m in CASES}
-    out["now: the new views alone"] = {name: measure_new_parts(args.n, m) for name, m in CASES}
+    out["now: the Nyquist views and the plant chart alone"] = {
+        name: measure_views(args.n, m) for name, m in CASES}
+    out["load after"] = _load()
     print(json.dumps(out, indent=1))
     return 0
 

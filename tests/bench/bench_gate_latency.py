@@ -1,4 +1,4 @@
-"""Gate latency as the controller pays it: `GateRunner.check_and_build` in the niced worker
+"""Gate latency as the controller pays it: `AnalysisWorker.check_and_build` in the niced worker
 process (the verdict: analysis on all evidence, recommended cut-off, nonlinear check when
 wired; then the filter design), p50/p99 over candidates like a tuning session sends them.
 
@@ -26,7 +26,7 @@ from controller.gate.knowledge import (
     PlantKnowledge,
 )
 from controller.gate.loop_model import nominal_continuous_response
-from controller.process.gate_worker import GateRunner
+from controller.process.analysis_worker import AnalysisWorker
 
 
 def _ident_knowledge() -> KnowledgeRecord:
@@ -51,7 +51,7 @@ def _percentiles(xs: list[float]) -> str:
 def main(n: int) -> None:
     model = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=1,
                                               source="bench: model"))
-    runner = GateRunner(subprocess=True)
+    runner = AnalysisWorker(subprocess=True)
     rng = np.random.default_rng(1)
     try:
         runner.check(LoopConfig(), model)  # start the worker

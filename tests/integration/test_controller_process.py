@@ -71,7 +71,7 @@ def test_accepted_candidate_shows_in_the_stream_within_100_ms(
 ) -> None:
     first = client.get_config()
     assert first.accepted and first.version >= 1
-    # The gate worker loads in the background after start-up (the controller is ready before
+    # The analysis worker loads in the background after start-up (the controller is ready before
     # it: fe1c9a5) and the first apply waits for it; this test times an apply to a running
     # controller, so one apply goes first (and must be accepted like any other).
     warm = client.apply(first.config.with_(q_cutoff_hz=0.8))

@@ -17,8 +17,8 @@ from old_loop import OLD_LOOP
 
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
-from controller.process.gate_worker import (
-    GateRunner,
+from controller.process.analysis_worker import (
+    AnalysisWorker,
     clear_caches,
     gate,
     gate_and_build,
@@ -53,7 +53,7 @@ def test_a_caution_may_be_applied_and_says_why() -> None:
 
 
 def test_the_rigs_command_limit_is_checked_first() -> None:
-    runner = GateRunner(subprocess=False, command_limit_max_deg_s=30.0)
+    runner = AnalysisWorker(subprocess=False, command_limit_max_deg_s=30.0)
     verdict = runner.check(LoopConfig(command_limit_deg_s=40.0), K)
     assert not verdict.applicable and "rig's limit" in verdict.reasons[0]
     assert math.isnan(verdict.margins.gain_margin_db)
@@ -61,7 +61,7 @@ def test_the_rigs_command_limit_is_checked_first() -> None:
 
 @pytest.mark.slow
 def test_a_hanging_worker_is_killed_and_the_next_call_gets_a_fresh_one() -> None:
-    runner = GateRunner(subprocess=True)
+    runner = AnalysisWorker(subprocess=True)
     try:
         assert runner.check(LoopConfig(), K).applicable  # (a fresh worker's first job may be slow)
         with pytest.raises(concurrent.futures.TimeoutError):
@@ -77,7 +77,7 @@ def test_the_worker_judges_the_running_configuration_once_loaded() -> None:
     """`prime` (the controller's start-up): the worker judges the running configuration on
     its knowledge by itself, so the first apply finds it done."""
     cfg = LoopConfig(q_cutoff_hz=0.6)
-    runner = GateRunner(subprocess=True)
+    runner = AnalysisWorker(subprocess=True)
     try:
         runner.start()
         runner.prime(cfg, K)
@@ -92,7 +92,7 @@ def test_the_worker_judges_the_running_configuration_once_loaded() -> None:
 def test_a_slow_start_of_the_worker_is_not_a_rejection() -> None:
     """A fresh worker's first job gets the start-up time (a loaded machine), later jobs only
     their own timeout."""
-    runner = GateRunner(subprocess=True, timeout_s=1.5, start_timeout_s=30.0)
+    runner = AnalysisWorker(subprocess=True, timeout_s=1.5, start_timeout_s=30.0)
     try:
         runner.call(time.sleep, 2.0, timeout_s=1.5)  # the first job: slow, still served
         assert runner.check(LoopConfig(), K).applicable  # a verdict takes ~0.1 s (1.5 s here)
@@ -132,8 +132,8 @@ def _alive(pid: int) -> bool:
 def test_the_worker_ends_when_the_controller_is_killed(tmp_path: Path) -> None:
     code = (
         "import os, sys, time\n"
-        "from controller.process.gate_worker import GateRunner\n"
-        "r = GateRunner(subprocess=True)\n"
+        "from controller.process.analysis_worker import AnalysisWorker\n"
+        "r = AnalysisWorker(subprocess=True)\n"
         "print(r.call(os.getpid), flush=True)\n"
         "time.sleep(60)\n"
     )
@@ -149,7 +149,7 @@ def test_the_worker_ends_when_the_controller_is_killed(tmp_path: Path) -> None:
         deadline = time.monotonic() + 10.0
         while _alive(worker) and time.monotonic() < deadline:
             time.sleep(0.02)
-        assert not _alive(worker), "the gate worker outlived the killed controller"
+        assert not _alive(worker), "the analysis worker outlived the killed controller"
     finally:
         if proc.poll() is None:
             proc.kill()

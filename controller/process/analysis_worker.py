@@ -1,6 +1,7 @@
-"""The stability gate and the filter design, run off the loop in a niced worker process.
+"""The analysis worker: the stability gate, the filter design and identification estimates, run
+off the loop in a niced worker process.
 
-`gate` is the one adapter to `controller.gate.analysis`; `GateRunner` runs it (and any other
+`gate` is the one adapter to `controller.gate.analysis`; `AnalysisWorker` runs it (and any other
 heavy computation: identification estimates) in a worker process of its own, so the
 analysis (NumPy + Python, ~10 ms) never competes with the loop's thread for this
 interpreter's lock: run in a thread of the controller it made the loop overrun on a busy
@@ -25,7 +26,7 @@ from controller.core.verdict import Verdict
 from controller.gate.knowledge import KnowledgeRecord
 from controller.process.worker_start import lower_priority, worker_init
 
-__all__ = ["GateRunner", "clear_caches", "gate", "gate_and_build", "judged"]
+__all__ = ["AnalysisWorker", "clear_caches", "gate", "gate_and_build", "judged"]
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +40,7 @@ _knowledge: list[tuple[KnowledgeRecord, Any]] = []
 #: confirmation after a caution, a re-apply) is not analysed again. Everything a verdict
 #: depends on is in the key: the whole configuration (gains, filters, limits, rate), the
 #: knowledge (its evidence and version); the gate's limits are the defaults, the rig's
-#: command limit is checked before (`GateRunner`).
+#: command limit is checked before (`AnalysisWorker`).
 _verdicts: dict[tuple[LoopConfig, Any], Verdict] = {}
 _VERDICTS_MAX = 64
 _cache_lock = threading.Lock()
@@ -130,7 +131,7 @@ def _warm_up() -> None:
     nonlinear_check(LoopConfig())  # compiles the simulated rig's kernel (numba) once
 
 
-class GateRunner:
+class AnalysisWorker:
     """Runs the gate and other heavy work in a worker process (default) or in the caller."""
 
     def __init__(
@@ -264,7 +265,7 @@ class GateRunner:
                 return result
             except Exception as exc:
                 log.warning(
-                    "gate worker: %s failed (%s: %s); worker killed",
+                    "analysis worker: %s failed (%s: %s); worker killed",
                     getattr(fn, "__name__", fn),
                     type(exc).__name__,
                     exc,
