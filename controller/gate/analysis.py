@@ -524,9 +524,12 @@ def analyse(
     )
 
     sources: list[SourceResult] = [model_src]
+    blocks = _BlocksMemo(cfg, used, model)
     for m in plant.measured:
         mm = _MeasuredModel(m, cfg, model, plant.bound)
-        sources.append(_measured_evidence(cfg, used, mm, f, bk, limits, rejections, cautions))
+        sources.append(
+            _measured_evidence(cfg, used, mm, f, blocks, limits, rejections, cautions)
+        )
 
     noise_cmd = np.abs(ks / (one + g * ks))
     k_noise = int(np.argmax(noise_cmd))
@@ -780,19 +783,53 @@ def _model_evidence(
     return src, margins, margins_full, bw, crossings_of(lt)
 
 
+class _BlocksMemo:
+    """`loop_blocks` of one analysis's loop per frequency grid (by its values): the measured
+    responses share their grids, and each asks for the same grid several times. Grids of a
+    few refinement points are computed every time (not worth a key)."""
+
+    MIN_POINTS = 64
+
+    def __init__(self, cfg: LoopConfig, used: object, model: NominalModel) -> None:
+        self._cfg, self._used, self._model = cfg, used, model
+        self._memo: dict[bytes, LoopBlocks] = {}
+
+    def __call__(self, f: FloatArray) -> LoopBlocks:
+        if f.size < self.MIN_POINTS:
+            return loop_blocks(self._cfg, self._used, f, self._model)  # type: ignore[arg-type]
+        key = f.tobytes()
+        b = self._memo.get(key)
+        if b is None:
+            b = self._memo[key] = loop_blocks(
+                self._cfg, self._used, f, self._model)  # type: ignore[arg-type]
+        return b
+
+
 def _measured_evidence(
-    cfg: LoopConfig, used: object, mm: _MeasuredModel, f0: FloatArray, bk0: LoopBlocks,
+    cfg: LoopConfig, used: object, mm: _MeasuredModel, f0: FloatArray, lb: _BlocksMemo,
     limits: GateLimits, rejections: list[str], cautions: list[str],
 ) -> SourceResult:
     on = cfg.dob_on
-    dob = used if on else None
-    model = mm.model
     where = f"measured response {mm.name!r}"
+    # (plant, 1 - F2 z^-1, Cv + F1, C_tot + F1, the blocks) per grid: the stability test asks
+    # for the speed loop's and the whole servo's on the same grid, the margins once more.
+    memo: dict[bytes, tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray,
+                            LoopBlocks]] = {}
+
+    def parts(ff: FloatArray) -> tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray,
+                                       LoopBlocks]:
+        key = ff.tobytes() if ff.size >= _BlocksMemo.MIN_POINTS else None
+        got = memo.get(key) if key is not None else None
+        if got is None:
+            b = lb(ff)
+            o, s_, f_ = _controller_parts(b, on)
+            got = (mm.plant(ff, b.g), o, s_, f_, b)
+            if key is not None:
+                memo[key] = got
+        return got
 
     def blocks(ff: FloatArray) -> tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray]:
-        b = loop_blocks(cfg, dob, ff, model)  # type: ignore[arg-type]
-        o, s_, f_ = _controller_parts(b, on)
-        return mm.plant(ff, b.g), o, s_, f_
+        return parts(ff)[:4]
 
     def d_speed(ff: FloatArray) -> ComplexArray:
         g2, o, s_, _ = blocks(ff)
@@ -823,9 +860,7 @@ def _measured_evidence(
     if r_speed is not None and r_full is not None:
         f = np.union1d(r_speed[0], r_full[0])
     x = np.log(f)
-    bk = loop_blocks(cfg, dob, f, model)  # type: ignore[arg-type]
-    one, ks, kf = _controller_parts(bk, on)
-    gm = mm.plant(f, bk.g)
+    gm, one, ks, kf, bk = parts(f)
 
     def ev(ff: FloatArray) -> Outputs:
         g2, o, s_, f_ = blocks(ff)
