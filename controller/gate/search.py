@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, TypedDict, Unpack
 
 import numpy as np
 
@@ -36,6 +36,7 @@ __all__ = [
     "SPREAD_MARGIN",
     "Recommendation",
     "RecommendationSearch",
+    "SearchOptions",
     "TopSearch",
     "cached_recommendation",
     "knowledge_spread",
@@ -151,24 +152,29 @@ def spread_limited_cutoff_hz(
     return _top_of(ok, np.geomspace(lowest_hz, highest_hz, 60), rel_tol)
 
 
+class SearchOptions(TypedDict, total=False):
+    """How the recommendation is searched (`RecommendationSearch`'s keyword arguments, with
+    its defaults): `spread_margin` (None: the gate alone), the cut-offs scanned from
+    `lowest_hz` to `highest_hz` (None: a tenth of the loop rate) on `coarse_points`, bisected
+    to `rel_tol`."""
+
+    spread_margin: float | None
+    lowest_hz: float
+    highest_hz: float | None
+    coarse_points: int
+    rel_tol: float
+
+
 def recommend(
     cfg: LoopConfig,
     plant: PlantKnowledge | None = None,
     limits: GateLimits | None = None,
     q_type: str | None = None,
-    *,
-    spread_margin: float | None = SPREAD_MARGIN,
-    lowest_hz: float = 0.02,
-    highest_hz: float | None = None,
-    coarse_points: int = 16,
-    rel_tol: float = 0.01,
+    **options: Unpack[SearchOptions],
 ) -> Recommendation:
     """The gate's top cut-off and, with two or more measured responses, the position spread's
     limit (`spread_margin` None: the gate alone)."""
-    return RecommendationSearch(
-        cfg, plant, limits, q_type, spread_margin=spread_margin, lowest_hz=lowest_hz,
-        highest_hz=highest_hz, coarse_points=coarse_points, rel_tol=rel_tol,
-    ).recommendation()
+    return RecommendationSearch(cfg, plant, limits, q_type, **options).recommendation()
 
 
 class RecommendationSearch:
@@ -311,20 +317,12 @@ def recommended_max_cutoff_hz(
     plant: PlantKnowledge | None = None,
     limits: GateLimits | None = None,
     q_type: str | None = None,
-    *,
-    spread_margin: float | None = SPREAD_MARGIN,
-    lowest_hz: float = 0.02,
-    highest_hz: float | None = None,
-    coarse_points: int = 16,
-    rel_tol: float = 0.01,
+    **options: Unpack[SearchOptions],
 ) -> float | None:
     """Largest Q cut-off (Hz) recommended for `q_type` (default cfg.q_type), DOB on: the top of
     the gate's accepted region, and below the position spread's limit when the knowledge
     holds responses measured at two or more positions (`recommend`)."""
-    return recommend(
-        cfg, plant, limits, q_type, spread_margin=spread_margin, lowest_hz=lowest_hz,
-        highest_hz=highest_hz, coarse_points=coarse_points, rel_tol=rel_tol,
-    ).recommended_hz
+    return recommend(cfg, plant, limits, q_type, **options).recommended_hz
 
 
 def _gate_search(

@@ -29,7 +29,7 @@ import logging
 import queue
 import threading
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NamedTuple, TypeVar
 
 import msgspec
 
@@ -45,6 +45,14 @@ from controller.process.service import ControllerService, RuntimeEvents
 __all__ = ["PUBLIC", "SHUTDOWN", "ZenohNode", "estop_claims", "to_request"]
 
 log = logging.getLogger(__name__)
+R = TypeVar("R", bound=proto.Message)
+
+
+class Unreadable(NamedTuple):
+    """Why a request's payload cannot be read, for the refusal that names the field."""
+
+    message: str
+    field: str
 
 SHUTDOWN = object()
 """Put on a worker queue: the worker ends."""
@@ -381,23 +389,29 @@ class ZenohNode:
             return f"payload: {len(data)} bytes is over the limit of {self.opts.max_payload_bytes}"
         return None
 
+    def _read(self, data: bytes, kind: type[R], empty: R | None = None) -> R | Unreadable:
+        """The request in `data` (`empty`, when given, for no payload), or why it cannot be
+        read: over the size limit (field `payload`) or malformed (the offending field)."""
+        big = self._too_large(data)
+        if big is not None:
+            return Unreadable(big, "payload")
+        if not data and empty is not None:
+            return empty
+        try:
+            return proto.decode(data, kind)
+        except proto.ProtocolError as exc:
+            log.debug("malformed %s: %s", kind.__name__, exc)
+            return Unreadable(str(exc), exc.field)
+
     def handle_config(self, data: bytes, who: Who = LOCAL) -> bytes:
         """ConfigRequest -> ConfigReply (always a ConfigReply, also for a malformed request).
         A GET is for anyone; a candidate needs the lease (`controller.process.access`)."""
         svc = self.service
-        big = self._too_large(data)
-        if big is not None:
-            self.access.record("apply", who, "refused", field="payload", reason=big)
-            return proto.encode(svc.config_reply(accepted=False, reasons=[big], field="payload"))
-        if not data:
-            return proto.encode(svc.active_config())
-        try:
-            req = proto.decode(data, proto.ConfigRequest)
-        except proto.ProtocolError as exc:
-            log.debug("malformed config request: %s", exc)
-            self.access.record("apply", who, "refused", field=exc.field, reason=str(exc)[:300])
+        req = self._read(data, proto.ConfigRequest, proto.ConfigRequest())
+        if isinstance(req, Unreadable):
+            self.access.record("apply", who, "refused", field=req.field, reason=req.message[:300])
             return proto.encode(
-                svc.config_reply(accepted=False, reasons=[str(exc)], field=exc.field)
+                svc.config_reply(accepted=False, reasons=[req.message], field=req.field)
             )
         if req.candidate is None:
             return proto.encode(svc.active_config())
@@ -441,14 +455,9 @@ class ZenohNode:
 
     def _command(self, data: bytes, who: Who) -> proto.CommandReply:
         svc = self.service
-        big = self._too_large(data)
-        if big is not None:
-            return svc.refused(big, field="payload")
-        try:
-            cmd = proto.decode(data, proto.Command)
-        except proto.ProtocolError as exc:
-            log.debug("malformed command: %s", exc)
-            return svc.refused(str(exc), field=exc.field)
+        cmd = self._read(data, proto.Command)
+        if isinstance(cmd, Unreadable):
+            return svc.refused(cmd.message, field=cmd.field)
         body = cmd.body
         if not isinstance(body, proto.EStop):
             why = self.access.may_change(who, cmd.lease)
@@ -470,16 +479,11 @@ class ZenohNode:
     def handle_knowledge(self, data: bytes, who: Who = LOCAL) -> bytes:
         """KnowledgeRequest (or nothing) -> KnowledgeReply. Adopting needs the lease."""
         svc = self.service
-        big = self._too_large(data)
-        if big is not None:
-            return proto.encode(svc.knowledge_reply(False, big, field="payload"))
-        if not data:
-            return proto.encode(svc.knowledge_reply(True))
-        try:
-            req = proto.decode(data, proto.KnowledgeRequest)
-        except proto.ProtocolError as exc:
-            self.access.record("knowledge", who, "refused", field=exc.field, reason=str(exc)[:300])
-            return proto.encode(svc.knowledge_reply(False, str(exc), field=exc.field))
+        req = self._read(data, proto.KnowledgeRequest, proto.KnowledgeRequest())
+        if isinstance(req, Unreadable):
+            self.access.record("knowledge", who, "refused", field=req.field,
+                               reason=req.message[:300])
+            return proto.encode(svc.knowledge_reply(False, req.message, field=req.field))
         if req.record is None and req.adopt_run is None:
             return proto.encode(svc.knowledge_reply(True))
         before = svc.knowledge.version
@@ -496,24 +500,17 @@ class ZenohNode:
 
     def handle_history(self, data: bytes, who: Who = LOCAL) -> bytes:
         """HistoryRequest (or nothing) -> HistoryReply: the applied configurations."""
-        big = self._too_large(data)
-        if big is not None:
-            return proto.encode(proto.HistoryReply(ok=False, message=big, field="payload"))
-        try:
-            req = proto.decode(data, proto.HistoryRequest) if data else proto.HistoryRequest()
-        except proto.ProtocolError as exc:
-            return proto.encode(proto.HistoryReply(ok=False, message=str(exc), field=exc.field))
+        req = self._read(data, proto.HistoryRequest, proto.HistoryRequest())
+        if isinstance(req, Unreadable):
+            return proto.encode(proto.HistoryReply(ok=False, message=req.message,
+                                                   field=req.field))
         return proto.encode(self.service.history(req.last))
 
     def handle_lease(self, data: bytes, who: Who = LOCAL) -> bytes:
         """LeaseRequest (or nothing: status) -> LeaseReply (recorded in the audit trail)."""
-        big = self._too_large(data)
-        if big is not None:
-            return proto.encode(proto.LeaseReply(ok=False, message=big, field="payload"))
-        try:
-            req = proto.decode(data, proto.LeaseRequest) if data else proto.LeaseRequest()
-        except proto.ProtocolError as exc:
-            return proto.encode(proto.LeaseReply(ok=False, message=str(exc), field=exc.field))
+        req = self._read(data, proto.LeaseRequest, proto.LeaseRequest())
+        if isinstance(req, Unreadable):
+            return proto.encode(proto.LeaseReply(ok=False, message=req.message, field=req.field))
         return proto.encode(self.access.lease_request(who, req))
 
     def handle_identify(self, data: bytes, who: Who = LOCAL) -> bytes:
