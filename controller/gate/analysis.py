@@ -319,22 +319,49 @@ class Analysis:
 # --------------------------------------------------------------------------- evidence
 
 
+#: `_MeasuredModel`s by (response object, rate, model, bound object): every candidate judged
+#: on the same knowledge shares them, with the grids they were asked for (the analysis grid
+#: with the measured points is the same for every candidate). Bounded.
+_MEASURED: dict[tuple[MeasuredResponse, float, NominalModel, UncertaintyBound | None],
+                _MeasuredModel] = {}
+_MEASURED_MAX = 32
+
+
+def _measured_model(
+    m: MeasuredResponse, rate_hz: float, model: NominalModel, bound: UncertaintyBound | None
+) -> _MeasuredModel:
+    key = (m, rate_hz, model, bound)
+    mm = _MEASURED.get(key)
+    if mm is None:
+        mm = _MeasuredModel(m, rate_hz, model, bound)
+        if len(_MEASURED) >= _MEASURED_MAX:
+            _MEASURED.clear()
+        _MEASURED[key] = mm
+    return mm
+
+
 class _MeasuredModel:
     """A measured response as a function of frequency: model x interpolated ratio R, and the
-    allowance a(f) the gate grants around it (relative plant error |G/G_c - 1| <= a)."""
+    allowance a(f) the gate grants around it (relative plant error |G/G_c - 1| <= a).
+
+    What it gives for a grid of many points is kept (read-only arrays, a few grids: they
+    depend on the grid alone); a thread that finds a grid missing computes it again."""
+
+    _GRIDS_MAX = 8
 
     def __init__(
-        self, m: MeasuredResponse, cfg: LoopConfig, model: NominalModel,
+        self, m: MeasuredResponse, rate_hz: float, model: NominalModel,
         bound: UncertaintyBound | None,
     ) -> None:
         self.name = m.name
         self.sampled = m.sampled
-        self.cfg = cfg
+        self.rate_hz = rate_hz
         self.model = model
         self.bound = bound
+        self._kept: dict[tuple[str, bytes], np.ndarray] = {}
         if m.sampled:
-            zinv = np.exp(-1j * TWO_PI * m.freq_hz / cfg.rate_hz)
-            nom = plant_response(discrete_plant(model, cfg.rate_hz), zinv)
+            zinv = np.exp(-1j * TWO_PI * m.freq_hz / rate_hz)
+            nom = plant_response(discrete_plant(model, rate_hz), zinv)
         else:
             nom = nominal_continuous_response(model, m.freq_hz)
         ratio = m.response / nom
@@ -362,17 +389,35 @@ class _MeasuredModel:
     def band_hz(self) -> tuple[float, float]:
         return float(self.fm[0]), float(self.fm[-1])
 
+    def _kept_or(self, what: str, f: FloatArray, make: Callable[[FloatArray], np.ndarray]
+                 ) -> np.ndarray:
+        if f.size < _BlocksMemo.MIN_POINTS:
+            return make(f)
+        key = (what, f.tobytes())
+        got = self._kept.get(key)
+        if got is None:
+            got = readonly(make(f))
+            if len(self._kept) >= self._GRIDS_MAX:
+                self._kept.clear()
+            self._kept[key] = got
+        return got
+
     def ratio(self, f: FloatArray) -> ComplexArray:
+        return self._kept_or("ratio", f, self._ratio)
+
+    def _ratio(self, f: FloatArray) -> ComplexArray:
         xf = np.log(f)
         return np.exp(np.interp(xf, self.xm, self.logmag) + 1j * np.interp(xf, self.xm, self.phase))
 
     def plant(self, f: FloatArray, g_model: ComplexArray) -> ComplexArray:
         """G_m at f (discrete), given the exact model G at f."""
-        r = self.ratio(f)
         if self.sampled:
-            return g_model * r
-        gc = nominal_continuous_response(self.model, f) * r
-        return discrete_equivalent(gc, f, self.cfg.rate_hz)
+            return g_model * self.ratio(f)
+        return self._kept_or("plant", f, self._continuous_plant)
+
+    def _continuous_plant(self, f: FloatArray) -> ComplexArray:
+        gc = nominal_continuous_response(self.model, f) * self._ratio(f)
+        return discrete_equivalent(gc, f, self.rate_hz)
 
     def allowance(self, f: FloatArray) -> FloatArray:
         """a(f): the segment's allowance between measured points, beyond the band the edge's
@@ -382,6 +427,9 @@ class _MeasuredModel:
         up to its ends (with the point's own allowance there, a segment's peak at a measured
         point was sampled at the point's smaller allowance only and missed)."""
         f = np.asarray(f, dtype=np.float64)
+        return self._kept_or("allowance", f, self._allowance)
+
+    def _allowance(self, f: FloatArray) -> FloatArray:
         i = np.searchsorted(self.fm, f, side="right") - 1
         inside = (i >= 0) & (i < self.fm.size - 1)
         a = np.empty_like(f)
@@ -526,7 +574,7 @@ def analyse(
     sources: list[SourceResult] = [model_src]
     blocks = _BlocksMemo(cfg, used, model)
     for m in plant.measured:
-        mm = _MeasuredModel(m, cfg, model, plant.bound)
+        mm = _measured_model(m, cfg.rate_hz, model, plant.bound)
         sources.append(
             _measured_evidence(cfg, used, mm, f, blocks, limits, rejections, cautions)
         )
