@@ -18,7 +18,7 @@ from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.ramp import Ramp
 from controller.core.trajectory import Trajectory
-from controller.sim.linear_rig import BacklashRig, PlantVariant
+from controller.sim.linear_rig import BacklashRig, LinearRig, PlantVariant
 from controller.sim.offline import ROWS, OfflineRun, run_speed_ticks, run_ticks, supported
 from controller.sim.rig_disturbances import ScheduledRig, build_rig, rig_setup
 from controller.sim.sim_rig import RigFaults, SimRig
@@ -184,7 +184,9 @@ def test_what_it_runs() -> None:
         run_ticks(loop, SimRig(), Trajectory(), 10, out=OfflineRun(np.empty((len(ROWS), 5))))
 
 
-def _python_speed_run(loop: ServoLoop, rig: BacklashRig, ref: np.ndarray) -> np.ndarray:
+def _python_speed_run(
+    loop: ServoLoop, rig: BacklashRig | LinearRig, ref: np.ndarray
+) -> np.ndarray:
     """As the paper's Figs. 8-9 ticked it before (`ServoLoop.tick_speed`, `BacklashRig.step`)."""
     w = np.empty(len(ref))
     for k in range(len(ref)):
@@ -208,8 +210,9 @@ def _python_speed_run(loop: ServoLoop, rig: BacklashRig, ref: np.ndarray) -> np.
     ],
     ids=["q31-1.4", "q20-0.6", "off-saturating", "runaway"],
 )
-def test_compiled_rate_loop_on_the_backlash_rig_bit_for_bit(
-    cfg: LoopConfig, variant: PlantVariant
+@pytest.mark.parametrize("backlash", [True, False], ids=["backlash", "linear"])
+def test_compiled_rate_loop_on_the_linear_rigs_bit_for_bit(
+    cfg: LoopConfig, variant: PlantVariant, backlash: bool
 ) -> None:
     runaway = cfg.cv_kp == 40.0
     step = 5e6 if runaway else 5.0
@@ -218,8 +221,12 @@ def test_compiled_rate_loop_on_the_backlash_rig_bit_for_bit(
     outs, worlds = [], []
     for compiled in (False, True):
         loop = ServoLoop(LoopCoefficients.build(cfg))
-        rig = BacklashRig(variant, cfg.nominal, backlash_deg=0.05,
-                          speed_disturbance=lambda t: step if t >= 1.0 else 0.0)
+        def dist(t: float) -> float:
+            return step if t >= 1.0 else 0.0
+
+        rig: BacklashRig | LinearRig = (
+            BacklashRig(variant, cfg.nominal, backlash_deg=0.05, speed_disturbance=dist)
+            if backlash else LinearRig(variant, cfg.nominal, speed_disturbance=dist))
         outs.append(run_speed_ticks(loop, rig, ref) if compiled
                     else _python_speed_run(loop, rig, ref))
         worlds.append((loop, rig))

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -25,7 +26,7 @@ from controller.core.config import NominalModel
 from controller.core.errors import ConfigError
 from controller.core.lti import tf2ss
 
-__all__ = ["BacklashRig", "LinearRig", "PlantVariant", "backlash_substeps"]
+__all__ = ["BacklashRig", "LinearRig", "PlantVariant", "backlash_period", "linear_period"]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -78,147 +79,6 @@ def _ss(num: npt.NDArray[np.float64], den: npt.NDArray[np.float64]) -> tuple[np.
     return tuple(np.atleast_2d(np.asarray(m, float)) for m in (a, b, c, d))
 
 
-class LinearRig:
-    """`read()` / `step(u)` like SimRig, for the linear plant Mn, P'. `speed_disturbance(t)`
-    gives d (deg/s) per period."""
-
-    __slots__ = ("_ad", "_bd", "_cth", "_d", "_k", "_pos", "_rate", "_ts", "_x")
-
-    def __init__(
-        self,
-        variant: PlantVariant,
-        nominal: NominalModel | None = None,
-        *,
-        rate_hz: float = 1000.0,
-        speed_disturbance: Callable[[float], float] | None = None,
-    ) -> None:
-        self._ts = 1.0 / rate_hz
-        nominal = nominal or NominalModel()
-        a1, b1, c1, d1 = _ss(np.array([1.0]), np.asarray(nominal.mn_den, float))
-        a2, b2, c2, d2 = _ss(*variant.p_polys(nominal))
-        n1, n2 = a1.shape[0], a2.shape[0]
-        n = n1 + n2 + 1
-        # x = [x1 (M); x2 (P'); theta], inputs [u, d]: v = C1 x1 + D1 u + d, w = C2 x2 + D2 v.
-        a = np.zeros((n, n))
-        b = np.zeros((n, 2))
-        a[:n1, :n1] = a1
-        b[:n1, 0] = b1[:, 0]
-        a[n1 : n1 + n2, :n1] = b2 @ c1
-        a[n1 : n1 + n2, n1 : n1 + n2] = a2
-        b[n1 : n1 + n2, 0] = (b2 * d1[0, 0])[:, 0]
-        b[n1 : n1 + n2, 1] = b2[:, 0]
-        a[n - 1, :n1] = d2[0, 0] * c1[0]
-        a[n - 1, n1 : n1 + n2] = c2[0]
-        b[n - 1, 0] = d2[0, 0] * d1[0, 0]
-        b[n - 1, 1] = d2[0, 0]
-        big = np.zeros((n + 2, n + 2))
-        big[:n, :n] = a
-        big[:n, n:] = b
-        e = linalg.expm(big * self._ts)
-        self._ad = e[:n, :n]
-        self._bd = e[:n, n:]
-        self._cth = n - 1
-        self._x = np.zeros(n)
-        self._d = speed_disturbance
-        self._k = 0
-        self._pos = 0.0
-        self._rate = 0.0
-
-    def read(self) -> tuple[float, float]:
-        return self._pos, self._rate
-
-    def step(self, command_deg_s: float) -> None:
-        d = 0.0 if self._d is None else self._d(self._k * self._ts)
-        self._x = self._ad @ self._x + self._bd @ np.array([command_deg_s, d])
-        pos = float(self._x[self._cth])
-        self._rate = (pos - self._pos) / self._ts
-        self._pos = pos
-        self._k += 1
-
-
-def _zoh(a: np.ndarray, b: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray]:
-    n, m = a.shape[0], b.shape[1]
-    big = np.zeros((n + m, n + m))
-    big[:n, :n] = a
-    big[:n, n:] = b
-    e = linalg.expm(big * ts)
-    return e[:n, :n], e[:n, n:]
-
-
-class BacklashRig:
-    """The linear rig with backlash at P's input: the motor angle (integral of M u + d) drives
-    P's input angle through a play of total width `backlash_deg` (the input stays put until
-    the motor has crossed the gap, then follows it), the article's backlash as a rate
-    disturbance at P's input. Integrated with `substeps` ZOH sub-steps per period (M and P
-    exact per sub-step, P's input rate held over a sub-step); the rate is the backward
-    difference of the load position over one period, as on the other rigs."""
-
-    __slots__ = ("_d", "_half", "_k", "_m", "_p", "_pos", "_rate", "_sub", "_th", "_ts")
-
-    def __init__(
-        self,
-        variant: PlantVariant,
-        nominal: NominalModel | None = None,
-        *,
-        backlash_deg: float,
-        rate_hz: float = 1000.0,
-        substeps: int = 10,
-        speed_disturbance: Callable[[float], float] | None = None,
-    ) -> None:
-        if not (math.isfinite(backlash_deg) and backlash_deg >= 0.0):
-            raise ConfigError("backlash_deg", f"must be finite and >= 0, got {backlash_deg!r}")
-        nominal = nominal or NominalModel()
-        self._ts = 1.0 / rate_hz
-        self._sub = substeps
-        dt = self._ts / substeps
-        a1, b1, c1, d1 = _ss(np.array([1.0]), np.asarray(nominal.mn_den, float))
-        a2, b2, c2, d2 = _ss(*variant.p_polys(nominal))
-        self._m = _flat_model(*_zoh(a1, b1, dt), c1[0], float(d1[0, 0]))
-        self._p = _flat_model(*_zoh(a2, b2, dt), c2[0], float(d2[0, 0]))
-        self._th = np.zeros(2)  # motor angle, P's input angle
-        self._half = 0.5 * backlash_deg
-        self._d = speed_disturbance
-        self._k = 0
-        self._pos = 0.0
-        self._rate = 0.0
-
-    @property
-    def period_s(self) -> float:
-        return self._ts
-
-    def read(self) -> tuple[float, float]:
-        return self._pos, self._rate
-
-    def step(self, command_deg_s: float) -> None:
-        t = self._k * self._ts
-        d = 0.0 if self._d is None else self._d(t)
-        pos = backlash_substeps(command_deg_s, d, self._sub, self._ts / self._sub, self._half,
-                                self._th, self._pos, *self._m, *self._p)
-        self._rate = (pos - self._pos) / self._ts
-        self._pos = pos
-        self._k += 1
-
-    # -- for the compiled offline loop (`controller.sim.offline`)
-
-    def disturbances(self, n: int) -> npt.NDArray[np.float64]:
-        """d of the next `n` steps, sampled as `step` samples it."""
-        k0, ts = self._k, self._ts
-        if self._d is None:
-            return np.zeros(n)
-        return np.array([self._d(k * ts) for k in range(k0, k0 + n)], dtype=np.float64)
-
-    def arrays(self) -> tuple[object, ...]:
-        """(substeps, sub-step dt, half backlash, angles, the two models' flat arrays): the
-        arguments of `backlash_substeps` after the command, d and position."""
-        return (self._sub, self._ts / self._sub, self._half, self._th, *self._m, *self._p)
-
-    def advanced(self, n: int, pos_deg: float, rate_deg_s: float) -> None:
-        """`backlash_substeps` was run outside for `n` steps, the last reading (pos, rate)."""
-        self._k += n
-        self._pos = pos_deg
-        self._rate = rate_deg_s
-
-
 FlatModel = tuple[npt.NDArray[np.float64], ...]
 
 
@@ -249,14 +109,26 @@ def ss_out(x: np.ndarray, c: np.ndarray) -> float:
     return acc
 
 
-def backlash_substeps(
-    u: float, d: float, sub: int, dt: float, half: float, th: np.ndarray, pos: float,
-    xm: np.ndarray, am: np.ndarray, bm: np.ndarray, cm: np.ndarray, dm: np.ndarray,
-    tm: np.ndarray, xp: np.ndarray, ap: np.ndarray, bp: np.ndarray, cp: np.ndarray,
-    dp: np.ndarray, tp: np.ndarray,
-) -> float:
-    """One period of `BacklashRig` (a plain function of floats and float64 arrays, updated in
-    place; the compiled offline loop runs it too): returns the new load position."""
+def linear_period(u: float, d: float, pos: float, args: Any) -> float:
+    """One period of `LinearRig` (exact ZOH; a plain function of floats and float64 arrays
+    updated in place): returns the new load position. args: (x, A row-major, B's u column,
+    B's d column, scratch, index of the position in x)."""
+    x, a, bu, bd, tmp, cth = args
+    n = len(x)
+    for i in range(n):
+        acc = 0.0
+        for j in range(n):
+            acc += a[i * n + j] * x[j]
+        tmp[i] = acc + (bu[i] * u + bd[i] * d)
+    for i in range(n):
+        x[i] = tmp[i]
+    return float(x[cth])
+
+
+def backlash_period(u: float, d: float, pos: float, args: Any) -> float:
+    """One period of `BacklashRig` (a plain function of floats and float64 arrays updated in
+    place): returns the new load position. args: see `BacklashRig.__init__`."""
+    sub, dt, half, th, xm, am, bm, cm, dm, tm, xp, ap, bp, cp, dp, tp = args
     th_m = th[0]
     th_in = th[1]
     for _ in range(sub):
@@ -273,3 +145,146 @@ def backlash_substeps(
     th[0] = th_m
     th[1] = th_in
     return pos
+
+
+class _SpeedRig:
+    """What the linear rigs share: `read()` / `step(u)` like SimRig, the rate disturbance d
+    (deg/s) sampled per period, and one period as a plain function `period(u, d, pos, args)`
+    of the rig's arrays (the compiled offline loop, `controller.sim.offline`, runs it too)."""
+
+    __slots__ = ("_args", "_d", "_k", "_pos", "_rate", "_ts")
+
+    @staticmethod
+    def period(u: float, d: float, pos: float, args: Any) -> float:
+        raise NotImplementedError
+
+    def __init__(self, rate_hz: float, speed_disturbance: Callable[[float], float] | None) -> None:
+        self._ts = 1.0 / rate_hz
+        self._d = speed_disturbance
+        self._k = 0
+        self._pos = 0.0
+        self._rate = 0.0
+        self._args: tuple[Any, ...] = ()
+
+    @property
+    def period_s(self) -> float:
+        return self._ts
+
+    @property
+    def args(self) -> tuple[Any, ...]:
+        """The rig's arrays (updated in place by `period`) and constants."""
+        return self._args
+
+    def read(self) -> tuple[float, float]:
+        return self._pos, self._rate
+
+    def step(self, command_deg_s: float) -> None:
+        d = 0.0 if self._d is None else self._d(self._k * self._ts)
+        pos = self.period(command_deg_s, d, self._pos, self._args)
+        self._rate = (pos - self._pos) / self._ts
+        self._pos = pos
+        self._k += 1
+
+    # -- for the compiled offline loop
+
+    def disturbances(self, n: int) -> npt.NDArray[np.float64]:
+        """d of the next `n` steps, sampled as `step` samples it."""
+        k0, ts = self._k, self._ts
+        if self._d is None:
+            return np.zeros(n)
+        return np.array([self._d(k * ts) for k in range(k0, k0 + n)], dtype=np.float64)
+
+    def advanced(self, n: int, pos_deg: float, rate_deg_s: float) -> None:
+        """`period` was run outside for `n` steps, the last reading (pos, rate)."""
+        self._k += n
+        self._pos = pos_deg
+        self._rate = rate_deg_s
+
+
+class LinearRig(_SpeedRig):
+    """`read()` / `step(u)` like SimRig, for the linear plant Mn, P'. `speed_disturbance(t)`
+    gives d (deg/s) per period."""
+
+    __slots__ = ()
+
+    period = staticmethod(linear_period)
+
+    def __init__(
+        self,
+        variant: PlantVariant,
+        nominal: NominalModel | None = None,
+        *,
+        rate_hz: float = 1000.0,
+        speed_disturbance: Callable[[float], float] | None = None,
+    ) -> None:
+        super().__init__(rate_hz, speed_disturbance)
+        nominal = nominal or NominalModel()
+        a1, b1, c1, d1 = _ss(np.array([1.0]), np.asarray(nominal.mn_den, float))
+        a2, b2, c2, d2 = _ss(*variant.p_polys(nominal))
+        n1, n2 = a1.shape[0], a2.shape[0]
+        n = n1 + n2 + 1
+        # x = [x1 (M); x2 (P'); theta], inputs [u, d]: v = C1 x1 + D1 u + d, w = C2 x2 + D2 v.
+        a = np.zeros((n, n))
+        b = np.zeros((n, 2))
+        a[:n1, :n1] = a1
+        b[:n1, 0] = b1[:, 0]
+        a[n1 : n1 + n2, :n1] = b2 @ c1
+        a[n1 : n1 + n2, n1 : n1 + n2] = a2
+        b[n1 : n1 + n2, 0] = (b2 * d1[0, 0])[:, 0]
+        b[n1 : n1 + n2, 1] = b2[:, 0]
+        a[n - 1, :n1] = d2[0, 0] * c1[0]
+        a[n - 1, n1 : n1 + n2] = c2[0]
+        b[n - 1, 0] = d2[0, 0] * d1[0, 0]
+        b[n - 1, 1] = d2[0, 0]
+        big = np.zeros((n + 2, n + 2))
+        big[:n, :n] = a
+        big[:n, n:] = b
+        e = linalg.expm(big * self._ts)
+        ad, bd = e[:n, :n], e[:n, n:]
+        self._args = (np.zeros(n), np.ascontiguousarray(ad, dtype=np.float64).ravel(),
+                      np.ascontiguousarray(bd[:, 0]), np.ascontiguousarray(bd[:, 1]),
+                      np.zeros(n), n - 1)
+
+
+def _zoh(a: np.ndarray, b: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray]:
+    n, m = a.shape[0], b.shape[1]
+    big = np.zeros((n + m, n + m))
+    big[:n, :n] = a
+    big[:n, n:] = b
+    e = linalg.expm(big * ts)
+    return e[:n, :n], e[:n, n:]
+
+
+class BacklashRig(_SpeedRig):
+    """The linear rig with backlash at P's input: the motor angle (integral of M u + d) drives
+    P's input angle through a play of total width `backlash_deg` (the input stays put until
+    the motor has crossed the gap, then follows it), the article's backlash as a rate
+    disturbance at P's input. Integrated with `substeps` ZOH sub-steps per period (M and P
+    exact per sub-step, P's input rate held over a sub-step); the rate is the backward
+    difference of the load position over one period, as on the other rigs."""
+
+    __slots__ = ()
+
+    period = staticmethod(backlash_period)
+
+    def __init__(
+        self,
+        variant: PlantVariant,
+        nominal: NominalModel | None = None,
+        *,
+        backlash_deg: float,
+        rate_hz: float = 1000.0,
+        substeps: int = 10,
+        speed_disturbance: Callable[[float], float] | None = None,
+    ) -> None:
+        if not (math.isfinite(backlash_deg) and backlash_deg >= 0.0):
+            raise ConfigError("backlash_deg", f"must be finite and >= 0, got {backlash_deg!r}")
+        super().__init__(rate_hz, speed_disturbance)
+        nominal = nominal or NominalModel()
+        dt = self._ts / substeps
+        a1, b1, c1, d1 = _ss(np.array([1.0]), np.asarray(nominal.mn_den, float))
+        a2, b2, c2, d2 = _ss(*variant.p_polys(nominal))
+        # substeps, dt, half the play, [motor angle, P's input angle], M's arrays, P's arrays
+        self._args = (substeps, dt, 0.5 * backlash_deg, np.zeros(2),
+                      *_flat_model(*_zoh(a1, b1, dt), c1[0], float(d1[0, 0])),
+                      *_flat_model(*_zoh(a2, b2, dt), c2[0], float(d2[0, 0])))

@@ -44,7 +44,7 @@ from controller.core.loop import ServoLoop
 from controller.core.ramp import Ramp
 from controller.core.trajectory import KIND_CODE, Trajectory
 from controller.sim import sim_rig
-from controller.sim.linear_rig import BacklashRig, backlash_substeps
+from controller.sim.linear_rig import BacklashRig, LinearRig, backlash_period, linear_period
 from controller.sim.rig_disturbances import ScheduledRig
 from controller.sim.sim_rig import SimRig
 
@@ -57,7 +57,6 @@ _speed_law = loop_module.speed_law
 _trajectory_at = trajectory.trajectory_at
 _ramp_step = ramp.ramp_step
 _advance = sim_rig.advance_tick
-_backlash_substeps = backlash_substeps
 
 # Loop state (st) and coefficient (co) arrays: the ServoLoop attributes, in this order.
 _STATE = ("pos_int", "e_pos_prev", "cv_int", "e_speed_prev", "u_prev", "w_prev", "d_hat",
@@ -152,14 +151,13 @@ def _make_kernel(digest: str) -> Callable[..., Any]:
     return numba.njit(cache=True)(kernel)  # type: ignore[no-any-return]
 
 
-def _make_speed_kernel(digest: str) -> Callable[..., Any]:
+def _make_speed_kernel(digest: str, period: Callable[..., float]) -> Callable[..., Any]:
+    """The rate loop's kernel on a linear rig whose period is the plain function `period`."""
+
     def speed_kernel(
         ref: FloatArray, dist: FloatArray, st: FloatArray, co: FloatArray, f1c: FloatArray,
         f1s: FloatArray, f2c: FloatArray, f2s: FloatArray, rd: FloatArray, w_out: FloatArray,
-        ts: float, sub: int, dt: float, half: float, th: FloatArray, xm: FloatArray,
-        am: FloatArray, bm: FloatArray, cm: FloatArray, dm: FloatArray, tm: FloatArray,
-        xp: FloatArray, ap: FloatArray, bp: FloatArray, cp: FloatArray, dp: FloatArray,
-        tp: FloatArray,
+        ts: float, args: Any,
     ) -> int:
         if len(digest) == 0:  # the digest only keys numba's cache
             raise ValueError("no source digest")
@@ -184,8 +182,7 @@ def _make_speed_kernel(digest: str) -> Callable[..., Any]:
             u_prev = u
             w_prev = w
             sref = r
-            new_pos = _backlash_substeps(u, dist[k], sub, dt, half, th, pos, xm, am, bm, cm, dm,
-                                         tm, xp, ap, bp, cp, dp, tp)
+            new_pos = period(u, dist[k], pos, args)
             w = (new_pos - pos) / ts
             pos = new_pos
         st[2], st[3] = cv_int, e_speed_prev
@@ -197,10 +194,11 @@ def _make_speed_kernel(digest: str) -> Callable[..., Any]:
     return numba.njit(cache=True)(speed_kernel)  # type: ignore[no-any-return]
 
 
-_DIGEST = _compiled_in(
-    (_servo_law, _speed_law, _trajectory_at, _ramp_step, _advance, _backlash_substeps))
+_DIGEST = _compiled_in((_servo_law, _speed_law, _trajectory_at, _ramp_step, _advance,
+                        backlash_period, linear_period))
 _kernel = _make_kernel(_DIGEST)
-_speed_kernel = _make_speed_kernel(_DIGEST)
+_speed_kernels = {rig: _make_speed_kernel(_DIGEST, rig.period)
+                  for rig in (BacklashRig, LinearRig)}
 
 
 @dataclass
@@ -258,13 +256,17 @@ def _loop_back(loop: ServoLoop, st: FloatArray, f1s: FloatArray, f2s: FloatArray
     loop._f2s[:] = f2s.tolist()
 
 
-def run_speed_ticks(loop: ServoLoop, rig: BacklashRig, ref_deg_s: FloatArray) -> FloatArray:
-    """The rate loop alone on the linear rig with backlash, as the paper's Figs. 8-9 tick it:
+def run_speed_ticks(
+    loop: ServoLoop, rig: BacklashRig | LinearRig, ref_deg_s: FloatArray
+) -> FloatArray:
+    """The rate loop alone on a linear rig (with or without backlash), as the paper's
+    Figs. 8-9 tick it:
     per tick the rig's rate w is recorded, then `loop.tick_speed(ref[k], w)` and `rig.step`.
     Stops when |w| reaches 1e6 deg/s (diverged): the rest of the record is NaN. The objects'
     states are taken and given back."""
-    if type(loop) is not ServoLoop or type(rig) is not BacklashRig:
-        raise TypeError(f"run_speed_ticks: needs ServoLoop and BacklashRig, got "
+    kernel = _speed_kernels.get(type(rig))
+    if type(loop) is not ServoLoop or kernel is None:
+        raise TypeError(f"run_speed_ticks: needs ServoLoop and a linear rig, got "
                         f"{type(loop).__name__} and {type(rig).__name__}")
     ref = np.ascontiguousarray(ref_deg_s, dtype=np.float64)
     n = len(ref)
@@ -275,8 +277,7 @@ def run_speed_ticks(loop: ServoLoop, rig: BacklashRig, ref_deg_s: FloatArray) ->
     st, co, f1c, f1s, f2c, f2s = _loop_arrays(loop)
     rd = np.array(rig.read())
     dist = rig.disturbances(n)
-    done = _speed_kernel(ref, dist, st, co, f1c, f1s, f2c, f2s, rd, w_out, rig.period_s,
-                         *rig.arrays())
+    done = kernel(ref, dist, st, co, f1c, f1s, f2c, f2s, rd, w_out, rig.period_s, rig.args)
     rig.advanced(done, float(rd[0]), float(rd[1]))
     _loop_back(loop, st, f1s, f2s)
     if done < n:

@@ -248,21 +248,14 @@ def speed_step_run(
     *, disturbance_deg_s: float = DISTURBANCE_DEG_S,
 ) -> SpeedRun:
     """The rate loop (Cv, and the DOB when cfg.dob_on) on the linear plant `variant`: a speed
-    reference step at 0 s and a rate disturbance step at 1 s (the runtime's `tick_speed`)."""
+    reference step at 0 s and a rate disturbance step at 1 s (the runtime's `tick_speed`,
+    compiled: `controller.sim.offline.run_speed_ticks`)."""
     rig = LinearRig(
         variant, cfg.nominal, rate_hz=cfg.rate_hz,
         speed_disturbance=lambda t: disturbance_deg_s if t >= DISTURBANCE_TIME_S else 0.0,
     )
-    loop = ServoLoop(LoopCoefficients.build(cfg))
     n = round(duration_s * cfg.rate_hz)
-    w = np.empty(n)
-    for k in range(n):
-        _, wk = rig.read()
-        w[k] = wk
-        if not abs(wk) < 1e6:
-            w[k:] = math.nan
-            break
-        rig.step(loop.tick_speed(SPEED_STEP_DEG_S, wk))
+    w = run_speed_ticks(ServoLoop(LoopCoefficients.build(cfg)), rig, np.full(n, SPEED_STEP_DEG_S))
     t = np.arange(n) / cfg.rate_hz
     dob = f"{cfg.q_type.upper()} {cfg.q_cutoff_hz:g} Hz" if cfg.dob_on else "off"
     return SpeedRun(variant.label, dob, t, np.full(n, SPEED_STEP_DEG_S), w)
