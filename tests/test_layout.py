@@ -6,7 +6,7 @@ Every import counts, also the ones inside functions: a lazy import is still a de
 from __future__ import annotations
 
 import ast
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -105,6 +105,13 @@ def within(mod: str, prefixes: tuple[str, ...]) -> bool:
     return any(mod == p or mod.startswith(p + ".") for p in prefixes)
 
 
+def bad_imports(of: Callable[[str], bool], bad: Callable[[str, str], bool]) -> list[str]:
+    """'<module> line <n>: <import>' for every import `name` of each module `mod` with
+    `of(mod)` for which `bad(mod, name)`."""
+    return [f"{mod} line {line}: {name}" for mod in MODULES if of(mod)
+            for name, line, _ in imports(mod) if bad(mod, name)]
+
+
 def test_the_layout_has_the_packages() -> None:
     for pkg in (*PURE, "controller.rig", "controller.process", "controller.cli",
                 "controller.protocol", "controller.client", "server.panels"):
@@ -135,28 +142,20 @@ def test_protocol_imports_only_plain_data() -> None:
 
 
 def test_controller_never_imports_server() -> None:
-    bad = [
-        f"{mod} line {line}: {name}"
-        for mod in MODULES
-        if mod.startswith("controller")
-        for name, line, _ in imports(mod)
-        if name.split(".")[0] in ("server", "viser")
-    ]
+    bad = bad_imports(lambda mod: mod.startswith("controller"),
+                      lambda _mod, name: name.split(".")[0] in ("server", "viser"))
     assert not bad, bad
 
 
 def test_server_imports_only_the_controllers_public_side() -> None:
-    bad = [
-        f"{mod} line {line}: {name}"
-        for mod in MODULES
-        if mod.startswith("server")
-        for name, line, _ in imports(mod)
-        if name.startswith("controller")
-        and not within(project_target(name) or name, SERVER_MAY_IMPORT)
-        # the `dobtune` entry point composes the controller's commands with the dashboard's
-        and not (mod == "server.__main__" and within(project_target(name) or name,
-                                                     ("controller.cli",)))
-    ]
+    def outside(mod: str, name: str) -> bool:
+        target = project_target(name) or name
+        return (name.startswith("controller") and not within(target, SERVER_MAY_IMPORT)
+                # the `dobtune` entry point composes the controller's commands with the
+                # dashboard's
+                and not (mod == "server.__main__" and within(target, ("controller.cli",))))
+
+    bad = bad_imports(lambda mod: mod.startswith("server"), outside)
     assert not bad, bad
 
 
@@ -245,8 +244,8 @@ KEY_OWNER = "controller.protocol"
 
 
 def test_only_the_rig_package_imports_python_can() -> None:
-    bad = [f"{mod} line {line}: {name}" for mod in MODULES if not within(mod, CAN_IMPORTERS)
-           for name, line, _ in imports(mod) if name.split(".")[0] == "can"]
+    bad = bad_imports(lambda mod: not within(mod, CAN_IMPORTERS),
+                      lambda _mod, name: name.split(".")[0] == "can")
     assert not bad, bad
 
 
@@ -280,9 +279,8 @@ def test_key_strings_only_in_protocol() -> None:
 
 
 def test_server_never_imports_the_cli_but_its_entry_point() -> None:
-    bad = [f"{mod} line {line}: {name}" for mod in MODULES
-           if mod.startswith("server") and mod != "server.__main__"
-           for name, line, _ in imports(mod) if within(name, ("controller.cli",))]
+    bad = bad_imports(lambda mod: mod.startswith("server") and mod != "server.__main__",
+                      lambda _mod, name: within(name, ("controller.cli",)))
     assert not bad, bad
 
 

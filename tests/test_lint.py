@@ -14,26 +14,19 @@ pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_ruff_clean() -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "ruff", "check", "controller", "server", "tests"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        check=False,
-    )
+def _clean(*tool: str) -> None:
+    """`python -m <tool...>` in the repository exits 0 (its output is the failure message)."""
+    proc = subprocess.run([sys.executable, "-m", *tool], cwd=ROOT, capture_output=True,
+                          text=True, check=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_ruff_clean() -> None:
+    _clean("ruff", "check", "controller", "server", "tests")
 
 
 def test_mypy_clean() -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "mypy", "controller", "server"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    _clean("mypy", "controller", "server")
 
 
 def test_controller_never_imports_server_or_viser() -> None:

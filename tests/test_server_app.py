@@ -3,9 +3,12 @@ upload, the 'controller gone' banner, ports released on exit, dependency directi
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -136,58 +139,59 @@ def test_controller_never_imports_server_or_viser() -> None:
     assert r.returncode == 0, r.stdout + r.stderr
 
 
+@contextlib.contextmanager
+def _dashboard_and_controller(tmp_path: Path, rig: str, **opts: Any) -> Iterator[Dashboard]:
+    """A controller process of `rig` and a dashboard on it (`opts`: DashboardOptions fields),
+    once the dashboard's client has reached the controller."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with controller_process(endpoint, rig, tmp_path / "state"), Dashboard(DashboardOptions(
+            connect=(endpoint,), rig_name=rig, port=free_port(), verbose=False, **opts)) as d:
+        wait_for(lambda: d.client.connected, CONTROLLER_START_S)
+        yield d
+
+
 @pytest.mark.integration
 def test_the_trajectory_dropdown_follows_the_controller(tmp_path: Path) -> None:
     from controller import protocol as proto
     from controller.core.trajectory import default_trajectory
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with controller_process(endpoint, "trajtest", tmp_path / "state"):
-        opts = DashboardOptions(connect=(endpoint,), rig_name="trajtest", port=free_port(),
-                                verbose=False, query_timeout_s=2.0)
-        with Dashboard(opts) as d:
-            wait_for(lambda: d.client.connected, CONTROLLER_START_S)
-            assert d.live is not None
-            wait_for(lambda: d.live.trajectory.value == "sine")
-            reply = d.client.command(proto.SetTrajectory(trajectory=default_trajectory("ramp")))
-            assert reply.ok, reply.message
-            wait_for(lambda: d.live.trajectory.value == "ramp")
+    with _dashboard_and_controller(tmp_path, "trajtest", query_timeout_s=2.0) as d:
+        assert d.live is not None
+        wait_for(lambda: d.live.trajectory.value == "sine")
+        reply = d.client.command(proto.SetTrajectory(trajectory=default_trajectory("ramp")))
+        assert reply.ok, reply.message
+        wait_for(lambda: d.live.trajectory.value == "ramp")
 
 
 @pytest.mark.integration
 def test_history_lists_versions_and_loads_one_as_the_candidate(tmp_path: Path) -> None:
     from controller.core.config import LoopConfig
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with controller_process(endpoint, "histtest", tmp_path / "state"):
-        opts = DashboardOptions(connect=(endpoint,), rig_name="histtest", port=free_port(),
-                                verbose=False, query_timeout_s=2.0)
-        with Dashboard(opts) as d:
-            wait_for(lambda: d.client.connected, CONTROLLER_START_S)
-            first = d.client.get_config()
-            reply = d.client.apply(first.config.with_(q_cutoff_hz=0.8, cv_kp=1.2))
-            assert reply.accepted, reply.reasons
-            wait_for(lambda: "v2" in d.history.table.content and "v1" in d.history.table.content)
-            # The History tab shows the difference between any two versions (newest vs the one
-            # before by default).
-            wait_for(lambda: "q_cutoff_hz" in d.history.diff.content)
-            diff = d.history.diff.content
-            assert "v2 vs v1" in diff and "q_cutoff_hz: 0.5 &rarr; <b>0.8</b>" in diff
-            assert "rate_hz" not in d.history.diff.content
-            d.history.other.value = "v2"
-            wait_for(lambda: "same as v2" in d.history.diff.content)
-            h = d.client.history(10)
-            assert [e.version for e in h.entries] == [1, 2] and h.entries[1].verdict == "accept"
-            assert h.entries[1].config.q_cutoff_hz == 0.8
-            t = d.panel_in(d.server.gui)
-            wait_for(lambda: t.active_version == 2)
-            d.history.pick.value = "v1"
-            d.history.use_version()
-            assert t.wait_idle(5.0)
-            assert t.candidate() == first.config  # version 1, to go through the gate again
-            assert "q_cutoff_hz" in t.diff_text.content and "active v2" in t.diff_text.content
-            assert d.client.history(0).field == "last"
-            assert LoopConfig() == first.config
+    with _dashboard_and_controller(tmp_path, "histtest", query_timeout_s=2.0) as d:
+        first = d.client.get_config()
+        reply = d.client.apply(first.config.with_(q_cutoff_hz=0.8, cv_kp=1.2))
+        assert reply.accepted, reply.reasons
+        wait_for(lambda: "v2" in d.history.table.content and "v1" in d.history.table.content)
+        # The History tab shows the difference between any two versions (newest vs the one
+        # before by default).
+        wait_for(lambda: "q_cutoff_hz" in d.history.diff.content)
+        diff = d.history.diff.content
+        assert "v2 vs v1" in diff and "q_cutoff_hz: 0.5 &rarr; <b>0.8</b>" in diff
+        assert "rate_hz" not in d.history.diff.content
+        d.history.other.value = "v2"
+        wait_for(lambda: "same as v2" in d.history.diff.content)
+        h = d.client.history(10)
+        assert [e.version for e in h.entries] == [1, 2] and h.entries[1].verdict == "accept"
+        assert h.entries[1].config.q_cutoff_hz == 0.8
+        t = d.panel_in(d.server.gui)
+        wait_for(lambda: t.active_version == 2)
+        d.history.pick.value = "v1"
+        d.history.use_version()
+        assert t.wait_idle(5.0)
+        assert t.candidate() == first.config  # version 1, to go through the gate again
+        assert "q_cutoff_hz" in t.diff_text.content and "active v2" in t.diff_text.content
+        assert d.client.history(0).field == "last"
+        assert LoopConfig() == first.config
 
 
 @pytest.mark.integration

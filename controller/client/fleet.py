@@ -15,12 +15,14 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 from controller import protocol as proto
 from controller.client.controller_client import quietly
 
 __all__ = ["DECIMATE", "TRACE_POINTS", "FleetMonitor", "RigRow"]
+
+M = TypeVar("M", proto.Status, proto.StateBatch)
 
 #: Error trace kept per rig: every DECIMATE-th sample, TRACE_POINTS of them (3 s at 1 kHz).
 DECIMATE = 10
@@ -102,30 +104,35 @@ class FleetMonitor:
             else:
                 self._alive.add(rig)
 
-    def _on_status(self, sample: Any) -> None:
+    def _own(self, sample: Any, kind: type[M]) -> tuple[str, M] | None:
+        """(rig, message) of a status or state sample; None (counted) for one that does not
+        decode, or a rig speaking for another (the key is what the access control checks: a
+        controller may put on its own rig's keys only)."""
         rig = proto.rig_of_key(sample.key_expr)
         try:
-            st = proto.decode(sample.payload.to_bytes(), proto.Status)
+            msg = proto.decode(sample.payload.to_bytes(), kind)
         except proto.ProtocolError:
             self.decode_errors += 1
+            return None
+        if msg.rig != rig:
+            self.decode_errors += 1
+            return None
+        return rig, msg
+
+    def _on_status(self, sample: Any) -> None:
+        got = self._own(sample, proto.Status)
+        if got is None:
             return
-        if st.rig != rig:  # a rig speaking for another (the key is what the access control
-            self.decode_errors += 1  # checks: a controller may put on its own rig's keys only)
-            return
+        rig, st = got
         with self._lock:
             r = self._rigs.setdefault(rig, _Rig())
             r.status, r.status_at = st, time.monotonic()
 
     def _on_state(self, sample: Any) -> None:
-        rig = proto.rig_of_key(sample.key_expr)
-        try:
-            b = proto.decode(sample.payload.to_bytes(), proto.StateBatch)
-        except proto.ProtocolError:
-            self.decode_errors += 1
+        got = self._own(sample, proto.StateBatch)
+        if got is None:
             return
-        if b.rig != rig:
-            self.decode_errors += 1
-            return
+        rig, b = got
         with self._lock:
             r = self._rigs.setdefault(rig, _Rig())
             if r.trace is None:
