@@ -199,13 +199,16 @@ def _marks(crossing: FloatArray) -> FloatArray:
     top or bottom edge."""
     c = np.asarray(crossing, dtype=np.float64)
     out = np.full(len(c), np.nan)
-    up = True
-    for i in range(len(c) - 1):
-        a, b = c[i], c[i + 1]
-        if np.isfinite(a) and np.isfinite(b) and (a <= 0.0 < b or b <= 0.0 < a) and abs(
-                b - a) < 180.0:
-            out[i], out[i + 1] = (0.0, 1.0) if up else (1.0, 0.0)
-            up = not up
+    a, b = c[:-1], c[1:]
+    with np.errstate(invalid="ignore"):
+        sign_change = ((a <= 0.0) & (b > 0.0)) | ((b <= 0.0) & (a > 0.0))
+        hit = np.isfinite(a) & np.isfinite(b) & sign_change & (np.abs(b - a) < 180.0)
+    i = np.nonzero(hit)[0]
+    up = np.arange(i.size) % 2 == 0  # alternately up (0 then 1) and down (1 then 0)
+    # Second points first: where two crossings are neighbours, the later crossing's first
+    # point wins, as in a pass from low to high frequency.
+    out[i + 1] = np.where(up, 1.0, 0.0)
+    out[i] = np.where(up, 0.0, 1.0)
     return out
 
 

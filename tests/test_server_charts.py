@@ -224,3 +224,31 @@ def test_plant_chart_without_plant_curves_names_the_field() -> None:
     cand = curves_from_analysis(analyse(LoopConfig()), MODEL_ONLY)
     with pytest.raises(ValueError, match=r"BodeCurves\.plant"):
         charts.bode_data("plant", dataclasses.replace(cand, plant=None), None)
+
+
+def test_crossover_marks_follow_their_definition_at_every_crossing() -> None:
+    """The marks (vectorised: on every slider move, candidate and active) against their
+    definition walked point by point from low to high frequency: 0/1 on the two points around
+    each sign change of less than 180, alternately up and down, a later crossing overwriting
+    a shared point; random sequences with zeros, wraps, NaN and inf."""
+    def walked(c: np.ndarray) -> np.ndarray:
+        out = np.full(len(c), np.nan)
+        up = True
+        for i in range(len(c) - 1):
+            a, b = c[i], c[i + 1]
+            if (np.isfinite(a) and np.isfinite(b) and (a <= 0.0 < b or b <= 0.0 < a)
+                    and abs(b - a) < 180.0):
+                out[i], out[i + 1] = (0.0, 1.0) if up else (1.0, 0.0)
+                up = not up
+        return out
+
+    rng = np.random.default_rng(3)
+    values = np.array([-1.0, 0.0, 1.0, -200.0, 200.0, np.nan, np.inf, 0.5, -0.5])
+    crossings = 0
+    for _ in range(2000):
+        n = int(rng.integers(1, 40))
+        c = rng.choice(values, size=n) * rng.uniform(0.5, 2.0, size=n)
+        want = walked(c)
+        np.testing.assert_array_equal(charts._marks(c), want)
+        crossings += int(np.count_nonzero(want == 0.0))
+    assert crossings > 1000  # the sequences did cross

@@ -11,6 +11,7 @@ denominator) are cancelled exactly before discretising.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -60,10 +61,20 @@ class DobDesign:
 
 
 def design_dob(cfg: LoopConfig) -> DobDesign:
-    q = design_q(cfg.q_type, cutoff_hz=cfg.q_cutoff_hz)  # type: ignore[arg-type]
-    prewarp = cfg.q_cutoff_hz
-    z1, p1, k1 = f1_continuous_zpk(q, cfg.nominal)
-    f1 = zpk_to_sos(*tustin_zpk(z1, p1, k1, cfg.rate_hz, prewarp))
+    """The DOB's filters for cfg's Q type, cut-off, rate and nominal model (cached on those:
+    the gate's analysis and the loop's coefficients of one candidate share one design)."""
+    return _design_dob(cfg.q_type, cfg.q_cutoff_hz, cfg.rate_hz, cfg.nominal)
+
+
+@lru_cache(maxsize=128)
+def _design_dob(q_type: str, cutoff_hz: float, rate_hz: float, nominal: NominalModel,
+                ) -> DobDesign:
+    q = design_q(q_type, cutoff_hz=cutoff_hz)  # type: ignore[arg-type]
+    prewarp = cutoff_hz
+    z1, p1, k1 = f1_continuous_zpk(q, nominal)
+    f1 = zpk_to_sos(*tustin_zpk(z1, p1, k1, rate_hz, prewarp))
     qz, qp, qk = q.zpk()
-    f2 = zpk_to_sos(*tustin_zpk(qz, qp, qk, cfg.rate_hz, prewarp))
-    return DobDesign(q=q, rate_hz=cfg.rate_hz, f1_sos=f1, f2_sos=f2)
+    f2 = zpk_to_sos(*tustin_zpk(qz, qp, qk, rate_hz, prewarp))
+    f1.flags.writeable = False  # shared by every user of the cached design
+    f2.flags.writeable = False
+    return DobDesign(q=q, rate_hz=rate_hz, f1_sos=f1, f2_sos=f2)
