@@ -45,45 +45,46 @@ SERVER_MAY_IMPORT = (
 )
 
 
-def module_name(path: Path) -> str:
-    rel = path.relative_to(ROOT).with_suffix("")
+def module_name(path: Path, root: Path = ROOT) -> str:
+    rel = path.relative_to(root).with_suffix("")
     parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
     return ".".join(parts)
 
 
-def modules() -> dict[str, Path]:
+def modules(root: Path = ROOT) -> dict[str, Path]:
+    """The project's modules by dotted name (of the tree at `root`)."""
     out = {}
     for pkg in PACKAGES:
-        for path in sorted((ROOT / pkg).rglob("*.py")):
-            out[module_name(path)] = path
+        for path in sorted((root / pkg).rglob("*.py")):
+            out[module_name(path, root)] = path
     return out
 
 
 MODULES = modules()
 
 
-def resolve(mod: str, node: ast.ImportFrom) -> str:
+def resolve(mod: str, node: ast.ImportFrom, mods: dict[str, Path] = MODULES) -> str:
     if node.level == 0:
         return node.module or ""
-    is_pkg = MODULES[mod].name == "__init__.py"
+    is_pkg = mods[mod].name == "__init__.py"
     base = mod.split(".")
     base = base if is_pkg else base[:-1]
     base = base[: len(base) - (node.level - 1)]
     return ".".join(base + ([node.module] if node.module else []))
 
 
-def imports(mod: str) -> Iterator[tuple[str, int, list[str]]]:
+def imports(mod: str, mods: dict[str, Path] = MODULES) -> Iterator[tuple[str, int, list[str]]]:
     """(imported module, line, names imported from it) for every import in `mod`."""
-    tree = ast.parse(MODULES[mod].read_text(), filename=str(MODULES[mod]))
+    tree = ast.parse(mods[mod].read_text(), filename=str(mods[mod]))
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for a in node.names:
                 yield a.name, node.lineno, []
         elif isinstance(node, ast.ImportFrom):
-            target = resolve(mod, node)
+            target = resolve(mod, node, mods)
             names = [a.name for a in node.names]
             # `from pkg import module` imports the module
-            sub = [n for n in names if f"{target}.{n}" in MODULES]
+            sub = [n for n in names if f"{target}.{n}" in mods]
             for n in sub:
                 yield f"{target}.{n}", node.lineno, []
             rest = [n for n in names if n not in sub]
@@ -91,12 +92,12 @@ def imports(mod: str) -> Iterator[tuple[str, int, list[str]]]:
                 yield target, node.lineno, rest
 
 
-def project_target(name: str) -> str | None:
+def project_target(name: str, mods: dict[str, Path] = MODULES) -> str | None:
     """The project module an import refers to (the longest known prefix)."""
     parts = name.split(".")
     for i in range(len(parts), 0, -1):
         cand = ".".join(parts[:i])
-        if cand in MODULES:
+        if cand in mods:
             return cand
     return None
 
@@ -159,15 +160,20 @@ def test_server_imports_only_the_controllers_public_side() -> None:
     assert not bad, bad
 
 
-def test_no_import_cycles() -> None:
-    graph: dict[str, set[str]] = {m: set() for m in MODULES}
-    for mod in MODULES:
-        for name, _, _ in imports(mod):
-            target = project_target(name)
-            # every import counts: a module's import of its own package's __init__ too
+def module_graph(mods: dict[str, Path] = MODULES) -> dict[str, set[str]]:
+    """Each module's project imports (every import counts: a module's import of its own
+    package's __init__ too)."""
+    graph: dict[str, set[str]] = {m: set() for m in mods}
+    for mod in mods:
+        for name, _, _ in imports(mod, mods):
+            target = project_target(name, mods)
             if target and target != mod:
                 graph[mod].add(target)
-    # Tarjan's strongly connected components
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
     index: dict[str, int] = {}
     low: dict[str, int] = {}
     stack: list[str] = []
@@ -198,6 +204,11 @@ def test_no_import_cycles() -> None:
     for v in graph:
         if v not in index:
             visit(v)
+    return cycles
+
+
+def test_no_import_cycles() -> None:
+    cycles = import_cycles(module_graph())
     assert not cycles, cycles
 
 
