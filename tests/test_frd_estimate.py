@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.signal as sig
+from article_plant import A_G, B_G, FS, plant_response
 
 from controller.cli.frd_files import read_frd_csv, write_frd_csv
 from controller.gate.frd_csv import FrdData
@@ -19,18 +20,8 @@ from controller.ident.estimate import (
 )
 from controller.ident.excitation import MultisineSpec, SteppedSineSpec, multisine, stepped_sine
 
-FS = 1000.0
-# M(s) P(s) of the article, 7.0 Hz, damping 0.707, ZOH-discretised at the loop rate
-_num, _den, _ = sig.cont2discrete(([1935.0], [1.0, 62.2, 1935.0]), 1.0 / FS, method="zoh")
-B_G = np.ravel(_num)
-A_G = np.ravel(_den)
 # speed controller Cv = 0.5 (1 + 55 / s), Tustin
 B_C, A_C = sig.bilinear([0.5, 0.5 * 55.0], [1.0, 0.0], fs=FS)
-
-
-def plant_response(freq_hz: np.ndarray) -> np.ndarray:
-    """Exact response of the discrete plant (independent of the estimators)."""
-    return sig.freqz(B_G, A_G, worN=freq_hz, fs=FS)[1]
 
 
 def errors(h: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

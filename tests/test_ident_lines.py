@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.signal as sig
+from article_plant import A_G, B_G, FS, plant_response
 
 from controller.ident.estimate import (
     coherence_std,
@@ -16,12 +17,6 @@ from controller.ident.estimate import (
     estimate_multisine_lines,
 )
 from controller.ident.excitation import Multisine, MultisineSpec, multisine
-
-FS = 1000.0
-# M(s) P(s) of the article, 7.0 Hz, damping 0.707, ZOH-discretised at the loop rate
-_num, _den, _ = sig.cont2discrete(([1935.0], [1.0, 62.2, 1935.0]), 1.0 / FS, method="zoh")
-B_G = np.ravel(_num)
-A_G = np.ravel(_den)
 
 
 def _odd(n_periods: int = 1, **kw: object) -> Multisine:
@@ -43,10 +38,6 @@ def _odd(n_periods: int = 1, **kw: object) -> Multisine:
     return multisine(spec)
 
 
-def _plant(freq_hz: np.ndarray) -> np.ndarray:
-    return sig.freqz(B_G, A_G, worN=freq_hz, fs=FS)[1]
-
-
 @pytest.mark.parametrize("n_periods", [1, 3])
 def test_spread_from_the_lines_matches_the_scatter(n_periods: int) -> None:
     """Output noise (white): the reported standard deviation of each line is the scatter of
@@ -54,7 +45,7 @@ def test_spread_from_the_lines_matches_the_scatter(n_periods: int) -> None:
     ms = _odd(n_periods)
     u = ms.signal
     y0 = sig.lfilter(B_G, A_G, u)
-    g = _plant(ms.freq_hz)
+    g = plant_response(ms.freq_hz)
     rng = np.random.default_rng(3)
     errors, sigmas = [], []
     for _ in range(300):
@@ -134,6 +125,6 @@ def test_closed_loop_signals_and_lengths() -> None:
     y = sig.lfilter(B_G, A_G, ms.signal)
     est = estimate_multisine_lines(ms, ms.signal, y, ms.signal)
     assert est.method == "closed_loop_x"
-    np.testing.assert_allclose(est.response, _plant(ms.freq_hz), rtol=1e-3)
+    np.testing.assert_allclose(est.response, plant_response(ms.freq_hz), rtol=1e-3)
     with pytest.raises(ValueError, match=r"^w:"):
         estimate_multisine_lines(ms, ms.signal, y[: ms.measure_start + 10])

@@ -1,0 +1,20 @@
+"""The article's M(s) P(s) (7.0 Hz, damping 0.707) ZOH-discretised at the 1 kHz loop rate: the
+discrete plant the estimator tests (tests/test_frd_estimate.py, tests/test_ident_lines.py)
+excite, and its exact response (scipy's freqz, independent of the estimators)."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.signal as sig
+
+__all__ = ["A_G", "B_G", "FS", "plant_response"]
+
+FS = 1000.0
+_num, _den, _ = sig.cont2discrete(([1935.0], [1.0, 62.2, 1935.0]), 1.0 / FS, method="zoh")
+B_G = np.ravel(_num)
+A_G = np.ravel(_den)
+
+
+def plant_response(freq_hz: np.ndarray) -> np.ndarray:
+    """Exact response of the discrete plant at `freq_hz`."""
+    return np.asarray(sig.freqz(B_G, A_G, worN=freq_hz, fs=FS)[1])
