@@ -442,7 +442,8 @@ class _MeasuredModel:
         below, above = f < self.fm[0], f > self.fm[-1]
         a[below] = self.point[0] + w[below]
         a[above] = self.point[-1] + w[above]
-        exact = np.isin(f, self.fm)
+        # At a measured point (the points are strictly increasing: i is the point's index).
+        exact = (i >= 0) & (self.fm[np.maximum(i, 0)] == f)
         if np.any(exact):
             j = np.searchsorted(self.fm, f[exact])
             # (The band's edges keep their point allowance: beyond them the analysis grid

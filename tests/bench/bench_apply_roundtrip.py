@@ -177,11 +177,13 @@ def run(trees: dict[str, Path | None], record: KnowledgeRecord, new: list[LoopCo
 def breakdown(plant: PlantKnowledge, new: list[LoopConfig], get_ms: float) -> None:
     """The parts of a new-gains apply, timed here on the same candidates (fresh caches)."""
     parts: dict[str, list[float]] = {}
+    cpu: dict[str, list[float]] = {}
 
     def t(name: str, fn: Callable[..., object], *args: object) -> None:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn(*args)
         parts.setdefault(name, []).append((time.perf_counter() - t0) * 1e3)
+        cpu.setdefault(name, []).append((time.process_time() - c0) * 1e3)
 
     def gate_asks(cfg: LoopConfig) -> bool | None:
         return RecommendationSearch(cfg, plant).decide(lambda r: not cfg.q_cutoff_hz > r * 1.0001)
@@ -206,12 +208,20 @@ def breakdown(plant: PlantKnowledge, new: list[LoopConfig], get_ms: float) -> No
             t("filter design", LoopCoefficients.build, cfg, v)
             t("persistence (save + log, fsync)", persist, cfg, v, prev)
             prev = cfg
-    print("  where a new-gains apply's time goes (this tree's code in this process, median / "
-          "p99 ms over the same candidates):")
+    print("  where a new-gains apply's time goes (this tree's code in this process, over the "
+          "same candidates; CPU time is what the load does not stretch):")
+    print(f"    {'':34s} {'wall p50 / p99 ms':>18s} {'CPU p50 / p99 ms':>18s}")
     for name, ms in parts.items():
-        print(f"    {name:34s} {statistics.median(ms):7.1f} / {np.percentile(ms, 99):6.1f}")
-    print(f"    {'zenoh round trip (a GET)':34s} {get_ms:7.1f}")
-
+        c = cpu[name]
+        print(f"    {name:34s} {statistics.median(ms):8.1f} / {np.percentile(ms, 99):6.1f} "
+              f"{statistics.median(c):8.1f} / {np.percentile(c, 99):6.1f}")
+    print(f"    {'zenoh round trip (a GET)':34s} {get_ms:8.1f}")
+    gate = ["analysis", "search (as the gate asks)", "nonlinear check", "filter design"]
+    before = ["analysis", "search (whole, as before)", "nonlinear check", "filter design"]
+    now, then = (np.sum([cpu[k] for k in keys], axis=0) for keys in (gate, before))
+    print(f"    CPU of the gate's parts per candidate: p50 {np.percentile(now, 50):.1f} ms, p99 "
+          f"{np.percentile(now, 99):.1f} ms (with the whole search, as before: p50 "
+          f"{np.percentile(then, 50):.1f} ms, p99 {np.percentile(then, 99):.1f} ms)")
 
 def _load() -> str:
     return "load average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
@@ -224,6 +234,8 @@ def main() -> int:
     p.add_argument("--busy", type=int, default=0, help="busy loops beside the measurement")
     p.add_argument("--realtime", action="store_true", help="controller with SCHED_FIFO")
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--breakdown-only", action="store_true",
+                   help="no controllers: only where the time goes, in this process")
     a = p.parse_args()
     extra = ("--realtime-priority",) if a.realtime else ()
     plant = three_positions()
@@ -232,6 +244,11 @@ def main() -> int:
     new, same = candidates(plant, a.n, a.seed)
     print(f"{len(new)} new-gains and {len(same)} cut-off-only candidates, judged here in "
           f"{time.perf_counter() - t0:.1f} s; {os.cpu_count()} CPUs, {a.busy} busy loops beside")
+    if a.breakdown_only:
+        print(_load())
+        breakdown(plant, new, float("nan"))
+        print(_load())
+        return 0
     with tempfile.TemporaryDirectory(prefix="bench-apply-") as d:
         trees: dict[str, Path | None] = {}
         if a.before:
