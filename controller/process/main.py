@@ -124,42 +124,38 @@ def _open_access(opts: ControllerOptions, warn: Callable[[str], None]) -> Access
 def _session(opts: ControllerOptions) -> Any:
     import zenoh
 
-    if opts.auth_dir is None:
-        try:
-            return connect(SessionOptions(listen=opts.listen, connect=opts.connect,
-                                          insecure=opts.insecure))
-        except zenoh.ZError as exc:
-            raise StartupError(
-                f"--listen {', '.join(opts.listen)}: cannot open the Zenoh session (is the "
-                f"port in use by another controller? choose another with --listen): {exc}"
-            ) from exc
     from controller.auth import AuthError, load_users
 
-    if opts.connect:  # behind an authenticating router, logged in as a "controller" account
-        try:
-            role = load_users(opts.auth_dir)[opts.auth_user].role
-            if role != "controller":
-                raise AuthError(f"--user {opts.auth_user}: role {role!r}, expected controller "
-                                f"(add one with `dobtune auth init --user NAME=controller`)")
-            return connect(SessionOptions(connect=opts.connect, auth=opts.auth_dir,
-                                          user=opts.auth_user, fail_after_s=ROUTER_LOGIN_S))
-        except (AuthError, OSError, ValueError) as exc:
-            raise StartupError(f"--auth {opts.auth_dir}: {exc}") from exc
-        except zenoh.ZError as exc:
-            raise StartupError(
-                f"--connect {', '.join(opts.connect)}: no connection as {opts.auth_user!r} "
-                f"within {ROUTER_LOGIN_S:g} s (router unreachable, or it refused the "
-                f"credentials): {exc}") from exc
+    auth_errors: tuple[type[Exception], ...] = ()
     try:
-        return connect(SessionOptions(listen=opts.listen, auth=opts.auth_dir,
-                                      serve=(opts.rig_name,)))
-    except (AuthError, OSError, ValueError) as exc:
+        if opts.auth_dir is None:
+            so = SessionOptions(listen=opts.listen, connect=opts.connect, insecure=opts.insecure)
+            unreachable = (f"--listen {', '.join(opts.listen)}: cannot open the Zenoh session (is "
+                           f"the port in use by another controller? choose another with "
+                           f"--listen)")
+        else:
+            auth_errors = (AuthError, OSError, ValueError)
+            if opts.connect:  # behind an authenticating router, logged in as a "controller"
+                role = load_users(opts.auth_dir)[opts.auth_user].role
+                if role != "controller":
+                    raise AuthError(f"--user {opts.auth_user}: role {role!r}, expected "
+                                    f"controller (add one with `dobtune auth init --user "
+                                    f"NAME=controller`)")
+                so = SessionOptions(connect=opts.connect, auth=opts.auth_dir,
+                                    user=opts.auth_user, fail_after_s=ROUTER_LOGIN_S)
+                unreachable = (f"--connect {', '.join(opts.connect)}: no connection as "
+                               f"{opts.auth_user!r} within {ROUTER_LOGIN_S:g} s (router "
+                               f"unreachable, or it refused the credentials)")
+            else:
+                so = SessionOptions(listen=opts.listen, auth=opts.auth_dir,
+                                    serve=(opts.rig_name,))
+                unreachable = (f"--listen {', '.join(opts.listen)}: cannot open the Zenoh "
+                               f"session (port in use?)")
+        return connect(so)
+    except auth_errors as exc:
         raise StartupError(f"--auth {opts.auth_dir}: {exc}") from exc
     except zenoh.ZError as exc:
-        raise StartupError(
-            f"--listen {', '.join(opts.listen)}: cannot open the Zenoh session (port in use?): "
-            f"{exc}"
-        ) from exc
+        raise StartupError(f"{unreachable}: {exc}") from exc
 
 
 def _candidate(
