@@ -39,7 +39,7 @@ from server.commands import CommandRouter
 from server.engine import TuningEngine
 from server.escape import esc
 from server.fleet import FleetMonitor, FleetPanel
-from server.gate import ESTOP_LINK_HTML, Gate, title_html
+from server.http_access import ESTOP_LINK_HTML, HttpAccess, title_html
 from server.options import DashboardOptions, dashboard_users
 from server.panels.history import HistoryPanel
 from server.panels.identify import IdentifyPanel
@@ -107,17 +107,18 @@ class Dashboard:
             )
         )
         if users:
-            self.gate = Gate(opts.host, users={n: secrets.token_urlsafe(24) for n in users})
+            self.access = HttpAccess(opts.host, users={n: secrets.token_urlsafe(24) for n in users})
         else:
-            self.gate = Gate(opts.host) if opts.token is None else Gate(opts.host, opts.token)
+            self.access = (HttpAccess(opts.host) if opts.token is None
+                           else HttpAccess(opts.host, opts.token))
         self._requests = Requests(max_workers=2, name="ctl-request")
         self.sessions = BrowserSessions(opts, users, self.client, self._requests)
         self.engine = TuningEngine(sim_disturbances=opts.sim_disturbances)
         self.candidates = Candidates(self.engine, self._apply_async)
         self.commands = CommandRouter(self.sessions, self._requests, self.candidates,
                                       self._show_command)
-        self.gate.on_estop = self.commands.estop_from_link
-        self.gate.page_extra = ESTOP_LINK_HTML + title_html(opts.rig_name)
+        self.access.on_estop = self.commands.estop_from_link
+        self.access.page_extra = ESTOP_LINK_HTML + title_html(opts.rig_name)
         self.server: Any = None
         self.identify: IdentifyPanel | None = None
         self.recordings: RecordingsPanel | None = None
@@ -145,7 +146,7 @@ class Dashboard:
         """The address for `user` ("" with one identity): it carries that user's token."""
         assert self.server is not None
         return (f"http://{self.server.get_host()}:{self.server.get_port()}/"
-                f"?token={self.gate.token_of(user)}")
+                f"?token={self.access.token_of(user)}")
 
     def __enter__(self) -> Dashboard:
         import viser
@@ -156,10 +157,10 @@ class Dashboard:
             undo.push(self)  # a failure below closes what is open so far
             # viser's banner (printed whatever `verbose` says) shows a URL without the token,
             # which opens a 401 page: it goes nowhere; run_dashboard prints the URL.
-            with self.gate.serving(), contextlib.redirect_stdout(io.StringIO()):
+            with self.access.serving(), contextlib.redirect_stdout(io.StringIO()):
                 server = viser.ViserServer(host=self.opts.host, port=self.opts.port,
                                            verbose=False)
-            self.gate.port = server.get_port()
+            self.access.port = server.get_port()
             # Never open a public share tunnel from this app.
             server.request_share_url = lambda *a, **k: None  # type: ignore[method-assign]
             self.server = server
@@ -322,7 +323,7 @@ class Dashboard:
         if self.users:
             # viser keeps each client's websocket; the gate noted whose token opened it.
             conn = self.server._websock_server._live_connections.get(client.client_id)
-            user = self.gate.user_of_connection(conn) if conn is not None else None
+            user = self.access.user_of_connection(conn) if conn is not None else None
             if user is None:
                 log.error("browser %s: no user for its connection: it may only watch",
                           client.client_id)

@@ -13,7 +13,7 @@ from controller.client import ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig
 from server.candidates import Candidates
 from server.escape import esc
-from server.gate import Refused
+from server.http_access import Refused
 from server.session import BrowserSessions
 from server.workers import Requests
 

@@ -17,7 +17,7 @@ from collections.abc import Callable
 from typing import Any, NoReturn, TypeVar
 
 from controller.client import ClientOptions, ControllerClient
-from server.gate import Refused
+from server.http_access import Refused
 from server.options import DashboardOptions
 from server.workers import Requests, run_logged
 

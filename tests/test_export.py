@@ -16,7 +16,7 @@ import pytest
 from server import charts
 from server.charts import BODE_CHARTS, LIVE_CHARTS, ChartSpec
 from server.export import MARK_UNIT, chart_csv, column_header, export_filename
-from server.gate import PAGE_SCRIPT_FILE, Gate, page_script_html
+from server.http_access import PAGE_SCRIPT_FILE, HttpAccess, page_script_html
 from server.panels.widgets import EXPORT_LABEL, add_chart
 
 SPECS = {s.key: s for s in (*BODE_CHARTS, *LIVE_CHARTS, charts.PREVIEW_CHART,
@@ -212,7 +212,7 @@ def test_the_gate_puts_the_page_script_into_the_page_only() -> None:
         return Response(200, "OK", Headers({"Content-Type": "text/html",
                                             "Content-Length": str(len(page))}), page)
 
-    g = Gate("127.0.0.1", token="t" * 32)
+    g = HttpAccess("127.0.0.1", token="t" * 32)
     g.page_extra = "<a class='x'>E</a>"
     gated = g.wrap(viser)
     got = gated(None, Request(f"/?token={'t' * 32}", Headers({"Host": "127.0.0.1"})))

@@ -1,4 +1,4 @@
-// dobtune's page script (put into the page by server/gate.py, after viser's own page).
+// dobtune's page script (put into the page by server/http_access.py, after viser's own page).
 //
 // 1. PNG of every chart: beside the "CSV" button of each chart's Export row (server/panels/
 //    widgets.py) a "PNG" button that saves the chart as drawn here: its title, its canvas (the

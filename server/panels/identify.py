@@ -52,7 +52,7 @@ from controller.ident.result import IdentifyResult
 from controller.ident.spec import IDENTIFY_FIELDS, IdentifySpec
 from server import charts
 from server.escape import esc
-from server.gate import Refused
+from server.http_access import Refused
 from server.identify_view import (
     FitView,
     IdentifyView,

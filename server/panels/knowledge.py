@@ -13,7 +13,7 @@ from controller.client import ControllerClient, ControllerUnavailable
 from controller.gate.knowledge import MeasuredResponse
 from server.engine import TuningEngine, measured_from_csv
 from server.escape import esc
-from server.gate import Refused
+from server.http_access import Refused
 from server.measured import read_measured
 from server.session import BrowserSessions
 from server.workers import Refetch, Requests

@@ -30,7 +30,7 @@ from controller.recording.mcap_io import Recording, read_recording
 from controller.recording.report import REVERSAL_WINDOW_S, metrics
 from server.charts import CANDIDATE, NO_DOB, ChartSpec, minmax_decimate, ranged_scales
 from server.escape import esc
-from server.gate import Refused
+from server.http_access import Refused
 from server.panels.widgets import NEUTRAL, add_chart, box, set_html
 
 __all__ = ["OVERLAY_CHART", "RecordingsPanel", "compare_html", "list_html"]

@@ -31,7 +31,7 @@ from controller.client import ControllerClient
 from server.app import Dashboard
 from server.charts import BODE_CHARTS, LIVE_CHARTS
 from server.export import export_filename
-from server.gate import COOKIE
+from server.http_access import COOKIE
 from server.panels.widgets import EXPORT_LABEL
 
 pytestmark = pytest.mark.browser
@@ -246,7 +246,7 @@ class RawClient:
         host = f"127.0.0.1:{dashboard.server.get_port()}"
         self.ws = connect(
             f"ws://{host}/", open_timeout=30, max_size=None, ping_interval=None,
-            additional_headers={"Cookie": f"{COOKIE}={dashboard.gate.token}",
+            additional_headers={"Cookie": f"{COOKIE}={dashboard.access.token}",
                                 "Origin": f"http://{host}"},
             subprotocols=[f"viser-v{viser.__version__}"],  # type: ignore[list-item]
         )

@@ -87,7 +87,7 @@ def test_a_token_of_nobody_opens_nothing(env: dict[str, Any]) -> None:
     with pytest.raises(urllib.error.HTTPError) as err:
         urllib.request.urlopen(url, timeout=5)
     assert err.value.code == 401
-    assert dash.gate.token_of("op1") != dash.gate.token_of("view")
+    assert dash.access.token_of("op1") != dash.access.token_of("view")
 
 
 def test_the_viewer_cannot_apply_or_start(env: dict[str, Any], pages: dict[str, Any],

@@ -4,7 +4,7 @@ viser has no authentication and accepts any Origin: anyone who reaches the port 
 control (a raw websocket client can press a hidden or disabled one). The dashboard therefore
 checks every HTTP request and the websocket handshake before viser sees them:
 
-- The printed URL carries `?token=<random>`; with several users (`Gate.users`), each user has
+- The printed URL carries `?token=<random>`; with several users (`HttpAccess.users`), each user has
   a token of their own and the dashboard knows which user is behind each websocket
   (`user_of_connection`). A request with the right token gets the page and
   a cookie (HttpOnly, SameSite=Strict) that the page's own requests and its websocket then
@@ -17,7 +17,7 @@ checks every HTTP request and the websocket handshake before viser sees them:
 
 How: viser starts its server with `websockets.asyncio.server.serve(..., process_request=...)`;
 `install` wraps that function once per process so that the `process_request` of a server
-started while a `Gate` is being installed runs the gate's check first (`Gate.serving`). The
+started while a `HttpAccess` is being installed runs its check first (`HttpAccess.serving`). The
 comparison of tokens is constant-time.
 """
 
@@ -41,7 +41,7 @@ from urllib.parse import parse_qs, urlsplit
 from server.assets import web_asset
 from server.escape import esc
 
-__all__ = ["COOKIE", "ESTOP_LINK_HTML", "ESTOP_PATH", "PAGE_SCRIPT_FILE", "Gate", "Refused",
+__all__ = ["COOKIE", "ESTOP_LINK_HTML", "ESTOP_PATH", "PAGE_SCRIPT_FILE", "HttpAccess", "Refused",
            "install", "page_script_html", "title_html"]
 
 log = logging.getLogger(__name__)
@@ -63,12 +63,12 @@ ESTOP_LINK_HTML = (
     "</iframe>"
 )
 #: The page's own script: a PNG button beside every chart's CSV button, and the selected tabs
-#: kept in the URL's fragment (put into the page after `Gate.page_extra`).
+#: kept in the URL's fragment (put into the page after `HttpAccess.page_extra`).
 PAGE_SCRIPT_FILE = web_asset("dashboard.js")
 _lock = threading.Lock()
 #: One server start at a time: the gate a starting server takes is the one being installed.
 _starting = threading.Lock()
-_pending: list[Gate] = []
+_pending: list[HttpAccess] = []
 _installed = False
 
 _DENIED_PAGE = (
@@ -105,7 +105,7 @@ class Refused(RuntimeError):
 
 
 @dataclass
-class Gate:
+class HttpAccess:
     """The access check of one dashboard."""
 
     host: str
@@ -130,7 +130,7 @@ class Gate:
 
     def user_of_connection(self, connection: Any) -> str | None:
         """The user whose token opened this websocket ("" with a single token), None if
-        the connection did not pass this gate."""
+        the connection did not pass this check."""
         return self._by_connection.get(connection)
 
     def allowed_hosts(self) -> set[str]:
@@ -225,7 +225,7 @@ class Gate:
 
     @contextlib.contextmanager
     def serving(self) -> Iterator[None]:
-        """Servers started (by viser) inside this block are gated by this gate."""
+        """Servers started (by viser) inside this block are checked by this one."""
         install()
         with _starting:
             with _lock:
@@ -261,8 +261,8 @@ def _cookie(header: str, name: str) -> str | None:
 
 
 def install() -> None:
-    """Wrap `websockets.asyncio.server.serve` once: a server started while a gate is pending
-    gets that gate in front of its `process_request`."""
+    """Wrap `websockets.asyncio.server.serve` once: a server started while an HttpAccess is pending
+    gets its check in front of its `process_request`."""
     global _installed
     with _lock:
         if _installed:

@@ -14,7 +14,7 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from server.app import Dashboard, DashboardOptions
-from server.gate import COOKIE, ESTOP_PATH, Gate
+from server.http_access import COOKIE, ESTOP_PATH, HttpAccess
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,7 @@ def dash() -> Iterator[Dashboard]:
 
 
 def _base(d: Dashboard) -> str:
-    return f"127.0.0.1:{d.gate.port}"
+    return f"127.0.0.1:{d.access.port}"
 
 
 def test_the_page_needs_the_token_and_sets_a_cookie(dash: Dashboard) -> None:
@@ -41,7 +41,7 @@ def test_the_page_needs_the_token_and_sets_a_cookie(dash: Dashboard) -> None:
         cookie = r.headers["Set-Cookie"]
         page = r.read()
     assert b"dt-estop-fixed" in page and ESTOP_PATH.encode() in page  # the E-STOP is in it
-    assert cookie.startswith(f"{COOKIE}={dash.gate.token};") and "HttpOnly" in cookie
+    assert cookie.startswith(f"{COOKIE}={dash.access.token};") and "HttpOnly" in cookie
     assert "SameSite=Strict" in cookie
 
 
@@ -54,24 +54,24 @@ def test_a_websocket_without_the_token_or_from_another_site_is_refused(
     dash: Dashboard, headers: dict[str, str], why: str
 ) -> None:
     if headers.get("Cookie") == "COOKIE":
-        headers = {**headers, "Cookie": f"{COOKIE}={dash.gate.token}"}
-    before = dash.gate.refused
+        headers = {**headers, "Cookie": f"{COOKIE}={dash.access.token}"}
+    before = dash.access.refused
     with pytest.raises(InvalidStatus) as err:
         connect(f"ws://{_base(dash)}/", additional_headers=headers, open_timeout=5,
                 subprotocols=["viser-v1"])  # type: ignore[list-item]
     assert err.value.response.status_code == 403, why
-    assert dash.gate.refused == before + 1
+    assert dash.access.refused == before + 1
     assert not dash.server.get_clients()  # viser never saw it
 
 
 def test_the_page_origin_with_the_cookie_connects(dash: Dashboard) -> None:
-    headers = {"Cookie": f"{COOKIE}={dash.gate.token}", "Origin": f"http://{_base(dash)}"}
+    headers = {"Cookie": f"{COOKIE}={dash.access.token}", "Origin": f"http://{_base(dash)}"}
     with connect(f"ws://{_base(dash)}/", additional_headers=headers, open_timeout=5) as ws:
         assert ws.response is not None and ws.response.status_code == 101  # handshake passed
 
 
 def test_gate_checks_host_and_origin() -> None:
-    g = Gate("127.0.0.1", token="t" * 32, port=8080)
+    g = HttpAccess("127.0.0.1", token="t" * 32, port=8080)
     ok = {"Upgrade": "websocket", "Host": "127.0.0.1:8080", "Cookie": f"{COOKIE}={'t' * 32}",
           "Origin": "http://127.0.0.1:8080"}
     assert g.check("/", ok) == ("", False)
@@ -104,22 +104,22 @@ def test_the_estop_link_needs_the_token_and_this_host(dash: Dashboard) -> None:
     """The always-visible E-STOP is a plain GET: anyone with the page (any role) may press it,
     nobody without the token, and no other host name (DNS rebinding)."""
     calls: list[str] = []
-    real = dash.gate.on_estop
-    dash.gate.on_estop = lambda user: calls.append(user) or "E-STOP sent"
+    real = dash.access.on_estop
+    dash.access.on_estop = lambda user: calls.append(user) or "E-STOP sent"
     try:
         url = f"http://{_base(dash)}{ESTOP_PATH}"
         for bad in ({}, {"Cookie": f"{COOKIE}=wrong"}):
             with pytest.raises(urllib.error.HTTPError) as err:
                 urllib.request.urlopen(urllib.request.Request(url, headers=bad), timeout=5)
             assert err.value.code == 401
-        rebound = {"Cookie": f"{COOKIE}={dash.gate.token}", "Host": f"evil:{dash.gate.port}"}
+        rebound = {"Cookie": f"{COOKIE}={dash.access.token}", "Host": f"evil:{dash.access.port}"}
         with pytest.raises(urllib.error.HTTPError):
             urllib.request.urlopen(urllib.request.Request(url, headers=rebound), timeout=5)
         assert calls == []
-        ok = {"Cookie": f"{COOKIE}={dash.gate.token}"}
+        ok = {"Cookie": f"{COOKIE}={dash.access.token}"}
         with urllib.request.urlopen(urllib.request.Request(url, headers=ok), timeout=5) as r:
             assert r.status == 200 and b"E-STOP sent" in r.read()
             assert r.headers["Cache-Control"] == "no-store"
         assert calls == [""]
     finally:
-        dash.gate.on_estop = real
+        dash.access.on_estop = real
