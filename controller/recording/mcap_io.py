@@ -23,6 +23,7 @@ import json
 import math
 import struct
 from collections.abc import Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -297,15 +298,41 @@ def _sorted_state(rec: Recording, cols: dict[str, np.ndarray], times_ns: np.ndar
 def _read_scanned(path: Path) -> Recording | None:
     """The file's records walked as `_messages` walks them, runs of /state messages scanned
     by `state_scan` (None: a /state message not in the recorder's form)."""
-    from controller.recording import state_scan
 
     buf = memoryview(path.read_bytes())
     if bytes(buf[:8]) != _MAGIC:
         raise ValueError("not an MCAP file (no magic)")
+    with ThreadPoolExecutor(2, thread_name_prefix="read-recording") as pool:
+        try:
+            return _scan_records(buf[8:], pool)
+        finally:
+            pool.shutdown(cancel_futures=True)
+
+
+def _chunks_ahead(data: memoryview, pool: ThreadPoolExecutor) -> dict[int, Future[memoryview]]:
+    """Every chunk of the data section, decompressed on `pool` (in file order) while the
+    records before it are taken: chunk body offset -> its records."""
+    out: dict[int, Future[memoryview]] = {}
+    at, end = 0, len(data)
+    while at + 9 <= end:
+        op, n = _RECORD_HEAD.unpack_from(data, at)
+        body = at + 9
+        if op == _OP_DATA_END or body + n > end:
+            break
+        if op == _OP_CHUNK:
+            out[body] = pool.submit(_chunk, data, body)
+        at = body + n
+    return out
+
+
+def _scan_records(top: memoryview, pool: ThreadPoolExecutor) -> Recording | None:
+    from controller.recording import state_scan
+
     rec = Recording(state={}, log_time_s=np.empty(0))
     schemas: dict[int, str] = {}
     channels: dict[int, tuple[str, str]] = {}
-    state = state_scan.StateColumns()
+    ahead = _chunks_ahead(top, pool)
+    state = state_scan.StateColumns(pool)
     state_cid = -1
 
     def records(data: memoryview, out_of_chunk: bool) -> bool:
@@ -337,7 +364,8 @@ def _read_scanned(path: Path) -> Recording | None:
                 rec.channels[topic] = schema
                 _take_other(rec, topic, t_ns, data[body + 22 : at])
             elif op == _OP_CHUNK and out_of_chunk:
-                if not records(_chunk(data, body), False):
+                got = ahead.pop(body, None) if data is top else None
+                if not records(got.result() if got else _chunk(data, body), False):
                     return False
             elif op == _OP_SCHEMA:
                 (sid,) = _U16.unpack_from(data, body)
@@ -352,7 +380,7 @@ def _read_scanned(path: Path) -> Recording | None:
                 return True
         return True
 
-    if not records(buf[8:], True):
+    if not records(top, True):
         return None
     _sorted_state(rec, *state.columns())
     return rec

@@ -13,8 +13,10 @@ same arrays (tests/test_mcap_io.py checks both on the same files).
 
 from __future__ import annotations
 
+from concurrent.futures import Executor, Future
 from typing import Any
 
+import msgspec
 import numba
 import numpy as np
 
@@ -39,7 +41,7 @@ def _patterns() -> tuple[np.ndarray, np.ndarray]:
 PATTERNS, PATTERN_OFFSETS = _patterns()
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _u64(data: np.ndarray, at: int) -> int:
     v = 0
     for i in range(7, -1, -1):
@@ -47,14 +49,14 @@ def _u64(data: np.ndarray, at: int) -> int:
     return v
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _is_number_byte(c: int, integer: bool) -> bool:
     if 48 <= c <= 57 or c == 45:  # 0-9 and '-'
         return True
     return not integer and (c == 46 or c == 43 or c == 101 or c == 69)  # . + e E
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def scan(data: np.ndarray, at: int, end: int, state_channel: int, pats: np.ndarray,
          pat_off: np.ndarray, txt: np.ndarray, times: np.ndarray, runs: np.ndarray,
          cur: np.ndarray) -> int:
@@ -156,17 +158,25 @@ def scan(data: np.ndarray, at: int, end: int, state_channel: int, pats: np.ndarr
     return at
 
 
+_floats = msgspec.json.Decoder(list[float | None])
+
+
+def _numbers(txt: np.ndarray, n: int) -> np.ndarray:
+    """The JSON array of numbers in `txt` as an (n, N_NUMBERS) float64 array."""
+    values = np.array(_floats.decode(txt.data), dtype=np.float64)
+    if values.size != n * N_NUMBERS:
+        raise ValueError(f"/state: {values.size} numbers for {n} messages")
+    return values.reshape(n, N_NUMBERS)
+
+
 class StateColumns:
-    """Accumulates the /state messages chunk by chunk: numbers, log times and modes."""
+    """Accumulates the /state messages chunk by chunk: numbers, log times and modes. The
+    scan runs without the GIL; the numbers of each chunk are decoded on `pool` (when given)
+    while the caller scans the next one."""
 
-    _floats = None
-
-    def __init__(self) -> None:
-        import msgspec
-
-        if StateColumns._floats is None:
-            StateColumns._floats = msgspec.json.Decoder(list[float | None])
-        self._numbers: list[np.ndarray] = []
+    def __init__(self, pool: Executor | None = None) -> None:
+        self._pool = pool
+        self._numbers: list[Future[np.ndarray] | np.ndarray] = []
         self._times: list[np.ndarray] = []
         self._modes: list[str] = []
         self._mode_starts: list[int] = []
@@ -185,11 +195,9 @@ class StateColumns:
         n = int(cur[1])
         if n:
             txt[cur[0] - 1] = 93  # the last ',' becomes ']'
-            assert self._floats is not None
-            values = np.array(self._floats.decode(txt[: cur[0]].data), dtype=np.float64)
-            if values.size != n * N_NUMBERS:
-                raise ValueError(f"/state: {values.size} numbers for {n} messages")
-            self._numbers.append(values.reshape(n, N_NUMBERS))
+            txt = txt[: cur[0]]
+            self._numbers.append(_numbers(txt, n) if self._pool is None
+                                 else self._pool.submit(_numbers, txt, n))
             self._times.append(times[:n].copy())
             for first, start, length in runs[: cur[2]]:
                 self._mode_starts.append(self.n + int(first))
@@ -200,8 +208,8 @@ class StateColumns:
     def columns(self) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Unsorted columns (seq and config_version as float64, as the general decoder's) and
         the log times in ns."""
-        num = (np.concatenate(self._numbers) if self._numbers
-               else np.empty((0, N_NUMBERS), dtype=np.float64))
+        parts = [x.result() if isinstance(x, Future) else x for x in self._numbers]
+        num = np.concatenate(parts) if parts else np.empty((0, N_NUMBERS), dtype=np.float64)
         by_column = np.ascontiguousarray(num.T)  # one contiguous row per column
         cols: dict[str, Any] = {k: by_column[i] for i, k in enumerate(KEYS[:-1])}
         counts = np.diff(np.asarray([*self._mode_starts, self.n], dtype=np.int64)).astype(np.int64)
