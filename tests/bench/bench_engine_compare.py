@@ -66,6 +66,9 @@ def latencies_ms(n: int, measured: bool, seed: int = 0) -> list[tuple[float, flo
     eng.set_knowledge(_knowledge(measured))  # type: ignore[arg-type]
     active = LoopConfig()
     eng.compare(active.with_(q_cutoff_hz=0.77), active)  # warm-up: caches, first imports
+    # What the tuning panel's second worker does after a move, off the slider path: the whole
+    # recommended cut-off search for these gains (the slider's 'max' mark).
+    eng.recommended_max_cutoff_hz(active)
     rng = np.random.default_rng(seed)
     lat = []
     for x in rng.uniform(-1.3, 1.6, n):  # log10 of the cut-off, as the slider moves it
