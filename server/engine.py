@@ -60,7 +60,6 @@ __all__ = [
     "chart_index",
     "curves_from_analysis",
     "freq_grid_hz",
-    "measured_from_csv",
     "plant_curves",
     "speed_loop",
 ]
@@ -319,11 +318,6 @@ def _wrap_start(phase_deg: FloatArray) -> FloatArray:
         return phase_deg
     turns = math.floor((phase_deg[0] + 270.0) / 360.0)
     return np.asarray(phase_deg - 360.0 * turns, dtype=np.float64)
-
-
-def measured_from_csv(name: str, data: Any) -> MeasuredResponse:
-    """A CSV response (FrdData) as the gate's plant knowledge: a continuous response u -> w."""
-    return MeasuredResponse(name=name, freq_hz=data.freq_hz, response=data.response)
 
 
 # -- the engine ---------------------------------------------------------------------------------

@@ -142,8 +142,10 @@ def test_controller_never_imports_server_or_viser() -> None:
 @contextlib.contextmanager
 def _dashboard_and_controller(tmp_path: Path, rig: str, **opts: Any) -> Iterator[Dashboard]:
     """A controller process of `rig` and a dashboard on it (`opts`: DashboardOptions fields),
-    once the dashboard's client has reached the controller."""
+    once the dashboard's client has reached the controller. Its queries wait up to 30 s for a
+    reply (they return when answered: an apply judged at load 30 took over 2 s)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
+    opts = {"query_timeout_s": 30.0, **opts}
     with controller_process(endpoint, rig, tmp_path / "state"), Dashboard(DashboardOptions(
             connect=(endpoint,), rig_name=rig, port=free_port(), verbose=False, **opts)) as d:
         wait_for(lambda: d.client.connected, CONTROLLER_START_S)
@@ -155,7 +157,7 @@ def test_the_trajectory_dropdown_follows_the_controller(tmp_path: Path) -> None:
     from controller import protocol as proto
     from controller.core.trajectory import default_trajectory
 
-    with _dashboard_and_controller(tmp_path, "trajtest", query_timeout_s=2.0) as d:
+    with _dashboard_and_controller(tmp_path, "trajtest") as d:
         assert d.live is not None
         wait_for(lambda: d.live.trajectory.value == "sine")
         reply = d.client.command(proto.SetTrajectory(trajectory=default_trajectory("ramp")))
@@ -167,7 +169,7 @@ def test_the_trajectory_dropdown_follows_the_controller(tmp_path: Path) -> None:
 def test_history_lists_versions_and_loads_one_as_the_candidate(tmp_path: Path) -> None:
     from controller.core.config import LoopConfig
 
-    with _dashboard_and_controller(tmp_path, "histtest", query_timeout_s=2.0) as d:
+    with _dashboard_and_controller(tmp_path, "histtest") as d:
         first = d.client.get_config()
         reply = d.client.apply(first.config.with_(q_cutoff_hz=0.8, cv_kp=1.2))
         assert reply.accepted, reply.reasons

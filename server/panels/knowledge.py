@@ -10,8 +10,9 @@ from typing import Any
 
 from controller import protocol as proto
 from controller.client import ControllerClient, ControllerUnavailable
+from controller.gate.frd import measured_from_frd
 from controller.gate.knowledge import MeasuredResponse
-from server.engine import TuningEngine, measured_from_csv
+from server.engine import TuningEngine
 from server.escape import esc
 from server.http_access import Refused
 from server.measured import read_measured
@@ -76,7 +77,7 @@ class KnowledgePanel:
 
     def load_csv(self, name: str, content: bytes, browser: Any = None) -> None:
         try:
-            measured = measured_from_csv(name, read_measured(name, content))
+            measured = measured_from_frd(read_measured(name, content), name)
         except ValueError as exc:
             log.warning("measured response %s not used: %s", name, exc)
             self.text.content = _measured_html(f"{esc(name)}: {esc(str(exc))}", error=True)
