@@ -109,6 +109,14 @@ def _freq(x: np.ndarray, rate_hz: float) -> float | None:
     return 0.5 * crossings * rate_hz / x.size
 
 
+@lru_cache(maxsize=4)
+def _band_sos(rate_hz: float) -> np.ndarray:
+    """The 4-150 Hz band-pass (second order) at the loop rate: the same for every candidate."""
+    sos = butter_sos(2, _BAND_HZ, "bandpass", rate_hz)
+    sos.flags.writeable = False
+    return sos
+
+
 def nonlinear_check(
     cfg: LoopConfig,
     model: NominalModel | None = None,
@@ -146,7 +154,7 @@ def nonlinear_check(
               at=k_stop, period_s=ts)
     cmd = run.command_deg_s
     err = run.ref_deg - run.pos_deg
-    band = sosfilt(butter_sos(2, _BAND_HZ, "bandpass", rate), cmd)
+    band = sosfilt(_band_sos(rate), cmd)
     k_rev = round(0.5 * t_stop * rate)
     rev = band[k_rev : k_rev + round(0.4 * rate)]
     hold = band[n - round(1.0 * rate) :]
