@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import json
+import threading
 import time
 from pathlib import Path
 
@@ -62,23 +63,49 @@ def _wait_state(client: Client, states: tuple[str, ...], timeout_s: float) -> pr
     return st
 
 
-def test_remote_identification_matches_mp(
+def test_remote_identification_matches_mp_and_shows_partial_results_while_running(
     controller: ControllerProcess, client: Client, tmp_path: Path
 ) -> None:
+    """One run (about 16 s in the loop) checked twice: from the CLI (`dobtune identify
+    --connect`: its files and its final result against M(s)P(s)) and, while it runs, from a
+    second client (each finished frequency shows up in the status with its spread)."""
     assert _status(client).state == "idle"
     out, err = io.StringIO(), io.StringIO()
     out_dir = tmp_path / "id"
-    code = identify_main(
-        None,
-        controller.endpoint,
-        controller.rig,
-        msgspec.structs.asdict(SHORT),
-        out_dir,
-        True,
-        out,
-        err,
-    )
-    assert code == EXIT_OK, err.getvalue()
+    result: list[int] = []
+    cli = threading.Thread(target=lambda: result.append(identify_main(
+        None, controller.endpoint, controller.rig, msgspec.structs.asdict(SHORT), out_dir,
+        True, out, err)))
+    cli.start()
+    seen: list[proto.IdentifyStatus] = []
+
+    def partial() -> bool:
+        st = _status(client)
+        if st.state == "running" and st.positions and st.positions[0].points_done >= 1:
+            seen.append(st)
+            return True
+        assert st.state in ("idle", "running"), f"run ended before a partial status ({st.state})"
+        return False
+
+    try:
+        assert wait_until(partial, 60.0, poll_s=0.05)
+    finally:
+        cli.join(300.0)
+    assert not cli.is_alive() and result == [EXIT_OK], err.getvalue()
+
+    # While running: the finished points, with their spread, and nothing final yet.
+    st = seen[-1]
+    assert st.progress < 1.0 and not st.summary_json and st.natural_freq_hz is None
+    (part,) = st.positions
+    k = part.points_done
+    assert 1 <= k < part.points_total == 3 and not part.complete
+    for name in ("freq_hz", "mag_db", "phase_deg", "coherence", "mag_std_db", "phase_std_deg"):
+        assert len(getattr(part, name)) == k, name
+    assert all(0.0 < s < 1.0 for s in part.mag_std_db), part.mag_std_db  # dB
+    assert all(0.0 < s < 5.0 for s in part.phase_std_deg), part.phase_std_deg  # deg
+    print(f"partial after {st.progress:.0%}: {k} point(s), mag std {part.mag_std_db} dB")
+
+    # The end, as the CLI reports it and as the controller's status says.
     summary = json.loads(out.getvalue())
     assert summary["complete"] is True and summary["plant"] == "controller"
     assert "%] position 1/1" in err.getvalue()  # progress on the terminal
@@ -86,6 +113,10 @@ def test_remote_identification_matches_mp(
     assert st.state == "done" and st.progress == 1.0 and st.run_id == 1
     (pos,) = st.positions
     assert pos.complete and pos.points_done == pos.points_total == 3
+    assert len(pos.mag_std_db) == len(pos.phase_std_deg) == 3
+    # the live values are the final result's
+    for name in ("freq_hz", "mag_db", "phase_deg", "coherence", "mag_std_db", "phase_std_deg"):
+        np.testing.assert_allclose(getattr(part, name), getattr(pos, name)[:k], rtol=1e-9)
     f = np.asarray(pos.freq_hz)
     resp = 10.0 ** (np.asarray(pos.mag_db) / 20.0) * np.exp(1j * np.radians(pos.phase_deg))
     good = np.asarray(pos.coherence) > 0.95
@@ -111,40 +142,6 @@ def _start(client: Client, spec: IdentifySpec) -> proto.CommandReply:
     reply = client.command(proto.IdentifyStart(spec=spec))
     assert reply.ok, reply.message
     return reply
-
-
-def test_status_carries_partial_response_with_std_while_running(
-    controller: ControllerProcess, client: Client
-) -> None:
-    # 3 stepped-sine points at one position: each finished frequency shows up while running
-    _start(client, SHORT)
-    seen: list[proto.IdentifyStatus] = []
-
-    def partial() -> bool:
-        st = _status(client)
-        if st.state == "running" and st.positions and st.positions[0].points_done >= 1:
-            seen.append(st)
-            return True
-        assert st.state == "running", f"run ended before a partial status ({st.state})"
-        return False
-
-    assert wait_until(partial, 30.0, poll_s=0.05)
-    st = seen[-1]
-    assert st.progress < 1.0 and not st.summary_json and st.natural_freq_hz is None
-    (pos,) = st.positions
-    k = pos.points_done
-    assert 1 <= k < pos.points_total == 3 and not pos.complete
-    for name in ("freq_hz", "mag_db", "phase_deg", "coherence", "mag_std_db", "phase_std_deg"):
-        assert len(getattr(pos, name)) == k, name
-    assert all(0.0 < s < 1.0 for s in pos.mag_std_db), pos.mag_std_db  # dB
-    assert all(0.0 < s < 5.0 for s in pos.phase_std_deg), pos.phase_std_deg  # deg
-    print(f"partial after {st.progress:.0%}: {k} point(s), mag std {pos.mag_std_db} dB")
-    final = _wait_state(client, ("done",), 60.0)
-    (done,) = final.positions
-    assert done.complete and len(done.mag_std_db) == len(done.phase_std_deg) == 3
-    # the live values are the final result's
-    for name in ("freq_hz", "mag_db", "phase_deg", "coherence", "mag_std_db", "phase_std_deg"):
-        np.testing.assert_allclose(getattr(pos, name), getattr(done, name)[:k], rtol=1e-9)
 
 
 def test_window_hit_aborts_back_to_hold_with_partial_data(
