@@ -19,7 +19,7 @@ def test_sos_filter_step_matches_scipy_sosfilt() -> None:
     for sos in (dob.f1_sos, dob.f2_sos):
         f = SosFilter(sos)
         y = np.array([f.step(float(v)) for v in x])
-        np.testing.assert_allclose(y, signal.sosfilt(sos, x), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(y, signal.sosfilt(np.array(sos), x), rtol=1e-10, atol=1e-12)
 
 
 def test_set_steady_holds_a_constant_input() -> None:
