@@ -44,7 +44,7 @@ class World:
 
 
 def _world(cfg: LoopConfig) -> World:
-    setup = rig_setup(["load-steps", "friction-change", "cogging"])
+    setup = rig_setup(["load-steps", "friction-change", "cogging", "sine-0.5hz"])
     rig = build_rig(setup, rate_hz=RATE_HZ, seed=5, initial_position_deg=30.0)
     w = World(ServoLoop(LoopCoefficients.build(cfg)), rig, Trajectory(), Ramp(TS))
     w.ramp.begin(rig.read()[0])  # Start: approach the sine from 30 deg
@@ -238,3 +238,41 @@ def test_compiled_rate_loop_on_the_linear_rigs_bit_for_bit(
         assert np.isnan(outs[0][-1]) and np.isfinite(outs[0][1000])
     else:
         assert np.all(np.isfinite(outs[0])) and np.max(np.abs(outs[0])) > 5.0
+
+
+def test_torque_profiles_sampled_compiled_as_in_python() -> None:
+    """Every profile class, alone and summed, sampled by the compiled loop's sampler equals
+    `torque_n_m` at each tick's time; another class and a sum of sums (float addition is not
+    associative) fall back to Python."""
+    from controller.sim.disturbance import (
+        NoDisturbance,
+        SineTorque,
+        StepsTorque,
+        StepTorque,
+        SumTorque,
+        flatten,
+    )
+    from controller.sim.offline import _torques
+
+    class Custom:
+        def torque_n_m(self, time_s: float) -> float:
+            return 0.3 * time_s
+
+    sine = SineTorque(0.7, 1.3, phase_deg=33.0)
+    steps = StepsTorque((0.5, 1.0, 2.5), (1.0, -2.0, 0.25))
+    profiles = [sine, StepTorque(-0.5, 1.2), steps, NoDisturbance(),
+                SumTorque((sine, steps, StepTorque(0.1, 0.0), NoDisturbance())),
+                SumTorque(()), Custom(),
+                SumTorque((sine, SumTorque((steps, StepTorque(0.1, 0.0))), NoDisturbance()))]
+    for d in profiles:
+        rig = SimRig(disturbance=d)  # type: ignore[arg-type]
+        for _ in range(7):
+            rig.step(0.0)
+        ts = rig.period_s
+        want = np.array([d.torque_n_m(k * ts) for k in range(7, 3007)], dtype=np.float64)
+        nested = isinstance(d, SumTorque) and any(isinstance(p, SumTorque) for p in d.parts)
+        assert (flatten(d) is None) == (isinstance(d, Custom) or nested)  # type: ignore[arg-type]
+        got = _torques(rig, flatten(d), 3000)  # type: ignore[arg-type]
+        assert np.array_equal(got, want), d
+        zero = isinstance(d, NoDisturbance) or d == SumTorque(())
+        assert np.count_nonzero(want) == 0 if zero else np.count_nonzero(want) > 1000

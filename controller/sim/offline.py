@@ -44,6 +44,7 @@ from controller.core.loop import ServoLoop
 from controller.core.ramp import Ramp
 from controller.core.trajectory import KIND_CODE, Trajectory
 from controller.sim import sim_rig
+from controller.sim.disturbance import FlatProfile, flat_torque, flatten
 from controller.sim.linear_rig import BacklashRig, LinearRig, backlash_period, linear_period
 from controller.sim.rig_disturbances import ScheduledRig
 from controller.sim.sim_rig import SimRig
@@ -194,9 +195,23 @@ def _make_speed_kernel(digest: str, period: Callable[..., float]) -> Callable[..
     return numba.njit(cache=True)(speed_kernel)  # type: ignore[no-any-return]
 
 
+def _make_torque_sampler(digest: str) -> Callable[..., Any]:
+    def sample_torques(
+        kinds: Any, params: FloatArray, times_s: FloatArray, levels_n_m: FloatArray,
+        summed: bool, k0: int, ts: float, out: FloatArray,
+    ) -> None:
+        if len(digest) == 0:  # the digest only keys numba's cache
+            raise ValueError("no source digest")
+        for i in range(len(out)):
+            out[i] = flat_torque(kinds, params, times_s, levels_n_m, summed, (k0 + i) * ts)
+
+    return numba.njit(cache=True)(sample_torques)  # type: ignore[no-any-return]
+
+
 _DIGEST = _compiled_in((_servo_law, _speed_law, _trajectory_at, _ramp_step, _advance,
-                        backlash_period, linear_period))
+                        backlash_period, linear_period, flat_torque))
 _kernel = _make_kernel(_DIGEST)
+_sample_torques = _make_torque_sampler(_DIGEST)
 _speed_kernels = {rig: _make_speed_kernel(_DIGEST, rig.period)
                   for rig in (BacklashRig, LinearRig)}
 
@@ -230,6 +245,17 @@ class OfflineRun:
     @property
     def d_hat_deg_s(self) -> FloatArray:
         return self.out[5]
+
+
+def _torques(rig: SimRig, profile: FlatProfile | None, n: int) -> FloatArray:
+    """The load torque of the rig's next `n` steps: compiled for the profiles of
+    `controller.sim.disturbance`, else the profile's own Python (`SimRig.torques`)."""
+    if profile is None or rig.disturbance is None:
+        return rig.torques(n)
+    out = np.empty(n)
+    _sample_torques(profile.kinds, profile.params, profile.times_s, profile.levels_n_m,
+                    profile.summed, rig.tick, rig.period_s, out)
+    return out
 
 
 def _take_pending(loop: ServoLoop) -> None:
@@ -328,6 +354,9 @@ def run_ticks(
     else:
         rp = np.zeros(6)
     st, co, f1c, f1s, f2c, f2s = _loop_arrays(loop)
+    sim = rig.rig if isinstance(rig, ScheduledRig) else rig
+    d = sim.disturbance
+    profile = None if d is None else flatten(d)
     done = 0
     while done < n:
         # A ScheduledRig's friction changes fall between pieces, exactly where its step
@@ -341,7 +370,7 @@ def run_ticks(
                 m = min(m, nxt - rig.tick)
             base = rig.rig
         assert isinstance(base, SimRig)
-        torque = base.torques(m)
+        torque = _torques(base, profile, m)
         noise = base.take_noise(m)
         rd = np.array(base.read())
         _kernel(base._x, base._p, noise, torque, tr, traj_tick + done, rp, st, co, f1c, f1s,

@@ -668,6 +668,16 @@ class SimRig:
 
     # -- for the compiled offline loop (`controller.sim.offline`), which steps the kernel itself
 
+    @property
+    def tick(self) -> int:
+        """Steps since the last reset (the load torque is sampled at tick x period_s)."""
+        return self._tick
+
+    @property
+    def disturbance(self) -> Disturbance | None:
+        """The external load-torque profile (None: none)."""
+        return self._disturbance
+
     def torques(self, n: int) -> npt.NDArray[np.float64]:
         """The load torque of the next `n` steps, sampled as `step` samples it."""
         d = self._disturbance
