@@ -24,7 +24,7 @@ from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients
 from controller.core.verdict import Verdict
 from controller.gate.knowledge import KnowledgeRecord
-from controller.process.worker_start import lower_priority, worker_init
+from controller.process.worker_start import worker_init
 
 __all__ = ["AnalysisWorker", "clear_caches", "gate", "gate_and_build", "judged"]
 
@@ -156,9 +156,8 @@ class AnalysisWorker:
         self._fresh = True
         #: A new worker's warm-up (imports, the rig kernel), waited for by the first call.
         self._warming: concurrent.futures.Future[None] | None = None
-        #: The worker was told to lower its priority (after its warm-up and `prime`; before
-        #: any other job).
-        self._settled = False
+        #: The worker has been given its first job (`prime` is worth it only before).
+        self._primed = False
         self._lock = threading.Lock()
 
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
@@ -172,15 +171,9 @@ class AnalysisWorker:
                 initargs=(os.getpid(), threading.current_thread() is threading.main_thread()),
             )
             self._fresh = True
-            self._settled = False
+            self._primed = False
             self._warming = self._pool.submit(_warm_up)
         return self._pool
-
-    def _settle(self, pool: concurrent.futures.ProcessPoolExecutor) -> None:
-        """The worker's jobs from here on run niced (`lower_priority`), behind the loop."""
-        if not self._settled:
-            self._settled = True
-            pool.submit(lower_priority)
 
     def start(self) -> None:
         """Start the worker process now and let it load the analysis while the caller goes on
@@ -197,9 +190,9 @@ class AnalysisWorker:
         if self._subprocess:
             with self._lock:
                 pool = self._executor()
-                if not self._settled:  # (still at the start-up's priority)
+                if not self._primed:  # (a new worker's first job after its warm-up)
+                    self._primed = True
                     pool.submit(gate, cfg, record)
-                self._settle(pool)
 
     def check(self, cfg: LoopConfig, record: KnowledgeRecord) -> Verdict:
         """The gate's verdict on `cfg` against the plant knowledge (no filters built)."""
@@ -259,7 +252,7 @@ class AnalysisWorker:
                     # The first real job pays for the imports and caches the warm-up did not
                     # touch: it gets the start-up time too, not just the job's timeout.
                     timeout_s = max(timeout_s, self._start_timeout_s)
-                self._settle(pool)
+                self._primed = True
                 result = pool.submit(fn, *args).result(timeout=timeout_s)
                 self._fresh = False
                 return result

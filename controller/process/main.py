@@ -387,8 +387,8 @@ def _run(
         )
     except PersistenceError as exc:
         raise StartupError(str(exc)) from exc
-    # The worker judges the running configuration once it has loaded, then lowers its
-    # priority: the first apply finds the knowledge converted and the analysis run.
+    # The worker judges the running configuration once it has loaded: the first apply finds
+    # the knowledge converted and the analysis run (else it waited for that too).
     runner.prime(cfg, knowledge)
     previous_switch = sys.getswitchinterval()
     sys.setswitchinterval(opts.switch_interval_s)

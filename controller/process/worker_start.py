@@ -3,7 +3,7 @@
 A spawned worker imports its initializer's module before anything else runs in it; here that
 takes milliseconds, so the worker ignores Ctrl-C (a terminal signals the whole process group:
 the controller decides) before it loads the analysis for seconds (a SIGINT then would kill it
-with a traceback). Once loaded it lowers its priority (`lower_priority`).
+with a traceback).
 """
 
 from __future__ import annotations
@@ -14,12 +14,9 @@ import signal
 import threading
 import time
 
-__all__ = ["lower_priority", "worker_init"]
+__all__ = ["worker_init"]
 
 PR_SET_PDEATHSIG = 1
-#: The worker's niceness once it has loaded (`lower_priority`).
-WORKER_NICE = 10
-_niced = False
 
 
 def _end_with_parent(parent_pid: int, death_signal: bool, poll_s: float = 0.5) -> None:
@@ -52,15 +49,8 @@ def worker_init(parent_pid: int, death_signal: bool) -> None:
     # Ctrl-C in a terminal reaches the whole process group: the parent decides, not us.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _end_with_parent(parent_pid, death_signal)
-
-
-def lower_priority() -> None:
-    """From now on the loop's process wins the CPU over this worker's analyses on a busy
-    machine (niceness +`WORKER_NICE`, once). A worker loads (and judges the running
-    configuration) at normal priority first, like the controller's own start-up: niced, it
-    needed many times longer behind a busy machine, and the first apply waited for it."""
-    global _niced
-    if not _niced:
-        _niced = True
-        with contextlib.suppress(OSError):
-            os.nice(WORKER_NICE)
+    # The loop's process wins the CPU over an analysis on a busy machine (also over this
+    # worker's loading: at normal priority it slowed the controller's own start by ~15 % at
+    # load 20-25, bench_startup).
+    with contextlib.suppress(OSError):
+        os.nice(10)
