@@ -200,28 +200,41 @@ def _messages(path: Path) -> Iterator[tuple[str, str, int, bytes]]:
     def records(data: memoryview, out_of_chunk: bool) -> Iterator[tuple[str, str, int, bytes]]:
         at, end = 0, len(data)
         while at < end:
-            op, n = _RECORD_HEAD.unpack_from(data, at)
-            body = at + 9
-            at = body + n
-            if at > end:
-                raise ValueError("truncated record")
+            op, body, at = _record(data, at, end)
             if op == _OP_MESSAGE:
                 cid, _seq, t_ns, _pub = _MESSAGE_HEAD.unpack_from(data, body)
                 topic, schema = channels[cid]
                 yield topic, schema, t_ns, bytes(data[body + 22 : at])
             elif op == _OP_CHUNK and out_of_chunk:
                 yield from records(_chunk(data, body), False)
-            elif op == _OP_SCHEMA:
-                (sid,) = _U16.unpack_from(data, body)
-                schemas[sid] = _string(data, body + 2)[0]
-            elif op == _OP_CHANNEL:
-                cid, sid = struct.unpack_from("<HH", data, body)
-                topic = _string(data, body + 4)[0]
-                channels[cid] = (topic, schemas.get(sid, ""))
             elif op == _OP_DATA_END and out_of_chunk:
                 return
+            else:
+                _take_meta(op, data, body, schemas, channels)
 
     yield from records(buf[8:], True)
+
+
+def _record(data: memoryview, at: int, end: int) -> tuple[int, int, int]:
+    """(opcode, where its content starts, where the next record starts) of the record at
+    `at` (MCAP spec: opcode, u64 length, content)."""
+    op, n = _RECORD_HEAD.unpack_from(data, at)
+    body = at + 9
+    if body + n > end:
+        raise ValueError("truncated record")
+    return op, body, body + n
+
+
+def _take_meta(op: int, data: memoryview, body: int, schemas: dict[int, str],
+               channels: dict[int, tuple[str, str]]) -> None:
+    """A schema or channel record into the maps (other records are not needed)."""
+    if op == _OP_SCHEMA:
+        (sid,) = _U16.unpack_from(data, body)
+        schemas[sid] = _string(data, body + 2)[0]
+    elif op == _OP_CHANNEL:
+        cid, sid = struct.unpack_from("<HH", data, body)
+        topic = _string(data, body + 4)[0]
+        channels[cid] = (topic, schemas.get(sid, ""))
 
 
 def _chunk(data: memoryview, at: int) -> memoryview:
@@ -351,11 +364,7 @@ def _scan_records(top: memoryview, pool: ThreadPoolExecutor) -> Recording | None
                     rec.channels["/state"] = channels[state_cid][1]
                 if at >= end:
                     break
-            op, n = _RECORD_HEAD.unpack_from(data, at)
-            body = at + 9
-            at = body + n
-            if at > end:
-                raise ValueError("truncated record")
+            op, body, at = _record(data, at, end)
             if op == _OP_MESSAGE:
                 cid, _seq, t_ns, _pub = _MESSAGE_HEAD.unpack_from(data, body)
                 topic, schema = channels[cid]
@@ -367,17 +376,12 @@ def _scan_records(top: memoryview, pool: ThreadPoolExecutor) -> Recording | None
                 got = ahead.pop(body, None) if data is top else None
                 if not records(got.result() if got else _chunk(data, body), False):
                     return False
-            elif op == _OP_SCHEMA:
-                (sid,) = _U16.unpack_from(data, body)
-                schemas[sid] = _string(data, body + 2)[0]
-            elif op == _OP_CHANNEL:
-                cid, sid = struct.unpack_from("<HH", data, body)
-                topic = _string(data, body + 4)[0]
-                channels[cid] = (topic, schemas.get(sid, ""))
-                if topic == "/state" and state_cid < 0:
-                    state_cid = cid
             elif op == _OP_DATA_END and out_of_chunk:
                 return True
+            else:
+                _take_meta(op, data, body, schemas, channels)
+                if op == _OP_CHANNEL and state_cid < 0:
+                    state_cid = next((c for c, (t, _) in channels.items() if t == "/state"), -1)
         return True
 
     if not records(top, True):
