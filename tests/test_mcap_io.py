@@ -20,6 +20,7 @@ from controller.recording.mcap_io import (
     _read_general,
     _read_scanned,
     read_recording,
+    read_recordings,
 )
 
 
@@ -217,3 +218,19 @@ def test_a_state_message_the_general_decoder_refuses_is_refused(tmp_path: Path) 
         w.finish()
     with pytest.raises(ValueError, match=r"badseq\.mcap"):
         read_recording(path)
+
+
+def test_several_files_read_together_are_read_as_one_by_one(tmp_path: Path) -> None:
+    paths = []
+    for i in range(3):
+        paths.append(tmp_path / f"r{i}.mcap")
+        with Recorder(paths[-1], rig="m") as r:
+            for b in _batches(1000 + 500 * i):
+                r.state(b)
+    together = read_recordings(paths)
+    assert [x.n for x in together] == [1000, 1500, 2000]
+    for one, path in zip(together, paths, strict=True):
+        _same_recording(one, read_recording(path))
+    (tmp_path / "bad.mcap").write_bytes(b"not an mcap at all")
+    with pytest.raises(ValueError, match=r"bad\.mcap"):
+        read_recordings([paths[0], tmp_path / "bad.mcap"])

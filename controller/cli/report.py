@@ -19,7 +19,7 @@ __all__ = ["report_main"]
 
 
 def report_main(files: list[Path], out: Path | None, csv: Path | None, stdout: TextIO) -> int:
-    from controller.recording.mcap_io import read_recording
+    from controller.recording.mcap_io import read_recordings
     from controller.recording.report import html_report, metrics, to_csv
 
     if not 1 <= len(files) <= 2:
@@ -29,7 +29,7 @@ def report_main(files: list[Path], out: Path | None, csv: Path | None, stdout: T
         stdout.write("error: nothing to write: give --out REPORT.html and/or --csv FILE.csv\n")
         return 2
     try:
-        recs = [(f.name, read_recording(f)) for f in files]
+        recs = [(f.name, r) for f, r in zip(files, read_recordings(files), strict=True)]
     except (OSError, ValueError) as exc:
         stdout.write(f"error: {exc}\n")
         return 2

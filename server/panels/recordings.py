@@ -26,7 +26,7 @@ import numpy as np
 from controller.client import ControllerUnavailable
 from controller.client.recorder import Recorder, RecordOptions
 from controller.recording.compare import SummaryRow, align_runs, config_diff, summary_row
-from controller.recording.mcap_io import Recording, read_recording
+from controller.recording.mcap_io import Recording, read_recording, read_recordings
 from controller.recording.report import REVERSAL_WINDOW_S, metrics
 from server.charts import CANDIDATE, NO_DOB, ChartSpec, minmax_decimate, ranged_scales
 from server.escape import esc
@@ -219,8 +219,7 @@ class RecordingsPanel:
         if _NONE in (name_a, name_b):
             return self._say("Pick two recordings.")
         try:
-            rec_a = read_recording(self.directory / name_a)
-            rec_b = read_recording(self.directory / name_b)
+            rec_a, rec_b = read_recordings((self.directory / name_a, self.directory / name_b))
             al = align_runs(*_columns(rec_a), *_columns(rec_b))
         except (OSError, ValueError) as exc:
             return self._say(f"Cannot compare: {exc}")

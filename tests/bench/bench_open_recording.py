@@ -25,7 +25,7 @@ from controller import protocol as proto
 from controller.cli.report import report_main
 from controller.recording import mcap_io
 from controller.recording.compare import align_runs, summary_row
-from controller.recording.mcap_io import Recorder, read_recording
+from controller.recording.mcap_io import Recorder, read_recording, read_recordings
 from controller.recording.report import metrics
 
 CACHE = Path("/tmp/dobtune-bench-recordings")
@@ -78,11 +78,15 @@ def main() -> None:
             write(f, a.minutes, 0.1 * i)
     print(f"{files[0].name}: {files[0].stat().st_size / 1e6:.1f} MB")
 
+    scanned = mcap_io._read_scanned
+
     def listed() -> None:
         summary_row(files[0].name, (r := read_recording(files[0])).configs, metrics(r))
 
     def overlaid() -> None:
-        ra, rb = read_recording(files[0]), read_recording(files[1])
+        # after: both at once, as the Recordings tab's compare; before: one after the other
+        ra, rb = (read_recordings(files) if mcap_io._read_scanned is scanned
+                  else [read_recording(f) for f in files])
         cols = [(r.state["t_s"], r.state["ref_deg"], r.state["error_deg"]) for r in (ra, rb)]
         align_runs(*cols[0], *cols[1])
         for name, r in ((files[0].name, ra), (files[1].name, rb)):
@@ -92,7 +96,6 @@ def main() -> None:
         code = report_main([files[0]], CACHE / "report.html", None, io.StringIO())
         assert code == 0
 
-    scanned = mcap_io._read_scanned
     readers: dict[str, Callable[[], None]] = {
         "general": lambda: setattr(mcap_io, "_read_scanned", lambda path: None),
         "scan": lambda: setattr(mcap_io, "_read_scanned", scanned),
