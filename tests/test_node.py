@@ -311,3 +311,32 @@ def test_a_note_about_older_knowledge_is_cleared_by_newer_knowledge(node: ZenohN
     notes = node.status().notes
     assert not any("now judged" in n for n in notes), notes
     assert node.status().knowledge_version == 3
+
+
+def test_a_refused_command_is_audited_with_what_it_claimed(
+    node: ZenohNode, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The audit line names the command a payload claimed, read without trusting it: no
+    hostile payload makes the audit (or the reply) fail."""
+    seen: list[tuple[str, str, object, object]] = []
+
+    def record(action: str, who: object, outcome: str, **fields: object) -> None:
+        seen.append((action, outcome, fields.get("command"), fields.get("estop_seq")))
+
+    monkeypatch.setattr(node.access, "record", record)
+    hostile = [
+        msgspec.msgpack.encode({"v": 1, "body": ["reset"]}),
+        msgspec.msgpack.encode({"v": 1, "body": {"type": 5, "estop_seq": 7}}),
+        msgspec.msgpack.encode([1, 2]),
+        b"\xc1",  # a byte msgpack never uses
+        b"\x82\xa1v\x01\xa4body\x81\xa4type\xa2\xff\xfe",  # invalid UTF-8
+        b"\x91" * 100_000,  # nested deeper than any decoder recurses
+    ]
+    claimed = msgspec.msgpack.encode(
+        {"v": 1, "body": {"type": "reset", "estop_seq": 7, "bogus": 1}})
+    for data in [claimed, *hostile]:
+        reply = proto.decode(node.handle_command(data), proto.CommandReply)
+        assert not reply.ok and reply.field
+    assert seen[0] == ("reset", "refused", "reset", 7)
+    assert seen[1:] == [("command", "refused", "", None)] * len(hostile)
+    assert node.rt.mode == "running"

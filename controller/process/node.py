@@ -54,6 +54,21 @@ class Unreadable(NamedTuple):
     message: str
     field: str
 
+def _claimed_command(data: bytes) -> tuple[str, int | None]:
+    """The body type and `estop_seq` a command's payload claims, for the audit line, read
+    without trusting it (a refused or malformed command is audited with what it claimed;
+    the caller has refused a payload over the size limit before)."""
+    try:
+        message = msgspec.msgpack.decode(data)
+    except (msgspec.DecodeError, RecursionError, UnicodeDecodeError):
+        return "", None  # unreadable: the refusal audited beside it says why
+    body = message.get("body") if isinstance(message, dict) else None
+    if not isinstance(body, dict):
+        return "", None
+    body_type, seen = body.get("type"), body.get("estop_seq")
+    return (body_type if isinstance(body_type, str) else ""), (seen if type(seen) is int else None)
+
+
 SHUTDOWN = object()
 """Put on a worker queue: the worker ends."""
 
@@ -436,14 +451,10 @@ class ZenohNode:
         """Command -> CommandReply. An EStop engages before the payload is even validated
         further than its type, from anyone; every other command needs the lease."""
         reply = self._command(data, who)
-        body_type = ""
+        body_type, seen = ("", None) if self._too_large(data) else _claimed_command(data)
         extra: dict[str, Any] = {}
-        with contextlib.suppress(Exception):
-            body = msgspec.msgpack.decode(data)["body"]
-            body_type = body["type"] if isinstance(body["type"], str) else ""
-            seen = body.get("estop_seq")
-            if body_type == "reset" and type(seen) is int:
-                extra["estop_seq"] = seen  # the e-stop the reset acknowledged
+        if body_type == "reset" and seen is not None:
+            extra["estop_seq"] = seen  # the e-stop the reset acknowledged
         action = {"estop": "estop", "reset": "reset", "identify_start": "identify",
                   "identify_abort": "identify"}.get(body_type, "command")
         self.access.record(
