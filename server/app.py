@@ -251,6 +251,8 @@ class Dashboard:
         )
         self.live = live
         self.history = HistoryPanel(gui, self.client, self._requests, self.candidates.panel_of)
+        self.candidates.identify, self.candidates.client = self.identify, self.client
+        self.candidates.who = lambda b: (self.sessions.user_of(b) or "", self._slot_of(b))
 
         gui.add_html(_asset("header.html", "<b>dobtune</b>"))
         live.build_banner()
@@ -337,6 +339,14 @@ class Dashboard:
         self.candidates.panel_in(client.gui, client)
         client.camera.position = (0.75, -0.85, 0.75)
         client.camera.look_at = (0.15, 0.0, 0.05)
+
+    def _slot_of(self, browser: Any) -> str:
+        """The candidate slot the browser's page named ("" : none: a page without the page
+        script, or no browser)."""
+        if browser is None or self.server is None:
+            return ""
+        conn = self.server._websock_server._live_connections.get(browser.client_id)
+        return self.gate.slot_of_connection(conn) if conn is not None else ""
 
     def _on_client_disconnect(self, client: Any) -> None:
         self.sessions.left(client.client_id)

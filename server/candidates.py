@@ -1,6 +1,10 @@
 """The tuning candidates, one per browser: each browser edits its own candidate (controls in
 the Tune tab, charts in the Bode tab, built into that browser's `client.gui`), so two engineers
-never edit one candidate. Every candidate follows the controller's active configuration."""
+never edit one candidate. Every candidate follows the controller's active configuration.
+
+Each candidate comes with its guided tuning path (server/panels/guide.py) above its controls,
+and is kept for a reload of its browser tab (server/candidate_store.py): a page that connects
+naming a slot gets the candidate kept for it."""
 
 from __future__ import annotations
 
@@ -10,7 +14,9 @@ from typing import Any
 
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
+from server.candidate_store import CandidateStore
 from server.engine import TuningEngine
+from server.panels.guide import GuidePanel
 from server.panels.nominal_tuning import NominalTuningPanel
 
 __all__ = ["Candidates"]
@@ -38,14 +44,30 @@ class Candidates:
         self.active: LoopConfig | None = None
         self.active_version: int | None = None
         self.trajectory: Trajectory | None = None
+        self.guides: dict[int, GuidePanel] = {}
+        """The guided tuning path of each browser (keyed as `panels`)."""
+        self.kept = CandidateStore()
+        """Each browser tab's candidate, kept for a reload of that tab."""
+        self.who: Callable[[Any], tuple[str, str]] = lambda _browser: ("", "")
+        """(user, candidate slot) of a browser (set by the dashboard)."""
+        self.identify: Any = None
+        self.client: Any = None
+        """The identification panel and the controller client the guides read (set by the
+        dashboard when it has built them; a guide without a client is not built)."""
 
     def panel_in(self, gui: Any, browser: Any = None) -> NominalTuningPanel:
         """A candidate panel of its own in `gui` (a browser's `client.gui`; or the shared GUI
         without a browser): controls in the Tune tab, charts in the Bode tab, started on the
         active configuration when it is known."""
         t = NominalTuningPanel(gui, self.engine, self._apply_fn)
+        user, slot = self.who(browser)
+        kept = self.kept.get(user, slot)
+        guide = (GuidePanel(gui, t, self.identify, self.client) if self.client is not None
+                 else None)
         with self._build_lock:
             with self.tune_tab:
+                if guide is not None:
+                    guide.build()
                 t.build_controls()
             with self.bode_tab:
                 t.build_charts()
@@ -53,13 +75,22 @@ class Candidates:
         with self._lock:
             old = self.panels.pop(key, None)
             self.panels[key] = t
+            old_guide = self.guides.pop(key, None)
+            if guide is not None:
+                self.guides[key] = guide
             if self.active is not None:
                 t.set_active(self.active, self.active_version)
             if self.trajectory is not None:
                 t.set_trajectory(self.trajectory)
-        if old is not None:
-            old.stop()
+        for stale in (old, old_guide):
+            if stale is not None:
+                stale.stop()
+        if kept is not None:
+            t.restore(kept)
+        t.on_change = lambda p: self.kept.keep(user, slot, p.kept())
         t.start()
+        if guide is not None:
+            guide.start()
         return t
 
     def panel_of(self, browser: Any) -> NominalTuningPanel | None:
@@ -71,12 +102,17 @@ class Candidates:
         """The browser left: its panel stops."""
         with self._lock:
             t = self.panels.pop(browser_id, None)
-        if t is not None:
-            t.stop()
+            guide = self.guides.pop(browser_id, None)
+        for stale in (guide, t):
+            if stale is not None:
+                stale.stop()
 
     def stop_all(self) -> None:
         with self._lock:
             panels, self.panels = list(self.panels.values()), {}
+            guides, self.guides = list(self.guides.values()), {}
+        for g in guides:
+            g.stop()
         for t in panels:
             t.stop()
 

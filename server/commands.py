@@ -51,7 +51,8 @@ class CommandRouter:
         try:
             reply = self.sessions.act(browser, "apply", lambda c: c.apply(
                 cand, confirm=confirm, expect_version=expect))
-        except Refused:
+        except Refused as exc:
+            t.note_refused(str(exc))
             return  # logged, and told to the browser that asked (only)
         except (ControllerUnavailable, proto.ProtocolError) as exc:
             log.warning("apply failed: %s", exc)

@@ -29,6 +29,7 @@ import gzip
 import hmac
 import http
 import logging
+import re
 import secrets
 import threading
 import weakref
@@ -117,6 +118,8 @@ class HttpAccess:
     """With several users: user name -> that user's token (``token`` is then not accepted)."""
     _by_connection: weakref.WeakKeyDictionary[Any, str] = field(
         default_factory=weakref.WeakKeyDictionary, repr=False)
+    _slot_by_connection: weakref.WeakKeyDictionary[Any, str] = field(
+        default_factory=weakref.WeakKeyDictionary, repr=False)
     page_extra: str = ""
     """HTML put at the end of the page's body (the index page only)."""
     page_script: str = field(default_factory=page_script_html, repr=False)
@@ -132,6 +135,11 @@ class HttpAccess:
         """The user whose token opened this websocket ("" with a single token), None if
         the connection did not pass this check."""
         return self._by_connection.get(connection)
+
+    def slot_of_connection(self, connection: Any) -> str:
+        """The candidate slot the page behind this websocket named ("": none; see
+        `slot_of_path`)."""
+        return self._slot_by_connection.get(connection, "")
 
     def allowed_hosts(self) -> set[str]:
         hosts = {self.host, "localhost", "127.0.0.1"}
@@ -210,6 +218,9 @@ class HttpAccess:
                 }), body)
             if "Upgrade" in request.headers:
                 self._by_connection[connection] = user
+                slot = slot_of_path(request.path)
+                if slot:
+                    self._slot_by_connection[connection] = slot
             response = process_request(connection, request) if process_request else None
             extra = self.page_extra + self.page_script
             if extra and response is not None and urlsplit(request.path).path in (
@@ -235,6 +246,20 @@ class HttpAccess:
             finally:
                 with _lock, contextlib.suppress(ValueError):
                     _pending.remove(self)
+
+
+#: The query parameter of the websocket's URL that names the page's candidate slot.
+SLOT_PARAM = "dt_slot"
+_SLOT_RE = re.compile(r"[A-Za-z0-9_-]{8,64}")
+
+
+def slot_of_path(path: str) -> str:
+    """The candidate slot a websocket request names (`?dt_slot=...`; "" : none, or not a
+    slot). The page script (web_assets/dashboard.js) makes one per browser tab, kept in the
+    tab's sessionStorage, so a reload of the tab finds its candidate again (the candidate is
+    then checked like any other: it names only where to look)."""
+    values = parse_qs(urlsplit(path).query).get(SLOT_PARAM, [])
+    return values[0] if values and _SLOT_RE.fullmatch(values[0]) else ""
 
 
 def _with_extra(response: Any, extra: str) -> Any:

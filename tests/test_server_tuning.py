@@ -11,6 +11,7 @@ from __future__ import annotations
 import html
 import math
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -170,4 +171,45 @@ def test_an_invalid_cutoff_names_the_field_and_disables_apply(dash: Dashboard, t
     assert t.apply_button.disabled and not t.computing_verdict
     t.revert()
     assert t.wait_idle(2.0)
-    assert not t.apply_button.disabled and "dt-computing-on" not in t.computing.content
+    # Reverted: the candidate is the active configuration, nothing to send (issue 22).
+    assert "dt-computing-on" not in t.computing.content
+    assert t.apply_button.disabled and "active configuration" in t.apply_blocked()
+    assert "active configuration" in t.apply_why.content
+    t.cutoff_hz_input.value = _other_cutoff(t)
+    assert t.wait_idle(2.0)
+    assert not t.apply_button.disabled and t.apply_blocked() == ""
+    assert t.apply_why.content == "<div class='dt-apply-why'></div>"
+    t.revert()
+    assert t.wait_idle(2.0)
+
+
+def _other_cutoff(t: Any) -> str:
+    """A cut-off near the active one that the gate accepts, but not the active one."""
+    return f"{t.active.q_cutoff_hz * 0.8:.4g}"
+
+
+def test_apply_is_off_for_the_active_configuration_and_refused_on_the_server(
+        dash: Dashboard) -> None:
+    """Issue 22: Apply is enabled only for a candidate that differs from the active
+    configuration; a press that comes anyway (a raw websocket client) sends nothing."""
+    t = dash.panel_of(None)
+    assert t is not None
+    t.revert()
+    assert t.wait_idle(5.0)
+    assert t.candidate() == t.active and t.apply_button.disabled
+    assert t.apply_button.color == "gray"
+    sent: list[Any] = []
+    apply_fn = t._apply_fn
+    t._apply_fn = lambda *a: sent.append(a)
+    try:
+        t.apply()
+        assert not sent and "the candidate is the active configuration" in t.apply_result.content
+        t.cutoff_hz_input.value = _other_cutoff(t)
+        assert t.wait_idle(5.0)
+        assert t.last_evaluation is not None and t.last_evaluation.verdict.verdict == "accept"
+        assert not t.apply_button.disabled and t.apply_button.color == "green"
+        t.apply()
+        assert len(sent) == 1 and sent[0][1] != t.active
+    finally:
+        t._apply_fn = apply_fn
+        t.revert(say=False)

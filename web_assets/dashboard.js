@@ -9,12 +9,49 @@
 //    page opened with one selects those tabs once viser has drawn them. The token stays in the
 //    query string.
 //
+// 3. The candidate survives a reload: each browser tab has a candidate slot (an id kept in the
+//    tab's sessionStorage: a reload keeps it, a new tab gets its own); the page's websocket
+//    names it (viser's `websocket` URL parameter, `?dt_slot=<id>`), and the dashboard gives
+//    the page the candidate it kept for that slot (server/candidate_store.py). This runs
+//    before viser's client starts (it starts at DOMContentLoaded).
+//
 // viser's React client re-renders and re-mounts freely: a MutationObserver (and a slow timer,
 // for URL rewrites that change no element) brings both back.
 (() => {
   "use strict";
   if (window.__dobtuneView) return;
   window.__dobtuneView = true;
+
+  // ---- the candidate's slot (before viser reads the URL) --------------------------------------
+
+  const SLOT_KEY = "dobtune-slot";
+  function slotId() {
+    let id = null;
+    try {
+      id = sessionStorage.getItem(SLOT_KEY);
+    } catch (err) {
+      console.warn("dobtune: no sessionStorage; a reload starts a new candidate:", err);
+    }
+    if (!id || !/^[A-Za-z0-9_-]{8,64}$/.test(id)) {
+      const bytes = new Uint8Array(12);
+      crypto.getRandomValues(bytes);
+      id = Array.from(bytes, (b) => b.toString(16).padStart(2, "0")).join("");
+      try {
+        sessionStorage.setItem(SLOT_KEY, id);
+      } catch (err) {
+        console.warn("dobtune: the candidate slot cannot be kept:", err);
+      }
+    }
+    return id;
+  }
+  (function nameSlot() {
+    const p = new URLSearchParams(location.search);
+    const scheme = location.protocol === "https:" ? "wss://" : "ws://";
+    p.set("websocket", scheme + location.host + location.pathname.replace(/\/$/, "") +
+      "/?dt_slot=" + slotId());
+    history.replaceState(history.state, "", location.pathname + "?" + p.toString() +
+      location.hash);
+  })();
 
   const EXPORT_LABEL = "Export";
   // A tab group is known by one of its tabs: [fragment key, a tab label of that group].

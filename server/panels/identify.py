@@ -217,7 +217,7 @@ class IdentifyPanel:
                                          hint="put the fitted Mn Pn into the tuning candidate "
                                               "(checked by the gate; Apply sends it)")
         self.use_result = gui.add_html("<div class='dt-id-use' style='font-size:12px'></div>")
-        self.start_button.on_click(lambda e: self._ask_start(e.client))
+        self.start_button.on_click(lambda e: self.ask_start(e.client))
         self.abort_button.on_click(lambda e: self.abort(e.client))
         self.use_button.on_click(lambda e: self.use_as_nominal(e.client))
 
@@ -265,7 +265,7 @@ class IdentifyPanel:
 
     # -- events (short) ----------------------------------------------------------------------
 
-    def _ask_start(self, browser: Any) -> None:
+    def ask_start(self, browser: Any) -> None:
         """On the controller the rig moves: asked first, in the browser that pressed Start."""
         s = self.settings()
         if s.where != WHERE_CONTROLLER or self.client is None:

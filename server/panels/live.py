@@ -22,6 +22,7 @@ from controller.core.trajectory import TRAJECTORY_KINDS, default_trajectory
 from server import charts
 from server.alarms import AlarmBoard, alarms_html
 from server.escape import esc
+from server.health import HealthJudgement, TimingHistory, health_html, judge_timing
 from server.panels.widgets import add_chart, confirm, set_html
 from server.workers import Periodic
 
@@ -126,6 +127,9 @@ class LivePanel:
         self._controller_traj_kind = ""
         self.trajectory: Any = None
         self.alarm_board = AlarmBoard()
+        self.timing_history = TimingHistory()
+        self.timing_judgement: HealthJudgement | None = None
+        """The latest judgement of the loop's timing (None: no status yet)."""
         self._alarm_lock = threading.Lock()
         self._slow_every = max(1, int(rate_hz / 5))
         self._updater = Periodic(self._refresh, 1.0 / rate_hz, name="live-updater")
@@ -300,25 +304,17 @@ class LivePanel:
         )
 
     def _health_html(self, st: proto.Status | None) -> str:
+        """Loop health: the recent timing against its normal range (server/health.py): red
+        only outside it or with a fault, never for a count since start."""
         ring = self.client.ring
         c = self.client.counters
         stream = (f"stream: {ring.batches} batches, {ring.gaps} samples lost, "
                   f"{c.decode_errors} bad messages; refresh {self.stats.push_rate_hz():.0f} Hz")
         if st is None:
             return f"<div class='dt-health' style='font-size:12px'>{stream}</div>"
-        tm = st.timing
-        faults = esc(", ".join(st.faults)) if st.faults else "none"
-        jitter = tm.period_p99_us - tm.period_p50_us
-        style = "color:#d62728" if st.faults or tm.overruns else ""
-        return (
-            f"<div class='dt-health' style='font-size:12px;{style}'>"
-            f"mode <b>{esc(st.mode)}</b>, plant {esc(st.plant)}, trajectory "
-            f"{esc(st.trajectory.kind)}<br>"
-            f"period p50 {tm.period_p50_us:.0f} us, p99 {tm.period_p99_us:.0f} us "
-            f"(jitter {jitter:.0f} us), max {tm.period_max_us:.0f} us; compute p99 "
-            f"{tm.compute_p99_us:.0f} us<br>overruns {tm.overruns}, skipped {tm.skipped_ticks}, "
-            f"faults: {faults}<br>{stream}</div>"
-        )
+        self.timing_history.add(st)
+        j = self.timing_judgement = judge_timing(self.timing_history, st.config.rate_hz)
+        return health_html(st, j, st.config.rate_hz, stream)
 
 
 def _run_trajectory(st: proto.Status | None) -> Any:

@@ -21,6 +21,7 @@ from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PositionSpread
 from server import charts
+from server.candidate_store import KeptCandidate
 from server.engine import (
     CUTOFF_MAX_HZ,
     CUTOFF_MIN_HZ,
@@ -51,7 +52,7 @@ from server.suggest import (
 )
 from server.workers import LatestWins
 
-__all__ = ["TuningPanel", "cutoff_marks", "format_gate_html"]
+__all__ = ["StepState", "TuningPanel", "cutoff_marks", "format_gate_html"]
 
 log = logging.getLogger(__name__)
 
@@ -200,6 +201,20 @@ def _divergence_html(sp: PositionSpread | None) -> str:
             f"<b>{sp.divergence_hz:.2f} Hz</b>")
 
 
+@dataclass(frozen=True)
+class StepState:
+    """Where one step of the work stands (the guided path shows it: server/panels/guide.py)."""
+
+    state: str  # "todo" | "running" | "done" | "failed"
+    progress: float | None = None
+    """0..1 while running (None: unknown)."""
+    text: str = ""
+    version: int | None = None
+    """Apply: the active version the controller answered with."""
+    at_s: float = 0.0
+    """Apply: when it was accepted (time.monotonic())."""
+
+
 # -- the GUI panel ------------------------------------------------------------------------------
 
 _Q_LABELS = {"Q31 (3rd order, rel. deg 2)": "q31", "Q20 (2nd order)": "q20"}
@@ -275,7 +290,11 @@ class TuningPanel:
         self._gen_lock = threading.Lock()
         self._submitted_gen = 0
         self._done_gen = 0
+        self.on_change: Callable[[TuningPanel], None] | None = None
+        """Called (GUI thread, short) whenever the candidate may have changed."""
         self._invalid = False
+        self._same_as_active = False
+        self._verdict_color = "gray"
         self.verdict: Any = None
         """The active version the apply box last announced (None: it announces none)."""
         self.last_update_s = 0.0
@@ -295,6 +314,12 @@ class TuningPanel:
         self._suggest_chart: Any = None
         self.last_suggestion: Any = None
         """The last Suggest's `TuneResult` (None: not run)."""
+        self.suggest_state = StepState("todo")
+        self.apply_state = StepState("todo")
+        self.sent: LoopConfig | None = None
+        """The candidate of the last Apply pressed (`apply_state` is about it)."""
+        """The last Apply of this panel: sending (running), accepted (done, `version`), not
+        sent or refused (failed, with the reason)."""
 
     # -- building --------------------------------------------------------------------------
 
@@ -336,8 +361,9 @@ class TuningPanel:
         self.verdict = gui.add_html('<div class="dt-verdict">evaluating...</div>')
         self.stale_text = gui.add_html('<div class="dt-stale"></div>')
         self.diff_text = gui.add_html('<div class="dt-diff"></div>')
-        self.apply_button = gui.add_button("Apply candidate", color="green",
+        self.apply_button = gui.add_button("Apply candidate", color="gray", disabled=True,
                                            hint="send to the controller; its gate decides")
+        self.apply_why = gui.add_html(_apply_why_html("computing the verdict"))
         self.revert_button = gui.add_button("Revert to active", color="gray")
         self.suggest_button = gui.add_button(
             "Suggest Q cut-off", color="gray",
@@ -380,6 +406,7 @@ class TuningPanel:
 
     def request_suggest(self) -> None:
         """Run Suggest on the present candidate (in its own worker thread)."""
+        self.suggest_state = StepState("running", 0.0, "starting")
         set_html(self.suggest_text,
                  "<div class='dt-suggest dt-suggest-running'>Suggest: starting...</div>")
         self._suggest_worker.submit(time.perf_counter())
@@ -425,6 +452,10 @@ class TuningPanel:
         """The Hz field is the value (never written back while typed); the slider follows."""
         if self._suppress:
             return
+        self._read_cutoff_text()
+        self.request_update()
+
+    def _read_cutoff_text(self) -> None:
         text = str(self.cutoff_hz_input.value).strip()
         try:
             hz = float(text)
@@ -442,6 +473,35 @@ class TuningPanel:
                 self.cutoff_log.value = _cutoff_log(hz)
             finally:
                 self._suppress = prev
+
+    # -- kept for a reload (server/candidate_store.py) -------------------------------------------
+
+    def kept(self) -> KeptCandidate:
+        """The candidate as its controls show it, with what it was made against."""
+        names = ("q_type", "cutoff_hz_input", *(a for a, _ in _SWITCHES),
+                 *(g.attr for g in _GAINS))
+        return KeptCandidate(self.base, self.base_version,
+                             tuple((n, getattr(self, n).value) for n in names),
+                             getattr(self, "nominal_override", None))
+
+    def restore(self, k: KeptCandidate) -> None:
+        """The controls as `k` kept them, made against `k.base_version` (stale, as before the
+        reload, if the active version has moved on since)."""
+        self.base, self.base_version = k.base, k.base_version
+        if hasattr(self, "nominal_override"):
+            self.nominal_override = k.nominal
+        self._suppress = True
+        try:
+            for name, value in k.controls:
+                getattr(self, name).value = value
+            self._read_cutoff_text()
+        finally:
+            self._suppress = False
+        set_html(self.stale_text, self._stale_html())
+        self.apply_result.content = box(
+            "dt-apply dt-apply-restored", NEUTRAL,
+            "Your candidate from before the reload"
+            + (f" (made against v{k.base_version})." if k.base_version is not None else "."))
         self.request_update()
 
     def _on_cutoff_slider(self, _event: Any) -> None:
@@ -461,6 +521,8 @@ class TuningPanel:
             self.request_update()
 
     def request_update(self) -> None:
+        if self.on_change is not None and self.verdict is not None:
+            self.on_change(self)
         with self._gen_lock:
             self._submitted_gen += 1
             gen = self._submitted_gen
@@ -475,14 +537,24 @@ class TuningPanel:
         with self._gen_lock:
             return self._done_gen < self._submitted_gen
 
+    def apply_blocked(self) -> str:
+        """Why Apply is disabled ("" : it is enabled): only a current (evaluated), valid,
+        non-stale candidate that differs from the active configuration may be sent."""
+        return ("computing the verdict" if self.computing_verdict
+                else "invalid candidate" if self._invalid
+                else "based on an older version (Revert first)" if self.stale
+                else "the candidate is the active configuration: nothing to send"
+                if self._same_as_active else "")
+
     def _refresh_apply(self) -> None:
-        """Apply is enabled only for a current (evaluated), valid, non-stale candidate."""
-        why = ("computing the verdict" if self.computing_verdict
-               else "invalid candidate" if self._invalid
-               else "based on an older version (Revert first)" if self.stale else "")
+        why = self.apply_blocked()
         disabled = bool(why)
         if self.apply_button.disabled != disabled:
             self.apply_button.disabled = disabled
+        color = "gray" if disabled else self._verdict_color
+        if self.apply_button.color != color:
+            self.apply_button.color = color
+        set_html(self.apply_why, _apply_why_html(why))
 
     def _evaluated(self, gen: int, invalid: bool) -> None:
         """`_update` for submission `gen` is done (`invalid`: the controls give no config)."""
@@ -540,11 +612,23 @@ class TuningPanel:
     def apply(self, browser: Any = None) -> None:
         """Send the candidate unless the gate rejects it; a caution asks `browser` (the viser
         client that pressed Apply; None: this process) to confirm first."""
+        self.sent = None
         try:
             cand = self.candidate()
         except ConfigError as exc:
             log.info("candidate not sent: %s", exc)
+            self.apply_state = StepState("failed", None, f"not sent: {exc}")
             self.apply_result.content = box("dt-apply", REJECT, f"Not sent: {esc(str(exc))}")
+            return
+        self.sent = cand
+        if cand == self.active and not self.stale:
+            # Checked here too, whatever the browser's button showed: a new version of the
+            # same configuration changes nothing on the rig.
+            self.apply_result.content = box(
+                "dt-apply dt-apply-same", NEUTRAL,
+                "<b>Not sent</b>: the candidate is the active configuration.")
+            self.apply_state = StepState("failed", None,
+                                         "not sent: the candidate is the active configuration")
             return
         ev = self.engine.evaluate(cand)
         if ev.verdict.verdict == "reject":
@@ -553,11 +637,14 @@ class TuningPanel:
                 "dt-apply dt-apply-rejected", REJECT,
                 "<b>Not sent</b>: the gate rejects this candidate"
                 f"{_reason_list(ev.verdict.reasons, 'dt-reject-reason')}")
+            self.apply_state = StepState("failed", None, "not sent: the gate rejects it: "
+                                         + "; ".join(ev.verdict.reasons[:1]))
             return
         if ev.verdict.verdict == "caution":
             self._confirm_caution(cand, ev.verdict.reasons, browser)
             return
         self._reply_version = None
+        self.apply_state = StepState("running", None, "sending to the controller")
         self.apply_result.content = box("dt-apply", NEUTRAL, "Sending the candidate...")
         self._apply_fn(self, cand, False, browser)
 
@@ -567,6 +654,8 @@ class TuningPanel:
 
         def go(who: Any) -> None:
             self._reply_version = None
+            self.apply_state = StepState("running", None,
+                                         "sending to the controller (caution confirmed)")
             self.apply_result.content = box("dt-apply", NEUTRAL,
                                             "Sending the candidate (confirmed)...")
             self._apply_fn(self, cand, True, who)
@@ -577,6 +666,11 @@ class TuningPanel:
 
     def show_reply(self, accepted: bool, version: int, reasons: list[str], note: str = "") -> None:
         self._reply_version = version
+        self.apply_state = (
+            StepState("done", None, f"accepted: the active configuration is v{version}",
+                      version, time.monotonic()) if accepted else
+            StepState("failed", None, "rejected by the controller: "
+                      + "; ".join(reasons[:1] or ["no reason given"]), version))
         if accepted:
             self.apply_result.content = box(
                 "dt-apply", ACCEPT, f"<b>Accepted</b>: active config is now version {version}."
@@ -588,7 +682,12 @@ class TuningPanel:
                 f"{_reason_list(reasons, 'dt-reject-reason')}{esc(note)}",
             )
 
+    def note_refused(self, why: str) -> None:
+        """The dashboard refused to send (the browser was told): nothing is under way."""
+        self.apply_state = StepState("failed", None, f"refused in the dashboard: {why}")
+
     def show_error(self, text: str) -> None:
+        self.apply_state = StepState("failed", None, f"error: {text}")
         self.apply_result.content = box("dt-apply", REJECT, f"<b>Error</b>: {esc(text)}")
 
     def revert(self, say: bool = True) -> None:
@@ -631,7 +730,8 @@ class TuningPanel:
             set_html(self.cutoff_text, self._cutoff_html(self.cutoff_hz, None, True,
                                                          error=self._cutoff_error))
             set_html(self.diff_text, "<div class='dt-diff'></div>")
-            self.apply_button.color = "red"
+            self._verdict_color = "red"
+            self._same_as_active = False
             self._evaluated(gen, invalid=True)
             return
         cmp = self.engine.compare(cand, self.active)
@@ -647,8 +747,9 @@ class TuningPanel:
         set_html(self.cutoff_text, self._cutoff_html(cand.q_cutoff_hz, rec, known))
         if known:
             self._update_marks(rec)
-        self.apply_button.color = {"accept": "green", "caution": "orange"}.get(
+        self._verdict_color = {"accept": "green", "caution": "orange"}.get(
             ev.verdict.verdict, "red")
+        self._same_as_active = cand == self.active
         self.last_evaluation = ev
         self.last_update_s = time.perf_counter() - t0
         self.update_count += 1
@@ -682,6 +783,7 @@ class TuningPanel:
         try:
             base = self.candidate()
         except ConfigError as exc:
+            self.suggest_state = StepState("failed", None, f"needs a valid candidate: {exc}")
             set_html(self.suggest_text, box("dt-suggest", REJECT,
                                             f"Suggest needs a valid candidate: {esc(str(exc))}"))
             return
@@ -691,15 +793,24 @@ class TuningPanel:
 
         def progress(frac: float) -> None:
             now = time.perf_counter()
+            self.suggest_state = StepState("running", frac, "searching on the simulated rig")
             if now - shown[0] >= 0.25:
                 shown[0] = now
                 set_html(self.suggest_text, "<div class='dt-suggest dt-suggest-running'>"
                          f"Suggest: searching on the simulated rig... {100 * frac:.0f} %</div>")
 
         settings = SuggestSettings(duration_s=self.engine.preview_run_s(traj))
-        result = suggest(base, self.engine.plant, traj, settings, progress=progress,
-                         setup=self.engine.sim_setup)
+        try:
+            result = suggest(base, self.engine.plant, traj, settings, progress=progress,
+                             setup=self.engine.sim_setup)
+        except Exception as exc:  # shown and logged: the worker goes on
+            log.exception("Suggest failed")
+            self.suggest_state = StepState("failed", None, f"{type(exc).__name__}: {exc}")
+            set_html(self.suggest_text, box("dt-suggest dt-suggest-failed", REJECT,
+                                            f"Suggest failed: {esc(str(exc))}"))
+            return
         self.last_suggestion = result
+        self.suggest_state = StepState("done", 1.0, result.summary())
         if self._suggest_chart is not None:
             data = suggest_data(result)
             self._suggest_chart.scales = charts.ranged_scales(SUGGEST_CHART, data)
@@ -748,6 +859,13 @@ class TuningPanel:
             f"FF {'on' if a.ff_on else 'off'}, Cv {a.cv_kp:g}(1+{a.cv_ki_per_s:g}/s), "
             f"Cp {a.pos_kp_per_s:g}(1+{a.pos_ki_per_s:g}/s)</div>"
         )
+
+
+def _apply_why_html(why: str) -> str:
+    if not why:
+        return "<div class='dt-apply-why'></div>"
+    return ("<div class='dt-apply-why dt-apply-blocked' style='font-size:12px;color:#555'>"
+            f"Apply is off: {esc(why)}.</div>")
 
 
 def _computing_html(on: bool) -> str:

@@ -1,7 +1,10 @@
 """Dashboard benchmarks: slider-to-update latency (server side, p50/p99); live refresh rate in
-the browser and the dashboard process's CPU while one headless browser watches the live tab.
+the browser and the dashboard process's CPU while one headless browser watches the live tab;
+with --page, page load and verdict update times in Chromium on the machine as it is ("idle")
+and with --hogs busy processes beside it ("loaded").
 
 Run: .venv/bin/python tests/bench/bench_dashboard.py [--seconds 15]
+     .venv/bin/python tests/bench/bench_dashboard.py --page --skip-live --skip-slider
 The controller is the real one (`python -m controller`, simulated plant); the dashboard runs as
 its own process (`python -m server`) so its CPU time is measured alone.
 """
@@ -163,14 +166,103 @@ def bench_live(seconds: float, browsers: int = 1) -> dict[str, float]:
             stop_process(dash)
 
 
+def _stats(xs: list[float]) -> dict[str, float]:
+    a = np.array(xs)
+    return {"n": len(xs), "p50_s": float(np.percentile(a, 50)),
+            "max_s": float(a.max()), "min_s": float(a.min())}
+
+
+def _spin() -> None:
+    while True:
+        pass
+
+
+def bench_page(loads: int, verdicts: int, hogs: int) -> dict[str, Any]:
+    """Page load (open the URL until the verdict and the connected banner are drawn) and verdict
+    update (type a cut-off until the page shows the new cut-off's verdict, nothing computing),
+    in headless Chromium, with `hogs` busy processes beside the controller and dashboard."""
+    import multiprocessing
+    import threading
+
+    from playwright.sync_api import sync_playwright
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    port = free_port()
+    spinners = []
+    with controller_process(endpoint, RIG):
+        dash = subprocess.Popen(
+            [sys.executable, "-m", "server", "--connect", endpoint, "--rig-name", RIG,
+             "--port", str(port)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+        try:
+            url = _dashboard_url(dash, 60.0)
+            wait_listening(port, 60.0)
+            threading.Thread(target=lambda: [None for _ in dash.stdout or ()],
+                             daemon=True).start()
+            with sync_playwright() as p:
+                b = p.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
+                warm = b.new_page()  # Chromium's cold start is not the page's load
+                warm.goto(url)
+                warm.wait_for_selector(".dt-verdict >> text=Verdict", timeout=120_000)
+                warm.close()
+                for _ in range(hogs):
+                    sp = multiprocessing.Process(target=_spin, daemon=True)
+                    sp.start()
+                    spinners.append(sp)
+                time.sleep(2.0)
+                load_before = os.getloadavg()[0]
+                page_s, verdict_s = [], []
+                for k in range(loads):
+                    ctx = b.new_context(viewport={"width": 1600, "height": 1000})
+                    pg = ctx.new_page()
+                    t0 = time.perf_counter()
+                    pg.goto(url)
+                    pg.wait_for_selector(".dt-banner.dt-ok", timeout=120_000)
+                    pg.wait_for_selector(".dt-verdict >> text=Verdict", timeout=120_000)
+                    page_s.append(time.perf_counter() - t0)
+                    if k == loads - 1:
+                        lab = pg.locator("label", has_text="Q cut-off (Hz)").first
+                        box = lab.locator("xpath=ancestor::div[contains(@class,"
+                                          "'mantine-Flex-root')][1]").locator("input").last
+                        for hz in np.round(np.geomspace(0.3, 3.0, verdicts), 2):
+                            t0 = time.perf_counter()
+                            box.fill(f"{hz:g}")
+                            box.press("Enter")
+                            pg.wait_for_selector(f".dt-cutoff >> text={hz:.3f} Hz",
+                                                 timeout=120_000)
+                            pg.wait_for_selector(".dt-computing-on", state="detached",
+                                                 timeout=120_000)
+                            verdict_s.append(time.perf_counter() - t0)
+                    ctx.close()
+                b.close()
+            return {"busy_processes": hogs, "loadavg_1min_at_start": load_before,
+                    "loadavg_1min_at_end": os.getloadavg()[0], "cores": os.cpu_count(),
+                    "page_load": _stats(page_s), "verdict_update": _stats(verdict_s)}
+        finally:
+            for sp in spinners:
+                sp.terminate()
+            stop_process(dash)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=15.0)
     ap.add_argument("--skip-live", action="store_true")
+    ap.add_argument("--skip-slider", action="store_true")
     ap.add_argument("--browsers", type=int, nargs="+", default=[1, 3],
                     help="numbers of browsers to measure the live view with")
+    ap.add_argument("--page", action="store_true",
+                    help="page load and verdict update times, idle and loaded")
+    ap.add_argument("--loads", type=int, default=5, help="page loads per machine state")
+    ap.add_argument("--verdicts", type=int, default=8, help="typed cut-offs per machine state")
+    ap.add_argument("--hogs", type=int, default=4,
+                    help="busy processes for the loaded machine (besides whatever else runs)")
     args = ap.parse_args()
-    out: dict[str, Any] = {"slider": bench_slider()}
+    out: dict[str, Any] = {}
+    if not args.skip_slider:
+        out["slider"] = bench_slider()
+    if args.page:
+        out["page_idle"] = bench_page(args.loads, args.verdicts, 0)
+        out["page_loaded"] = bench_page(args.loads, args.verdicts, args.hogs)
     if not args.skip_live:
         for n in args.browsers:
             out[f"live_{n}_browsers"] = bench_live(args.seconds, n)

@@ -1,6 +1,6 @@
 """The README's screenshot of the dashboard, made anew from the running product.
 
-    .venv/bin/python tests/bench/screenshot.py [--out docs/dashboard.png]
+    .venv/bin/python tests/bench/screenshot.py [--out docs/dashboard.png] [--tabs docs/screens]
 
 A simulated controller and the dashboard, headless Chromium (Debian's), the live traces
 rolling; the page as a user sees it after ~10 s.
@@ -13,6 +13,7 @@ import socket
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
@@ -27,9 +28,29 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+#: (controls tab, plots tab, file name) of --tabs: every tab of the controls, each beside the
+#: plots tab it goes with.
+TABS = (("Tune", "Bode", "tab_tune.png"), ("Live", "Live traces", "tab_live.png"),
+        ("Identify", "Identify", "tab_identify.png"), ("History", "Bode", "tab_history.png"),
+        ("Recordings", "Live traces", "tab_recordings.png"), ("Help", "Bode", "tab_help.png"))
+
+
+def every_tab(page: Any, out_dir: Path) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for controls, plots, name in TABS:
+        page.get_by_role("tab", name=controls, exact=True).first.click()
+        # Identify names a controls tab and a plots tab: the plots one is the last.
+        page.get_by_role("tab", name=plots, exact=True).last.click()
+        page.wait_for_timeout(2500)  # charts drawn, texts refreshed
+        page.screenshot(path=str(out_dir / name))
+        print(f"wrote {out_dir / name}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "dashboard.png")
+    ap.add_argument("--tabs", type=Path, default=None, metavar="DIR",
+                    help="also a screenshot of every tab into DIR (tab_<name>.png)")
     args = ap.parse_args()
     from playwright.sync_api import sync_playwright
 
@@ -55,6 +76,8 @@ def main() -> int:
                 page.locator("button.mantine-Notification-closeButton").first.click()
             args.out.parent.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(args.out))
+            if args.tabs is not None:
+                every_tab(page, args.tabs)
             browser.close()
     print(f"wrote {args.out}")
     return 0

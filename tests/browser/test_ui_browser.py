@@ -209,6 +209,9 @@ def test_an_invalid_cutoff_is_rejected_by_name_and_apply_is_disabled(
     # While the verdict is recomputed (up to seconds on a loaded machine; held here until the
     # page has been looked at), the page says so and Apply is disabled.
     engine = only_panel(dashboard).engine
+    # Two cut-offs other than the active one (Apply is off for the active configuration).
+    active_hz = only_panel(dashboard).active.q_cutoff_hz
+    first, last = (0.7, 0.5) if active_hz not in (0.7, 0.5) else (0.65, 0.45)
     release = threading.Event()
     started = threading.Event()
     compare = engine.compare
@@ -220,7 +223,7 @@ def test_an_invalid_cutoff_is_rejected_by_name_and_apply_is_disabled(
 
     engine.compare = held_compare  # type: ignore[method-assign]
     try:
-        set_number(page, "Q cut-off (Hz)", 0.7)
+        set_number(page, "Q cut-off (Hz)", first)
         wait_for(started.is_set, 60.0, "the verdict was not recomputed")
         note = page.locator(".dt-computing-on")
         note.wait_for(timeout=30_000)
@@ -232,7 +235,7 @@ def test_an_invalid_cutoff_is_rejected_by_name_and_apply_is_disabled(
     finally:
         engine.compare = compare  # type: ignore[method-assign]
         release.set()
-    page.wait_for_selector(".dt-cutoff >> text=0.700 Hz", timeout=60_000)
+    page.wait_for_selector(f".dt-cutoff >> text={first:.3f} Hz", timeout=60_000)
     page.wait_for_selector(".dt-computing-on", state="detached", timeout=60_000)
     page.wait_for_function("""() => [...document.querySelectorAll('button')].find(
       x => x.textContent.trim() === 'Apply candidate')?.disabled === false""", timeout=30_000)
@@ -252,8 +255,8 @@ def test_an_invalid_cutoff_is_rejected_by_name_and_apply_is_disabled(
         if typed == "abc":
             box.scroll_into_view_if_needed()
             page.screenshot(path=str(artifacts / "ui_invalid_cutoff.png"))
-    set_number(page, "Q cut-off (Hz)", 0.5)
-    page.wait_for_selector(".dt-cutoff >> text=0.500 Hz", timeout=60_000)
+    set_number(page, "Q cut-off (Hz)", last)
+    page.wait_for_selector(f".dt-cutoff >> text={last:.3f} Hz", timeout=60_000)
     page.wait_for_selector(".dt-computing-on", state="detached", timeout=60_000)
     _apply_button(page).wait_for(timeout=10_000)
     page.wait_for_function("""() => [...document.querySelectorAll('button')].find(

@@ -21,7 +21,15 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import CHROMIUM, CONTROLLER_START_S, FIRST_LOAD_S, VIEWPORT, chromium, free_port
+from conftest import (
+    CHROMIUM,
+    CONTROLLER_START_S,
+    FIRST_LOAD_S,
+    VIEWPORT,
+    chromium,
+    free_port,
+    set_number,
+)
 from helpers import answers, wait_for
 
 from controller.auth import init_auth_dir, new_users
@@ -97,6 +105,11 @@ def test_the_viewer_cannot_apply_or_start(env: dict[str, Any], pages: dict[str, 
     before = probe.get_config()
     refusals = dash.sessions.refusals
     page = pages["view"]
+    # A candidate of the viewer's own that differs from the active one (Apply is off for the
+    # active configuration itself): the dashboard refuses the viewer's press.
+    set_number(page, "Q cut-off (Hz)", round(before.config.q_cutoff_hz * 0.8, 3))
+    page.wait_for_function("""() => [...document.querySelectorAll('button')].find(
+      b => b.textContent.trim() === 'Apply candidate')?.disabled === false""", timeout=60_000)
     page.get_by_role("button", name="Apply candidate").click()
     page.wait_for_selector("text=view is a viewer", timeout=10_000)
     page.screenshot(path=str(artifacts / "users_1_viewer_refused.png"))
