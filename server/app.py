@@ -346,7 +346,7 @@ class Dashboard:
         if browser is None or self.server is None:
             return ""
         conn = self.server._websock_server._live_connections.get(browser.client_id)
-        return self.gate.slot_of_connection(conn) if conn is not None else ""
+        return self.access.slot_of_connection(conn) if conn is not None else ""
 
     def _on_client_disconnect(self, client: Any) -> None:
         self.sessions.left(client.client_id)

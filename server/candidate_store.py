@@ -1,12 +1,13 @@
 """The candidates kept for a reload: one per browser tab (and user), in the dashboard process.
 
-A browser tab names its slot (web_assets/dashboard.js: an id in the tab's sessionStorage, sent
-with the websocket's URL; `server.http_access.slot_of_path`); every change of that tab's candidate is
-kept here under (user, slot), and a page that connects with a slot gets the candidate kept for
-it. What is kept is what the controls showed (a typed cut-off as typed, an invalid one too),
-the configuration the candidate was built on and the active version it was made against:
-restored, a candidate made against an older version is stale like before the reload (the
-panel says so, Apply is off and the controller refuses it: its Apply carries that version).
+A browser tab names its slot (web_assets/dashboard.js: an id in the tab's sessionStorage,
+sent with the websocket's URL; `server.http_access.slot_of_path`); every change of that tab's
+candidate is kept here under (user, slot), and a page that connects with a slot gets the
+candidate kept for it. What is kept is what the controls showed (a typed cut-off as typed, an
+invalid one too), the configuration the candidate was built on and the active version it was
+made against: restored, a candidate made against an older version is stale like before the
+reload (the panel says so, Apply is off and the controller refuses it: its Apply carries that
+version).
 Nothing here is trusted: the values go back into the controls and through the same checks.
 Kept in memory: a restart of the dashboard starts every tab on the active configuration.
 """
