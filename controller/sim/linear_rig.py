@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy import linalg
 
 from controller.core.config import NominalModel
 from controller.core.errors import ConfigError
@@ -239,11 +238,19 @@ class LinearRig(_SpeedRig):
         big = np.zeros((n + 2, n + 2))
         big[:n, :n] = a
         big[:n, n:] = b
-        e = linalg.expm(big * self._ts)
+        e = _expm(big * self._ts)
         ad, bd = e[:n, :n], e[:n, n:]
         self._args = (np.zeros(n), np.ascontiguousarray(ad, dtype=np.float64).ravel(),
                       np.ascontiguousarray(bd[:, 0]), np.ascontiguousarray(bd[:, 1]),
                       np.zeros(n), n - 1)
+
+
+def _expm(m: np.ndarray) -> np.ndarray:
+    # scipy.linalg on first use: importing this module (the compiled offline loop does, for
+    # the nonlinear check before an apply) does not pay for it.
+    from scipy import linalg
+
+    return np.asarray(linalg.expm(m))
 
 
 def _zoh(a: np.ndarray, b: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray]:
@@ -251,7 +258,7 @@ def _zoh(a: np.ndarray, b: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarra
     big = np.zeros((n + m, n + m))
     big[:n, :n] = a
     big[:n, n:] = b
-    e = linalg.expm(big * ts)
+    e = _expm(big * ts)
     return e[:n, :n], e[:n, n:]
 
 

@@ -14,9 +14,10 @@ runtime does between ticks (coefficient swaps, faults, friction changes, a new t
 ramp), with the same result bit for bit as ticking `ServoLoop` against `SimRig` in Python
 (tests/test_offline.py).
 
-The rig's inputs that are Python objects are sampled in Python before the run: the load
-torque profile (`Disturbance.torque_n_m` at each tick's time, as `SimRig.step` does) and the
-encoder noise (taken from the rig's own stream, `SimRig.take_noise`).
+The rig's inputs are sampled before each piece: the load torque profile at each tick's time
+(compiled through `controller.sim.disturbance.flat_torque`, the profiles' own functions; a
+profile of another class through its `torque_n_m`, as `SimRig.step` does) and the encoder
+noise (taken from the rig's own stream, `SimRig.take_noise`).
 
 Compiled once per machine and cached (numba `cache=True`, in `__pycache__`). numba checks only
 the cached function's own file for changes; the kernel is therefore a closure over a digest
