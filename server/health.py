@@ -129,7 +129,7 @@ def health_html(st: proto.Status, j: HealthJudgement, rate_hz: float, stream: st
                  f"last {j.span_s:.0f} s")
     else:
         state = ("<b class='dt-health-state'>timing OUTSIDE its normal range</b>: "
-                 + esc("; ".join(j.outside)))
+                 + esc(", ".join(o.split(" (")[0] for o in j.outside)))
     jit = "n/a" if math.isnan(j.jitter_us) else f"{j.jitter_us:.0f} us"
     style = "color:#d62728" if bad else ""
     cls = "dt-health dt-health-bad" if bad else "dt-health dt-health-ok"

@@ -66,6 +66,7 @@ def main() -> int:
             browser = p.chromium.launch(executable_path="/usr/bin/chromium",
                                         args=["--no-sandbox", "--disable-gpu"])
             page = browser.new_page(viewport={"width": 1600, "height": 1000})
+            page.set_default_timeout(180_000)  # a loaded machine (load 20: 30-50 s stalls)
             page.goto(dash.url, wait_until="domcontentloaded", timeout=60_000)
             page.wait_for_selector(".dt-banner.dt-ok", timeout=60_000)
             page.get_by_role("tab", name="Live traces").click()
