@@ -62,6 +62,10 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: The plots panel's width: the Bode tab's Decide view (the verdict, the loop's Bode,
+#: sensitivity, rejection) fits 1920 x 1080 beside the controls; the 3-D view keeps the rest.
+PLOTS_WIDTH_PX = 900
+
 
 def _asset(name: str, default: str = "") -> str:
     try:
@@ -291,7 +295,7 @@ class Dashboard:
             self.identify.build_charts()
         plots.dock_right()
         run_logged(lambda: gui.main_panel.dock_left(), what="docking the controls left")
-        run_logged(plots.set_width, 620, what="sizing the plots panel")
+        run_logged(plots.set_width, PLOTS_WIDTH_PX, what="sizing the plots panel")
         self.plots = plots
 
         server.on_client_connect(self._on_client_connect)

@@ -7,6 +7,7 @@ magnitudes are in dB, phases in degrees, times in seconds.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -29,9 +30,13 @@ __all__ = [
     "identify_chart_specs",
     "identify_data",
     "live_data",
+    "loop_bode_data",
+    "loop_margins_html",
+    "margin_marks",
     "minmax_decimate",
     "nyquist_svg",
     "preview_data",
+    "ranged_scales",
     "spread_band_db",
 ]
 
@@ -43,6 +48,8 @@ ACTIVE = "#9aa5b1"
 NO_DOB = "#e8871e"
 BOUND = "#d62728"
 MEASURED = "#2ca02c"
+PM_COLOR = "#2ca02c"
+GM_COLOR = "#9467bd"
 
 
 def db(x: npt.ArrayLike) -> FloatArray:
@@ -178,17 +185,14 @@ class BodeCurves:
     plant: PlantCurves | None = None
     """The plant the configuration is judged on (same for every configuration)."""
 
-    @property
-    def gain_crossover_marks(self) -> FloatArray:
-        """A vertical line at each gain crossover (|L| = 0 dB: where the phase margin is
-        read), on the 0..1 "mark" scale; NaN elsewhere."""
-        return _marks(self.open_loop_db)
+    dob_on: bool = True
+    """The configuration's DOB switch: the drawn open loop (`open_loop_*`) is `nyquist_dob`
+    with the DOB on, `nyquist_nodob` with it off."""
 
     @property
-    def phase_crossover_marks(self) -> FloatArray:
-        """A vertical line at each phase crossover (-180 deg + k 360: where the gain margin is
-        read)."""
-        return _marks((self.open_loop_phase_deg + 180.0 + 180.0) % 360.0 - 180.0)
+    def loop(self) -> NyquistLoop | None:
+        """The drawn open loop's crossings and margins."""
+        return self.nyquist_dob if self.dob_on else self.nyquist_nodob
 
 
 def _marks(crossing: FloatArray) -> FloatArray:
@@ -216,28 +220,17 @@ def _marks(crossing: FloatArray) -> FloatArray:
 MARK_SCALE = "mark"
 
 
-def uplot_column(y: FloatArray, fallback: float) -> FloatArray:
-    """`y` as uPlot can scale it: a series whose first value is not finite gives its scale a
-    NaN range (measured in Chromium: the chart then draws nothing at all), so a non-finite
-    first value becomes the series' first finite value (`fallback` if none): one point with no
-    neighbour, which draws nothing."""
-    y = np.asarray(y, dtype=np.float64)
-    if y.size == 0 or np.isfinite(y[0]):
-        return y
-    finite = y[np.isfinite(y)]
-    y = y.copy()
-    y[0] = finite[0] if finite.size else fallback
-    return y
-
-
-def ranged_scales(spec: ChartSpec, data: Sequence[npt.ArrayLike]) -> dict[str, dict[str, Any]]:
+def ranged_scales(spec: ChartSpec, data: Sequence[npt.ArrayLike],
+                  steps: dict[str, float] | None = None) -> dict[str, dict[str, Any]]:
     """`spec.scales` with every y scale fixed (auto off) to the finite range of its series in
-    `data` (5 % margin; 0..1 with no finite value): on a fixed scale uPlot draws a NaN as
-    nothing, so a column needs no stand-in first value (`uplot_column`), which a series that
-    shows its points drew as a point (an empty chart's red "suggested" dot at (0.1 Hz, 0))."""
+    `data` (5 % margin, or rounded out to whole `steps[scale]`; 0..1 with no finite value): on
+    a fixed scale uPlot draws a NaN as nothing, where an auto scale takes a series' first
+    non-null value for its range (a NaN first value gave the scale a NaN range: the chart
+    drew nothing), so no column needs a stand-in value (an empty chart's red "suggested"
+    dot at (0.1 Hz, 0))."""
     out = dict(spec.scales)
     for name in spec.scales:
-        if name == "x":
+        if name == "x" or name == MARK_SCALE:
             continue
         cols = [np.asarray(c, dtype=np.float64) for c, ser in zip(data[1:], spec.series[1:],
                                                                     strict=False)
@@ -245,8 +238,15 @@ def ranged_scales(spec: ChartSpec, data: Sequence[npt.ArrayLike]) -> dict[str, d
         vals = np.concatenate(cols) if cols else np.empty(0)
         vals = vals[np.isfinite(vals)]
         lo, hi = (float(vals.min()), float(vals.max())) if vals.size else (0.0, 1.0)
-        pad = 0.05 * (hi - lo) if hi > lo else max(abs(lo), 1.0) * 0.05
-        out[name] = {**spec.scales[name], "auto": False, "range": (lo - pad, hi + pad)}
+        step = (steps or {}).get(name)
+        if step and vals.size:
+            lo, hi = step * math.floor(lo / step), step * math.ceil(hi / step)
+            if hi <= lo:
+                lo, hi = lo - step, hi + step
+        else:
+            pad = 0.05 * (hi - lo) if hi > lo else max(abs(lo), 1.0) * 0.05
+            lo, hi = lo - pad, hi + pad
+        out[name] = {**spec.scales[name], "auto": False, "range": (lo, hi)}
     return out
 
 
@@ -287,7 +287,9 @@ _LOG_X: dict[str, dict[str, Any]] = {
     "x": {"time": False, "distr": 3, "log": 10},
     "y": {"auto": True},
 }
-_HZ_AXIS = {"label": "Hz", "scale": "x"}
+#: The frequency axis, compact (the tick values and "Hz" in 44 px, uPlot's default 80: the
+#: Bode tab's Decide view fits a 1080 px screen).
+_HZ_AXIS = {"label": "Hz", "scale": "x", "size": 28, "labelSize": 16, "labelGap": 0}
 _DASH_ACTIVE = (6, 4)
 _DASH_NO_DOB = (4, 3)
 
@@ -331,9 +333,7 @@ def _dob_spec(key: str, title: str, dob: str, no_dob: str, labels: tuple[str, st
 
 def _measured_points(label: str, stroke: str, scale: str = "y") -> dict[str, Any]:
     """Measured points joined across the grid points between them (spanGaps). uPlot's own
-    rule shows the points once they are sparse on screen (zoomed in); always showing them
-    would also draw the stand-in first value of an empty column (`uplot_column`) as a point,
-    and the CSV export would take it for data."""
+    rule shows the points once they are sparse on screen (zoomed in)."""
     s = _line(label, stroke, width=2.0, scale=scale)
     s["spanGaps"] = True
     return s
@@ -347,6 +347,151 @@ def _band_edge(label: str) -> dict[str, Any]:
     s = _line(label, _rgba(MEASURED, 0.8), dash=(4, 3), width=1.0)
     s["spanGaps"] = True
     return s
+
+
+# -- the classic Bode of the speed loop ----------------------------------------------------------
+
+#: The two charts of the loop's Bode share one cursor (uPlot's cursor sync: hovering one shows
+#: the same frequency on the other; web_assets/dashboard.js reads both there and labels the
+#: margin markers) and one x grid (`loop_bode_data`), so one frequency axis.
+LOOP_CURSOR: dict[str, Any] = {"sync": {"key": "dt-loop-bode"}}
+#: The magnitude chart marks at most this many phase crossovers (a conditionally stable loop
+#: has a lower one, where a gain reduction destabilises, and an upper one).
+GM_MARKS = 2
+#: The y steps the Bode charts' fixed ranges are rounded out to (dB, deg): a candidate that
+#: moves a curve a little keeps its chart's scales (a new range re-creates the chart).
+Y_STEPS = {"y": 10.0, "deg": 45.0}
+#: Tick steps of the loop's Bode axes (uPlot picks the first whose ticks are `space` px apart):
+#: dB in tens, degrees in multiples of 15 (so -180 is a tick).
+_DB_INCRS = (10, 20, 40, 60, 100, 200)
+_DEG_INCRS = (15, 30, 45, 90, 180, 360)
+
+
+def _margin_line(label: str, color: str, scale: str = "y") -> dict[str, Any]:
+    """A margin marker: one vertical segment (two points at one frequency) from the reference
+    (0 dB or -180 deg) to the curve, NaN elsewhere."""
+    return {"label": label, "stroke": color, "width": 3.0, "scale": scale}
+
+
+LOOP_MAG_CHART = _bode_spec(
+    "loop_mag",
+    "Open loop L (speed loop): magnitude; gain margin = 0 dB - |L| where the phase is -180 deg",
+    (_line("|L| candidate", CANDIDATE, width=2.0), "cand.open_loop_db"),
+    (_line("|L| active", ACTIVE, dash=_DASH_ACTIVE), "act.open_loop_db"),
+    (_line("0 dB line", "#555555", width=1.0), "ref.0"),
+    (_margin_line("gain margin", GM_COLOR), "mark.gm1"),
+    (_margin_line("gain margin, 2nd -180 deg crossing", GM_COLOR), "mark.gm2"),
+    axes=(_HZ_AXIS, {"label": "dB", "scale": "y", "space": 20, "incrs": _DB_INCRS}),
+    height=150,
+    extra={"cursor": LOOP_CURSOR},
+)
+LOOP_PHASE_CHART = _bode_spec(
+    "loop_phase",
+    "Open loop L (speed loop): phase; phase margin = phase + 180 deg where |L| = 0 dB",
+    (_line("phase candidate", CANDIDATE, width=2.0, scale="deg"), "cand.open_loop_phase_deg"),
+    (_line("phase active", ACTIVE, dash=_DASH_ACTIVE, scale="deg"), "act.open_loop_phase_deg"),
+    (_line("-180 deg line", "#d62728", width=1.0, scale="deg"), "ref.-180"),
+    (_margin_line("phase margin", PM_COLOR, scale="deg"), "mark.pm"),
+    scales={"x": _LOG_X["x"], "deg": {"auto": True}},
+    axes=(_HZ_AXIS, {"label": "deg", "scale": "deg", "space": 20, "incrs": _DEG_INCRS}),
+    height=140,
+    extra={"cursor": LOOP_CURSOR},
+)
+_LOOP_KEYS = (LOOP_MAG_CHART.key, LOOP_PHASE_CHART.key)
+
+
+@dataclass(frozen=True)
+class MarginMark:
+    """Where a margin is read on the Bode: at `freq_hz`, from `start` (on the reference line
+    for a phase margin, on |L| for a gain margin) to `end`; `value` = end - start (dB, deg)."""
+
+    freq_hz: float
+    start: float
+    end: float
+
+    @property
+    def value(self) -> float:
+        return self.end - self.start
+
+
+def margin_marks(c: BodeCurves) -> tuple[tuple[MarginMark, ...], MarginMark | None]:
+    """The gain-margin marks (the reported GM's crossing first, then the others by frequency,
+    at most GM_MARKS) and the phase-margin mark (the reported PM's crossing) of the drawn
+    loop, from its refined crossings (`NyquistLoop`): the same numbers as the verdict."""
+    loop = c.loop
+    if loop is None:
+        return (), None
+    gms = -20.0 * np.log10(np.abs(loop.phase_crossings))
+    order = sorted(range(len(gms)), key=lambda i: (
+        not np.isclose(gms[i], loop.gain_margin_db), loop.phase_crossover_hz[i]))
+    gm = tuple(MarginMark(float(loop.phase_crossover_hz[i]), -float(gms[i]), 0.0)
+               for i in order[:GM_MARKS] if np.isfinite(gms[i]))
+    pm = None
+    if len(loop.gain_crossings):
+        pms = np.degrees(np.angle(loop.gain_crossings)) % 360.0 - 180.0
+        i = int(np.argmin(np.abs(pms - loop.phase_margin_deg)))
+        f = float(loop.gain_crossover_hz[i])
+        drawn = float(np.interp(np.log(f), np.log(c.freq_hz), c.open_loop_phase_deg))
+        # The -180 + k 360 line the drawn (unwrapped) phase is read against.
+        ref = -180.0 + 360.0 * round((drawn - pms[i] + 180.0) / 360.0)
+        pm = MarginMark(f, ref, ref + float(pms[i]))
+    return gm, pm
+
+
+def loop_bode_data(cand: BodeCurves, active: BodeCurves | None,
+                   ) -> tuple[tuple[FloatArray, ...], tuple[FloatArray, ...]]:
+    """The data of LOOP_MAG_CHART and LOOP_PHASE_CHART, on one x grid: the curves' grid with
+    each margin mark's frequency in it twice (the mark's two points; the curves are
+    interpolated there, linearly in log f). A mark's column is NaN but at its two points."""
+    act = active if active is not None and active.freq_hz.shape == cand.freq_hz.shape else cand
+    gm, pm = margin_marks(cand)
+    marks = [*gm, *([pm] if pm is not None else [])]
+    f0 = cand.freq_hz
+    extra = np.array([m.freq_hz for m in marks for _ in (0, 1)], dtype=np.float64)
+    x = np.sort(np.concatenate([f0, extra]))
+    lx, lf = np.log(x), np.log(f0)
+
+    def on_x(y: FloatArray) -> FloatArray:
+        return np.asarray(np.interp(lx, lf, y), dtype=np.float64)
+
+    def mark_column(m: MarginMark | None) -> FloatArray:
+        col = np.full(x.size, np.nan)
+        if m is not None:
+            i = int(np.searchsorted(x, m.freq_hz, side="left"))
+            col[i], col[i + 1] = m.start, m.end
+        return col
+
+    gm_cols = [mark_column(gm[k] if k < len(gm) else None) for k in range(GM_MARKS)]
+    mag = (x, on_x(cand.open_loop_db), on_x(act.open_loop_db), np.zeros(x.size), *gm_cols)
+    phase = (x, on_x(cand.open_loop_phase_deg), on_x(act.open_loop_phase_deg),
+             np.full(x.size, -180.0), mark_column(pm))
+    return mag, phase
+
+
+def _fmt_hz(f: float) -> str:
+    return f"{f:.3g} Hz"
+
+
+def loop_margins_html(c: BodeCurves) -> str:
+    """One line over the loop's Bode: every margin the markers show, with its frequency."""
+    gm, pm = margin_marks(c)
+    parts = []
+    for k, m in enumerate(gm):
+        what = "gain margin" if k == 0 else "2nd crossing"
+        note = " (a gain <i>reduction</i> by this much destabilises)" if m.value < 0 else ""
+        parts.append(f"<span class='dt-gm' style='color:{GM_COLOR}'><b>{what}</b> "
+                     f"{m.value:.1f} dB at {_fmt_hz(m.freq_hz)}</span>{note}")
+    if not gm:
+        parts.append(f"<span class='dt-gm' style='color:{GM_COLOR}'><b>gain margin</b> none "
+                     "(the phase never crosses -180 deg)</span>")
+    if pm is not None:
+        parts.append(f"<span class='dt-pm' style='color:{PM_COLOR}'><b>phase margin</b> "
+                     f"{pm.value:.1f} deg at {_fmt_hz(pm.freq_hz)}</span>")
+    else:
+        parts.append(f"<span class='dt-pm' style='color:{PM_COLOR}'><b>phase margin</b> none "
+                     "(|L| never crosses 0 dB)</span>")
+    return ("<div class='dt-loop-margins' style='font-size:13px'>"
+            + " &middot; ".join(parts) + "</div>")
 
 
 PLANT_MODEL = "#34495e"
@@ -379,25 +524,8 @@ PLANT_CHART = _bode_spec(
 )
 
 BODE_CHARTS: tuple[ChartSpec, ...] = (
-    _bode_spec(
-        "open_loop",
-        "Open loop Cv M P (speed loop)",
-        (_line("|L| candidate", CANDIDATE), "cand.open_loop_db"),
-        (_line("|L| active", ACTIVE, dash=_DASH_ACTIVE), "act.open_loop_db"),
-        (_line("phase candidate", CANDIDATE, dash=(2, 3), width=1.0, scale="deg"),
-         "cand.open_loop_phase_deg"),
-        (_line("phase active", ACTIVE, dash=(2, 3), width=1.0, scale="deg"),
-         "act.open_loop_phase_deg"),
-        (_marker("0 dB crossing (PM read here)", "#2ca02c"), "cand.gain_crossover_marks"),
-        (_marker("-180 deg crossing (GM read here)", "#9467bd"), "cand.phase_crossover_marks"),
-        scales={**_LOG_X, "deg": {"auto": True},
-                MARK_SCALE: {"auto": False, "range": (0.0, 1.0)}},
-        axes=(
-            _HZ_AXIS,
-            {"label": "dB", "scale": "y"},
-            {"label": "deg", "scale": "deg", "side": 1, "grid": {"show": False}},
-        ),
-    ),
+    LOOP_MAG_CHART,
+    LOOP_PHASE_CHART,
     _dob_spec("closed_loop", "Closed loop r -> w (15) vs (18)", "closed_dob_db",
               "closed_nodob_db", ("with DOB", "without DOB", "active")),
     _dob_spec("disturbance", "Disturbance d -> w: (16) with DOB vs (18) without", "dist_dob_db",
@@ -409,6 +537,7 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         "DOB rejection gain |E_without / E_with| (23): > 0 dB where the DOB helps",
         (_line("candidate", CANDIDATE), "cand.rejection_db"),
         (_line("active", ACTIVE, dash=_DASH_ACTIVE), "act.rejection_db"),
+        height=110,
     ),
     _bode_spec(
         "sensitivity",
@@ -418,6 +547,7 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         (_line("|S| whole servo", CANDIDATE, dash=_DASH_NO_DOB, width=1.0), "cand.s_full_db"),
         (_line("|T| whole servo", NO_DOB, dash=_DASH_NO_DOB, width=1.0), "cand.t_full_db"),
         (_line("|S| active", ACTIVE, dash=_DASH_ACTIVE), "act.s_db"),
+        height=120,
     ),
     _bode_spec(
         "small_gain",
@@ -434,8 +564,13 @@ _BODE_BY_KEY = {spec.key: spec for spec in BODE_CHARTS}
 
 def bode_data(key: str, cand: BodeCurves, active: BodeCurves | None) -> tuple[FloatArray, ...]:
     """The uPlot data tuple of chart `key`; the active curves must share the candidate's grid.
-    A curve the configuration does not have (no measured response, say) is all NaN. The
-    plant chart ("plant.<field>" columns) draws `cand.plant` on its own grid."""
+    A curve the configuration does not have (no measured response, say) is all NaN, and a
+    curve is NaN where it has no value: no stand-in values (the charts' y scales are fixed
+    from the finite values, `ranged_scales`, so NaN draws nothing and upsets no scale). The
+    plant chart ("plant.<field>" columns) draws `cand.plant` on its own grid; the loop's
+    Bode charts are `loop_bode_data`."""
+    if key in _LOOP_KEYS:
+        return loop_bode_data(cand, active)[_LOOP_KEYS.index(key)]
     act = active if active is not None and active.freq_hz.shape == cand.freq_hz.shape else cand
     spec = _BODE_BY_KEY[key]
     x = cand.freq_hz
@@ -451,14 +586,7 @@ def bode_data(key: str, cand: BodeCurves, active: BodeCurves | None) -> tuple[Fl
         which, name = column.split(".")
         y = getattr(sources[which], name)
         cols.append(nan if y is None else np.asarray(y, dtype=np.float64))
-    # An empty column takes the first value of a column on its own scale (none drawn).
-    scales = [s.get("scale", "y") for s in _BODE_BY_KEY[key].series[1:]]
-    first: dict[str, float] = {}
-    for sc, c in zip(scales, cols, strict=True):
-        if c.size and np.isfinite(c[0]):
-            first.setdefault(sc, float(c[0]))
-    return (x, *(c if sc == MARK_SCALE else uplot_column(c, first.get(sc, 0.0))
-                 for sc, c in zip(scales, cols, strict=True)))
+    return (x, *cols)
 
 
 # -- time domain --------------------------------------------------------------------------------
@@ -730,9 +858,6 @@ def identify_data(
 #: The Nyquist view shows |L| <= this radius (the loop's integrators send L to infinity at
 #: low frequency; what matters for margins is near the unit circle and -1).
 NYQUIST_RADIUS = 3.0
-
-PM_COLOR = "#2ca02c"
-GM_COLOR = "#9467bd"
 
 
 def open_loop_response(c: BodeCurves) -> ComplexArray:

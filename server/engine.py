@@ -201,10 +201,9 @@ def plant_curves(plant: PlantKnowledge, freq_hz: FloatArray, rate_hz: float) -> 
     """The plant chart's curves: the knowledge's model M P (continuous) and its measured
     responses with their spread (`charts.spread_band_db`), on `freq_hz` merged with every
     measured frequency. With measured responses the grid starts at the lowest measured
-    frequency, so that every measured column starts with a real point (uPlot's first-value
-    rule, `charts.uplot_column`, would otherwise join a stand-in point to the first
-    measurement). Sampled responses (u[k] -> w[k]) are brought to the continuous basis by
-    dividing out the gate's ZOH + backward-difference factor (`discrete_equivalent`)."""
+    frequency (the chart shows where the plant was measured). Sampled responses (u[k] ->
+    w[k]) are brought to the continuous basis by dividing out the gate's ZOH +
+    backward-difference factor (`discrete_equivalent`)."""
     grid = np.asarray(freq_hz, dtype=np.float64)
     measured = plant.measured
     if measured:
@@ -307,6 +306,7 @@ def curves_from_analysis(
         t_full_db=None if loop_full is None else charts.db(loop_full / (1.0 + loop_full)),
         nyquist_dob=own if a.config.dob_on else other,
         nyquist_nodob=other if a.config.dob_on else own,
+        dob_on=a.config.dob_on,
         plant=plant_chart if plant_chart is not None else plant_curves(
             plant, f, a.config.rate_hz),
     )

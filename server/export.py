@@ -15,7 +15,6 @@ import io
 import math
 import re
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -59,16 +58,10 @@ def column_header(spec: ChartSpec) -> list[str]:
     return out
 
 
-def _drawn_as_points(series: dict[str, Any]) -> bool:
-    points = series.get("points")
-    return isinstance(points, dict) and bool(points.get("show"))
-
-
 def exported_columns(spec: ChartSpec, data: Sequence[npt.ArrayLike],
                      ) -> list[npt.NDArray[np.float64]]:
-    """The chart's columns as float64, checked against the spec; a series' first value that
-    only holds the scale up (charts.uplot_column: finite, every later value NaN, drawn as a
-    line without points, so nothing of it is drawn) becomes NaN: it is no data."""
+    """The chart's columns as float64, checked against the spec (the charts hold no stand-in
+    values: NaN where a series has no point)."""
     if len(data) != len(spec.series):
         raise ValueError(f"data: {len(data)} columns for the {len(spec.series)} series of "
                          f"chart {spec.key!r}")
@@ -78,14 +71,7 @@ def exported_columns(spec: ChartSpec, data: Sequence[npt.ArrayLike],
         if c.ndim != 1 or c.shape != n:
             raise ValueError(f"data: series {s.get('label')!r} of chart {spec.key!r} has "
                              f"shape {c.shape}, the x column {n}")
-    out = [cols[0]]
-    for s, c in zip(spec.series[1:], cols[1:], strict=True):
-        if (c.size > 1 and math.isfinite(c[0]) and not np.isfinite(c[1:]).any()
-                and not _drawn_as_points(s)):
-            c = c.copy()
-            c[0] = np.nan
-        out.append(c)
-    return out
+    return cols
 
 
 def _cell(v: float) -> str:

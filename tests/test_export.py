@@ -67,11 +67,14 @@ def test_nan_is_an_empty_cell_and_infinities_survive() -> None:
 
 
 def test_header_carries_the_units_of_the_axes() -> None:
-    open_loop = next(s for s in BODE_CHARTS if s.key == "open_loop")
-    assert column_header(open_loop) == [
-        "f (Hz)", "|L| candidate (dB)", "|L| active (dB)", "phase candidate (deg)",
-        "phase active (deg)", f"0 dB crossing (PM read here) ({MARK_UNIT})",
-        f"-180 deg crossing (GM read here) ({MARK_UNIT})"]
+    loop_mag = next(s for s in BODE_CHARTS if s.key == "loop_mag")
+    assert column_header(loop_mag) == [
+        "f (Hz)", "|L| candidate (dB)", "|L| active (dB)", "0 dB line (dB)", "gain margin (dB)",
+        "gain margin, 2nd -180 deg crossing (dB)"]
+    loop_phase = next(s for s in BODE_CHARTS if s.key == "loop_phase")
+    assert column_header(loop_phase)[3:] == ["-180 deg line (deg)", "phase margin (deg)"]
+    plant = next(s for s in BODE_CHARTS if s.key == "plant")
+    assert column_header(plant)[-1] == f"responses diverge (> 1 dB) ({MARK_UNIT})"
     error = next(s for s in LIVE_CHARTS if s.key == "error")
     # The version series is its own unit ("config v"): not repeated.
     assert column_header(error) == ["t (s)", "error (deg)", "config v"]
@@ -79,27 +82,6 @@ def test_header_carries_the_units_of_the_axes() -> None:
     assert column_header(steps)[3] == "load step candidate (deg (load step))"
     coherence = charts.identify_chart_specs(1)[2]
     assert column_header(coherence) == ["f (Hz)", "pos 1 coherence"]  # dimensionless
-
-
-def test_the_placeholder_that_holds_a_scale_up_is_no_data() -> None:
-    """charts.uplot_column puts a finite first value into an all-NaN series (uPlot draws
-    nothing of it); the CSV says there is no data there. A series drawn as points keeps an
-    isolated first value (it is drawn)."""
-    spec = next(s for s in BODE_CHARTS if s.key == "small_gain")
-    f = np.geomspace(0.01, 100.0, 50)
-    q = -20.0 * np.log10(1 + f)
-    measured = charts.uplot_column(np.full(50, np.nan), 0.0)
-    bound = np.linspace(30.0, -10.0, 50)
-    assert np.isfinite(measured[0])  # what the chart holds
-    _, rows = _read(chart_csv(spec, (f, q, q, bound, measured)))
-    back = _floats(rows)
-    assert np.isnan(back[:, 4]).all()
-    np.testing.assert_array_equal(back[:, 3], bound)
-    mag = charts.identify_chart_specs(1)[0]  # pos 1 |G| is drawn with points
-    cols = [np.full(3, np.nan) for _ in mag.series[1:]]
-    cols[0] = np.array([5.0, np.nan, np.nan])
-    _, rows = _read(chart_csv(mag, (np.array([1.0, 2.0, 3.0]), *cols)))
-    assert rows[0][1] == "5.0"
 
 
 def test_bad_data_is_refused_naming_the_chart_and_series() -> None:
@@ -112,8 +94,10 @@ def test_bad_data_is_refused_naming_the_chart_and_series() -> None:
 
 
 def test_file_names_follow_the_title() -> None:
-    open_loop = next(s for s in BODE_CHARTS if s.key == "open_loop")
-    assert export_filename(open_loop, "csv") == "dobtune-open-loop-cv-m-p-speed-loop.csv"
+    loop_mag = next(s for s in BODE_CHARTS if s.key == "loop_mag")
+    assert export_filename(loop_mag, "csv") == (
+        "dobtune-open-loop-l-speed-loop-magnitude-gain-margin-0-db-l-where-the-phase-is-180-deg"
+        ".csv")
     long = next(s for s in BODE_CHARTS if s.key == "rejection")
     name = export_filename(long, "png")
     # The whole title (a cut at 48 characters left out "where the DOB helps").

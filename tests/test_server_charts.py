@@ -51,7 +51,12 @@ def test_bode_data_matches_series(spec: charts.ChartSpec) -> None:
     data = charts.bode_data(spec.key, cand, act)
     assert len(data) == len(spec.series) == len(spec.columns) + 1
     assert all(d.shape == data[0].shape for d in data)
-    assert np.all(np.diff(data[0]) > 0)
+    # Increasing; the loop's Bode holds each margin mark's frequency twice (its two points).
+    steps = np.diff(data[0])
+    assert np.all(steps >= 0)
+    marks = [c for k in ("loop_mag", "loop_phase") for c in charts.bode_data(k, cand, act)[4:]]
+    repeats = sum(int(np.isfinite(c).sum()) for c in marks) // 2
+    assert int(np.sum(steps == 0)) == (repeats if spec.key in ("loop_mag", "loop_phase") else 0)
     assert np.all(np.isfinite(data[1]))
 
 
@@ -82,47 +87,76 @@ def test_live_data_empty() -> None:
     assert all(len(d[0]) == 2 for d in data.values())
 
 
-def test_margin_markers_sit_at_the_crossovers_python_control_finds() -> None:
-    """The open-loop chart's markers cover the 0 dB crossing (phase margin) and the -180 deg
-    crossing (gain margin) that python-control's stability_margins finds on the same
-    frequency response."""
+def test_margin_markers_are_the_margins_python_control_finds() -> None:
+    """The loop's Bode marks the gain margin on the magnitude chart (a vertical segment from
+    |L| up or down to 0 dB at the phase crossover) and the phase margin on the phase chart (from
+    -180 deg to the phase at the gain crossover): their frequencies and lengths are what
+    python-control's stability_margins finds on the same frequency response (to the grid's
+    interpolation: 1 % in frequency, 0.2 dB, 0.5 deg), and both charts share one x grid."""
     import control
 
     from server.engine import TuningEngine
 
     eng = TuningEngine()
     checked = 0
-    for cfg in (LoopConfig(), LoopConfig(cv_kp=1.2, pos_kp_per_s=20.0)):
+    for cfg in (LoopConfig(), LoopConfig(cv_kp=1.2, pos_kp_per_s=20.0),
+                LoopConfig(dob_on=False), LoopConfig(q_type="q20", q_cutoff_hz=15.0)):
         c = eng.evaluate(cfg).curves
         f = c.freq_hz
         a = analyse(cfg, eng.plant, freq_hz=f)
-        _gm, _pm, _sm, wpc, wgc, _wms = control.stability_margins(
+        gm, pm, _sm, wpc, wgc, _wms = control.stability_margins(
             control.frd(a.open_loop, 2 * np.pi * f))
-        for marks, w in ((c.gain_crossover_marks, wgc), (c.phase_crossover_marks, wpc)):
-            if not np.isfinite(w) or w <= 0:
-                continue
-            at = f[np.isfinite(marks)]
-            assert at.min() <= w / (2 * np.pi) <= at.max(), (at, w / (2 * np.pi))
-            checked += 1
-    assert checked >= 3  # both crossings exist for these loops (else the test proves nothing)
+        mag, phase = charts.loop_bode_data(c, None)
+        np.testing.assert_array_equal(mag[0], phase[0])
+        x = mag[0]
+
+        def segment(col: np.ndarray, x: np.ndarray = x) -> tuple[float, float, float]:
+            idx = np.flatnonzero(np.isfinite(col))
+            assert len(idx) == 2 and idx[1] == idx[0] + 1 and x[idx[0]] == x[idx[1]]
+            return float(x[idx[0]]), float(col[idx[0]]), float(col[idx[1]])
+
+        f_gm, at_curve, at_zero = segment(mag[4])  # the reported GM's mark first
+        assert at_zero == 0.0
+        np.testing.assert_allclose(f_gm, wpc / (2 * np.pi), rtol=0.01)
+        np.testing.assert_allclose(at_zero - at_curve, 20 * np.log10(gm), atol=0.2)
+        # The mark starts on the drawn |L| curve.
+        np.testing.assert_allclose(at_curve, mag[1][np.searchsorted(x, f_gm)], atol=0.2)
+        f_pm, at_ref, at_phase = segment(phase[4])
+        assert at_ref == -180.0
+        np.testing.assert_allclose(f_pm, wgc / (2 * np.pi), rtol=0.01)
+        np.testing.assert_allclose(at_phase - at_ref, pm, atol=0.5)
+        np.testing.assert_allclose(at_phase, phase[1][np.searchsorted(x, f_pm)], atol=0.5)
+        assert np.all(phase[3] == -180.0)  # the -180 deg line: one constant
+        html = charts.loop_margins_html(c)
+        assert f"{20 * np.log10(gm):.1f} dB at {wpc / (2 * np.pi):.3g} Hz" in html, html
+        assert f"{pm:.1f} deg at {wgc / (2 * np.pi):.3g} Hz" in html, html
+        checked += 1
+    assert checked == 4
 
 
-def test_no_bode_column_starts_with_a_gap() -> None:
-    """uPlot gives a series whose first value is NaN a NaN scale and draws nothing (the
-    small-gain chart was empty without a measured response): every column starts finite,
-    and a gap-only column adds no drawable segment."""
+def test_no_bode_column_holds_a_made_up_value() -> None:
+    """Every value of a Bode chart is its curve's (NaN where the curve has none: no stand-in
+    first value), and each chart's fixed y scales hold every finite value on whole steps."""
     from server.engine import TuningEngine
 
     eng = TuningEngine()
     cmp = eng.compare(LoopConfig(), LoopConfig(q_cutoff_hz=1.0))
+    c = cmp.candidate.curves
+    small_gain = cmp.chart_data["small_gain"]
+    assert np.isnan(small_gain[4]).all()  # no measured response: nothing, not a point
+    np.testing.assert_array_equal(small_gain[1], c.q_db)
     for key, data in cmp.chart_data.items():
         spec = {s.key: s for s in charts.BODE_CHARTS}[key]
-        for i, col in enumerate(data):
-            if i and spec.series[i].get("scale") == charts.MARK_SCALE:
-                continue  # a fixed 0..1 scale: no auto range to upset
-            assert np.isfinite(col[0]), (key, i)
-    measured = cmp.chart_data["small_gain"][4]  # no measured response: nothing to draw
-    assert np.isnan(measured[1:]).all()
+        scales = charts.ranged_scales(spec, data, charts.Y_STEPS)
+        for i, col in enumerate(data[1:], start=1):
+            name = spec.series[i].get("scale", "y")
+            if name == charts.MARK_SCALE:
+                continue
+            lo, hi = scales[name]["range"]
+            assert scales[name]["auto"] is False
+            assert lo % charts.Y_STEPS[name] == 0 and hi % charts.Y_STEPS[name] == 0
+            fin = col[np.isfinite(col)]
+            assert fin.size == 0 or (lo <= fin.min() and fin.max() <= hi), (key, i)
 
 
 def test_nyquist_is_the_open_loop_inside_the_window() -> None:

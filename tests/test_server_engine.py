@@ -382,17 +382,13 @@ def _plant_chart(eng: TuningEngine) -> dict[str, np.ndarray]:
                                                                  strict=True)}}
 
 
-def _scaled(d: dict[str, np.ndarray]) -> list[np.ndarray]:
-    """The columns on auto scales (the divergence mark's scale is fixed: NaN is fine there)."""
-    return [c for k, c in d.items() if k != "divergence_marks"]
-
-
 def test_plant_chart_draws_measured_spread_over_the_model() -> None:
     """With a measured response: the model |M P| (scipy), the measured points at their
     frequencies (20 log10 |H|, nothing between), the band 20 log10(|H| (1 +- spread))
     computed here (the lower edge at most 20 dB below |H|), the phase near the model's;
-    every column starts finite (uPlot's rule); the band's edges are the series after the
-    measured points."""
+    a column of something not measured (a second position, the spread between positions) is
+    NaN throughout, no stand-in value; the band's edges are the series after the measured
+    points."""
     f_m = np.geomspace(0.2, 30.0, 25)
     h = 1.2 * nominal_continuous_response(NominalModel(), f_m) * np.exp(-2j * np.pi * f_m * 2e-3)
     spread = np.linspace(0.0, 1.5, f_m.size)  # up to beyond 1: the lower edge is clipped
@@ -400,7 +396,11 @@ def test_plant_chart_draws_measured_spread_over_the_model() -> None:
     eng.set_knowledge(eng.with_measured(MeasuredResponse("pos0", f_m, h, spread=spread)))
     d = _plant_chart(eng)
     f = d["f"]
-    assert f[0] == f_m[0] and np.all(np.isfinite([col[0] for col in _scaled(d)]))
+    assert f[0] == f_m[0]
+    drawn = ("model_db", "measured_db", "upper_db", "lower_db", "model_phase_deg",
+             "measured_phase_deg", "pos1_db")
+    assert all(np.isfinite(d[k][0]) for k in drawn)
+    assert all(np.isnan(d[k]).all() for k in ("pos2_db", "pos3_db", "pos4_db", "spread_db"))
     np.testing.assert_allclose(d["model_db"], _model_db(f), atol=1e-9)
     at = np.isin(f, f_m)
     assert at.sum() == f_m.size
@@ -441,17 +441,22 @@ def test_plant_chart_with_several_responses_shows_their_envelope() -> None:
 
 
 def test_plant_chart_without_measured_responses_still_draws() -> None:
-    """No measured response: the model over the whole chart grid, every column starting
-    finite (a NaN first value gives uPlot a NaN scale: nothing drawn), the measured columns
-    empty after their stand-in first value."""
+    """No measured response: the model over the whole chart grid, the measured columns
+    empty (NaN throughout: no stand-in first value; the chart's y scales are fixed from the
+    finite values, so the model is drawn on a finite scale)."""
     eng = TuningEngine()
     d = _plant_chart(eng)
     np.testing.assert_array_equal(d["f"], eng.freq_hz)
-    assert all(np.isfinite(col[0]) for col in _scaled(d))
     np.testing.assert_allclose(d["model_db"], _model_db(d["f"]), atol=1e-9)
     for name in ("measured_db", "upper_db", "lower_db", "measured_phase_deg", "pos1_db",
                  "spread_db", "divergence_marks"):
-        assert np.isnan(d[name][1:]).all(), name
+        assert np.isnan(d[name]).all(), name
+    spec = {s.key: s for s in charts.BODE_CHARTS}["plant"]
+    data = (d["f"], *(d[c.split(".")[1]] for c in spec.columns))
+    scales = charts.ranged_scales(spec, data, charts.Y_STEPS)
+    lo, hi = scales["y"]["range"]
+    assert lo <= d["model_db"].min() and d["model_db"].max() <= hi
+    assert np.isfinite(scales["deg"]["range"]).all()
 
 
 def test_plant_chart_draws_a_sampled_response_in_the_continuous_basis() -> None:

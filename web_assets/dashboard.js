@@ -4,7 +4,11 @@
 //    widgets.py) a "PNG" button that saves the chart as drawn here: its title, its canvas (the
 //    curves and axes uPlot drew) and its legend, at the screen's pixel density; a "PNG" button
 //    under the Nyquist views (SVG) too.
-// 2. The URL keeps the view: the selected tab of the controls ("tab": Tune, Live, ...) and of
+// 2. The loop's classic Bode (server/charts.py LOOP_MAG_CHART over LOOP_PHASE_CHART): one
+//    frequency axis (a zoom of either sets both), a cursor read-out of both charts at the
+//    hovered frequency (in the ".dt-loop-readout" line above them) and each margin marker
+//    labelled with its value and frequency on the chart itself (so in its PNG too).
+// 3. The URL keeps the view: the selected tab of the controls ("tab": Tune, Live, ...) and of
 //    the plots ("plot": Bode, Live traces, ...) live in the fragment (#tab=Live&plot=Bode); a
 //    page opened with one selects those tabs once viser has drawn them. The token stays in the
 //    query string.
@@ -271,6 +275,144 @@
     }, "image/png");
   }
 
+
+  // ---- the loop's Bode: one x axis, cursor read-out, margin labels ---------------------------
+
+  const LOOP_MAG = "|L| candidate";
+  const LOOP_PHASE = "phase candidate";
+  // Marker series label -> [short name, unit] (server/charts.py LOOP_*_CHART).
+  const MARGIN_MARKS = {
+    "gain margin": ["GM", "dB"],
+    "gain margin, 2nd -180 deg crossing": ["GM", "dB"],
+    "phase margin": ["PM", "deg"],
+  };
+
+  function uplots() {
+    const reg = (window.__viserTestpoints && window.__viserTestpoints.uplots) || {};
+    return Object.values(reg).map((e) => e.chart).filter((u) => document.body.contains(u.root));
+  }
+
+  function seriesIndex(u, label) {
+    return u.series.findIndex((s) => s.label === label);
+  }
+
+  function loopCharts() {
+    const all = uplots();
+    return {
+      mag: all.find((u) => seriesIndex(u, LOOP_MAG) > 0),
+      phase: all.find((u) => seriesIndex(u, LOOP_PHASE) > 0),
+    };
+  }
+
+  const fmtHz = (f) => Number(f.toPrecision(3)).toString() + " Hz";
+  const fmt1 = (v) => (v === null || v === undefined || !isFinite(v) ? "-" : v.toFixed(1));
+
+  // The x index of frequency f in chart u (the two charts share their grid).
+  function indexOf(u, f) {
+    const xs = u.data[0];
+    let lo = 0;
+    let hi = xs.length - 1;
+    while (lo < hi) {
+      const mid = (lo + hi) >> 1;
+      if (xs[mid] < f) lo = mid + 1;
+      else hi = mid;
+    }
+    return lo;
+  }
+
+  function readout(u) {
+    const i = u.cursor.idx;
+    const box = document.querySelector(".dt-loop-readout");
+    const { mag, phase } = loopCharts();
+    if (i === null || i === undefined || !box || !mag || !phase) return;
+    const f = u.data[0][i];
+    const at = (chart, label) => {
+      const s = seriesIndex(chart, label);
+      return s > 0 ? chart.data[s][indexOf(chart, f)] : NaN;
+    };
+    box.textContent = `f ${fmtHz(f)} | |L| ${fmt1(at(mag, LOOP_MAG))} dB | phase ` +
+      `${fmt1(at(phase, LOOP_PHASE))} deg | active: |L| ${fmt1(at(mag, "|L| active"))} dB, ` +
+      `phase ${fmt1(at(phase, "phase active"))} deg`;
+    box.dataset.freqHz = String(f);
+  }
+
+  // A zoom of one chart's frequency axis sets the other's.
+  let syncing = false;
+  function syncX(u, key) {
+    if (key !== "x" || syncing) return;
+    const { mag, phase } = loopCharts();
+    const other = u === mag ? phase : u === phase ? mag : null;
+    if (!other) return;
+    const { min, max } = u.scales.x;
+    if (other.scales.x.min === min && other.scales.x.max === max) return;
+    syncing = true;
+    try {
+      other.setScale("x", { min, max });
+    } finally {
+      syncing = false;
+    }
+  }
+
+  function labelMargins(u) {
+    const ctx = u.ctx;
+    const k = ctx.canvas.width / (u.width || ctx.canvas.width); // canvas px per CSS px
+    const drawn = [];
+    u.series.forEach((s, si) => {
+      const mark = MARGIN_MARKS[s.label];
+      if (!mark || !s.show) return;
+      const col = u.data[si];
+      let i = -1;
+      for (let j = 0; j + 1 < col.length; j++) {
+        if (isFinite(col[j]) && isFinite(col[j + 1])) {
+          i = j;
+          break;
+        }
+      }
+      if (i < 0) return;
+      const f = u.data[0][i];
+      const value = col[i + 1] - col[i];
+      const text = `${mark[0]} ${value.toFixed(1)} ${mark[1]} at ${fmtHz(f)}`;
+      const x = u.valToPos(f, "x", true);
+      const y = u.valToPos((col[i] + col[i + 1]) / 2, s.scale, true);
+      const { left, width } = u.bbox;
+      if (x < left || x > left + width) return; // zoomed out of view
+      ctx.save();
+      ctx.font = `bold ${Math.round(11 * k)}px sans-serif`;
+      ctx.fillStyle = typeof s.stroke === "function" ? s.stroke(u, si) : s.stroke;
+      ctx.textBaseline = "middle";
+      const w = ctx.measureText(text).width;
+      const right = x + 6 * k + w <= left + width;
+      ctx.textAlign = right ? "left" : "right";
+      const tx = right ? x + 6 * k : x - 6 * k;
+      ctx.fillStyle = "rgba(255,255,255,0.8)";
+      ctx.fillRect(right ? tx - 2 * k : tx - w - 2 * k, y - 8 * k, w + 4 * k, 16 * k);
+      ctx.fillStyle = typeof s.stroke === "function" ? s.stroke(u, si) : s.stroke;
+      ctx.fillText(text, tx, y);
+      ctx.restore();
+      drawn.push({ text, x: x / k, y: y / k });
+    });
+    u.root.dataset.marginLabels = JSON.stringify(drawn);
+  }
+
+  function addHook(u, name, fn) {
+    const list = u.hooks[name] || (u.hooks[name] = []);
+    if (!list.includes(fn)) {
+      list.push(fn);
+      return true;
+    }
+    return false;
+  }
+
+  function hookLoopCharts() {
+    const { mag, phase } = loopCharts();
+    for (const u of [mag, phase]) {
+      if (!u) continue;
+      addHook(u, "setCursor", readout);
+      addHook(u, "setScale", syncX);
+      if (addHook(u, "draw", labelMargins)) u.redraw();
+    }
+  }
+
   // ---- the view in the URL ------------------------------------------------------------------
 
   function parseView(hash) {
@@ -377,6 +519,7 @@
     try {
       addPngButtons();
       addNyquistButtons();
+      hookLoopCharts();
       hideLogBoxes();
       if (Object.keys(want).length) restore();
       syncUrl();

@@ -32,16 +32,19 @@ from server.engine import (
     candidate_from_values,
 )
 from server.escape import esc
+from server.panels.bode import MARGIN_LABELS as _MARGIN_LABELS
+from server.panels.bode import BodeTab
+from server.panels.bode import fmt_value as _fmt
 from server.panels.widgets import (
     ACCEPT,
     CAUTION,
     NEUTRAL,
     REJECT,
-    add_chart,
     box,
     confirm,
     set_html,
 )
+from server.panels.widgets import reason_list as _reason_list
 from server.suggest import (
     SUGGEST_CHART,
     SuggestSettings,
@@ -57,24 +60,6 @@ __all__ = ["StepState", "TuningPanel", "cutoff_marks", "format_gate_html"]
 log = logging.getLogger(__name__)
 
 # -- presentation (pure) ------------------------------------------------------------------------
-
-_MARGIN_LABELS = (
-    ("gain_margin_db", "gain margin", "dB", 1),
-    ("phase_margin_deg", "phase margin", "deg", 1),
-    ("peak_sensitivity_db", "peak |S|", "dB", 2),
-    ("small_gain_peak", "small-gain peak", "", 3),
-    ("max_pole_radius", "max |pole|", "", 5),
-    ("noise_to_command_peak_db", "noise -> command", "dB", 1),
-)
-
-
-def _fmt(v: float, digits: int) -> str:
-    if math.isinf(v):
-        return "inf"
-    if math.isnan(v):
-        return "n/a"
-    return f"{v:.{digits}f}"
-
 
 def format_gate_html(ev: Evaluation | None, error: str | None = None) -> str:
     """Margins and verdict as a small HTML block; a red box when the gate would reject."""
@@ -101,11 +86,6 @@ def format_gate_html(ev: Evaluation | None, error: str | None = None) -> str:
                    f"{judged}", font_px=None)
     return box("dt-verdict dt-reject", REJECT,
                f"<b>Verdict: REJECT</b> (cannot be sent){table}{reasons}{judged}", font_px=None)
-
-
-def _reason_list(reasons: tuple[str, ...] | list[str], cls: str) -> str:
-    items = "".join(f"<li class='{cls}'>{esc(r)}</li>" for r in reasons)
-    return f"<ul style='margin:4px 0 0 16px;padding:0'>{items}</ul>"
 
 
 _BASE_MARKS: tuple[tuple[float, str], ...] = ((-1.0, "0.1 Hz"), (0.0, "1 Hz"), (1.0, "10 Hz"))
@@ -306,6 +286,7 @@ class TuningPanel:
         self._preview_chart: Any = None
         self._steps_chart: Any = None
         self.nyquist: Any = None
+        self.bode: BodeTab | None = None
         self._worker = LatestWins(self._update, name="tuning-update")
         self._preview_worker = LatestWins(
             self._run_preview, name="tuning-preview", debounce_s=0.08
@@ -380,18 +361,16 @@ class TuningPanel:
         self.suggest_button.on_click(lambda _e: self.request_suggest())
 
     def build_charts(self) -> None:
-        gui = self.gui
-        self.preview_text = gui.add_html('<div class="dt-preview">preview: running...</div>')
-        self._preview_chart = add_chart(gui, charts.PREVIEW_CHART,
-                                        charts.PREVIEW_CHART.placeholder([0.0, 1.0]))
-        self._steps_chart = add_chart(gui, charts.STEP_CHART,
-                                      charts.STEP_CHART.placeholder([0.0, 1.0]))
-        for spec in charts.BODE_CHARTS:
-            self._charts[spec.key] = add_chart(gui, spec, spec.placeholder(self.engine.freq_hz))
-        self.nyquist = gui.add_html("<div class='dt-nyquist-box'></div>")
-        empty = suggest_data(None)
-        self._suggest_chart = add_chart(gui, SUGGEST_CHART, empty)
-        self._suggest_chart.scales = charts.ranged_scales(SUGGEST_CHART, empty)
+        """The Bode tab's sub-tabs and charts (`server.panels.bode`)."""
+        view = BodeTab(self.gui, self.engine.freq_hz)
+        view.build()
+        self.bode = view
+        self._charts = view.charts
+        self.nyquist = view.nyquist
+        self.preview_text = view.preview_text
+        self._preview_chart = view.preview_chart
+        self._steps_chart = view.steps_chart
+        self._suggest_chart = view.suggest_chart
 
     def start(self) -> None:
         self._worker.start()
@@ -735,11 +714,8 @@ class TuningPanel:
             self._evaluated(gen, invalid=True)
             return
         cmp = self.engine.compare(cand, self.active)
-        for key, handle in self._charts.items():
-            handle.data = cmp.chart_data[key]
-        if self.nyquist is not None:
-            set_html(self.nyquist, "<div class='dt-nyquist-box'>" + charts.nyquist_svg(
-                cmp.candidate.curves, cmp.active.curves) + "</div>")
+        if self.bode is not None:
+            self.bode.show(cmp)
         ev = cmp.candidate
         set_html(self.verdict, format_gate_html(ev))
         set_html(self.diff_text, diff_html(cand, self.active, self.active_version))

@@ -8,10 +8,11 @@ from collections.abc import Callable
 from typing import Any
 
 from server.charts import ChartSpec, FloatArray
+from server.escape import esc
 from server.export import chart_csv, export_filename
 
 __all__ = ["ACCEPT", "EXPORT_LABEL", "NEUTRAL", "REJECT", "add_chart", "add_export_row", "box",
-           "confirm", "set_html"]
+           "confirm", "reason_list", "set_html"]
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +27,10 @@ CAUTION = ("#b26a00", "#fff4e0")
 #: their one "CSV" button) and adds the PNG button beside it.
 EXPORT_LABEL = "Export"
 EXPORT_HINT = "CSV: this chart's data, from the dashboard; PNG: the chart as drawn here"
+#: uPlot's padding (top, right, bottom, left), px: room above the plot for the top tick
+#: labels (with 0 at the top, the top label of a scale whose range ends on a tick was cut in
+#: half, on the right-hand axes too).
+PADDING = (12, 24, 0, 0)
 
 
 def add_chart(
@@ -35,6 +40,8 @@ def add_chart(
     """A uPlot handle built from `spec` (its bands too, if any), with its Export row under it;
     afterwards assign `.data`. `gui`: the shared `server.gui` or one browser's `client.gui`;
     either way a CSV goes only to the browser whose button was pressed."""
+    options.setdefault("cursor", spec.extra.get("cursor"))
+    options.setdefault("padding", PADDING)
     chart = gui.add_uplot(
         data=data, series=spec.series, scales=spec.scales, axes=spec.axes, title=spec.title,
         height=spec.height, aspect=aspect, bands=spec.extra.get("bands"), **options,
@@ -76,6 +83,12 @@ def set_html(handle: Any, content: str) -> None:
     every browser)."""
     if handle.content != content:
         handle.content = content
+
+
+def reason_list(reasons: tuple[str, ...] | list[str], cls: str) -> str:
+    """Reasons as a bulleted list, each item of CSS class `cls` (escaped here)."""
+    items = "".join(f"<li class='{cls}'>{esc(r)}</li>" for r in reasons)
+    return f"<ul style='margin:4px 0 0 16px;padding:0'>{items}</ul>"
 
 
 def box(cls: str, colors: tuple[str, str], content: str, font_px: int | None = 13) -> str:

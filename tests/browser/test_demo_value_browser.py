@@ -82,6 +82,7 @@ def test_preview_shows_dob_off_beside_and_suggest_beats_it(
     page: Any, dash: Dashboard, artifacts: Path
 ) -> None:
     panel = only_panel(dash)
+    page.get_by_role("tab", name="Time", exact=True).click()  # the Bode tab's preview
     page.wait_for_selector(".dt-preview-nodob", timeout=60_000)
     page.wait_for_selector(f".dt-preview >> text=disturbances: {'+'.join(DISTURBANCES)}",
                            timeout=30_000)

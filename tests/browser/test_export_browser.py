@@ -36,7 +36,7 @@ from server.panels.widgets import EXPORT_LABEL
 
 pytestmark = pytest.mark.browser
 
-OPEN_LOOP = next(s for s in BODE_CHARTS if s.key == "open_loop")
+LOOP_MAG = next(s for s in BODE_CHARTS if s.key == "loop_mag")
 ERROR = next(s for s in LIVE_CHARTS if s.key == "error")
 #: The candidate's colour in the Bode charts (charts.CANDIDATE), as RGB.
 CANDIDATE_RGB = (0x1F, 0x77, 0xB4)
@@ -71,20 +71,20 @@ def test_csv_of_a_bode_chart_is_the_charts_data(
     page: Any, dashboard: Dashboard, artifacts: Path
 ) -> None:
     panel = _ready(page, dashboard)
-    button = _export_button(page, OPEN_LOOP.title, "CSV")
+    button = _export_button(page, LOOP_MAG.title, "CSV")
     button.wait_for(timeout=15_000)
     button.scroll_into_view_if_needed()
     page.screenshot(path=str(artifacts / "export_rows.png"))
-    before = [np.array(c) for c in panel._charts["open_loop"].data]
+    before = [np.array(c) for c in panel._charts["loop_mag"].data]
     with page.expect_download(timeout=15_000) as got:
         button.click()
     dl = got.value
-    after = [np.array(c) for c in panel._charts["open_loop"].data]
+    after = [np.array(c) for c in panel._charts["loop_mag"].data]
     assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(before, after, strict=True)
                ), "the chart changed while it was exported: nothing to compare with"
-    assert dl.suggested_filename == export_filename(OPEN_LOOP, "csv")
+    assert dl.suggested_filename == export_filename(LOOP_MAG, "csv")
     text = Path(dl.path()).read_text(encoding="utf-8")
-    (artifacts / "export_open_loop.csv").write_text(text)
+    (artifacts / "export_loop_mag.csv").write_text(text)
     rows = list(csv.reader(io.StringIO(text)))
     header, body = rows[0], rows[1:]
 
@@ -93,19 +93,19 @@ def test_csv_of_a_bode_chart_is_the_charts_data(
       const ups = Object.values(window.__viserTestpoints?.uplots || {});
       const u = ups.find(u => u.chart.root.querySelector('.u-title')?.textContent === title);
       return u ? u.chart.series.map(s => s.label) : null;
-    }""", OPEN_LOOP.title)
+    }""", LOOP_MAG.title)
     assert labels is not None and len(header) == len(labels) == len(before)
     assert all(h.startswith(str(lab)) for h, lab in zip(header, labels, strict=True)), header
     assert header[0] == "f (Hz)" and header[1] == "|L| candidate (dB)"
 
-    # Every value is the dashboard's; an empty cell is a point the chart does not have (NaN),
-    # or the one placeholder value that holds an empty series' scale up (row 0, rest NaN).
+    # Every value is the dashboard's; an empty cell is a point the chart does not have (NaN:
+    # the margin marks are NaN but at their two points).
     assert len(body) == len(before[0]) > 100
     for j, col in enumerate(before):
         cells = [r[j] for r in body]
         for i, (cell, v) in enumerate(zip(cells, col, strict=True)):
             if cell == "":
-                assert math.isnan(v) or (i == 0 and np.isnan(col[1:]).all()), (header[j], i, v)
+                assert math.isnan(v), (header[j], i, v)
             else:
                 assert math.isclose(float(cell), v, rel_tol=1e-12, abs_tol=1e-300), (
                     header[j], i, cell, v)
@@ -126,20 +126,20 @@ def test_png_of_a_bode_chart_is_the_chart_as_drawn(
     page: Any, dashboard: Dashboard, artifacts: Path
 ) -> None:
     _ready(page, dashboard)
-    button = _export_button(page, OPEN_LOOP.title, "PNG")
+    button = _export_button(page, LOOP_MAG.title, "PNG")
     button.wait_for(timeout=15_000)  # the page script put it beside CSV
     canvas = page.evaluate("""(title) => {
       const ups = Object.values(window.__viserTestpoints?.uplots || {});
       const u = ups.find(u => u.chart.root.querySelector('.u-title')?.textContent === title);
       const c = u.chart.root.querySelector('canvas');
       return [c.width, c.height];
-    }""", OPEN_LOOP.title)
+    }""", LOOP_MAG.title)
     with page.expect_download(timeout=15_000) as got:
         button.click()
     dl = got.value
-    assert dl.suggested_filename == export_filename(OPEN_LOOP, "png")  # the CSV's stem
+    assert dl.suggested_filename == export_filename(LOOP_MAG, "png")  # the CSV's stem
     blob = Path(dl.path()).read_bytes()
-    (artifacts / "export_open_loop.png").write_bytes(blob)
+    (artifacts / "export_loop_mag.png").write_bytes(blob)
     assert len(blob) > 5_000
     px = _png(blob)
     height, width, _ = px.shape
@@ -158,6 +158,7 @@ def test_png_of_a_bode_chart_is_the_chart_as_drawn(
 def test_png_of_the_nyquist_view(page: Any, dashboard: Dashboard, artifacts: Path) -> None:
     """The Nyquist view is SVG, not uPlot: its own PNG button, the same kind of file."""
     _ready(page, dashboard)
+    page.get_by_role("tab", name="Nyquist", exact=True).click()  # the Bode tab's sub-tab
     page.wait_for_selector(".dt-nyquist polyline.dt-nyq-cand", state="attached",
                            timeout=20_000)
     # The views as laid out on the screen (with and without the DOB), in device pixels.
@@ -182,6 +183,7 @@ def test_png_of_the_nyquist_view(page: Any, dashboard: Dashboard, artifacts: Pat
     assert len(np.unique(px.reshape(-1, 3), axis=0)) > 20
     near = np.all(np.abs(px.astype(int) - CANDIDATE_RGB) <= 12, axis=2)
     assert near.sum() > 30, near.sum()  # the candidate's loop is drawn
+    page.get_by_role("tab", name="Decide", exact=True).click()  # back to the other tests' view
 
 
 def _selected_tabs(page: Any) -> list[str]:
@@ -346,10 +348,10 @@ def test_a_csv_press_gets_only_that_charts_data_for_the_client_that_pressed(
         for _ in range(2):
             c = RawClient(dashboard)
             clients.append(c)
-            c.pump_until(lambda c=c: _has_row(c, OPEN_LOOP.title) and _has_row(
+            c.pump_until(lambda c=c: _has_row(c, LOOP_MAG.title) and _has_row(
                 c, ERROR.title), 60.0, "the raw client got no charts with Export rows")
         a, b = clients
-        a_bode, b_bode = a.export_row(OPEN_LOOP.title), b.export_row(OPEN_LOOP.title)
+        a_bode, b_bode = a.export_row(LOOP_MAG.title), b.export_row(LOOP_MAG.title)
         assert a_bode != b_bode  # each browser its own candidate charts
         live_row = a.export_row(ERROR.title)
         assert live_row == b.export_row(ERROR.title)  # the live charts are shared
@@ -363,11 +365,11 @@ def test_a_csv_press_gets_only_that_charts_data_for_the_client_that_pressed(
         a.press(live_row, "/etc/shadow")
         a.pump_until(lambda: len(a.files) == len(forged) + 1, 30.0, "A's files did not come")
         names = [n for n, _ in a.files]
-        assert sorted(names) == sorted([export_filename(OPEN_LOOP, "csv")] * len(forged)
+        assert sorted(names) == sorted([export_filename(LOOP_MAG, "csv")] * len(forged)
                                        + [export_filename(ERROR, "csv")])
         for name, content in a.files:
             rows = list(csv.reader(io.StringIO(content.decode("utf-8"))))
-            spec = OPEN_LOOP if name == export_filename(OPEN_LOOP, "csv") else ERROR
+            spec = LOOP_MAG if name == export_filename(LOOP_MAG, "csv") else ERROR
             assert len(rows[0]) == len(spec.series) and rows[0][0] in ("f (Hz)", "t (s)")
             assert len(rows) > 2 and all(len(r) == len(spec.series) for r in rows)
             values = np.array([float(x) for r in rows[1:] for x in r if x])  # numbers only
@@ -377,7 +379,7 @@ def test_a_csv_press_gets_only_that_charts_data_for_the_client_that_pressed(
         # forged press of B's row gave B nothing).
         b.press(b_bode, "CSV")
         b.pump_until(lambda: len(b.files) >= 1, 30.0, "B's file did not come")
-        assert [n for n, _ in b.files] == [export_filename(OPEN_LOOP, "csv")]
+        assert [n for n, _ in b.files] == [export_filename(LOOP_MAG, "csv")]
         assert not [m for m in b.messages if m["type"] == "FileTransferStartDownload"][1:]
         page.evaluate("1")  # let Playwright deliver the page's events
         assert page_downloads == []
@@ -397,6 +399,8 @@ def test_png_of_a_long_titled_chart_has_the_whole_title_in_its_name(
     from server.charts import BODE_CHARTS
 
     _ready(page, dashboard)
+    page.get_by_role("tab", name="Bode", exact=True).click()
+    page.get_by_role("tab", name="Decide", exact=True).click()
     spec = next(s for s in BODE_CHARTS if s.key == "rejection")
     button = _export_button(page, spec.title, "PNG")
     button.wait_for(timeout=15_000)

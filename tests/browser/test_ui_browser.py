@@ -333,9 +333,11 @@ def test_empty_charts_draw_no_fake_data(page: Any) -> None:
         got = page.evaluate(EMPTY_CHARTS_JS, titles)
         return len(got) == 2
 
-    # The Suggest chart sits in the plots panel's Bode tab (an earlier test of this module may
-    # have left that panel on Live traces), the overlay in the controls' Recordings tab.
+    # The Suggest chart sits in the plots panel's Bode tab, sub-tab Suggest (an earlier test of
+    # this module may have left that panel on Live traces), the overlay in the controls'
+    # Recordings tab.
     page.get_by_role("tab", name="Bode", exact=True).click()
+    page.get_by_role("tab", name="Suggest", exact=True).click()
     page.get_by_role("tab", name="Recordings").click()
     page.get_by_text(titles[0], exact=False).first.scroll_into_view_if_needed(timeout=90_000)
     wait_for(read, 90.0, f"the Suggest and the overlay charts never appeared: {got}")

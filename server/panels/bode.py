@@ -1,0 +1,125 @@
+"""The Bode tab of one candidate: what a cut-off decision needs on one screen, the rest a
+click away.
+
+Sub-tabs: **Decide** (the verdict with its reasons and margins, the loop's classic Bode:
+magnitude over phase on one frequency axis with the margins marked and a cursor read-out,
+sensitivity and the DOB's rejection), **Responses** (closed loop, disturbance, noise, small
+gain, the plant), **Time** (the simulated preview and the linear step responses), **Nyquist**
+and **Suggest**. The charts' y scales are fixed from their data (`charts.ranged_scales`,
+rounded out to whole steps), so NaN draws nothing and no column needs a stand-in value.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from server import charts
+from server.engine import Comparison, Evaluation
+from server.escape import esc
+from server.panels.widgets import ACCEPT, CAUTION, REJECT, add_chart, box, reason_list, set_html
+from server.suggest import SUGGEST_CHART, suggest_data
+
+__all__ = ["BODE_TABS", "DECIDE", "MARGIN_LABELS", "BodeTab", "decide_html", "fmt_value"]
+
+#: The sub-tab with what one cut-off decision needs.
+DECIDE = "Decide"
+#: The frequency-response charts of each sub-tab (chart keys of `charts.BODE_CHARTS`).
+BODE_TABS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    (DECIDE, ("loop_mag", "loop_phase", "sensitivity", "rejection")),
+    ("Responses", ("closed_loop", "disturbance", "noise", "small_gain", "plant")),
+)
+
+#: (GateView.margins key, label, unit, digits) of the margins the verdict shows.
+MARGIN_LABELS = (
+    ("gain_margin_db", "gain margin", "dB", 1),
+    ("phase_margin_deg", "phase margin", "deg", 1),
+    ("peak_sensitivity_db", "peak |S|", "dB", 2),
+    ("small_gain_peak", "small-gain peak", "", 3),
+    ("max_pole_radius", "max |pole|", "", 5),
+    ("noise_to_command_peak_db", "noise -> command", "dB", 1),
+)
+
+#: Filled in by web_assets/dashboard.js while the cursor is over the loop's Bode charts.
+READOUT_HTML = ("<div class='dt-loop-readout' style='font-size:13px;font-family:monospace;"
+                "min-height:1.4em;color:#333'>cursor: hover the Bode charts for f, |L| and "
+                "phase</div>")
+
+
+def fmt_value(v: float, digits: int) -> str:
+    if math.isinf(v):
+        return "inf"
+    if math.isnan(v):
+        return "n/a"
+    return f"{v:.{digits}f}"
+
+
+def decide_html(ev: Evaluation) -> str:
+    """The verdict in the wide Decide view: the word, every margin side by side, every
+    reason."""
+    g = ev.gate
+    chips = "".join(
+        f"<span style='white-space:nowrap;margin-right:14px'>{label} "
+        f"<b>{fmt_value(g.margins[key], d)}</b> {unit}</span> "
+        for key, label, unit, d in MARGIN_LABELS if key in g.margins)
+    judged = (f" <span style='color:#555'>judged on {esc(g.knowledge)}</span>"
+              if g.knowledge else "")
+    word, colors = {"accept": ("accept", ACCEPT), "caution": ("CAUTION", CAUTION)}.get(
+        g.verdict, ("REJECT", REJECT))
+    reasons = reason_list(g.reasons, "dt-decide-reason") if g.reasons else ""
+    return box(f"dt-decide dt-decide-{g.verdict}", colors,
+               f"<b>Verdict: {word}</b>{judged}<div style='margin-top:2px'>{chips}</div>"
+               f"{reasons}")
+
+
+class BodeTab:
+    """The charts of one candidate, built into the current GUI container (the plots panel's
+    Bode tab); `show` draws a comparison."""
+
+    def __init__(self, gui: Any, freq_hz: charts.FloatArray) -> None:
+        self.gui = gui
+        self.freq_hz = freq_hz
+        self.charts: dict[str, Any] = {}
+        self._specs = {s.key: s for s in charts.BODE_CHARTS}
+
+    def build(self) -> None:
+        gui = self.gui
+        tabs = gui.add_tab_group()
+        for name, keys in BODE_TABS:
+            with tabs.add_tab(name):
+                if name == DECIDE:
+                    self.verdict = gui.add_html("<div class='dt-decide'>evaluating...</div>")
+                    self.margins = gui.add_html("<div class='dt-loop-margins'></div>")
+                    self.readout = gui.add_html(READOUT_HTML)
+                for key in keys:
+                    spec = self._specs[key]
+                    self.charts[key] = add_chart(gui, spec, spec.placeholder(self.freq_hz))
+        with tabs.add_tab("Time"):
+            self.preview_text = gui.add_html('<div class="dt-preview">preview: running...</div>')
+            self.preview_chart = add_chart(gui, charts.PREVIEW_CHART,
+                                           charts.PREVIEW_CHART.placeholder([0.0, 1.0]))
+            self.steps_chart = add_chart(gui, charts.STEP_CHART,
+                                         charts.STEP_CHART.placeholder([0.0, 1.0]))
+        with tabs.add_tab("Nyquist"):
+            self.nyquist = gui.add_html("<div class='dt-nyquist-box'></div>")
+        with tabs.add_tab("Suggest"):
+            empty = suggest_data(None)
+            self.suggest_chart = add_chart(gui, SUGGEST_CHART, empty)
+            self.suggest_chart.scales = charts.ranged_scales(SUGGEST_CHART, empty)
+        self.tabs = tabs
+
+    def show(self, cmp: Comparison) -> None:
+        """A candidate against the active configuration: every chart's data (a y scale is
+        assigned only when its rounded range changes: a new scale re-creates the chart), the
+        margins, the verdict and the Nyquist view."""
+        for key, handle in self.charts.items():
+            data = cmp.chart_data[key]
+            scales = charts.ranged_scales(self._specs[key], data, charts.Y_STEPS)
+            if scales != handle.scales:
+                handle.scales = scales
+            handle.data = data
+        cand = cmp.candidate.curves
+        set_html(self.margins, charts.loop_margins_html(cand))
+        set_html(self.verdict, decide_html(cmp.candidate))
+        set_html(self.nyquist, "<div class='dt-nyquist-box'>" + charts.nyquist_svg(
+            cand, cmp.active.curves) + "</div>")

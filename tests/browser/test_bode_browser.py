@@ -1,0 +1,279 @@
+"""The Bode tab as a servo engineer reads it (issue 22 items 5 and 6), checked on what the
+page draws: the loop's classic Bode (magnitude over phase on one frequency axis, a zoom of one
+zooms both), the -180 deg line a horizontal line at -180 deg, the cursor read-out of both charts
+at the hovered frequency against the dashboard's own data, the margin markers labelled with the
+margins python-control finds, and the decision views (verdict, loop Bode, sensitivity,
+rejection) inside a 1920 x 1080 screen.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from conftest import open_when_ready
+from helpers import wait_for
+
+from server import charts
+from server.app import Dashboard
+
+pytestmark = pytest.mark.browser
+
+#: The loop's Bode charts, found by a series of their own.
+MAG = "|L| candidate"
+PHASE = "phase candidate"
+#: Time for the page under load (a 2-core machine shared by several test runs).
+SLOW_S = 60.0
+
+#: JS: facts about the drawn chart that holds the series `label` (the page's own uPlot).
+CHART_JS = """(label) => {
+  const u = Object.values(window.__viserTestpoints?.uplots || {}).map(e => e.chart)
+    .find(u => document.body.contains(u.root) && u.series.some(s => s.label === label));
+  if (!u) return null;
+  const o = u.over.getBoundingClientRect();
+  return {
+    over: [o.left, o.top, o.width, o.height],
+    x: [u.scales.x.min, u.scales.x.max],
+    axes: u.axes.map(a => a.scale),
+    n: u.data[0].length,
+    x0: u.data[0][0],
+    idx: u.cursor.idx,
+    k: u.ctx.canvas.width / u.width,
+    plotLeft: u.bbox.left / (u.ctx.canvas.width / u.width),
+    labels: u.root.dataset.marginLabels || null,
+    title: u.root.querySelector('.u-title')?.textContent || '',
+  };
+}"""
+
+
+def _chart(page: Any, label: str) -> dict[str, Any]:
+    info = page.evaluate(CHART_JS, label)
+    assert info is not None, f"no drawn chart with the series {label!r}"
+    return dict(info)
+
+
+def _panel(page: Any, dashboard: Dashboard) -> Any:
+    """The page's candidate panel, once its charts show the controller's knowledge and the
+    page holds the panel's loop Bode data."""
+    page.wait_for_selector(".dt-verdict >> text=/plant knowledge v[1-9]/",
+                           timeout=SLOW_S * 1000)
+    clients = list(dashboard.server.get_clients().values())
+    assert len(clients) == 1
+    panel = dashboard.panel_of(clients[0])
+    assert panel is not None and panel.wait_idle(SLOW_S)
+    data = panel._charts["loop_mag"].data
+
+    def drawn() -> bool:
+        c = page.evaluate(CHART_JS, MAG)
+        return bool(c) and c["n"] == len(data[0]) and c["x0"] == data[0][0] and c["labels"]
+
+    wait_for(drawn, SLOW_S, "the page never drew the panel's loop Bode")
+    return panel
+
+
+def test_loop_bode_is_magnitude_over_phase_on_one_frequency_axis(
+        page: Any, dashboard: Dashboard, artifacts: Path) -> None:
+    """Two charts, magnitude above phase, their plot areas aligned, each with its own y axis
+    (no phase on a second axis of the magnitude chart), the same x range; a drag-zoom on the
+    magnitude chart zooms the phase chart to the same range."""
+    _panel(page, dashboard)
+    mag, phase = _chart(page, MAG), _chart(page, PHASE)
+    assert mag["axes"] == ["x", "y"] and phase["axes"] == ["x", "deg"]
+    assert mag["over"][1] + mag["over"][3] <= phase["over"][1]  # magnitude above phase
+    assert abs(mag["over"][0] - phase["over"][0]) <= 1.0
+    assert abs(mag["over"][2] - phase["over"][2]) <= 1.0
+    assert mag["x"] == phase["x"]
+    page.locator(".dt-loop-readout").scroll_into_view_if_needed()
+    mag = _chart(page, MAG)
+    left, top, width, height = mag["over"]
+    page.mouse.move(left + 0.3 * width, top + height / 2)
+    page.mouse.down()
+    page.mouse.move(left + 0.6 * width, top + height / 2, steps=8)
+    page.mouse.up()
+
+    def zoomed() -> bool:
+        m, p = _chart(page, MAG), _chart(page, PHASE)
+        return m["x"] == p["x"] and m["x"][1] / m["x"][0] < 0.5 * mag["x"][1] / mag["x"][0]
+
+    wait_for(zoomed, SLOW_S, "a zoom of the magnitude chart did not zoom both charts alike")
+    m = _chart(page, MAG)
+    # The range dragged over: 30 % to 60 % of the log axis.
+    lo, hi = (math.log10(v) for v in mag["x"])
+    assert math.isclose(math.log10(m["x"][0]), lo + 0.3 * (hi - lo), abs_tol=0.05)
+    assert math.isclose(math.log10(m["x"][1]), lo + 0.6 * (hi - lo), abs_tol=0.05)
+    page.screenshot(path=str(artifacts / "bode_zoomed.png"), timeout=SLOW_S * 1000)
+    page.mouse.dblclick(left + 0.5 * width, top + height / 2)  # back to the whole range
+
+    def whole() -> bool:
+        m, p = _chart(page, MAG), _chart(page, PHASE)
+        return m["x"] == p["x"] == mag["x"]
+
+    wait_for(whole, SLOW_S, "a double click did not bring both charts back to the whole range")
+
+
+#: JS: red (the -180 deg line's #d62728) pixels of the phase chart's canvas, per row.
+RED_ROWS_JS = """(label) => {
+  const u = Object.values(window.__viserTestpoints?.uplots || {}).map(e => e.chart)
+    .find(u => document.body.contains(u.root) && u.series.some(s => s.label === label));
+  const {left, top, width, height} = u.bbox;
+  const d = u.ctx.getImageData(left, top, width, height).data;
+  const rows = [];
+  for (let y = 0; y < height; y++) {
+    let n = 0;
+    for (let x = 0; x < width; x++) {
+      const i = 4 * (y * width + x);
+      if (d[i] > 170 && d[i + 1] < 110 && d[i + 2] < 110) n++;
+    }
+    rows.push(n / width);
+  }
+  return {rows, top: top / (u.ctx.canvas.width / u.width), k: u.ctx.canvas.width / u.width};
+}"""
+
+
+def test_the_minus_180_line_is_a_horizontal_line_at_minus_180_deg(
+        page: Any, dashboard: Dashboard) -> None:
+    """The phase chart's -180 deg marker is one horizontal line across the plot at the pixel
+    row of -180 deg on the chart's scale (the scale the dashboard set: computed here from its
+    range), and no other red is drawn (it was a dotted rectangle between the two phase
+    crossovers)."""
+    panel = _panel(page, dashboard)
+    lo, hi = panel._charts["loop_phase"].scales["deg"]["range"]
+    assert lo < -180.0 < hi
+    got = page.evaluate(RED_ROWS_JS, PHASE)
+    rows = np.array(got["rows"])
+    expected_row = (hi - (-180.0)) / (hi - lo) * (len(rows) - 1)
+    line = int(np.argmax(rows))
+    assert abs(line - expected_row) <= 1.5 * got["k"], (line, expected_row)
+    band = slice(max(0, line - 2 * math.ceil(got["k"])), line + 2 * math.ceil(got["k"]) + 1)
+    assert rows[band].max() > 0.6  # across the plot (the curve crosses it in places)
+    outside = np.delete(rows, np.arange(len(rows))[band])
+    assert outside.max() < 0.02, outside.max()  # no other line, no rectangle
+
+
+def test_cursor_readout_shows_both_charts_at_the_hovered_frequency(
+        page: Any, dashboard: Dashboard) -> None:
+    """Hovering the magnitude chart at 2 Hz, then the phase chart at 20 Hz: the read-out gives
+    the frequency under the cursor and |L| and phase there, as the dashboard computed them
+    (its chart data, to the read-out's 0.1), and both charts' cursors sit on that frequency."""
+    panel = _panel(page, dashboard)
+    mag_data = panel._charts["loop_mag"].data
+    phase_data = panel._charts["loop_phase"].data
+    x = np.asarray(mag_data[0])
+    page.locator(".dt-loop-readout").scroll_into_view_if_needed()
+    pattern = re.compile(r"f (\S+) Hz \| \|L\| (\S+) dB \| phase (\S+) deg \| active: \|L\| "
+                         r"(\S+) dB, phase (\S+) deg")
+    for label, f_hz in ((MAG, 2.0), (PHASE, 20.0)):
+        c = _chart(page, label)
+        left, top, width, height = c["over"]
+        lo, hi = (math.log10(v) for v in c["x"])
+        page.mouse.move(left + (math.log10(f_hz) - lo) / (hi - lo) * width, top + height / 3)
+
+        def reading(f_hz: float = f_hz) -> re.Match[str] | None:
+            m = pattern.search(page.locator(".dt-loop-readout").inner_text())
+            return m if m and abs(math.log10(float(m.group(1)) / f_hz)) < 0.02 else None
+
+        wait_for(reading, SLOW_S, f"no read-out near {f_hz} Hz")
+        m = reading()
+        assert m is not None
+        f = float(m.group(1))
+        i = int(np.argmin(np.abs(np.log(x / f))))
+        assert abs(np.log10(x[i] / f_hz)) < 0.02  # a grid point within 5 % of the cursor
+        expect = (mag_data[1][i], phase_data[1][i], mag_data[2][i], phase_data[2][i])
+        for text, value in zip(m.groups()[1:], expect, strict=True):
+            assert abs(float(text) - value) <= 0.051, (m.group(0), expect)
+        mag, phase = _chart(page, MAG), _chart(page, PHASE)
+        assert mag["idx"] == phase["idx"] and mag["idx"] is not None  # one cursor on both
+        assert math.isclose(x[mag["idx"]], f, rel_tol=5e-3)
+
+
+#: JS: pixels of colour `rgb` (within 40) in a box of the chart `label`'s canvas (CSS px).
+INK_JS = """([label, box, rgb]) => {
+  const u = Object.values(window.__viserTestpoints?.uplots || {}).map(e => e.chart)
+    .find(u => document.body.contains(u.root) && u.series.some(s => s.label === label));
+  const k = u.ctx.canvas.width / u.width;
+  const [x, y, w, h] = box.map(v => Math.round(v * k));
+  const d = u.ctx.getImageData(x, y, w, h).data;
+  let n = 0;
+  for (let i = 0; i < d.length; i += 4) {
+    if (Math.abs(d[i] - rgb[0]) < 40 && Math.abs(d[i + 1] - rgb[1]) < 40
+        && Math.abs(d[i + 2] - rgb[2]) < 40) n++;
+  }
+  return n;
+}"""
+
+
+def _rgb(hex_color: str) -> list[int]:
+    return [int(hex_color[i:i + 2], 16) for i in (1, 3, 5)]
+
+
+def test_margin_markers_are_labelled_with_their_values_and_frequencies(
+        page: Any, dashboard: Dashboard) -> None:
+    """Each margin marker carries its label on the chart ("GM 26.0 dB at 36.3 Hz", "PM 74.8
+    deg at 6.86 Hz": the margins of the verdict, from the gate's refined crossings), drawn in
+    the marker's colour at the marker's frequency; the line above the charts says the same."""
+    panel = _panel(page, dashboard)
+    curves = panel.last_evaluation.curves
+    gm, pm = charts.margin_marks(curves)
+    assert gm and pm is not None
+    margins_text = page.locator(".dt-loop-margins").inner_text()
+    for label, marks, unit, color in ((MAG, gm, "dB", charts.GM_COLOR),
+                                      (PHASE, (pm,), "deg", charts.PM_COLOR)):
+        c = _chart(page, label)
+        drawn = json.loads(c["labels"])
+        want = [f"{'GM' if unit == 'dB' else 'PM'} {m.value:.1f} {unit} at "
+                f"{float(f'{m.freq_hz:.3g}'):g} Hz" for m in marks]
+        assert [d["text"] for d in drawn] == want
+        lo, hi = (math.log10(v) for v in c["x"])
+        for d, m in zip(drawn, marks, strict=True):
+            # At the marker's frequency on the chart's log axis (canvas CSS px).
+            x_expected = c["plotLeft"] + (math.log10(m.freq_hz) - lo) / (hi - lo) * c["over"][2]
+            assert abs(d["x"] - x_expected) <= 1.0, (d, x_expected)
+            # The text is drawn in the marker's colour beside the marker.
+            box = [d["x"] - 220, d["y"] - 7, 440, 14]
+            assert page.evaluate(INK_JS, [label, box, _rgb(color)]) >= 30
+            value = f"{m.value:.1f} {unit} at {float(f'{m.freq_hz:.3g}'):g} Hz"
+            assert value in margins_text, (value, margins_text)
+
+
+def test_the_decision_views_fit_a_1920_by_1080_screen(
+        page: Any, dashboard: Dashboard, artifacts: Path) -> None:
+    """On a 1920 x 1080 screen the Bode tab opens on Decide, and the verdict, the margins, the
+    read-out, the loop's magnitude and phase, sensitivity and rejection are all on the screen
+    at once, unscrolled and not covered (the tab was ~3,850 px of 11 charts)."""
+    other = page.context.browser.new_context(viewport={"width": 1920, "height": 1080})
+    try:
+        fresh = other.new_page()
+        open_when_ready(fresh, dashboard, SLOW_S * 2)
+        fresh.wait_for_selector(".dt-loop-margins >> text=phase margin", timeout=SLOW_S * 1000)
+        specs = {s.key: s for s in charts.BODE_CHARTS}
+        titles = [specs[k].title for k in ("loop_mag", "loop_phase", "sensitivity",
+                                           "rejection")]
+        boxes = fresh.evaluate("""(titles) => {
+          const seen = (el) => {
+            const r = el.getBoundingClientRect();
+            const hit = document.elementFromPoint(r.left + r.width / 2, r.top + r.height / 2);
+            return {top: r.top, bottom: r.bottom, width: r.width,
+                    covered: !(hit && (el === hit || el.contains(hit)))};
+          };
+          const out = {};
+          for (const sel of ['.dt-decide', '.dt-loop-margins', '.dt-loop-readout'])
+            out[sel] = seen(document.querySelector(sel));
+          for (const t of titles) {
+            const title = [...document.querySelectorAll('.u-title')]
+              .find(e => e.textContent === t && e.getBoundingClientRect().width > 0);
+            out[t] = title ? seen(title.closest('.uplot-container')) : null;
+          }
+          return out;
+        }""", titles)
+        fresh.screenshot(path=str(artifacts / "bode_decide_1080.png"), timeout=SLOW_S * 1000)
+        for name, b in boxes.items():
+            assert b is not None, f"{name}: not shown"
+            assert b["width"] > 500 and b["top"] >= 0 and b["bottom"] <= 1080, (name, b)
+            assert not b["covered"], (name, b)
+    finally:
+        other.close()
