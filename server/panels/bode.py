@@ -30,7 +30,7 @@ BODE_TABS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Responses", ("closed_loop", "disturbance", "noise", "small_gain", "plant")),
 )
 
-#: (GateView.margins key, label, unit, digits) of the margins the verdict shows.
+#: (Verdict.margins field, label, unit, digits) of the margins the verdict shows.
 MARGIN_LABELS = (
     ("gain_margin_db", "gain margin", "dB", 1),
     ("phase_margin_deg", "phase margin", "deg", 1),
@@ -57,11 +57,11 @@ def fmt_value(v: float, digits: int) -> str:
 def decide_html(ev: Evaluation) -> str:
     """The verdict in the wide Decide view: the word, every margin side by side, every
     reason."""
-    g = ev.gate
+    g = ev.verdict
     chips = "".join(
         f"<span style='white-space:nowrap;margin-right:14px'>{label} "
-        f"<b>{fmt_value(g.margins[key], d)}</b> {unit}</span> "
-        for key, label, unit, d in MARGIN_LABELS if key in g.margins)
+        f"<b>{fmt_value(getattr(g.margins, key), d)}</b> {unit}</span> "
+        for key, label, unit, d in MARGIN_LABELS)
     judged = (f" <span style='color:#555'>judged on {esc(g.knowledge)}</span>"
               if g.knowledge else "")
     word, colors = {"accept": ("accept", ACCEPT), "caution": ("CAUTION", CAUTION)}.get(
