@@ -47,6 +47,7 @@ from server.panels.knowledge import KnowledgePanel
 from server.panels.live import LivePanel
 from server.panels.nominal_tuning import NominalTuningPanel
 from server.panels.recordings import RecordingsPanel
+from server.panels.widgets import set_width_in
 from server.scene3d import TurntableScene
 from server.session import BrowserSessions, leased
 from server.workers import Requests, run_logged
@@ -65,6 +66,9 @@ log = logging.getLogger(__name__)
 #: The plots panel's width: the Bode tab's Decide view (the verdict, the loop's Bode,
 #: sensitivity, rejection) fits 1920 x 1080 beside the controls; the 3-D view keeps the rest.
 PLOTS_WIDTH_PX = 900
+#: The plots panel's width with the 3-D view hidden (beyond any screen: viser keeps a 120 px
+#: sliver of the 3-D view).
+PLOTS_WIDE_PX = 4000
 
 
 def _asset(name: str, default: str = "") -> str:
@@ -134,6 +138,10 @@ class Dashboard:
         self._fleet_monitor: FleetMonitor | None = None
         self._views: dict[str, Dashboard] = {}
         self._views_lock = threading.Lock()
+        self.plots: Any = None
+        self._hidden_3d: set[int] = set()
+        """The browsers (client ids) whose 3-D view is hidden."""
+        self._hidden_3d_lock = threading.Lock()
 
     @property
     def users(self) -> dict[str, Any]:
@@ -266,6 +274,10 @@ class Dashboard:
             self.knowledge.build()
         with tabs.add_tab("Live"):
             live.build_controls()
+            view = gui.add_button("Hide / show the 3-D view", color="gray",
+                                  hint="in this browser: the charts take the 3-D view's space, "
+                                  "or give it back")
+            view.on_click(lambda e: self._toggle_3d(e.client))
         with tabs.add_tab("Identify"):
             self.identify.build_controls()
         if self.opts.fleet:
@@ -304,6 +316,15 @@ class Dashboard:
         if self.fleet is not None:
             self.fleet.start()
         self._requests.submit(self._fetch_active)
+
+    def _toggle_3d(self, browser: Any) -> None:
+        """Hide or show the 3-D view in `browser` (the plots panel widens over it)."""
+        if browser is None or self.plots is None:
+            return
+        with self._hidden_3d_lock:
+            hidden = browser.client_id not in self._hidden_3d
+            (self._hidden_3d.add if hidden else self._hidden_3d.discard)(browser.client_id)
+        set_width_in(browser, self.plots, PLOTS_WIDE_PX if hidden else PLOTS_WIDTH_PX)
 
     def _record_options(self) -> RecordOptions:
         """The recorder's way to this dashboard's rig (its `out` is set per recording)."""
@@ -355,6 +376,8 @@ class Dashboard:
     def _on_client_disconnect(self, client: Any) -> None:
         self.sessions.left(client.client_id)
         self.candidates.drop(client.client_id)
+        with self._hidden_3d_lock:
+            self._hidden_3d.discard(client.client_id)
 
     def _fetch_active(self) -> None:
         try:

@@ -858,6 +858,11 @@ def identify_data(
 #: The Nyquist view shows |L| <= this radius (the loop's integrators send L to infinity at
 #: low frequency; what matters for margins is near the unit circle and -1).
 NYQUIST_RADIUS = 3.0
+#: A Nyquist panel's bands (viewBox px): the title and the formula above the square plot, the
+#: tick labels inside its edge, the legend below it.
+NYQUIST_HEADER_PX = 80
+NYQUIST_INSET_PX = 30
+NYQUIST_FOOTER_PX = 64
 
 
 def open_loop_response(c: BodeCurves) -> ComplexArray:
@@ -892,17 +897,40 @@ def _nyquist_panel(cand: NyquistLoop | None, active: NyquistLoop | None, title: 
     """One Nyquist panel (an SVG): candidate solid, active dashed, unit circle, -1, and the
     candidate's margin points (PM on the unit circle, GM on the negative real axis)."""
     half = size / 2.0
-    k = (half - 12.0) / radius
+    top = float(NYQUIST_HEADER_PX)
+    cx0, cy0 = half, top + half  # the origin
+    k = (half - NYQUIST_INSET_PX) / radius  # px per unit
+    x0, y0, x1, y1 = cx0 - k * radius, cy0 - k * radius, cx0 + k * radius, cy0 + k * radius
 
     def xy(z: complex) -> tuple[str, str]:
-        return f"{half + k * z.real:.1f}", f"{half - k * z.imag:.1f}"
+        return f"{cx0 + k * z.real:.1f}", f"{cy0 - k * z.imag:.1f}"
 
-    parts = [f"<svg class='{cls} dt-nyq-panel' data-loop='{loop}' viewBox='0 0 {size} {size}' "
+    height = size + NYQUIST_HEADER_PX + NYQUIST_FOOTER_PX
+    parts = [f"<svg class='{cls} dt-nyq-panel' data-loop='{loop}' viewBox='0 0 {size} {height}' "
+             f"data-origin='{cx0:.1f} {cy0:.1f}' data-px-per-unit='{k:.4f}' "
              f"width='100%' style='display:block;height:auto;background:#fff'>",
-             f"<line x1='0' y1='{half}' x2='{size}' y2='{half}' stroke='#ddd'/>",
-             f"<line x1='{half}' y1='0' x2='{half}' y2='{size}' stroke='#ddd'/>",
-             f"<circle cx='{half}' cy='{half}' r='{k:.1f}' fill='none' stroke='#999' "
+             f"<rect class='dt-nyq-plot' x='{x0:.1f}' y='{y0:.1f}' width='{x1 - x0:.1f}' "
+             f"height='{y1 - y0:.1f}' fill='none' stroke='#ccc'/>",
+             f"<line x1='{x0:.1f}' y1='{cy0}' x2='{x1:.1f}' y2='{cy0}' stroke='#bbb'/>",
+             f"<line x1='{cx0}' y1='{y0:.1f}' x2='{cx0}' y2='{y1:.1f}' stroke='#bbb'/>",
+             f"<circle cx='{cx0}' cy='{cy0}' r='{k:.1f}' fill='none' stroke='#999' "
              "stroke-dasharray='4 3'/>"]
+    # Ticks at every whole unit on both axes, labelled outside the plot's frame (real: under
+    # it, imaginary: left of it), and the axes' names.
+    for v in range(-int(radius), int(radius) + 1):
+        px, py = cx0 + k * v, cy0 - k * v
+        parts.append(f"<line class='dt-nyq-tick' x1='{px:.1f}' y1='{cy0 - 5}' x2='{px:.1f}' "
+                     f"y2='{cy0 + 5}' stroke='#888'/>")
+        parts.append(f"<line class='dt-nyq-tick' x1='{cx0 - 5}' y1='{py:.1f}' x2='{cx0 + 5}' "
+                     f"y2='{py:.1f}' stroke='#888'/>")
+        parts.append(f"<text class='dt-nyq-tick-re' x='{px:.1f}' y='{y1 + 15:.1f}' "
+                     f"font-size='13' fill='#555' text-anchor='middle'>{v}</text>")
+        parts.append(f"<text class='dt-nyq-tick-im' x='{x0 - 4:.1f}' y='{py:.1f}' "
+                     f"font-size='13' fill='#555' text-anchor='end' "
+                     f"dominant-baseline='central'>{v}</text>")
+    parts.append(f"<text x='{x1:.1f}' y='{cy0 - 8}' font-size='13' fill='#555' "
+                 "text-anchor='end'>Re L</text>")
+    parts.append(f"<text x='{cx0 + 8}' y='{y0 + 13:.1f}' font-size='13' fill='#555'>Im L</text>")
     for nl, color, css, dash in ((active, ACTIVE, "dt-nyq-active", "6 4"),
                                  (cand, CANDIDATE, "dt-nyq-cand", "")):
         if nl is None:
@@ -939,15 +967,17 @@ def _nyquist_panel(cand: NyquistLoop | None, active: NyquistLoop | None, title: 
                    f"GM {_fmt_margin(cand.gain_margin_db, 'dB')}"
                    + (" (read outside the view)" if outside else ""))
     # Sized for a panel drawn at about half its viewBox width (two side by side in the
-    # dashboard's plot column): the title on two lines, the legend on two.
+    # dashboard's plot column): the title on two lines and the formula above the plot, the
+    # legend on two lines under it (never over the curves).
     parts.append(f"<text class='dt-nyq-title' fill='#333'>"
                  f"<tspan x='8' y='24' font-size='22' font-weight='bold'>{title}:</tspan>"
                  f"<tspan x='8' y='48' font-size='19'> {summary}</tspan></text>")
     parts.append(f"<text x='8' y='70' font-size='15' fill='#555'>{formula}</text>")
-    parts.append(f"<text x='8' y='{size - 30}' font-size='15' fill='#555'>"
-                 f"|L| &#8804; {radius:g}, unit circle dashed, + = -1</text>")
-    parts.append(f"<text x='8' y='{size - 10}' font-size='15' fill='#555'>"
-                 "candidate solid, active dashed; "
+    foot = y1 + 20
+    parts.append(f"<text class='dt-nyq-foot' x='8' y='{foot + 16:.1f}' font-size='15' "
+                 f"fill='#555'>|L| &#8804; {radius:g}, unit circle dashed, + = -1</text>")
+    parts.append(f"<text class='dt-nyq-foot' x='8' y='{foot + 36:.1f}' font-size='15' "
+                 "fill='#555'>candidate solid, active dashed; "
                  f"<tspan fill='{PM_COLOR}'>&#9679; PM</tspan> "
                  f"<tspan fill='{GM_COLOR}'>&#9679; GM</tspan> read here</text></svg>")
     return "".join(parts)

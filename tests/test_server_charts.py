@@ -192,10 +192,44 @@ def _panels(html: str) -> tuple[ET.Element, ET.Element]:
 
 def _svg_point(panel: ET.Element, el: ET.Element) -> complex:
     """An element's centre back in the complex plane of its panel."""
-    size = float(panel.attrib["viewBox"].split()[2])
-    half = size / 2.0
-    k = (half - 12.0) / charts.NYQUIST_RADIUS
-    return complex((float(el.attrib["cx"]) - half) / k, (half - float(el.attrib["cy"])) / k)
+    cx, cy = (float(v) for v in panel.attrib["data-origin"].split())
+    k = float(panel.attrib["data-px-per-unit"])
+    return complex((float(el.attrib["cx"]) - cx) / k, (cy - float(el.attrib["cy"])) / k)
+
+
+def test_nyquist_has_ticks_and_its_legend_keeps_off_the_plot() -> None:
+    """Each panel has a tick with its value at every whole unit of both axes (-3..3, at the
+    pixel of that value), every curve point lies inside the plot's frame, and the title,
+    formula and legend lie outside it (the curve ran through the legend)."""
+    from server.engine import TuningEngine
+
+    eng = TuningEngine()
+    c = eng.evaluate(LoopConfig()).curves
+    for panel in _panels(charts.nyquist_svg(c, c)):
+        cx, cy = (float(v) for v in panel.attrib["data-origin"].split())
+        k = float(panel.attrib["data-px-per-unit"])
+        frame = panel.find(".//*[@class='dt-nyq-plot']")
+        assert frame is not None
+        x0, y0 = float(frame.attrib["x"]), float(frame.attrib["y"])
+        x1, y1 = x0 + float(frame.attrib["width"]), y0 + float(frame.attrib["height"])
+        units = range(-3, 4)
+        re_ticks = panel.findall(".//*[@class='dt-nyq-tick-re']")
+        im_ticks = panel.findall(".//*[@class='dt-nyq-tick-im']")
+        assert [int(t.text or "") for t in re_ticks] == list(units)
+        assert [int(t.text or "") for t in im_ticks] == list(units)
+        for t, v in zip(re_ticks, units, strict=True):
+            assert abs(float(t.attrib["x"]) - (cx + k * v)) < 0.1 and float(t.attrib["y"]) > y1
+        for t, v in zip(im_ticks, units, strict=True):
+            assert abs(float(t.attrib["y"]) - (cy - k * v)) < 0.1 and float(t.attrib["x"]) < x0
+        for line in panel.findall(".//polyline"):
+            pts = np.array([[float(v) for v in p.split(",")] for p in
+                            line.attrib["points"].split()])
+            assert (pts[:, 0] >= x0 - 0.1).all() and (pts[:, 0] <= x1 + 0.1).all()
+            assert (pts[:, 1] >= y0 - 0.1).all() and (pts[:, 1] <= y1 + 0.1).all()
+        for text in (*panel.findall(".//*[@class='dt-nyq-foot']"),
+                     *panel.findall(".//*[@class='dt-nyq-title']/*")):
+            y = float(text.attrib["y"])
+            assert y > y1 + 15 or y < y0, ("".join(text.itertext()), y, y0, y1)
 
 
 @pytest.mark.parametrize("dob_on", [True, False])
@@ -215,7 +249,7 @@ def test_nyquist_shows_the_loop_with_and_without_the_dob(dob_on: bool) -> None:
     assert "dt-nyquist" not in nodob.attrib["class"].split()
     assert "dt-nyquist-nodob" in nodob.attrib["class"].split()
     assert nodob.attrib["data-loop"] == "nodob"
-    px = charts.NYQUIST_RADIUS / (float(dob.attrib["viewBox"].split()[2]) / 2 - 12)  # one px
+    px = 1.0 / float(dob.attrib["data-px-per-unit"])  # one px, in units
     for panel, loop, title in ((dob, cand.nyquist_dob, "with DOB"),
                                (nodob, cand.nyquist_nodob, "without DOB")):
         assert loop is not None

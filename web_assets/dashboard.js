@@ -2,8 +2,9 @@
 //
 // 1. PNG of every chart: beside the "CSV" button of each chart's Export row (server/panels/
 //    widgets.py) a "PNG" button that saves the chart as drawn here: its title, its canvas (the
-//    curves and axes uPlot drew) and its legend, at the screen's pixel density; a "PNG" button
-//    under the Nyquist views (SVG) too.
+//    curves and axes uPlot drew) and its legend, at print resolution (PRINT_K pixels per CSS
+//    pixel, and at least PRINT_MIN_PX wide: uPlot draws the chart once more into a larger
+//    canvas); a "PNG" button under the Nyquist views (SVG) too.
 // 2. The loop's classic Bode (server/charts.py LOOP_MAG_CHART over LOOP_PHASE_CHART): one
 //    frequency axis (a zoom of either sets both), a cursor read-out of both charts at the
 //    hovered frequency (in the ".dt-loop-readout" line above them) and each margin marker
@@ -61,6 +62,10 @@
   // A tab group is known by one of its tabs: [fragment key, a tab label of that group].
   const GROUPS = [["tab", "Tune"], ["plot", "Bode"]];
   const RESTORE_FOR_MS = 60000;
+  // Print resolution of the PNG exports: 3 pixels per CSS pixel, at least 1800 pixels wide.
+  const PRINT_K = 3;
+  const PRINT_MIN_PX = 1800;
+  const printScale = (cssWidth) => Math.max(PRINT_K, PRINT_MIN_PX / Math.max(cssWidth, 1));
 
   // ---- PNG ---------------------------------------------------------------------------------
 
@@ -104,7 +109,7 @@
           console.error("dobtune: no drawn chart above this Export row");
           return;
         }
-        savePng(chart);
+        savePng(chart).catch((err) => console.error("dobtune: PNG export:", err));
       });
       csv.parentElement.appendChild(png);
     }
@@ -145,8 +150,9 @@
 
   // The SVGs where they are on the screen, on one white canvas.
   function saveSvgsPng(svgs, name) {
-    const k = window.devicePixelRatio || 1;
     const rects = svgs.map((g) => g.getBoundingClientRect());
+    const k = printScale(Math.max(...rects.map((r) => r.right)) -
+                         Math.min(...rects.map((r) => r.left)));
     const x0 = Math.min(...rects.map((r) => r.left));
     const y0 = Math.min(...rects.map((r) => r.top));
     const out = document.createElement("canvas");
@@ -184,16 +190,63 @@
     return "#ffffff";
   }
 
-  function savePng(root) {
-    const canvas = root.querySelector("canvas");
-    const cssWidth = parseFloat(canvas.style.width) || canvas.getBoundingClientRect().width ||
-      canvas.width;
-    const k = canvas.width / cssWidth; // device pixels per CSS pixel
+  // The uPlot `plot`'s canvas drawn again by uPlot at `scale` times its pixels (a copy; the
+  // chart on the page is drawn back as it was): the canvas's backing store enlarged under a
+  // matching transform, so curves, text and lines are drawn at that resolution, not scaled up.
+  // uPlot caches the context's style between draws: the style goes over to the new store.
+  async function canvasAt(plot, scale) {
+    const canvas = plot.ctx.canvas;
+    const ctx = plot.ctx;
+    const props = ["font", "fillStyle", "strokeStyle", "lineWidth", "lineJoin", "lineCap",
+                   "textAlign", "textBaseline"];
+    const resize = (w, h, t) => {
+      const keep = Object.fromEntries(props.map((p) => [p, ctx[p]]));
+      const dash = ctx.getLineDash();
+      canvas.width = w;
+      canvas.height = h;
+      Object.assign(ctx, keep);
+      ctx.setLineDash(dash);
+      ctx.setTransform(t, 0, 0, t, 0, 0);
+    };
+    const drawn = () => new Promise((resolve) => {
+      const list = plot.hooks.draw || (plot.hooks.draw = []);
+      const once = () => {
+        const i = list.indexOf(once);
+        if (i >= 0) list.splice(i, 1);
+        resolve();
+      };
+      list.push(once);
+      plot.redraw(false);
+      setTimeout(once, 5000); // a chart that draws nothing (hidden) ends the wait too
+    });
+    const w = canvas.width;
+    const h = canvas.height;
+    const copy = document.createElement("canvas");
+    try {
+      resize(Math.round(w * scale), Math.round(h * scale), scale);
+      await drawn();
+      copy.width = canvas.width;
+      copy.height = canvas.height;
+      copy.getContext("2d").drawImage(canvas, 0, 0);
+    } finally {
+      resize(w, h, 1);
+      await drawn();
+    }
+    return copy;
+  }
+
+  async function savePng(root) {
+    const drawnCanvas = root.querySelector("canvas");
+    const cssWidth = parseFloat(drawnCanvas.style.width) ||
+      drawnCanvas.getBoundingClientRect().width || drawnCanvas.width;
     const title = ((root.querySelector(".u-title") || {}).textContent || "").trim();
     // The uPlot instance (viser's registry of its charts), for the series' dash patterns: the
     // legend's markers are drawn solid.
     const reg = (window.__viserTestpoints && window.__viserTestpoints.uplots) || {};
     const plot = (Object.values(reg).find((u) => u.chart && u.chart.root === root) || {}).chart;
+    const scale = printScale(cssWidth) / (drawnCanvas.width / cssWidth);
+    const canvas = plot && scale > 1 ? await canvasAt(plot, scale) : drawnCanvas;
+    const k = canvas.width / cssWidth; // PNG pixels per CSS pixel
     const items = [];
     [...root.querySelectorAll(".u-legend .u-series")].forEach((tr, i) => {
       const marker = tr.querySelector(".u-marker");
@@ -355,7 +408,8 @@
 
   function labelMargins(u) {
     const ctx = u.ctx;
-    const k = ctx.canvas.width / (u.width || ctx.canvas.width); // canvas px per CSS px
+    // uPlot's pixels per CSS pixel (a PNG export draws under a transform of its own).
+    const k = ctx.canvas.width / ctx.getTransform().a / (u.width || ctx.canvas.width);
     const drawn = [];
     u.series.forEach((s, si) => {
       const mark = MARGIN_MARKS[s.label];

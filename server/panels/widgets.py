@@ -12,7 +12,7 @@ from server.escape import esc
 from server.export import chart_csv, export_filename
 
 __all__ = ["ACCEPT", "EXPORT_LABEL", "NEUTRAL", "REJECT", "add_chart", "add_export_row", "box",
-           "confirm", "reason_list", "set_html"]
+           "confirm", "reason_list", "set_html", "set_width_in"]
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +76,18 @@ def add_export_row(gui: Any, spec: ChartSpec, chart: Any) -> Any:
 
     chart.remove = remove  # the row goes with its chart (panels re-create charts)
     return row
+
+
+def set_width_in(browser: Any, panel: Any, width_px: float) -> None:
+    """The docked `panel` (a panel of the shared GUI) `width_px` wide in `browser` alone:
+    viser's `set_width` goes to every browser; the same placement message sent on the
+    browser's own GUI goes to it only (a width beyond the screen leaves the 3-D view viser's
+    120 px sliver)."""
+    from viser._gui_handles import MainPanelHandle  # the placement commands of any panel
+
+    handle = MainPanelHandle(browser.gui)
+    handle._placement_uuid = panel._placement_uuid
+    handle.set_width(width_px)
 
 
 def set_html(handle: Any, content: str) -> None:

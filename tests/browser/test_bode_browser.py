@@ -277,3 +277,44 @@ def test_the_decision_views_fit_a_1920_by_1080_screen(
             assert not b["covered"], (name, b)
     finally:
         other.close()
+
+
+#: JS: the left edge and width of the plots panel (the dock column holding the "Bode" tab).
+PLOTS_BOX_JS = """() => {
+  const tab = [...document.querySelectorAll('[data-dock-strip] [role=tab]')]
+    .find(t => (t.getAttribute('title') || '') === 'Bode');
+  let el = tab;
+  while (el && el.getBoundingClientRect().height < 0.8 * window.innerHeight) el = el.parentElement;
+  const r = (el || tab).getBoundingClientRect();
+  return [r.left, r.width];
+}"""
+
+
+def test_the_3d_view_hides_and_comes_back_in_this_browser_only(
+        page: Any, dashboard: Dashboard) -> None:
+    """"Hide / show the 3-D view" (Live tab) widens the plots panel over the 3-D view in the
+    browser that pressed it (the Decide charts get wider), and gives the space back on a
+    second press; another browser's layout does not move."""
+    _panel(page, dashboard)
+    other = page.context.browser.new_context(viewport={"width": 1600, "height": 1000})
+    try:
+        fresh = other.new_page()
+        open_when_ready(fresh, dashboard, SLOW_S * 2)
+        before = page.evaluate(PLOTS_BOX_JS)
+        other_before = fresh.evaluate(PLOTS_BOX_JS)
+        mag_before = _chart(page, MAG)["over"][2]
+        page.get_by_role("tab", name="Live", exact=True).click()
+        page.get_by_role("button", name="Hide / show the 3-D view").click()
+        wait_for(lambda: page.evaluate(PLOTS_BOX_JS)[1] > before[1] + 300, SLOW_S,
+                 "the plots panel did not widen over the 3-D view")
+        wide = page.evaluate(PLOTS_BOX_JS)
+        wait_for(lambda: _chart(page, MAG)["over"][2] > mag_before + 300, SLOW_S,
+                 "the Decide charts did not widen")
+        assert fresh.evaluate(PLOTS_BOX_JS) == other_before  # the other browser: unchanged
+        page.get_by_role("button", name="Hide / show the 3-D view").click()
+        wait_for(lambda: abs(page.evaluate(PLOTS_BOX_JS)[1] - before[1]) <= 2, SLOW_S,
+                 "the 3-D view did not come back")
+        assert wide[0] < before[0]
+    finally:
+        other.close()
+        page.get_by_role("tab", name="Tune", exact=True).click()

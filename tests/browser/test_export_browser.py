@@ -132,7 +132,7 @@ def test_png_of_a_bode_chart_is_the_chart_as_drawn(
       const ups = Object.values(window.__viserTestpoints?.uplots || {});
       const u = ups.find(u => u.chart.root.querySelector('.u-title')?.textContent === title);
       const c = u.chart.root.querySelector('canvas');
-      return [c.width, c.height];
+      return [c.width, c.height, parseFloat(c.style.width), parseFloat(c.style.height)];
     }""", LOOP_MAG.title)
     with page.expect_download(timeout=15_000) as got:
         button.click()
@@ -143,8 +143,19 @@ def test_png_of_a_bode_chart_is_the_chart_as_drawn(
     assert len(blob) > 5_000
     px = _png(blob)
     height, width, _ = px.shape
-    # The chart's canvas at its pixel size, with the title above and the legend below.
-    assert width == canvas[0] and height > canvas[1] + 20
+    # Print resolution: the chart drawn again at 3 pixels per CSS pixel (at least 1800 px
+    # wide; it was the screen's 1 px per CSS px here), the title above and the legend below.
+    scale = max(3.0, 1800.0 / canvas[2])
+    assert width >= 1800 and abs(width - round(canvas[2] * scale)) <= 1, (width, canvas)
+    assert height > canvas[3] * scale + 20
+    # The page's chart is drawn back at its own size.
+    after = page.evaluate("""(title) => {
+      const ups = Object.values(window.__viserTestpoints?.uplots || {});
+      const u = ups.find(u => u.chart.root.querySelector('.u-title')?.textContent === title);
+      const c = u.chart.root.querySelector('canvas');
+      return [c.width, c.height];
+    }""", LOOP_MAG.title)
+    assert after == canvas[:2]
     colours = np.unique(px.reshape(-1, 3), axis=0)
     assert len(colours) > 20  # curves, grid, text: not a blank image
     background = px[1, 1]
@@ -161,11 +172,13 @@ def test_png_of_the_nyquist_view(page: Any, dashboard: Dashboard, artifacts: Pat
     page.get_by_role("tab", name="Nyquist", exact=True).click()  # the Bode tab's sub-tab
     page.wait_for_selector(".dt-nyquist polyline.dt-nyq-cand", state="attached",
                            timeout=20_000)
-    # The views as laid out on the screen (with and without the DOB), in device pixels.
+    # The views as laid out on the screen (with and without the DOB), at print resolution:
+    # 3 pixels per CSS pixel, at least 1800 wide.
     size = page.evaluate("""() => {
       const rs = [...document.querySelectorAll('.dt-nyquist-box svg')]
         .map(g => g.getBoundingClientRect());
-      const k = window.devicePixelRatio;
+      const k = Math.max(3, 1800 / (Math.max(...rs.map(r => r.right))
+                                    - Math.min(...rs.map(r => r.left))));
       return [Math.max(...rs.map(r => r.bottom)) - Math.min(...rs.map(r => r.top)),
               Math.max(...rs.map(r => r.right)) - Math.min(...rs.map(r => r.left))]
         .map(v => Math.round(v * k));
@@ -179,7 +192,7 @@ def test_png_of_the_nyquist_view(page: Any, dashboard: Dashboard, artifacts: Pat
     blob = Path(dl.path()).read_bytes()
     (artifacts / "export_nyquist.png").write_bytes(blob)
     px = _png(blob)
-    assert list(px.shape[:2]) == size
+    assert list(px.shape[:2]) == size and size[1] >= 1800
     assert len(np.unique(px.reshape(-1, 3), axis=0)) > 20
     near = np.all(np.abs(px.astype(int) - CANDIDATE_RGB) <= 12, axis=2)
     assert near.sum() > 30, near.sum()  # the candidate's loop is drawn
