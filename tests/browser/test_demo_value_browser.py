@@ -144,6 +144,7 @@ def test_plant_chart_shows_the_positions_their_spread_and_the_divergence(
     page.wait_for_selector(
         f".dt-cutoff >> text=the 3 measured responses diverge above {sp.divergence_hz:.2f} Hz",
         timeout=60_000)
+    page.get_by_role("tab", name="Responses", exact=True).click()  # the plant chart's sub-tab
     for label in ("|H| position 1", "|H| position 2", "|H| position 3",
                   "spread between positions (dB)"):
         page.wait_for_function(f"() => ({FINITE_JS})('{label}') >= 25", timeout=60_000)

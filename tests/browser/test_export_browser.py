@@ -132,7 +132,9 @@ def test_png_of_a_bode_chart_is_the_chart_as_drawn(
       const ups = Object.values(window.__viserTestpoints?.uplots || {});
       const u = ups.find(u => u.chart.root.querySelector('.u-title')?.textContent === title);
       const c = u.chart.root.querySelector('canvas');
-      return [c.width, c.height, parseFloat(c.style.width), parseFloat(c.style.height)];
+      const r = c.getBoundingClientRect();  // CSS size (what the page script reads)
+      return [c.width, c.height, parseFloat(c.style.width) || r.width,
+              parseFloat(c.style.height) || r.height];
     }""", LOOP_MAG.title)
     with page.expect_download(timeout=15_000) as got:
         button.click()
