@@ -260,9 +260,11 @@ def main() -> int:
     out: dict[str, Any] = {}
     if not args.skip_slider:
         out["slider"] = bench_slider()
-    if args.page:
+    if args.page:  # each half printed as it ends (a loaded machine makes them long)
         out["page_idle"] = bench_page(args.loads, args.verdicts, 0)
+        print(json.dumps({"page_idle": out["page_idle"]}), flush=True)
         out["page_loaded"] = bench_page(args.loads, args.verdicts, args.hogs)
+        print(json.dumps({"page_loaded": out["page_loaded"]}), flush=True)
     if not args.skip_live:
         for n in args.browsers:
             out[f"live_{n}_browsers"] = bench_live(args.seconds, n)

@@ -339,7 +339,9 @@ def test_empty_charts_draw_no_fake_data(page: Any) -> None:
     page.get_by_role("tab", name="Bode", exact=True).click()
     page.get_by_role("tab", name="Suggest", exact=True).click()
     page.get_by_role("tab", name="Recordings").click()
-    page.get_by_text(titles[0], exact=False).first.scroll_into_view_if_needed(timeout=90_000)
+    # (The chart's own title: the guided path's text on the Tune tab says "Suggest:" too.)
+    page.locator(".u-title", has_text=titles[0]).first.scroll_into_view_if_needed(
+        timeout=90_000)
     wait_for(read, 90.0, f"the Suggest and the overlay charts never appeared: {got}")
     page.screenshot(path=str(ARTIFACTS / "ui_empty_charts.png"))
     for chart in got:
