@@ -196,7 +196,8 @@ def _wait_step(page: Any, key: str, states: str, timeout_s: float = 60.0) -> tup
 
 
 def _guide_button(page: Any, name: str) -> None:
-    page.locator(".dt-guide").first.scroll_into_view_if_needed()
+    # The click scrolls the button into view itself (the guide's text above it is redrawn
+    # as the steps change: a locator held on it can be detached by then).
     page.get_by_role("button", name=name, exact=True).first.click()
 
 
