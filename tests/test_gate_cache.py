@@ -14,17 +14,15 @@ from collections.abc import Callable
 import msgspec
 import numpy as np
 import pytest
+from plant_evidence import three_positions
 
 from controller.core.config import LoopConfig, NominalModel
 from controller.gate import search
 from controller.gate.analysis import analyse
 from controller.gate.knowledge import (
-    COMMISSIONING_BOUND,
     KnowledgeRecord,
-    MeasuredResponse,
     PlantKnowledge,
 )
-from controller.gate.loop_model import nominal_continuous_response
 from controller.gate.search import TopSearch, recommendation_search
 from controller.gate.verdict import judge
 from controller.process.analysis_worker import AnalysisWorker, clear_caches, gate
@@ -124,18 +122,6 @@ def test_a_search_shared_by_threads_gives_the_one_answer() -> None:
                 assert answer == (None if expected is None else not q > expected * 1.0001)
 
 
-def _three_positions(version: int = 2, source: str = "test: 3 positions") -> PlantKnowledge:
-    f = np.logspace(-1.0, np.log10(20.0), 24)
-    h = nominal_continuous_response(NominalModel(), f)
-    rng = np.random.default_rng(0)
-    measured = tuple(
-        MeasuredResponse(f"pos{i}", f, h * (1.0 + 0.02 * rng.standard_normal(f.size)),
-                         spread=np.full(f.size, 0.04))
-        for i in range(3)
-    )
-    return PlantKnowledge(measured, COMMISSIONING_BOUND, version=version, source=source)
-
-
 def _reference_recommendation(cfg: LoopConfig, plant: PlantKnowledge) -> float | None:
     """The gate's top cut-off by the plain search (no spread: the test responses agree)."""
     base = cfg.with_(dob_on=True)
@@ -147,7 +133,7 @@ def _reference_recommendation(cfg: LoopConfig, plant: PlantKnowledge) -> float |
 
 
 def test_the_verdict_searches_only_as_far_as_it_needs_and_is_the_whole_searchs() -> None:
-    plant = _three_positions()
+    plant = three_positions()
     base = LoopConfig(cv_kp=0.6, pos_kp_per_s=6.0)
     rec = _reference_recommendation(base, plant)
     assert rec is not None and 0.1 < rec < 2.0
@@ -171,7 +157,7 @@ def test_the_same_cutoff_with_other_gains_searches_again() -> None:
     """Adversarial: the recommendation of one set of gains must not serve another at the
     same cut-off (here the verdict changes: within the first gains' recommendation, above
     the second's)."""
-    plant = _three_positions()
+    plant = three_positions()
     a = LoopConfig(cv_kp=0.6, pos_kp_per_s=6.0)
     b = a.with_(cv_kp=0.45)
     rec_a, rec_b = _reference_recommendation(a, plant), _reference_recommendation(b, plant)
@@ -205,7 +191,7 @@ def test_the_analysis_workers_verdicts_follow_every_input() -> None:
     the whole configuration: a record with the same version and source but other evidence,
     other gains at the same cut-off, or the rig's limit must each give the fresh verdict."""
     clear_caches()
-    k1 = KnowledgeRecord.of(_three_positions())
+    k1 = KnowledgeRecord.of(three_positions())
     # The same version and source, another plant model (half the gain).
     p = k1.model.pn_num
     half = msgspec.structs.replace(k1.model, pn_num=(0.5 * p[0], 0.5 * p[1], 0.5 * p[2]))
@@ -232,7 +218,7 @@ def test_a_repeated_candidate_is_not_judged_again(monkeypatch: pytest.MonkeyPatc
     import controller.gate.verdict as verdict_module
 
     clear_caches()
-    k = KnowledgeRecord.of(_three_positions())
+    k = KnowledgeRecord.of(three_positions())
     cfg = LoopConfig(cv_kp=0.6, pos_kp_per_s=6.0, q_cutoff_hz=0.25)
     calls: list[object] = []
     real = verdict_module.analyse
@@ -244,5 +230,5 @@ def test_a_repeated_candidate_is_not_judged_again(monkeypatch: pytest.MonkeyPatc
     monkeypatch.setattr(verdict_module, "analyse", counted)
     first = gate(cfg, k)
     assert calls == [cfg]
-    assert gate(cfg, KnowledgeRecord.of(_three_positions())) == first  # an equal record
+    assert gate(cfg, KnowledgeRecord.of(three_positions())) == first  # an equal record
     assert calls == [cfg]

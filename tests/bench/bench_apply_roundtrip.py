@@ -45,35 +45,21 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 from bench_startup import busy_loops, export_tree  # noqa: E402
+from plant_evidence import three_positions  # noqa: E402
 from procs import Client, start_controller  # noqa: E402
 
 from controller import protocol as proto  # noqa: E402
-from controller.core.config import LoopConfig, NominalModel  # noqa: E402
+from controller.core.config import LoopConfig  # noqa: E402
 from controller.core.loop import LoopCoefficients  # noqa: E402
 from controller.gate.analysis import analyse  # noqa: E402
 from controller.gate.knowledge import (  # noqa: E402
-    COMMISSIONING_BOUND,
     KnowledgeRecord,
-    MeasuredResponse,
     PlantKnowledge,
 )
-from controller.gate.loop_model import nominal_continuous_response  # noqa: E402
 from controller.gate.search import RecommendationSearch, recommendation_search  # noqa: E402
 from controller.gate.verdict import judge  # noqa: E402
 from controller.process.persistence import StateStore  # noqa: E402
 from controller.sim.nonlinear_check import findings, nonlinear_check  # noqa: E402
-
-
-def three_positions() -> PlantKnowledge:
-    f = np.logspace(-1.0, np.log10(20.0), 24)
-    h = nominal_continuous_response(NominalModel(), f)
-    rng = np.random.default_rng(0)
-    measured = tuple(
-        MeasuredResponse(f"pos{i}", f, h * (1.0 + 0.02 * rng.standard_normal(f.size)),
-                         spread=np.full(f.size, 0.04))
-        for i in range(3)
-    )
-    return PlantKnowledge(measured, COMMISSIONING_BOUND, version=2, source="bench: 3 positions")
 
 
 def candidates(plant: PlantKnowledge, n: int, seed: int) -> tuple[list[LoopConfig],
@@ -238,7 +224,7 @@ def main() -> int:
                    help="no controllers: only where the time goes, in this process")
     a = p.parse_args()
     extra = ("--realtime-priority",) if a.realtime else ()
-    plant = three_positions()
+    plant = three_positions(source="bench: 3 positions")
     record = KnowledgeRecord.of(plant)
     t0 = time.perf_counter()
     new, same = candidates(plant, a.n, a.seed)

@@ -14,32 +14,23 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from controller.core.config import LoopConfig, NominalModel
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: plant_evidence
+
+from plant_evidence import three_positions
+
+from controller.core.config import LoopConfig
 from controller.gate.knowledge import (
     COMMISSIONING_BOUND,
     KnowledgeRecord,
-    MeasuredResponse,
     PlantKnowledge,
 )
-from controller.gate.loop_model import nominal_continuous_response
 from controller.process.analysis_worker import AnalysisWorker
-
-
-def _ident_knowledge() -> KnowledgeRecord:
-    f = np.logspace(-1.0, np.log10(20.0), 24)
-    h = nominal_continuous_response(NominalModel(), f)
-    rng = np.random.default_rng(0)
-    measured = tuple(
-        MeasuredResponse(f"pos{i}", f, h * (1.0 + 0.02 * rng.standard_normal(f.size)),
-                         spread=np.full(f.size, 0.04))
-        for i in range(3)
-    )
-    return KnowledgeRecord.of(PlantKnowledge(measured, COMMISSIONING_BOUND, version=2,
-                                             source="bench: 3 positions"))
 
 
 def _percentiles(xs: list[float]) -> str:
@@ -55,7 +46,8 @@ def main(n: int) -> None:
     rng = np.random.default_rng(1)
     try:
         runner.check(LoopConfig(), model)  # start the worker
-        for name, record in (("model + bound", model), ("3 measured (ident)", _ident_knowledge())):
+        measured = KnowledgeRecord.of(three_positions(source="bench: 3 positions"))
+        for name, record in (("model + bound", model), ("3 measured (ident)", measured)):
             runner.check(LoopConfig(), record)
             for label, new_base in (("same base", False), ("new base", True)):
                 times: list[float] = []
