@@ -119,6 +119,11 @@ class ClientOptions:
     rig_name: str = "demo"
     listen: tuple[str, ...] = ()
     query_timeout_s: float = 3.0
+    #: An apply's reply waits on the controller's gate, which also loads the analysis worker
+    #: after a start and saves the configuration (seconds on a loaded machine): a read's
+    #: timeout there tells the user "no reply" about a change that then happens. A reply
+    #: returns as soon as it is sent; this bounds only a controller that never answers.
+    apply_timeout_s: float = 30.0
     #: The controller counts as gone when no status arrived for this long.
     gone_after_s: float = 2.0
     client_name: str = "dashboard"
@@ -306,10 +311,11 @@ class ControllerClient:
 
     # -- queries (blocking: call from worker threads) ------------------------------------------
 
-    def _query(self, key: str, payload: bytes) -> bytes:
+    def _query(self, key: str, payload: bytes, timeout_s: float | None = None) -> bytes:
         if self._session is None:
             raise ControllerUnavailable("not connected")
-        replies = self._session.get(key, payload=payload, timeout=self.opts.query_timeout_s)
+        timeout_s = self.opts.query_timeout_s if timeout_s is None else timeout_s
+        replies = self._session.get(key, payload=payload, timeout=timeout_s)
         for reply in replies:
             if reply.ok is not None:
                 data: bytes = reply.ok.payload.to_bytes()
@@ -318,13 +324,16 @@ class ControllerClient:
             text = err.payload.to_string() if err is not None else "error reply"
             raise ControllerUnavailable(f"controller replied with an error: {text}")
         raise ControllerUnavailable(
-            f"no reply from the controller on {key} within {self.opts.query_timeout_s:.1f} s"
+            f"no reply from the controller on {key} within {timeout_s:.1f} s"
         )
 
-    def query(self, key: str, msg: msgspec.Struct, reply_type: type[R]) -> R:
+    def query(self, key: str, msg: msgspec.Struct, reply_type: type[R],
+              timeout_s: float | None = None) -> R:
         """Send `msg` on `key` (this client's scope of it) and decode the reply as
-        `reply_type`. Raises ControllerUnavailable (no reply, an error reply) or ProtocolError."""
-        return proto.decode(self._query(self.key(key), proto.encode(msg)), reply_type)
+        `reply_type` (waiting `timeout_s`, default `query_timeout_s`). Raises
+        ControllerUnavailable (no reply, an error reply) or ProtocolError."""
+        raw = self._query(self.key(key), proto.encode(msg), timeout_s)
+        return proto.decode(raw, reply_type)
 
     def history(self, last: int = 50) -> proto.HistoryReply:
         """The controller's newest `last` applied configurations (oldest first)."""
@@ -349,7 +358,8 @@ class ControllerClient:
             candidate=candidate, client=self.opts.client_name, confirm=confirm,
             expect_version=expect_version, lease=self.lease_token,
         )
-        return self.query(proto.key_config(self.opts.rig_name), req, proto.ConfigReply)
+        return self.query(proto.key_config(self.opts.rig_name), req, proto.ConfigReply,
+                          self.opts.apply_timeout_s)
 
     def knowledge(self, request: proto.KnowledgeRequest | None = None) -> proto.KnowledgeReply:
         """The controller's plant knowledge, or (with a request) adopt new knowledge."""
