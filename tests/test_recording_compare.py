@@ -7,6 +7,7 @@ peak / RMSE on the samples written.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from helpers import free_port
 from controller import protocol as proto
 from controller.core.config import LoopConfig, config_from_builtins
 from controller.recording.compare import align_runs, config_diff, flatten, summary_row
-from controller.recording.mcap_io import Recorder, read_recording
+from controller.recording.mcap_io import Recorder, Recording, read_recording
 from controller.recording.report import metrics
 
 
@@ -144,3 +145,60 @@ def test_the_panel_lists_and_compares_two_runs(gui: object, tmp_path: Path) -> N
     assert len(x) <= 2000 and np.max(np.abs(eb)) == pytest.approx(
         0.5 * np.max(np.abs(ea)), rel=0.05)
     assert "Cannot compare" in panel.compare("1-before.mcap", "3-broken.mcap")
+
+
+def _reversal_metrics_by_loops(t: np.ndarray, ref: np.ndarray,
+                               e: np.ndarray) -> tuple[int, float]:
+    """The reversal count and peak |error| written out sample by sample: a reversal is where
+    the sign of the reference's step differs from the last non-zero one; its window is every
+    finite sample with t0 <= t <= t0 + 0.3 s."""
+    reversals, worst, last = 0, math.nan, 0.0
+    for k in range(len(ref) - 1):
+        step = ref[k + 1] - ref[k]
+        if step == 0.0:
+            continue
+        if last != 0.0 and (step > 0) != (last > 0):
+            reversals += 1
+            w = [abs(x) for tt, x in zip(t, e, strict=True)
+                 if t[k] <= tt <= t[k] + 0.3 and math.isfinite(x)]
+            if w:
+                worst = max(w) if math.isnan(worst) else max(worst, max(w))
+        last = step
+    return reversals, worst
+
+
+@pytest.mark.parametrize("case", ["sine", "flat stretches", "non-finite errors",
+                                  "times out of order", "no finite error after reversals",
+                                  "error rising (the window's end counts)",
+                                  "error falling (the window's start counts)"])
+def test_reversal_metrics_equal_a_sample_by_sample_count(case: str) -> None:
+    rng = np.random.default_rng(abs(hash(case)) % 2**32)
+    n = 4000
+    t = np.arange(n) / 1000.0
+    ref = 5.0 * np.sin(2 * np.pi * 1.3 * t)
+    e = 0.01 * rng.standard_normal(n)
+    if case == "flat stretches":
+        ref = np.round(ref, 1)  # zero steps around every reversal
+    if case == "non-finite errors":
+        e[rng.choice(n, 600, replace=False)] = np.nan
+        e[rng.choice(n, 50, replace=False)] = np.inf
+    if case == "times out of order":
+        t = t.copy()
+        t[1000:1100] = t[1000:1100][::-1]
+    if case == "no finite error after reversals":
+        e[:] = np.nan
+    if case.startswith("error rising"):
+        e = t.copy()
+    if case.startswith("error falling"):
+        e = 10.0 - t
+    rec = Recording(state={"seq": np.arange(n), "t_s": t, "ref_deg": ref, "error_deg": e,
+                           "config_version": np.ones(n, dtype=np.int64)},
+                    log_time_s=t.copy())
+    m = metrics(rec)
+    reversals, worst = _reversal_metrics_by_loops(t, ref, e)
+    assert reversals >= 9
+    assert m.reversals == reversals
+    if math.isnan(worst):
+        assert math.isnan(m.reversal_peak_error_deg)
+    else:
+        assert m.reversal_peak_error_deg == worst

@@ -47,17 +47,8 @@ def metrics(rec: Recording) -> Metrics:
     e_ok = e[ok]
     peak = float(np.max(np.abs(e_ok))) if e_ok.size else math.nan
     rmse = float(np.sqrt(np.mean(e_ok**2))) if e_ok.size else math.nan
-    ref = rec.state["ref_deg"]
-    rate = np.diff(ref)
-    sign = np.sign(rate)
-    nz = np.nonzero(sign)[0]
-    rev_idx = [int(nz[k + 1]) for k in range(nz.size - 1) if sign[nz[k]] != sign[nz[k + 1]]]
-    worst = math.nan
-    for i in rev_idx:
-        w = (t >= t[i]) & (t <= t[i] + REVERSAL_WINDOW_S) & ok
-        if np.any(w):
-            worst = float(np.nanmax([worst if math.isfinite(worst) else 0.0,
-                                     np.max(np.abs(e[w]))]))
+    rev_idx = _reversals(rec.state["ref_deg"])
+    worst = _reversal_peak(t, e, ok, rev_idx)
     segments = {}
     for v in np.unique(rec.state["config_version"]):
         sel = (rec.state["config_version"] == v) & ok
@@ -68,9 +59,37 @@ def metrics(rec: Recording) -> Metrics:
                for ev in rec.events if ev.get("kind") == "gap")
     return Metrics(
         samples=rec.n, duration_s=float(t[-1] - t[0]) if t.size > 1 else 0.0,
-        peak_error_deg=peak, rmse_deg=rmse, reversals=len(rev_idx),
+        peak_error_deg=peak, rmse_deg=rmse, reversals=int(rev_idx.size),
         reversal_peak_error_deg=worst, gaps=gaps, segments=segments,
     )
+
+
+def _reversals(ref: np.ndarray) -> np.ndarray:
+    """Indices (into `ref`) where the reference speed changes sign: the first sample of each
+    new direction (zero-speed stretches do not count as a direction)."""
+    sign = np.sign(np.diff(ref))
+    nz = np.nonzero(sign)[0]
+    return nz[1:][sign[nz[1:]] != sign[nz[:-1]]]
+
+
+def _reversal_peak(t: np.ndarray, e: np.ndarray, ok: np.ndarray, rev_idx: np.ndarray) -> float:
+    """Largest |e| over the finite samples within REVERSAL_WINDOW_S after each reversal
+    (nan: no reversal has one). Times in order (the usual case): each window is a slice found
+    by bisection; otherwise a mask per reversal."""
+    worst = math.nan
+    ordered = bool(np.all(t[1:] >= t[:-1]))
+    for i in rev_idx:
+        t0 = t[i]
+        if ordered:
+            lo = int(np.searchsorted(t, t0, side="left"))
+            hi = int(np.searchsorted(t, t0 + REVERSAL_WINDOW_S, side="right"))
+            w = e[lo:hi][ok[lo:hi]]
+        else:
+            w = e[(t >= t0) & (t <= t0 + REVERSAL_WINDOW_S) & ok]
+        if w.size:
+            peak = float(np.max(np.abs(w)))
+            worst = peak if not math.isfinite(worst) else max(worst, peak)
+    return worst
 
 
 def order_spectrum(rec: Recording, points_per_rev: int = 720) -> tuple[np.ndarray, np.ndarray]:
