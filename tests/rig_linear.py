@@ -1,6 +1,6 @@
-"""The simulated rig's linear reference, shared by tests/test_ident_accuracy.py and
-tests/bench/bench_identify.py: its analytic linearisation, and the rig with its
-nonlinearities and noise switched off."""
+"""The simulated rig's linear reference, shared by tests/test_ident_accuracy.py,
+tests/test_experiment.py and tests/bench/bench_identify.py: its analytic linearisation, its
+parameters with the nonlinearities switched off, and the rig with nonlinearities and noise off."""
 
 from __future__ import annotations
 
@@ -8,7 +8,16 @@ import numpy as np
 
 from controller.sim.sim_rig import RigParams, SimRig
 
-__all__ = ["linear_response", "linear_rig"]
+__all__ = ["NONLINEAR", "linear_params", "linear_response", "linear_rig"]
+
+#: The rig's nonlinear parameters (friction, backlash, tooth effects): zero in the linear regime.
+NONLINEAR = ("backlash_deg", "coulomb_torque_n_m", "static_torque_n_m", "bias_torque_n_m",
+             "transmission_error_deg", "ripple_torque_n_m")
+
+
+def linear_params(**overrides: float) -> RigParams:
+    """The rig's parameters with every one of `NONLINEAR` zero; `overrides` set any field."""
+    return RigParams(**{**dict.fromkeys(NONLINEAR, 0.0), **overrides})
 
 
 def linear_response(freq_hz: np.ndarray, p: RigParams | None = None) -> np.ndarray:
@@ -33,16 +42,5 @@ def linear_response(freq_hz: np.ndarray, p: RigParams | None = None) -> np.ndarr
 
 def linear_rig() -> SimRig:
     """The simulated rig with its nonlinearities and noise switched off (the reference check)."""
-    return SimRig(
-        RigParams(
-            backlash_deg=0.0,
-            coulomb_torque_n_m=0.0,
-            static_torque_n_m=0.0,
-            bias_torque_n_m=0.0,
-            transmission_error_deg=0.0,
-            ripple_torque_n_m=0.0,
-            position_noise_deg=0.0,
-            load_encoder_bits=48,
-            motor_encoder_counts_per_rev=2**30,
-        )
-    )
+    return SimRig(linear_params(position_noise_deg=0.0, load_encoder_bits=48,
+                                motor_encoder_counts_per_rev=2**30))

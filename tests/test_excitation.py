@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from article_plant import FS, odd_multisine_spec
 
 from controller.core.errors import ConfigError
 from controller.ident.excitation import (
@@ -18,9 +19,6 @@ from controller.ident.excitation import (
     schroeder_phases,
     stepped_sine,
 )
-
-FS = 1000.0
-
 
 # ------------------------------------------------------------------------------- multisine
 
@@ -101,20 +99,8 @@ def test_multisine_peak_speed_and_window(knee: float | None) -> None:
 
 # ------------------------------------------------------------- odd random-phase multisine
 
-ODD = MultisineSpec(
-    f_min_hz=0.1,
-    f_max_hz=20.0,
-    period_samples=10000,
-    n_periods=2,
-    transient_periods=0,
-    points_per_decade=10,
-    harmonics="odd",
-    phases="random",
-    seed=0,
-    lead_samples=1000,
-    tail_samples=200,
-    spread_from="lines",
-)
+ODD = odd_multisine_spec(f_min_hz=0.1, f_max_hz=20.0, period_samples=10000, n_periods=2, seed=0,
+                         tail_samples=200)
 
 
 def test_odd_multisine_has_lines_only_at_odd_excited_bins() -> None:

@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+from rig_linear import linear_params
 
 from controller.cli.experiment import experiment_main
 from controller.core.config import LoopConfig
@@ -16,7 +17,6 @@ from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory, default_trajectory
 from controller.sim.disturbance import SineTorque
 from controller.sim.experiment import run_experiment
-from controller.sim.sim_rig import RigParams
 
 
 def test_velocity_feedforward_cuts_sine_rmse_at_least_2x() -> None:
@@ -39,14 +39,7 @@ def test_dob_rejects_slow_load_torque_during_hold() -> None:
 
     On the full rig the peak error at hold is set by stick-slip at standstill (~0.06 deg with
     and without the DOB), not by this disturbance (~1e-5 deg): printed, not asserted."""
-    linear = RigParams(
-        coulomb_torque_n_m=0.0,
-        static_torque_n_m=0.0,
-        bias_torque_n_m=0.0,
-        backlash_deg=0.0,
-        ripple_torque_n_m=0.0,
-        transmission_error_deg=0.0,
-    )
+    linear = linear_params()
     dist = SineTorque(amplitude_n_m=1.0, freq_hz=0.05)
     comps = {}
     for dob_on in (False, True):

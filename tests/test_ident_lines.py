@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.signal as sig
-from article_plant import A_G, B_G, FS, plant_response
+from article_plant import A_G, B_G, FS, odd_multisine_spec, plant_response
 
 from controller.ident.estimate import (
     coherence_std,
@@ -16,26 +16,13 @@ from controller.ident.estimate import (
     estimate_multisine,
     estimate_multisine_lines,
 )
-from controller.ident.excitation import Multisine, MultisineSpec, multisine
+from controller.ident.excitation import Multisine, multisine
 
 
 def _odd(n_periods: int = 1, **kw: object) -> Multisine:
-    spec = MultisineSpec(
-        f_min_hz=0.5,
-        f_max_hz=40.0,
-        period_samples=2000,
-        n_periods=n_periods,
-        transient_periods=0,
-        amplitude_deg_s=5.0,
-        points_per_decade=10,
-        harmonics="odd",
-        phases="random",
-        lead_samples=1000,
-        tail_samples=100,
-        spread_from="lines",
-        **kw,  # type: ignore[arg-type]
-    )
-    return multisine(spec)
+    return multisine(odd_multisine_spec(f_min_hz=0.5, f_max_hz=40.0, period_samples=2000,
+                                        n_periods=n_periods, amplitude_deg_s=5.0,
+                                        tail_samples=100, **kw))
 
 
 @pytest.mark.parametrize("n_periods", [1, 3])
