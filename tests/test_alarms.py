@@ -2,23 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Any
+from statuses import status
 
-from controller import protocol as proto
-from controller.core.config import LoopConfig
-from controller.core.trajectory import Trajectory
 from server.alarms import AlarmBoard, alarms_html
-
-TIMING = proto.Timing(period_p50_us=1000.0, period_p99_us=1000.0, period_max_us=1000.0,
-                      compute_p50_us=10.0, compute_p99_us=10.0, compute_max_us=10.0,
-                      ticks=1, overruns=0, skipped_ticks=0)
-
-
-def status(**kw: Any) -> proto.Status:
-    base: dict[str, Any] = dict(rig="r", plant="sim", mode="running", t_s=0.0, seq=0,
-                                trajectory=Trajectory(), config_version=1, config=LoopConfig(),
-                                timing=TIMING, faults=[])
-    return proto.Status(**{**base, **kw})
 
 
 def test_a_rollback_raises_one_amber_alarm_with_its_reason_until_acknowledged() -> None:

@@ -83,23 +83,22 @@ def test_step_metrics_closed_form_on_a_synthetic_response() -> None:
     assert m.peak_error_deg == pytest.approx(2.0)
 
 
-def test_experiment_json_has_the_documented_keys() -> None:
+def _experiment(**kwargs: object) -> tuple[int, str, str]:
+    """`dobtune experiment` (its main) on a 1 s sine with the DOB, Q31 at 0.5 Hz, seed 0, no
+    disturbance, text output; `kwargs` replace any of these: the exit code, stdout, stderr."""
+    args: dict[str, object] = dict(test="sine", dob_on=True, ff_on=False, q_type="q31",
+                                   cutoff_hz=0.5, duration_s=1.0, seed=0, disturbance="none",
+                                   as_json=False)
     out, err = io.StringIO(), io.StringIO()
-    code = experiment_main(
-        test="step",
-        dob_on=True,
-        ff_on=False,
-        q_type="q20",
-        cutoff_hz=1.0,
-        duration_s=2.0,
-        seed=1,
-        disturbance="none",
-        as_json=True,
-        out=out,
-        err=err,
-    )
-    assert code == 0, err.getvalue()
-    data = json.loads(out.getvalue())
+    code = experiment_main(**{**args, **kwargs}, out=out, err=err)  # type: ignore[arg-type]
+    return code, out.getvalue(), err.getvalue()
+
+
+def test_experiment_json_has_the_documented_keys() -> None:
+    code, out, err = _experiment(test="step", q_type="q20", cutoff_hz=1.0, duration_s=2.0,
+                                 seed=1, as_json=True)
+    assert code == 0, err
+    data = json.loads(out)
     for key in (
         "peak_error_deg",
         "rmse_deg",
@@ -127,21 +126,9 @@ def test_experiment_json_has_the_documented_keys() -> None:
 def test_experiment_bad_inputs_exit_2_naming_the_parameter(
     kwargs: dict[str, object], needle: str
 ) -> None:
-    args: dict[str, object] = dict(
-        test="sine",
-        dob_on=True,
-        ff_on=False,
-        q_type="q31",
-        cutoff_hz=0.5,
-        duration_s=1.0,
-        seed=0,
-        disturbance="none",
-        as_json=False,
-    )
-    args.update(kwargs)
-    out, err = io.StringIO(), io.StringIO()
-    assert experiment_main(**args, out=out, err=err) == 2  # type: ignore[arg-type]
-    assert needle in err.getvalue()
+    code, _, err = _experiment(**kwargs)
+    assert code == 2
+    assert needle in err
 
 
 def test_compare_cli_prints_article_figures() -> None:

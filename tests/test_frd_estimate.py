@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -9,9 +10,10 @@ import pytest
 import scipy.signal as sig
 from article_plant import A_G, B_G, FS, plant_response
 
-from controller.cli.frd_files import read_frd_csv, write_frd_csv
+from controller.cli.frd_files import measured_from_csv, read_frd_csv, write_frd_csv
 from controller.gate.frd_csv import FrdData
 from controller.ident.estimate import (
+    FrdEstimate,
     agreement,
     coherence_std,
     estimate_from_coefficients,
@@ -27,6 +29,24 @@ B_C, A_C = sig.bilinear([0.5, 0.5 * 55.0], [1.0, 0.0], fs=FS)
 def errors(h: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ratio = h / ref
     return 20 * np.log10(np.abs(ratio)), np.degrees(np.angle(ratio))
+
+
+def open_loop(u: np.ndarray, noise_std: float, seed: int) -> np.ndarray:
+    """w = G u + white noise of `noise_std` on the output (numpy generator `seed`)."""
+    rng = np.random.default_rng(seed)
+    return np.asarray(sig.lfilter(B_G, A_G, u) + noise_std * rng.standard_normal(u.size))
+
+
+def good_bins_within(
+    est: FrdEstimate, max_db: float, max_deg: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Asserts the estimate's error against the plant is under `max_db` and `max_deg` at every
+    bin of coherence > 0.95; returns those bins (a mask) and the errors at every bin."""
+    good = est.coherence > 0.95
+    err_db, err_deg = errors(est.response, plant_response(est.freq_hz))
+    assert np.max(np.abs(err_db[good])) < max_db
+    assert np.max(np.abs(err_deg[good])) < max_deg
+    return good, err_db, err_deg
 
 
 def simulate_closed_loop(x: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -49,18 +69,12 @@ def test_open_loop_multisine_recovers_plant() -> None:
             f_min_hz=2.0, f_max_hz=100.0, period_samples=500, n_periods=200, amplitude_deg_s=10
         )
     )
-    rng = np.random.default_rng(0)
-    u = ms.signal
-    w = sig.lfilter(B_G, A_G, u) + 0.15 * rng.standard_normal(u.size)
-    est = estimate_multisine(ms, u, w)
+    est = estimate_multisine(ms, ms.signal, open_loop(ms.signal, 0.15, seed=0))
     assert est.method == "open_loop_h1"
     assert np.all(est.n_averages == 200)
-    good = est.coherence > 0.95
+    good, err_db, err_deg = good_bins_within(est, 0.3, 2.0)
     assert np.all(good[est.freq_hz <= 30.0])  # the useful band, not a handful of points
     assert not np.all(good)  # and the test does reach low-coherence bins
-    err_db, err_deg = errors(est.response, plant_response(est.freq_hz))
-    assert np.max(np.abs(err_db[good])) < 0.3
-    assert np.max(np.abs(err_deg[good])) < 2.0
     # everywhere, including low coherence, the error is within the reported band
     assert np.all(np.abs(err_db) < 4 * est.mag_std_db)
     assert np.all(np.abs(err_deg) < 4 * est.phase_std_deg)
@@ -72,17 +86,11 @@ def test_open_loop_stepped_sine_recovers_plant() -> None:
             f_min_hz=0.2, f_max_hz=50.0, points_per_decade=10, min_measure_s=10.0, settle_s=0.3
         )
     )
-    rng = np.random.default_rng(1)
-    u = ss.signal
-    w = sig.lfilter(B_G, A_G, u) + 0.2 * rng.standard_normal(u.size)
-    est = estimate_stepped_sine(ss, u, w)
+    est = estimate_stepped_sine(ss, ss.signal, open_loop(ss.signal, 0.2, seed=1))
     np.testing.assert_array_equal(est.freq_hz, ss.freq_hz)
     np.testing.assert_array_equal(est.n_averages, [p.n_periods for p in ss.points])
-    good = est.coherence > 0.95
+    good, _, _ = good_bins_within(est, 0.3, 2.0)
     assert good.sum() >= 0.8 * est.freq_hz.size
-    err_db, err_deg = errors(est.response, plant_response(est.freq_hz))
-    assert np.max(np.abs(err_db[good])) < 0.3
-    assert np.max(np.abs(err_deg[good])) < 2.0
 
 
 def test_noise_free_estimates_are_exact() -> None:
@@ -265,15 +273,22 @@ def test_csv_reader_accepts_comments_extra_columns_and_order(tmp_path: Path) -> 
         ("freq_hz,mag_db,phase_deg,coherence\n1,0,0,1.5\n", 2, "coherence: must be in"),
         ("# c\nfreq_hz,mag_db,phase_deg\n\n1,0,0\n2,0,x\n", 5, "phase_deg: not a number"),
         ("freq_hz,mag_db,mag_db,phase_deg\n", 1, "duplicate column"),
+        ("# comment\nfreq_hz,mag_db,phase_deg\n1,0,0\n2,x,0\n", 4, "mag_db: not a number"),
+        ("freq_hz,mag_db,phase_deg\n1,0,0\n2,nan,0\n", 3, "mag_db: not finite"),
+        ("freq_hz,mag_db,phase_deg\n1,0,0\n3,0,0\n\n2,0,0\n", 5, "freq_hz: not increasing"),
+        ("freq_hz,mag_db,phase_deg\n1,0,0\n1,0,0\n", 3, "freq_hz: not increasing"),
     ],
 )
+@pytest.mark.parametrize("read", [read_frd_csv, measured_from_csv], ids=lambda f: f.__name__)
 def test_csv_bad_files_name_file_and_line(
-    tmp_path: Path, content: str, line: int, what: str
+    tmp_path: Path, content: str, line: int, what: str, read: Callable[[Path], object]
 ) -> None:
+    """The reader, and the gate's measured response from a file (read through it), name the
+    file, the line and what is wrong there."""
     path = tmp_path / "bad.csv"
     path.write_text(content)
     with pytest.raises(ValueError) as info:
-        read_frd_csv(path)
+        read(path)
     message = str(info.value)
     assert message.startswith(f"{path}:{line}: "), message
     assert what in message

@@ -7,23 +7,16 @@ import math
 from typing import Any
 
 import numpy as np
+import statuses
 
 from controller import protocol as proto
-from controller.core.config import LoopConfig
-from controller.core.trajectory import Trajectory
 from server.panels.guide import GUIDE_STEPS, Watch, guide_html
 from server.panels.tuning import StepState
 
-TIMING = proto.Timing(period_p50_us=1000.0, period_p99_us=1000.0, period_max_us=1000.0,
-                      compute_p50_us=10.0, compute_p99_us=10.0, compute_max_us=10.0,
-                      ticks=1, overruns=0, skipped_ticks=0)
-
 
 def status(**kw: Any) -> proto.Status:
-    base: dict[str, Any] = dict(rig="r", plant="sim", mode="running", t_s=0.0, seq=0,
-                                trajectory=Trajectory(), config_version=5, config=LoopConfig(),
-                                timing=TIMING, faults=[])
-    return proto.Status(**{**base, **kw})
+    """The shared status, at configuration version 5."""
+    return statuses.status(**{"config_version": 5, **kw})
 
 
 def samples(t_apply: float, t_end: float, before: float, after: float

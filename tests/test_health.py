@@ -5,21 +5,18 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import statuses
+
 from controller import protocol as proto
-from controller.core.config import LoopConfig
-from controller.core.trajectory import Trajectory
 from server.health import LoopNormal, TimingHistory, health_html, judge_timing
 
 
 def status(t_s: float, ticks: int, overruns: int, skipped: int, p99_us: float = 1010.0,
            **kw: Any) -> proto.Status:
-    tm = proto.Timing(period_p50_us=1000.0, period_p99_us=p99_us, period_max_us=p99_us + 500,
-                      compute_p50_us=10.0, compute_p99_us=20.0, compute_max_us=30.0,
-                      ticks=ticks, overruns=overruns, skipped_ticks=skipped)
-    base: dict[str, Any] = dict(rig="r", plant="sim", mode="running", t_s=t_s, seq=0,
-                                trajectory=Trajectory(), config_version=1, config=LoopConfig(),
-                                timing=tm, faults=[])
-    return proto.Status(**{**base, **kw})
+    tm = statuses.timing(period_p99_us=p99_us, period_max_us=p99_us + 500, compute_p99_us=20.0,
+                         compute_max_us=30.0, ticks=ticks, overruns=overruns,
+                         skipped_ticks=skipped)
+    return statuses.status(t_s=t_s, timing=tm, **kw)
 
 
 def feed(h: TimingHistory, per_s: list[tuple[int, int, float]], start: tuple[int, int] = (0, 0),
