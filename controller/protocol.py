@@ -8,7 +8,7 @@ a `type` field. Units are in the field names. See docs/protocol.md for the full 
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
 
 import msgspec
@@ -25,54 +25,27 @@ PROTOCOL_VERSION = 1
 KEY_PREFIX = "dobtune"
 
 
-def key_state(rig: str) -> str:
-    """Publisher: batches of loop samples (StateBatch)."""
-    return f"{KEY_PREFIX}/{rig}/state"
+def _rig_key(what: str) -> Callable[[str], str]:
+    """The builder of `dobtune/<rig>/<what>` for one `what`."""
+
+    def key(rig: str) -> str:
+        return f"{KEY_PREFIX}/{rig}/{what}"
+
+    return key
 
 
-def key_status(rig: str) -> str:
-    """Publisher, a few Hz: Status."""
-    return f"{KEY_PREFIX}/{rig}/status"
-
-
-def key_config(rig: str) -> str:
-    """Queryable: ConfigRequest -> ConfigReply."""
-    return f"{KEY_PREFIX}/{rig}/config"
-
-
-def key_command(rig: str) -> str:
-    """Queryable: Command -> CommandReply."""
-    return f"{KEY_PREFIX}/{rig}/cmd"
-
-
-def key_estop(rig: str) -> str:
-    """Subscriber: any put here is an emergency stop, whatever its payload."""
-    return f"{KEY_PREFIX}/{rig}/estop"
-
-
-def key_identify(rig: str) -> str:
-    """Queryable: any payload (or none) -> IdentifyStatus."""
-    return f"{KEY_PREFIX}/{rig}/identify"
-
-
-def key_knowledge(rig: str) -> str:
-    """Queryable: KnowledgeRequest -> KnowledgeReply (the plant knowledge the gate uses)."""
-    return f"{KEY_PREFIX}/{rig}/knowledge"
-
-
-def key_alive(rig: str) -> str:
-    """Liveliness token of a running controller (`dobtune ctl rigs` lists them)."""
-    return f"{KEY_PREFIX}/{rig}/alive"
-
-
-def key_history(rig: str) -> str:
-    """Queryable: HistoryRequest (or empty) -> HistoryReply (the applied configurations)."""
-    return f"{KEY_PREFIX}/{rig}/history"
-
-
-def key_lease(rig: str) -> str:
-    """Queryable: LeaseRequest -> LeaseReply (the operator lease of the rig)."""
-    return f"{KEY_PREFIX}/{rig}/lease"
+#: The keys of one rig, `dobtune/<rig>/<what>`, a builder each (`key_status(rig)`). The gate
+#: uses the plant knowledge; the history is the applied configurations; the lease the operator's.
+key_state = _rig_key("state")  # publisher: batches of loop samples (StateBatch)
+key_status = _rig_key("status")  # publisher, a few Hz: Status
+key_config = _rig_key("config")  # queryable: ConfigRequest -> ConfigReply
+key_command = _rig_key("cmd")  # queryable: Command -> CommandReply
+key_estop = _rig_key("estop")  # subscriber: any put is an emergency stop, whatever its payload
+key_identify = _rig_key("identify")  # queryable: any payload (or none) -> IdentifyStatus
+key_knowledge = _rig_key("knowledge")  # queryable: KnowledgeRequest -> KnowledgeReply
+key_alive = _rig_key("alive")  # liveliness token of a running controller (`dobtune ctl rigs`)
+key_history = _rig_key("history")  # queryable: HistoryRequest (or empty) -> HistoryReply
+key_lease = _rig_key("lease")  # queryable: LeaseRequest -> LeaseReply
 
 
 #: With authentication (`dobtune controller --auth`), requests go to per-user scopes:
