@@ -103,6 +103,14 @@ def _read_or_none(path: Path) -> bytes | None:
         raise PersistenceError(f"{path}: cannot read: {exc}") from exc
 
 
+def _decode_json(path: Path, raw: bytes) -> Any:
+    """The JSON value of a file's bytes; PersistenceError naming the file if it is not JSON."""
+    try:
+        return msgspec.json.decode(raw)
+    except msgspec.DecodeError as exc:
+        raise PersistenceError(f"{path}: not valid JSON: {exc}") from exc
+
+
 class StateStore:
     """Active configuration + change log in one directory (created if missing)."""
 
@@ -147,8 +155,8 @@ class StateStore:
         raw = _read_or_none(path)
         if raw is None:
             return None
+        data = _decode_json(path, raw)
         try:
-            data = msgspec.json.decode(raw)
             if not isinstance(data, dict):
                 raise PersistenceError(f"{path}: expected a JSON object")
             version = data.get("version")
@@ -163,8 +171,6 @@ class StateStore:
             if isinstance(saved_at, bool) or not isinstance(saved_at, (int, float)):
                 raise PersistenceError(f"{path}: saved_at_s: expected a number")
             cfg = config_from_builtins(data.get("config"))
-        except msgspec.DecodeError as exc:
-            raise PersistenceError(f"{path}: not valid JSON: {exc}") from exc
         except ConfigError as exc:
             raise PersistenceError(f"{path}: config.{exc}") from exc
         return SavedConfig(config=cfg, version=version, saved_at_s=float(saved_at))
@@ -252,10 +258,7 @@ class StateStore:
         raw = _read_or_none(path)
         if raw is None:
             return None
-        try:
-            data = msgspec.json.decode(raw)
-        except msgspec.DecodeError as exc:
-            raise PersistenceError(f"{path}: not valid JSON: {exc}") from exc
+        data = _decode_json(path, raw)
         if not isinstance(data, dict) or data.get("mode") not in ("estop", "fault"):
             raise PersistenceError(f"{path}: mode: expected estop or fault")
         reason, fault = data.get("reason", ""), data.get("fault", "")
