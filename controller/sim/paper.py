@@ -16,8 +16,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-import numpy.typing as npt
 
+from controller.core.arrays import FloatArray
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory, default_trajectory
@@ -43,7 +43,6 @@ __all__ = [
     "run_paper",
 ]
 
-FloatArray = npt.NDArray[np.float64]
 Progress = Callable[[str], None]
 
 
@@ -206,7 +205,9 @@ FAST_CUTOFF_HZ = 4.0
 
 
 @dataclass(frozen=True)
-class SpeedRun:
+class _SpeedResponse:
+    """A rate-loop run: the speed reference and the speed of one plant variant."""
+
     variant: str
     dob: str
     t_s: FloatArray
@@ -217,6 +218,11 @@ class SpeedRun:
     def stable(self) -> bool:
         return bool(np.all(np.isfinite(self.speed_deg_s))) and float(
             np.max(np.abs(self.speed_deg_s))) < 1e3
+
+
+@dataclass(frozen=True)
+class SpeedRun(_SpeedResponse):
+    """A speed reference step at 0 s, a rate disturbance step at DISTURBANCE_TIME_S."""
 
     def overshoot_pct(self) -> float:
         m = self.t_s < DISTURBANCE_TIME_S
@@ -272,19 +278,9 @@ REVERSAL_WINDOW_S = 0.3
 
 
 @dataclass(frozen=True)
-class ReversalRun:
-    variant: str
-    dob: str
-    t_s: FloatArray
-    ref_deg_s: FloatArray
-    speed_deg_s: FloatArray
+class ReversalRun(_SpeedResponse):
     undisturbed_deg_s: FloatArray
     """The same run without the disturbance: the difference is what the disturbance causes."""
-
-    @property
-    def stable(self) -> bool:
-        return bool(np.all(np.isfinite(self.speed_deg_s))) and float(
-            np.max(np.abs(self.speed_deg_s))) < 1e3
 
     def _after(self, x: FloatArray) -> FloatArray:
         return np.asarray(x[self.t_s >= DISTURBANCE_TIME_S], float)
