@@ -127,6 +127,23 @@ class LoopCoefficients:
         return LoopCoefficients(config=config, version=version, dob=design_dob(config))
 
 
+def tick_gains(c: LoopConfig) -> tuple[float, float, float, float, float, float]:
+    """The tick's scalars of a configuration: (pos_kp, pos_half, cv_kp, cv_half, ff, limit).
+
+    `*_half` is kp * ki * Ts / 2, the trapezoidal (Tustin) integrator's step on the sum of this
+    and the previous error; ff is 0 while the feedforward is off; limit is the command limit.
+    """
+    ts = c.period_s
+    return (
+        c.pos_kp_per_s,
+        c.pos_kp_per_s * c.pos_ki_per_s * ts * 0.5,
+        c.cv_kp,
+        c.cv_kp * c.cv_ki_per_s * ts * 0.5,
+        c.ff_gain if c.ff_on else 0.0,
+        c.command_limit_deg_s,
+    )
+
+
 class PreparedCoefficients:
     """`LoopCoefficients` in the form the tick uses: scalar gains and new filter objects.
 
@@ -150,14 +167,8 @@ class PreparedCoefficients:
 
     def __init__(self, coefficients: LoopCoefficients) -> None:
         c = coefficients.config
-        ts = c.period_s
         self.coefficients = coefficients
-        self.pos_kp = c.pos_kp_per_s
-        self.pos_half = c.pos_kp_per_s * c.pos_ki_per_s * ts * 0.5
-        self.cv_kp = c.cv_kp
-        self.cv_half = c.cv_kp * c.cv_ki_per_s * ts * 0.5
-        self.ff = c.ff_gain if c.ff_on else 0.0
-        self.limit = c.command_limit_deg_s
+        self.pos_kp, self.pos_half, self.cv_kp, self.cv_half, self.ff, self.limit = tick_gains(c)
         self.dob_on = c.dob_on
         self.f1 = SosFilter(coefficients.dob.f1_sos)
         self.f2 = SosFilter(coefficients.dob.f2_sos)

@@ -25,6 +25,7 @@ from scipy import optimize
 from controller.core.config import LoopConfig
 from controller.core.discrete import SosFilter, tustin_zpk, zpk_to_sos
 from controller.core.dob import cancel_common_roots, poly_roots_gain
+from controller.core.loop import tick_gains
 
 __all__ = ["PositionDobLoop", "position_dob_zpk", "q41_tau_s"]
 
@@ -74,13 +75,8 @@ class PositionDobLoop:
     )
 
     def __init__(self, cfg: LoopConfig) -> None:
-        ts = cfg.period_s
-        self._pos_kp = cfg.pos_kp_per_s
-        self._pos_half = cfg.pos_kp_per_s * cfg.pos_ki_per_s * ts * 0.5
-        self._cv_kp = cfg.cv_kp
-        self._cv_half = cfg.cv_kp * cfg.cv_ki_per_s * ts * 0.5
-        self._ff = cfg.ff_gain if cfg.ff_on else 0.0
-        self._limit = cfg.command_limit_deg_s
+        gains = tick_gains(cfg)  # the runtime's
+        self._pos_kp, self._pos_half, self._cv_kp, self._cv_half, self._ff, self._limit = gains
         z, p, k = position_dob_zpk(cfg)
         self._f1 = SosFilter(zpk_to_sos(*tustin_zpk(z, p, k, cfg.rate_hz, cfg.q_cutoff_hz)))
         tau = q41_tau_s(cfg.q_cutoff_hz)
