@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from controller.core.arrays import ComplexArray, FloatArray
+
 __all__ = [
     "BODE_CHARTS",
     "LIVE_CHARTS",
@@ -40,8 +42,6 @@ __all__ = [
     "spread_band_db",
 ]
 
-FloatArray = npt.NDArray[np.float64]
-ComplexArray = npt.NDArray[np.complex128]
 
 CANDIDATE = "#1f77b4"
 ACTIVE = "#9aa5b1"

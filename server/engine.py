@@ -19,6 +19,7 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 import numpy.typing as npt
 
+from controller.core.arrays import FloatArray
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
@@ -44,7 +45,7 @@ from controller.gate.verdict import recommended_cutoff_hz, verdict_of
 from controller.sim.nonlinear_check import findings
 from controller.sim.rig_disturbances import RigSetup, rig_setup
 from server import charts
-from server.charts import BodeCurves, FloatArray, NyquistLoop, PlantCurves
+from server.charts import BodeCurves, NyquistLoop, PlantCurves
 
 __all__ = [
     "CUTOFF_MAX_HZ",

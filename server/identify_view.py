@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from controller import protocol as proto
+from controller.core.arrays import FloatArray
 from controller.core.config import NominalModel
 from controller.core.errors import ConfigError
 from controller.gate.knowledge import MeasuredResponse
@@ -41,7 +42,7 @@ def _curve(
     coherence: Any,
     complete: bool,
 ) -> charts.MeasuredCurve:
-    def arr(v: Any) -> charts.FloatArray:
+    def arr(v: Any) -> FloatArray:
         return np.asarray(v, dtype=np.float64)
 
     return charts.MeasuredCurve(
@@ -86,7 +87,7 @@ class FitView:
     f_hi_hz: float
     n_points: int
 
-    def response(self, freq_hz: charts.FloatArray) -> Any:
+    def response(self, freq_hz: FloatArray) -> Any:
         s = 2j * np.pi * np.asarray(freq_hz, dtype=np.float64)
         return 1.0 / (self.a2 * s * s + self.a1 * s + 1.0)
 

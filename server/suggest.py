@@ -14,12 +14,13 @@ from typing import Any
 
 import numpy as np
 
+from controller.core.arrays import FloatArray
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PlantKnowledge
 from controller.sim.rig_disturbances import RigSetup
 from controller.tune.autotune import Point, TuneResult, autotune
-from server.charts import ChartSpec, FloatArray
+from server.charts import ChartSpec
 from server.escape import esc
 
 __all__ = ["SUGGEST_CHART", "SuggestSettings", "suggest", "suggest_data", "suggest_html",

@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-FloatArray = NDArray[np.float64]
+from controller.core.arrays import FloatArray
 
 _TOL = 100 * np.finfo(np.float64).eps  # scipy's default realness / conjugate tolerance
 

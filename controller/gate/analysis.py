@@ -74,8 +74,9 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from controller.core.arrays import ComplexArray, FloatArray
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.verdict import VerdictKind
 from controller.gate.knowledge import (
@@ -121,8 +122,6 @@ __all__ = [
     "analyse",
 ]
 
-FloatArray = NDArray[np.float64]
-ComplexArray = NDArray[np.complex128]
 
 #: Between two measured points the plant's ratio to the model is assumed to change by no more
 #: than it changes across the interval. When it changes by more than this (natural log units:

@@ -11,10 +11,9 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
-FloatArray = NDArray[np.float64]
-ComplexArray = NDArray[np.complex128]
+from controller.core.arrays import ComplexArray, FloatArray
 
 CSV_COLUMNS = ("freq_hz", "mag_db", "phase_deg", "coherence")
 

@@ -12,12 +12,10 @@ from dataclasses import dataclass, field
 
 import msgspec
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from controller.core.arrays import ComplexArray, FloatArray
 from controller.core.config import NominalModel
-
-FloatArray = NDArray[np.float64]
-ComplexArray = NDArray[np.complex128]
 
 TWO_PI = 2.0 * math.pi
 

@@ -10,9 +10,10 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy import linalg
 
+from controller.core.arrays import ComplexArray, FloatArray
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.discrete import SosArray, sos_response
 from controller.core.dob import design_dob
@@ -21,9 +22,6 @@ from controller.gate.knowledge import (
     TWO_PI,
     readonly,
 )
-
-FloatArray = NDArray[np.float64]
-ComplexArray = NDArray[np.complex128]
 
 DB_3 = 10.0 ** (-3.0 / 20.0)  # -3 dB, as python-control's bandwidth()
 

@@ -20,6 +20,7 @@ from typing import NamedTuple, TypedDict, Unpack
 
 import numpy as np
 
+from controller.core.arrays import ComplexArray
 from controller.core.config import LoopConfig
 from controller.core.qfilter import Q_TYPES, QType, check_q_type, design_q
 from controller.gate.analysis import GateLimits, analyse
@@ -30,7 +31,7 @@ from controller.gate.knowledge import (
     PositionSpread,
     position_spread,
 )
-from controller.gate.loop_model import TWO_PI, ComplexArray, discrete_equivalent
+from controller.gate.loop_model import TWO_PI, discrete_equivalent
 
 __all__ = [
     "SPREAD_MARGIN",

@@ -36,10 +36,11 @@ from typing import Protocol
 
 import numpy as np
 
+from controller.core.arrays import FloatArray, IntArray
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.ident.estimate import FrdEstimate
-from controller.ident.excitation import FloatArray, IntArray, SteppedSine
+from controller.ident.excitation import SteppedSine
 from controller.ident.plan import (
     Excitation,
     ProgramPlan,

@@ -47,6 +47,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from controller.core.arrays import ComplexArray, FloatArray, IntArray
 from controller.gate.frd_csv import FrdLike, mag_db_of, phase_deg_of
 from controller.ident.excitation import Multisine, SteppedSine
 
@@ -66,9 +67,6 @@ __all__ = [
     "stepped_sine_coefficients",
 ]
 
-FloatArray = NDArray[np.float64]
-ComplexArray = NDArray[np.complex128]
-IntArray = NDArray[np.int64]
 Method = Literal["open_loop_h1", "closed_loop_x"]
 
 _DB_PER_NEPER = 20.0 / math.log(10.0)

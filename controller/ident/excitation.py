@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
+from controller.core.arrays import FloatArray, IntArray
 from controller.core.errors import ConfigError
 from controller.core.validate import nonnegative, positive
 
@@ -65,8 +65,6 @@ __all__ = [
     "stepped_sine",
 ]
 
-FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
 Harmonics = Literal["all", "odd"]
 PhaseKind = Literal["schroeder", "random"]

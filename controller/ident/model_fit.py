@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
+from controller.core.arrays import ComplexArray, FloatArray
 from controller.gate.frd_csv import FrdData, FrdLike
 from controller.ident.estimate import FrdEstimate
 
@@ -51,8 +52,6 @@ __all__ = [
     "uncertainty_bound",
 ]
 
-FloatArray = NDArray[np.float64]
-ComplexArray = NDArray[np.complex128]
 ModelKind = Literal["unit_dc", "general"]
 MODELS: tuple[ModelKind, ...] = ("unit_dc", "general")
 _PARAM_NAMES: dict[ModelKind, tuple[str, ...]] = {

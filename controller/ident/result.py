@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from controller.core.arrays import FloatArray, IntArray
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
 from controller.gate.analysis import analyse
@@ -36,7 +37,7 @@ from controller.ident.estimate import (
     estimate_multisine,
     estimate_stepped_sine,
 )
-from controller.ident.excitation import FloatArray, IntArray, SteppedSine
+from controller.ident.excitation import SteppedSine
 from controller.ident.model_fit import (
     ModelUncertainty,
     SecondOrderFit,

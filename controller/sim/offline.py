@@ -36,11 +36,11 @@ from typing import Any
 
 import numba
 import numpy as np
-import numpy.typing as npt
 from numba.extending import register_jitable
 
 from controller.core import loop as loop_module
 from controller.core import ramp, trajectory
+from controller.core.arrays import FloatArray
 from controller.core.loop import ServoLoop
 from controller.core.ramp import Ramp
 from controller.core.trajectory import KIND_CODE, Trajectory
@@ -52,7 +52,6 @@ from controller.sim.sim_rig import SimRig
 
 __all__ = ["OfflineRun", "run_speed_ticks", "run_ticks", "supported"]
 
-FloatArray = npt.NDArray[np.float64]
 
 _servo_law = loop_module.servo_law
 _speed_law = loop_module.speed_law

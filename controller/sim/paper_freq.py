@@ -19,8 +19,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
+from controller.core.arrays import ComplexArray, FloatArray
 from controller.core.config import LoopConfig
 from controller.core.qfilter import design_q
 from controller.sim.linear_rig import PlantVariant
@@ -35,8 +35,6 @@ __all__ = [
     "suppression_curve",
 ]
 
-FloatArray = npt.NDArray[np.float64]
-ComplexArray = npt.NDArray[np.complex128]
 NOMINAL = PlantVariant("nominal")
 
 

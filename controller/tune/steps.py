@@ -8,15 +8,14 @@ estimates and cancels), both from rest.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
 
+from controller.core.arrays import FloatArray
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.gate.loop_model import discrete_plant
 
 __all__ = ["step_responses"]
 
-FloatArray = NDArray[np.float64]
 
 
 def _run(cfg: LoopConfig, model: NominalModel, n: int, ref_deg: float, d_deg_s: float,

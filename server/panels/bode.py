@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from controller.core.arrays import FloatArray
 from server import charts
 from server.engine import Comparison, Evaluation
 from server.escape import esc
@@ -76,7 +77,7 @@ class BodeTab:
     """The charts of one candidate, built into the current GUI container (the plots panel's
     Bode tab); `show` draws a comparison."""
 
-    def __init__(self, gui: Any, freq_hz: charts.FloatArray) -> None:
+    def __init__(self, gui: Any, freq_hz: FloatArray) -> None:
         self.gui = gui
         self.freq_hz = freq_hz
         self.charts: dict[str, Any] = {}

@@ -7,7 +7,8 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-from server.charts import ChartSpec, FloatArray
+from controller.core.arrays import FloatArray
+from server.charts import ChartSpec
 from server.escape import esc
 from server.export import chart_csv, export_filename
 
