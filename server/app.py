@@ -46,7 +46,7 @@ from server.panels.identify import IdentifyPanel
 from server.panels.knowledge import KnowledgePanel
 from server.panels.live import LivePanel
 from server.panels.nominal_tuning import NominalTuningPanel
-from server.panels.recordings import RecordingsPanel
+from server.panels.recordings import COMPARE_TAB, RecordingsPanel
 from server.panels.widgets import set_width_in
 from server.scene3d import TurntableScene
 from server.session import BrowserSessions, leased
@@ -290,11 +290,12 @@ class Dashboard:
         with tabs.add_tab("History"):
             self.history.build()
         with tabs.add_tab("Recordings"):
-            self.recordings = RecordingsPanel(gui, self.opts.recordings_dir,
-                                              record=self._record_options(),
-                                              rig_name=self.opts.rig_name,
-                                              authorize=self.sessions.check_may_change)
-            self.recordings.build()
+            recordings = RecordingsPanel(gui, self.opts.recordings_dir,
+                                         record=self._record_options(),
+                                         rig_name=self.opts.rig_name,
+                                         authorize=self.sessions.check_may_change)
+            self.recordings = recordings
+            recordings.build()
         with tabs.add_tab("Help"):
             gui.add_markdown(_asset("help.md", "Help texts are missing (web_assets/help.md)."))
 
@@ -305,6 +306,8 @@ class Dashboard:
             live.build_charts()
         with plots.add_tab("Identify"):
             self.identify.build_charts()
+        with plots.add_tab(COMPARE_TAB):
+            recordings.build_compare()
         plots.dock_right()
         run_logged(lambda: gui.main_panel.dock_left(), what="docking the controls left")
         run_logged(plots.set_width, PLOTS_WIDTH_PX, what="sizing the plots panel")

@@ -598,13 +598,16 @@ def minmax_decimate(
     """Reduce to <= max_points samples keeping each bucket's min and max (spikes survive).
 
     Buckets are equal index ranges; each yields its first x twice with the (min, max) of every
-    series, so the drawn envelope matches the full-rate trace at chart resolution.
+    series, so the drawn envelope matches the full-rate trace at chart resolution. The buckets
+    cover all but fewer than one bucket's oldest samples (a bucket size rounded down dropped
+    up to a third of a series a little longer than `max_points`: a 26 s comparison drew from
+    its 6.3 s on).
     """
     n = len(x)
     if n <= max_points or max_points < 4:
         return np.asarray(x, dtype=np.float64), [np.asarray(y, dtype=np.float64) for y in ys]
-    buckets = max_points // 2
-    size = n // buckets
+    size = -(-n // (max_points // 2))  # ceil: at most max_points // 2 buckets
+    buckets = n // size
     m = buckets * size
     start = n - m  # keep the newest samples aligned to the end
     xb = np.asarray(x[start:], dtype=np.float64).reshape(buckets, size)

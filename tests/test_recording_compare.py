@@ -14,28 +14,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import free_port
+from sine_recordings import sine_run, write_sine_recording
 
-from controller import protocol as proto
 from controller.core.config import LoopConfig, config_from_builtins
 from controller.recording.compare import align_runs, config_diff, flatten, summary_row
-from controller.recording.mcap_io import Recorder, Recording, read_recording
+from controller.recording.mcap_io import Recording, read_recording
 from controller.recording.report import metrics
 
 
-def _sine_run(t0_s: float, seconds: float, gain: float, rate_hz: float = 1000.0
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t, ref, error) of 5 sin(0.5 t) started at trajectory time t0_s; the error is a
-    function of the trajectory time (so aligned runs have proportional errors)."""
-    t = np.arange(0.0, seconds, 1.0 / rate_hz)
-    tt = t + t0_s
-    ref = 5.0 * np.sin(0.5 * tt)
-    err = gain * (0.01 * np.cos(0.5 * tt) + 0.004 * np.sin(3.1 * tt))
-    return t + 100.0, ref, err  # any time origin
-
-
 def test_alignment_finds_a_known_shift_of_a_periodic_reference() -> None:
-    a = _sine_run(0.0, 40.0, 1.0)
-    b = _sine_run(3.7, 40.0, 0.5)  # B started 3.7 s later along the trajectory
+    a = sine_run(0.0, 40.0, 1.0)
+    b = sine_run(3.7, 40.0, 0.5)  # B started 3.7 s later along the trajectory
     al = align_runs(*a, *b)
     assert al.lag_s == pytest.approx(-3.7, abs=0.011)  # one grid step (10 ms)
     assert al.correlation > 0.999
@@ -57,7 +46,7 @@ def test_alignment_of_a_random_reference_is_exact() -> None:
 
 
 def test_alignment_refuses_bad_input() -> None:
-    a = _sine_run(0.0, 2.0, 1.0)
+    a = sine_run(0.0, 2.0, 1.0)
     with pytest.raises(ValueError, match="fewer than 2 finite samples"):
         align_runs(*a, np.array([0.0]), np.array([1.0]), np.array([0.0]))
     with pytest.raises(ValueError, match="dt_s"):
@@ -75,24 +64,9 @@ def test_config_diff_names_nested_fields() -> None:
     assert flatten({"n": {"m": {"k": 1}}}) == {"n.m.k": 1}
 
 
-def _write(path: Path, cfg: LoopConfig, t0_s: float, gain: float, seconds: float = 30.0) -> Path:
-    t, ref, err = _sine_run(t0_s, seconds, gain)
-    with Recorder(path, rig="t") as rec:
-        rec.config(1, cfg, 1.7e9)
-        for i0 in range(0, t.size, 20):
-            sl = slice(i0, i0 + 20)
-            zeros = np.zeros(len(t[sl])).tolist()
-            cols = [t[sl].tolist(), ref[sl].tolist(), (ref[sl] - err[sl]).tolist(), zeros,
-                    zeros, zeros, zeros, err[sl].tolist()]
-            rec.state(proto.state_batch(rig="t", seq0=i0 + 1, rate_hz=1000.0,
-                                        config_version=1, columns=cols, epoch_s=1.7e9,
-                                        mode="running"))
-    return path
-
-
 def test_summary_row_has_the_latest_configuration_and_numpys_metrics(tmp_path: Path) -> None:
     cfg = LoopConfig().with_(q_cutoff_hz=0.8)
-    path = _write(tmp_path / "a.mcap", cfg, 0.0, 1.0)
+    path = write_sine_recording(tmp_path / "a.mcap", cfg, 0.0, 1.0)
     rec = read_recording(path)
     row = summary_row("a.mcap", rec.configs, metrics(rec))
     e = rec.state["error_deg"]
@@ -128,11 +102,12 @@ def test_the_panel_lists_and_compares_two_runs(gui: object, tmp_path: Path) -> N
 
     before = LoopConfig()
     after = before.with_(q_cutoff_hz=0.8)
-    _write(tmp_path / "1-before.mcap", before, 0.0, 1.0)
-    _write(tmp_path / "2-after.mcap", after, 3.7, 0.5)
+    write_sine_recording(tmp_path / "1-before.mcap", before, 0.0, 1.0)
+    write_sine_recording(tmp_path / "2-after.mcap", after, 3.7, 0.5)
     (tmp_path / "3-broken.mcap").write_bytes(b"not an mcap file")
     panel = RecordingsPanel(gui, tmp_path)
     panel.build(background=False)
+    panel.build_compare()  # after the list was read: the pickers offer its files
     assert [r.name for r in panel.rows] == ["1-before.mcap", "2-after.mcap"]
     listing = panel.list_box.content
     assert "1-before.mcap" in listing and "3-broken.mcap" in listing  # named, not hidden
@@ -141,9 +116,17 @@ def test_the_panel_lists_and_compares_two_runs(gui: object, tmp_path: Path) -> N
     html = panel.compare("1-before.mcap", "2-after.mcap")
     assert "q_cutoff_hz" in html and "0.8" in html and "-3.70 s" in html
     assert "Per configuration version" in html and "B v1" in html
+    assert "1-before.mcap" in html and "2-after.mcap" in html  # both runs named
+    # B's change against A: its peak is half of A's (-50 %), computed here from the rows.
+    a, b = panel.rows
+    assert f"{b.peak_error_deg - a.peak_error_deg:+.4g} deg (-50 %)" in html
     x, ea, eb = panel.chart.data
     assert len(x) <= 2000 and np.max(np.abs(eb)) == pytest.approx(
         0.5 * np.max(np.abs(ea)), rel=0.05)
+    # The references overlaid: B shifted by the lag lies on A.
+    xr, ra, rb = panel.ref_chart.data
+    np.testing.assert_array_equal(xr, x)
+    np.testing.assert_allclose(rb, ra, atol=0.05)
     assert "Cannot compare" in panel.compare("1-before.mcap", "3-broken.mcap")
 
 

@@ -30,6 +30,20 @@ def test_minmax_decimate_keeps_extremes_and_bounds_size() -> None:
     assert x[-1] == t[-1]
 
 
+@pytest.mark.parametrize("n", [1001, 2001, 2630, 2999, 60_000, 60_999])
+def test_minmax_decimate_covers_the_whole_series(n: int) -> None:
+    """All but fewer than one bucket's oldest samples are drawn (n = 2999 into 1000 points
+    drew only its newest 2000 samples); every sample kept lies in the drawn envelope."""
+    t = np.arange(n) / 1000.0
+    y = np.cos(7.0 * t)
+    x, (yd,) = charts.minmax_decimate(t, [y], 1000)
+    assert len(x) <= 1000 and x[-1] == t[-1]
+    size = int(np.ceil(n / 500))  # samples per bucket, at most 500 buckets
+    assert x[0] - t[0] < size / 1000.0, (x[0], size)
+    kept = t >= x[0]
+    assert yd.max() == y[kept].max() and yd.min() == y[kept].min()
+
+
 def test_minmax_decimate_passes_short_series_through() -> None:
     t = np.arange(10.0)
     x, (y,) = charts.minmax_decimate(t, [t * 2], 1000)

@@ -4,6 +4,11 @@ errors aligned on their reference trajectory, metrics side by side, the configur
 a time scrubber replays the overlay through a window; Record / Stop records the rig into the
 directory (the recorder of `dobtune record`, in a thread of this process).
 
+Two places: `build` (the controls' Recordings tab: the directory, Record / Stop, the list) and
+`build_compare` (the plots panel's wide Compare runs tab: the pickers, the two runs' names and
+numbers side by side, the overlay charts of their errors and of their references, the replay
+scrubber, the configuration diff).
+
 Reading and the metrics are `controller.recording` (the same as `dobtune report`); the
 alignment and the diff are `controller.recording.compare` (pure). Files are read in the
 callback's thread (viser runs callbacks on a pool), and each file's summary is cached by
@@ -33,7 +38,8 @@ from server.escape import esc
 from server.http_access import Refused
 from server.panels.widgets import NEUTRAL, add_chart, box, set_html
 
-__all__ = ["OVERLAY_CHART", "RecordingsPanel", "compare_html", "list_html"]
+__all__ = ["COMPARE_TAB", "OVERLAY_CHART", "REFERENCE_CHART", "RecordingsPanel", "compare_html",
+           "list_html"]
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +52,21 @@ OVERLAY_CHART = ChartSpec(
             {"label": "B", "stroke": NO_DOB, "width": 1.2, "scale": "y"}),
     scales={"x": {"time": False, "auto": True}, "y": {"auto": True}},
     axes=({"label": "s", "scale": "x"}, {"label": "deg", "scale": "y"}),
-    height=220,
+    height=260,
 )
+#: The references of A and of B shifted by the alignment's lag: how well they were aligned.
+REFERENCE_CHART = ChartSpec(
+    key="recordings_reference",
+    title="Reference trajectory, A and B shifted onto A",
+    series=({"label": "t (s)"},
+            {"label": "A", "stroke": CANDIDATE, "width": 1.2, "scale": "y"},
+            {"label": "B", "stroke": NO_DOB, "width": 1.2, "scale": "y", "dash": (6, 4)}),
+    scales={"x": {"time": False, "auto": True}, "y": {"auto": True}},
+    axes=({"label": "s", "scale": "x"}, {"label": "deg", "scale": "y"}),
+    height=180,
+)
+#: The plots panel's tab with the comparison (wide: the charts and the table side by side).
+COMPARE_TAB = "Compare runs"
 _NONE = "-"
 _MAX_POINTS = 2000
 #: The replay window: the scrubber shows the overlay's last this many seconds up to its time.
@@ -79,35 +98,56 @@ def list_html(rows: list[SummaryRow], directory: Path) -> str:
             "</table></div>")
 
 
+def _change(va: float, vb: float) -> str:
+    """B against A: the difference and its percentage of A."""
+    if not (math.isfinite(va) and math.isfinite(vb)):
+        return "n/a"
+    pct = f" ({100.0 * (vb - va) / abs(va):+.0f} %)" if va != 0.0 else ""
+    return f"{vb - va:+.4g} deg{pct}"
+
+
 def compare_html(a: SummaryRow, b: SummaryRow, lag_s: float, correlation: float) -> str:
-    """Metrics side by side and the configuration diff (latest configuration of each)."""
+    """The two runs' names, their metrics side by side with B's change, per configuration
+    version, and the configuration diff (latest configuration of each)."""
     rows = [("peak |error|", a.peak_error_deg, b.peak_error_deg),
             ("RMSE", a.rmse_deg, b.rmse_deg),
             (f"peak |error| at reversals ({REVERSAL_WINDOW_S:g} s)",
              a.reversal_peak_error_deg, b.reversal_peak_error_deg)]
+    cell = "style='padding:2px 10px;text-align:right'"
     metrics_rows = "".join(
-        f"<tr><td>{esc(k)}</td><td>{_fmt(va)}</td><td>{_fmt(vb)}</td></tr>"
+        f"<tr class='dt-compare-metric'><td>{esc(k)}</td><td {cell}>{_fmt(va)}</td>"
+        f"<td {cell}>{_fmt(vb)}</td><td {cell}>{_change(va, vb)}</td></tr>"
         for k, va, vb in rows)
     seg_rows = "".join(
-        f"<tr><td>{esc(who)} v{v}</td><td>{_fmt(peak)}</td><td>{_fmt(rmse)}</td>"
-        f"<td>{n}</td></tr>"
+        f"<tr><td>{esc(who)} v{v}</td><td {cell}>{_fmt(peak)}</td><td {cell}>{_fmt(rmse)}</td>"
+        f"<td {cell}>{n}</td></tr>"
         for who, row in (("A", a), ("B", b)) for v, peak, rmse, n in row.segments)
-    segments = (f"<b>Per configuration version</b><table><tr><th>segment</th><th>peak</th>"
-                f"<th>RMSE</th><th>samples</th></tr>{seg_rows}</table>" if seg_rows else "")
+    segments = (f"<div><b>Per configuration version</b><table><tr><th>segment</th><th>peak</th>"
+                f"<th>RMSE</th><th>samples</th></tr>{seg_rows}</table></div>" if seg_rows else "")
     diff = config_diff(a.config, b.config)
     diff_rows = "".join(
-        f"<tr><td>{esc(k)}</td><td>{esc(str(va))}</td><td>{esc(str(vb))}</td></tr>"
+        f"<tr><td>{esc(k)}</td><td {cell}>{esc(str(va))}</td><td {cell}>{esc(str(vb))}</td></tr>"
         for k, va, vb in diff) or "<tr><td colspan='3'>identical configurations</td></tr>"
+    names = "".join(
+        f"<div class='dt-compare-run'><b style='color:{color}'>{who}</b> {esc(r.name)} "
+        f"<span style='color:#555'>({r.duration_s:.1f} s, "
+        f"{'no version' if r.config_version is None else f'v{r.config_version}'})</span></div>"
+        for who, color, r in (("A (before)", CANDIDATE, a), ("B (after)", NO_DOB, b)))
     return (
-        f"<div class='dt-compare' style='font-size:12px'><b>A</b> {esc(a.name)} &nbsp; "
-        f"<b>B</b> {esc(b.name)}<br>B shifted by {lag_s:+.2f} s onto A (reference "
-        f"correlation {correlation:.3f})<table><tr><th></th><th>A</th><th>B</th></tr>"
-        f"{metrics_rows}</table>{segments}<b>Configuration difference</b><table>"
-        f"<tr><th>field</th><th>A</th><th>B</th></tr>{diff_rows}</table></div>")
+        f"<div class='dt-compare' style='font-size:13px'>{names}"
+        f"<div style='color:#555'>B shifted by {lag_s:+.2f} s onto A (reference correlation "
+        f"{correlation:.3f})</div>"
+        "<div style='display:flex;flex-wrap:wrap;gap:8px 28px;align-items:flex-start'>"
+        f"<table><tr><th></th><th {cell}>A</th><th {cell}>B</th><th {cell}>B - A</th></tr>"
+        f"{metrics_rows}</table>{segments}"
+        "<div><b>Configuration difference</b><table>"
+        f"<tr><th>field</th><th {cell}>A</th><th {cell}>B</th></tr>{diff_rows}</table></div>"
+        "</div></div>")
 
 
 class RecordingsPanel:
-    """`build()` inside a tab; `refresh()` rereads the directory (also the Refresh button)."""
+    """`build()` inside the controls' tab, `build_compare()` inside the plots panel's; `refresh()`
+    rereads the directory (also the Refresh button)."""
 
     def __init__(self, gui: Any, directory: str | Path,
                  record: RecordOptions | None = None, rig_name: str = "rig",
@@ -132,14 +172,15 @@ class RecordingsPanel:
         self._cache: dict[Path, tuple[tuple[int, float], SummaryRow]] = {}
         self.rows: list[SummaryRow] = []
         self.chart: Any = None
+        self.ref_chart: Any = None
         self.list_box: Any = None
         self.compare_box: Any = None
         self.pick_a: Any = None
         self.pick_b: Any = None
 
     def build(self, background: bool = True) -> None:
-        """The widgets; the directory is then read in a thread of its own (`background`: a
-        long recording takes seconds to read) or here."""
+        """The directory, Record / Stop and the list; the directory is then read in a thread
+        of its own (`background`: a long recording takes seconds to read) or here."""
         gui = self.gui
         gui.add_html(f"<div class='dt-recordings-dir'>Recordings in <code>"
                      f"{esc(str(self.directory))}</code> (<code>dobtune record</code>, black "
@@ -153,26 +194,39 @@ class RecordingsPanel:
         refresh = gui.add_button("Refresh", color="gray", hint="read the directory again")
         refresh.on_click(lambda _e: self.refresh())
         self.list_box = gui.add_html("")
-        self.pick_a = gui.add_dropdown("A (before)", (_NONE,), initial_value=_NONE)
-        self.pick_b = gui.add_dropdown("B (after)", (_NONE,), initial_value=_NONE)
-        compare = gui.add_button("Compare", hint="overlay B's error on A's, aligned on the "
-                                 "reference trajectory; metrics and configuration diff")
-        compare.on_click(lambda _e: self.compare(self.pick_a.value, self.pick_b.value))
-        self.compare_box = gui.add_html("")
-        # Empty: NaN on a fixed y scale draws nothing (zeros drew a flat line that read as data).
-        empty = (np.array([0.0, 1.0]), np.full(2, np.nan), np.full(2, np.nan))
-        self.chart = add_chart(gui, OVERLAY_CHART, empty)
-        self.chart.scales = ranged_scales(OVERLAY_CHART, empty)
-        self.scrub = gui.add_slider(
-            "Replay at (s)", min=0.0, max=1.0, step=0.1, initial_value=1.0,
-            hint=f"the overlay's last {REPLAY_WINDOW_S:g} s up to this time; the end shows the "
-            "whole run")
-        self.scrub.on_update(lambda _e: self.replay(float(self.scrub.value)))
+        gui.add_html(f"<div class='dt-compare-where' style='font-size:12px;color:#555'>Two runs "
+                     f"overlaid, their numbers and configuration difference: the plots "
+                     f"panel's <b>{COMPARE_TAB}</b> tab.</div>")
         if background:
             set_html(self.list_box, box("dt-recordings", NEUTRAL, "Reading the recordings..."))
             threading.Thread(target=self.refresh, name="recordings-list", daemon=True).start()
         else:
             self.refresh()
+
+    def build_compare(self) -> None:
+        """The comparison, in the wide plots panel: the pickers, the two runs' names and
+        numbers, the overlay charts, the replay scrubber."""
+        gui = self.gui
+        self.pick_a = gui.add_dropdown("A (before)", (_NONE,), initial_value=_NONE)
+        self.pick_b = gui.add_dropdown("B (after)", (_NONE,), initial_value=_NONE)
+        compare = gui.add_button("Compare", hint="overlay B's error on A's, aligned on the "
+                                 "reference trajectory; metrics and configuration diff")
+        compare.on_click(lambda _e: self.compare(self.pick_a.value, self.pick_b.value))
+        self.compare_box = gui.add_html(box(
+            "dt-compare", NEUTRAL, "Pick two recordings (the list: the controls' Recordings "
+            "tab) and press Compare."))
+        # Empty: NaN on a fixed y scale draws nothing (zeros drew a flat line that read as data).
+        for attr, spec in (("chart", OVERLAY_CHART), ("ref_chart", REFERENCE_CHART)):
+            empty = (np.array([0.0, 1.0]), np.full(2, np.nan), np.full(2, np.nan))
+            handle = add_chart(gui, spec, empty)
+            handle.scales = ranged_scales(spec, empty)
+            setattr(self, attr, handle)
+        self.scrub = gui.add_slider(
+            "Replay at (s)", min=0.0, max=1.0, step=0.1, initial_value=1.0,
+            hint=f"the overlay's last {REPLAY_WINDOW_S:g} s up to this time; the end shows the "
+            "whole run")
+        self.scrub.on_update(lambda _e: self.replay(float(self.scrub.value)))
+        self._show_names(self.rows)
 
     # -- the list ------------------------------------------------------------------------------
 
@@ -204,13 +258,17 @@ class RecordingsPanel:
             if bad:
                 html += "".join(f"<div style='color:#d62728'>{esc(b)}</div>" for b in bad)
             set_html(self.list_box, html)
+        self._show_names(rows)
+        return rows
+
+    def _show_names(self, rows: list[SummaryRow]) -> None:
+        """The pickers offer the files listed (B: the newest when A and B are the same)."""
         names = tuple(r.name for r in rows) or (_NONE,)
         for pick in (self.pick_a, self.pick_b):
             if pick is not None and tuple(pick.options) != names:
                 pick.options = names
         if self.pick_b is not None and len(rows) >= 2 and self.pick_b.value == rows[0].name:
             self.pick_b.value = rows[-1].name
-        return rows
 
     # -- two runs ------------------------------------------------------------------------------
 
@@ -236,20 +294,26 @@ class RecordingsPanel:
 
     def replay(self, t_s: float) -> tuple[np.ndarray, ...] | None:
         """The overlay up to `t_s` in a REPLAY_WINDOW_S window (inf, or the end: all of it);
-        returns the chart's data (None: nothing compared yet)."""
+        returns the error chart's data (None: nothing compared yet). The reference chart
+        shows the same window."""
         al = self._aligned
         if al is None or len(al.t_s) == 0:
             return None
-        t, ea, eb = al.t_s, al.error_a_deg, al.error_b_deg
+        t, ea, eb, ra, rb = al.t_s, al.error_a_deg, al.error_b_deg, al.ref_a_deg, al.ref_b_deg
         if t_s < float(t[-1]) - 1e-9:
             keep = (t >= t_s - REPLAY_WINDOW_S) & (t <= t_s)
             if np.count_nonzero(keep) >= 2:
-                t, ea, eb = t[keep], ea[keep], eb[keep]
+                t, ea, eb, ra, rb = t[keep], ea[keep], eb[keep], ra[keep], rb[keep]
         x, (da, db) = minmax_decimate(t, [ea, eb], _MAX_POINTS)
         data = (x, da, db)
-        if self.chart is not None:
-            self.chart.scales = ranged_scales(OVERLAY_CHART, data)
-            self.chart.data = data
+        xr, (dra, drb) = minmax_decimate(t, [ra, rb], _MAX_POINTS)
+        for handle, spec, d in ((self.chart, OVERLAY_CHART, data),
+                                (self.ref_chart, REFERENCE_CHART, (xr, dra, drb))):
+            if handle is not None:
+                scales = ranged_scales(spec, d)
+                if scales != handle.scales:  # a new scale re-creates the chart
+                    handle.scales = scales
+                handle.data = d
         return data
 
     # -- recording -----------------------------------------------------------------------------

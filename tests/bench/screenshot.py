@@ -32,7 +32,7 @@ def free_port() -> int:
 #: plots tab it goes with.
 TABS = (("Tune", "Bode", "tab_tune.png"), ("Live", "Live traces", "tab_live.png"),
         ("Identify", "Identify", "tab_identify.png"), ("History", "Bode", "tab_history.png"),
-        ("Recordings", "Live traces", "tab_recordings.png"), ("Help", "Bode", "tab_help.png"))
+        ("Recordings", "Compare runs", "tab_recordings.png"), ("Help", "Bode", "tab_help.png"))
 
 
 def every_tab(page: Any, out_dir: Path) -> None:

@@ -429,12 +429,13 @@ def test_png_of_a_long_titled_chart_has_the_whole_title_in_its_name(
 
 def test_png_of_a_narrow_chart_has_its_whole_title(page: Any, dashboard: Dashboard,
                                                     artifacts: Path) -> None:
-    """The recordings overlay sits in the narrow sidebar; its one-line title ran off both
-    edges of the PNG. Wrapped, the title's ink keeps off the image's left and right edges."""
-    from server.panels.recordings import OVERLAY_CHART
+    """The recordings overlay sat in the narrow sidebar; its one-line title ran off both
+    edges of the PNG. Wrapped, the title's ink keeps off the image's left and right edges (the
+    overlay is now in the plots panel's Compare runs tab: the same check there)."""
+    from server.panels.recordings import COMPARE_TAB, OVERLAY_CHART
 
     _ready(page, dashboard)
-    page.get_by_role("tab", name="Recordings").click()
+    page.get_by_role("tab", name=COMPARE_TAB, exact=True).click()
     button = _export_button(page, OVERLAY_CHART.title, "PNG")
     button.wait_for(timeout=30_000)
     with page.expect_download(timeout=15_000) as got:

@@ -325,25 +325,29 @@ EMPTY_CHARTS_JS = """(titles) => {
 def test_empty_charts_draw_no_fake_data(page: Any) -> None:
     """Before any Suggest or comparison: no red 'suggested' dot at (0.1 Hz, 0) and no flat
     overlay line; the empty charts still have a finite y axis (they draw their grid)."""
-    titles = ["Suggest:", "Position error, before (A)"]
+    from server.panels.recordings import COMPARE_TAB
+
     got: list[dict[str, Any]] = []
-
-    def read() -> bool:
-        nonlocal got
-        got = page.evaluate(EMPTY_CHARTS_JS, titles)
-        return len(got) == 2
-
     # The Suggest chart sits in the plots panel's Bode tab, sub-tab Suggest (an earlier test of
-    # this module may have left that panel on Live traces), the overlay in the controls'
-    # Recordings tab.
-    page.get_by_role("tab", name="Bode", exact=True).click()
-    page.get_by_role("tab", name="Suggest", exact=True).click()
-    page.get_by_role("tab", name="Recordings").click()
-    # (The chart's own title: the guided path's text on the Tune tab says "Suggest:" too.)
-    page.locator(".u-title", has_text=titles[0]).first.scroll_into_view_if_needed(
-        timeout=90_000)
-    wait_for(read, 90.0, f"the Suggest and the overlay charts never appeared: {got}")
-    page.screenshot(path=str(ARTIFACTS / "ui_empty_charts.png"))
+    # this module may have left that panel on Live traces), the overlay in its Compare runs
+    # tab: one at a time (a tab's charts are drawn only while it is shown).
+    for tabs, title in ((("Bode", "Suggest"), "Suggest:"),
+                        ((COMPARE_TAB,), "Position error, before (A)")):
+        for tab in tabs:
+            page.get_by_role("tab", name=tab, exact=True).click()
+        shown: list[dict[str, Any]] = []
+
+        def read(title: str = title) -> bool:
+            nonlocal shown
+            shown = page.evaluate(EMPTY_CHARTS_JS, [title])
+            return len(shown) == 1
+
+        # (The chart's own title: the guided path's text on the Tune tab says "Suggest:" too.)
+        page.locator(".u-title", has_text=title).first.scroll_into_view_if_needed(
+            timeout=90_000)
+        wait_for(read, 90.0, f"the chart {title!r} never appeared: {shown}")
+        page.screenshot(path=str(ARTIFACTS / f"ui_empty_chart_{len(got)}.png"))
+        got += shown
     for chart in got:
         assert all(s["n"] == 0 for s in chart["finite"]), chart
         assert chart["ymin"] is not None and chart["ymax"] is not None, chart
