@@ -227,31 +227,44 @@ def _print_table(
         f"Q {c.q_type} {c.q_cutoff_hz:g} Hz; metrics over {m0.window_s[0]:g}-"
         f"{m0.window_s[1]:.3g} s\n"
     )
-    head = f"{'run':<10} {'DOB':<4} {'FF':<4} {'peak|e| deg':>12} {'RMSE deg':>10}"
-    if kind == "step":
-        head += f" {'rise s':>8} {'overshoot %':>12}"
-    if kind in ("step", "hold"):
-        head += f" {'static deg':>11}"
-    head += f" {'x real time':>12}"
-    if test == "compare":
-        head += f" {'article peak':>13} {'article RMSE':>13}"
-    out.write(head + "\n")
+    columns = _table_columns(test, kind)
+    out.write(" ".join(f"{title:{width}}" for title, width in columns) + "\n")
     for label, (res, wall) in results.items():
-        m = res.metrics
-        cfg = res.config
-        row = (
-            f"{label:<10} {'on' if cfg.dob_on else 'off':<4} {'on' if cfg.ff_on else 'off':<4} "
-            f"{m.peak_error_deg:>12.4f} {m.rmse_deg:>10.4f}"
-        )
-        if kind == "step":
-            row += f" {_fmt(m.rise_time_s, '.3f'):>8} {_fmt(m.overshoot_pct, '.1f'):>12}"
-        if kind in ("step", "hold"):
-            row += f" {_fmt(m.static_error_deg, '.5f'):>11}"
-        row += f" {res.duration_s / wall:>12.0f}"
-        if test == "compare":
-            art = ARTICLE_SINE[label]
-            row += f" {_fmt(art['peak_error_deg']):>13} {_fmt(art['rmse_deg']):>13}"
-        out.write(row + "\n")
+        cells = _table_cells(label, res, wall)
+        out.write(" ".join(f"{cells[title]:{width}}" for title, width in columns) + "\n")
+
+
+def _table_columns(test: str, kind: str) -> list[tuple[str, str]]:
+    """(title, alignment and width) of each column the results table of `kind` runs shows."""
+    columns = [("run", "<10"), ("DOB", "<4"), ("FF", "<4"), ("peak|e| deg", ">12"),
+               ("RMSE deg", ">10")]
+    if kind == "step":
+        columns += [("rise s", ">8"), ("overshoot %", ">12")]
+    if kind in ("step", "hold"):
+        columns.append(("static deg", ">11"))
+    columns.append(("x real time", ">12"))
+    if test == "compare":
+        columns += [("article peak", ">13"), ("article RMSE", ">13")]
+    return columns
+
+
+def _table_cells(label: str, res: ExperimentResult, wall_s: float) -> dict[str, str]:
+    """Every cell of a run's row of the results table, by column title."""
+    m = res.metrics
+    article = ARTICLE_SINE.get(label, {})
+    return {
+        "run": label,
+        "DOB": "on" if res.config.dob_on else "off",
+        "FF": "on" if res.config.ff_on else "off",
+        "peak|e| deg": f"{m.peak_error_deg:.4f}",
+        "RMSE deg": f"{m.rmse_deg:.4f}",
+        "rise s": _fmt(m.rise_time_s, ".3f"),
+        "overshoot %": _fmt(m.overshoot_pct, ".1f"),
+        "static deg": _fmt(m.static_error_deg, ".5f"),
+        "x real time": f"{res.duration_s / wall_s:.0f}",
+        "article peak": _fmt(article.get("peak_error_deg")),
+        "article RMSE": _fmt(article.get("rmse_deg")),
+    }
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
