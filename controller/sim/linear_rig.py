@@ -217,9 +217,7 @@ class LinearRig(_SpeedRig):
         speed_disturbance: Callable[[float], float] | None = None,
     ) -> None:
         super().__init__(rate_hz, speed_disturbance)
-        nominal = nominal or NominalModel()
-        a1, b1, c1, d1 = _ss(np.array([1.0]), np.asarray(nominal.mn_den, float))
-        a2, b2, c2, d2 = _ss(*variant.p_polys(nominal))
+        (a1, b1, c1, d1), (a2, b2, c2, d2) = _m_and_p(variant, nominal)
         n1, n2 = a1.shape[0], a2.shape[0]
         n = n1 + n2 + 1
         # x = [x1 (M); x2 (P'); theta], inputs [u, d]: v = C1 x1 + D1 u + d, w = C2 x2 + D2 v.
@@ -235,11 +233,7 @@ class LinearRig(_SpeedRig):
         a[n - 1, n1 : n1 + n2] = c2[0]
         b[n - 1, 0] = d2[0, 0] * d1[0, 0]
         b[n - 1, 1] = d2[0, 0]
-        big = np.zeros((n + 2, n + 2))
-        big[:n, :n] = a
-        big[:n, n:] = b
-        e = _expm(big * self._ts)
-        ad, bd = e[:n, :n], e[:n, n:]
+        ad, bd = _zoh(a, b, self._ts)
         self._args = (np.zeros(n), np.ascontiguousarray(ad, dtype=np.float64).ravel(),
                       np.ascontiguousarray(bd[:, 0]), np.ascontiguousarray(bd[:, 1]),
                       np.zeros(n), n - 1)
@@ -251,6 +245,14 @@ def _expm(m: np.ndarray) -> np.ndarray:
     from scipy import linalg
 
     return np.asarray(linalg.expm(m))
+
+
+def _m_and_p(
+    variant: PlantVariant, nominal: NominalModel | None
+) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+    """State spaces (A, B, C, D) of the nominal motor model Mn and of the variant's plant P'."""
+    nominal = nominal or NominalModel()
+    return _ss(np.array([1.0]), np.asarray(nominal.mn_den, float)), _ss(*variant.p_polys(nominal))
 
 
 def _zoh(a: np.ndarray, b: np.ndarray, ts: float) -> tuple[np.ndarray, np.ndarray]:
@@ -287,10 +289,8 @@ class BacklashRig(_SpeedRig):
         if not (math.isfinite(backlash_deg) and backlash_deg >= 0.0):
             raise ConfigError("backlash_deg", f"must be finite and >= 0, got {backlash_deg!r}")
         super().__init__(rate_hz, speed_disturbance)
-        nominal = nominal or NominalModel()
         dt = self._ts / substeps
-        a1, b1, c1, d1 = _ss(np.array([1.0]), np.asarray(nominal.mn_den, float))
-        a2, b2, c2, d2 = _ss(*variant.p_polys(nominal))
+        (a1, b1, c1, d1), (a2, b2, c2, d2) = _m_and_p(variant, nominal)
         # substeps, dt, half the play, [motor angle, P's input angle], M's arrays, P's arrays
         self._args = (substeps, dt, 0.5 * backlash_deg, np.zeros(2),
                       *_flat_model(*_zoh(a1, b1, dt), c1[0], float(d1[0, 0])),
