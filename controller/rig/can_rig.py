@@ -34,7 +34,6 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from types import TracebackType
 
 import can
 
@@ -353,12 +352,7 @@ class CanRig:
     def __enter__(self) -> CanRig:
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # --- internals ------------------------------------------------------------------------
