@@ -119,6 +119,13 @@ def run(rig: CanRig, ticks: int, command_deg_s: float) -> list[tuple[float, floa
     return samples
 
 
+def started(setup: Setup, ticks: int, command_deg_s: float) -> CanRig:
+    """`setup`'s rig, started and run `ticks` ticks at `command_deg_s`."""
+    setup.rig.start()
+    run(setup.rig, ticks, command_deg_s)
+    return setup.rig
+
+
 # --- Bring-up and motion --------------------------------------------------------------------
 def test_start_reaches_operation_enabled(setup: Setup) -> None:
     setup.rig.start()
@@ -304,9 +311,7 @@ def test_a_late_answer_counts_for_its_own_tick(setup: Setup) -> None:
 
 # --- Faults ---------------------------------------------------------------------------------
 def test_lost_feedback_gives_safe_state_within_timeout(setup: Setup) -> None:
-    rig = setup.rig
-    rig.start()
-    run(rig, 100, 10.0)
+    rig = started(setup, 100, 10.0)
     before = len(setup.listener.commands())
     rig.read()
     setup.node.inject("no_feedback")  # from the next SYNC on, no answer (heartbeat goes on)
@@ -342,9 +347,7 @@ def test_lost_feedback_gives_safe_state_within_timeout(setup: Setup) -> None:
     ],
 )
 def test_drive_faults_stop_the_rig(setup: Setup, injection: str, reason: str) -> None:
-    rig = setup.rig
-    rig.start()
-    run(rig, 20, 10.0)
+    rig = started(setup, 20, 10.0)
     rig.read()
     setup.node.inject(injection)  # type: ignore[arg-type]
     rig.step(10.0)
@@ -356,9 +359,7 @@ def test_drive_faults_stop_the_rig(setup: Setup, injection: str, reason: str) ->
 
 def test_dead_node_stops_the_rig(setup: Setup) -> None:
     """Nothing at all comes back (heartbeat included): fault by whichever watchdog fires."""
-    rig = setup.rig
-    rig.start()
-    run(rig, 20, 10.0)
+    rig = started(setup, 20, 10.0)
     rig.read()
     setup.node.inject("silent")
     for _ in range(setup.rig_file.limits.feedback_timeout_ticks):
@@ -371,9 +372,7 @@ def test_dead_node_stops_the_rig(setup: Setup) -> None:
 
 
 def test_encoder_jump_is_garbage(setup: Setup) -> None:
-    rig = setup.rig
-    rig.start()
-    run(rig, 10, 5.0)
+    rig = started(setup, 10, 5.0)
     position_deg, _ = rig.read()
     rig.step(5.0)
     jump = round((position_deg + 90.0) / 360.0 * 2**26) % 2**26
@@ -408,9 +407,7 @@ def test_stop_from_another_thread_is_final(patient: Setup) -> None:
 
 
 def test_heartbeat_loss_stops_the_rig(setup: Setup) -> None:
-    rig = setup.rig
-    rig.start()
-    run(rig, 10, 5.0)
+    rig = started(setup, 10, 5.0)
     setup.node.inject("no_heartbeat")
     t0 = time.monotonic()
     while rig.fault is None and time.monotonic() - t0 < 2.0:
@@ -423,9 +420,7 @@ def test_heartbeat_loss_stops_the_rig(setup: Setup) -> None:
 
 
 def test_bus_error_frame_stops_the_rig(setup: Setup) -> None:
-    rig = setup.rig
-    rig.start()
-    run(rig, 5, 5.0)
+    rig = started(setup, 5, 5.0)
     setup.listener.bus.send(
         can.Message(
             is_error_frame=True, arbitration_id=0x20000080, is_extended_id=True, data=bytes(8)
@@ -443,9 +438,7 @@ def test_non_finite_command_stops_the_rig(setup: Setup) -> None:
 
 
 def test_stop_is_idempotent_and_restart_clears(setup: Setup) -> None:
-    rig = setup.rig
-    rig.start()
-    run(rig, 5, 5.0)
+    rig = started(setup, 5, 5.0)
     before = len(setup.listener.commands())
     rig.stop()
     rig.stop()
@@ -499,9 +492,7 @@ def test_raw_profile_moves_the_load() -> None:
 def test_a_reset_without_a_live_heartbeat_never_enables_the_drive(setup: Setup) -> None:
     """The re-enable after a fault (the runtime's reset calls start()) waits for an
     operational heartbeat sent after the NMT start: with none, the drive stays disabled."""
-    rig = setup.rig
-    rig.start()
-    run(rig, 10, 5.0)
+    rig = started(setup, 10, 5.0)
     setup.node.inject("no_heartbeat")
     deadline = time.monotonic() + 2.0  # the heartbeat timeout is 250 ms
     while rig.fault is None and time.monotonic() < deadline:

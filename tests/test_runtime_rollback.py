@@ -81,15 +81,21 @@ def _apply(rt: Runtime, cfg: LoopConfig, fallback: LoopConfig | None) -> None:
     assert t.ok and rt.loop.active.version == v
 
 
-def test_a_trip_rolls_back_at_the_next_tick_and_the_oscillation_dies() -> None:
-    rt, rig = _runtime()
-    _more(rt, 1000)
+def _roll_back(rt: Runtime, ticks_before: int = 500) -> None:
+    """After `ticks_before` ticks of GOOD (v1), apply BAD (v2) with GOOD as its fallback and run
+    until the watchdog trips: one rollback, to v3, and the loop still running."""
+    _more(rt, ticks_before)
     _apply(rt, BAD, GOOD)
     for _ in range(20):  # until the trip (at most 10 s)
         _more(rt, 500)
         if rt.rollbacks:
             break
-    assert rt.rollbacks == 1 and rt.mode == RUNNING
+    assert rt.rollbacks == 1 and rt.mode == RUNNING and rt.loop.active.version == 3
+
+
+def test_a_trip_rolls_back_at_the_next_tick_and_the_oscillation_dies() -> None:
+    rt, rig = _runtime()
+    _roll_back(rt, ticks_before=1000)
     seq, from_v, to_v, trip = rt.last_rollback  # type: ignore[misc]
     assert (from_v, to_v) == (2, 3) and trip.kind in ("oscillation", "growing oscillation")
     assert rt.loop.active.version == 3 and rt.loop.active.config == GOOD
@@ -168,16 +174,6 @@ def _service(rt: Runtime, state: Path, version: int = 1) -> tuple[ControllerServ
 def _records(access: Access, state: Path) -> list[dict[str, Any]]:
     assert access.flush()
     return [json.loads(x) for x in audit_path(state).read_text().splitlines()]
-
-
-def _roll_back(rt: Runtime) -> None:
-    _more(rt, 500)
-    _apply(rt, BAD, GOOD)
-    for _ in range(20):  # until the trip (at most 10 s)
-        _more(rt, 500)
-        if rt.rollbacks:
-            break
-    assert rt.rollbacks == 1 and rt.mode == RUNNING and rt.loop.active.version == 3
 
 
 def test_a_rollback_that_cannot_be_saved_stops_the_loop_and_is_audited(tmp_path: Path) -> None:

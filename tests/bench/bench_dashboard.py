@@ -18,6 +18,8 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -104,9 +106,11 @@ def _dashboard_url(proc: subprocess.Popen[str], timeout_s: float) -> str:
     raise TimeoutError("the dashboard printed no URL")
 
 
-def bench_live(seconds: float, browsers: int = 1) -> dict[str, float]:
-    """`browsers` headless pages on the Live tab and Live traces: the dashboard process's CPU
-    and, per page, how often the error chart's data changed and the browser's frame rate."""
+@contextmanager
+def dashboard_and_chromium() -> Iterator[tuple[subprocess.Popen[str], str, Any]]:
+    """The real controller (`python -m controller`, simulated plant), the dashboard as its own
+    process and headless Chromium: yields the dashboard's process, the URL it printed (with its
+    access token) and the browser; all three are stopped on leaving."""
     import threading
 
     from playwright.sync_api import sync_playwright
@@ -125,45 +129,54 @@ def bench_live(seconds: float, browsers: int = 1) -> dict[str, float]:
                              daemon=True).start()
             with sync_playwright() as p:
                 b = p.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
-                pages = []
-                ws_frames: list[tuple[float, int]] = []
-                for k in range(browsers):
-                    pg = b.new_context(viewport={"width": 1600, "height": 1000}).new_page()
-                    if k == 0:
-                        pg.on("websocket", lambda ws: ws.on(
-                            "framereceived",
-                            lambda data: ws_frames.append((time.monotonic(), len(data)))))
-                    pg.goto(url)
-                    pg.wait_for_selector(".dt-banner.dt-ok", timeout=60_000)
-                    pg.get_by_role("tab", name="Live traces").click()
-                    pg.get_by_role("tab", name="Live", exact=True).click()
-                    pages.append(pg)
-                pages[-1].wait_for_timeout(2000)
-                c0, w0 = cpu_seconds(dash.pid), time.monotonic()
-                n0 = len(ws_frames)
-                # Measured in every page at once: each page starts its own measurement (a
-                # promise kept in the page), then each is collected.
-                for pg in pages:
-                    pg.evaluate(f"() => {{ window.__dt_bench = ({REFRESH_JS})"
-                                f"({seconds * 1000}); }}")
-                results: list[Any] = [None] * len(pages)
-                for i, pg in enumerate(pages):
-                    results[i] = pg.evaluate("() => window.__dt_bench")
-                c1, w1 = cpu_seconds(dash.pid), time.monotonic()
-                got = [f for f in ws_frames[n0:] if f[0] <= w1]
-                b.close()
-            applied = [float(r[0]) for r in results]
-            raf = [float(r[1]) for r in results]
-            return {"browsers": browsers,
-                    "ws_frames_received_hz": len(got) / (w1 - w0),
-                    "ws_kbytes_per_s": sum(n for _, n in got) / (w1 - w0) / 1e3,
-                    "charts_applied_hz_min": min(applied),
-                    "charts_applied_hz_mean": float(np.mean(applied)),
-                    "browser_raf_fps_min": min(raf),
-                    "dashboard_cpu_pct": 100.0 * (c1 - c0) / (w1 - w0),
-                    "seconds": w1 - w0}
+                try:
+                    yield dash, url, b
+                finally:
+                    b.close()
         finally:
             stop_process(dash)
+
+
+def bench_live(seconds: float, browsers: int = 1) -> dict[str, float]:
+    """`browsers` headless pages on the Live tab and Live traces: the dashboard process's CPU
+    and, per page, how often the error chart's data changed and the browser's frame rate."""
+    with dashboard_and_chromium() as (dash, url, b):
+        pages = []
+        ws_frames: list[tuple[float, int]] = []
+        for k in range(browsers):
+            pg = b.new_context(viewport={"width": 1600, "height": 1000}).new_page()
+            if k == 0:
+                pg.on("websocket", lambda ws: ws.on(
+                    "framereceived",
+                    lambda data: ws_frames.append((time.monotonic(), len(data)))))
+            pg.goto(url)
+            pg.wait_for_selector(".dt-banner.dt-ok", timeout=60_000)
+            pg.get_by_role("tab", name="Live traces").click()
+            pg.get_by_role("tab", name="Live", exact=True).click()
+            pages.append(pg)
+        pages[-1].wait_for_timeout(2000)
+        c0, w0 = cpu_seconds(dash.pid), time.monotonic()
+        n0 = len(ws_frames)
+        # Measured in every page at once: each page starts its own measurement (a
+        # promise kept in the page), then each is collected.
+        for pg in pages:
+            pg.evaluate(f"() => {{ window.__dt_bench = ({REFRESH_JS})"
+                        f"({seconds * 1000}); }}")
+        results: list[Any] = [None] * len(pages)
+        for i, pg in enumerate(pages):
+            results[i] = pg.evaluate("() => window.__dt_bench")
+        c1, w1 = cpu_seconds(dash.pid), time.monotonic()
+        got = [f for f in ws_frames[n0:] if f[0] <= w1]
+    applied = [float(r[0]) for r in results]
+    raf = [float(r[1]) for r in results]
+    return {"browsers": browsers,
+            "ws_frames_received_hz": len(got) / (w1 - w0),
+            "ws_kbytes_per_s": sum(n for _, n in got) / (w1 - w0) / 1e3,
+            "charts_applied_hz_min": min(applied),
+            "charts_applied_hz_mean": float(np.mean(applied)),
+            "browser_raf_fps_min": min(raf),
+            "dashboard_cpu_pct": 100.0 * (c1 - c0) / (w1 - w0),
+            "seconds": w1 - w0}
 
 
 def _stats(xs: list[float]) -> dict[str, float]:
@@ -182,65 +195,49 @@ def bench_page(loads: int, verdicts: int, hogs: int) -> dict[str, Any]:
     update (type a cut-off until the page shows the new cut-off's verdict, nothing computing),
     in headless Chromium, with `hogs` busy processes beside the controller and dashboard."""
     import multiprocessing
-    import threading
 
-    from playwright.sync_api import sync_playwright
-
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    port = free_port()
     spinners = []
-    with controller_process(endpoint, RIG):
-        dash = subprocess.Popen(
-            [sys.executable, "-m", "server", "--connect", endpoint, "--rig-name", RIG,
-             "--port", str(port)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    with dashboard_and_chromium() as (_, url, b):
         try:
-            url = _dashboard_url(dash, 60.0)
-            wait_listening(port, 60.0)
-            threading.Thread(target=lambda: [None for _ in dash.stdout or ()],
-                             daemon=True).start()
-            with sync_playwright() as p:
-                b = p.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
-                warm = b.new_page()  # Chromium's cold start is not the page's load
-                warm.goto(url)
-                warm.wait_for_selector(".dt-verdict >> text=Verdict", timeout=120_000)
-                warm.close()
-                for _ in range(hogs):
-                    sp = multiprocessing.Process(target=_spin, daemon=True)
-                    sp.start()
-                    spinners.append(sp)
-                time.sleep(2.0)
-                load_before = os.getloadavg()[0]
-                page_s, verdict_s = [], []
-                for k in range(loads):
-                    ctx = b.new_context(viewport={"width": 1600, "height": 1000})
-                    pg = ctx.new_page()
-                    t0 = time.perf_counter()
-                    pg.goto(url)
-                    pg.wait_for_selector(".dt-banner.dt-ok", timeout=120_000)
-                    pg.wait_for_selector(".dt-verdict >> text=Verdict", timeout=120_000)
-                    page_s.append(time.perf_counter() - t0)
-                    if k == loads - 1:
-                        lab = pg.locator("label", has_text="Q cut-off (Hz)").first
-                        box = lab.locator("xpath=ancestor::div[contains(@class,"
-                                          "'mantine-Flex-root')][1]").locator("input").last
-                        for hz in np.round(np.geomspace(0.3, 3.0, verdicts), 2):
-                            t0 = time.perf_counter()
-                            box.fill(f"{hz:g}")
-                            box.press("Enter")
-                            pg.wait_for_selector(f".dt-cutoff >> text={hz:.3f} Hz",
-                                                 timeout=120_000)
-                            pg.wait_for_selector(".dt-computing-on", state="detached",
-                                                 timeout=120_000)
-                            verdict_s.append(time.perf_counter() - t0)
-                    ctx.close()
-                b.close()
+            warm = b.new_page()  # Chromium's cold start is not the page's load
+            warm.goto(url)
+            warm.wait_for_selector(".dt-verdict >> text=Verdict", timeout=120_000)
+            warm.close()
+            for _ in range(hogs):
+                sp = multiprocessing.Process(target=_spin, daemon=True)
+                sp.start()
+                spinners.append(sp)
+            time.sleep(2.0)
+            load_before = os.getloadavg()[0]
+            page_s, verdict_s = [], []
+            for k in range(loads):
+                ctx = b.new_context(viewport={"width": 1600, "height": 1000})
+                pg = ctx.new_page()
+                t0 = time.perf_counter()
+                pg.goto(url)
+                pg.wait_for_selector(".dt-banner.dt-ok", timeout=120_000)
+                pg.wait_for_selector(".dt-verdict >> text=Verdict", timeout=120_000)
+                page_s.append(time.perf_counter() - t0)
+                if k == loads - 1:
+                    lab = pg.locator("label", has_text="Q cut-off (Hz)").first
+                    box = lab.locator("xpath=ancestor::div[contains(@class,"
+                                      "'mantine-Flex-root')][1]").locator("input").last
+                    for hz in np.round(np.geomspace(0.3, 3.0, verdicts), 2):
+                        t0 = time.perf_counter()
+                        box.fill(f"{hz:g}")
+                        box.press("Enter")
+                        pg.wait_for_selector(f".dt-cutoff >> text={hz:.3f} Hz",
+                                             timeout=120_000)
+                        pg.wait_for_selector(".dt-computing-on", state="detached",
+                                             timeout=120_000)
+                        verdict_s.append(time.perf_counter() - t0)
+                ctx.close()
             return {"busy_processes": hogs, "loadavg_1min_at_start": load_before,
                     "loadavg_1min_at_end": os.getloadavg()[0], "cores": os.cpu_count(),
                     "page_load": _stats(page_s), "verdict_update": _stats(verdict_s)}
         finally:
             for sp in spinners:
                 sp.terminate()
-            stop_process(dash)
 
 
 def main() -> int:

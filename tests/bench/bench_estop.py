@@ -17,9 +17,11 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: helpers, for procs
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
 
 from procs import Client, start_controller, wait_until
@@ -34,6 +36,32 @@ def _first_estop_tick_wall_s(client: Client, col: object, after_seq: int) -> flo
         if s["mode"] == "estop" and s["command_deg_s"] == 0.0:
             return float(s["wall_s"])
     return None
+
+
+def start_running(client: Client, col: Any) -> int:
+    """Reset and start the loop; returns the last sequence number the state stream `col` holds
+    once it holds any."""
+    client.reset()
+    client.command(proto.Start())
+    assert wait_until(lambda: col.last_seq() >= 0, 5.0)
+    return int(col.last_seq())
+
+
+def estop_tick_wall_s(client: Client, col: Any, after_seq: int, timeout_s: float,
+                      trial: str) -> float:
+    """The wall time of the first tick after `after_seq` in mode estop with command 0, waited
+    for up to `timeout_s`; exits naming `trial` when none comes."""
+    found: list[float] = []
+
+    def seen() -> bool:
+        w = _first_estop_tick_wall_s(client, col, after_seq)
+        if w is not None:
+            found.append(w)
+        return bool(found)
+
+    if not wait_until(seen, timeout_s, poll_s=0.005):
+        raise SystemExit(f"{trial}: no e-stop tick seen")
+    return found[0]
 
 
 def main() -> None:
@@ -61,24 +89,12 @@ def main() -> None:
                 lat_ms = []
                 with client.state() as col:
                     for i in range(args.n):
-                        client.reset()
-                        client.command(proto.Start())
-                        assert wait_until(lambda: col.last_seq() >= 0, 5.0)
-                        seq_before = col.last_seq()
+                        seq_before = start_running(client, col)
                         time.sleep(0.02)  # a few ticks in mode running
                         t_put = time.time()
                         client.put_estop()
-                        found: list[float] = []
-
-                        def seen(before: int = seq_before, found: list[float] = found) -> bool:
-                            w = _first_estop_tick_wall_s(client, col, before)
-                            if w is not None:
-                                found.append(w)
-                            return bool(found)
-
-                        if not wait_until(seen, 5.0, poll_s=0.005):
-                            raise SystemExit(f"trial {i}: no e-stop tick seen")
-                        lat_ms.append((found[0] - t_put) * 1e3)
+                        t_tick = estop_tick_wall_s(client, col, seq_before, 5.0, f"trial {i}")
+                        lat_ms.append((t_tick - t_put) * 1e3)
                         col.clear()
                 stop_busy.set()
         finally:

@@ -21,10 +21,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
 
-from bench_estop import _first_estop_tick_wall_s
-from procs import Client, free_port, start_controller, wait_until
+from bench_estop import estop_tick_wall_s, start_running
+from procs import Client, free_port, start_controller
 
-from controller import protocol as proto
 from server.app import Dashboard, DashboardOptions
 
 
@@ -72,24 +71,12 @@ def main() -> None:
                     live._send = timed
                     with client.state() as col:
                         for i in range(args.n):
-                            client.reset()
-                            client.command(proto.Start())
-                            assert wait_until(lambda: col.last_seq() >= 0, 5.0)
-                            before = col.last_seq()
+                            before = start_running(client, col)
                             t_click = time.time()
                             button.click()
-                            found: list[float] = []
-
-                            def seen(b: int = before, f: list[float] = found) -> bool:
-                                w = _first_estop_tick_wall_s(client, col, b)
-                                if w is not None:
-                                    f.append(w)
-                                return bool(f)
-
-                            if not wait_until(seen, 10.0, poll_s=0.005):
-                                raise SystemExit(f"trial {i}: no e-stop tick seen")
-                            lat_ms.append((found[0] - t_click) * 1e3)
-                            server_ms.append((found[0] - got_at[-1]) * 1e3)
+                            t_tick = estop_tick_wall_s(client, col, before, 10.0, f"trial {i}")
+                            lat_ms.append((t_tick - t_click) * 1e3)
+                            server_ms.append((t_tick - got_at[-1]) * 1e3)
                             col.clear()
                     browser.close()
         finally:

@@ -171,6 +171,18 @@ def deliver(net: Net, session: Any, key: str, tag: str) -> None:
     assert wait_until(arrived, WAIT_S, poll_s=0.05), f"{tag} never arrived on {key}"
 
 
+def only_its_estop_arrives(net: Net, session: Any, user: str, forbidden: list[str]) -> None:
+    """`session`, logged in as `user` of rig a, puts on each `forbidden` key and on rig a's
+    e-stop in its own scope: once a later put on the public e-stop key has arrived, the e-stop in
+    its scope has arrived, attributed to `user`, and nothing put on a forbidden key has."""
+    for k in forbidden:
+        session.put(k, f"{user}-forbidden".encode())
+    session.put(user_key(proto.key_estop("a"), user), f"{user}-own".encode())
+    deliver(net, session, proto.key_estop("a"), f"{user}-estop")
+    assert net.controller.puts_from(f"{user}-own") == [user_key(proto.key_estop("a"), user)]
+    assert net.controller.puts_from(f"{user}-forbidden") == []
+
+
 @pytest.fixture
 def net(tmp_path: Path) -> Iterator[Net]:
     users = new_users([("op_a", "operator"), ("view_a", "viewer")], ("a",))
@@ -290,12 +302,7 @@ def test_viewer_watches_reads_and_estops_only_its_rig(net: Net) -> None:
     forbidden = [*trap_keys("a"), proto.key_estop("b"), "dobtune/*/estop", "dobtune/**",
                  "dobtune/a/*", user_key(proto.key_estop("a"), "op_a"),
                  user_key(proto.key_estop("b"), "view_a")]
-    for k in forbidden:
-        viewer.put(k, b"viewer-forbidden")
-    viewer.put(user_key(proto.key_estop("a"), "view_a"), b"viewer-own")
-    deliver(net, viewer, proto.key_estop("a"), "viewer-estop")
-    assert net.controller.puts_from("viewer-own") == [user_key(proto.key_estop("a"), "view_a")]
-    assert net.controller.puts_from("viewer-forbidden") == []
+    only_its_estop_arrives(net, viewer, "view_a", forbidden)
 
 
 def test_operator_does_everything_on_its_rig_as_itself_only(net: Net) -> None:
@@ -336,13 +343,9 @@ def test_operator_does_everything_on_its_rig_as_itself_only(net: Net) -> None:
 
     # Puts: the e-stop only. Its own rig's published keys (state, status) and request keys
     # are the controller's: an operator's fake Status never reaches anyone (issue 24 item 3).
-    for k in (proto.key_estop("b"), *trap_keys("b"), *trap_keys("a"),
-              user_key(proto.key_estop("a"), "view_a")):
-        op.put(k, b"op-forbidden")
-    op.put(user_key(proto.key_estop("a"), "op_a"), b"op-own")
-    deliver(net, op, proto.key_estop("a"), "op-estop")
-    assert net.controller.puts_from("op-own") == [user_key(proto.key_estop("a"), "op_a")]
-    assert net.controller.puts_from("op-forbidden") == []
+    forbidden = [proto.key_estop("b"), *trap_keys("b"), *trap_keys("a"),
+                 user_key(proto.key_estop("a"), "view_a")]
+    only_its_estop_arrives(net, op, "op_a", forbidden)
 
 
 def test_through_a_router_the_same_rules_hold(net: Net) -> None:
