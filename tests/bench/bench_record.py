@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: helpers, for procs
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
 
 from controller import protocol as proto

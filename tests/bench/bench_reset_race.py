@@ -19,6 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: helpers, for procs
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
 
 from procs import Client, start_controller

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: helpers, for procs
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
 
 from procs import Client, start_controller
