@@ -69,9 +69,9 @@ cut-off (`controller.gate.verdict`).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -519,6 +519,18 @@ def refined_winding_ok(
     return r is not None and winding_ok(r[1], m_integrators)
 
 
+_T = TypeVar("_T")
+
+
+def _concluded(part: Generator[Refinement, None, _T]) -> _T:
+    """What an evidence concludes once its refinement is solved (it yields nothing more)."""
+    try:
+        next(part)
+    except StopIteration as done:
+        return done.value  # type: ignore[no-any-return]
+    raise AssertionError("an evidence yields its refinement once")
+
+
 # --------------------------------------------------------------------------- analyse
 
 
@@ -567,17 +579,33 @@ def analyse(
     poles = np.linalg.eigvals(closed_loop_matrix(cfg, used, model))
     poles_speed = np.linalg.eigvals(closed_loop_matrix(cfg, used, model, position=False))
     max_radius = float(max(np.max(np.abs(poles)), np.max(np.abs(poles_speed))))
-    model_src, margins, margins_full, bw, crossings = _model_evidence(
-        cfg, used, plant, f, x, bk, limits, max_radius, on, gyw, rejections, cautions
-    )
-
-    sources: list[SourceResult] = [model_src]
+    # -- every piece of evidence up to its crossings and peaks, refined together (one
+    # -- evaluation of the loop's blocks per round for all), then each concluded in turn.
     blocks = _BlocksMemo(cfg, used, model)
-    for m in plant.measured:
-        mm = _measured_model(m, cfg.rate_hz, model, plant.bound)
-        sources.append(
-            _measured_evidence(cfg, used, mm, f, blocks, limits, rejections, cautions)
-        )
+    reasons: list[tuple[list[str], list[str]]] = [([], []) for _ in range(len(plant.measured) + 1)]
+    model_part = _model_evidence(
+        cfg, plant, f, x, bk, limits, max_radius, on, gyw, *reasons[0])
+    measured_parts = [
+        _measured_evidence(
+            cfg, _measured_model(m, cfg.rate_hz, model, plant.bound), f, blocks, f"{i}:",
+            limits, *reasons[i + 1])
+        for i, m in enumerate(plant.measured)
+    ]
+    refinements = [next(part) for part in (model_part, *measured_parts)]
+
+    def ev(ff: FloatArray) -> Outputs:
+        b = blocks(ff)
+        out: Outputs = {}
+        for _, outputs in refinements:
+            out.update(outputs(ff, b))
+        return out
+
+    solve([t for tasks, _ in refinements for t in tasks], ev)
+    model_src, margins, margins_full, bw, crossings = _concluded(model_part)
+    sources: list[SourceResult] = [model_src, *(_concluded(p) for p in measured_parts)]
+    for rej, cau in reasons:
+        rejections += rej
+        cautions += cau
 
     noise_cmd = np.abs(ks / (one + g * ks))
     k_noise = int(np.argmax(noise_cmd))
@@ -724,20 +752,24 @@ def _round_up(f: float) -> str:
     return f"{math.ceil(f / e) * e:.3g}"
 
 
+#: What an evidence hands to the analysis's one refinement (`solve`) of every evidence's
+#: crossings and peaks: its tasks, and its outputs at any frequencies given the loop's blocks
+#: there (keys prefixed per evidence). Results are per frequency point, so refining every
+#: evidence's tasks together gives each task what refining it alone gives.
+Refinement = tuple[list[RefineTask], Callable[[FloatArray, LoopBlocks], Outputs]]
+
+
 def _model_evidence(
-    cfg: LoopConfig, used: object, plant: PlantKnowledge, f: FloatArray, x: FloatArray,
+    cfg: LoopConfig, plant: PlantKnowledge, f: FloatArray, x: FloatArray,
     bk: LoopBlocks, limits: GateLimits, max_radius: float, on: bool, gyw: ComplexArray,
     rejections: list[str], cautions: list[str],
-) -> tuple[SourceResult, Margins, Margins, float, LoopCrossings]:
-    dob = used if on else None
-    model = plant.model
+) -> Generator[Refinement, None, tuple[SourceResult, Margins, Margins, float, LoopCrossings]]:
     bound = plant.bound
     has_measured = bool(plant.measured)
     one, ks, kf = _controller_parts(bk, on)
     g = bk.g
 
-    def ev(ff: FloatArray) -> Outputs:
-        b = loop_blocks(cfg, dob, ff, model)  # type: ignore[arg-type]
+    def ev(ff: FloatArray, b: LoopBlocks) -> Outputs:
         o, s_, f_ = _controller_parts(b, on)
         out = {
             "L": b.g * s_ / o,
@@ -769,7 +801,7 @@ def _model_evidence(
             peak_task(x, wmag * np.abs(t_full), "wtf"),
         ]
         tasks += bound_tasks
-    solve(tasks, ev)
+    yield tasks, ev
     margins, margins_full = margins_of(lt), margins_of(ltf)
     bw = bw_task.freq_hz if bw_task is not None else math.nan
     where = f"plant model ({plant.source})"
@@ -854,9 +886,9 @@ class _BlocksMemo:
 
 
 def _measured_evidence(
-    cfg: LoopConfig, used: object, mm: _MeasuredModel, f0: FloatArray, lb: _BlocksMemo,
+    cfg: LoopConfig, mm: _MeasuredModel, f0: FloatArray, lb: _BlocksMemo, tag: str,
     limits: GateLimits, rejections: list[str], cautions: list[str],
-) -> SourceResult:
+) -> Generator[Refinement, None, SourceResult]:
     on = cfg.dob_on
     where = f"measured response {mm.name!r}"
     # (plant, 1 - F2 z^-1, Cv + F1, C_tot + F1, the blocks) per grid: the stability test asks
@@ -910,24 +942,25 @@ def _measured_evidence(
     x = np.log(f)
     gm, one, ks, kf, bk = parts(f)
 
-    def ev(ff: FloatArray) -> Outputs:
-        g2, o, s_, f_ = blocks(ff)
+    def ev(ff: FloatArray, b: LoopBlocks) -> Outputs:
+        o, s_, f_ = _controller_parts(b, on)
+        g2 = mm.plant(ff, b.g)
         a = mm.allowance(ff)
         return {
-            "L": g2 * s_ / o,
-            "Lf": g2 * f_ / o,
-            "ts": a * g2 * s_ / (o + g2 * s_),
-            "tf": a * g2 * f_ / (o + g2 * f_),
+            tag + "L": g2 * s_ / o,
+            tag + "Lf": g2 * f_ / o,
+            tag + "ts": a * g2 * s_ / (o + g2 * s_),
+            tag + "tf": a * g2 * f_ / (o + g2 * f_),
         }
 
     a = mm.allowance(f)
     t_speed = np.abs(gm * ks / (one + gm * ks))
     t_full = np.abs(gm * kf / (one + gm * kf))
-    lt = loop_tasks(x, gm * ks / one, "L")
-    ltf = loop_tasks(x, gm * kf / one, "Lf")
-    sp = peak_task(x, a * t_speed, "ts")
-    fp = peak_task(x, a * t_full, "tf")
-    solve([*lt.all(), *ltf.all(), sp, fp], ev)
+    lt = loop_tasks(x, gm * ks / one, tag + "L")
+    ltf = loop_tasks(x, gm * kf / one, tag + "Lf")
+    sp = peak_task(x, a * t_speed, tag + "ts")
+    fp = peak_task(x, a * t_full, tag + "tf")
+    yield [*lt.all(), *ltf.all(), sp, fp], ev
     margins, margins_full = margins_of(lt), margins_of(ltf)
     if stable:
         if limits.check_measured_margins:
