@@ -38,6 +38,11 @@ __all__ = [
 NOMINAL = PlantVariant("nominal")
 
 
+def _grid(freq_hz: FloatArray | None) -> FloatArray:
+    """`freq_hz`, or the default grid of the curves: 2000 points log-spaced over 0.01-100 Hz."""
+    return np.geomspace(0.01, 100.0, 2000) if freq_hz is None else np.asarray(freq_hz, float)
+
+
 def loop_parts(
     cfg: LoopConfig, q_type: str, cutoff_hz: float, variant: PlantVariant, freq_hz: FloatArray
 ) -> tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray]:
@@ -89,7 +94,7 @@ def suppression_curve(
     variant: PlantVariant = NOMINAL,
     freq_hz: FloatArray | None = None,
 ) -> SuppressionCurve:
-    f = np.geomspace(0.01, 100.0, 2000) if freq_hz is None else np.asarray(freq_hz, float)
+    f = _grid(freq_hz)
     r = disturbance_responses(cfg, q_type, cutoff_hz, variant, f)
     return SuppressionCurve(q_type, cutoff_hz, variant.label, f, r.e1_db - r.e2_db)
 
@@ -120,7 +125,7 @@ def disturbance_responses(
     freq_hz: FloatArray | None = None,
 ) -> DisturbanceResponses:
     """Eqs. (16) and (18) at `freq_hz` (default 0.01-100 Hz)."""
-    f = np.geomspace(0.01, 100.0, 2000) if freq_hz is None else np.asarray(freq_hz, float)
+    f = _grid(freq_hz)
     lp, ppn, q, _ = loop_parts(cfg, q_type, cutoff_hz, variant, f)
     p = variant.response(cfg.nominal, f)
     e2 = p * (1.0 - q) / (1.0 + lp + (ppn - 1.0) * q)
@@ -158,7 +163,7 @@ class SensitivityCurves:
 def sensitivity_curves(
     cfg: LoopConfig, variant: PlantVariant, freq_hz: FloatArray | None = None
 ) -> SensitivityCurves:
-    f = np.geomspace(0.01, 100.0, 2000) if freq_hz is None else np.asarray(freq_hz, float)
+    f = _grid(freq_hz)
     lp, ppn, q, _ = loop_parts(cfg, cfg.q_type, cfg.q_cutoff_hz, variant, f)
     d = 1.0 + lp + (ppn - 1.0) * q
     s1 = 1.0 / (1.0 + lp)
