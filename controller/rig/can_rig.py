@@ -37,6 +37,7 @@ from collections.abc import Callable
 
 import can
 
+from controller.core.validate import positive
 from controller.rig import cia402
 from controller.rig.cia402 import NmtState, State
 from controller.rig.rig_file import BusConfig, RigFile
@@ -124,8 +125,7 @@ class CanRig:
         wait_feedback_s: float | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
-            raise ValueError(f"rate_hz={rate_hz!r} must be finite and > 0")
+        positive(rate_hz, "rate_hz")
         self.rig_file = rig
         """The rig description this adapter was built from."""
         self.fault: str | None = None

@@ -8,12 +8,12 @@ See examples/rig_cia402.toml.
 
 from __future__ import annotations
 
-import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, cast
 
+from controller.core import validate
 from controller.core.errors import ConfigError
 from controller.rig import cia402
 
@@ -258,16 +258,11 @@ class _Table:
         nonnegative: bool = False,
     ) -> float:
         value = self._get(key, _REQUIRED if default is None else default)
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(self._name(key), f"expected a number, got {value!r}")
-        value = float(value)
-        if not math.isfinite(value):
-            raise ConfigError(self._name(key), f"must be finite, got {value}")
-        if positive and value <= 0.0:
-            raise ConfigError(self._name(key), f"must be > 0, got {value}")
-        if nonnegative and value < 0.0:
-            raise ConfigError(self._name(key), f"must be >= 0, got {value}")
-        return value
+        if positive:
+            return validate.positive(value, self._name(key))
+        if nonnegative:
+            return validate.nonnegative(value, self._name(key))
+        return validate.number(value, self._name(key))
 
     def direction(self, key: str) -> int:
         value = self.int_(key, 1)

@@ -24,6 +24,7 @@ import numpy.typing as npt
 from controller.core.config import NominalModel
 from controller.core.errors import ConfigError
 from controller.core.lti import tf2ss
+from controller.core.validate import nonnegative, positive
 
 __all__ = ["BacklashRig", "LinearRig", "PlantVariant", "backlash_period", "linear_period"]
 
@@ -42,8 +43,7 @@ class PlantVariant:
     antimode_damping: float = 0.05
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.gain) and self.gain > 0.0):
-            raise ConfigError("gain", f"must be > 0, got {self.gain!r}")
+        positive(self.gain, "gain")
         if self.mode_hz < 0.0 or (self.mode_hz > 0.0 and self.antimode_hz <= 0.0):
             raise ConfigError("antimode_hz", "a mode needs its pair of zeros (antimode_hz > 0)")
 
@@ -286,8 +286,7 @@ class BacklashRig(_SpeedRig):
         substeps: int = 10,
         speed_disturbance: Callable[[float], float] | None = None,
     ) -> None:
-        if not (math.isfinite(backlash_deg) and backlash_deg >= 0.0):
-            raise ConfigError("backlash_deg", f"must be finite and >= 0, got {backlash_deg!r}")
+        nonnegative(backlash_deg, "backlash_deg")
         super().__init__(rate_hz, speed_disturbance)
         dt = self._ts / substeps
         (a1, b1, c1, d1), (a2, b2, c2, d2) = _m_and_p(variant, nominal)

@@ -87,7 +87,7 @@ import numpy as np
 import numpy.typing as npt
 
 from controller.core.errors import ConfigError
-from controller.core.validate import in_range
+from controller.core.validate import in_range, nonnegative, number, positive
 from controller.sim.disturbance import Disturbance, NoDisturbance
 
 __all__ = ["RigFaults", "RigParams", "SimRig"]
@@ -183,12 +183,8 @@ class RigParams:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ConfigError(f.name, f"must be a number, got {value!r}")
-            if not math.isfinite(value):
-                raise ConfigError(f.name, f"must be finite, got {value!r}")
-        positive = (
+            number(getattr(self, f.name), f.name)
+        positive_fields = (
             "gear_ratio",
             "motor_inertia_kg_m2",
             "drive_ki_n_m_rad",
@@ -203,9 +199,8 @@ class RigParams:
             "ratio_ripple_periods_per_rev",
             "encoder_cyclic_periods_per_rev",
         )
-        for name in positive:
-            if getattr(self, name) <= 0:
-                raise ConfigError(name, f"must be > 0, got {getattr(self, name)!r}")
+        for name in positive_fields:
+            positive(getattr(self, name), name)
         non_negative = (
             "motor_viscous_n_m_s_rad",
             "drive_kp_n_m_s_rad",
@@ -225,8 +220,7 @@ class RigParams:
             "encoder_cyclic_error_deg",
         )
         for name in non_negative:
-            if getattr(self, name) < 0:
-                raise ConfigError(name, f"must be >= 0, got {getattr(self, name)!r}")
+            nonnegative(getattr(self, name), name)
         if self.static_torque_n_m < self.coulomb_torque_n_m:
             raise ConfigError(
                 "static_torque_n_m",
@@ -612,16 +606,12 @@ class SimRig:
     ) -> None:
         if not isinstance(params, RigParams):
             raise ConfigError("params", f"must be RigParams, got {type(params).__name__}")
-        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
-            raise ConfigError("rate_hz", f"must be finite and > 0, got {rate_hz!r}")
+        positive(rate_hz, "rate_hz")
         if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
             raise ConfigError("substeps", f"must be an int >= 1, got {substeps!r}")
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise ConfigError("seed", f"must be an int >= 0, got {seed!r}")
-        if not math.isfinite(initial_position_deg):
-            raise ConfigError(
-                "initial_position_deg", f"must be finite, got {initial_position_deg!r}"
-            )
+        number(initial_position_deg, "initial_position_deg")
         self._params = params
         self._p, nwin = _param_array(params, rate_hz, substeps)
         self._x = np.zeros(_X_RING + nwin)
@@ -640,8 +630,7 @@ class SimRig:
 
     def reset(self, position_deg: float = 0.0) -> None:
         """Load at rest at `position_deg`, belt relaxed, drive idle; restart time and noise."""
-        if not math.isfinite(position_deg):
-            raise ConfigError("position_deg", f"must be finite, got {position_deg!r}")
+        number(position_deg, "position_deg")
         self._rng = np.random.default_rng(self._seed)
         self._refill_noise()
         self._pos = float(_reset_kernel(self._x, self._p, position_deg, self._next_noise()))
