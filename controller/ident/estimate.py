@@ -64,6 +64,7 @@ __all__ = [
     "estimate_multisine_lines",
     "estimate_stepped_sine",
     "multisine_coefficients",
+    "shared_grid",
     "stepped_sine_coefficients",
 ]
 
@@ -367,6 +368,17 @@ class Agreement:
     """Lowest frequency out of tolerance, None if all agree."""
 
 
+def shared_grid(responses: Sequence[FrdLike]) -> FloatArray:
+    """The frequency grid of responses[0], which every response must share (rtol 1e-9);
+    ValueError naming the first response on another grid."""
+    f = np.asarray(responses[0].freq_hz, dtype=np.float64)
+    for i, r in enumerate(responses[1:], start=1):
+        fi = np.asarray(r.freq_hz, dtype=np.float64)
+        if fi.shape != f.shape or not np.allclose(fi, f, rtol=1e-9, atol=0.0):
+            raise ValueError(f"responses[{i}]: frequency grid differs from responses[0]")
+    return f
+
+
 def agreement(
     responses: Sequence[FrdLike], tol_db: float = 1.0, tol_deg: float = 10.0
 ) -> Agreement:
@@ -379,11 +391,7 @@ def agreement(
         raise ValueError("responses: need at least two responses to compare")
     if not (tol_db > 0 and tol_deg > 0):
         raise ValueError(f"tol_db, tol_deg: must be > 0 (got {tol_db}, {tol_deg})")
-    f = np.asarray(responses[0].freq_hz, dtype=np.float64)
-    for i, r in enumerate(responses[1:], start=1):
-        fi = np.asarray(r.freq_hz, dtype=np.float64)
-        if fi.shape != f.shape or not np.allclose(fi, f, rtol=1e-9, atol=0.0):
-            raise ValueError(f"responses[{i}]: frequency grid differs from responses[0]")
+    f = shared_grid(responses)
     h = np.array([np.asarray(r.response, dtype=np.complex128) for r in responses])
     mag = mag_db_of(h)
     rel_phase = np.degrees(np.angle(h / h[0][None, :]))

@@ -37,7 +37,7 @@ from scipy.optimize import least_squares
 
 from controller.core.arrays import ComplexArray, FloatArray
 from controller.gate.frd_csv import FrdData, FrdLike
-from controller.ident.estimate import FrdEstimate
+from controller.ident.estimate import FrdEstimate, shared_grid
 
 __all__ = [
     "MODELS",
@@ -396,10 +396,6 @@ def uncertainty_bound(
     """Delta of every response against ``fit`` and their envelope (same grid required)."""
     if not responses:
         raise ValueError("responses: need at least one response")
-    f = np.asarray(responses[0].freq_hz, dtype=np.float64)
-    for i, r in enumerate(responses[1:], start=1):
-        fi = np.asarray(r.freq_hz, dtype=np.float64)
-        if fi.shape != f.shape or not np.allclose(fi, f, rtol=1e-9, atol=0.0):
-            raise ValueError(f"responses[{i}]: frequency grid differs from responses[0]")
+    f = shared_grid(responses)
     delta = np.array([relative_uncertainty(fit, f, r.response, include_delay) for r in responses])
     return ModelUncertainty(freq_hz=f, delta=delta, bound=np.max(np.abs(delta), axis=0))
