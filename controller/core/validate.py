@@ -45,6 +45,19 @@ def in_range(value: object, field: str, lo: float, hi: float, *, lo_open: bool =
     return v
 
 
+def frequency_grid(freq_hz: np.ndarray, field: str) -> None:
+    """Every frequency finite, > 0 and above the one before it."""
+    f = freq_hz
+    if not (np.all(np.isfinite(f)) and np.all(f > 0) and np.all(np.diff(f) > 0)):
+        raise ConfigError(field, "must be finite, > 0 and strictly increasing")
+
+
+def finite_nonzero(values: np.ndarray, field: str) -> None:
+    """Every value finite and != 0 (a response one divides by or takes the log of)."""
+    if not np.all(np.isfinite(values)) or np.any(values == 0):
+        raise ConfigError(field, "must be finite and non-zero")
+
+
 _FIELD_RE = re.compile(r"^([A-Za-z_][\w.\[\]]*): (.*)$", re.S)
 _MISSING_OR_UNKNOWN = (
     ("Object contains unknown field `", "unknown field"),

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from controller.core.arrays import ComplexArray, FloatArray
+from controller.core.validate import finite_nonzero, frequency_grid
 
 CSV_COLUMNS = ("freq_hz", "mag_db", "phase_deg", "coherence")
 
@@ -76,10 +77,8 @@ def frd_csv_text(
     h = np.asarray(response, dtype=np.complex128)
     if f.ndim != 1 or h.shape != f.shape:
         raise ValueError(f"freq_hz {f.shape} and response {h.shape} must be 1-D of equal size")
-    if not np.all(np.isfinite(f)) or np.any(f <= 0) or np.any(np.diff(f) <= 0):
-        raise ValueError("freq_hz: must be finite, > 0 and strictly increasing")
-    if not np.all(np.isfinite(h)) or np.any(h == 0):
-        raise ValueError("response: must be finite and non-zero")
+    frequency_grid(f, "freq_hz")
+    finite_nonzero(h, "response")
     cols = [f, mag_db_of(h), phase_deg_of(h)]
     header = list(CSV_COLUMNS[:3])
     if coherence is not None:

@@ -16,6 +16,7 @@ from numpy.typing import ArrayLike
 
 from controller.core.arrays import ComplexArray, FloatArray
 from controller.core.config import NominalModel
+from controller.core.validate import finite_nonzero, frequency_grid
 
 TWO_PI = 2.0 * math.pi
 
@@ -73,12 +74,8 @@ class MeasuredResponse:
             raise ValueError("measured response: a non-empty name is required")
         if f.ndim != 1 or f.size < 2 or h.shape != f.shape:
             raise ValueError(f"measured response {self.name!r}: need >= 2 points, equal sizes")
-        if not (np.all(np.isfinite(f)) and np.all(f > 0) and np.all(np.diff(f) > 0)):
-            raise ValueError(
-                f"measured response {self.name!r}: freq_hz must be > 0 and strictly increasing"
-            )
-        if not np.all(np.isfinite(h)) or np.any(h == 0):
-            raise ValueError(f"measured response {self.name!r}: response must be finite, != 0")
+        frequency_grid(f, f"measured response {self.name!r}: freq_hz")
+        finite_nonzero(h, f"measured response {self.name!r}: response")
         object.__setattr__(self, "freq_hz", readonly(f))
         object.__setattr__(self, "response", readonly(h))
 
@@ -148,8 +145,7 @@ class SampledBound:
         m = np.array(self.mag, dtype=np.float64)
         if f.ndim != 1 or f.size < 1 or m.shape != f.shape:
             raise ValueError("sampled bound: freq_hz and mag must be 1-D of equal size")
-        if not (np.all(np.isfinite(f)) and np.all(f > 0) and np.all(np.diff(f) > 0)):
-            raise ValueError("sampled bound: freq_hz must be > 0 and strictly increasing")
+        frequency_grid(f, "sampled bound: freq_hz")
         if not (np.all(np.isfinite(m)) and np.all(m > 0)):
             raise ValueError("sampled bound: mag must be finite and > 0")
         object.__setattr__(self, "freq_hz", readonly(f))
