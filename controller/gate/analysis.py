@@ -388,9 +388,9 @@ class _MeasuredModel:
     def band_hz(self) -> tuple[float, float]:
         return float(self.fm[0]), float(self.fm[-1])
 
-    def _kept_or(self, what: str, f: FloatArray, make: Callable[[FloatArray], np.ndarray]
-                 ) -> np.ndarray:
-        if f.size < _BlocksMemo.MIN_POINTS:
+    def _kept_or(self, what: str, f: FloatArray, make: Callable[[FloatArray], np.ndarray],
+                 keep: bool = True) -> np.ndarray:
+        if not keep or f.size < _BlocksMemo.MIN_POINTS:
             return make(f)
         key = (what, f.tobytes())
         got = self._kept.get(key)
@@ -401,24 +401,32 @@ class _MeasuredModel:
             self._kept[key] = got
         return got
 
-    def ratio(self, f: FloatArray) -> ComplexArray:
-        return self._kept_or("ratio", f, self._ratio)
-
     def _ratio(self, f: FloatArray) -> ComplexArray:
         xf = np.log(f)
         return np.exp(np.interp(xf, self.xm, self.logmag) + 1j * np.interp(xf, self.xm, self.phase))
 
-    def plant(self, f: FloatArray, g_model: ComplexArray) -> ComplexArray:
-        """G_m at f (discrete), given the exact model G at f."""
+    def grid(self, f0: FloatArray) -> FloatArray:
+        """The analysis grid `f0` with every measured point inside it and the middle of every
+        measured interval (kept: the same for every candidate)."""
+        return self._kept_or("grid", f0, self._grid)
+
+    def _grid(self, f0: FloatArray) -> FloatArray:
+        inner = (self.fm > f0[0]) & (self.fm < f0[-1])
+        mid = np.sqrt(self.fm[:-1] * self.fm[1:])
+        return np.union1d(f0, np.concatenate([self.fm[inner], mid[(mid > f0[0]) & (mid < f0[-1])]]))
+
+    def plant(self, f: FloatArray, g_model: ComplexArray, keep: bool = True) -> ComplexArray:
+        """G_m at f (discrete), given the exact model G at f (`keep` false: a grid asked for
+        once, not worth keeping)."""
         if self.sampled:
-            return g_model * self.ratio(f)
-        return self._kept_or("plant", f, self._continuous_plant)
+            return g_model * self._kept_or("ratio", f, self._ratio, keep)
+        return self._kept_or("plant", f, self._continuous_plant, keep)
 
     def _continuous_plant(self, f: FloatArray) -> ComplexArray:
         gc = nominal_continuous_response(self.model, f) * self._ratio(f)
         return discrete_equivalent(gc, f, self.rate_hz)
 
-    def allowance(self, f: FloatArray) -> FloatArray:
+    def allowance(self, f: FloatArray, keep: bool = True) -> FloatArray:
         """a(f): the segment's allowance between measured points, beyond the band the edge's
         allowance plus the bound (unknown without a bound), and at a measured point the
         largest allowance of the intervals meeting there: the robust test takes the supremum
@@ -426,7 +434,7 @@ class _MeasuredModel:
         up to its ends (with the point's own allowance there, a segment's peak at a measured
         point was sampled at the point's smaller allowance only and missed)."""
         f = np.asarray(f, dtype=np.float64)
-        return self._kept_or("allowance", f, self._allowance)
+        return self._kept_or("allowance", f, self._allowance, keep)
 
     def _allowance(self, f: FloatArray) -> FloatArray:
         i = np.searchsorted(self.fm, f, side="right") - 1
@@ -594,7 +602,7 @@ def analyse(
     refinements = [next(part) for part in (model_part, *measured_parts)]
 
     def ev(ff: FloatArray) -> Outputs:
-        b = blocks(ff)
+        b = loop_blocks(cfg, used, ff, model)  # (points asked for once)
         out: Outputs = {}
         for _, outputs in refinements:
             out.update(outputs(ff, b))
@@ -924,9 +932,7 @@ def _measured_evidence(
     # when the points coincide with the analysis grid), refined where the loop turns fast
     # (the phase of 1 + L moves more than 20 deg between neighbours: a sharp resonance or a
     # pass close to -1 between grid points is followed, not stepped over).
-    inner = (mm.fm > f0[0]) & (mm.fm < f0[-1])
-    mid = np.sqrt(mm.fm[:-1] * mm.fm[1:])
-    f = np.union1d(f0, np.concatenate([mm.fm[inner], mid[(mid > f0[0]) & (mid < f0[-1])]]))
+    f = mm.grid(f0)
     r_speed = refine_by_phase(d_speed, f)
     r_full = refine_by_phase(d_full, f)
     stable = (
@@ -944,8 +950,8 @@ def _measured_evidence(
 
     def ev(ff: FloatArray, b: LoopBlocks) -> Outputs:
         o, s_, f_ = _controller_parts(b, on)
-        g2 = mm.plant(ff, b.g)
-        a = mm.allowance(ff)
+        g2 = mm.plant(ff, b.g, keep=False)
+        a = mm.allowance(ff, keep=False)
         return {
             tag + "L": g2 * s_ / o,
             tag + "Lf": g2 * f_ / o,
