@@ -4,18 +4,26 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
+import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from controller.core.config import LoopConfig
+from controller.core.config import LoopConfig, config_from_builtins
 from controller.process.persistence import (
     ACTIVE_FILE,
     LATCH_FILE,
+    LOG_FILE,
     MAX_VERSION,
+    Change,
+    ChangeLogError,
     Latch,
     PersistenceError,
     StateStore,
@@ -222,3 +230,144 @@ def test_unfinished_black_box_files_left_by_a_crash_are_removed_at_start(tmp_pat
     assert bb.removed_tmp == [torn.name] and not torn.exists()
     assert done.exists() and warnings == []
     assert BlackBox(box, "r", warnings.append).removed_tmp == []  # nothing left the next time
+
+
+# -- a configuration saved with its change-log line: durable in order, never torn -------------
+
+
+def _fd_path(fd: int) -> str:
+    return os.readlink(f"/proc/self/fd/{fd}")
+
+
+def test_a_change_is_saved_then_logged_with_both_fsyncs_before_save_returns(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The order that keeps a crash from coming back on an older configuration than one
+    reported applied, and the log from naming one that was not saved: the new file's data
+    fsynced, then renamed over the old, then the directory fsynced and the log line appended
+    and fsynced (on a thread beside it), all before `save` returns."""
+    store = StateStore(tmp_path)
+    store.save(LoopConfig(), 1)
+    events: list[str] = []
+    lock = threading.Lock()
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def note(what: str) -> None:
+        with lock:
+            events.append(what)
+
+    def fsync(fd: int) -> None:
+        path = _fd_path(fd)
+        name = ("dir" if path == str(tmp_path) else "log" if path.endswith(LOG_FILE)
+                else "tmp" if path.endswith(".tmp") else path)
+        if name == "log":  # the log's line is written before its fsync: check what it says
+            assert json.loads((tmp_path / LOG_FILE).read_text().splitlines()[-1])["version"] == 2
+            assert json.loads((tmp_path / ACTIVE_FILE).read_text())["version"] == 2
+        real_fsync(fd)
+        note(f"fsync {name}")
+
+    def replace(src: str, dst: str) -> None:
+        note("rename")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    new = LoopConfig(cv_kp=0.6)
+    store.save(new, 2, Change(old=LoopConfig(), old_version=1, margins={"x": math.inf},
+                              client="dash", verdict="caution"))
+    events_at_return = list(events)
+    assert events_at_return[:2] == ["fsync tmp", "rename"]
+    assert sorted(events_at_return[2:]) == ["fsync dir", "fsync log"]
+    loaded = store.load()
+    assert loaded is not None and (loaded.config, loaded.version) == (new, 2)
+    (entry,) = store.read_changes()
+    assert entry["version"] == 2 and entry["old_version"] == 1 and entry["client"] == "dash"
+    assert entry["verdict"] == "caution" and entry["margins"] == {"x": None}
+    assert config_from_builtins(entry["new"]) == new and entry["time_s"] == loaded.saved_at_s
+
+
+@pytest.mark.parametrize("fails", ["tmp", "rename", "log"])
+def test_a_failing_write_leaves_the_old_or_the_new_state_whole(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, fails: str
+) -> None:
+    """A write that fails at each step: before the rename the old configuration stays and
+    the log is untouched (PersistenceError: not saved); a log that cannot be written leaves
+    the new configuration saved (ChangeLogError, for the caller to report)."""
+    store = StateStore(tmp_path)
+    old = LoopConfig()
+    store.save(old, 1, Change(old=None, old_version=None, margins=None))
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        path = _fd_path(fd)
+        if (fails == "tmp" and path.endswith(".tmp")) or (fails == "log"
+                                                         and path.endswith(LOG_FILE)):
+            raise OSError(errno.EIO, "I/O error")
+        real_fsync(fd)
+
+    def replace(src: str, dst: str) -> None:
+        if fails == "rename":
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    new = LoopConfig(cv_kp=0.7)
+    with pytest.raises(PersistenceError) as err:
+        store.save(new, 2, Change(old=old, old_version=1, margins=None))
+    loaded = store.load()
+    assert loaded is not None
+    if fails == "log":
+        assert isinstance(err.value, ChangeLogError) and "cannot append" in str(err.value)
+        assert (loaded.config, loaded.version) == (new, 2)
+    else:
+        assert not isinstance(err.value, ChangeLogError) and "cannot write" in str(err.value)
+        assert (loaded.config, loaded.version) == (old, 1)
+        assert [e["version"] for e in store.read_changes()] == [1]
+    assert not [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+_SAVER = """
+import sys
+from controller.core.config import LoopConfig
+from controller.process.persistence import Change, StateStore
+store = StateStore(sys.argv[1])
+prev = LoopConfig()
+for v in range(2, 100000):
+    cfg = LoopConfig(cv_kp=0.3 + (v % 50) / 100.0, q_cutoff_hz=0.2 + (v % 7) / 10.0)
+    store.save(cfg, v, Change(old=prev, old_version=v - 1, margins=None, client="kill test"))
+    print(v, flush=True)  # the reply: saved and logged
+    prev = cfg
+"""
+
+
+def test_a_process_killed_anywhere_comes_back_on_what_it_reported_or_newer(
+    tmp_path: Path,
+) -> None:
+    """SIGKILL at arbitrary points of a stream of saves (each reported once `save` returned):
+    the state directory always loads, on the last reported version or the one after it, and
+    the log's last line is that version or the one before (a rename can precede its line)."""
+    rng = np.random.default_rng(5)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)}
+    for _ in range(5):
+        state = tmp_path / f"state{_}"
+        StateStore(state).save(LoopConfig(), 1)
+        proc = subprocess.Popen([sys.executable, "-c", _SAVER, str(state)],
+                                stdout=subprocess.PIPE, text=True, env=env)
+        assert proc.stdout is not None
+        reported = 1
+        for _line in range(int(rng.integers(1, 40))):
+            line = proc.stdout.readline()
+            assert line, "the saver ended early"
+            reported = int(line)
+        proc.kill()
+        rest = proc.stdout.read()
+        proc.wait()
+        if rest.split():
+            reported = int(rest.split()[-1])  # replies printed before the kill landed
+        loaded = StateStore(state).load()
+        assert loaded is not None and loaded.version in (reported, reported + 1)
+        logged = [e["version"] for e in StateStore(state).read_changes()]
+        assert logged == list(range(2, logged[-1] + 1)) if logged else reported == 1
+        assert (logged[-1] if logged else 1) in (loaded.version, loaded.version - 1)
+        assert (logged[-1] if logged else 1) >= reported

@@ -213,6 +213,25 @@ def test_a_rollback_that_cannot_be_saved_stops_the_loop_and_is_audited(tmp_path:
     access.close()
 
 
+def test_a_rollback_whose_log_line_cannot_be_written_is_saved_and_reported(
+    tmp_path: Path,
+) -> None:
+    """The configuration and its change-log line are saved together now: a log that cannot
+    be written (its place taken by a directory) leaves the rollback saved, the loop running
+    and the failure reported, naming the log."""
+    rt, _rig = _runtime()
+    svc, access = _service(rt, tmp_path)
+    log = tmp_path / "applied_changes.jsonl"
+    log.mkdir()
+    _roll_back(rt)
+    svc.poll_rollback()
+    saved = svc.store.load()
+    assert saved is not None and saved.version == 3 and saved.config == GOOD
+    assert rt.mode != FAULT
+    assert any("applied_changes.jsonl: cannot append" in e for e in svc.errors), svc.errors
+    access.close()
+
+
 def test_a_watchdog_rollback_and_fault_are_audited_with_user_watchdog(tmp_path: Path) -> None:
     """Issue 24 item 4: 0 audit records for 4 rollbacks and a watchdog fault, before."""
     rt, _rig = _runtime()

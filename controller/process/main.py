@@ -39,7 +39,7 @@ from controller.process.analysis_worker import AnalysisWorker
 from controller.process.audit import AuditError, AuditLog, audit_path
 from controller.process.node import ZenohNode
 from controller.process.options import ControllerOptions
-from controller.process.persistence import PersistenceError, StateStore
+from controller.process.persistence import Change, PersistenceError, StateStore
 from controller.process.runtime import (
     ESTOP,
     FAULT,
@@ -227,15 +227,12 @@ def _initial_config(
     if saved is not None and saved.config == candidate:
         return candidate, saved.version, verdict.margins
     version = (saved.version if saved is not None else 0) + 1
-    store.save(candidate, version)
-    store.append_change(
+    store.save(candidate, version, Change(
         old=None if saved is None else saved.config,
         old_version=None if saved is None else saved.version,
-        new=candidate,
-        version=version,
         margins=margins_dict(verdict.margins),
         client=f"startup ({source})",
-    )
+    ))
     log.info("config v%d from %s saved", version, source)
     return candidate, version, verdict.margins
 

@@ -5,7 +5,10 @@
   directory) on every accepted change, so a crash leaves either the old or the new file.
 - `applied_changes.jsonl`: one JSON object per accepted change, appended and fsynced:
   {"time_s", "version", "old_version", "old", "new", "margins", "client"}. Non-finite
-  numbers (an infinite gain margin) are written as null.
+  numbers (an infinite gain margin) are written as null. A change saved with its line
+  (`save(..., change=)`) has it appended once the new file has replaced the old one, its
+  fsync beside the directory's: both are on disk when `save` returns (one fsync's wait
+  instead of two), and the log never names a configuration that was not saved.
 - `latch.json`: {"mode": "estop" | "fault", "reason", "fault", "saved_at_s"} while the loop is
   latched in e-stop or fault (written atomically, removed on reset): a restart comes back in
   that mode until an explicit reset.
@@ -27,7 +30,9 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,6 +49,8 @@ __all__ = [
     "LATCH_FILE",
     "LOG_FILE",
     "MAX_VERSION",
+    "Change",
+    "ChangeLogError",
     "Latch",
     "PersistenceError",
     "SavedConfig",
@@ -61,6 +68,22 @@ _json = msgspec.json.Encoder()
 
 class PersistenceError(RuntimeError):
     """The state directory cannot be read or written."""
+
+
+class ChangeLogError(PersistenceError):
+    """The configuration was saved; its line in the change log was not."""
+
+
+@dataclass(frozen=True)
+class Change:
+    """What the change log records of a saved configuration besides it and its version
+    (`StateStore.save`)."""
+
+    old: LoopConfig | None
+    old_version: int | None
+    margins: dict[str, float] | None
+    client: str = ""
+    verdict: str = ""
 
 
 @dataclass(frozen=True)
@@ -175,15 +198,40 @@ class StateStore:
             raise PersistenceError(f"{path}: config.{exc}") from exc
         return SavedConfig(config=cfg, version=version, saved_at_s=float(saved_at))
 
-    def save(self, config: LoopConfig, version: int) -> None:
-        """Atomically replace the active configuration file."""
+    def save(self, config: LoopConfig, version: int, change: Change | None = None) -> None:
+        """Atomically replace the active configuration file; with `change`, append its line
+        to the change log too, once the new file is in place, the two fsyncs overlapped.
+        When this returns, both are on disk. PersistenceError: the configuration is not
+        saved (the old file stays, the log is untouched); ChangeLogError: it is saved, its
+        line is not."""
         if isinstance(version, bool) or not 0 <= version <= MAX_VERSION:
             raise PersistenceError(f"version: {version} is outside [0, {MAX_VERSION}]")
-        doc = {"version": version, "saved_at_s": time.time(), "config": config_to_builtins(config)}
+        now = time.time()
+        doc = {"version": version, "saved_at_s": now, "config": config_to_builtins(config)}
         data = msgspec.json.format(_json.encode(doc), indent=2) + b"\n"
-        self._atomic_write(self.active_path, data)
+        if change is None:
+            self._atomic_write(self.active_path, data)
+            return
+        line = self._change_line(old=change.old, old_version=change.old_version, new=config,
+                                 version=version, margins=change.margins,
+                                 client=change.client, time_s=now, verdict=change.verdict)
+        failed: list[ChangeLogError] = []
 
-    def _atomic_write(self, path: Path, data: bytes) -> None:
+        def log() -> None:
+            try:
+                self._append_line(line)
+            except PersistenceError as exc:
+                failed.append(ChangeLogError(str(exc)))
+
+        self._atomic_write(self.active_path, data, beside_dir_fsync=log)
+        if failed:
+            raise failed[0]
+
+    def _atomic_write(self, path: Path, data: bytes,
+                      beside_dir_fsync: Callable[[], None] | None = None) -> None:
+        """Write `data` to a temporary file, fsync it, rename it over `path`, fsync the
+        directory; `beside_dir_fsync` (which must not raise) runs on a thread of its own
+        during the directory's fsync, and has ended when this returns."""
         try:
             try:
                 fd, tmp = tempfile.mkstemp(
@@ -211,7 +259,15 @@ class StateStore:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
             raise PersistenceError(f"{path}: cannot write: {exc}") from exc
-        self._fsync_dir()
+        if beside_dir_fsync is None:
+            self._fsync_dir()
+            return
+        beside = threading.Thread(target=beside_dir_fsync, name="state-log", daemon=True)
+        beside.start()
+        try:
+            self._fsync_dir()
+        finally:
+            beside.join()
 
     def _fsync_dir(self) -> None:
         # The rename itself is durable only once the directory entry is on disk.
@@ -315,6 +371,15 @@ class StateStore:
         verdict: str = "",
     ) -> None:
         """Append one line to the applied-changes log (fsynced)."""
+        self._append_line(self._change_line(
+            old=old, old_version=old_version, new=new, version=version, margins=margins,
+            client=client, time_s=time_s, verdict=verdict))
+
+    @staticmethod
+    def _change_line(
+        *, old: LoopConfig | None, old_version: int | None, new: LoopConfig, version: int,
+        margins: dict[str, float] | None, client: str, time_s: float | None, verdict: str,
+    ) -> bytes:
         entry = {
             "time_s": time.time() if time_s is None else time_s,
             "version": version,
@@ -325,7 +390,9 @@ class StateStore:
             "client": client,
             "verdict": verdict,
         }
-        line = _json.encode(_finite_or_none(entry)) + b"\n"
+        return _json.encode(_finite_or_none(entry)) + b"\n"
+
+    def _append_line(self, line: bytes) -> None:
         try:
             with open(self.log_path, "ab") as f:
                 f.write(line)

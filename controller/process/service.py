@@ -27,7 +27,13 @@ from controller.process.access import Access
 from controller.process.analysis_worker import AnalysisWorker
 from controller.process.identify_runs import IdentifyRuns
 from controller.process.options import ControllerOptions
-from controller.process.persistence import MAX_VERSION, PersistenceError, StateStore
+from controller.process.persistence import (
+    MAX_VERSION,
+    Change,
+    ChangeLogError,
+    PersistenceError,
+    StateStore,
+)
 from controller.process.requests import ApplyCoefficients, RequestBody, RunProgram
 from controller.process.runtime import ESTOP, FAULT, Runtime, Ticket
 
@@ -204,7 +210,13 @@ class ControllerService:
             if same or coefficients is None:
                 return self.config_reply(accepted=True, margins=margins, **judged)
             try:
-                self.store.save(candidate, version)
+                # Saved with its change-log line (both on disk before the swap: the log
+                # names what a restart comes back on).
+                self.store.save(candidate, version, Change(
+                    old=active.config, old_version=active.version,
+                    margins=margins_dict(margins), client=client, verdict=verdict.verdict))
+            except ChangeLogError as exc:
+                self.warn(str(exc))
             except PersistenceError as exc:
                 reason = f"state_dir: not applied, the configuration could not be saved: {exc}"
                 self.warn(reason)
@@ -233,18 +245,6 @@ class ControllerService:
                 client or "a client",
                 config_changes(active.config, candidate),
             )
-            try:
-                self.store.append_change(
-                    old=active.config,
-                    old_version=active.version,
-                    new=candidate,
-                    version=version,
-                    margins=margins_dict(margins),
-                    client=client,
-                    verdict=verdict.verdict,
-                )
-            except PersistenceError as exc:
-                self.warn(str(exc))
             return self.config_reply(
                 accepted=True, version=version, config=candidate, margins=margins,
                 reasons=list(verdict.reasons), **judged,
@@ -335,7 +335,11 @@ class ControllerService:
         """Save the configuration rolled back to; on failure fault the loop (a restart would
         bring back v`from_v`, which the watchdog rolled back) and keep it for a retry."""
         try:
-            self.store.save(config, version)
+            self.store.save(config, version, Change(
+                old=bad, old_version=from_v, margins=margins_dict(self.margins),
+                client=f"watchdog rollback: {kind}"))
+        except ChangeLogError as exc:
+            self.warn(str(exc))
         except PersistenceError as exc:
             reason = (
                 f"state_dir: the rollback to v{version} could not be saved ({exc}): stopped "
@@ -350,13 +354,6 @@ class ControllerService:
         if self._unsaved is not None:
             log.info("the rollback to v%d is saved now", version)
         self._unsaved = None
-        try:
-            self.store.append_change(
-                old=bad, old_version=from_v, new=config, version=version,
-                margins=margins_dict(self.margins), client=f"watchdog rollback: {kind}",
-            )
-        except PersistenceError as exc:
-            self.warn(str(exc))
         return True
 
     def poll_faults(self) -> None:

@@ -58,7 +58,7 @@ from controller.gate.knowledge import (  # noqa: E402
 )
 from controller.gate.search import RecommendationSearch, recommendation_search  # noqa: E402
 from controller.gate.verdict import judge  # noqa: E402
-from controller.process.persistence import StateStore  # noqa: E402
+from controller.process.persistence import Change, StateStore  # noqa: E402
 from controller.sim.nonlinear_check import findings, nonlinear_check  # noqa: E402
 
 
@@ -181,9 +181,8 @@ def breakdown(plant: PlantKnowledge, new: list[LoopConfig], get_ms: float) -> No
         store = StateStore(Path(d))
 
         def persist(cfg: LoopConfig, v: int, prev: LoopConfig) -> None:
-            store.save(cfg, v)
-            store.append_change(old=prev, old_version=v - 1, new=cfg, version=v,
-                                margins=None, client="bench", verdict="accept")
+            store.save(cfg, v, Change(old=prev, old_version=v - 1, margins=None,
+                                      client="bench", verdict="accept"))
 
         prev = LoopConfig()
         for v, cfg in enumerate(new, start=2):
@@ -192,7 +191,7 @@ def breakdown(plant: PlantKnowledge, new: list[LoopConfig], get_ms: float) -> No
             t("search (whole, as before)", whole, cfg)
             t("nonlinear check", nonlinear_check, cfg, plant.model)
             t("filter design", LoopCoefficients.build, cfg, v)
-            t("persistence (save + log, fsync)", persist, cfg, v, prev)
+            t("persistence (save + log, fsyncs)", persist, cfg, v, prev)
             prev = cfg
     print("  where a new-gains apply's time goes (this tree's code in this process, over the "
           "same candidates; CPU time is what the load does not stretch):")
