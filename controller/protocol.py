@@ -1,7 +1,7 @@
 """The Zenoh contract: every key expression and message type, in one place.
 
 Encoding: MessagePack (msgspec). Every message is a map with a `v` field (protocol version,
-currently 1); a message of another version is rejected, never guessed at. Tagged unions carry
+currently 2); a message of another version is rejected, never guessed at. Tagged unions carry
 a `type` field. Units are in the field names. See docs/protocol.md for the full description.
 """
 
@@ -17,11 +17,13 @@ from controller.core.config import LoopConfig
 from controller.core.samples import STATE_COLUMNS
 from controller.core.trajectory import Trajectory
 from controller.core.validate import split_msgspec_error
-from controller.core.verdict import VerdictMargins
+from controller.core.verdict import Verdict
 from controller.gate.knowledge import KnowledgeRecord
 from controller.ident.spec import IdentifySpec
 
-PROTOCOL_VERSION = 1
+#: 2: the gate's verdict travels as one nested `Verdict` (ConfigReply, Status, HistoryEntry),
+#: where version 1 carried its kind, margins and knowledge version side by side.
+PROTOCOL_VERSION = 2
 KEY_PREFIX = "dobtune"
 
 
@@ -190,10 +192,11 @@ class Status(_Msg, frozen=True, kw_only=True):
     operator: str = ""
     estop_seq: int = -1  # first tick of the latest e-stop (each e-stop, also while latched)
     notes: list[str] = []  # non-fault information (e.g. real-time priority refused)
-    knowledge_version: int = 0  # the plant knowledge every verdict is judged on
+    knowledge_version: int = 0  # the plant knowledge the controller judges candidates on now
     knowledge: str = ""  # its one-line description (version, source, band)
-    margins: VerdictMargins | None = None  # the running configuration's, on that knowledge
-    verdict: str = ""  # the gate's verdict on the running configuration, on that knowledge
+    # The gate's verdict on the running configuration (its own knowledge_version says what it
+    # was judged on: the knowledge above once re-judged after an adoption).
+    verdict: Verdict | None = None
     watchdog: str = ""  # the latest watchdog trip and what was done (rollback or fault)
     audit_head: str = ""  # "<seq>:<sha256>" of the newest audit record (anchors the log)
     auth: bool = False  # requests are authenticated (per-user key scopes, access control)
@@ -221,11 +224,11 @@ class ConfigReply(_Msg, frozen=True, kw_only=True):
     accepted: bool
     version: int  # the active version after this request
     config: LoopConfig  # the active configuration after this request
-    reasons: list[str] = []
-    margins: VerdictMargins | None = None
+    reasons: list[str] = []  # why not: the gate's reasons, or one "<field>: <why>"
     field: str = ""  # for a malformed request: the offending field ("payload", "candidate.x")
-    verdict: str = ""  # the gate's verdict on the candidate: accept | caution | reject
-    knowledge_version: int = 0  # the plant knowledge it was judged on
+    # The gate's verdict on the candidate (on the active configuration for a GET); None when
+    # the request was refused before the gate ran (malformed, stale expect_version...).
+    verdict: Verdict | None = None
 
 
 # -- history ------------------------------------------------------------------------------------
@@ -239,9 +242,9 @@ class HistoryEntry(msgspec.Struct, frozen=True, kw_only=True):
     version: int
     time_s: float  # UNIX time it was applied
     client: str  # who: the authenticated user, "startup (...)" or "watchdog rollback: ..."
-    verdict: str  # the gate's verdict then ("" for entries from before verdicts were logged)
     config: LoopConfig
-    margins: VerdictMargins | None = None
+    # The gate's verdict then (None: not logged; a line of an older version has no reasons).
+    verdict: Verdict | None = None
 
 
 class HistoryReply(_Msg, frozen=True, kw_only=True):
@@ -497,7 +500,8 @@ def decode(data: bytes | bytearray | memoryview, kind: type[M]) -> M:
         shown = repr(head.v)
         shown = shown if len(shown) <= 40 else shown[:37] + "..."
         raise ProtocolError(
-            f"v: unsupported protocol version {shown}; this side speaks {PROTOCOL_VERSION}",
+            f"v: unsupported protocol version {shown}; this side speaks {PROTOCOL_VERSION} "
+            "(the other side runs another dobtune version: run the same on both)",
             "v",
         )
     dec = _decoders.get(kind)

@@ -128,7 +128,8 @@ def test_the_spec_is_the_wire_message_documented() -> None:
 def test_identify_start_rejects_bad_and_unknown_fields_naming_them(
     spec: dict[str, object], field: str
 ) -> None:
-    payload = msgspec.msgpack.encode({"v": 1, "body": {"type": "identify_start", "spec": spec}})
+    payload = msgspec.msgpack.encode(
+        {"v": proto.PROTOCOL_VERSION, "body": {"type": "identify_start", "spec": spec}})
     with pytest.raises(proto.ProtocolError) as info:
         proto.decode(payload, proto.Command)
     assert info.value.field == field and str(info.value).startswith(f"{field}: ")

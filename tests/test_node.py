@@ -26,6 +26,8 @@ from controller.process.persistence import StateStore
 from controller.process.runtime import Runtime
 from controller.process.service import ControllerService
 
+V = proto.PROTOCOL_VERSION  # the version this side speaks
+
 
 class NullRig:
     def read(self) -> tuple[float, float]:
@@ -44,8 +46,8 @@ def node(tmp_path: Path) -> Iterator[ZenohNode]:
     runner = AnalysisWorker(subprocess=False)
     opts = ControllerOptions(rig_name="unit", state_dir=tmp_path, gate_in_subprocess=False)
     k = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=1))
-    margins = runner.check(cfg, k).margins
-    service = ControllerService(opts, rt, store, runner, margins, [], k)
+    verdict = runner.check(cfg, k)
+    service = ControllerService(opts, rt, store, runner, verdict, [], k)
     loop = threading.Thread(target=rt.run, daemon=True)
     loop.start()
     assert rt.running.wait(5.0)
@@ -118,10 +120,39 @@ def test_apply_swaps_at_a_tick_boundary_and_logs_the_change(
     assert caplog.text.count("candidate from local rejected") == 1
 
 
+def test_every_reply_carries_the_one_verdict_and_history_reads_older_lines(
+    node: ZenohNode,
+) -> None:
+    svc = node.service
+    # A change log an older version wrote (the verdict's kind and margins side by side), and a
+    # line no version can read: it is left out, and the reply says which and why.
+    old = ('{"time_s":1.0,"version":1,"old_version":null,"old":null,"new":{},"margins":{"gain'
+           '_margin_db":12.0,"phase_margin_deg":48.0,"peak_sensitivity_db":3.5,"small_gain_peak"'
+           ':null,"max_pole_radius":0.99},"client":"dash","verdict":"accept"}\n'
+           '{"time_s":1.5,"version":1,"new":{},"client":"x","verdict":{"verdict":"fine"}}\n')
+    svc.store.log_path.write_text(old)
+    got = apply(node, LoopConfig(q_cutoff_hz=1.0))
+    assert got.accepted and got.verdict is not None and got.verdict.knowledge_version == 1
+    assert got.verdict.verdict in ("accept", "caution") and got.verdict.margins.max_pole_radius < 1
+    status = node.status()
+    assert status.verdict == got.verdict  # the running configuration's verdict, the same one
+    assert proto.decode(node.handle_config(b""), proto.ConfigReply).verdict == got.verdict
+    refused = proto.encode(proto.ConfigRequest(candidate=LoopConfig(), expect_version=1))
+    stale = proto.decode(node.handle_config(refused), proto.ConfigReply)
+    assert not stale.accepted and stale.field == "expect_version" and stale.verdict is None
+    h = proto.decode(node.handle_history(b""), proto.HistoryReply)
+    assert h.ok and [e.version for e in h.entries] == [1, 2]
+    first, mine = h.entries
+    assert first.verdict is not None and first.verdict.verdict == "accept"
+    assert first.verdict.margins.phase_margin_deg == 48.0 and first.verdict.reasons == ()
+    assert mine.verdict == got.verdict  # whole: reasons, margins, knowledge judged on
+    assert h.message.startswith("1 entry of the change log not shown (v1: verdict.verdict:")
+
+
 def test_malformed_payloads_name_the_field(node: ZenohNode) -> None:
     bad = proto.decode(node.handle_command(b"\xc1"), proto.CommandReply)
     assert not bad.ok and bad.field == "payload"
-    start = {"v": 1, "body": {"type": "identify_start", "spec": {"f_min_hz": -1.0}}}
+    start = {"v": V, "body": {"type": "identify_start", "spec": {"f_min_hz": -1.0}}}
     reply = proto.decode(node.handle_command(msgspec.msgpack.encode(start)), proto.CommandReply)
     assert not reply.ok and reply.field == "body.spec.f_min_hz"
 
@@ -130,18 +161,18 @@ def test_malformed_payloads_name_the_field(node: ZenohNode) -> None:
 
 
 def test_invalid_utf8_is_a_rejection_naming_the_payload(node: ZenohNode) -> None:
-    bad_string = b"\x82\xa1v\x01\xa4body\x81\xa4type\xa2\xff\xfe"
+    bad_string = b"\x82\xa1v\x02\xa4body\x81\xa4type\xa2\xff\xfe"
     reply = proto.decode(node.handle_command(bad_string), proto.CommandReply)
     assert not reply.ok and reply.field == "payload" and "UTF-8" in reply.message
     assert "UnicodeDecodeError" not in reply.message
-    bad_client = b"\x82\xa1v\x01\xa6client\xa2\xff\xfe"
+    bad_client = b"\x82\xa1v\x02\xa6client\xa2\xff\xfe"
     cfg = proto.decode(node.handle_config(bad_client), proto.ConfigReply)
     assert not cfg.accepted and cfg.field == "payload"
 
 
 @pytest.mark.parametrize("body_type", ["start", "stop", "estop", "reset", "identify_abort"])
 def test_unknown_fields_in_command_bodies_are_rejected(node: ZenohNode, body_type: str) -> None:
-    data = msgspec.msgpack.encode({"v": 1, "body": {"type": body_type, "spce": 3}})
+    data = msgspec.msgpack.encode({"v": V, "body": {"type": body_type, "spce": 3}})
     reply = proto.decode(node.handle_command(data), proto.CommandReply)
     assert not reply.ok and reply.field == "body.spce"
     assert node.rt.mode == "running"
@@ -157,7 +188,7 @@ def test_absurd_model_coefficients_are_rejected_naming_the_field(
         poly = list(cfg["nominal"][name])
         poly[i] = value
         cfg["nominal"][name] = poly
-        data = msgspec.msgpack.encode({"v": 1, "candidate": cfg})
+        data = msgspec.msgpack.encode({"v": V, "candidate": cfg})
         reply = proto.decode(node.handle_config(data), proto.ConfigReply)
         assert "Error" not in " ".join(reply.reasons), reply.reasons
         if value > 1.0 or i == 2:  # out of range: named
@@ -325,15 +356,15 @@ def test_a_refused_command_is_audited_with_what_it_claimed(
 
     monkeypatch.setattr(node.access, "record", record)
     hostile = [
-        msgspec.msgpack.encode({"v": 1, "body": ["reset"]}),
-        msgspec.msgpack.encode({"v": 1, "body": {"type": 5, "estop_seq": 7}}),
+        msgspec.msgpack.encode({"v": V, "body": ["reset"]}),
+        msgspec.msgpack.encode({"v": V, "body": {"type": 5, "estop_seq": 7}}),
         msgspec.msgpack.encode([1, 2]),
         b"\xc1",  # a byte msgpack never uses
-        b"\x82\xa1v\x01\xa4body\x81\xa4type\xa2\xff\xfe",  # invalid UTF-8
+        b"\x82\xa1v\x02\xa4body\x81\xa4type\xa2\xff\xfe",  # invalid UTF-8
         b"\x91" * 100_000,  # nested deeper than any decoder recurses
     ]
     claimed = msgspec.msgpack.encode(
-        {"v": 1, "body": {"type": "reset", "estop_seq": 7, "bogus": 1}})
+        {"v": V, "body": {"type": "reset", "estop_seq": 7, "bogus": 1}})
     for data in [claimed, *hostile]:
         reply = proto.decode(node.handle_command(data), proto.CommandReply)
         assert not reply.ok and reply.field

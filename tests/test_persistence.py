@@ -13,10 +13,12 @@ import tempfile
 import threading
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
 from controller.core.config import LoopConfig, config_from_builtins
+from controller.core.verdict import Verdict, VerdictMargins
 from controller.process.persistence import (
     ACTIVE_FILE,
     LATCH_FILE,
@@ -27,6 +29,7 @@ from controller.process.persistence import (
     Latch,
     PersistenceError,
     StateStore,
+    verdict_of_change,
 )
 
 
@@ -105,30 +108,89 @@ def test_an_invalid_saved_file_is_an_error_not_a_silent_default(
 def test_change_log_appends_one_line_per_change(tmp_path: Path) -> None:
     store = StateStore(tmp_path)
     a, b = LoopConfig(), LoopConfig(q_cutoff_hz=1.0)
-    store.append_change(old=None, old_version=None, new=a, version=1, margins=None, time_s=10.0)
-    margins = {
-        "gain_margin_db": float("inf"),
-        "phase_margin_deg": 55.0,
-        "small_gain_peak": float("nan"),
-    }
-    store.append_change(old=a, old_version=1, new=b, version=2, margins=margins, client="dash")
+    store.append_change(old=None, old_version=None, new=a, version=1, verdict=None, time_s=10.0)
+    margins = VerdictMargins(gain_margin_db=float("inf"), phase_margin_deg=55.0,
+                             peak_sensitivity_db=4.0, small_gain_peak=float("nan"),
+                             max_pole_radius=0.99, noise_to_command_peak_db=14.0)
+    verdict = Verdict(verdict="caution", cautions=("phase margin 25 deg",), margins=margins,
+                      recommended_max_cutoff_hz=2.5, knowledge="plant knowledge v3 (x)",
+                      knowledge_version=3)
+    store.append_change(old=a, old_version=1, new=b, version=2, verdict=verdict, client="dash")
     lines = (tmp_path / "applied_changes.jsonl").read_text().splitlines()
     assert len(lines) == 2
     entries = [json.loads(x) for x in lines]  # strict JSON: inf/nan became null
     assert entries[0]["time_s"] == 10.0 and entries[0]["old"] is None
+    assert entries[0]["verdict"] is None and verdict_of_change(entries[0]) is None
     assert entries[1]["old"]["q_cutoff_hz"] == 0.5 and entries[1]["new"]["q_cutoff_hz"] == 1.0
-    assert entries[1]["margins"] == {
-        "gain_margin_db": None,
-        "phase_margin_deg": 55.0,
-        "small_gain_peak": None,
-    }
+    assert entries[1]["verdict"]["margins"]["gain_margin_db"] is None
+    assert entries[1]["verdict"]["margins"]["small_gain_peak"] is None
+    assert "margins" not in entries[1]  # the margins are the verdict's, nowhere else
     assert entries[1]["client"] == "dash" and entries[1]["old_version"] == 1
     assert store.read_changes() == entries
+    back = verdict_of_change(entries[1])
+    assert back is not None and math.isnan(back.margins.gain_margin_db)  # null: not known
+    assert math.isnan(back.margins.small_gain_peak)
+    def known(v: Verdict) -> Verdict:  # the figures JSON keeps (NaN != NaN, inf is lost)
+        return msgspec.structs.replace(v, margins=msgspec.structs.replace(
+            v.margins, gain_margin_db=0.0, small_gain_peak=0.0))
+
+    assert known(back) == known(verdict)
+
+
+#: Lines as the version before protocol 2 wrote them (the verdict's kind and its margins side by
+#: side; "" or absent when no verdict was logged: start-up and watchdog rollback lines).
+OLD_LINES = [
+    '{"time_s":1.0,"version":1,"old_version":null,"old":null,"new":{},"margins":{"gain_margin_'
+    'db":12.0,"phase_margin_deg":48.0,"peak_sensitivity_db":3.5,"small_gain_peak":null,"max_po'
+    'le_radius":0.99},"client":"startup (defaults)"}',
+    '{"time_s":2.0,"version":2,"old_version":1,"old":{},"new":{"q_cutoff_hz":0.8},"margins":{"g'
+    'ain_margin_db":null,"phase_margin_deg":40.0,"peak_sensitivity_db":4.0,"small_gain_peak":0.'
+    '5,"max_pole_radius":0.99,"noise_to_command_peak_db":12.0},"client":"dash","verdict":"acce'
+    'pt"}',
+    '{"time_s":3.0,"version":3,"old_version":2,"old":{},"new":{},"margins":null,"client":"watchd'
+    'og rollback: oscillation","verdict":""}',
+]
+
+
+def test_lines_of_an_older_version_still_load(tmp_path: Path) -> None:
+    (tmp_path / "applied_changes.jsonl").write_text("\n".join(OLD_LINES) + "\n")
+    items = StateStore(tmp_path).read_changes()
+    assert [verdict_of_change(i) for i in items][0::2] == [None, None]  # no kind logged
+    v = verdict_of_change(items[1])
+    assert v is not None and v.verdict == "accept" and v.reasons == ()
+    assert v.margins.phase_margin_deg == 40.0 and math.isnan(v.margins.gain_margin_db)
+    assert v.margins.noise_to_command_peak_db == 12.0 and v.knowledge_version == 0
+
+
+FULL = {"gain_margin_db": 1.0, "phase_margin_deg": 1.0, "peak_sensitivity_db": 1.0,
+        "small_gain_peak": 1.0, "max_pole_radius": 1.0}
+
+
+@pytest.mark.parametrize(
+    ("line", "named"),
+    [
+        ({"verdict": "maybe"}, "verdict: 'maybe' is not one of accept, caution, reject"),
+        ({"verdict": "accept", "margins": {"gain_margin_db": "big"}}, "margins.gain_margin_db"),
+        ({"verdict": "accept", "margins": [1.0]}, "margins: expected an object"),
+        ({"verdict": 7}, "verdict: expected an object or a string"),
+        ({"verdict": {"verdict": "accept"}}, "verdict.margins: missing"),
+        ({"verdict": {"verdict": "accept", "margins": {}}}, "verdict.margins.gain_margin_db"),
+        ({"verdict": {"verdict": "maybe", "margins": FULL}}, "verdict.verdict"),
+        ({"verdict": {"verdict": "reject", "margins": FULL, "rejections": [3]}},
+         "verdict.rejections[0]"),
+        ({"verdict": {"verdict": "reject", "margins": FULL, "knowledge_version": "3"}},
+         "verdict.knowledge_version"),
+    ],
+)
+def test_a_line_that_cannot_be_read_names_the_field(line: dict[str, object], named: str) -> None:
+    with pytest.raises(ValueError) as info:
+        verdict_of_change(line)
+    assert str(info.value).startswith(named), str(info.value)
 
 
 def test_a_torn_last_log_line_is_skipped(tmp_path: Path) -> None:
     store = StateStore(tmp_path)
-    store.append_change(old=None, old_version=None, new=LoopConfig(), version=1, margins=None)
+    store.append_change(old=None, old_version=None, new=LoopConfig(), version=1, verdict=None)
     with open(tmp_path / "applied_changes.jsonl", "ab") as f:
         f.write(b'{"time_s": 1.0, "vers')
     assert [e["version"] for e in store.read_changes()] == [1]
@@ -273,8 +335,8 @@ def test_a_change_is_saved_then_logged_with_both_fsyncs_before_save_returns(
     monkeypatch.setattr(os, "fsync", fsync)
     monkeypatch.setattr(os, "replace", replace)
     new = LoopConfig(cv_kp=0.6)
-    store.save(new, 2, Change(old=LoopConfig(), old_version=1, margins={"x": math.inf},
-                              client="dash", verdict="caution"))
+    judged = Verdict(verdict="caution", margins=VerdictMargins.unknown(), cautions=("thin",))
+    store.save(new, 2, Change(old=LoopConfig(), old_version=1, verdict=judged, client="dash"))
     events_at_return = list(events)
     assert events_at_return[:2] == ["fsync tmp", "rename"]
     assert sorted(events_at_return[2:]) == ["fsync dir", "fsync log"]
@@ -282,7 +344,10 @@ def test_a_change_is_saved_then_logged_with_both_fsyncs_before_save_returns(
     assert loaded is not None and (loaded.config, loaded.version) == (new, 2)
     (entry,) = store.read_changes()
     assert entry["version"] == 2 and entry["old_version"] == 1 and entry["client"] == "dash"
-    assert entry["verdict"] == "caution" and entry["margins"] == {"x": None}
+    back = verdict_of_change(entry)  # the whole verdict; NaN written as null, read as NaN
+    assert back is not None and (back.verdict, back.cautions) == ("caution", ("thin",))
+    assert entry["verdict"]["margins"]["gain_margin_db"] is None
+    assert math.isnan(back.margins.gain_margin_db)
     assert config_from_builtins(entry["new"]) == new and entry["time_s"] == loaded.saved_at_s
 
 
@@ -295,7 +360,7 @@ def test_a_failing_write_leaves_the_old_or_the_new_state_whole(
     the new configuration saved (ChangeLogError, for the caller to report)."""
     store = StateStore(tmp_path)
     old = LoopConfig()
-    store.save(old, 1, Change(old=None, old_version=None, margins=None))
+    store.save(old, 1, Change(old=None, old_version=None, verdict=None))
     real_fsync, real_replace = os.fsync, os.replace
 
     def fsync(fd: int) -> None:
@@ -314,7 +379,7 @@ def test_a_failing_write_leaves_the_old_or_the_new_state_whole(
     monkeypatch.setattr(os, "replace", replace)
     new = LoopConfig(cv_kp=0.7)
     with pytest.raises(PersistenceError) as err:
-        store.save(new, 2, Change(old=old, old_version=1, margins=None))
+        store.save(new, 2, Change(old=old, old_version=1, verdict=None))
     loaded = store.load()
     assert loaded is not None
     if fails == "log":
@@ -335,7 +400,7 @@ store = StateStore(sys.argv[1])
 prev = LoopConfig()
 for v in range(2, 100000):
     cfg = LoopConfig(cv_kp=0.3 + (v % 50) / 100.0, q_cutoff_hz=0.2 + (v % 7) / 10.0)
-    store.save(cfg, v, Change(old=prev, old_version=v - 1, margins=None, client="kill test"))
+    store.save(cfg, v, Change(old=prev, old_version=v - 1, verdict=None, client="kill test"))
     print(v, flush=True)  # the reply: saved and logged
     prev = cfg
 """

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import math
+
 import msgspec
 import pytest
 
 from controller import protocol as proto
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
+from controller.core.verdict import Verdict, VerdictMargins
 
 ENC = msgspec.msgpack.encode
+V = proto.PROTOCOL_VERSION  # the version this side speaks
 
 
 def test_round_trip_of_each_request() -> None:
@@ -25,30 +29,30 @@ def test_round_trip_of_each_request() -> None:
         (b"\xc1", proto.ConfigRequest, "payload"),
         (ENC([1, 2]), proto.ConfigRequest, "payload"),
         (ENC({"candidate": {}}), proto.ConfigRequest, "v"),
-        (ENC({"v": 2}), proto.ConfigRequest, "v"),
+        (ENC({"v": 1}), proto.ConfigRequest, "v"),
         (ENC({"v": True}), proto.ConfigRequest, "v"),
-        (ENC({"v": 1, "candidate": {"cv_kp": "x"}}), proto.ConfigRequest, "candidate.cv_kp"),
-        (ENC({"v": 1, "candidate": {"cv_kp": -1.0}}), proto.ConfigRequest, "candidate.cv_kp"),
+        (ENC({"v": V, "candidate": {"cv_kp": "x"}}), proto.ConfigRequest, "candidate.cv_kp"),
+        (ENC({"v": V, "candidate": {"cv_kp": -1.0}}), proto.ConfigRequest, "candidate.cv_kp"),
         (
-            ENC({"v": 1, "candidate": {"q_cutoff_hz": float("nan")}}),
+            ENC({"v": V, "candidate": {"q_cutoff_hz": float("nan")}}),
             proto.ConfigRequest,
             "candidate.q_cutoff_hz",
         ),
         (
-            ENC({"v": 1, "candidate": {"nominal": {"pn_den": [1.0, -1.0, 1.0]}}}),
+            ENC({"v": V, "candidate": {"nominal": {"pn_den": [1.0, -1.0, 1.0]}}}),
             proto.ConfigRequest,
             "candidate.nominal.pn_den",
         ),
         (
-            ENC({"v": 1, "candidate": {"nominal": {"mn_den": [1.0, 1.0, 0.0]}}}),
+            ENC({"v": V, "candidate": {"nominal": {"mn_den": [1.0, 1.0, 0.0]}}}),
             proto.ConfigRequest,
             "candidate.nominal.mn_den[2]",
         ),
-        (ENC({"v": 1, "candidate": {"gain": 1.0}}), proto.ConfigRequest, "candidate.gain"),
-        (ENC({"v": 1, "body": {"type": "nuke"}}), proto.Command, "body.type"),
-        (ENC({"v": 1}), proto.Command, "body"),
+        (ENC({"v": V, "candidate": {"gain": 1.0}}), proto.ConfigRequest, "candidate.gain"),
+        (ENC({"v": V, "body": {"type": "nuke"}}), proto.Command, "body.type"),
+        (ENC({"v": V}), proto.Command, "body"),
         (
-            ENC({"v": 1, "body": {"type": "trajectory", "trajectory": {"kind": "zigzag"}}}),
+            ENC({"v": V, "body": {"type": "trajectory", "trajectory": {"kind": "zigzag"}}}),
             proto.Command,
             "body.trajectory.kind",
         ),
@@ -59,3 +63,114 @@ def test_rejections_name_the_field(payload: bytes, kind: type, field: str) -> No
         proto.decode(payload, kind)
     assert info.value.field == field, str(info.value)
     assert str(info.value).startswith(f"{field}: ")
+
+
+# -- the verdict, nested (protocol 2) ---------------------------------------------------------
+
+MARGINS = VerdictMargins(gain_margin_db=math.inf, phase_margin_deg=48.5, peak_sensitivity_db=3.2,
+                         small_gain_peak=0.41, max_pole_radius=0.998,
+                         noise_to_command_peak_db=17.0)
+VERDICT = Verdict(verdict="caution", rejections=(), cautions=("phase margin 28 deg < 30",),
+                  margins=MARGINS, recommended_max_cutoff_hz=1.7,
+                  knowledge="plant knowledge v4 (identification run 2: ...)", knowledge_version=4)
+
+
+def _status(**kw: object) -> proto.Status:
+    timing = proto.Timing(period_p50_us=1000.0, period_p99_us=1010.0, period_max_us=1100.0,
+                          compute_p50_us=10.0, compute_p99_us=20.0, compute_max_us=30.0,
+                          ticks=5, overruns=0, skipped_ticks=0)
+    return proto.Status(rig="r", plant="sim", mode="running", t_s=1.0, seq=5,
+                        trajectory=Trajectory(), config_version=3, config=LoopConfig(),
+                        timing=timing, faults=[], **kw)  # type: ignore[arg-type]
+
+
+def test_round_trip_of_each_message_with_a_nested_verdict() -> None:
+    reply = proto.ConfigReply(accepted=True, version=3, config=LoopConfig(q_cutoff_hz=0.8),
+                              reasons=list(VERDICT.reasons), verdict=VERDICT)
+    status = _status(knowledge_version=4, knowledge="v4 ...", verdict=VERDICT)
+    history = proto.HistoryReply(ok=True, entries=[
+        proto.HistoryEntry(version=1, time_s=1.0, client="startup (defaults)",
+                           config=LoopConfig()),  # a change logged without a verdict
+        proto.HistoryEntry(version=2, time_s=2.0, client="alice", config=LoopConfig(),
+                           verdict=VERDICT),
+    ])
+    for msg in (reply, status, history):
+        back = proto.decode(proto.encode(msg), type(msg))
+        assert back == msg, type(msg).__name__
+    got = proto.decode(proto.encode(status), proto.Status).verdict
+    assert isinstance(got, Verdict) and got.margins.gain_margin_db == math.inf
+    assert got.reasons == VERDICT.reasons and got.knowledge_version == 4
+    # The wire form is the Verdict's own fields, nested under `verdict` (no copies beside it).
+    raw = msgspec.msgpack.decode(proto.encode(reply))
+    assert raw["v"] == proto.PROTOCOL_VERSION == 2
+    assert raw["verdict"] == msgspec.msgpack.decode(msgspec.msgpack.encode(VERDICT))
+    assert not {"margins", "knowledge_version"} & set(raw)
+    refused = proto.ConfigReply(accepted=False, version=3, config=LoopConfig(), field="lease",
+                                reasons=["lease: held by bob"])  # refused before the gate ran
+    assert proto.decode(proto.encode(refused), proto.ConfigReply).verdict is None
+
+
+def _with(msg: msgspec.Struct, path: tuple[str | int, ...], value: object) -> bytes:
+    """`msg` encoded with the value at `path` replaced (a hostile or broken sender)."""
+    raw = msgspec.to_builtins(msg)
+    node = raw
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    return ENC(raw)
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "field"),
+    [
+        (("verdict", "verdict"), "maybe", "verdict.verdict"),
+        (("verdict", "verdict"), None, "verdict.verdict"),
+        (("verdict", "margins", "gain_margin_db"), "big", "verdict.margins.gain_margin_db"),
+        (("verdict", "margins"), None, "verdict.margins"),
+        (("verdict", "rejections"), [3], "verdict.rejections[0]"),
+        (("verdict", "cautions"), "one", "verdict.cautions"),
+        (("verdict", "knowledge_version"), True, "verdict.knowledge_version"),
+        (("verdict", "recommended_max_cutoff_hz"), "1", "verdict.recommended_max_cutoff_hz"),
+        (("verdict",), "accept", "verdict"),  # protocol 1's kind string in a protocol 2 message
+        (("verdict",), [1, 2], "verdict"),
+    ],
+)
+def test_a_malformed_nested_verdict_is_rejected_naming_the_field(
+    path: tuple[str, ...], value: object, field: str
+) -> None:
+    reply = proto.ConfigReply(accepted=True, version=1, config=LoopConfig(), verdict=VERDICT)
+    history = proto.HistoryReply(ok=True, entries=[proto.HistoryEntry(
+        version=1, time_s=1.0, client="a", config=LoopConfig(), verdict=VERDICT)])
+    cases: list[tuple[bytes, type[proto.Message], str]] = [
+        (_with(reply, path, value), proto.ConfigReply, field),
+        (_with(_status(verdict=VERDICT), path, value), proto.Status, field),
+        (_with(history, ("entries", 0, *path), value), proto.HistoryReply, f"entries[0].{field}"),
+    ]
+    for payload, kind, named in cases:
+        with pytest.raises(proto.ProtocolError) as info:
+            proto.decode(payload, kind)
+        assert info.value.field == named, (kind.__name__, str(info.value))
+        assert str(info.value).startswith(f"{named}: ")
+
+
+def test_a_message_of_an_older_peer_is_refused_naming_both_versions() -> None:
+    # What a protocol 1 controller sent: the verdict's fields side by side.
+    margins = msgspec.to_builtins(MARGINS)
+    old_reply = {"v": 1, "accepted": True, "version": 3, "config": {}, "reasons": [],
+                 "margins": margins, "field": "", "verdict": "accept", "knowledge_version": 4}
+    old_status = {**msgspec.to_builtins(_status()), "v": 1, "margins": margins,
+                  "verdict": "accept"}
+    old_history = {"v": 1, "ok": True, "entries": [{"version": 1, "time_s": 1.0, "client": "a",
+                                                    "verdict": "accept", "config": {},
+                                                    "margins": margins}]}
+    for raw, kind in ((old_reply, proto.ConfigReply), (old_status, proto.Status),
+                      (old_history, proto.HistoryReply)):
+        with pytest.raises(proto.ProtocolError) as info:
+            proto.decode(ENC(raw), kind)
+        assert info.value.field == "v"
+        text = str(info.value)
+        assert "unsupported protocol version 1" in text and "this side speaks 2" in text, text
+    # The same fields under this version's number are refused too: never half-read.
+    with pytest.raises(proto.ProtocolError) as info:
+        proto.decode(ENC({**old_reply, "v": 2}), proto.ConfigReply)
+    assert info.value.field in ("margins", "verdict", "knowledge_version"), str(info.value)

@@ -165,8 +165,8 @@ def _service(rt: Runtime, state: Path, version: int = 1) -> tuple[ControllerServ
     opts = ControllerOptions(rig_name="unit", state_dir=state, gate_in_subprocess=False)
     k = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=1))
     runner = AnalysisWorker(subprocess=False)
-    margins = runner.check(rt.loop.active.config, k).margins
-    svc = ControllerService(opts, rt, store, runner, margins, [], k, access)
+    verdict = runner.check(rt.loop.active.config, k)
+    svc = ControllerService(opts, rt, store, runner, verdict, [], k, access)
     access.warn = svc.warn
     return svc, access
 

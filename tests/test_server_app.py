@@ -183,7 +183,13 @@ def test_history_lists_versions_and_loads_one_as_the_candidate(tmp_path: Path) -
         d.history.other.value = "v2"
         wait_for(lambda: "same as v2" in d.history.diff.content)
         h = d.client.history(10)
-        assert [e.version for e in h.entries] == [1, 2] and h.entries[1].verdict == "accept"
+        assert [e.version for e in h.entries] == [1, 2]
+        judged = h.entries[1].verdict  # the verdict the apply got, whole, as it was logged
+        assert judged is not None and judged.verdict == "accept" == reply.verdict.verdict
+        assert judged.margins == reply.verdict.margins and judged.knowledge_version >= 1
+        start = h.entries[0].verdict  # the start-up line carries the start-up gate's verdict
+        assert start is not None and start.verdict in ("accept", "caution")
+        assert "accept" in d.history.table.content
         assert h.entries[1].config.q_cutoff_hz == 0.8
         t = d.panel_in(d.server.gui)
         wait_for(lambda: t.active_version == 2)

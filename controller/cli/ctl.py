@@ -10,7 +10,8 @@ Values are JSON where they parse as JSON (`q_cutoff_hz=1.5`, `dob_on=false`), el
 
 Exit codes: 0 done (apply: applied), 1 refused or rejected (the reasons are printed),
 3 the verdict is caution and `--confirm` was not given, 2 bad input, 4 the controller is not
-reachable or the credentials reach nothing.
+reachable, the credentials reach nothing, or it speaks another protocol version (the error
+names both).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from typing import Any, TextIO
 import msgspec
 
 from controller.cli.common import Command
+from controller.core.verdict import kind_of
 
 __all__ = ["ACTIONS", "ctl_main"]
 
@@ -93,6 +95,10 @@ def ctl_main(args: argparse.Namespace, out: TextIO) -> int:
     except _BadInput as exc:
         out.write(json.dumps({"error": str(exc)}) + "\n" if args.json else f"error: {exc}\n")
         return EXIT_BAD_INPUT
+    except proto.ProtocolError as exc:  # a reply that cannot be read (another version...)
+        text = f"the controller's reply cannot be read: {exc}"
+        out.write(json.dumps({"error": text}) + "\n" if args.json else f"error: {text}\n")
+        return EXIT_UNREACHABLE
     except ValueError as exc:
         out.write(f"error: {exc}\n")
         return EXIT_BAD_INPUT
@@ -121,7 +127,7 @@ def _run(c: Any, args: argparse.Namespace, out: TextIO, proto: Any) -> int:
             out,
             args.json,
             st,
-            f"{st.rig}: {st.mode}, config v{st.config_version}, verdict {st.verdict or '-'}, "
+            f"{st.rig}: {st.mode}, config v{st.config_version}, verdict {kind_of(st.verdict)}, "
             f"operator {st.operator or '-'}, knowledge {st.knowledge}, faults "
             f"{'; '.join(st.faults) or '-'}",
         )
@@ -198,7 +204,7 @@ def _change(
             args.json,
             r,
             f"{'applied' if r.accepted else 'not applied'}: version "
-            f"{r.version}, verdict {r.verdict or '-'}{reasons}",
+            f"{r.version}, verdict {kind_of(r.verdict)}{reasons}",
         )
         if r.accepted:
             return EXIT_OK
@@ -283,6 +289,9 @@ def _wait_status(c: Any, timeout_s: float = 3.0) -> Any:
 
     deadline = time.monotonic() + timeout_s
     while c.status is None:
+        mismatch = c.counters.version_mismatch
+        if mismatch:  # it will never be read: say why at once
+            raise ControllerUnavailable(f"the controller's status cannot be read: {mismatch}")
         if time.monotonic() > deadline:
             raise ControllerUnavailable(f"no status within {timeout_s:g} s")
         time.sleep(0.02)

@@ -150,6 +150,9 @@ class VersionMark:
 class _Counters:
     decode_errors: int = 0
     last_decode_error: str = ""
+    #: The latest message refused for its protocol version ("" none): the controller runs
+    #: another dobtune version, and no status of it can be read.
+    version_mismatch: str = ""
     status_count: int = 0
     version_marks: list[VersionMark] = field(default_factory=list)
 
@@ -260,6 +263,8 @@ class ControllerClient:
         try:
             return decode()
         except proto.ProtocolError as exc:
+            if exc.field == "v":
+                self.counters.version_mismatch = str(exc)
             self._bad_message(str(exc))
             return None
 

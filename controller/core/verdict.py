@@ -12,7 +12,7 @@ from typing import Literal
 
 import msgspec
 
-__all__ = ["VERDICT_KINDS", "Verdict", "VerdictKind", "VerdictMargins", "margins_dict"]
+__all__ = ["VERDICT_KINDS", "Verdict", "VerdictKind", "VerdictMargins", "kind_of", "margins_dict"]
 
 VerdictKind = Literal["accept", "caution", "reject"]
 VERDICT_KINDS: tuple[VerdictKind, ...] = ("accept", "caution", "reject")
@@ -73,3 +73,9 @@ class Verdict(msgspec.Struct, frozen=True, kw_only=True):
 def margins_dict(m: VerdictMargins | None) -> dict[str, float] | None:
     """The margins as a plain dict (the change log's JSON)."""
     return None if m is None else msgspec.structs.asdict(m)
+
+
+def kind_of(v: Verdict | None) -> str:
+    """The verdict's kind for a line of text: accept, caution, reject; "-" when there is none
+    (a refused request, a change logged without one)."""
+    return "-" if v is None else v.verdict

@@ -32,7 +32,7 @@ from controller.client.session import (
 from controller.core.config import LoopConfig, NominalModel, config_from_builtins
 from controller.core.errors import ConfigError
 from controller.core.loop import LoopCoefficients, ServoLoop
-from controller.core.verdict import Verdict, margins_dict
+from controller.core.verdict import Verdict
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
 from controller.process.access import Access
 from controller.process.analysis_worker import AnalysisWorker
@@ -210,7 +210,7 @@ def _initial_config(
     store: StateStore,
     check: Callable[[LoopConfig], Verdict],
     rig_limit_deg_s: float | None = None,
-) -> tuple[LoopConfig, int, proto.VerdictMargins]:
+) -> tuple[LoopConfig, int, Verdict]:
     """The configuration to start with; the gate must not reject it (a caution is started
     with and reported); a change is saved and logged."""
     saved = store.load()
@@ -225,16 +225,16 @@ def _initial_config(
     if verdict.verdict == "caution":
         log.warning("%s: the gate's verdict is caution: %s", source, "; ".join(verdict.reasons))
     if saved is not None and saved.config == candidate:
-        return candidate, saved.version, verdict.margins
+        return candidate, saved.version, verdict
     version = (saved.version if saved is not None else 0) + 1
     store.save(candidate, version, Change(
         old=None if saved is None else saved.config,
         old_version=None if saved is None else saved.version,
-        margins=margins_dict(verdict.margins),
+        verdict=verdict,
         client=f"startup ({source})",
     ))
     log.info("config v%d from %s saved", version, source)
-    return candidate, version, verdict.margins
+    return candidate, version, verdict
 
 
 def _rig_command_limit(opts: ControllerOptions) -> float | None:
@@ -376,7 +376,7 @@ def _run(
     try:
         store = StateStore(opts.state_path)
         knowledge = initial_knowledge(opts, store)
-        cfg, version, margins = _initial_config(
+        cfg, version, verdict = _initial_config(
             opts,
             store,
             lambda c: runner.check_here(c, knowledge),
@@ -408,7 +408,7 @@ def _run(
                 log.warning("fault at start: %s", rig_faults[0])
             access = _open_access(opts, lambda text: log.warning("%s", text))
             service = ControllerService(
-                opts, runtime, store, runner, margins, notes, knowledge, access
+                opts, runtime, store, runner, verdict, notes, knowledge, access
             )
             access.warn = service.warn
             access.start()

@@ -438,10 +438,15 @@ class ZenohNode:
             reply = svc.apply(
                 req.candidate, who.user, confirm=req.confirm, expect_version=req.expect_version
             )
+        # The audit keeps its flat record (verdict kind, margins, knowledge version), as in
+        # the audit logs written before the verdict was one nested field on the wire.
+        v = reply.verdict
         self.access.record(
             "apply", who, "accepted" if reply.accepted else "refused",
-            version_before=before, version_after=reply.version, verdict=reply.verdict,
-            margins=msgspec.to_builtins(reply.margins) if reply.margins else None,
+            version_before=before, version_after=reply.version,
+            verdict=v.verdict if v is not None else "",
+            margins=msgspec.to_builtins(v.margins) if v is not None else None,
+            knowledge_version=v.knowledge_version if v is not None else None,
             reasons=list(reply.reasons), field=reply.field, confirm=req.confirm,
             expect_version=req.expect_version, client=req.client[:100],
         )

@@ -4,9 +4,12 @@
   atomically (temporary file in the same directory, fsync, os.replace, fsync of the
   directory) on every accepted change, so a crash leaves either the old or the new file.
 - `applied_changes.jsonl`: one JSON object per accepted change, appended and fsynced:
-  {"time_s", "version", "old_version", "old", "new", "margins", "client"}. Non-finite
-  numbers (an infinite gain margin) are written as null. A change saved with its line
-  (`save(..., change=)`) has it appended once the new file has replaced the old one, its
+  {"time_s", "version", "old_version", "old", "new", "client", "verdict"}, where "verdict" is
+  the gate's `Verdict` (its wire form, as in `controller.protocol`) or null. Non-finite numbers
+  (an infinite gain margin) are written as null, and read back as NaN ("not known"). Lines of
+  older versions (protocol 1) carry the verdict's kind as a string ("" or absent: not logged)
+  and its "margins" beside it: `verdict_of_change` reads both forms. A change saved with its
+  line (`save(..., change=)`) has it appended once the new file has replaced the old one, its
   fsync beside the directory's: both are on disk when `save` returns (one fsync's wait
   instead of two), and the log never names a configuration that was not saved.
 - `latch.json`: {"mode": "estop" | "fault", "reason", "fault", "saved_at_s"} while the loop is
@@ -41,6 +44,8 @@ import msgspec
 
 from controller.core.config import LoopConfig, config_from_builtins, config_to_builtins
 from controller.core.errors import ConfigError
+from controller.core.validate import split_msgspec_error
+from controller.core.verdict import VERDICT_KINDS, Verdict, VerdictMargins
 from controller.gate.knowledge import KnowledgeRecord
 
 __all__ = [
@@ -55,6 +60,7 @@ __all__ = [
     "PersistenceError",
     "SavedConfig",
     "StateStore",
+    "verdict_of_change",
 ]
 
 ACTIVE_FILE = "active_config.json"
@@ -81,9 +87,8 @@ class Change:
 
     old: LoopConfig | None
     old_version: int | None
-    margins: dict[str, float] | None
+    verdict: Verdict | None
     client: str = ""
-    verdict: str = ""
 
 
 @dataclass(frozen=True)
@@ -213,8 +218,8 @@ class StateStore:
             self._atomic_write(self.active_path, data)
             return
         line = self._change_line(old=change.old, old_version=change.old_version, new=config,
-                                 version=version, margins=change.margins,
-                                 client=change.client, time_s=now, verdict=change.verdict)
+                                 version=version, client=change.client, time_s=now,
+                                 verdict=change.verdict)
         failed: list[ChangeLogError] = []
 
         def log() -> None:
@@ -365,20 +370,19 @@ class StateStore:
         old_version: int | None,
         new: LoopConfig,
         version: int,
-        margins: dict[str, float] | None,
+        verdict: Verdict | None,
         client: str = "",
         time_s: float | None = None,
-        verdict: str = "",
     ) -> None:
         """Append one line to the applied-changes log (fsynced)."""
         self._append_line(self._change_line(
-            old=old, old_version=old_version, new=new, version=version, margins=margins,
-            client=client, time_s=time_s, verdict=verdict))
+            old=old, old_version=old_version, new=new, version=version, client=client,
+            time_s=time_s, verdict=verdict))
 
     @staticmethod
     def _change_line(
         *, old: LoopConfig | None, old_version: int | None, new: LoopConfig, version: int,
-        margins: dict[str, float] | None, client: str, time_s: float | None, verdict: str,
+        client: str, time_s: float | None, verdict: Verdict | None,
     ) -> bytes:
         entry = {
             "time_s": time.time() if time_s is None else time_s,
@@ -386,9 +390,8 @@ class StateStore:
             "old_version": old_version,
             "old": None if old is None else config_to_builtins(old),
             "new": config_to_builtins(new),
-            "margins": _finite_or_none(margins),
             "client": client,
-            "verdict": verdict,
+            "verdict": None if verdict is None else msgspec.to_builtins(verdict),
         }
         return _json.encode(_finite_or_none(entry)) + b"\n"
 
@@ -418,3 +421,44 @@ class StateStore:
             if isinstance(item, dict):
                 out.append(item)
         return out
+
+
+def _nan_for_null(margins: object) -> object:
+    """Margins as a change-log line holds them, with null (a non-finite figure) as NaN."""
+    if not isinstance(margins, dict):
+        return margins
+    return {k: float("nan") if v is None else v for k, v in margins.items()}
+
+
+def _convert(value: object, kind: type[Any], where: str) -> Any:
+    """msgspec.convert; ValueError naming the field from `where` ("verdict.margins.x: ...")."""
+    try:
+        return msgspec.convert(value, kind)
+    except msgspec.ValidationError as exc:
+        field, why = split_msgspec_error(str(exc))
+        raise ValueError(f"{where}.{field}: {why}" if field != "payload" else
+                         f"{where}: {why}") from exc
+
+
+def verdict_of_change(item: dict[str, Any]) -> Verdict | None:
+    """The gate's verdict a change-log line records (None: none was logged). Reads this
+    version's lines ("verdict": a `Verdict`) and older ones ("verdict": its kind, "" when not
+    logged, with "margins" beside it: no reasons, knowledge version 0, unknown then).
+    ValueError names what is wrong ("verdict.margins.gain_margin_db: ...")."""
+    value = item.get("verdict")
+    if value is None or value == "":
+        return None
+    if isinstance(value, str):  # an older line: the kind, and the margins beside it
+        if value not in VERDICT_KINDS:
+            raise ValueError(f"verdict: {value!r} is not one of {', '.join(VERDICT_KINDS)}")
+        old = item.get("margins")
+        if old is not None and not isinstance(old, dict):
+            raise ValueError(f"margins: expected an object, got {type(old).__name__}")
+        margins = (VerdictMargins.unknown() if old is None else
+                   _convert(_nan_for_null(old), VerdictMargins, "margins"))
+        return _convert({"verdict": value, "margins": margins}, Verdict, "verdict")
+    if not isinstance(value, dict):
+        raise ValueError(f"verdict: expected an object or a string, got {type(value).__name__}")
+    if "margins" in value:
+        value = {**value, "margins": _nan_for_null(value["margins"])}
+    return _convert(value, Verdict, "verdict")

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import threading
 import time
 from typing import Any
@@ -21,7 +20,7 @@ import msgspec
 from controller import protocol as proto
 from controller.core.config import LoopConfig, config_from_builtins
 from controller.core.errors import ConfigError
-from controller.core.verdict import margins_dict
+from controller.core.verdict import Verdict
 from controller.gate.knowledge import KnowledgeRecord
 from controller.process.access import Access
 from controller.process.analysis_worker import AnalysisWorker
@@ -33,6 +32,7 @@ from controller.process.persistence import (
     ChangeLogError,
     PersistenceError,
     StateStore,
+    verdict_of_change,
 )
 from controller.process.requests import ApplyCoefficients, RequestBody, RunProgram
 from controller.process.runtime import ESTOP, FAULT, Runtime, Ticket
@@ -57,6 +57,12 @@ def config_changes(old: LoopConfig, new: LoopConfig) -> str:
     return ", ".join(diff) or "no change"
 
 
+def _entry_name(item: dict[str, Any]) -> str:
+    """How a change-log line is named in a message: by its version if it has one."""
+    v = item.get("version")
+    return f"v{v}" if isinstance(v, int) and not isinstance(v, bool) else "an entry"
+
+
 class ControllerService:
     """The request handlers of one controller (any worker thread; applies one at a time)."""
 
@@ -66,7 +72,7 @@ class ControllerService:
         runtime: Runtime,
         store: StateStore,
         worker: AnalysisWorker,
-        margins: proto.VerdictMargins,
+        verdict: Verdict,
         notes: list[str],
         knowledge: KnowledgeRecord | None = None,
         access: Access | None = None,
@@ -75,7 +81,6 @@ class ControllerService:
         self.rt = runtime
         self.store = store
         self.worker = worker
-        self.margins = margins
         self.notes = notes
         self._warnings: dict[str, tuple[str, int]] = {}  # key -> (text, count)
         self._warn_lock = threading.Lock()
@@ -87,10 +92,11 @@ class ControllerService:
         #: The plant knowledge every candidate is judged on (the controller owns it; replaced
         #: whole under the apply lock, so an apply and a change of knowledge never interleave).
         self.knowledge = knowledge if knowledge is not None else KnowledgeRecord()
-        #: The gate's verdict on the running configuration, on that knowledge.
-        self.running_verdict = "accept"
-        #: Margins and verdict of the configuration the watchdog would roll back to.
-        self._fallback_state: tuple[proto.VerdictMargins, str, LoopConfig] | None = None
+        #: The gate's verdict on the running configuration (re-judged on new knowledge).
+        self.running_verdict = verdict
+        #: The verdict of the configuration the watchdog would roll back to, and the
+        #: configuration it would roll back from.
+        self._fallback_state: tuple[Verdict, LoopConfig] | None = None
         self._rollbacks_seen = 0
         self._rollback_lock = threading.Lock()
         #: A rollback not saved yet: (config, version, from version, bad config, trip kind).
@@ -139,7 +145,7 @@ class ControllerService:
         return proto.ConfigReply(**kw)
 
     def active_config(self) -> proto.ConfigReply:
-        return self.config_reply(accepted=True, margins=self.margins)
+        return self.config_reply(accepted=True, verdict=self.running_verdict)
 
     def _rejected(self, client: str, reasons: list[str], **kw: Any) -> proto.ConfigReply:
         """A rejection (under the apply lock). A client that repeats the same rejected
@@ -199,29 +205,27 @@ class ControllerService:
             record = self.knowledge
             verdict, coefficients = self.worker.check_and_build(
                 candidate, version, record, build=not same)
-            margins = verdict.margins
-            judged = {"verdict": verdict.verdict, "knowledge_version": record.version}
             if not verdict.applicable:
-                return self._rejected(client, list(verdict.reasons), margins=margins, **judged)
+                return self._rejected(client, list(verdict.reasons), verdict=verdict)
             if verdict.verdict == "caution" and not confirm:
                 reasons = [*verdict.reasons, "confirm: the verdict is caution; send the request "
                            "again with confirm true to apply it anyway"]
-                return self._rejected(client, reasons, margins=margins, field="confirm", **judged)
+                return self._rejected(client, reasons, verdict=verdict, field="confirm")
             if same or coefficients is None:
-                return self.config_reply(accepted=True, margins=margins, **judged)
+                return self.config_reply(accepted=True, verdict=verdict)
             try:
                 # Saved with its change-log line (both on disk before the swap: the log
                 # names what a restart comes back on).
                 self.store.save(candidate, version, Change(
-                    old=active.config, old_version=active.version,
-                    margins=margins_dict(margins), client=client, verdict=verdict.verdict))
+                    old=active.config, old_version=active.version, verdict=verdict,
+                    client=client))
             except ChangeLogError as exc:
                 self.warn(str(exc))
             except PersistenceError as exc:
                 reason = f"state_dir: not applied, the configuration could not be saved: {exc}"
                 self.warn(reason)
                 return self.config_reply(
-                    accepted=False, reasons=[reason], margins=margins, field="state_dir"
+                    accepted=False, reasons=[reason], verdict=verdict, field="state_dir"
                 )
             # The filters are built here (this thread); the tick only swaps them in. The
             # configuration running now goes with them, under the next version, as the
@@ -232,12 +236,11 @@ class ControllerService:
                 # Saved but not (yet) swapped: only while shutting down. Report it.
                 reason = f"loop: not applied at a tick boundary ({ticket.message or 'timeout'})"
                 self.warn(reason)
-                return self.config_reply(accepted=False, reasons=[reason], margins=margins)
+                return self.config_reply(accepted=False, reasons=[reason], verdict=verdict)
             self._wait_version(version)
             self.clear_warning(KNOWLEDGE_NOTE)  # it judged the configuration replaced now
-            self._fallback_state = (self.margins, self.running_verdict, candidate)
-            self.margins = margins
-            self.running_verdict = verdict.verdict
+            self._fallback_state = (self.running_verdict, candidate)
+            self.running_verdict = verdict
             log.info(
                 "config v%d applied at seq %d (from %s): %s",
                 version,
@@ -246,8 +249,8 @@ class ControllerService:
                 config_changes(active.config, candidate),
             )
             return self.config_reply(
-                accepted=True, version=version, config=candidate, margins=margins,
-                reasons=list(verdict.reasons), **judged,
+                accepted=True, version=version, config=candidate, verdict=verdict,
+                reasons=list(verdict.reasons),
             )
 
     # -- history -------------------------------------------------------------------------------
@@ -264,20 +267,24 @@ class ControllerService:
             return proto.HistoryReply(ok=False, field="state_dir",
                                       message=f"state_dir: the change log cannot be read: {exc}")
         entries = []
+        unread: list[str] = []
         for item in items:
             try:
-                m = item.get("margins")
                 entries.append(proto.HistoryEntry(
                     version=int(item["version"]), time_s=float(item.get("time_s") or 0.0),
-                    client=str(item.get("client", ""))[:200], verdict=str(item.get("verdict", "")),
+                    client=str(item.get("client", ""))[:200],
                     config=config_from_builtins(item["new"]),
-                    margins=None if not isinstance(m, dict) else msgspec.convert(
-                        {k: (math.nan if v is None else v) for k, v in m.items()},
-                        proto.VerdictMargins),
+                    verdict=verdict_of_change(item),
                 ))
-            except (KeyError, TypeError, ValueError, ConfigError, msgspec.ValidationError):
-                continue  # a line this version cannot read is skipped, not fatal
-        return proto.HistoryReply(ok=True, entries=entries)
+            except KeyError as exc:
+                unread.append(f"{_entry_name(item)}: {exc.args[0]}: missing")
+            except (TypeError, ValueError, ConfigError) as exc:
+                unread.append(f"{_entry_name(item)}: {exc}")
+        # A line this version cannot read is left out, and the reply says which and why.
+        message = "" if not unread else (
+            f"{len(unread)} entr{'y' if len(unread) == 1 else 'ies'} of the change log not "
+            f"shown ({'; '.join(unread[:3])[:600]})")
+        return proto.HistoryReply(ok=True, entries=entries, message=message)
 
     # -- watchdog ------------------------------------------------------------------------------
 
@@ -318,7 +325,7 @@ class ControllerService:
         self.warn(text)
         bad: LoopConfig | None = None
         if self._fallback_state is not None:
-            self.margins, self.running_verdict, bad = self._fallback_state
+            self.running_verdict, bad = self._fallback_state
             self._fallback_state = None
         superseded = active.version != to_v  # another change came first; logged on its own
         saved = superseded or self._save_rollback(active.config, to_v, from_v, bad, trip.kind)
@@ -336,7 +343,7 @@ class ControllerService:
         bring back v`from_v`, which the watchdog rolled back) and keep it for a retry."""
         try:
             self.store.save(config, version, Change(
-                old=bad, old_version=from_v, margins=margins_dict(self.margins),
+                old=bad, old_version=from_v, verdict=self.running_verdict,
                 client=f"watchdog rollback: {kind}"))
         except ChangeLogError as exc:
             self.warn(str(exc))
@@ -421,8 +428,7 @@ class ControllerService:
                      client or "a client")
             active = self.rt.loop.active
             verdict = self.worker.check(active.config, new)
-            self.margins = verdict.margins
-            self.running_verdict = verdict.verdict
+            self.running_verdict = verdict
             message = f"plant knowledge v{version} adopted"
             self.clear_warning(KNOWLEDGE_NOTE)  # about older knowledge: no longer so
             if verdict.verdict != "accept":
@@ -533,7 +539,6 @@ class ControllerService:
             notes=[*self.notes, *self.errors, *extra_notes],
             knowledge_version=self.knowledge.version,
             knowledge=self.knowledge_description(),
-            margins=self.margins,
             verdict=self.running_verdict,
             watchdog=self.watchdog_text,
             rollbacks=rollbacks,

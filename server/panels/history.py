@@ -11,7 +11,9 @@ from typing import Any
 from controller import protocol as proto
 from controller.client import ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig
+from controller.core.verdict import kind_of
 from server.escape import esc
+from server.panels.bode import fmt_value
 from server.panels.nominal_tuning import NominalTuningPanel
 from server.panels.tuning import config_diff_html
 from server.session import tell
@@ -63,16 +65,19 @@ class HistoryPanel:
         self.versions = {e.version: e.config for e in reply.entries}
         rows = []
         for e in reversed(reply.entries):
-            m = e.margins
-            pm = f"{m.phase_margin_deg:.1f}" if m is not None else "-"
-            gm = f"{m.gain_margin_db:.1f}" if m is not None else "-"
+            v = e.verdict
+            pm = fmt_value(v.margins.phase_margin_deg, 1) if v is not None else "-"
+            gm = fmt_value(v.margins.gain_margin_db, 1) if v is not None else "-"
+            why = f" title='{esc('; '.join(v.reasons))}'" if v is not None and v.reasons else ""
             when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(e.time_s))
             rows.append(f"<tr><td>v{e.version}</td><td>{esc(when)}</td><td>{esc(e.client)}</td>"
-                        f"<td>{esc(e.verdict or '-')}</td><td>{pm}</td><td>{gm}</td>"
+                        f"<td{why}>{esc(kind_of(v))}</td><td>{pm}</td><td>{gm}</td>"
                         f"<td>{esc(e.config.q_type)} {e.config.q_cutoff_hz:g} Hz</td></tr>")
+        note = (f"<div class='dt-history-note'>{esc(reply.message)}</div>"
+                if reply.message else "")
         self.table.content = (
-            "<div class='dt-history' style='font-size:12px'><table><tr><th>ver</th><th>when"
-            "</th><th>who</th><th>verdict</th><th>PM</th><th>GM</th><th>Q</th></tr>"
+            "<div class='dt-history' style='font-size:12px'>" + note + "<table><tr><th>ver"
+            "</th><th>when</th><th>who</th><th>verdict</th><th>PM</th><th>GM</th><th>Q</th></tr>"
             + "".join(rows) + "</table></div>")
         options = tuple(f"v{v}" for v in sorted(self.versions, reverse=True)) or ("-",)
         self.pick.options = options

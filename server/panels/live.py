@@ -19,6 +19,7 @@ import numpy as np
 from controller import protocol as proto
 from controller.client import ControllerClient
 from controller.core.trajectory import TRAJECTORY_KINDS, default_trajectory
+from controller.core.verdict import kind_of
 from server import charts
 from server.alarms import AlarmBoard, alarms_html
 from server.escape import esc
@@ -39,6 +40,15 @@ def window_metrics(error_deg: np.ndarray) -> tuple[float, float]:
 def banner_html(client: ControllerClient) -> str:
     """The connection / mode banner: red when the controller is gone or e-stopped."""
     st = client.status
+    mismatch = client.counters.version_mismatch
+    if st is None and mismatch:
+        return _banner(
+            "#b71c1c",
+            f"CONTROLLER OF ANOTHER VERSION &mdash; rig '{esc(client.opts.rig_name)}' on "
+            f"{esc(', '.join(client.opts.connect))} sends messages this dashboard cannot "
+            f"read ({esc(mismatch)}). Nothing can be applied.",
+            "dt-banner dt-gone dt-version",
+        )
     if st is None:
         return _banner(
             "#616161",
@@ -74,10 +84,17 @@ def banner_html(client: ControllerClient) -> str:
     return _banner(
         "#2e7d32",
         f"Connected: rig <b>{esc(st.rig)}</b> ({esc(st.plant)}), {esc(st.mode)}, config "
-        f"v{st.config_version} ({esc(st.verdict or '-')} on knowledge "
-        f"{esc(st.knowledge or '-')}); {auth}{lease}",
+        f"v{st.config_version} ({esc(_judged(st))}); {auth}{lease}",
         "dt-banner dt-ok",
     )
+
+
+def _judged(st: proto.Status) -> str:
+    """The running configuration's verdict and the knowledge it was judged on."""
+    v, now = st.verdict, st.knowledge or "-"
+    if v is None or v.knowledge_version == st.knowledge_version:
+        return f"{kind_of(v)} on knowledge {now}"
+    return f"{v.verdict} on knowledge v{v.knowledge_version}; the knowledge is now {now}"
 
 
 def _banner(bg: str, html: str, cls: str) -> str:

@@ -179,10 +179,11 @@ def breakdown(plant: PlantKnowledge, new: list[LoopConfig], get_ms: float) -> No
 
     with tempfile.TemporaryDirectory(prefix="dobtune-bench-") as d:
         store = StateStore(Path(d))
+        verdict = judge(LoopConfig(), plant)  # what a line of the change log carries
 
         def persist(cfg: LoopConfig, v: int, prev: LoopConfig) -> None:
-            store.save(cfg, v, Change(old=prev, old_version=v - 1, margins=None,
-                                      client="bench", verdict="accept"))
+            store.save(cfg, v, Change(old=prev, old_version=v - 1, verdict=verdict,
+                                      client="bench"))
 
         prev = LoopConfig()
         for v, cfg in enumerate(new, start=2):

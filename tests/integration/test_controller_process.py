@@ -28,6 +28,7 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 
 STREAM_S = float(os.environ.get("DOBTUNE_STREAM_S", "10"))
 ENC = msgspec.msgpack.encode
+V = proto.PROTOCOL_VERSION  # the version this side speaks
 
 
 def _active_file(proc: ControllerProcess) -> bytes:
@@ -87,7 +88,7 @@ def test_accepted_candidate_shows_in_the_stream_within_100_ms(
         assert reply.accepted, reply.reasons
         assert reply.version == before.version + 1
         assert reply.config == candidate
-        assert reply.margins is not None and reply.margins.phase_margin_deg > 30.0
+        assert reply.verdict is not None and reply.verdict.margins.phase_margin_deg > 30.0
 
         def new_version_seen() -> bool:
             return any(b.config_version == reply.version for _, b in col.batches())
@@ -107,7 +108,9 @@ def test_accepted_candidate_shows_in_the_stream_within_100_ms(
     log = (controller.state_dir / "applied_changes.jsonl").read_text().splitlines()
     last = json.loads(log[-1])
     assert last["version"] == reply.version and last["old"]["q_cutoff_hz"] == 0.8
-    assert last["new"]["q_cutoff_hz"] == 1.0 and last["margins"]["phase_margin_deg"] > 30
+    assert last["new"]["q_cutoff_hz"] == 1.0
+    assert last["verdict"]["margins"]["phase_margin_deg"] > 30  # the whole verdict, logged
+    assert reply.verdict is not None and last["verdict"]["verdict"] == reply.verdict.verdict
 
 
 def test_rejected_candidate_leaves_the_active_config_byte_identical(
@@ -119,7 +122,8 @@ def test_rejected_candidate_leaves_the_active_config_byte_identical(
     assert not reply.accepted
     assert reply.reasons and any("unstable" in r or "margin" in r for r in reply.reasons)
     assert reply.version == before.version
-    assert reply.margins is not None
+    assert reply.verdict is not None and reply.verdict.verdict == "reject"
+    assert list(reply.verdict.reasons) == reply.reasons  # the gate's reasons, nested and listed
     after = client.get_config()
     assert proto.encode(after.config) == proto.encode(before.config)
     assert after.version == before.version
@@ -130,12 +134,12 @@ def test_rejected_candidate_leaves_the_active_config_byte_identical(
 
 
 def _cfg(**changes: object) -> dict[str, object]:
-    return {"v": 1, "candidate": changes}
+    return {"v": V, "candidate": changes}
 
 
 HOSTILE_CONFIG: list[tuple[str, bytes, str]] = [
     ("garbage bytes", b"\xc1\xff\x00garbage", "payload"),
-    ("truncated map", ENC({"v": 1, "candidate": {"cv_kp": 1.0}})[:-3], "payload"),
+    ("truncated map", ENC({"v": V, "candidate": {"cv_kp": 1.0}})[:-3], "payload"),
     ("not a map", ENC([1, 2, 3]), "payload"),
     ("unknown version", ENC({"v": 99, "candidate": {}}), "v"),
     ("missing version", ENC({"candidate": {}}), "v"),
@@ -151,24 +155,24 @@ HOSTILE_CONFIG: list[tuple[str, bytes, str]] = [
     ("short polynomial", ENC(_cfg(nominal={"mn_den": [1.0, 2.0]})), "candidate.nominal.mn_den"),
     ("unstable model", ENC(_cfg(nominal={"pn_den": [1.0, 0.1, -1.0]})), "candidate.nominal.pn_den"),
     ("rate change", ENC(_cfg(rate_hz=500.0)), "candidate.rate_hz"),
-    ("huge payload", ENC({"v": 1, "client": "x" * 200_000}), "payload"),
+    ("huge payload", ENC({"v": V, "client": "x" * 200_000}), "payload"),
     ("deep nesting", b"\x81\xa1v" + b"\x91" * 5000 + b"\x01", "payload"),
 ]
 
 HOSTILE_COMMAND: list[tuple[str, bytes, str]] = [
-    ("unknown command", ENC({"v": 1, "body": {"type": "self_destruct"}}), "body.type"),
-    ("no body", ENC({"v": 1}), "body"),
-    ("untagged body", ENC({"v": 1, "body": {}}), "body"),
+    ("unknown command", ENC({"v": V, "body": {"type": "self_destruct"}}), "body.type"),
+    ("no body", ENC({"v": V}), "body"),
+    ("untagged body", ENC({"v": V, "body": {}}), "body"),
     (
         "bad trajectory",
-        ENC({"v": 1, "body": {"type": "trajectory", "trajectory": {"kind": "zigzag"}}}),
+        ENC({"v": V, "body": {"type": "trajectory", "trajectory": {"kind": "zigzag"}}}),
         "body.trajectory.kind",
     ),
     (
         "NaN amplitude",
         ENC(
             {
-                "v": 1,
+                "v": V,
                 "body": {"type": "trajectory", "trajectory": {"amplitude_deg": float("nan")}},
             }
         ),
@@ -344,9 +348,9 @@ def _flood(controller: ControllerProcess, client: Client, threading: Any) -> Non
     counts = [0] * 4
     payloads = [
         None,
-        ENC({"v": 1, "candidate": {"cv_kp": 30.0}}),
+        ENC({"v": V, "candidate": {"cv_kp": 30.0}}),
         b"\xc1garbage",
-        ENC({"v": 1, "body": {"type": "launch"}}),
+        ENC({"v": V, "body": {"type": "launch"}}),
     ]
 
     def hammer(i: int) -> None:

@@ -43,6 +43,7 @@ from server.demo import router_command
 
 RIG = "hostile"
 ENC = msgspec.msgpack.encode
+V = proto.PROTOCOL_VERSION  # the version this side speaks
 XSS = '<script>alert("x")</script><img src=x onerror=alert(1)>'
 
 
@@ -332,14 +333,14 @@ def _raw(env: dict[str, Any], user: str, key: str, payload: bytes, timeout_s: fl
 
 GARBAGE: list[tuple[str, str, bytes, str]] = [
     ("config garbage", "config", b"\xc1\xff\x00", "payload"),
-    ("config oversized", "config", ENC({"v": 1, "client": "x" * 200_000}), "payload"),
-    ("config unknown field", "config", ENC({"v": 1, "candidate": {}, "sudo": True}), "sudo"),
-    ("config NaN", "config", ENC({"v": 1, "candidate": {"cv_kp": math.nan}}), "candidate.cv_kp"),
-    ("config bad utf-8", "config", b"\x82\xa1v\x01\xa6client\xa2\xff\xfe", "payload"),
+    ("config oversized", "config", ENC({"v": V, "client": "x" * 200_000}), "payload"),
+    ("config unknown field", "config", ENC({"v": V, "candidate": {}, "sudo": True}), "sudo"),
+    ("config NaN", "config", ENC({"v": V, "candidate": {"cv_kp": math.nan}}), "candidate.cv_kp"),
+    ("config bad utf-8", "config", b"\x82\xa1v\x02\xa6client\xa2\xff\xfe", "payload"),
     ("config deep nesting", "config", b"\x81\xa1v" + b"\x91" * 5000 + b"\x01", "payload"),
-    ("config wrong version", "config", ENC({"v": 2}), "v"),
-    ("cmd unknown body", "cmd", ENC({"v": 1, "body": {"type": "self_destruct"}}), "body.type"),
-    ("cmd unknown field", "cmd", ENC({"v": 1, "body": {"type": "start", "now": 1}}), "body.now"),
+    ("config wrong version", "config", ENC({"v": 1}), "v"),
+    ("cmd unknown body", "cmd", ENC({"v": V, "body": {"type": "self_destruct"}}), "body.type"),
+    ("cmd unknown field", "cmd", ENC({"v": V, "body": {"type": "start", "now": 1}}), "body.now"),
     ("knowledge garbage", "knowledge", b"\x00\x01", "payload"),
     ("lease garbage", "lease", b"\x93\x01", "payload"),
 ]
@@ -374,7 +375,7 @@ def test_requests_outside_the_own_scope_get_no_reply(
     env: dict[str, Any], op1: ControllerClient, user: str, key: str
 ) -> None:
     before = _state(op1)
-    payload = ENC({"v": 1, "candidate": {"q_cutoff_hz": 0.7}})
+    payload = ENC({"v": V, "candidate": {"q_cutoff_hz": 0.7}})
     assert _raw(env, user, key, payload, timeout_s=1.0) is None
     assert _state(op1) == before
 
@@ -383,7 +384,7 @@ def test_a_wildcard_put_changes_nothing(env: dict[str, Any], op1: ControllerClie
     before = _state(op1)
     conf = client_config(env["auth"], "op2", [env["proc"].endpoint], fail_after_s=10.0)
     with zenoh.open(conf) as s:
-        s.put(f"{proto.KEY_PREFIX}/**", ENC({"v": 1, "body": {"type": "stop"}}))
+        s.put(f"{proto.KEY_PREFIX}/**", ENC({"v": V, "body": {"type": "stop"}}))
     time.sleep(0.3)  # nothing to wait for: the assertion is that nothing happens
     assert _state(op1) == before
 

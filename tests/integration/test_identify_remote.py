@@ -213,7 +213,8 @@ def test_malformed_identify_start_is_rejected_naming_the_field(
     """Every case against one controller (one start instead of eight: ~10 s each in CI)."""
     for spec, field in MALFORMED:
         payload = msgspec.msgpack.encode(
-            {"v": 1, "body": {"type": "identify_start", "spec": spec}, "client": "t"}
+            {"v": proto.PROTOCOL_VERSION, "body": {"type": "identify_start", "spec": spec},
+             "client": "t"}
         )
         reply = client.command_raw(payload)
         assert not reply.ok and reply.field == field, (spec, reply)

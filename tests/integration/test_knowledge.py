@@ -20,11 +20,14 @@ from procs import Client, ControllerProcess, port_is_free, wait_until
 
 from controller import protocol as proto
 from controller.core.config import LoopConfig, NominalModel
+from controller.core.verdict import kind_of
 from controller.gate.knowledge import KnowledgeRecord, MeasuredRecord
 from controller.gate.loop_model import nominal_continuous_response
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: the independent truth
 from fuzz_truth import TruePlant, truth
+
+V = proto.PROTOCOL_VERSION  # the version this side speaks
 
 ARTICLE = NominalModel()
 
@@ -53,14 +56,14 @@ def test_a_lying_nominal_is_judged_on_the_controllers_model(
     assert not truth(TruePlant(), cand).stable  # the independent truth: unstable
     before = client.get_config()
     reply = _apply(client, cand, confirm=True)
-    assert not reply.accepted and reply.verdict == "reject"
+    assert not reply.accepted and kind_of(reply.verdict) == "reject"
     assert any("simulated rig model" in r for r in reply.reasons), reply.reasons
     assert client.get_config().version == before.version
     # A P-only speed and position loop (zero integral gains) is a valid configuration.
     p_only = LoopConfig(cv_ki_per_s=0.0, pos_ki_per_s=0.0)
     assert truth(TruePlant(), p_only).stable
     reply = _apply(client, p_only, confirm=True)
-    assert reply.accepted and reply.verdict in ("accept", "caution"), reply.reasons
+    assert reply.accepted and kind_of(reply.verdict) in ("accept", "caution"), reply.reasons
 
 
 def test_a_caution_applies_only_with_confirm(controller: ControllerProcess, client: Client) -> None:
@@ -69,16 +72,18 @@ def test_a_caution_applies_only_with_confirm(controller: ControllerProcess, clie
     # chatters at standstill without decaying: rejected since, not cautioned).
     cand = before.config.with_(cv_kp=2.0, q_cutoff_hz=5.0)
     reply = _apply(client, cand)
-    assert not reply.accepted and reply.verdict == "caution" and reply.field == "confirm"
+    assert not reply.accepted and kind_of(reply.verdict) == "caution" and reply.field == "confirm"
     assert client.get_config().version == before.version
     assert any("whole servo" in r for r in reply.reasons)
     reply = _apply(client, cand, confirm=True)
-    assert reply.accepted and reply.verdict == "caution" and reply.version == before.version + 1
-    assert reply.knowledge_version == 1
+    assert reply.accepted and kind_of(reply.verdict) == "caution"
+    assert reply.version == before.version + 1
+    assert reply.verdict is not None and reply.verdict.knowledge_version == 1
     st = client.fresh_status()
-    assert st.config_version == reply.version and st.verdict == "caution"
+    assert st.config_version == reply.version and st.verdict == reply.verdict  # the same one
     assert st.knowledge_version == 1 and "simulated rig model" in st.knowledge
-    assert st.margins is not None and st.margins.phase_margin_deg > 0
+    assert st.verdict is not None and st.verdict.margins.phase_margin_deg > 0
+    assert st.verdict.cautions
 
 
 def test_knowledge_is_adopted_numbered_persisted_and_hostile_records_refused(
@@ -104,11 +109,12 @@ def test_knowledge_is_adopted_numbered_persisted_and_hostile_records_refused(
         assert "now judged reject" in reply.message
         assert not truth(TruePlant(gain=40.0), LoopConfig()).stable
         st = c.fresh_status()
-        assert st.knowledge_version == 2 and st.verdict == "reject"
+        assert st.knowledge_version == 2 and kind_of(st.verdict) == "reject"
+        assert st.verdict is not None and st.verdict.knowledge_version == 2  # re-judged on it
         assert any("now judged reject" in n for n in st.notes)
         # Any candidate is now judged on the measured response.
         r = _apply(c, LoopConfig(q_cutoff_hz=0.6), confirm=True)
-        assert not r.accepted and r.knowledge_version == 2
+        assert not r.accepted and r.verdict is not None and r.verdict.knowledge_version == 2
         assert any("measured response 'pos0'" in x for x in r.reasons), r.reasons
         # Hostile records: refused naming the field, nothing adopted.
         bad_f = [*f.tolist()[:-1], float("nan")]
@@ -124,8 +130,8 @@ def test_knowledge_is_adopted_numbered_persisted_and_hostile_records_refused(
             assert not out.ok and out.field == "record" and out.record.version == 2, out
         for payload, field in (
             (b"\xc1garbage", "payload"),
-            (msgspec.msgpack.encode({"v": 1, "recrod": {}}), "recrod"),
-            (msgspec.msgpack.encode({"v": 1, "adopt_run": 3}), "adopt_run"),
+            (msgspec.msgpack.encode({"v": V, "recrod": {}}), "recrod"),
+            (msgspec.msgpack.encode({"v": V, "adopt_run": 3}), "adopt_run"),
         ):
             out = proto.decode(c.query_raw(proto.key_knowledge(c.rig), payload),
                                proto.KnowledgeReply)
