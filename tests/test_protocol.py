@@ -6,6 +6,7 @@ import math
 
 import msgspec
 import pytest
+from statuses import status
 
 from controller import protocol as proto
 from controller.core.config import LoopConfig
@@ -75,29 +76,20 @@ VERDICT = Verdict(verdict="caution", rejections=(), cautions=("phase margin 28 d
                   knowledge="plant knowledge v4 (identification run 2: ...)", knowledge_version=4)
 
 
-def _status(**kw: object) -> proto.Status:
-    timing = proto.Timing(period_p50_us=1000.0, period_p99_us=1010.0, period_max_us=1100.0,
-                          compute_p50_us=10.0, compute_p99_us=20.0, compute_max_us=30.0,
-                          ticks=5, overruns=0, skipped_ticks=0)
-    return proto.Status(rig="r", plant="sim", mode="running", t_s=1.0, seq=5,
-                        trajectory=Trajectory(), config_version=3, config=LoopConfig(),
-                        timing=timing, faults=[], **kw)  # type: ignore[arg-type]
-
-
 def test_round_trip_of_each_message_with_a_nested_verdict() -> None:
     reply = proto.ConfigReply(accepted=True, version=3, config=LoopConfig(q_cutoff_hz=0.8),
                               reasons=list(VERDICT.reasons), verdict=VERDICT)
-    status = _status(knowledge_version=4, knowledge="v4 ...", verdict=VERDICT)
+    st = status(knowledge_version=4, knowledge="v4 ...", verdict=VERDICT)
     history = proto.HistoryReply(ok=True, entries=[
         proto.HistoryEntry(version=1, time_s=1.0, client="startup (defaults)",
                            config=LoopConfig()),  # a change logged without a verdict
         proto.HistoryEntry(version=2, time_s=2.0, client="alice", config=LoopConfig(),
                            verdict=VERDICT),
     ])
-    for msg in (reply, status, history):
+    for msg in (reply, st, history):
         back = proto.decode(proto.encode(msg), type(msg))
         assert back == msg, type(msg).__name__
-    got = proto.decode(proto.encode(status), proto.Status).verdict
+    got = proto.decode(proto.encode(st), proto.Status).verdict
     assert isinstance(got, Verdict) and got.margins.gain_margin_db == math.inf
     assert got.reasons == VERDICT.reasons and got.knowledge_version == 4
     # The wire form is the Verdict's own fields, nested under `verdict` (no copies beside it).
@@ -143,7 +135,7 @@ def test_a_malformed_nested_verdict_is_rejected_naming_the_field(
         version=1, time_s=1.0, client="a", config=LoopConfig(), verdict=VERDICT)])
     cases: list[tuple[bytes, type[proto.Message], str]] = [
         (_with(reply, path, value), proto.ConfigReply, field),
-        (_with(_status(verdict=VERDICT), path, value), proto.Status, field),
+        (_with(status(verdict=VERDICT), path, value), proto.Status, field),
         (_with(history, ("entries", 0, *path), value), proto.HistoryReply, f"entries[0].{field}"),
     ]
     for payload, kind, named in cases:
@@ -158,7 +150,7 @@ def test_a_message_of_an_older_peer_is_refused_naming_both_versions() -> None:
     margins = msgspec.to_builtins(MARGINS)
     old_reply = {"v": 1, "accepted": True, "version": 3, "config": {}, "reasons": [],
                  "margins": margins, "field": "", "verdict": "accept", "knowledge_version": 4}
-    old_status = {**msgspec.to_builtins(_status()), "v": 1, "margins": margins,
+    old_status = {**msgspec.to_builtins(status()), "v": 1, "margins": margins,
                   "verdict": "accept"}
     old_history = {"v": 1, "ok": True, "entries": [{"version": 1, "time_s": 1.0, "client": "a",
                                                     "verdict": "accept", "config": {},
