@@ -22,10 +22,11 @@ import zenoh
 from helpers import free_port, port_is_free, wait_until
 
 from controller import protocol as proto
+from controller.client.controller_client import ClientOptions
 from controller.client.session import SessionOptions, connect
 from controller.core.config import LoopConfig
 
-__all__ = ["REPO", "Client", "ControllerProcess", "free_port", "port_is_free",
+__all__ = ["APPLY_TIMEOUT_S", "REPO", "Client", "ControllerProcess", "free_port", "port_is_free",
            "start_controller", "wait_until"]
 
 REPO = Path(__file__).resolve().parents[2]
@@ -167,6 +168,10 @@ class StateCollector:
         return wait_until(lambda: self.last_seq() >= seq, timeout_s)
 
 
+#: How long an apply may take before its reply (the dashboard's and `dobtune ctl`'s wait).
+APPLY_TIMEOUT_S = ClientOptions().apply_timeout_s
+
+
 class Client:
     """The test's own Zenoh peer connected to one controller."""
 
@@ -235,8 +240,12 @@ class Client:
             raise ClientError(f"error reply: {reply.err.payload.to_string()}")
         raise ClientError(f"no reply on {key} within {t} s")
 
-    def config_raw(self, payload: bytes | None) -> proto.ConfigReply:
-        return proto.decode(self.query_raw(proto.key_config(self.rig), payload), proto.ConfigReply)
+    def config_raw(self, payload: bytes | None,
+                   timeout_s: float | None = None) -> proto.ConfigReply:
+        """A config request (waiting `timeout_s`, default the client's; an apply: pass
+        APPLY_TIMEOUT_S, the gate may take over 5 s at load 20+)."""
+        return proto.decode(self.query_raw(proto.key_config(self.rig), payload, timeout_s),
+                            proto.ConfigReply)
 
     def command_raw(self, payload: bytes) -> proto.CommandReply:
         return proto.decode(
@@ -248,7 +257,7 @@ class Client:
 
     def apply(self, candidate: LoopConfig) -> proto.ConfigReply:
         return self.config_raw(
-            proto.encode(proto.ConfigRequest(candidate=candidate, client="test"))
+            proto.encode(proto.ConfigRequest(candidate=candidate, client="test")), APPLY_TIMEOUT_S
         )
 
     def command(self, body: proto.CommandBody) -> proto.CommandReply:

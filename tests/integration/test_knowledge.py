@@ -16,7 +16,7 @@ from pathlib import Path
 
 import msgspec
 import numpy as np
-from procs import Client, ControllerProcess, port_is_free, wait_until
+from procs import APPLY_TIMEOUT_S, Client, ControllerProcess, port_is_free, wait_until
 
 from controller import protocol as proto
 from controller.core.config import LoopConfig, NominalModel
@@ -41,7 +41,7 @@ def _knowledge(c: Client, req: proto.KnowledgeRequest | None = None) -> proto.Kn
 
 def _apply(c: Client, cand: LoopConfig, confirm: bool = False) -> proto.ConfigReply:
     req = proto.ConfigRequest(candidate=cand, client="test", confirm=confirm)
-    return c.config_raw(proto.encode(req))
+    return c.config_raw(proto.encode(req), APPLY_TIMEOUT_S)
 
 
 def test_a_lying_nominal_is_judged_on_the_controllers_model(

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from procs import Client, ControllerProcess, wait_until
+from procs import APPLY_TIMEOUT_S, Client, ControllerProcess, wait_until
 
 from controller import protocol as proto
 from controller.cli.inputs import load_config
@@ -52,7 +52,7 @@ def test_a_plant_change_trips_the_watchdog_rollback_then_fault(
     # Cv 1.0: stable on the model, thin margins in the whole servo (a caution: confirmed) ...
     stiff = first.config.with_(cv_kp=1.0)
     reply = client.config_raw(proto.encode(
-        proto.ConfigRequest(candidate=stiff, client="test", confirm=True)))
+        proto.ConfigRequest(candidate=stiff, client="test", confirm=True)), APPLY_TIMEOUT_S)
     assert reply.accepted and kind_of(reply.verdict) == "caution", reply.reasons
     # ... which a drive gain x5 takes (the python-control truth: unstable from x4): the loop
     # starts to oscillate.
