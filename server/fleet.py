@@ -59,7 +59,9 @@ def fleet_table_html(rows: list[RigRow]) -> str:
             f"<td>{ver}</td><td>{rms}</td><td>{sparkline_svg(r.trace)}<br>"
             f"<span style='color:#888'>&plusmn;{peak:.3g} deg</span></td>"
             f"<td>{esc(r.operator) or '-'}</td>"
-            f"<td style='color:#d62728'>{esc('; '.join(r.faults)) or '-'}</td></tr>")
+            f"<td style='color:#d62728'>{esc('; '.join(r.faults)) or '-'}"
+            + (f"<br><span class='dt-fleet-unread'>status not read: {esc(r.unread)}</span>"
+               if r.unread else "") + "</td></tr>")
     return ("<div class='dt-fleet' style='font-size:12px'><table><tr><th>rig</th><th>state</th>"
             "<th>config</th><th>error RMS (deg)</th><th>error, last 3 s</th><th>lease</th>"
             "<th>faults</th></tr>" + "".join(body) + "</table></div>")

@@ -255,7 +255,7 @@ def _rigs(args: argparse.Namespace, out: TextIO) -> int:
         rows: list[dict[str, Any]] = [{
             "rig": r.rig, "mode": r.mode, "plant": r.plant,
             "config_version": r.config_version, "error_rms_deg": finite(r.error_rms_deg),
-            "faults": list(r.faults), "operator": r.operator,
+            "faults": list(r.faults), "operator": r.operator, "unread": r.unread,
         } for r in fleet.rows() if r.alive]
     if args.json:
         out.write(json.dumps(rows) + "\n")
@@ -264,7 +264,8 @@ def _rigs(args: argparse.Namespace, out: TextIO) -> int:
             err = "-" if r["error_rms_deg"] is None else f"{r['error_rms_deg']:.4f} deg"
             out.write(f"{r['rig']}: {r['mode'] or '?'} ({r['plant'] or '?'}), config "
                       f"v{r['config_version']}, error RMS {err}, lease {r['operator'] or '-'}, "
-                      f"faults {'; '.join(r['faults']) or '-'}\n")
+                      f"faults {'; '.join(r['faults']) or '-'}"
+                      + (f", status not read: {r['unread']}" if r["unread"] else "") + "\n")
         if not rows:
             out.write("no rig reachable\n")
     return EXIT_OK

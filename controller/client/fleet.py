@@ -41,12 +41,16 @@ class RigRow:
     operator: str
     status_age_s: float | None
     trace: tuple[float, ...]  #: the latest error samples (decimated), oldest first
+    #: Why its latest status could not be read ("" it could): e.g. a controller of another
+    #: protocol version ("v: unsupported protocol version 1; this side speaks 2 ...").
+    unread: str = ""
 
 
 @dataclass
 class _Rig:
     status: proto.Status | None = None
     status_at: float = 0.0
+    unread: str = ""
     trace: deque[float] | None = None
     next_keep: int = 0  #: the next sequence number kept in the trace
 
@@ -111,8 +115,11 @@ class FleetMonitor:
         rig = proto.rig_of_key(sample.key_expr)
         try:
             msg = proto.decode(sample.payload.to_bytes(), kind)
-        except proto.ProtocolError:
+        except proto.ProtocolError as exc:
             self.decode_errors += 1
+            if kind is proto.Status:
+                with self._lock:
+                    self._rigs.setdefault(rig, _Rig()).unread = str(exc)[:300]
             return None
         if msg.rig != rig:
             self.decode_errors += 1
@@ -126,7 +133,7 @@ class FleetMonitor:
         rig, st = got
         with self._lock:
             r = self._rigs.setdefault(rig, _Rig())
-            r.status, r.status_at = st, time.monotonic()
+            r.status, r.status_at, r.unread = st, time.monotonic(), ""
 
     def _on_state(self, sample: Any) -> None:
         got = self._own(sample, proto.StateBatch)
@@ -170,7 +177,8 @@ class FleetMonitor:
                     config_version=st.config_version if st else None,
                     error_rms_deg=rms, faults=tuple(st.faults) if st else (),
                     operator=st.operator if st else "",
-                    status_age_s=(now - r.status_at) if st else None, trace=trace))
+                    status_age_s=(now - r.status_at) if st else None, trace=trace,
+                    unread=r.unread))
         return out
 
     def estop(self, rig: str) -> None:

@@ -16,8 +16,10 @@ from helpers import wait_for
 
 from controller import protocol as proto
 from controller.client import ControllerClient
+from controller.core.verdict import kind_of
 from server.app import Dashboard
 from server.charts import LIVE_WINDOW_S
+from server.panels.bode import fmt_value
 
 pytestmark = pytest.mark.browser
 
@@ -267,6 +269,22 @@ def test_use_as_candidate_says_what_it_did(page: Any, probe: ControllerClient) -
     page.get_by_role("tab", name="History").click()
     v = probe.get_config().version
     page.wait_for_selector(".dt-history >> text=v" + str(v), timeout=60_000)
+    # The row shows the verdict the controller logged with that version (protocol 2: the one
+    # nested Verdict): its kind and its phase margin.
+    logged = probe.history(1).entries[-1]
+    assert logged.version == v
+    row = page.locator(".dt-history tr", has_text=f"v{v}").first.inner_text()
+    assert kind_of(logged.verdict) in row, (row, logged.verdict)
+    if logged.verdict is not None:
+        assert fmt_value(logged.verdict.margins.phase_margin_deg, 1) in row, row
+    # The banner (green while running or stopped without a fault) names the running
+    # configuration's verdict and the knowledge judged on.
+    st = probe.status
+    assert st is not None and st.verdict is not None
+    if st.mode in ("running", "stopped") and not st.faults:
+        page.wait_for_function(
+            "(t) => document.querySelector('.dt-banner')?.innerText.includes(t)",
+            arg=f"({st.verdict.verdict} on knowledge", timeout=30_000)
     page.get_by_role("button", name="Use as candidate").click()
     page.wait_for_selector(f"text=v{v} is now your candidate", timeout=30_000)
     page.get_by_role("tab", name="Tune").click()

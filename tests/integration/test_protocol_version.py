@@ -6,7 +6,8 @@ messages by their `v`, naming both versions; nothing is half-read, nothing crash
 - this client reaching an older controller (a real Zenoh peer that answers and publishes what
   a protocol 1 controller sent: the verdict's fields side by side): `dobtune ctl` exits 4
   naming both versions, the client's queries raise ProtocolError on `v`, and the dashboard's
-  banner says so instead of waiting for a status.
+  banner says so instead of waiting for a status; the fleet watcher lists the rig with why its
+  status is not read.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from procs import Client, ControllerProcess, free_port, wait_until
 
 from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient
+from controller.client.fleet import FleetMonitor
 from controller.client.session import SessionOptions, connect
 from controller.core.config import LoopConfig, config_to_builtins
 from controller.core.trajectory import Trajectory
@@ -79,6 +81,7 @@ class OldController:
         self._entities = [
             s.declare_queryable(proto.key_config(RIG), self._answer),
             s.declare_queryable(proto.key_lease(RIG), self._answer),
+            s.liveliness().declare_token(proto.key_alive(RIG)),
         ]
         self._status = s.declare_publisher(proto.key_status(RIG))
         self._stop = threading.Event()
@@ -114,6 +117,7 @@ def test_this_client_refuses_an_older_controller_clearly(old_controller: OldCont
     from controller.cli.commands import controller_commands
     from controller.cli.common import build_parser
     from controller.cli.ctl import ctl_main
+    from server.fleet import fleet_table_html
     from server.panels.live import banner_html
 
     ep = old_controller.endpoint
@@ -137,3 +141,15 @@ def test_this_client_refuses_an_older_controller_clearly(old_controller: OldCont
         text = out.getvalue()
         assert code == 4 and BOTH in text and "cannot be read" in text, (action, code, text)
     assert old_controller.queries >= 3
+    # The fleet watcher (`dobtune ctl rigs`, the Fleet tab) lists the rig, alive, and why its
+    # status is not read.
+    out = io.StringIO()
+    args = parser.parse_args(["ctl", "--connect", ep, "--timeout-s", "10", "--listen-s", "1.0",
+                              "rigs"])
+    assert ctl_main(args, out) == 0
+    assert f"{RIG}: ? (?)" in out.getvalue() and f"status not read: v: {BOTH}" in out.getvalue()
+    with connect(SessionOptions(connect=(ep,))) as s, FleetMonitor(s) as fleet:
+        assert wait_until(lambda: any(r.unread for r in fleet.rows()), 30.0), fleet.rows()
+        row = next(r for r in fleet.rows() if r.rig == RIG)
+        assert row.alive and row.mode == "" and BOTH in row.unread
+        assert f"status not read: v: {BOTH}" in fleet_table_html([row])
