@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 from gate_cases import canon, knowledge_set, random_configs
 
-from controller.gate import analysis
+from controller.core.config import LoopConfig
+from controller.gate import analysis, search
 from controller.gate.margins import Evaluator, RefineTask
+from controller.gate.search import RecommendationSearch
 
 
 def plain_solve(tasks: list[RefineTask], ev: Evaluator, n: int = 9, rounds: int = 2) -> None:
@@ -77,3 +79,33 @@ def test_refining_every_evidence_together_equals_each_task_alone(
     assert max(tasks) >= 30 and not math.isnan(float(np.mean(tasks)))
     for i, (a, b) in enumerate(zip(together, alone, strict=True)):
         assert a == b, (i, cases[i])
+
+
+def test_the_searchs_verdict_only_path_answers_as_the_whole_analysis() -> None:
+    """`accepted` (what the recommended cut-off's search asks of each cut-off: only what can
+    give a reason, stopping at the first) against `analyse(...).accepted`: random candidates
+    on every kind of knowledge, and the cut-offs a search of random gains evaluates."""
+    plants = knowledge_set()
+    cases = random_configs(300, seed=12)
+    rng = np.random.default_rng(13)
+    for k in (0, 1, 3):  # the coarse scan's cut-offs for new gains, as the gate asks them
+        for _ in range(4):
+            base = LoopConfig(cv_kp=float(rng.uniform(0.2, 1.2)),
+                              pos_kp_per_s=float(rng.uniform(2.0, 14.0)))
+            cases += [(base.with_(q_cutoff_hz=float(fc)), k)
+                      for fc in np.geomspace(0.02, 100.0, 16)]
+    answers = []
+    for cfg, k in cases:
+        whole = analysis.analyse(cfg, plants[k]).accepted
+        assert analysis.accepted(cfg, plants[k]) == whole, (cfg, k)
+        answers.append(whole)
+    assert 0.2 < np.mean(answers) < 0.8  # both answers, often
+    # The search on it, bisection included: the top of the accepted region as the whole
+    # analysis finds it.
+    for cv_kp in (0.6, 0.8):
+        base = LoopConfig(cv_kp=cv_kp)
+        s = RecommendationSearch(base, plants[0])
+        top = search._top_of(
+            lambda fc, base=base: analysis.analyse(base.with_(q_cutoff_hz=fc), plants[0]).accepted,
+            np.geomspace(0.02, 100.0, 16), 0.01)
+        assert top is not None and s.gate.value() == top and s.gate.evaluations > 8

@@ -71,7 +71,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
-from typing import Literal, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -89,6 +89,7 @@ from controller.gate.knowledge import (
 from controller.gate.loop_model import (
     DB_3,
     TWO_PI,
+    DobFilters,
     LoopBlocks,
     closed_loop_matrix,
     default_grid,
@@ -119,6 +120,7 @@ __all__ = [
     "Analysis",
     "GateLimits",
     "SourceResult",
+    "accepted",
     "analyse",
 ]
 
@@ -584,40 +586,18 @@ def analyse(
 
     # -- the plant model: exact poles, margins, the bound as allowance (decisive only
     # -- without measurements: measured responses supersede the model in their band).
-    poles = np.linalg.eigvals(closed_loop_matrix(cfg, used, model))
-    poles_speed = np.linalg.eigvals(closed_loop_matrix(cfg, used, model, position=False))
-    max_radius = float(max(np.max(np.abs(poles)), np.max(np.abs(poles_speed))))
-    # -- every piece of evidence up to its crossings and peaks, refined together (one
-    # -- evaluation of the loop's blocks per round for all), then each concluded in turn.
-    blocks = _BlocksMemo(cfg, used, model)
-    reasons: list[tuple[list[str], list[str]]] = [([], []) for _ in range(len(plant.measured) + 1)]
-    model_part = _model_evidence(
-        cfg, plant, f, x, bk, limits, max_radius, on, gyw, *reasons[0])
-    measured_parts = [
-        _measured_evidence(
-            cfg, _measured_model(m, cfg.rate_hz, model, plant.bound), f, blocks, f"{i}:",
-            limits, *reasons[i + 1])
-        for i, m in enumerate(plant.measured)
-    ]
-    refinements = [next(part) for part in (model_part, *measured_parts)]
-
-    def ev(ff: FloatArray) -> Outputs:
-        b = loop_blocks(cfg, used, ff, model)  # (points asked for once)
-        out: Outputs = {}
-        for _, outputs in refinements:
-            out.update(outputs(ff, b))
-        return out
-
-    solve([t for tasks, _ in refinements for t in tasks], ev)
-    model_src, margins, margins_full, bw, crossings = _concluded(model_part)
-    sources: list[SourceResult] = [model_src, *(_concluded(p) for p in measured_parts)]
+    poles, max_radius = _poles(cfg, used, model)
+    judged = _evidence(cfg, plant, f, x, bk, limits, max_radius, gyw, used)
+    assert judged is not None  # (None only with decisive_only)
+    model_concluded, measured, reasons = judged
+    assert model_concluded is not None and None not in measured
+    model_src, margins, margins_full, bw, crossings = model_concluded
+    sources: list[SourceResult] = [model_src, *(m for m in measured if m is not None)]
     for rej, cau in reasons:
         rejections += rej
         cautions += cau
 
-    noise_cmd = np.abs(ks / (one + g * ks))
-    k_noise = int(np.argmax(noise_cmd))
-    noise_cmd_db = float(20.0 * np.log10(noise_cmd[k_noise]))
+    noise_cmd_db, k_noise = _noise_to_command(g, ks, one)
     if not noise_cmd_db <= limits.noise_to_command_max_db:
         cautions.append(
             f"noise to command gain {noise_cmd_db:.1f} dB > {limits.noise_to_command_max_db:g} dB"
@@ -661,6 +641,96 @@ def analyse(
         open_loop_full=readonly(loop_full),
         crossings=crossings,
     )
+
+
+def accepted(cfg: LoopConfig, plant: PlantKnowledge | None = None,
+             limits: GateLimits | None = None) -> bool:
+    """`analyse(cfg, plant, limits).accepted` (the gate's grid), computing only what can
+    give a reason and stopping at the first: what the recommended cut-off's search asks of
+    each cut-off (the charts, the bandwidth, the figures shown and the bound's peaks where
+    measured responses decide are left out)."""
+    plant = plant if plant is not None else PlantKnowledge()
+    limits = limits if limits is not None else GateLimits()
+    f = default_grid(cfg.rate_hz)
+    model = plant.model
+    on = cfg.dob_on
+    used = dob_filters(cfg) if on else None
+    bk = loop_blocks(cfg, used, f, model)
+    one, ks, _ = _controller_parts(bk, on)
+    if not _noise_to_command(bk.g, ks, one)[0] <= limits.noise_to_command_max_db:
+        return False  # a caution
+    _, max_radius = _poles(cfg, used, model)
+    if not max_radius < limits.pole_radius_limit(cfg.rate_hz):
+        return False  # a rejection, or a caution with measured responses
+    judged = _evidence(cfg, plant, f, np.log(f), bk, limits, max_radius, None, used,
+                       decisive_only=True)
+    return judged is not None
+
+
+def _poles(cfg: LoopConfig, used: DobFilters | None, model: NominalModel
+           ) -> tuple[np.ndarray, float]:
+    """The whole servo's closed-loop eigenvalues with the plant model, and the largest
+    radius of them and of the speed loop's alone."""
+    poles = np.linalg.eigvals(closed_loop_matrix(cfg, used, model))
+    poles_speed = np.linalg.eigvals(closed_loop_matrix(cfg, used, model, position=False))
+    return poles, float(max(np.max(np.abs(poles)), np.max(np.abs(poles_speed))))
+
+
+def _noise_to_command(g: ComplexArray, ks: ComplexArray, one: ComplexArray
+                      ) -> tuple[float, int]:
+    """max |(Cv + F1) / D| in dB and where (its index on the grid)."""
+    noise_cmd = np.abs(ks / (one + g * ks))
+    k_noise = int(np.argmax(noise_cmd))
+    return float(20.0 * np.log10(noise_cmd[k_noise])), k_noise
+
+
+def _evidence(
+    cfg: LoopConfig, plant: PlantKnowledge, f: FloatArray, x: FloatArray, bk: LoopBlocks,
+    limits: GateLimits, max_radius: float, gyw: ComplexArray | None,
+    used: DobFilters | None, *, decisive_only: bool = False,
+) -> tuple[ModelConclusion | None, list[SourceResult | None],
+           list[tuple[list[str], list[str]]]] | None:
+    """Every piece of evidence up to its crossings and peaks, refined together (one
+    evaluation of the loop's blocks per round for all), then each concluded in turn: (the
+    plant model's conclusion and each measured response's, the rejections and cautions of
+    each). With `decisive_only`, None at the first reason (the candidate is not accepted)."""
+    model = plant.model
+    on = cfg.dob_on
+    blocks = _BlocksMemo(cfg, used, model)
+    reasons: list[tuple[list[str], list[str]]] = [([], []) for _ in range(len(plant.measured) + 1)]
+    model_part = _model_evidence(
+        cfg, plant, f, x, bk, limits, max_radius, on, gyw, *reasons[0], decisive_only)
+    measured_parts = [
+        _measured_evidence(
+            cfg, _measured_model(m, cfg.rate_hz, model, plant.bound), f, blocks, f"{i}:",
+            limits, *reasons[i + 1], decisive_only)
+        for i, m in enumerate(plant.measured)
+    ]
+    parts: list[Generator[Refinement, None, Any]] = [model_part, *measured_parts]
+    refinements: list[Refinement] = []
+    for part, (rej, cau) in zip(parts, reasons, strict=True):
+        try:
+            refinements.append(next(part))
+        except StopIteration:
+            if not decisive_only:
+                raise
+            return None  # (it stopped at a rejection)
+        if decisive_only and (rej or cau):
+            return None
+
+    def ev(ff: FloatArray) -> Outputs:
+        b = loop_blocks(cfg, used, ff, model)  # (points asked for once)
+        out: Outputs = {}
+        for _, outputs in refinements:
+            out.update(outputs(ff, b))
+        return out
+
+    solve([t for tasks, _ in refinements for t in tasks], ev)
+    model_concluded = _concluded(model_part)
+    measured = [_concluded(p) for p in measured_parts]
+    if decisive_only and any(rej or cau for rej, cau in reasons):
+        return None
+    return model_concluded, measured, reasons
 
 
 def _margin_reasons(m: Margins, limits: GateLimits, where: str, out: list[str]) -> None:
@@ -767,11 +837,16 @@ def _round_up(f: float) -> str:
 Refinement = tuple[list[RefineTask], Callable[[FloatArray, LoopBlocks], Outputs]]
 
 
+ModelConclusion = tuple[SourceResult, Margins, Margins, float, LoopCrossings]
+
+
 def _model_evidence(
     cfg: LoopConfig, plant: PlantKnowledge, f: FloatArray, x: FloatArray,
-    bk: LoopBlocks, limits: GateLimits, max_radius: float, on: bool, gyw: ComplexArray,
-    rejections: list[str], cautions: list[str],
-) -> Generator[Refinement, None, tuple[SourceResult, Margins, Margins, float, LoopCrossings]]:
+    bk: LoopBlocks, limits: GateLimits, max_radius: float, on: bool, gyw: ComplexArray | None,
+    rejections: list[str], cautions: list[str], decisive_only: bool = False,
+) -> Generator[Refinement, None, ModelConclusion | None]:
+    """The plant model's evidence (`decisive_only`: only what can give a reason, None for
+    the conclusion; `gyw` None: no bandwidth)."""
     bound = plant.bound
     has_measured = bool(plant.measured)
     one, ks, kf = _controller_parts(bk, on)
@@ -793,7 +868,7 @@ def _model_evidence(
     lt = loop_tasks(x, g * ks / one, "L")
     ltf = loop_tasks(x, g * kf / one, "Lf")
     tasks = lt.all() + ltf.all()
-    below = np.nonzero(np.abs(gyw) < DB_3)[0]
+    below = np.nonzero(np.abs(gyw) < DB_3)[0] if gyw is not None else np.zeros(0, dtype=int)
     bw_task = None
     if below.size and below[0] > 0:
         i = int(below[0])
@@ -802,7 +877,7 @@ def _model_evidence(
     bound_tasks: list[RefineTask] = []
     t_speed = g * ks / (one + g * ks)
     t_full = g * kf / (one + g * kf)
-    if bound is not None:
+    if bound is not None and not (decisive_only and has_measured):  # (then display only)
         wmag = bound.magnitude(f)
         bound_tasks = [
             peak_task(x, wmag * np.abs(t_speed), "wts"),
@@ -835,6 +910,16 @@ def _model_evidence(
         if not has_measured:
             _distance_reasons(margins, limits, f"speed loop, {where}", rejections)
             _distance_reasons(margins_full, limits, f"whole servo, {where}", rejections)
+    if bound is not None and not has_measured:
+        evidence = f"the {where} within {bound.name!r}"
+        for t, which, tt in zip(bound_tasks, ("speed loop", "whole servo"),
+                                (t_speed, t_full), strict=True):
+            _robust_reasons(
+                t, which, evidence, limits, None, bound.magnitude,
+                _on_grid(x, np.abs(tt)), f, rejections, cautions, "||W T||",
+            )
+    if decisive_only:
+        return None
     nan = math.nan
     sg = (nan, nan, nan, nan)
     dq_peak = dq_f = nan
@@ -844,13 +929,6 @@ def _model_evidence(
         dq = wmag * np.abs(bk.f2d) if on else np.zeros_like(wmag)
         j = int(np.argmax(dq))
         dq_peak, dq_f = float(dq[j]), float(f[j])
-        if not has_measured:
-            evidence = f"the {where} within {bound.name!r}"
-            for t, which, tt in ((sp, "speed loop", t_speed), (fp, "whole servo", t_full)):
-                _robust_reasons(
-                    t, which, evidence, limits, None, bound.magnitude,
-                    _on_grid(x, np.abs(tt)), f, rejections, cautions, "||W T||",
-                )
         inv = -20.0 * np.log10(wmag)
     else:
         inv = np.full_like(f, np.inf)
@@ -895,8 +973,10 @@ class _BlocksMemo:
 
 def _measured_evidence(
     cfg: LoopConfig, mm: _MeasuredModel, f0: FloatArray, lb: _BlocksMemo, tag: str,
-    limits: GateLimits, rejections: list[str], cautions: list[str],
-) -> Generator[Refinement, None, SourceResult]:
+    limits: GateLimits, rejections: list[str], cautions: list[str], decisive_only: bool = False,
+) -> Generator[Refinement, None, SourceResult | None]:
+    """A measured response's evidence (`decisive_only`: only what can give a reason, None for
+    the conclusion, and no refinement after a rejection by the argument principle)."""
     on = cfg.dob_on
     where = f"measured response {mm.name!r}"
     # (plant, 1 - F2 z^-1, Cv + F1, C_tot + F1, the blocks) per grid: the stability test asks
@@ -943,6 +1023,8 @@ def _measured_evidence(
     )
     if not stable:
         rejections.append(f"unstable or not proven stable with the {where} (argument principle)")
+        if decisive_only:
+            return None
     if r_speed is not None and r_full is not None:
         f = np.union1d(r_speed[0], r_full[0])
     x = np.log(f)
@@ -992,6 +1074,8 @@ def _measured_evidence(
                 _on_grid(x, tt), f, rejections, cautions,
                 sparse=mm.sparse_segment(t.freq_hz),
             )
+    if decisive_only:
+        return None
     dq = a * np.abs(bk.f2d)
     j = int(np.argmax(dq))
     with np.errstate(divide="ignore"):

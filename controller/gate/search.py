@@ -23,7 +23,7 @@ import numpy as np
 from controller.core.arrays import ComplexArray
 from controller.core.config import LoopConfig
 from controller.core.qfilter import Q_TYPES, QType, check_q_type, design_q
-from controller.gate.analysis import GateLimits, analyse
+from controller.gate.analysis import GateLimits, accepted
 from controller.gate.knowledge import (
     DIVERGENCE_FRACTION,
     MeasuredResponse,
@@ -344,7 +344,7 @@ def _gate_search(
     base = cfg.with_(dob_on=True, q_type=qt)
 
     def ok(fc: float) -> bool:
-        return analyse(base.with_(q_cutoff_hz=fc), plant, limits).accepted
+        return accepted(base.with_(q_cutoff_hz=fc), plant, limits)
 
     return TopSearch(ok, np.geomspace(lowest_hz, top, coarse_points), rel_tol)
 
