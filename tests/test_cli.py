@@ -53,3 +53,31 @@ def test_the_entry_point_loads_no_dashboard_for_controller_commands() -> None:
     out = subprocess.run([sys.executable, "-c", PROBE.format(names=names)], cwd=ROOT,
                          capture_output=True, text=True, timeout=120, check=True).stdout
     assert out.strip().splitlines()[-1] == "[] []", out
+
+
+LOADED = """
+import sys
+from server.__main__ import dobtune_main
+try:
+    code = dobtune_main({argv!r})
+except SystemExit as exc:
+    code = exc.code
+print(code, sorted(m for m in {modules!r} if m in sys.modules))
+"""
+
+
+def _loaded(argv: list[str], modules: tuple[str, ...]) -> str:
+    code = LOADED.format(argv=argv, modules=modules)
+    return subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120, check=True).stdout.strip().splitlines()[-1]
+
+
+def test_a_command_loads_only_its_own_code() -> None:
+    """`dobtune check` runs the gate (scipy.linalg, the nonlinear check's numba) but loads
+    none of the experiments' or the identification's code (scipy.optimize: ~0.5 CPU s of every
+    command before); `dobtune ctl` loads no analysis at all."""
+    others = ("scipy.optimize", "controller.ident.engine", "controller.ident.model_fit",
+              "controller.sim.paper", "controller.sim.experiment", "controller.process.audit")
+    assert _loaded(["check"], others) == "0 []"
+    analysis = ("numba", "scipy", "numpy.f2py", "controller.gate.analysis", *others)
+    assert _loaded(["ctl", "--help"], analysis) == "0 []"

@@ -18,7 +18,6 @@ from collections import deque
 from pathlib import Path
 from typing import Any, TextIO
 
-from controller.cli.common import Command
 from controller.process.audit import (
     AUDIT_FILE,
     CORE_KEYS,
@@ -180,5 +179,3 @@ def run(args: argparse.Namespace) -> int:
         return show_main(args.dir, args.json, args.tail, sys.stdout)
     return verify_main(args.dir, args.anchor, args.json, sys.stdout, args.accept_torn_tail)
 
-
-COMMAND = Command("audit", "show or verify a controller's audit log", add_arguments, run)

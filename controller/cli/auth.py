@@ -17,8 +17,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
-from controller.cli.common import Command
-
 if TYPE_CHECKING:
     from controller.auth import User
 
@@ -141,5 +139,3 @@ def run(args: argparse.Namespace) -> int:
         )
     return show_main(args.directory, args.passwords, sys.stdout)
 
-
-COMMAND = Command("auth", "users for Zenoh authentication and access control", add_arguments, run)

@@ -21,8 +21,6 @@ import sys
 from pathlib import Path
 from typing import Any, TextIO
 
-from controller.cli.common import Command
-
 __all__ = ["autotune_main"]
 
 
@@ -109,6 +107,3 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     return autotune_main(args, sys.stdout, sys.stderr)
 
-
-COMMAND = Command("autotune", "search the Q type and cut-off on the simulated rig",
-                  add_arguments, run)

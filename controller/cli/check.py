@@ -19,7 +19,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
-from controller.cli.common import Command
 from controller.cli.frd_files import load_measured
 from controller.cli.inputs import BadInput, load_config, load_knowledge
 from controller.core.config import config_to_builtins
@@ -254,10 +253,3 @@ def run(args: argparse.Namespace) -> int:
         args.config, args.q_type, args.cutoff_hz, args.frd, args.json, sys.stdout, args.knowledge
     )
 
-
-COMMAND = Command(
-    "check",
-    "the gate's verdict on a configuration: exit 0 accept, 3 caution, 1 reject, 2 bad input",
-    add_arguments,
-    run,
-)

@@ -1,30 +1,35 @@
-"""The controller side's `dobtune` commands (light imports: each module imports its work
-lazily, so listing them loads no analysis, no Zenoh and no dashboard)."""
+"""The controller side's `dobtune` commands. Each module (`controller.cli.<name>`: its
+`add_arguments` and `run`) is imported only when its command is used (`lazy_command`), so
+listing them loads no analysis, no numba, no scipy, no Zenoh and no dashboard, and one command
+loads only its own code."""
 
 from __future__ import annotations
 
-from controller.cli import (
-    audit,
-    auth,
-    autotune,
-    check,
-    controller,
-    ctl,
-    experiment,
-    identify,
-    paper,
-    record,
-    report,
-    router,
-)
-from controller.cli.common import Command
+from controller.cli.common import Command, lazy_command
 
 __all__ = ["controller_commands"]
+
+#: (name, module under controller.cli, help, long-running: takes --log-level).
+_COMMANDS = (
+    ("experiment", "experiment", "offline experiment on the simulated rig", False),
+    ("check", "check",
+     "the gate's verdict on a configuration: exit 0 accept, 3 caution, 1 reject, 2 bad input",
+     False),
+    ("controller", "controller", "run the controller process", True),
+    ("identify", "identify",
+     "measure the plant's frequency response, fit Mn Pn, recommend Q cut-offs", False),
+    ("audit", "audit", "show or verify a controller's audit log", False),
+    ("auth", "auth", "users for Zenoh authentication and access control", False),
+    ("ctl", "ctl", "every controller action from the command line", False),
+    ("record", "record", "record a running controller into an MCAP file", False),
+    ("report", "report", "HTML report (and CSV) of one or two recordings", False),
+    ("router", "router", "a Zenoh router for many rigs and sites", True),
+    ("autotune", "autotune", "search the Q type and cut-off on the simulated rig", False),
+    ("paper", "paper", "the article's experiments on the simulated rig: report.md + PNGs", False),
+)
 
 
 def controller_commands() -> dict[str, Command]:
     """Every controller-side command by name."""
-    return {c.name: c for c in (experiment.COMMAND, check.COMMAND, controller.COMMAND,
-                                identify.COMMAND, audit.COMMAND, auth.COMMAND, ctl.COMMAND,
-                                record.COMMAND, report.COMMAND, router.COMMAND,
-                                autotune.COMMAND, paper.COMMAND)}
+    return {name: lazy_command(name, help, f"controller.cli.{module}", long_running=long)
+            for name, module, help, long in _COMMANDS}

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, TextIO
@@ -14,6 +15,7 @@ __all__ = [
     "IntermixedParser",
     "add_log_level",
     "build_parser",
+    "lazy_command",
     "markdown_table",
     "on_off",
     "progress_printer",
@@ -37,10 +39,16 @@ class IntermixedParser(argparse.ArgumentParser):
     `parse_known_intermixed_args`, also when it is a subcommand's parser."""
 
     _intermixing = False
+    #: Declares this parser's options on its first parse (`build_parser`: a subcommand's
+    #: options, and the imports they need, only for the subcommand that is run).
+    declare: Callable[[], None] | None = None
 
     def parse_known_args(  # type: ignore[override]
         self, args: Sequence[str] | None = None, namespace: Any = None
     ) -> tuple[argparse.Namespace, list[str]]:
+        declare, self.declare = self.declare, None
+        if declare is not None:
+            declare()
         if self._intermixing or self._subparsers is not None:
             return super().parse_known_args(args, namespace)
         self._intermixing = True
@@ -70,15 +78,37 @@ def add_log_level(p: argparse.ArgumentParser) -> None:
 def build_parser(
     prog: str, description: str | None, commands: dict[str, Command]
 ) -> argparse.ArgumentParser:
-    """A parser with one subparser per command (each takes its options anywhere)."""
+    """A parser with one subparser per command (each takes its options anywhere). A
+    subcommand's options are declared when it is parsed: `dobtune ctl ...` imports nothing of
+    `check`'s (with `lazy_command`, not even its module)."""
     parser = argparse.ArgumentParser(prog=prog, description=description)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=IntermixedParser)
     for cmd in commands.values():
         p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
-        cmd.add_arguments(p)
-        if cmd.long_running:
-            add_log_level(p)
+        assert isinstance(p, IntermixedParser)
+        p.declare = lambda p=p, cmd=cmd: _declare(p, cmd)  # type: ignore[misc]
     return parser
+
+
+def _declare(p: argparse.ArgumentParser, cmd: Command) -> None:
+    cmd.add_arguments(p)
+    if cmd.long_running:
+        add_log_level(p)
+
+
+def lazy_command(name: str, help: str, module: str, *, long_running: bool = False) -> Command:
+    """A command whose module (its `add_arguments` and `run`, and what they import) is imported
+    only when the command is used: `dobtune check` never loads the experiments' or the
+    identification's code (scipy.optimize, the paper's figures)."""
+
+    def add_arguments(p: argparse.ArgumentParser) -> None:
+        importlib.import_module(module).add_arguments(p)
+
+    def run(args: argparse.Namespace) -> int:
+        code: int = importlib.import_module(module).run(args)
+        return code
+
+    return Command(name, help, add_arguments, run, long_running)
 
 
 def progress_printer(err: TextIO, label: str) -> Callable[[float], None] | None:

@@ -7,8 +7,6 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from controller.cli.common import Command
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plant", choices=("sim", "can"), default="sim", help="default: sim")
@@ -116,5 +114,3 @@ def _run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     say("stopped")
     return code
 
-
-COMMAND = Command("controller", "run the controller process", add_arguments, run, long_running=True)

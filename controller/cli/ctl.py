@@ -24,7 +24,6 @@ from typing import Any, TextIO
 
 import msgspec
 
-from controller.cli.common import Command
 from controller.core.verdict import kind_of
 
 __all__ = ["ACTIONS", "ctl_main"]
@@ -333,5 +332,3 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     return ctl_main(args, sys.stdout)
 
-
-COMMAND = Command("ctl", "every controller action from the command line", add_arguments, run)

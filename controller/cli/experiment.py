@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
-from controller.cli.common import Command, on_off, progress_printer
+from controller.cli.common import on_off, progress_printer
 from controller.core.config import LoopConfig, config_to_builtins
 from controller.core.errors import ConfigError
 from controller.core.trajectory import default_trajectory
@@ -316,5 +316,3 @@ def run(args: argparse.Namespace) -> int:
         quick=args.quick,
     )
 
-
-COMMAND = Command("experiment", "offline experiment on the simulated rig", add_arguments, run)

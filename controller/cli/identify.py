@@ -22,7 +22,6 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from controller.cli.common import Command
 from controller.cli.frd_files import write_frd_csv
 from controller.core.config import LoopConfig, config_from_builtins, config_to_builtins
 from controller.core.errors import ConfigError
@@ -38,7 +37,7 @@ from controller.ident.report import (
 from controller.ident.result import IdentifyAborted, IdentifyResult, position_name
 from controller.ident.spec import IDENTIFY_FIELDS, IdentifySpec
 
-__all__ = ["COMMAND", "EXIT_ABORTED", "EXIT_BAD_INPUT", "EXIT_OK", "identify_main"]
+__all__ = ["EXIT_ABORTED", "EXIT_BAD_INPUT", "EXIT_OK", "identify_main"]
 
 EXIT_OK, EXIT_ABORTED, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -360,10 +359,3 @@ def run(args: argparse.Namespace) -> int:
         rig_factory=factory,
     )
 
-
-COMMAND = Command(
-    "identify",
-    "measure the plant's frequency response, fit Mn Pn, recommend Q cut-offs",
-    add_arguments,
-    run,
-)

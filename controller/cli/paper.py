@@ -21,7 +21,6 @@ from typing import TextIO
 
 import numpy as np
 
-from controller.cli.common import Command
 from controller.core.config import LoopConfig, config_to_builtins
 from controller.core.errors import ConfigError
 from controller.sim.linear_rig import PlantVariant
@@ -273,6 +272,3 @@ def run(args: argparse.Namespace) -> int:
     return paper_main(args.out, quick=args.quick, config_path=args.config,
                       disturbances=args.disturbance, seed=args.seed, err=sys.stderr)
 
-
-COMMAND = Command("paper", "the article's experiments on the simulated rig: report.md + PNGs",
-                  add_arguments, run)

@@ -18,8 +18,6 @@ import threading
 from pathlib import Path
 from typing import TextIO
 
-from controller.cli.common import Command
-
 __all__ = ["record_main"]
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_NOTHING = 0, 2, 4
@@ -65,5 +63,3 @@ def run(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGINT, previous)
 
-
-COMMAND = Command("record", "record a running controller into an MCAP file", add_arguments, run)

@@ -13,8 +13,6 @@ import sys
 from pathlib import Path
 from typing import TextIO
 
-from controller.cli.common import Command
-
 __all__ = ["report_main"]
 
 
@@ -57,5 +55,3 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     return report_main(args.files, args.out, args.csv, sys.stdout)
 
-
-COMMAND = Command("report", "HTML report (and CSV) of one or two recordings", add_arguments, run)

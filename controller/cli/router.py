@@ -20,8 +20,6 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from controller.cli.common import Command
-
 __all__ = ["router_options"]
 
 DEFAULT_ROUTER_LISTEN = ("tcp/127.0.0.1:7446",)
@@ -87,6 +85,3 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig-name", action="append", default=[], metavar="R",
                    help="with --auth: a rig the router serves (repeatable)")
 
-
-COMMAND = Command("router", "a Zenoh router for many rigs and sites", add_arguments, run,
-                  long_running=True)
