@@ -185,6 +185,11 @@ def breakdown(plant: PlantKnowledge, new: list[LoopConfig], get_ms: float) -> No
             store.save(cfg, v, Change(old=prev, old_version=v - 1, verdict=verdict,
                                       client="bench"))
 
+        def persist_before(cfg: LoopConfig, v: int, prev: LoopConfig) -> None:
+            store.save(cfg, v)  # then the line, its fsync after the directory's (before ec2f14f)
+            store.append_change(old=prev, old_version=v - 1, new=cfg, version=v,
+                                verdict=verdict, client="bench")
+
         prev = LoopConfig()
         for v, cfg in enumerate(new, start=2):
             t("analysis", analyse, cfg, plant)
@@ -193,6 +198,7 @@ def breakdown(plant: PlantKnowledge, new: list[LoopConfig], get_ms: float) -> No
             t("nonlinear check", nonlinear_check, cfg, plant.model)
             t("filter design", LoopCoefficients.build, cfg, v)
             t("persistence (save + log, fsyncs)", persist, cfg, v, prev)
+            t("persistence (save, then log)", persist_before, cfg, v, prev)
             prev = cfg
     print("  where a new-gains apply's time goes (this tree's code in this process, over the "
           "same candidates; CPU time is what the load does not stretch):")
