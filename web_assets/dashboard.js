@@ -9,10 +9,12 @@
 //    frequency axis (a zoom of either sets both), a cursor read-out of both charts at the
 //    hovered frequency (in the ".dt-loop-readout" line above them) and each margin marker
 //    labelled with its value and frequency on the chart itself (so in its PNG too).
-// 3. The URL keeps the view: the selected tab of the controls ("tab": Tune, Live, ...) and of
-//    the plots ("plot": Bode, Live traces, ...) live in the fragment (#tab=Live&plot=Bode); a
-//    page opened with one selects those tabs once viser has drawn them. The token stays in the
-//    query string.
+// 3. The URL keeps the view: the selected tab of the controls ("tab": Tune, Live, ...), of
+//    the plots ("plot": Bode, Live traces, ...) and of the Bode tab ("bode": Decide, Responses,
+//    Time, Nyquist, Suggest) live in the fragment (#tab=Live&plot=Bode&bode=Nyquist); a page
+//    opened with one selects those tabs once viser has drawn them (a hidden Bode tab keeps its
+//    sub-tabs, selected too; before they are drawn the fragment keeps the one asked for). The
+//    token stays in the query string.
 //
 // 3. The candidate survives a reload: each browser tab has a candidate slot (an id kept in the
 //    tab's sessionStorage: a reload keeps it, a new tab gets its own); the page's websocket
@@ -59,8 +61,10 @@
   })();
 
   const EXPORT_LABEL = "Export";
-  // A tab group is known by one of its tabs: [fragment key, a tab label of that group].
-  const GROUPS = [["tab", "Tune"], ["plot", "Bode"]];
+  // A tab group is known by one of its tabs: [fragment key, a tab label of that group, and
+  // for a group inside a tab: [its group's key, that tab's label]].
+  const GROUPS = [["tab", "Tune"], ["plot", "Bode"], ["bode", "Decide", ["plot", "Bode"]]];
+  const PARENT = Object.fromEntries(GROUPS.filter((g) => g[2]).map((g) => [g[0], g[2]]));
   const RESTORE_FOR_MS = 60000;
   // Print resolution of the PNG exports: 3 pixels per CSS pixel, at least 1800 pixels wide.
   const PRINT_K = 3;
@@ -478,10 +482,11 @@
 
   const tabLabel = (t) => (t.getAttribute("title") || t.textContent || "").trim();
 
-  // fragment key -> the tabs of that group (the dock's tab strips).
+  // fragment key -> the tabs of that group (the dock's tab strips, the tab groups inside
+  // them).
   function groups() {
     const out = {};
-    for (const strip of document.querySelectorAll("[data-dock-strip]")) {
+    for (const strip of document.querySelectorAll("[data-dock-strip], [role=tablist]")) {
       const tabs = [...strip.querySelectorAll("[role=tab]")];
       const labels = tabs.map(tabLabel);
       for (const [key, member] of GROUPS) {
@@ -494,20 +499,32 @@
   let want = parseView(location.hash); // read now: viser rewrites the URL when it starts
   let restoreUntil = Date.now() + RESTORE_FOR_MS;
 
+  const selectedIn = (tabs) => (tabs || []).find((t) => t.getAttribute("aria-selected") === "true");
+
   function restore() {
     const g = groups();
     let done = true;
     for (const [key, label] of Object.entries(want)) {
       const tab = (g[key] || []).find((t) => tabLabel(t) === label);
+      const parent = PARENT[key];
+      if (!tab && parent) {
+        // A group inside a tab that is neither asked for nor shown, not drawn yet: nothing to
+        // select (the fragment keeps it for when that tab is shown).
+        const open = selectedIn(g[parent[0]]);
+        const shown = parent[0] in want ? want[parent[0]] : open && tabLabel(open);
+        if (shown && shown !== parent[1]) continue;
+      }
       if (!tab) {
         done = false;
         continue;
       }
       if (tab.getAttribute("aria-selected") !== "true") {
         done = false;
-        // What a keyboard user does: Enter on the tab activates it.
-        tab.dispatchEvent(new KeyboardEvent("keydown", { key: "Enter", bubbles: true,
-                                                         cancelable: true }));
+        if (tab.closest("[data-dock-strip]")) {
+          // What a keyboard user does: Enter on the dock's tab activates it.
+          tab.dispatchEvent(new KeyboardEvent("keydown", { key: "Enter", bubbles: true,
+                                                           cancelable: true }));
+        } else tab.click();
       }
     }
     if (done) want = {};
@@ -519,10 +536,12 @@
 
   function viewHash() {
     const g = groups();
+    const now = new URLSearchParams(location.hash.replace(/^#/, ""));
     const p = new URLSearchParams();
     for (const [key] of GROUPS) {
-      const sel = (g[key] || []).find((t) => t.getAttribute("aria-selected") === "true");
+      const sel = selectedIn(g[key]);
       if (sel) p.set(key, tabLabel(sel));
+      else if (PARENT[key] && now.get(key)) p.set(key, now.get(key)); // its tab is hidden
     }
     return p.toString();
   }

@@ -329,3 +329,47 @@ def test_the_3d_view_hides_and_comes_back_in_this_browser_only(
     finally:
         other.close()
         page.get_by_role("tab", name="Tune", exact=True).click(timeout=SLOW_S * 1000)
+
+
+#: JS: the selected tab of the Bode tab's sub-tabs (null: not drawn).
+BODE_SUBTAB_JS = """() => {
+  for (const list of document.querySelectorAll('[role=tablist]')) {
+    const tabs = [...list.querySelectorAll('[role=tab]')];
+    if (!tabs.some(t => t.textContent.trim() === 'Decide')) continue;
+    const on = tabs.find(t => t.getAttribute('aria-selected') === 'true');
+    return on ? on.textContent.trim() : null;
+  }
+  return null;
+}"""
+#: JS: whether the Nyquist view is drawn with a size (shown).
+NYQUIST_SHOWN_JS = """() => [...document.querySelectorAll('.dt-nyquist-box svg')].some(
+  s => s.getBoundingClientRect().width > 0)"""
+
+
+def test_the_url_keeps_the_bode_sub_tab_over_a_reload(dashboard: Dashboard, page: Any) -> None:
+    """The selected Bode sub-tab is in the URL (#...&bode=Nyquist): a reload shows that
+    sub-tab (not Decide, the one a page opens on); while another plots tab is shown, the URL
+    keeps it and it is still selected on coming back. (Last in this module: the reload gives
+    the page a new candidate panel.)"""
+    page.get_by_role("tab", name="Bode", exact=True).click(timeout=SLOW_S * 1000)
+    page.get_by_role("tab", name="Nyquist", exact=True).click(timeout=SLOW_S * 1000)
+    page.wait_for_function("() => location.hash.includes('bode=Nyquist')",
+                           timeout=SLOW_S * 1000)
+    before = set(dashboard.server.get_clients())
+    page.reload(wait_until="domcontentloaded", timeout=SLOW_S * 2000)
+    wait_for(lambda: set(dashboard.server.get_clients()) - before, SLOW_S * 2,
+             "the reloaded page never connected")
+    page.wait_for_function(f"() => ({BODE_SUBTAB_JS})() === 'Nyquist'", timeout=SLOW_S * 2000)
+    page.wait_for_function(NYQUIST_SHOWN_JS, timeout=SLOW_S * 1000)
+    assert "bode=Nyquist" in page.url
+    # Another plots tab: the Nyquist view is hidden, the URL keeps the Bode sub-tab; back on
+    # Bode, it is there.
+    page.get_by_role("tab", name="Live traces", exact=True).click(timeout=SLOW_S * 1000)
+    page.wait_for_function("() => location.hash.includes('plot=Live+traces')",
+                           timeout=SLOW_S * 1000)
+    page.wait_for_function(f"() => !({NYQUIST_SHOWN_JS})()", timeout=SLOW_S * 1000)
+    assert "bode=Nyquist" in page.url
+    page.get_by_role("tab", name="Bode", exact=True).click(timeout=SLOW_S * 1000)
+    page.wait_for_function(NYQUIST_SHOWN_JS, timeout=SLOW_S * 1000)
+    page.get_by_role("tab", name="Decide", exact=True).click(timeout=SLOW_S * 1000)
+    page.wait_for_function("() => location.hash.includes('bode=Decide')", timeout=SLOW_S * 1000)

@@ -213,7 +213,7 @@ def test_the_url_keeps_the_selected_tabs(page: Any, dashboard: Dashboard, artifa
     page.get_by_role("tab", name="Live", exact=True).click()
     page.wait_for_function(
         "() => location.hash.includes('tab=Live&') && location.hash.includes('plot=Live+traces')",
-        timeout=10_000)
+        timeout=FIRST_LOAD_S * 1000)
     url = page.url
     assert "token=" in url.split("#")[0]  # the token stays in the query string
 
@@ -232,21 +232,22 @@ def test_the_url_keeps_the_selected_tabs(page: Any, dashboard: Dashboard, artifa
         on = _selected_tabs(fresh)
         assert "Tune" not in on and "Bode" not in on, on
         # What is shown is the Live tab's content and the live traces.
-        fresh.get_by_role("button", name="Set trajectory").wait_for(timeout=10_000)
+        fresh.get_by_role("button", name="Set trajectory").wait_for(timeout=FIRST_LOAD_S * 1000)
         fresh.screenshot(path=str(artifacts / "export_url_view.png"))
         fresh.wait_for_function("""(title) => [...document.querySelectorAll('.u-title')].some(
           t => t.textContent === title && t.getBoundingClientRect().width > 0)""",
-                                arg=ERROR.title, timeout=10_000)
+                                arg=ERROR.title, timeout=FIRST_LOAD_S * 1000)
         # The URL still says so (viser rewrites the address when it starts).
         fresh.wait_for_function("(h) => location.hash === h", arg="#" + url.split("#")[1],
-                                timeout=10_000)
+                                timeout=FIRST_LOAD_S * 1000)
         fresh.screenshot(path=str(artifacts / "export_url_view.png"))
     finally:
         other.close()
     # Back to the tabs the other tests expect.
     page.get_by_role("tab", name="Bode").click()
     page.get_by_role("tab", name="Tune").click()
-    page.wait_for_function("() => location.hash === '#tab=Tune&plot=Bode'", timeout=10_000)
+    page.wait_for_function("() => location.hash === '#tab=Tune&plot=Bode&bode=Decide'",
+                           timeout=FIRST_LOAD_S * 1000)
 
 
 # -- a raw client ------------------------------------------------------------------------------
