@@ -1,7 +1,10 @@
 """Dashboard benchmarks: slider-to-update latency (server side, p50/p99); live refresh rate in
 the browser and the dashboard process's CPU while one headless browser watches the live tab;
-with --page, page load and verdict update times in Chromium on the machine as it is ("idle")
-and with --hogs busy processes beside it ("loaded").
+with --page, page load (to the controls visible, to the verdict drawn) and verdict update
+(typed cut-off to the verdict's text changed) in Chromium on the machine as it is ("idle") and
+with --hogs busy processes beside it ("loaded"), each half with the load `uptime` printed;
+bounded (--loads, --verdicts, --phase-timeout per awaited phase, named when it times out,
+--budget per half), progress on stderr.
 
 Run: .venv/bin/python tests/bench/bench_dashboard.py [--seconds 15]
      .venv/bin/python tests/bench/bench_dashboard.py --page --skip-live --skip-slider
@@ -180,6 +183,8 @@ def bench_live(seconds: float, browsers: int = 1) -> dict[str, float]:
 
 
 def _stats(xs: list[float]) -> dict[str, float]:
+    if not xs:
+        return {"n": 0}
     a = np.array(xs)
     return {"n": len(xs), "p50_s": float(np.percentile(a, 50)),
             "max_s": float(a.max()), "min_s": float(a.min())}
@@ -190,54 +195,146 @@ def _spin() -> None:
         pass
 
 
-def bench_page(loads: int, verdicts: int, hogs: int) -> dict[str, Any]:
-    """Page load (open the URL until the verdict and the connected banner are drawn) and verdict
-    update (type a cut-off until the page shows the new cut-off's verdict, nothing computing),
-    in headless Chromium, with `hogs` busy processes beside the controller and dashboard."""
+def _uptime() -> str:
+    """What `uptime` prints (its load averages over 1, 5 and 15 minutes)."""
+    return subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout.strip()
+
+
+class PhaseTimeout(RuntimeError):
+    """A phase of a measurement did not end in its time; the message names what was awaited."""
+
+
+#: JS predicates polled in the page (every 50 ms, by the page: a round trip per poll from here
+#: took seconds at load 20).
+CONTROLS_SHOWN_JS = """() => [...document.querySelectorAll('label')].some(
+  l => l.textContent.startsWith('Q cut-off (Hz)') && l.getBoundingClientRect().width > 0)"""
+VERDICT_DRAWN_JS = """() => (document.querySelector('.dt-verdict')?.innerText || '')
+  .includes('Verdict')"""
+SETTLED_JS = "() => !document.querySelector('.dt-computing-on')"
+VERDICT_CHANGED_JS = """(before) => {
+  const t = document.querySelector('.dt-verdict')?.innerText || '';
+  return !document.querySelector('.dt-computing-on') && t !== before && t.includes('Verdict');
+}"""
+
+
+def bench_page(loads: int, verdicts: int, hogs: int, phase_timeout_s: float,
+               budget_s: float, half: str) -> dict[str, Any]:
+    """Page load and verdict update in headless Chromium, with `hogs` busy processes beside the
+    controller and dashboard (0: the machine as it is).
+
+    - page load: a new browser context opens the URL; the time until the controls are visible
+      (the Q cut-off field) and until the verdict is drawn;
+    - verdict update: a cut-off typed into the Q cut-off field (Enter) until the verdict's text
+      changed and nothing is computing.
+
+    Bounded: `loads` page loads and `verdicts` cut-offs at most, each phase waited for at most
+    `phase_timeout_s` (a timeout is counted and named, and the half goes on), and no new
+    repetition after `budget_s` of the half. Progress goes to stderr as each repetition ends."""
     import multiprocessing
 
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    t_half = time.monotonic()
+
+    def say(msg: str) -> None:
+        print(f"[{half} {time.monotonic() - t_half:6.1f} s, load {os.getloadavg()[0]:.1f}] "
+              f"{msg}", file=sys.stderr, flush=True)
+
+    def until(pg: Any, what: str, js: str, arg: Any = None) -> None:
+        """Until the page's `js(arg)` is true; PhaseTimeout naming `what`."""
+        try:
+            pg.wait_for_function(js, arg=arg, polling=50, timeout=phase_timeout_s * 1000)
+        except PlaywrightTimeout:
+            raise PhaseTimeout(f"{what}: not seen after {phase_timeout_s:.0f} s") from None
+
+    def over_budget() -> bool:
+        return time.monotonic() - t_half > budget_s
+
     spinners = []
+    timeouts: list[str] = []
+    say(f"starting the controller, the dashboard and Chromium ({_uptime()})")
     with dashboard_and_chromium() as (_, url, b):
         try:
             warm = b.new_page()  # Chromium's cold start is not the page's load
-            warm.goto(url)
-            warm.wait_for_selector(".dt-verdict >> text=Verdict", timeout=120_000)
+            warm.goto(url, wait_until="commit", timeout=phase_timeout_s * 1000)
+            until(warm, "warm-up page: the verdict drawn", VERDICT_DRAWN_JS)
             warm.close()
+            say("warm-up page drew its verdict")
             for _ in range(hogs):
                 sp = multiprocessing.Process(target=_spin, daemon=True)
                 sp.start()
                 spinners.append(sp)
-            time.sleep(2.0)
-            load_before = os.getloadavg()[0]
-            page_s, verdict_s = [], []
+            if hogs:
+                time.sleep(5.0)  # the busy processes show in the load average
+            uptime_before = _uptime()
+            say(f"{hogs} busy processes; {uptime_before}")
+            controls_s: list[float] = []
+            verdict_drawn_s: list[float] = []
+            verdict_s: list[float] = []
             for k in range(loads):
+                if over_budget():
+                    say(f"budget {budget_s:.0f} s spent: {k} of {loads} page loads")
+                    break
                 ctx = b.new_context(viewport={"width": 1600, "height": 1000})
-                pg = ctx.new_page()
-                t0 = time.perf_counter()
-                pg.goto(url)
-                pg.wait_for_selector(".dt-banner.dt-ok", timeout=120_000)
-                pg.wait_for_selector(".dt-verdict >> text=Verdict", timeout=120_000)
-                page_s.append(time.perf_counter() - t0)
-                if k == loads - 1:
-                    lab = pg.locator("label", has_text="Q cut-off (Hz)").first
-                    box = lab.locator("xpath=ancestor::div[contains(@class,"
-                                      "'mantine-Flex-root')][1]").locator("input").last
-                    for hz in np.round(np.geomspace(0.3, 3.0, verdicts), 2):
-                        t0 = time.perf_counter()
-                        box.fill(f"{hz:g}")
-                        box.press("Enter")
-                        pg.wait_for_selector(f".dt-cutoff >> text={hz:.3f} Hz",
-                                             timeout=120_000)
-                        pg.wait_for_selector(".dt-computing-on", state="detached",
-                                             timeout=120_000)
-                        verdict_s.append(time.perf_counter() - t0)
-                ctx.close()
-            return {"busy_processes": hogs, "loadavg_1min_at_start": load_before,
-                    "loadavg_1min_at_end": os.getloadavg()[0], "cores": os.cpu_count(),
-                    "page_load": _stats(page_s), "verdict_update": _stats(verdict_s)}
+                try:
+                    pg = ctx.new_page()
+                    t0 = time.perf_counter()
+                    pg.goto(url, wait_until="commit", timeout=phase_timeout_s * 1000)
+                    until(pg, "page load: the Q cut-off field visible", CONTROLS_SHOWN_JS)
+                    controls_s.append(time.perf_counter() - t0)
+                    until(pg, "page load: the verdict drawn", VERDICT_DRAWN_JS)
+                    verdict_drawn_s.append(time.perf_counter() - t0)
+                    say(f"page load {k + 1}/{loads}: controls {controls_s[-1]:.2f} s, verdict "
+                        f"{verdict_drawn_s[-1]:.2f} s")
+                    if k == loads - 1:
+                        verdict_s += _verdict_updates(pg, verdicts, until, say, over_budget,
+                                                      timeouts)
+                except PhaseTimeout as exc:
+                    timeouts.append(str(exc))
+                    say(f"TIMEOUT {exc}")
+                finally:
+                    ctx.close()
+            return {"busy_processes": hogs, "cores": os.cpu_count(),
+                    "uptime_at_start": uptime_before, "uptime_at_end": _uptime(),
+                    "page_load_to_controls": _stats(controls_s),
+                    "page_load_to_verdict": _stats(verdict_drawn_s),
+                    "verdict_update": _stats(verdict_s),
+                    "phase_timeout_s": phase_timeout_s, "timeouts": timeouts,
+                    "seconds": time.monotonic() - t_half}
         finally:
             for sp in spinners:
                 sp.terminate()
+            for sp in spinners:
+                sp.join(5.0)
+
+
+def _verdict_updates(pg: Any, verdicts: int, until: Any, say: Any, over_budget: Any,
+                     timeouts: list[str]) -> list[float]:
+    """Cut-offs typed into the page's Q cut-off field: the seconds from Enter to the verdict's
+    text changed with nothing computing, per cut-off (a timed-out one is named in `timeouts`)."""
+    field = pg.locator("label", has_text="Q cut-off (Hz)").first
+    box = field.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
+        "input").last
+    until(pg, "the first verdict settled (nothing computing)", SETTLED_JS)
+    out: list[float] = []
+    for i, hz in enumerate(np.round(np.geomspace(0.3, 3.0, verdicts), 2)):
+        if over_budget():
+            say(f"budget spent: {i} of {verdicts} verdict updates")
+            break
+        before = pg.evaluate("() => document.querySelector('.dt-verdict')?.innerText || ''")
+        t0 = time.perf_counter()
+        box.fill(f"{hz:g}")
+        box.press("Enter")
+        try:
+            until(pg, f"verdict update to {hz:g} Hz: the verdict's text changed, nothing "
+                  "computing", VERDICT_CHANGED_JS, before)
+        except PhaseTimeout as exc:
+            timeouts.append(str(exc))
+            say(f"TIMEOUT {exc}")
+            continue
+        out.append(time.perf_counter() - t0)
+        say(f"verdict update {i + 1}/{verdicts} ({hz:g} Hz): {out[-1]:.2f} s")
+    return out
 
 
 def main() -> int:
@@ -253,15 +350,20 @@ def main() -> int:
     ap.add_argument("--verdicts", type=int, default=8, help="typed cut-offs per machine state")
     ap.add_argument("--hogs", type=int, default=4,
                     help="busy processes for the loaded machine (besides whatever else runs)")
+    ap.add_argument("--phase-timeout", type=float, default=180.0,
+                    help="seconds to wait for one phase (a page's controls, its verdict, one "
+                    "verdict update) before it counts as timed out, named")
+    ap.add_argument("--budget", type=float, default=600.0,
+                    help="seconds per half after which no new repetition starts")
     args = ap.parse_args()
     out: dict[str, Any] = {}
     if not args.skip_slider:
         out["slider"] = bench_slider()
     if args.page:  # each half printed as it ends (a loaded machine makes them long)
-        out["page_idle"] = bench_page(args.loads, args.verdicts, 0)
-        print(json.dumps({"page_idle": out["page_idle"]}), flush=True)
-        out["page_loaded"] = bench_page(args.loads, args.verdicts, args.hogs)
-        print(json.dumps({"page_loaded": out["page_loaded"]}), flush=True)
+        for half, hogs in (("page_idle", 0), ("page_loaded", args.hogs)):
+            out[half] = bench_page(args.loads, args.verdicts, hogs, args.phase_timeout,
+                                   args.budget, half)
+            print(json.dumps({half: out[half]}, indent=1), flush=True)
     if not args.skip_live:
         for n in args.browsers:
             out[f"live_{n}_browsers"] = bench_live(args.seconds, n)
