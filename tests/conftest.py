@@ -4,6 +4,12 @@
 Every test under `tests/integration/` is marked `integration` and every one under
 `tests/browser/` `browser`, here, so no file can forget it. The fast subset is
 `pytest -m "not integration and not browser and not slow"` (README).
+
+Under pytest-xdist (`bash .ci/test -n 2`, README) the tests are handed to the workers
+a file at a time (each module's module-scoped fixtures start once), except `tests/browser/`,
+which goes to one worker as a whole, one module after another: one Chromium and one demo
+controller at a time (two at once on 2 cores starve each other's page loads). The browser
+files are the longest stretch of the suite, so the other worker takes everything else.
 """
 
 from __future__ import annotations
@@ -24,6 +30,23 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         mark = FOLDER_MARKS.get(rel.parts[0]) if len(rel.parts) > 1 else None
         if mark is not None:
             item.add_marker(mark)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """The scheduler for `-n N` (see the module docstring). Not `xdist_group` marks with
+    `--dist loadgroup`: xdist 3.8 tags a group onto `item._nodeid`, which pytest 9 no longer
+    reads, so the groups were silently ignored (files split across workers)."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class BrowserFilesTogether(LoadScopeScheduling):
+        """Whole files (`--dist loadfile`), and all of tests/browser/ as one unit."""
+
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            return "tests/browser" if path.startswith("tests/browser/") else path
+
+    return BrowserFilesTogether(config, log)
 
 
 @pytest.fixture(scope="module")
