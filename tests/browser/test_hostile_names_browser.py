@@ -69,7 +69,10 @@ def hostile() -> Iterator[dict[str, Any]]:
             k = c.knowledge(proto.KnowledgeRequest(record=KnowledgeRecord(source=HOSTILE_TEXT)))
             assert k.ok, k
             real = c.status
-        assert real is not None
+        assert real is not None and real.verdict is not None
+        # The running verdict, nested (protocol 2), with payloads in its text fields.
+        judged = msgspec.structs.replace(real.verdict, knowledge=HOSTILE_TEXT,
+                                         cautions=(HOSTILE_TEXT,))
         conf = zenoh_config((), [router])
         conf.insert_json5("mode", '"client"')  # (a router routes between clients and peers)
         peer = zenoh.open(conf)
@@ -77,7 +80,7 @@ def hostile() -> Iterator[dict[str, Any]]:
         tokens = [peer.liveliness().declare_token(proto.key_alive(r)) for r in HOSTILE_RIGS]
         fakes = [(proto.key_status(r), proto.encode(msgspec.structs.replace(
             real, rig=r, plant=HOSTILE_TEXT, operator=HOSTILE_TEXT, faults=[HOSTILE_TEXT],
-            notes=[HOSTILE_TEXT], knowledge=HOSTILE_TEXT, verdict=HOSTILE_TEXT,
+            notes=[HOSTILE_TEXT], knowledge=HOSTILE_TEXT, verdict=judged,
             watchdog=HOSTILE_TEXT))) for r in HOSTILE_RIGS]
 
         def keep_putting() -> None:
