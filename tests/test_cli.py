@@ -81,3 +81,25 @@ def test_a_command_loads_only_its_own_code() -> None:
     assert _loaded(["check"], others) == "0 []"
     analysis = ("numba", "scipy", "numpy.f2py", "controller.gate.analysis", *others)
     assert _loaded(["ctl", "--help"], analysis) == "0 []"
+
+
+def test_ctl_json_is_strict_json_also_for_a_verdict_without_figures() -> None:
+    """A verdict refused before the analysis has NaN margins: `ctl ... --json` writes them as
+    null (json.dumps with allow_nan=False raised 'Out of range float values', exit 2)."""
+    import io
+    import json
+
+    from controller import protocol as proto
+    from controller.cli.ctl import _emit
+    from controller.core.config import LoopConfig
+    from controller.core.verdict import Verdict
+
+    refused = Verdict.refused("command_limit_deg_s 500 deg/s > the rig's limit", 3)
+    reply = proto.ConfigReply(accepted=False, version=3, config=LoopConfig(),
+                              reasons=list(refused.reasons), verdict=refused)
+    out = io.StringIO()
+    _emit(out, True, reply, "")
+    got = json.loads(out.getvalue())  # strict: no NaN, no Infinity
+    assert got["verdict"]["verdict"] == "reject" and got["verdict"]["knowledge_version"] == 3
+    assert got["verdict"]["margins"]["gain_margin_db"] is None
+    assert got["reasons"] == list(refused.reasons) and got["v"] == proto.PROTOCOL_VERSION

@@ -65,7 +65,8 @@ def parse_assignments(items: list[str]) -> dict[str, Any]:
 
 def _emit(out: TextIO, as_json: bool, reply: Any, text: str) -> None:
     if as_json:
-        out.write(json.dumps(msgspec.to_builtins(reply), allow_nan=False, default=str) + "\n")
+        # Strict JSON: a non-finite figure (a margin not computed: NaN) is null.
+        out.write(msgspec.json.encode(reply).decode() + "\n")
     else:
         out.write(text + "\n")
 
