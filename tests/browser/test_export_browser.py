@@ -233,14 +233,16 @@ def test_the_url_keeps_the_selected_tabs(page: Any, dashboard: Dashboard, artifa
         assert "Tune" not in on and "Bode" not in on, on
         # What is shown is the Live tab's content and the live traces.
         fresh.get_by_role("button", name="Set trajectory").wait_for(timeout=FIRST_LOAD_S * 1000)
-        fresh.screenshot(path=str(artifacts / "export_url_view.png"))
+        fresh.screenshot(path=str(artifacts / "export_url_view.png"),
+                         timeout=FIRST_LOAD_S * 1000)
         fresh.wait_for_function("""(title) => [...document.querySelectorAll('.u-title')].some(
           t => t.textContent === title && t.getBoundingClientRect().width > 0)""",
                                 arg=ERROR.title, timeout=FIRST_LOAD_S * 1000)
         # The URL still says so (viser rewrites the address when it starts).
         fresh.wait_for_function("(h) => location.hash === h", arg="#" + url.split("#")[1],
                                 timeout=FIRST_LOAD_S * 1000)
-        fresh.screenshot(path=str(artifacts / "export_url_view.png"))
+        fresh.screenshot(path=str(artifacts / "export_url_view.png"),
+                         timeout=FIRST_LOAD_S * 1000)
     finally:
         other.close()
     # Back to the tabs the other tests expect.
