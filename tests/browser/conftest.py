@@ -5,6 +5,10 @@ what the controller really runs, independently of the page.
 The `page` fixture hands the tests a page that is ready: the viser websocket is connected and
 the first controls are drawn. A cold Chromium on a fresh machine can take tens of seconds for
 that, so the first load has its own generous timeout instead of the tests' short waits.
+
+One Chromium serves all the browser tests of a run (`chromium_browser`: launched at first use,
+closed after the last browser test); each module opens its pages in browser contexts of its
+own (their own cookies, storage and cache, as separate browsers) and closes them.
 """
 
 from __future__ import annotations
@@ -100,18 +104,67 @@ def chromium() -> Iterator[Any]:
             browser.close()
 
 
-def ready_page(dashboard: Dashboard, first_load_s: float = FIRST_LOAD_S) -> Iterator[Any]:
-    """A page of `dashboard` in a fresh Chromium, once it is usable (`open_when_ready`)."""
-    _require_chromium()
-    with chromium() as browser:
-        pg = browser.new_page(viewport=VIEWPORT)
-        open_when_ready(pg, dashboard, first_load_s)
-        yield pg
+class _SharedChromium:
+    """The one Chromium of the browser tests: `get` launches it at first use (and again if it
+    went away), `close` ends it."""
+
+    def __init__(self) -> None:
+        self._stack: contextlib.ExitStack | None = None
+        self._browser: Any = None
+
+    def get(self) -> Any:
+        if self._browser is None or not self._browser.is_connected():
+            self.close()
+            stack = contextlib.ExitStack()
+            self._browser = stack.enter_context(chromium())
+            self._stack = stack
+        return self._browser
+
+    def close(self) -> None:
+        stack, self._stack, self._browser = self._stack, None, None
+        if stack is not None:
+            stack.close()
+
+
+_SHARED = _SharedChromium()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    """After the last browser test (its module's pages closed first), Chromium closes: the
+    rest of the suite does not run beside it."""
+    try:
+        return (yield)
+    finally:
+        here = Path(__file__).resolve().parent
+        if nextitem is None or here not in Path(str(nextitem.path)).resolve().parents:
+            _SHARED.close()
 
 
 @pytest.fixture(scope="module")
-def page(dashboard: Dashboard) -> Iterator[Any]:
-    yield from ready_page(dashboard)
+def chromium_browser() -> Any:
+    """The browser tests' shared Chromium (`_SharedChromium`); a module opens its pages in
+    browser contexts of its own and closes them."""
+    _require_chromium()
+    return _SHARED.get()
+
+
+def ready_page(dashboard: Dashboard, browser: Any,
+               first_load_s: float = FIRST_LOAD_S) -> Iterator[Any]:
+    """A page of `dashboard` in a fresh browser context of `browser` (a new user's browser),
+    once it is usable (`open_when_ready`); the context is closed after."""
+    context = browser.new_context(viewport=VIEWPORT)
+    try:
+        pg = context.new_page()
+        open_when_ready(pg, dashboard, first_load_s)
+        yield pg
+    finally:
+        context.close()
+
+
+@pytest.fixture(scope="module")
+def page(dashboard: Dashboard, chromium_browser: Any) -> Iterator[Any]:
+    yield from ready_page(dashboard, chromium_browser)
 
 
 def open_when_ready(page: Any, dashboard: Dashboard, timeout_s: float) -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import CONTROLLER_START_S, FINITE_JS, FIRST_LOAD_S, free_port, only_panel, ready_page
 from helpers import wait_for
 
 from controller.client import ClientOptions, ControllerClient
@@ -23,14 +24,6 @@ from controller.sim.rig_disturbances import rig_setup
 from controller.tune.autotune import command_noise_deg_s, run_point
 from server.app import Dashboard, DashboardOptions
 from server.demo import DemoOptions, controller_command, stop_process
-from tests.browser.conftest import (
-    CONTROLLER_START_S,
-    FINITE_JS,
-    FIRST_LOAD_S,
-    free_port,
-    only_panel,
-    ready_page,
-)
 
 RIG = "demovalue"
 DISTURBANCES = DemoOptions.disturbances
@@ -67,8 +60,9 @@ def dash(endpoint: str) -> Iterator[Dashboard]:
 
 
 @pytest.fixture(scope="module")
-def page(dash: Dashboard) -> Iterator[Any]:
-    yield from ready_page(dash, 3 * FIRST_LOAD_S)  # a loaded machine: the condition decides
+def page(dash: Dashboard, chromium_browser: Any) -> Iterator[Any]:
+    # A loaded machine: the condition decides.
+    yield from ready_page(dash, chromium_browser, 3 * FIRST_LOAD_S)
 
 
 def _shown(page: Any, cls: str) -> tuple[float, float, float]:

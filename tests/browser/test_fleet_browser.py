@@ -6,14 +6,16 @@ the overview stops that rig (its row says so), the other runs on.
 
 from __future__ import annotations
 
+import contextlib
 import re
 import socket
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
-from conftest import CHROMIUM, CONTROLLER_START_S, FIRST_LOAD_S, VIEWPORT, chromium, free_port
+from conftest import CONTROLLER_START_S, FIRST_LOAD_S, VIEWPORT, free_port
 from helpers import wait_for
 
 from server.app import Dashboard, DashboardOptions
@@ -62,11 +64,10 @@ def fleet() -> Iterator[Dashboard]:
             yield dash
 
 
-def test_the_fleet_tab_shows_every_rig_and_stops_one(fleet: Dashboard, artifacts: Path) -> None:
-    if not CHROMIUM.exists():
-        pytest.fail(f"{CHROMIUM} missing: run `bash .ci/setup --browser`")
-    with chromium() as browser:
-        page = browser.new_page(viewport=VIEWPORT)
+def test_the_fleet_tab_shows_every_rig_and_stops_one(fleet: Dashboard, artifacts: Path,
+                                                     chromium_browser: Any) -> None:
+    with contextlib.closing(chromium_browser.new_context(viewport=VIEWPORT)) as context:
+        page = context.new_page()
         page.goto(fleet.url, wait_until="domcontentloaded", timeout=FIRST_LOAD_S * 1000)
         page.wait_for_selector(".dt-banner", timeout=FIRST_LOAD_S * 1000)
         page.get_by_role("tab", name="Fleet").click()

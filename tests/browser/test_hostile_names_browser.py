@@ -13,6 +13,7 @@ text, letter for letter (the fleet's `data-rig` attributes included).
 
 from __future__ import annotations
 
+import contextlib
 import tempfile
 import threading
 from collections.abc import Iterator
@@ -22,7 +23,7 @@ from typing import Any
 import msgspec
 import pytest
 import zenoh
-from conftest import CHROMIUM, CONTROLLER_START_S, FIRST_LOAD_S, VIEWPORT, chromium, free_port
+from conftest import CONTROLLER_START_S, FIRST_LOAD_S, VIEWPORT, free_port
 from helpers import wait_for
 from test_fleet_browser import _free_run
 
@@ -127,13 +128,12 @@ def _tab(page: Any, name: str) -> None:
 
 
 def test_hostile_names_run_no_script_and_show_as_text(hostile: dict[str, Any],
-                                                       artifacts: Path) -> None:
-    if not CHROMIUM.exists():
-        pytest.fail(f"{CHROMIUM} missing: run `bash .ci/setup --browser`")
+                                                       artifacts: Path,
+                                                       chromium_browser: Any) -> None:
     dash = hostile["dash"]
     dialogs: list[str] = []
-    with chromium() as browser:
-        page = browser.new_page(viewport=VIEWPORT)
+    with contextlib.closing(chromium_browser.new_context(viewport=VIEWPORT)) as context:
+        page = context.new_page()
         try:
 
             def on_dialog(d: Any) -> None:

@@ -13,6 +13,7 @@ again by the controller, which sees the real user behind each change):
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import urllib.error
 import urllib.request
@@ -22,11 +23,9 @@ from typing import Any
 
 import pytest
 from conftest import (
-    CHROMIUM,
     CONTROLLER_START_S,
     FIRST_LOAD_S,
     VIEWPORT,
-    chromium,
     free_port,
     set_number,
 )
@@ -66,15 +65,15 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
 
 
 @pytest.fixture(scope="module")
-def pages(env: dict[str, Any]) -> Iterator[dict[str, Any]]:
-    if not CHROMIUM.exists():
-        pytest.fail(f"{CHROMIUM} missing: run `bash .ci/setup --browser`")
+def pages(env: dict[str, Any], chromium_browser: Any) -> Iterator[dict[str, Any]]:
     dash: Dashboard = env["dash"]
-    with chromium() as browser:
+    with contextlib.ExitStack() as contexts:
         out = {}
         for user in ("op1", "view"):
             # Separate contexts: separate cookie jars, as two people's browsers.
-            page = browser.new_context(viewport=VIEWPORT).new_page()
+            context = chromium_browser.new_context(viewport=VIEWPORT)
+            contexts.callback(context.close)
+            page = context.new_page()
             page.goto(dash.url_for(user), wait_until="domcontentloaded",
                       timeout=FIRST_LOAD_S * 1000)
             page.wait_for_selector(".dt-whoami", timeout=FIRST_LOAD_S * 1000)
