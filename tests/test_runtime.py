@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import itertools
+import subprocess
+import sys
 import threading
 import tracemalloc
 from collections.abc import Sequence
@@ -593,3 +595,45 @@ def test_the_approach_allocates_nothing_that_stays() -> None:
     retained = retained_bytes(rt)
     assert rt.approaching  # still approaching during the measurement
     assert retained < 4096, retained
+
+
+TICK_PROBE = """
+import sys
+import numba
+from controller.core.config import LoopConfig
+from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.process.runtime import Runtime
+from controller.sim.rig_disturbances import rig_setup
+from controller.sim.sim_rig import SimRig
+
+def compiled():
+    return sum(len(v.overloads) for m in list(sys.modules.values())
+               if getattr(m, "__name__", "").startswith("controller")
+               for v in vars(m).values() if isinstance(v, numba.core.registry.CPUDispatcher))
+
+cfg = LoopConfig()
+setup = rig_setup({names!r})
+rig = SimRig(setup.params, rate_hz=cfg.rate_hz, disturbance=setup.torque)
+rt = Runtime(ServoLoop(LoopCoefficients.build(cfg, 1)), rig)
+new = LoopCoefficients.build(cfg.with_(q_type="q20", q_cutoff_hz=cfg.q_cutoff_hz * 1.5), 2)
+imported = []
+sys.addaudithook(lambda event, args: imported.append(args[0]) if event == "import" else None)
+before = compiled()
+rt.run(max_ticks=200)
+rt.loop.request(new)  # an apply: prepared here, swapped in at a tick
+rt._stop = False
+rt.run(max_ticks=200)
+print(rt.loop.active.version, compiled() - before, sorted(set(imported)))
+"""
+
+
+@pytest.mark.parametrize("names", [(), ("article-rig",)])
+def test_the_ticks_import_and_compile_nothing(names: tuple[str, ...]) -> None:
+    """In a fresh process (nothing compiled yet), the controller's ticks on the simulated rig,
+    an apply's swap included, import no module and compile no numba kernel: all of it happens
+    before the loop runs (the rig's step kernel was compiled on the first tick: hundreds of ms
+    of skipped ticks on a busy machine)."""
+    code = TICK_PROBE.format(names=names)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "2 0 []", out.stderr

@@ -627,6 +627,10 @@ class SimRig:
         self._pos = 0.0
         self._rate = 0.0
         self.reset(initial_position_deg)
+        # The step's kernel is compiled (loaded from numba's cache) here, off the loop: on the
+        # first `step` it was the controller's first tick (hundreds of ms on a busy machine).
+        # A scratch copy of the state: nothing of this rig moves.
+        advance_tick(self._x.copy(), self._p.copy(), 0.0, 0.0, 0.0)
 
     def reset(self, position_deg: float = 0.0) -> None:
         """Load at rest at `position_deg`, belt relaxed, drive idle; restart time and noise."""

@@ -9,7 +9,9 @@ of a rig: the plant knowledge and config v1 are saved) and measures, from the sp
 accepting connections, the first status, the plant knowledge and the config answering. A
 first, unmeasured start of each tree fills numba's cache. `--busy N` runs N busy loops beside
 the measurement (the issue's "at load 10" on 2 cores: about 8). The machine's load average is
-printed before and after.
+printed before and after. On a shared machine the wall times follow the others' load: the CPU
+seconds are printed too (the controller process's own user+sys at ready, without its analysis
+worker; `dobtune check`'s whole process).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import resource
 import socket
 import statistics
 import subprocess
@@ -55,8 +58,16 @@ def _listening(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
+def _cpu_s(pid: int) -> float:
+    """user + sys seconds of process `pid` so far (/proc/PID/stat)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def start_once(tree: Path, state: Path, timeout_s: float = 300.0) -> dict[str, float]:
-    """Seconds from the spawn to: listening, status, knowledge, config (and `ready`: all)."""
+    """Seconds from the spawn to: listening, status, knowledge, config (and `ready`: all);
+    `ready CPU`: the controller process's CPU seconds when it was ready."""
     port = free_port()
     env = {**os.environ, "PYTHONPATH": str(tree)}
     cmd = [sys.executable, "-m", "controller", "--listen", f"tcp/127.0.0.1:{port}",
@@ -84,6 +95,7 @@ def start_once(tree: Path, state: Path, timeout_s: float = 300.0) -> dict[str, f
                             got[what] = time.monotonic() - t0
                 time.sleep(0.005)
         got["ready"] = max(got.values())
+        got["ready CPU"] = _cpu_s(proc.pid)
         return got
     finally:
         proc.send_signal(2)
@@ -94,15 +106,18 @@ def start_once(tree: Path, state: Path, timeout_s: float = 300.0) -> dict[str, f
             proc.wait()
 
 
-def check_once(tree: Path) -> float:
+def check_once(tree: Path) -> tuple[float, float]:
+    """`dobtune check`'s wall and CPU (user + sys) seconds."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
     code = "import sys; from server.__main__ import dobtune_main; sys.exit(dobtune_main(['check']))"
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.monotonic()
     r = subprocess.run([sys.executable, "-c", code], cwd=tree, env=env, capture_output=True)
     dt = time.monotonic() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if r.returncode not in (0, 3):
         raise RuntimeError(f"dobtune check from {tree}: exit {r.returncode}: {r.stderr[-500:]!r}")
-    return dt
+    return dt, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
 @contextlib.contextmanager
@@ -139,9 +154,12 @@ def main() -> None:
                 for name, tree in trees.items():
                     for k, v in start_once(tree, Path(tempfile.mkdtemp(dir=d))).items():
                         rows[name].setdefault(k, []).append(v)
-                    rows[name].setdefault("dobtune check", []).append(check_once(tree))
+                    wall_s, cpu_s = check_once(tree)
+                    rows[name].setdefault("dobtune check", []).append(wall_s)
+                    rows[name].setdefault("check CPU", []).append(cpu_s)
             print(f"{_load()} (at the end of the measurement)")
-        keys = ("listening", "status", "knowledge", "config", "ready", "dobtune check")
+        keys = ("listening", "status", "knowledge", "config", "ready", "ready CPU",
+                "dobtune check", "check CPU")
         print(f"median of {a.runs} runs, seconds from the spawn (max in brackets):")
         print(f"  {'':22s}" + "".join(f"{k:>18s}" for k in keys))
         for name, r in rows.items():
