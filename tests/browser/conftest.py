@@ -201,13 +201,18 @@ def slider_row(page: Any, label: str) -> Any:
     return page.locator(f"[id='{fid}']")
 
 
+def cutoff_box(page: Any) -> Any:
+    """The Q cut-off's text field (its row holds one input)."""
+    lab = page.locator("label", has_text="Q cut-off (Hz)").first
+    return lab.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
+        "input").last
+
+
 def set_number(page: Any, label: str, value: float) -> None:
     """Type into the number box beside a slider, or into a text field (what a user does for
     an exact value)."""
-    if label == "Q cut-off (Hz)":  # a text field: its row holds one input
-        lab = page.locator("label", has_text=label).first
-        box = lab.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
-            "input").last
+    if label == "Q cut-off (Hz)":
+        box = cutoff_box(page)
     else:
         box = slider_row(page, label).locator("xpath=..").locator("input").last
     box.fill(str(value))

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import FINITE_JS, FIRST_LOAD_S, open_when_ready, set_number
+from conftest import FINITE_JS, FIRST_LOAD_S, cutoff_box, open_when_ready, set_number
 from helpers import wait_for
 
 from controller.client import ControllerClient
@@ -24,20 +24,13 @@ pytestmark = pytest.mark.browser
 
 
 
-def _cutoff_field(page: Any) -> str:
-    lab = page.locator("label", has_text="Q cut-off (Hz)").first
-    box = lab.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
-        "input").last
-    return str(box.input_value())
-
-
 def _stale(page: Any) -> str:
     return str(page.locator(".dt-stale").first.inner_text()).strip()
 
 
 def _panels(dashboard: Dashboard, first: Any, second: Any) -> tuple[Any, Any]:
     """The candidate panels of two pages, told apart by the cut-off each shows."""
-    shown = {id(p): float(_cutoff_field(p)) for p in (first, second)}
+    shown = {id(p): float(cutoff_box(p).input_value()) for p in (first, second)}
     panels = list(dashboard.panels.values())
     assert len(panels) == 2
     a = [t for t in panels if t.cutoff_hz == shown[id(first)]]
@@ -62,7 +55,7 @@ def test_each_browser_edits_its_own_candidate(
         set_number(page, "Q cut-off (Hz)", 0.8)
         page.wait_for_selector(".dt-cutoff >> text=0.800 Hz", timeout=15_000)
         page.wait_for_selector(".dt-diff >> text=q_cutoff_hz", timeout=15_000)
-        assert float(_cutoff_field(other)) == hz0
+        assert float(cutoff_box(other).input_value()) == hz0
         assert "same as active" in other.locator(".dt-diff").first.inner_text()
 
         # A applies: the controller runs 0.8 Hz; B's candidate is now based on an old version.
@@ -74,7 +67,7 @@ def test_each_browser_edits_its_own_candidate(
         other.wait_for_selector(f".dt-stale >> text=Based on v{start.version}", timeout=15_000)
         assert f"now v{v2.version}" in _stale(other)
         assert _stale(page) == ""  # A's own apply: A is up to date
-        assert float(_cutoff_field(other)) == hz0  # B's candidate is still its own
+        assert float(cutoff_box(other).input_value()) == hz0  # B's candidate is still its own
         other.screenshot(path=str(artifacts / "candidates_1_stale.png"))
 
         # B's candidate is based on an old version: its Apply is disabled (issue 22: it would
@@ -99,7 +92,7 @@ def test_each_browser_edits_its_own_candidate(
         other.get_by_role("button", name="Revert to active").click()
         other.wait_for_selector(".dt-cutoff >> text=0.800 Hz", timeout=15_000)
         wait_for(lambda: _stale(other) == "", 10.0, "the stale note stayed after Revert")
-        assert float(_cutoff_field(other)) == 0.8
+        assert float(cutoff_box(other).input_value()) == 0.8
 
         # Suggest in B: the search's curve is drawn in B and its result is B's candidate;
         # A's candidate and the controller's configuration stay.

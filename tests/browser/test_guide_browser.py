@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import FIRST_LOAD_S, only_panel, set_number
+from conftest import FIRST_LOAD_S, cutoff_box, only_panel, set_number
 from helpers import wait_for
 
 from controller.client import ControllerClient
@@ -30,16 +30,17 @@ def _text(page: Any, sel: str) -> str:
     return str(page.locator(sel).first.inner_text())
 
 
-def _cutoff_field(page: Any) -> str:
-    lab = page.locator("label", has_text="Q cut-off (Hz)").first
-    box = lab.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
-        "input").last
-    return str(box.input_value())
-
-
 def _settled(page: Any) -> None:
     """The verdict shown is the present candidate's."""
     page.wait_for_selector(".dt-computing-on", state="detached", timeout=60_000)
+
+
+def _reverted_on_tune(page: Any) -> None:
+    """The Tune tab, its candidate reverted to the active configuration and judged."""
+    page.get_by_role("tab", name="Tune").click()
+    page.get_by_role("button", name="Revert to active").click()
+    page.wait_for_selector(".dt-diff >> text=same as active", timeout=60_000)
+    _settled(page)
 
 
 def _apply_disabled(page: Any, disabled: bool) -> None:
@@ -59,10 +60,7 @@ def _reload(page: Any, dashboard: Dashboard) -> None:
 
 def test_apply_is_off_while_the_candidate_is_the_active_configuration(
         page: Any, dashboard: Dashboard, probe: ControllerClient, artifacts: Path) -> None:
-    page.get_by_role("tab", name="Tune").click()
-    page.get_by_role("button", name="Revert to active").click()
-    page.wait_for_selector(".dt-diff >> text=same as active", timeout=60_000)
-    _settled(page)
+    _reverted_on_tune(page)
     _apply_disabled(page, True)
     assert "active configuration: nothing to send" in _text(page, ".dt-apply-blocked")
     page.locator(".dt-apply-blocked").scroll_into_view_if_needed()
@@ -98,7 +96,7 @@ def test_a_reload_keeps_the_candidate_and_its_verdict_and_a_stale_one_stays_refu
     page.wait_for_selector(".dt-apply-restored", timeout=60_000)
     page.wait_for_selector(f".dt-cutoff >> text={hz:.3f} Hz", timeout=60_000)
     _settled(page)
-    assert float(_cutoff_field(page)) == hz
+    assert float(cutoff_box(page).input_value()) == hz
     assert _text(page, ".dt-verdict") == verdict
     assert _text(page, ".dt-diff") == diff
     assert only_panel(dashboard).candidate().cv_kp == 1.2
@@ -111,7 +109,7 @@ def test_a_reload_keeps_the_candidate_and_its_verdict_and_a_stale_one_stays_refu
         fresh = other.new_page()
         fresh.goto(page.url, wait_until="domcontentloaded", timeout=FIRST_LOAD_S * 1000)
         fresh.wait_for_selector(".dt-diff >> text=same as active", timeout=FIRST_LOAD_S * 1000)
-        assert float(_cutoff_field(fresh)) == start.config.q_cutoff_hz
+        assert float(cutoff_box(fresh).input_value()) == start.config.q_cutoff_hz
     finally:
         other.close()
     wait_for(lambda: len(dashboard.panels) == 1, 30.0, "the other tab's candidate stayed")
@@ -135,7 +133,7 @@ def test_a_kept_candidate_made_stale_stays_refused_after_a_reload(
     _reload(page, dashboard)
     page.wait_for_selector(f".dt-stale >> text=Based on v{start.version}", timeout=60_000)
     assert f"now v{moved.version}" in _text(page, ".dt-stale")
-    assert float(_cutoff_field(page)) == hz
+    assert float(cutoff_box(page).input_value()) == hz
     _settled(page)
     _apply_disabled(page, True)
     page.screenshot(path=str(artifacts / "guide_reload_stale.png"))
@@ -208,10 +206,7 @@ def _guide_button(page: Any, name: str) -> None:
 
 def test_the_guided_path_measures_and_fits(
         page: Any, dashboard: Dashboard, probe: ControllerClient, artifacts: Path) -> None:
-    page.get_by_role("tab", name="Tune").click()
-    page.get_by_role("button", name="Revert to active").click()
-    page.wait_for_selector(".dt-diff >> text=same as active", timeout=60_000)
-    _settled(page)
+    _reverted_on_tune(page)
     assert _step(page, "measure")[0] == "todo"
     assert _step(page, "suggest")[0] == "todo"
     state, text = _wait_step(page, "check", "done")

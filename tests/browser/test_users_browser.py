@@ -26,6 +26,7 @@ from conftest import (
     CONTROLLER_START_S,
     FIRST_LOAD_S,
     VIEWPORT,
+    cutoff_box,
     free_port,
     set_number,
 )
@@ -182,9 +183,7 @@ def test_the_operator_applies_as_itself(env: dict[str, Any], pages: dict[str, An
     before = probe.get_config()
     page = pages["op1"]
     page.get_by_role("tab", name="Tune", exact=True).click()
-    lab = page.locator("label", has_text="Q cut-off (Hz)").first
-    field = lab.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
-        "input").last
+    field = cutoff_box(page)
     field.fill("1.0")
     field.press("Enter")
     page.wait_for_selector(".dt-cutoff >> text=1.000 Hz", timeout=15_000)
