@@ -318,17 +318,19 @@ class ControllerService:
             f"watchdog: {trip.reason}; rolled back from v{from_v} to the previous "
             f"configuration as v{to_v} at seq {seq}"
         )
-        self.watchdog_text = text
-        # The count Status publishes, set after its text: a Status never carries a rollback
-        # count without the text that reports it (`status` reads the count first).
-        self._rollbacks_seen = seen
-        self.warn(text)
         bad: LoopConfig | None = None
         if self._fallback_state is not None:
             self.running_verdict, bad = self._fallback_state
             self._fallback_state = None
         superseded = active.version != to_v  # another change came first; logged on its own
         saved = superseded or self._save_rollback(active.config, to_v, from_v, bad, trip.kind)
+        # Reported once the save was tried: a client that sees the rollback in a Status finds
+        # its line in the change log (or the loop faulted because it could not be saved).
+        self.watchdog_text = text
+        # The count Status publishes, set after its text: a Status never carries a rollback
+        # count without the text that reports it (`status` reads the count first).
+        self._rollbacks_seen = seen
+        self.warn(text)
         self.access.record(
             "rollback", "watchdog", "noted" if saved else "failed",
             version_before=from_v, version_after=to_v, trip=trip.kind, reason=trip.reason,
