@@ -201,6 +201,17 @@ def slider_row(page: Any, label: str) -> Any:
     return page.locator(f"[id='{fid}']")
 
 
+def wait_shown_text(page: Any, selector: str, text: str, timeout_ms: float) -> None:
+    """Wait until an element matching `selector` is shown with `text` in it. Checked in the
+    page (not through a locator), so an element the dashboard redraws while it is awaited
+    counts as soon as it shows the text (a locator can resolve to the visible element and
+    still time out while it is replaced: seen with the apply box in CI)."""
+    page.wait_for_function(
+        """([sel, text]) => [...document.querySelectorAll(sel)].some(
+               e => e.offsetParent !== null && e.innerText.includes(text))""",
+        arg=[selector, text], timeout=timeout_ms, polling=100)
+
+
 def cutoff_box(page: Any) -> Any:
     """The Q cut-off's text field (its row holds one input)."""
     lab = page.locator("label", has_text="Q cut-off (Hz)").first

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import ARTIFACTS, FIRST_LOAD_S, only_panel, set_number
+from conftest import ARTIFACTS, FIRST_LOAD_S, only_panel, set_number, wait_shown_text
 from helpers import wait_for
 
 from controller import protocol as proto
@@ -125,7 +125,7 @@ def test_a_rollback_is_an_amber_alarm_and_no_success_text_stands(
     page.wait_for_selector(".dt-verdict >> text=caution", timeout=60_000)
     page.get_by_role("button", name="Apply candidate").click()
     page.get_by_role("button", name="Apply anyway").click()
-    page.wait_for_selector(".dt-apply >> text=Accepted", timeout=60_000)
+    wait_shown_text(page, ".dt-apply", "Accepted", 60_000)
     applied = _status_until(probe, lambda s: s.config.cv_kp == 1.0, 30.0, "not applied")
     v = applied.config_version
     rollbacks = applied.rollbacks
