@@ -118,23 +118,67 @@ def test_change_log_appends_one_line_per_change(tmp_path: Path) -> None:
     store.append_change(old=a, old_version=1, new=b, version=2, verdict=verdict, client="dash")
     lines = (tmp_path / "applied_changes.jsonl").read_text().splitlines()
     assert len(lines) == 2
-    entries = [json.loads(x) for x in lines]  # strict JSON: inf/nan became null
+    entries = [json.loads(x) for x in lines]  # strict JSON: inf as "inf", nan as null
     assert entries[0]["time_s"] == 10.0 and entries[0]["old"] is None
     assert entries[0]["verdict"] is None and verdict_of_change(entries[0]) is None
     assert entries[1]["old"]["q_cutoff_hz"] == 0.5 and entries[1]["new"]["q_cutoff_hz"] == 1.0
-    assert entries[1]["verdict"]["margins"]["gain_margin_db"] is None
+    assert entries[1]["verdict"]["margins"]["gain_margin_db"] == "inf"
     assert entries[1]["verdict"]["margins"]["small_gain_peak"] is None
     assert "margins" not in entries[1]  # the margins are the verdict's, nowhere else
     assert entries[1]["client"] == "dash" and entries[1]["old_version"] == 1
     assert store.read_changes() == entries
     back = verdict_of_change(entries[1])
-    assert back is not None and math.isnan(back.margins.gain_margin_db)  # null: not known
-    assert math.isnan(back.margins.small_gain_peak)
-    def known(v: Verdict) -> Verdict:  # the figures JSON keeps (NaN != NaN, inf is lost)
+    assert back is not None and back.margins.gain_margin_db == math.inf  # kept
+    assert math.isnan(back.margins.small_gain_peak)  # null: not known
+    def known(v: Verdict) -> Verdict:  # NaN != NaN
         return msgspec.structs.replace(v, margins=msgspec.structs.replace(
-            v.margins, gain_margin_db=0.0, small_gain_peak=0.0))
+            v.margins, small_gain_peak=0.0))
 
     assert known(back) == known(verdict)
+
+
+@pytest.mark.parametrize("gm_db", [math.inf, -math.inf, 12.5])
+def test_an_infinite_margin_round_trips_through_the_log_and_history(
+    tmp_path: Path, gm_db: float
+) -> None:
+    """An infinite gain margin (no phase crossover) was written as null and came back as NaN
+    ("n/a" in History): it is written as "inf"/"-inf" now, and the History reply carries it
+    (over the wire too: MessagePack has infinity) as the History tab shows it."""
+    from controller import protocol as proto
+    from server.panels.bode import fmt_value
+
+    store = StateStore(tmp_path)
+    margins = VerdictMargins(gain_margin_db=gm_db, phase_margin_deg=60.0,
+                             peak_sensitivity_db=3.0, small_gain_peak=0.3,
+                             max_pole_radius=0.99, noise_to_command_peak_db=math.inf)
+    verdict = Verdict(verdict="accept", margins=margins, recommended_max_cutoff_hz=math.inf,
+                      knowledge_version=2)
+    store.save(LoopConfig(), 1, Change(old=None, old_version=None, verdict=verdict))
+    line = (tmp_path / LOG_FILE).read_bytes()
+    json.loads(line, parse_constant=lambda c: pytest.fail(f"not strict JSON: {c}"))
+    [item] = store.read_changes()
+    back = verdict_of_change(item)
+    assert back == verdict
+    reply = proto.decode(proto.encode(proto.HistoryReply(ok=True, entries=[proto.HistoryEntry(
+        version=1, time_s=1.0, client="", config=LoopConfig(), verdict=back)])),
+        proto.HistoryReply)
+    got = reply.entries[0].verdict
+    assert got is not None and got.margins.gain_margin_db == gm_db
+    assert fmt_value(got.margins.gain_margin_db, 1) == (
+        "inf" if gm_db == math.inf else "-inf" if gm_db == -math.inf else "12.5")
+
+
+def test_a_null_margin_of_an_older_line_still_reads_as_not_known() -> None:
+    """Lines written before infinity was kept have null for it (and for NaN): not known."""
+    line = {"version": 3, "verdict": {"verdict": "accept", "margins": {
+        "gain_margin_db": None, "phase_margin_deg": 60.0, "peak_sensitivity_db": 3.0,
+        "small_gain_peak": None, "max_pole_radius": 0.99}, "recommended_max_cutoff_hz": None}}
+    back = verdict_of_change(line)
+    assert back is not None and math.isnan(back.margins.gain_margin_db)
+    assert back.recommended_max_cutoff_hz is None
+    with pytest.raises(ValueError, match="gain_margin_db"):
+        verdict_of_change({"verdict": {**line["verdict"], "margins": {  # type: ignore[dict-item]
+            **line["verdict"]["margins"], "gain_margin_db": "infinite"}}})  # type: ignore[index]
 
 
 #: Lines as the version before protocol 2 wrote them (the verdict's kind and its margins side by

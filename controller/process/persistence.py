@@ -5,8 +5,10 @@
   directory) on every accepted change, so a crash leaves either the old or the new file.
 - `applied_changes.jsonl`: one JSON object per accepted change, appended and fsynced:
   {"time_s", "version", "old_version", "old", "new", "client", "verdict"}, where "verdict" is
-  the gate's `Verdict` (its wire form, as in `controller.protocol`) or null. Non-finite numbers
-  (an infinite gain margin) are written as null, and read back as NaN ("not known"). Lines of
+  the gate's `Verdict` (its wire form, as in `controller.protocol`) or null. JSON has no
+  infinity nor NaN: an infinite figure (a gain margin with no phase crossover) is written as
+  the string "inf" or "-inf" and read back as one; NaN ("not known") is written as null and
+  read back as NaN, as is the null of lines written before infinity was kept. Lines of
   older versions (protocol 1) carry the verdict's kind as a string ("" or absent: not logged)
   and its "margins" beside it: `verdict_of_change` reads both forms. A change saved with its
   line (`save(..., change=)`) has it appended once the new file has replaced the old one, its
@@ -31,6 +33,7 @@ Nothing here runs on the loop's thread.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import tempfile
 import threading
@@ -110,14 +113,20 @@ class SavedConfig:
     saved_at_s: float
 
 
-def _finite_or_none(value: Any) -> Any:
-    """JSON has no inf/nan: replace them by None, recursively."""
+#: How the change log writes the infinities JSON has not (read back by `_float_of_json`).
+_INF_JSON = {math.inf: "inf", -math.inf: "-inf"}
+
+
+def _json_floats(value: Any) -> Any:
+    """JSON has no inf/nan: +-inf as "inf"/"-inf", NaN as None, recursively."""
     if isinstance(value, float):
-        return value if value == value and abs(value) != float("inf") else None
+        if value != value:
+            return None
+        return _INF_JSON.get(value, value)
     if isinstance(value, dict):
-        return {k: _finite_or_none(v) for k, v in value.items()}
+        return {k: _json_floats(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_finite_or_none(v) for v in value]
+        return [_json_floats(v) for v in value]
     return value
 
 
@@ -393,7 +402,7 @@ class StateStore:
             "client": client,
             "verdict": None if verdict is None else msgspec.to_builtins(verdict),
         }
-        return _json.encode(_finite_or_none(entry)) + b"\n"
+        return _json.encode(_json_floats(entry)) + b"\n"
 
     def _append_line(self, line: bytes) -> None:
         try:
@@ -423,11 +432,24 @@ class StateStore:
         return out
 
 
-def _nan_for_null(margins: object) -> object:
-    """Margins as a change-log line holds them, with null (a non-finite figure) as NaN."""
+def _float_of_json(value: object) -> object:
+    """A figure as a change-log line holds it: null is NaN (not known; in lines written before
+    infinity was kept, also an infinity), "inf"/"-inf" an infinity; anything else as it is
+    (msgspec then says what is wrong with it)."""
+    if value is None:
+        return math.nan
+    if value == "inf":
+        return math.inf
+    if value == "-inf":
+        return -math.inf
+    return value
+
+
+def _margins_of_json(margins: object) -> object:
+    """Margins as a change-log line holds them, as floats (`_float_of_json`)."""
     if not isinstance(margins, dict):
         return margins
-    return {k: float("nan") if v is None else v for k, v in margins.items()}
+    return {k: _float_of_json(v) for k, v in margins.items()}
 
 
 def _convert(value: object, kind: type[Any], where: str) -> Any:
@@ -455,10 +477,13 @@ def verdict_of_change(item: dict[str, Any]) -> Verdict | None:
         if old is not None and not isinstance(old, dict):
             raise ValueError(f"margins: expected an object, got {type(old).__name__}")
         margins = (VerdictMargins.unknown() if old is None else
-                   _convert(_nan_for_null(old), VerdictMargins, "margins"))
+                   _convert(_margins_of_json(old), VerdictMargins, "margins"))
         return _convert({"verdict": value, "margins": margins}, Verdict, "verdict")
     if not isinstance(value, dict):
         raise ValueError(f"verdict: expected an object or a string, got {type(value).__name__}")
     if "margins" in value:
-        value = {**value, "margins": _nan_for_null(value["margins"])}
+        value = {**value, "margins": _margins_of_json(value["margins"])}
+    cutoff = value.get("recommended_max_cutoff_hz")
+    if cutoff in _INF_JSON.values():  # (null stays None there: no recommendation)
+        value = {**value, "recommended_max_cutoff_hz": _float_of_json(cutoff)}
     return _convert(value, Verdict, "verdict")

@@ -49,7 +49,7 @@ READOUT_HTML = ("<div class='dt-loop-readout' style='font-size:13px;font-family:
 
 def fmt_value(v: float, digits: int) -> str:
     if math.isinf(v):
-        return "inf"
+        return "inf" if v > 0 else "-inf"
     if math.isnan(v):
         return "n/a"
     return f"{v:.{digits}f}"
