@@ -60,18 +60,6 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def wait_listening(port: int, timeout_s: float) -> None:
-    """Until the dashboard's HTTP port accepts a connection (its start takes seconds)."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"nothing listens on port {port} after {timeout_s:.0f} s")
-        time.sleep(0.1)
-
-
 def cpu_seconds(pid: int) -> float:
     with open(f"/proc/{pid}/stat") as f:
         fields = f.read().rsplit(")", 1)[1].split()
@@ -126,7 +114,6 @@ def dashboard_and_chromium() -> Iterator[tuple[subprocess.Popen[str], str, Any]]
              "--port", str(port)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
         try:
             url = _dashboard_url(dash, 60.0)
-            wait_listening(port, 60.0)
             # Keep reading its output so the pipe never fills.
             threading.Thread(target=lambda: [None for _ in dash.stdout or ()],
                              daemon=True).start()
