@@ -7,12 +7,16 @@ synchronisation (the machine may be at load 15).
 
 from __future__ import annotations
 
+import contextlib
+import os
 import socket
+import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
-__all__ = ["answers", "free_port", "port_is_free", "wait_for", "wait_until"]
+__all__ = ["answers", "free_port", "no_new_files", "port_is_free", "wait_for", "wait_until"]
 
 
 def free_port() -> int:
@@ -61,3 +65,32 @@ def answers(client: Any) -> bool:
         return True
     except ControllerUnavailable:
         return False
+
+
+@contextlib.contextmanager
+def no_new_files(directory: Path) -> Iterator[None]:
+    """While inside: no file can be created, renamed or removed in `directory` (its files can
+    still be written and appended to), for any process, root included: what a directory
+    whose permissions were taken away does. Root ignores permissions: it gets the immutable
+    attribute (chattr +i; ext4 and most Linux file systems) instead of chmod 555."""
+    if os.geteuid() != 0:
+        mode = directory.stat().st_mode
+        directory.chmod(0o555)
+        try:
+            yield
+        finally:
+            directory.chmod(mode)
+        return
+    subprocess.run(["chattr", "+i", str(directory)], check=True, capture_output=True)
+    try:
+        probe = directory / ".no_new_files_probe"
+        try:
+            probe.touch()
+        except PermissionError:
+            pass
+        else:
+            probe.unlink()
+            raise AssertionError(f"chattr +i did not stop new files in {directory}")
+        yield
+    finally:
+        subprocess.run(["chattr", "-i", str(directory)], check=True, capture_output=True)

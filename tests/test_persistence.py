@@ -480,3 +480,32 @@ def test_a_process_killed_anywhere_comes_back_on_what_it_reported_or_newer(
         assert logged == list(range(2, logged[-1] + 1)) if logged else reported == 1
         assert (logged[-1] if logged else 1) in (loaded.version, loaded.version - 1)
         assert (logged[-1] if logged else 1) >= reported
+
+
+@pytest.mark.parametrize(
+    ("pending", "named"),
+    [
+        ({"version": 3, "from_version": 2}, "pending_rollback.config: missing"),
+        ({"version": "3", "from_version": 2, "config": {}}, "pending_rollback: version"),
+        ({"version": 3, "from_version": -1, "config": {}}, "pending_rollback: from_version"),
+        ({"version": 3, "from_version": 2, "config": {"cv_kp": "x"}}, "cv_kp"),
+        ([3, 2], "pending_rollback: expected an object"),
+    ],
+)
+def test_a_recorded_rollback_that_cannot_be_read_is_an_error_naming_it(
+    tmp_path: Path, pending: object, named: str
+) -> None:
+    """The controller never guesses which configuration is safe to start on."""
+    store = StateStore(tmp_path)
+    store.save(LoopConfig(), 2, Change(old=None, old_version=None, verdict=None))
+    with open(tmp_path / LOG_FILE, "ab") as f:
+        f.write(json.dumps({"time_s": 1.0, "pending_rollback": pending}).encode() + b"\n")
+    with pytest.raises(PersistenceError, match=named):
+        store.pending_rollback(store.load())
+    assert [e["version"] for e in store.read_changes()] == [2]  # not an entry of History
+
+
+def test_check_writable_leaves_nothing_behind(tmp_path: Path) -> None:
+    store = StateStore(tmp_path)
+    store.check_writable()
+    assert list(tmp_path.iterdir()) == []

@@ -11,6 +11,7 @@ import statistics
 from pathlib import Path
 from typing import Any
 
+from helpers import no_new_files
 from old_loop import OLD_LOOP
 
 from controller.core.config import LoopConfig
@@ -21,7 +22,7 @@ from controller.process.access import Access
 from controller.process.analysis_worker import AnalysisWorker
 from controller.process.audit import AuditLog, audit_path
 from controller.process.options import ControllerOptions
-from controller.process.persistence import MAX_VERSION, StateStore
+from controller.process.persistence import MAX_VERSION, Change, PendingRollback, StateStore
 from controller.process.requests import ApplyCoefficients, InjectFault
 from controller.process.runtime import FAULT, RUNNING, Runtime, RuntimeOptions
 from controller.process.service import ControllerService
@@ -176,22 +177,71 @@ def _records(access: Access, state: Path) -> list[dict[str, Any]]:
     return [json.loads(x) for x in audit_path(state).read_text().splitlines()]
 
 
-def test_a_rollback_that_cannot_be_saved_stops_the_loop_and_is_audited(tmp_path: Path) -> None:
-    """The rolled-back-to configuration cannot be written (the state file's place is taken by
-    a directory: what a read-only state directory does to a root process too): the loop
-    faults with command 0 and says why, the rollback and the fault are in the audit (user
-    `watchdog` / `controller`), and the save is retried until it succeeds."""
+def test_a_rollback_that_cannot_be_saved_is_recorded_so_a_restart_never_brings_back_the_bad(
+    tmp_path: Path,
+) -> None:
+    """No new file can be made in the state directory (its permissions taken away): the
+    rolled-back-to configuration cannot be saved, and the active file still holds v2, which
+    the watchdog rolled back from. The change log (an existing file) records the rollback:
+    what a restart reads (`pending_rollback`) is v3, so the loop runs on, says so, and the
+    save is retried until it succeeds. Before, nothing recorded it: a restart came back on
+    v2."""
+    rt, _rig = _runtime()
+    svc, access = _service(rt, tmp_path)
+    _more(rt, 500)
+    svc.store.save(BAD, 2, Change(old=GOOD, old_version=1, verdict=None))  # the apply's save
+    _apply(rt, BAD, GOOD)
+    with no_new_files(tmp_path):
+        for _ in range(20):
+            _more(rt, 500)
+            if rt.rollbacks:
+                break
+        assert rt.rollbacks == 1 and rt.loop.active.version == 3
+        svc.poll_rollback()
+        _more(rt, 3)
+        assert rt.mode == RUNNING, rt.fault
+        saved = svc.store.load()
+        assert saved is not None and (saved.version, saved.config) == (2, BAD)  # not saved
+        pending = svc.store.pending_rollback(saved)
+        assert pending is not None and (pending.version, pending.from_version) == (3, 2)
+        assert pending.config == GOOD
+        assert any("change log records it" in e and "comes back on v3" in e
+                   for e in svc.errors), svc.errors
+        assert [c["version"] for c in svc.store.read_changes()] == [2]  # not an entry
+        svc.poll_rollback()  # retried, still failing: recorded once, the loop runs on
+        _more(rt, 3)
+        assert rt.mode == RUNNING
+    recs = _records(access, tmp_path)
+    rb = [r for r in recs if r["action"] == "rollback"]
+    assert len(rb) == 1 and rb[0]["outcome"] == "failed" and rb[0]["recorded_unsaved"]
+    # The directory takes new files again: the next poll saves the rollback.
+    svc.poll_rollback()
+    saved = svc.store.load()
+    assert saved is not None and saved.version == 3 and saved.config == GOOD
+    assert svc.store.pending_rollback(saved) is None
+    assert [c["version"] for c in svc.store.read_changes()] == [2, 3]
+    assert not any("could not be saved" in e for e in svc.errors), svc.errors
+    assert rt.mode == RUNNING
+    access.close()
+
+
+def test_a_rollback_neither_saved_nor_recorded_stops_the_loop_and_is_audited(
+    tmp_path: Path,
+) -> None:
+    """Nothing can be written: no new file in the state directory, and the change log's place
+    is taken by a directory. The loop faults with command 0 and says why (a restart would
+    bring back v2), the rollback and the fault are in the audit (user `watchdog` /
+    `controller`), and the save is retried until it succeeds."""
     rt, rig = _runtime()
     svc, access = _service(rt, tmp_path)
+    (tmp_path / "applied_changes.jsonl").mkdir()
     _roll_back(rt)
-    active_file = tmp_path / "active_config.json"
-    active_file.unlink()
-    active_file.mkdir()
-    (active_file / "blocker").write_text("x")
-    svc.poll_rollback()
-    _more(rt, 3)
+    with no_new_files(tmp_path):
+        svc.poll_rollback()
+        _more(rt, 3)
     assert rt.mode == FAULT and rt.fault is not None
     assert "rollback to v3 could not be saved" in rt.fault and "bring back v2" in rt.fault
+    assert "nor recorded in the change log" in rt.fault
     n = len(rig.commands)
     _more(rt, 50)
     assert all(u == 0.0 for u in rig.commands[n:])
@@ -200,13 +250,13 @@ def test_a_rollback_that_cannot_be_saved_stops_the_loop_and_is_audited(tmp_path:
     rb = [r for r in recs if r["action"] == "rollback"]
     assert len(rb) == 1 and rb[0]["user"] == "watchdog" and rb[0]["outcome"] == "failed"
     assert (rb[0]["version_before"], rb[0]["version_after"], rb[0]["persisted"]) == (2, 3, False)
+    assert not rb[0]["recorded_unsaved"]
     faults = [r for r in recs if r["action"] == "fault"]
     assert len(faults) == 1 and faults[0]["user"] == "controller"
     assert "could not be saved" in faults[0]["reason"]
     assert any("could not be saved" in e for e in svc.errors)
-    # The directory is writable again: the next poll saves the rollback.
-    (active_file / "blocker").unlink()
-    active_file.rmdir()
+    # The directory is writable again: the next poll saves the rollback (its line is not:
+    # the log's place is still taken, which is reported).
     svc.poll_rollback()
     saved = svc.store.load()
     assert saved is not None and saved.version == 3 and saved.config == GOOD
@@ -291,3 +341,73 @@ def test_a_status_never_carries_a_rollback_count_without_its_text(tmp_path: Path
     assert after.rollbacks == 1
     assert after.watchdog.startswith("watchdog: ") and "rolled back from v2" in after.watchdog
     access.close()
+
+
+# -- at start: a rollback the change log records, a directory that takes no file ---------------
+
+
+def _start(state: Path) -> Any:
+    from controller.process.main import _initial_config
+
+    opts = ControllerOptions(rig_name="unit", state_dir=state, gate_in_subprocess=False)
+    k = KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, version=1))
+    runner = AnalysisWorker(subprocess=False)
+    return _initial_config(opts, StateStore(state), lambda c: runner.check(c, k))
+
+
+def _pending_state(state: Path) -> StateStore:
+    """v2 (BAD) saved, its rollback to v3 (GOOD) only recorded."""
+    store = StateStore(state)
+    store.save(GOOD, 1, Change(old=None, old_version=None, verdict=None))
+    store.save(BAD, 2, Change(old=GOOD, old_version=1, verdict=None))
+    store.record_pending_rollback(PendingRollback(GOOD, 3, 2, "oscillation"))
+    return store
+
+
+def test_a_start_saves_the_recorded_rollback_and_runs_it(tmp_path: Path) -> None:
+    store = _pending_state(tmp_path)
+    start = _start(tmp_path)
+    assert (start.config, start.version, start.fault, start.unsaved) == (GOOD, 3, "", None)
+    assert start.verdict.applicable and start.verdict.knowledge_version == 1
+    saved = store.load()
+    assert saved is not None and (saved.config, saved.version) == (GOOD, 3)
+    last = store.read_changes()[-1]
+    assert last["version"] == 3 and last["old_version"] == 2
+    assert last["client"] == "watchdog rollback: oscillation (saved at start)"
+    assert store.pending_rollback(saved) is None
+    again = _start(tmp_path)  # and the next start just runs it
+    assert (again.config, again.version, again.fault) == (GOOD, 3, "")
+
+
+def test_a_start_that_cannot_save_the_recorded_rollback_starts_it_faulted(
+    tmp_path: Path,
+) -> None:
+    _pending_state(tmp_path)
+    with no_new_files(tmp_path):
+        start = _start(tmp_path)
+    assert (start.config, start.version) == (GOOD, 3)  # never BAD, v2
+    assert "rollback to v3" in start.fault and "never on v2" in start.fault
+    assert start.unsaved is not None and start.rolled_back_from == BAD
+
+
+def test_a_start_with_a_directory_that_takes_no_file_is_faulted(tmp_path: Path) -> None:
+    """Nothing recorded (a rollback or an e-stop of the run before may have been lost): the
+    loop starts stopped, saying why."""
+    store = StateStore(tmp_path)
+    store.save(GOOD, 1, Change(old=None, old_version=None, verdict=None))
+    assert _start(tmp_path).fault == ""
+    with no_new_files(tmp_path):
+        start = _start(tmp_path)
+    assert (start.config, start.version) == (GOOD, 1)
+    assert start.fault.startswith("state_dir: cannot be written") and "reset" in start.fault
+
+
+def test_a_recorded_rollback_is_ignored_once_a_newer_configuration_is_saved(
+    tmp_path: Path,
+) -> None:
+    store = _pending_state(tmp_path)
+    store.save(GOOD.with_(cv_kp=0.6), 3, Change(old=BAD, old_version=2, verdict=None))
+    saved = store.load()
+    assert store.pending_rollback(saved) is None
+    start = _start(tmp_path)
+    assert (start.version, start.config.cv_kp, start.fault) == (3, 0.6, "")

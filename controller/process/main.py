@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -39,7 +40,13 @@ from controller.process.analysis_worker import AnalysisWorker
 from controller.process.audit import AuditError, AuditLog, audit_path
 from controller.process.node import ZenohNode
 from controller.process.options import ControllerOptions
-from controller.process.persistence import Change, PersistenceError, StateStore
+from controller.process.persistence import (
+    Change,
+    ChangeLogError,
+    PendingRollback,
+    PersistenceError,
+    StateStore,
+)
 from controller.process.runtime import (
     ESTOP,
     FAULT,
@@ -205,18 +212,45 @@ def initial_knowledge(opts: ControllerOptions, store: StateStore) -> KnowledgeRe
     return rec
 
 
+@dataclass(frozen=True)
+class _Start:
+    """The configuration the controller starts with, and whether the loop starts faulted."""
+
+    config: LoopConfig
+    version: int
+    verdict: Verdict
+    fault: str = ""
+    """Why the loop starts latched in fault ("": it does not)."""
+    unsaved: PendingRollback | None = None
+    """The watchdog's rollback the change log records, which could not be saved at start
+    either (the service retries it)."""
+    rolled_back_from: LoopConfig | None = None
+
+
 def _initial_config(
     opts: ControllerOptions,
     store: StateStore,
     check: Callable[[LoopConfig], Verdict],
     rig_limit_deg_s: float | None = None,
-) -> tuple[LoopConfig, int, Verdict]:
+) -> _Start:
     """The configuration to start with; the gate must not reject it (a caution is started
-    with and reported); a change is saved and logged."""
+    with and reported); a change is saved and logged. A watchdog rollback the change log
+    records as not saved replaces the saved configuration (the one it rolled back from,
+    judged unsafe: never started again); it is saved now, or the loop starts faulted. A state
+    directory that cannot be written starts the loop faulted (nothing it would have to
+    record, a rollback or an e-stop, could be)."""
     saved = store.load()
-    candidate, source = _candidate(
-        opts, None if saved is None else saved.config, store.active_path, rig_limit_deg_s
-    )
+    pending = store.pending_rollback(saved) if opts.config_path is None else None
+    start_from = saved.config if saved is not None else None
+    if pending is not None:
+        start_from = pending.config
+        log.warning("the watchdog's rollback from v%d to v%d was not saved before the restart "
+                    "(the change log records it): starting on v%d", pending.from_version,
+                    pending.version, pending.version)
+    candidate, source = _candidate(opts, start_from, store.active_path, rig_limit_deg_s)
+    if pending is not None:
+        source = (f"the watchdog's rollback to v{pending.version} recorded in {store.log_path} "
+                  f"(not saved before the restart)")
     verdict = check(candidate)
     if not verdict.applicable:
         raise StartupError(
@@ -224,17 +258,44 @@ def _initial_config(
         )
     if verdict.verdict == "caution":
         log.warning("%s: the gate's verdict is caution: %s", source, "; ".join(verdict.reasons))
-    if saved is not None and saved.config == candidate:
-        return candidate, saved.version, verdict
-    version = (saved.version if saved is not None else 0) + 1
-    store.save(candidate, version, Change(
+    try:
+        store.check_writable()
+    except PersistenceError as exc:
+        unwritable = str(exc)
+    else:
+        unwritable = ""
+    if pending is None and saved is not None and saved.config == candidate:
+        return _Start(candidate, saved.version, verdict, fault=_unwritable_fault(unwritable))
+    if pending is not None:
+        version, client = pending.version, f"watchdog rollback: {pending.kind} (saved at start)"
+    else:
+        version, client = (saved.version if saved is not None else 0) + 1, f"startup ({source})"
+    change = Change(
         old=None if saved is None else saved.config,
         old_version=None if saved is None else saved.version,
         verdict=verdict,
-        client=f"startup ({source})",
-    ))
+        client=client,
+    )
+    try:
+        store.save(candidate, version, change)
+    except PersistenceError as exc:
+        if pending is None or isinstance(exc, ChangeLogError):
+            raise
+        fault = (f"state_dir: the watchdog's rollback to v{version} (from v{pending.from_version}"
+                 f", before the restart) cannot be saved ({exc}): the loop starts stopped on "
+                 f"v{version}, never on v{pending.from_version}; the save is retried")
+        return _Start(candidate, version, verdict, fault=fault, unsaved=pending,
+                      rolled_back_from=None if saved is None else saved.config)
     log.info("config v%d from %s saved", version, source)
-    return candidate, version, verdict
+    return _Start(candidate, version, verdict, fault=_unwritable_fault(unwritable))
+
+
+def _unwritable_fault(why: str) -> str:
+    """The fault the loop starts in when the state directory cannot be written ("" if it can)."""
+    if not why:
+        return ""
+    return (f"state_dir: cannot be written ({why}): the loop starts stopped, since neither a "
+            "watchdog rollback nor an e-stop could be recorded; make it writable, then reset")
 
 
 def _rig_command_limit(opts: ControllerOptions) -> float | None:
@@ -327,6 +388,17 @@ def _restore_latch(store: StateStore, runtime: Runtime, notes: list[str]) -> Non
     log.warning("%s", notes[-1])
 
 
+def _start_faulted(runtime: Runtime, reason: str, notes: list[str]) -> None:
+    """The loop starts latched in fault for `reason` (an e-stop or fault latched before
+    stays, this one reported beside it)."""
+    if runtime.mode == ESTOP:
+        runtime.fault = reason
+    elif runtime.mode != FAULT:
+        runtime.restore_latch(FAULT, reason)
+    notes.append(reason)
+    log.warning("fault at start: %s", reason)
+
+
 class _Stopper:
     """SIGINT/SIGTERM: stop the loop (command 0) and let the process wind down."""
 
@@ -376,12 +448,13 @@ def _run(
     try:
         store = StateStore(opts.state_path)
         knowledge = initial_knowledge(opts, store)
-        cfg, version, verdict = _initial_config(
+        start = _initial_config(
             opts,
             store,
             lambda c: runner.check_here(c, knowledge),
             runner.command_limit_max_deg_s,
         )
+        cfg, version, verdict = start.config, start.version, start.verdict
     except PersistenceError as exc:
         raise StartupError(str(exc)) from exc
     # The worker judges the running configuration once it has loaded: the first apply finds
@@ -401,6 +474,8 @@ def _run(
             stopper.runtime = runtime
             notes: list[str] = []
             _restore_latch(store, runtime, notes)
+            if start.fault:
+                _start_faulted(runtime, start.fault, notes)
             if rig_faults:
                 runtime.fault = rig_faults[0]
                 if runtime.mode != ESTOP:
@@ -411,6 +486,8 @@ def _run(
                 opts, runtime, store, runner, verdict, notes, knowledge, access
             )
             access.warn = service.warn
+            if start.unsaved is not None:
+                service.rollback_not_saved(start.unsaved, start.rolled_back_from)
             access.start()
             access.record("controller.start", "controller", "noted", version_after=version,
                           auth=access.auth, listen=list(opts.listen))

@@ -14,6 +14,13 @@
   line (`save(..., change=)`) has it appended once the new file has replaced the old one, its
   fsync beside the directory's: both are on disk when `save` returns (one fsync's wait
   instead of two), and the log never names a configuration that was not saved.
+- A watchdog rollback whose configuration cannot be saved (the directory takes no new file,
+  the file's place is taken, ...) is recorded by a line of its own appended to the change
+  log (an existing file, which such a directory still lets grow):
+  {"time_s", "pending_rollback": {"version", "from_version", "config", "kind"}}. While the
+  active file still holds the version rolled back from, `pending_rollback` returns it: a
+  restart comes back on the configuration rolled back to, never on the one rolled back
+  from. `read_changes` leaves these lines out (they name no saved configuration).
 - `latch.json`: {"mode": "estop" | "fault", "reason", "fault", "saved_at_s"} while the loop is
   latched in e-stop or fault (written atomically, removed on reset): a restart comes back in
   that mode until an explicit reset.
@@ -60,6 +67,7 @@ __all__ = [
     "Change",
     "ChangeLogError",
     "Latch",
+    "PendingRollback",
     "PersistenceError",
     "SavedConfig",
     "StateStore",
@@ -71,6 +79,10 @@ LOG_FILE = "applied_changes.jsonl"
 LATCH_FILE = "latch.json"
 KNOWLEDGE_FILE = "plant_knowledge.json"
 MAX_VERSION = 2**53 - 1
+#: The change-log key of a watchdog rollback not saved yet (`StateStore.record_pending_rollback`).
+PENDING_KEY = "pending_rollback"
+#: The temporary file `check_writable` writes.
+_PROBE = ".write_probe"
 
 _json = msgspec.json.Encoder()
 
@@ -104,6 +116,19 @@ class Latch:
     """The e-stop's source, or the fault."""
     fault: str = ""
     """A fault reported while already in e-stop."""
+
+
+@dataclass(frozen=True)
+class PendingRollback:
+    """A watchdog rollback the change log records as not saved: what a restart must come
+    back on instead of the active file's configuration (the one rolled back from)."""
+
+    config: LoopConfig
+    """The configuration rolled back to."""
+    version: int
+    from_version: int
+    kind: str
+    """The watchdog trip's kind."""
 
 
 @dataclass(frozen=True)
@@ -162,7 +187,7 @@ class StateStore:
 
     def _remove_stale_tmp(self) -> list[str]:
         removed: list[str] = []
-        names = (ACTIVE_FILE, LATCH_FILE, KNOWLEDGE_FILE)
+        names = (ACTIVE_FILE, LATCH_FILE, KNOWLEDGE_FILE, _PROBE)
         try:
             entries = list(self.directory.iterdir())
         except OSError:
@@ -282,6 +307,15 @@ class StateStore:
             self._fsync_dir()
         finally:
             beside.join()
+
+    def check_writable(self) -> None:
+        """PersistenceError if a new file cannot be written, synced and removed in the
+        directory (what every save needs)."""
+        self._atomic_write(self.directory / _PROBE, b"probe\n")
+        try:
+            (self.directory / _PROBE).unlink()
+        except OSError as exc:
+            raise PersistenceError(f"{self.directory}: cannot remove a file: {exc}") from exc
 
     def _fsync_dir(self) -> None:
         # The rename itself is durable only once the directory entry is on disk.
@@ -413,8 +447,8 @@ class StateStore:
         except OSError as exc:
             raise PersistenceError(f"{self.log_path}: cannot append: {exc}") from exc
 
-    def read_changes(self) -> list[dict[str, Any]]:
-        """Every entry of the log, oldest first (a torn last line is skipped)."""
+    def _log_items(self) -> list[dict[str, Any]]:
+        """Every JSON object of the log, oldest first (a torn last line is skipped)."""
         try:
             lines = self.log_path.read_bytes().splitlines()
         except FileNotFoundError:
@@ -430,6 +464,55 @@ class StateStore:
             if isinstance(item, dict):
                 out.append(item)
         return out
+
+    def read_changes(self) -> list[dict[str, Any]]:
+        """Every entry of the log, oldest first (a torn last line is skipped; the lines of
+        rollbacks not saved then are not entries)."""
+        return [item for item in self._log_items() if PENDING_KEY not in item]
+
+    def record_pending_rollback(self, pending: PendingRollback) -> None:
+        """Append (fsynced) the line that makes a restart come back on `pending.config` while
+        the active file still holds `pending.from_version` (`pending_rollback`)."""
+        doc = {"time_s": time.time(), PENDING_KEY: {
+            "version": pending.version, "from_version": pending.from_version,
+            "config": config_to_builtins(pending.config), "kind": pending.kind}}
+        self._append_line(_json.encode(doc) + b"\n")
+
+    def pending_rollback(self, saved: SavedConfig | None) -> PendingRollback | None:
+        """The newest rollback the log records as not saved, if the active file (`saved`)
+        still holds the version it rolled back from; None otherwise (saved since, or
+        superseded by a later save). PersistenceError for a line that cannot be read: the
+        controller never guesses which configuration is safe to start."""
+        if saved is None:
+            return None
+        try:
+            items = self._log_items()
+        except OSError as exc:
+            raise PersistenceError(f"{self.log_path}: cannot read: {exc}") from exc
+        for item in reversed(items):
+            value = item.get(PENDING_KEY)
+            if value is None:
+                continue
+            try:
+                if not isinstance(value, dict):
+                    raise ValueError("expected an object")
+                version, from_version = value["version"], value["from_version"]
+                kind = value.get("kind", "")
+                for name, v in (("version", version), ("from_version", from_version)):
+                    if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= MAX_VERSION:
+                        raise ValueError(f"{name}: expected an int in [0, {MAX_VERSION}]")
+                if not isinstance(kind, str):
+                    raise ValueError("kind: expected a string")
+                config = config_from_builtins(value["config"])
+            except KeyError as exc:
+                raise PersistenceError(
+                    f"{self.log_path}: {PENDING_KEY}.{exc.args[0]}: missing") from exc
+            except (ValueError, ConfigError) as exc:
+                raise PersistenceError(f"{self.log_path}: {PENDING_KEY}: {exc}") from exc
+            if from_version != saved.version:
+                return None  # saved since (or an older one): the active file is newer
+            return PendingRollback(config, version, from_version, kind[:100])
+        return None
 
 
 def _float_of_json(value: object) -> object:

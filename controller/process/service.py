@@ -30,6 +30,7 @@ from controller.process.persistence import (
     MAX_VERSION,
     Change,
     ChangeLogError,
+    PendingRollback,
     PersistenceError,
     StateStore,
     verdict_of_change,
@@ -48,6 +49,8 @@ REPEAT_LOG_S = 10.0
 MAX_WARNINGS = 8
 #: Status.notes key of the verdict on the running configuration under new plant knowledge.
 KNOWLEDGE_NOTE = "knowledge"
+#: Status.notes key of a watchdog rollback not saved yet.
+UNSAVED_NOTE = "unsaved rollback"
 
 
 def config_changes(old: LoopConfig, new: LoopConfig) -> str:
@@ -101,6 +104,8 @@ class ControllerService:
         self._rollback_lock = threading.Lock()
         #: A rollback not saved yet: (config, version, from version, bad config, trip kind).
         self._unsaved: tuple[LoopConfig, int, int, LoopConfig | None, str] | None = None
+        #: The change log records `_unsaved` (a restart comes back on it).
+        self._unsaved_recorded = False
         self._fault_seen: str | None = None
         self.watchdog_text = ""
         self._identify_lock = threading.Lock()
@@ -290,8 +295,9 @@ class ControllerService:
 
     def poll_rollback(self) -> None:
         """Persist, audit and report what the watchdog did (status and latch threads; the
-        tick only counts). What is active is what is persisted: a rollback that cannot be
-        saved faults the loop (command 0) and is retried here until it is saved."""
+        tick only counts). What is active is what a restart comes back on: a rollback that
+        cannot be saved is recorded in the change log, or else faults the loop (command 0),
+        and is retried here until it is saved."""
         rt = self.rt
         trip = rt.last_trip
         if trip is not None and rt.mode == FAULT and rt.fault and rt.fault.startswith("watchdog"):
@@ -335,14 +341,23 @@ class ControllerService:
             "rollback", "watchdog", "noted" if saved else "failed",
             version_before=from_v, version_after=to_v, trip=trip.kind, reason=trip.reason,
             loop_seq=seq, persisted=saved and not superseded, superseded=superseded,
-            rollbacks=count,
+            rollbacks=count, recorded_unsaved=not saved and self._unsaved_recorded,
         )
+
+    def rollback_not_saved(self, pending: PendingRollback, bad: LoopConfig | None) -> None:
+        """At start: the configuration running is the rollback the change log records as not
+        saved (it could not be saved at start either); retried like any unsaved rollback."""
+        self._unsaved = (pending.config, pending.version, pending.from_version, bad,
+                         pending.kind)
+        self._unsaved_recorded = True
 
     def _save_rollback(
         self, config: LoopConfig, version: int, from_v: int, bad: LoopConfig | None, kind: str
     ) -> bool:
-        """Save the configuration rolled back to; on failure fault the loop (a restart would
-        bring back v`from_v`, which the watchdog rolled back) and keep it for a retry."""
+        """Save the configuration rolled back to. If it cannot be saved, keep it for a retry
+        and record the rollback in the change log (a line of its own, appended: a restart
+        then comes back on v`version`); if that cannot be written either, fault the loop
+        (command 0): a restart would bring back v`from_v`, which the watchdog rolled back."""
         try:
             self.store.save(config, version, Change(
                 old=bad, old_version=from_v, verdict=self.running_verdict,
@@ -350,19 +365,37 @@ class ControllerService:
         except ChangeLogError as exc:
             self.warn(str(exc))
         except PersistenceError as exc:
-            reason = (
-                f"state_dir: the rollback to v{version} could not be saved ({exc}): stopped "
-                f"(command 0), since a restart would bring back v{from_v}; retried until saved"
-            )
-            if self._unsaved is None or self.rt.mode != FAULT:
-                self.rt.request_fault(reason)
-            if self._unsaved is None:
-                self.warn(reason)
+            first = self._unsaved is None
             self._unsaved = (config, version, from_v, bad, kind)
+            unrecorded = ""
+            if not self._unsaved_recorded:
+                try:
+                    self.store.record_pending_rollback(
+                        PendingRollback(config, version, from_v, kind))
+                    self._unsaved_recorded = True
+                except PersistenceError as log_exc:
+                    unrecorded = str(log_exc)
+            if self._unsaved_recorded:
+                # The loop runs on: a restart comes back on what it runs.
+                self.warn(
+                    f"state_dir: the rollback to v{version} could not be saved ({exc}); the "
+                    f"change log records it, so a restart comes back on v{version}, not "
+                    f"v{from_v}; retried until saved", key=UNSAVED_NOTE)
+                return False
+            reason = (
+                f"state_dir: the rollback to v{version} could not be saved ({exc}) nor recorded "
+                f"in the change log ({unrecorded}): stopped (command 0), since a restart would "
+                f"bring back v{from_v}; retried until saved"
+            )
+            if first or self.rt.mode != FAULT:
+                self.rt.request_fault(reason)
+            self.warn(reason, key=UNSAVED_NOTE)
             return False
         if self._unsaved is not None:
             log.info("the rollback to v%d is saved now", version)
+            self.clear_warning(UNSAVED_NOTE)
         self._unsaved = None
+        self._unsaved_recorded = False
         return True
 
     def poll_faults(self) -> None:

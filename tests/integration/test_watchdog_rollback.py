@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers import no_new_files
 from procs import APPLY_TIMEOUT_S, Client, ControllerProcess, wait_until
 
 from controller import protocol as proto
@@ -108,6 +109,62 @@ def test_a_plant_change_trips_the_watchdog_rollback_then_fault(
         assert back.config == first.config and back.version == reply.version + 1
         assert back.config.cv_kp != stiff.cv_kp
         assert c.fresh_status().mode == "fault"
+
+
+def _saved_version(proc: ControllerProcess) -> tuple[int, float]:
+    """The active file's version and cv_kp."""
+    doc = json.loads((proc.state_dir / "active_config.json").read_text())
+    return doc["version"], doc["config"]["cv_kp"]
+
+
+def test_a_rollback_that_cannot_be_saved_is_never_undone_by_a_restart(
+    controller: ControllerProcess,
+    client: Client,
+    start_controller_factory: Callable[..., ControllerProcess],
+) -> None:
+    """No new file can be made in the state directory when the watchdog rolls back: the
+    configuration rolled back to cannot be saved and the active file still holds the one
+    rolled back from. The controller is killed (-9) and restarted with the directory still
+    so: it comes back on the configuration rolled back to (the change log recorded the
+    rollback), stopped with a fault that says why, never on the one the watchdog judged
+    unsafe; once the directory takes files again the rollback is saved and a reset runs it.
+    Before, the restart came back running the rolled-back-from configuration."""
+    first = client.get_config()
+    stiff = first.config.with_(cv_kp=1.0)  # a caution, unstable with the drive gain x5
+    reply = client.config_raw(proto.encode(
+        proto.ConfigRequest(candidate=stiff, client="test", confirm=True)), APPLY_TIMEOUT_S)
+    assert reply.accepted, reply.reasons
+    bad_v, good_v = reply.version, reply.version + 1
+    with no_new_files(controller.state_dir):
+        assert client.command(proto.SimFault(plant_gain=5.0)).ok
+        st = _status_until(client, lambda s: s.rollbacks >= 1 and "rolled back" in s.watchdog
+                           and any("change log records it" in n for n in s.notes), 30.0)
+        assert st.mode == "running" and st.config_version == good_v, st
+        assert st.config == first.config
+        assert _saved_version(controller) == (bad_v, 1.0)  # not saved: the directory refuses
+        controller.stop(signal.SIGKILL)
+        again = start_controller_factory(controller.state_dir, extra_args=("--realtime-priority",))
+        with Client(again.endpoint, again.rig) as c:
+            c.wait_ready(again, timeout_s=120.0)
+            back = c.get_config()
+            assert back.config == first.config and back.version == good_v
+            st = c.fresh_status()
+            assert st.mode == "fault" and st.config_version == good_v, st
+            assert any(f"rollback to v{good_v}" in f and "cannot be saved" in f
+                       for f in st.faults), st.faults
+            assert _saved_version(again) == (bad_v, 1.0)
+    # The directory takes files again: the rollback is saved (retried), a reset runs it.
+    assert wait_until(lambda: _saved_version(again) == (good_v, first.config.cv_kp), 30.0), (
+        _saved_version(again))
+    with Client(again.endpoint, again.rig) as c:
+        assert c.reset().ok
+        st = _status_until(c, lambda s: s.mode in ("stopped", "running"), 10.0)
+        assert st.config_version == good_v and st.config == first.config
+        log = [json.loads(x) for x in
+               (again.state_dir / "applied_changes.jsonl").read_text().splitlines()]
+        saved = [x for x in log if "version" in x]
+        assert saved[-1]["version"] == good_v and saved[-1]["new"]["cv_kp"] == first.config.cv_kp
+        assert saved[-1]["old"]["cv_kp"] == 1.0
 
 
 def test_sim_fault_fields_are_validated_and_named(
