@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Literal
 
 import msgspec
 
-from controller.core.errors import ConfigError
-from controller.core.validate import in_range
+from controller.core.validate import check_fields, one_of, within
 
 TrajectoryKind = Literal["sine", "step", "ramp", "hold"]
 TRAJECTORY_KINDS: tuple[str, ...] = ("sine", "step", "ramp", "hold")
@@ -43,28 +42,15 @@ class Trajectory(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
     """sine: offset + amplitude sin(omega t); step: offset, then offset + amplitude at step_time_s;
     ramp: offset + slope t; hold: offset. Default: the article's 5 sin(0.5 t) deg."""
 
-    kind: str = "sine"
-    amplitude_deg: float = 5.0
-    omega_rad_s: float = 0.5
-    offset_deg: float = 0.0
-    slope_deg_s: float = 1.0
-    step_time_s: float = 0.5
+    kind: Annotated[str, one_of(TRAJECTORY_KINDS, "trajectory")] = "sine"
+    amplitude_deg: Annotated[float, within(-3600.0, 3600.0)] = 5.0
+    omega_rad_s: Annotated[float, within(0.0, 100.0)] = 0.5
+    offset_deg: Annotated[float, within(-1e6, 1e6)] = 0.0
+    slope_deg_s: Annotated[float, within(-1000.0, 1000.0)] = 1.0
+    step_time_s: Annotated[float, within(0.0, 1e6)] = 0.5
 
     def __post_init__(self) -> None:
-        if self.kind not in TRAJECTORY_KINDS:
-            raise ConfigError(
-                "kind",
-                f"unknown trajectory {self.kind!r}; expected one of {', '.join(TRAJECTORY_KINDS)}",
-            )
-        limits = {
-            "amplitude_deg": (-3600.0, 3600.0),
-            "omega_rad_s": (0.0, 100.0),
-            "offset_deg": (-1e6, 1e6),
-            "slope_deg_s": (-1000.0, 1000.0),
-            "step_time_s": (0.0, 1e6),
-        }
-        for name, (lo, hi) in limits.items():
-            in_range(getattr(self, name), name, lo, hi)
+        check_fields(self)
 
     @property
     def period_s(self) -> float | None:

@@ -1,15 +1,31 @@
-"""Field validation shared by every config and message: clear errors naming the field."""
+"""Field validation shared by every config and message: clear errors naming the field.
+
+A field's own check can be declared with the field, in its annotation, and run by
+`check_fields` from the class's ``__post_init__`` (a frozen dataclass or a msgspec Struct)::
+
+    gain: Annotated[float, positive] = 1.0
+    damping: Annotated[float, within(0.0, 1.0, lo_open=True)] = 0.05
+
+A check is any ``check(value, field)`` that raises `ConfigError` naming the field (`number`,
+`positive`, `nonnegative`, `within(...)`, `one_of(...)`); checks that involve several fields
+stay in ``__post_init__``, after `check_fields`.
+"""
 
 from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
+from typing import Annotated, get_origin, get_type_hints
 
 import numpy as np
 
 from controller.core.errors import ConfigError
 
 _NUMBER_TYPES = (int, float, np.integer, np.floating)
+
+#: A field's declared check: raises ConfigError naming `field`, else returns the value.
+Check = Callable[[object, str], object]
 
 
 def number(value: object, field: str) -> float:
@@ -43,6 +59,50 @@ def in_range(value: object, field: str, lo: float, hi: float, *, lo_open: bool =
         bracket = "(" if lo_open else "["
         raise ConfigError(field, f"{v} is out of range {bracket}{lo}, {hi}]")
     return v
+
+
+def within(lo: float, hi: float, *, lo_open: bool = False) -> Callable[[object, str], float]:
+    """`in_range` as a field's declared check."""
+
+    def check(value: object, field: str) -> float:
+        return in_range(value, field, lo, hi, lo_open=lo_open)
+
+    return check
+
+
+def one_of(choices: tuple[str, ...], what: str) -> Check:
+    """A field's declared check: one of `choices` ("unknown <what> 'x'; expected one of ...")."""
+
+    def check(value: object, field: str) -> object:
+        if value not in choices:
+            raise ConfigError(
+                field, f"unknown {what} {value!r}; expected one of {', '.join(choices)}"
+            )
+        return value
+
+    return check
+
+
+def check_fields(obj: object) -> None:
+    """Run the checks declared in the annotations of `obj`'s fields, in field order (see the
+    module docstring); the first failing one raises."""
+    cls = type(obj)
+    declared = _DECLARED.get(cls)
+    if declared is None:
+        hints = get_type_hints(cls, include_extras=True)
+        declared = _DECLARED[cls] = tuple(
+            (name, tuple(hint.__metadata__))
+            for name, hint in hints.items()
+            if get_origin(hint) is Annotated
+        )
+    for name, checks in declared:
+        value = getattr(obj, name)
+        for check in checks:
+            check(value, name)
+
+
+#: Per class: (field name, its declared checks) in field order, read once from the annotations.
+_DECLARED: dict[type, tuple[tuple[str, tuple[Check, ...]], ...]] = {}
 
 
 def frequency_grid(freq_hz: np.ndarray, field: str) -> None:

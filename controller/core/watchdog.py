@@ -35,12 +35,13 @@ from __future__ import annotations
 
 import math
 from enum import IntEnum
+from typing import Annotated
 
 import msgspec
 
 from controller.core.errors import ConfigError
 from controller.core.lti import butter_sos
-from controller.core.validate import in_range, number, positive
+from controller.core.validate import check_fields, number, positive, within
 
 __all__ = ["TripCode", "Watchdog", "WatchdogLimits", "WatchdogTrip"]
 
@@ -53,61 +54,50 @@ class TripCode(IntEnum):
     TRACKING_ERROR = 4
 
 
+def _windows(value: object, field: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 1000:
+        raise ConfigError(field, f"must be an int in 1..1000, got {value!r}")
+    return value
+
+
 class WatchdogLimits(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """Thresholds of the watchdog's detectors (units in the names); validated on construction."""
 
-    band_low_hz: float = 4.0
+    band_low_hz: Annotated[float, positive] = 4.0
     """Lower edge of the band where the command's oscillation energy is measured."""
-    band_high_hz: float = 150.0
+    band_high_hz: Annotated[float, positive] = 150.0
     """Upper edge of that band (below the loop's Nyquist frequency)."""
-    envelope_time_s: float = 0.05
+    envelope_time_s: Annotated[float, positive] = 0.05
     """Time constant of each of the two lags smoothing the band's mean square."""
-    oscillation_rms_deg_s: float = 2.0
+    oscillation_rms_deg_s: Annotated[float, positive] = 2.0
     """Band RMS of the speed command above which the loop counts as oscillating."""
-    oscillation_duration_s: float = 1.0
+    oscillation_duration_s: Annotated[float, positive] = 1.0
     """How long the oscillation must last to trip..."""
-    decay_ratio: float = 1.12
+    decay_ratio: Annotated[float, within(1.0, 100.0, lo_open=True)] = 1.12
     """...unless its band RMS is falling by this factor per `window_s` or faster (a transient
     dying out, e.g. after a large step)."""
-    growth_floor_rms_deg_s: float = 1.5
+    growth_floor_rms_deg_s: Annotated[float, positive] = 1.5
     """A growing envelope trips only above this band RMS."""
-    growth_ratio: float = 1.25
+    growth_ratio: Annotated[float, within(1.0, 100.0, lo_open=True)] = 1.25
     """Minimum growth of the band RMS per window..."""
-    window_s: float = 0.05
+    window_s: Annotated[float, positive] = 0.05
     """...sampled every this long (the growth and decay tests)..."""
-    growth_windows: int = 4
+    growth_windows: Annotated[int, _windows] = 4
     """...in this many windows in a row."""
-    saturation_duration_s: float = 1.0
+    saturation_duration_s: Annotated[float, positive] = 1.0
     """|u| at the command limit this long trips."""
-    error_limit_deg: float = 2.0
+    error_limit_deg: Annotated[float, positive] = 2.0
     """|theta_ref - theta| above this..."""
-    error_duration_s: float = 1.0
+    error_duration_s: Annotated[float, positive] = 1.0
     """...this long trips."""
 
     def __post_init__(self) -> None:
-        for name in (
-            "band_low_hz",
-            "band_high_hz",
-            "envelope_time_s",
-            "oscillation_rms_deg_s",
-            "oscillation_duration_s",
-            "growth_floor_rms_deg_s",
-            "window_s",
-            "saturation_duration_s",
-            "error_limit_deg",
-            "error_duration_s",
-        ):
-            positive(getattr(self, name), name)
+        check_fields(self)
         if not self.band_low_hz < self.band_high_hz:
             raise ConfigError(
                 "band_high_hz",
                 f"must be above band_low_hz ({self.band_low_hz}), got {self.band_high_hz}",
             )
-        in_range(self.growth_ratio, "growth_ratio", 1.0, 100.0, lo_open=True)
-        in_range(self.decay_ratio, "decay_ratio", 1.0, 100.0, lo_open=True)
-        n = self.growth_windows
-        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 1000:
-            raise ConfigError("growth_windows", f"must be an int in 1..1000, got {n!r}")
 
 
 class WatchdogTrip(msgspec.Struct, frozen=True, kw_only=True):

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -24,7 +24,7 @@ import numpy.typing as npt
 from controller.core.config import NominalModel
 from controller.core.errors import ConfigError
 from controller.core.lti import tf2ss
-from controller.core.validate import nonnegative, positive
+from controller.core.validate import check_fields, nonnegative, positive
 
 __all__ = ["BacklashRig", "LinearRig", "PlantVariant", "backlash_period", "linear_period"]
 
@@ -36,14 +36,14 @@ class PlantVariant:
     """P' = gain Pn R: see the module docstring. mode_hz = 0: no extra mode."""
 
     label: str
-    gain: float = 1.0
+    gain: Annotated[float, positive] = 1.0
     mode_hz: float = 0.0
     mode_damping: float = 0.05
     antimode_hz: float = 0.0
     antimode_damping: float = 0.05
 
     def __post_init__(self) -> None:
-        positive(self.gain, "gain")
+        check_fields(self)
         if self.mode_hz < 0.0 or (self.mode_hz > 0.0 and self.antimode_hz <= 0.0):
             raise ConfigError("antimode_hz", "a mode needs its pair of zeros (antimode_hz > 0)")
 

@@ -81,13 +81,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields, replace
+from typing import Annotated
 
 import numba
 import numpy as np
 import numpy.typing as npt
 
 from controller.core.errors import ConfigError
-from controller.core.validate import in_range, nonnegative, number, positive
+from controller.core.validate import (
+    check_fields,
+    in_range,
+    nonnegative,
+    number,
+    positive,
+    within,
+)
 from controller.sim.disturbance import Disturbance, NoDisturbance
 
 __all__ = ["RigFaults", "RigParams", "SimRig"]
@@ -247,23 +255,19 @@ class RigParams:
 class RigFaults:
     """Faults injected into a running simulated rig; the defaults are "no fault"."""
 
-    plant_gain: float = 1.0
+    plant_gain: Annotated[float, within(0.0, 100.0)] = 1.0
     """Factor on the speed reference the drive receives (1 = nominal, 0 = drive not moving)."""
-    extra_backlash_deg: float = 0.0
+    extra_backlash_deg: Annotated[float, within(0.0, 10.0)] = 0.0
     """Backlash added to `RigParams.backlash_deg` (the belt loosens), load side."""
-    resonance_hz: float = 0.0
+    resonance_hz: Annotated[float, within(0.0, 1e4)] = 0.0
     """Natural frequency of an extra mode (payload on a spring, hub clamped); 0 = none."""
-    resonance_damping: float = 0.02
+    resonance_damping: Annotated[float, within(0.0, 1.0, lo_open=True)] = 0.02
     """Damping ratio of the extra mode."""
-    resonance_mass_fraction: float = 0.2
+    resonance_mass_fraction: Annotated[float, within(0.0, 0.9, lo_open=True)] = 0.2
     """Share of the load inertia that sits on the spring (the encoder reads it)."""
 
     def __post_init__(self) -> None:
-        in_range(self.plant_gain, "plant_gain", 0.0, 100.0)
-        in_range(self.extra_backlash_deg, "extra_backlash_deg", 0.0, 10.0)
-        in_range(self.resonance_hz, "resonance_hz", 0.0, 1e4)
-        in_range(self.resonance_damping, "resonance_damping", 0.0, 1.0, lo_open=True)
-        in_range(self.resonance_mass_fraction, "resonance_mass_fraction", 0.0, 0.9, lo_open=True)
+        check_fields(self)
 
     @property
     def active(self) -> bool:
