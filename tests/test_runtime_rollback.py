@@ -5,16 +5,19 @@ simulated rig against a fake clock (faster than real time)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import statistics
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from helpers import no_new_files
+from helpers import no_new_files, wait_until
 from old_loop import OLD_LOOP
 
-from controller.core.config import LoopConfig
+from controller.core.config import LoopConfig, NominalModel
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
@@ -59,11 +62,13 @@ class Recorded(SimRig):
         super().step(command_deg_s)
 
 
-def _runtime(first: LoopConfig = GOOD, **opts: float) -> tuple[Runtime, Recorded]:
+def _runtime(
+    first: LoopConfig = GOOD, trajectory: Trajectory = HOLD, **opts: float
+) -> tuple[Runtime, Recorded]:
     c = Clock()
     rig = Recorded()
     rt = Runtime(
-        ServoLoop(LoopCoefficients.build(first, 1)), rig, trajectory=HOLD,
+        ServoLoop(LoopCoefficients.build(first, 1)), rig, trajectory=trajectory,
         options=RuntimeOptions(**opts), clock=c.clock, sleep=c.sleep,  # type: ignore[arg-type]
     )
     return rt, rig
@@ -283,11 +288,16 @@ def test_a_rollback_whose_log_line_cannot_be_written_is_saved_and_reported(
 
 
 def test_a_watchdog_rollback_and_fault_are_audited_with_user_watchdog(tmp_path: Path) -> None:
-    """Issue 24 item 4: 0 audit records for 4 rollbacks and a watchdog fault, before."""
+    """Issue 24 item 4: 0 audit records for 4 rollbacks and a watchdog fault, before. The
+    "previous" configuration is BAD too, swapped in by the runtime alone (the service never
+    judged it): judged when the rollback is reported, it fails the gate (the nonlinear
+    check's chatter), and the loop faults at once, by user `watchdog` too. (The trip again
+    after a rollback: test_a_second_trip_soon_after_a_rollback_is_a_fault and the process
+    test in tests/integration/test_watchdog_rollback.py.)"""
     rt, _rig = _runtime()
     svc, access = _service(rt, tmp_path)
     _more(rt, 500)
-    _apply(rt, BAD, BAD)  # the "previous" configuration misbehaves too: rollback, then fault
+    _apply(rt, BAD, BAD)
     for _ in range(30):
         _more(rt, 500)
         svc.poll_rollback()
@@ -304,7 +314,9 @@ def test_a_watchdog_rollback_and_fault_are_audited_with_user_watchdog(tmp_path: 
     assert rb[0]["trip"] in ("oscillation", "growing oscillation", "saturation")
     faults = [r for r in recs if r["action"] == "fault"]
     assert len(faults) == 1 and faults[0]["user"] == "watchdog"
-    assert "again after a rollback" in faults[0]["reason"]
+    assert faults[0]["reason"].startswith(
+        "watchdog: rolled back to v3, which fails the gate on plant knowledge v1: nonlinear "
+        "check: chatter"), faults[0]["reason"]
     access.close()
 
 
@@ -411,3 +423,112 @@ def test_a_recorded_rollback_is_ignored_once_a_newer_configuration_is_saved(
     assert store.pending_rollback(saved) is None
     start = _start(tmp_path)
     assert (start.version, start.config.cv_kp, start.fault) == (3, 0.6, "")
+
+
+# -- a rollback after new plant knowledge (the controller owns it) ------------------------------
+
+STIFF = OLD_LOOP.with_(cv_kp=1.0)  # a caution on the model, unstable with the drive gain x5
+
+
+def _knowledge(gain: float) -> KnowledgeRecord:
+    """The commissioning knowledge with the plant model's gain times `gain`."""
+    model = NominalModel(pn_num=tuple(x * gain for x in NominalModel().pn_num))  # type: ignore[arg-type]
+    return KnowledgeRecord.of(PlantKnowledge(bound=COMMISSIONING_BOUND, model=model))
+
+
+@contextlib.contextmanager
+def _ticking(rt: Runtime) -> Iterator[None]:
+    """The loop runs in a thread of its own (on its fake clock: faster than real time), so
+    that the service's requests, which wait for a tick, are served."""
+    rt._stop = False
+    th = threading.Thread(target=rt.run, daemon=True)
+    th.start()
+    try:
+        yield
+    finally:
+        rt.stop()
+        th.join(60.0)
+
+
+def _trip(rt: Runtime) -> None:
+    """The drive gain x5: STIFF oscillates (on a sine: at a hold it creeps without
+    tripping); until the watchdog acts (within 10 s of the loop's time)."""
+    rt.submit(InjectFault(RigFaults(plant_gain=5.0)))
+    assert wait_until(lambda: rt.rollbacks or rt.mode == FAULT, 120.0)
+
+
+def test_a_rollback_after_new_knowledge_runs_under_the_verdict_judged_on_it(
+    tmp_path: Path,
+) -> None:
+    """OLD_LOOP (v1) was accepted on knowledge v1; STIFF applied (v2); knowledge v2 (the
+    model's gain x2) adopted, on which OLD_LOOP is a caution. The watchdog rolls back to it:
+    the Status and the History show the verdict on knowledge v2 (it showed v1's accept)."""
+    rt, _rig = _runtime(OLD_LOOP, Trajectory())
+    svc, access = _service(rt, tmp_path)
+    _more(rt, 500)
+    assert svc.running_verdict.verdict == "accept"
+    with _ticking(rt):
+        assert svc.apply(STIFF, "test", confirm=True).accepted
+        reply = svc.adopt_knowledge(_knowledge(2.0), "test x2", "op")
+        assert reply.ok and "trip faults" not in reply.message, reply.message
+        _trip(rt)
+    assert rt.rollbacks == 1 and rt.loop.active.version == 3
+    svc.poll_rollback()
+    _more(rt, 3)
+    st = svc.status()
+    assert st.mode == RUNNING and st.config == OLD_LOOP and st.config_version == 3
+    assert st.verdict is not None and st.knowledge_version == 2
+    assert (st.verdict.verdict, st.verdict.knowledge_version) == ("caution", 2), st.verdict
+    last = svc.history(5).entries[-1]
+    assert last.version == 3 and last.verdict == st.verdict
+    access.close()
+
+
+def test_new_knowledge_on_which_the_fallback_fails_makes_a_trip_fault(tmp_path: Path) -> None:
+    """Knowledge v2 (gain x3) rejects OLD_LOOP, the watchdog's fallback: a trip faults with
+    command 0 and says why, instead of rolling back to what fails the gate (it rolled back)."""
+    rt, rig = _runtime(OLD_LOOP, Trajectory())
+    svc, access = _service(rt, tmp_path)
+    _more(rt, 500)
+    with _ticking(rt):
+        assert svc.apply(STIFF, "test", confirm=True).accepted
+        reply = svc.adopt_knowledge(_knowledge(3.0), "test x3", "op")
+        assert reply.ok and "a watchdog trip faults (not rolled back: v1 before it fails the " \
+            "gate on plant knowledge v2" in reply.message, reply.message
+        _trip(rt)
+    assert rt.rollbacks == 0 and rt.mode == FAULT and rt.loop.active.version == 2
+    assert rt.fault is not None and "not rolled back: v1 before it fails the gate" in rt.fault
+    n = len(rig.commands)
+    _more(rt, 50)
+    assert all(u == 0.0 for u in rig.commands[n:])
+    access.close()
+
+
+def test_a_restored_configuration_that_fails_the_gate_now_faults_the_loop(
+    tmp_path: Path,
+) -> None:
+    """The service did not judge the fallback (swapped in by the runtime alone) and knowledge
+    v2 rejects it: the rollback's verdict is judged when it is seen (off the tick), and
+    since it fails the gate the loop faults (command 0) with the reason; Status and History
+    show that verdict."""
+    rt, rig = _runtime(OLD_LOOP, Trajectory())
+    svc, access = _service(rt, tmp_path)
+    _more(rt, 500)
+    _apply(rt, STIFF, OLD_LOOP)
+    with _ticking(rt):
+        assert svc.adopt_knowledge(_knowledge(3.0), "test x3", "op").ok
+        _trip(rt)
+    assert rt.rollbacks == 1 and rt.loop.active.version == 3
+    svc.poll_rollback()
+    _more(rt, 3)
+    assert rt.mode == FAULT and rt.fault is not None
+    assert rt.fault.startswith("watchdog: rolled back to v3, which fails the gate on plant "
+                               "knowledge v2"), rt.fault
+    n = len(rig.commands)
+    _more(rt, 50)
+    assert all(u == 0.0 for u in rig.commands[n:])
+    st = svc.status()
+    assert st.verdict is not None and (st.verdict.verdict, st.verdict.knowledge_version) == (
+        "reject", 2)
+    assert svc.history(5).entries[-1].verdict == st.verdict
+    access.close()

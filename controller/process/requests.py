@@ -17,6 +17,7 @@ from controller.ident.program import ExcitationProgram
 __all__ = [
     "AbortProgram",
     "ApplyCoefficients",
+    "DropFallback",
     "EStop",
     "InjectFault",
     "RequestBody",
@@ -82,6 +83,15 @@ class ApplyCoefficients:
 
 
 @dataclass(frozen=True, slots=True)
+class DropFallback:
+    """The watchdog must not roll back to the configuration it would (it fails the gate on
+    the plant knowledge now): a trip faults instead, saying `reason`. The next apply arms a
+    fallback again."""
+
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
 class RunProgram:
     """Start an ExcitationProgram at the next tick (mode running or stopped)."""
 
@@ -109,6 +119,7 @@ RequestBody = (
     | EStop
     | ResetFault
     | ApplyCoefficients
+    | DropFallback
     | RunProgram
     | AbortProgram
     | InjectFault

@@ -46,6 +46,7 @@ from controller.ident.program import ExcitationProgram
 from controller.process.requests import (
     AbortProgram,
     ApplyCoefficients,
+    DropFallback,
     EStop,
     InjectFault,
     RequestBody,
@@ -292,6 +293,8 @@ class Runtime:
         )
         self._wd_step = self.watchdog.step
         self._fallback: PreparedCoefficients | None = None
+        self._fallback_dropped = ""
+        """Why there is no fallback (`DropFallback`; "": none was dropped)."""
         self._guard_ticks = round(opts.rollback_guard_s * opts.rate_hz)
         self._rollback_seq = -(1 << 62)
         self.rollbacks = 0
@@ -648,11 +651,12 @@ class Runtime:
             wd.reset(u)
             self.latch_changed.set()  # wakes the thread that persists it (rare path)
             return
-        why = (
-            "no previous configuration to roll back to"
-            if fallback is None and self.rollbacks == 0
-            else "again after a rollback"
-        )
+        if fallback is None and self._fallback_dropped:
+            why = self._fallback_dropped
+        elif fallback is None and self.rollbacks == 0:
+            why = "no previous configuration to roll back to"
+        else:
+            why = "again after a rollback"
         self._enter_fault(f"watchdog: {trip.reason} ({why})")
 
     def _end_program(self, pos: float) -> None:
@@ -727,8 +731,13 @@ class Runtime:
         if isinstance(b, ApplyCoefficients):
             self.loop.request(b.prepared)  # prepared by the requesting thread
             self._fallback = b.fallback
+            self._fallback_dropped = ""
             self.watchdog.command_limit_deg_s = b.prepared.limit
             self.watchdog.reset(self.loop.u_prev)
+            t.ok = True
+        elif isinstance(b, DropFallback):
+            self._fallback = None
+            self._fallback_dropped = b.reason
             t.ok = True
         elif isinstance(b, InjectFault):
             set_faults = getattr(self.rig, "set_faults", None)

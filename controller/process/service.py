@@ -35,7 +35,12 @@ from controller.process.persistence import (
     StateStore,
     verdict_of_change,
 )
-from controller.process.requests import ApplyCoefficients, RequestBody, RunProgram
+from controller.process.requests import (
+    ApplyCoefficients,
+    DropFallback,
+    RequestBody,
+    RunProgram,
+)
 from controller.process.runtime import ESTOP, FAULT, Runtime, Ticket
 
 __all__ = ["ControllerService", "RuntimeEvents", "config_changes"]
@@ -97,9 +102,10 @@ class ControllerService:
         self.knowledge = knowledge if knowledge is not None else KnowledgeRecord()
         #: The gate's verdict on the running configuration (re-judged on new knowledge).
         self.running_verdict = verdict
-        #: The verdict of the configuration the watchdog would roll back to, and the
-        #: configuration it would roll back from.
-        self._fallback_state: tuple[Verdict, LoopConfig] | None = None
+        #: The configuration the watchdog would roll back to, its verdict (judged on the
+        #: knowledge now: adopting knowledge judges it again), and the configuration it would
+        #: roll back from.
+        self._fallback_state: tuple[LoopConfig, Verdict, LoopConfig] | None = None
         self._rollbacks_seen = 0
         self._rollback_lock = threading.Lock()
         #: A rollback not saved yet: (config, version, from version, bad config, trip kind).
@@ -234,9 +240,15 @@ class ControllerService:
                 )
             # The filters are built here (this thread); the tick only swaps them in. The
             # configuration running now goes with them, under the next version, as the
-            # watchdog's rollback target (its filters are designed already: no design work).
-            fallback = dataclasses.replace(active, version=version + 1)
+            # watchdog's rollback target (its filters are designed already: no design work),
+            # unless it fails the gate on the knowledge now (new knowledge judged it so).
+            armed = self.running_verdict.applicable
+            fallback = dataclasses.replace(active, version=version + 1) if armed else None
             ticket = self.rt.submit(ApplyCoefficients(coefficients, fallback))
+            if not armed:
+                self.rt.submit(DropFallback(
+                    f"not rolled back: v{active.version} before it "
+                    f"{_fails_gate(self.running_verdict)}"))
             if not ticket.wait(self.opts.apply_timeout_s) or not ticket.ok:
                 # Saved but not (yet) swapped: only while shutting down. Report it.
                 reason = f"loop: not applied at a tick boundary ({ticket.message or 'timeout'})"
@@ -244,7 +256,8 @@ class ControllerService:
                 return self.config_reply(accepted=False, reasons=[reason], verdict=verdict)
             self._wait_version(version)
             self.clear_warning(KNOWLEDGE_NOTE)  # it judged the configuration replaced now
-            self._fallback_state = (self.running_verdict, candidate)
+            self._fallback_state = (
+                (active.config, self.running_verdict, candidate) if armed else None)
             self.running_verdict = verdict
             log.info(
                 "config v%d applied at seq %d (from %s): %s",
@@ -325,10 +338,13 @@ class ControllerService:
             f"configuration as v{to_v} at seq {seq}"
         )
         bad: LoopConfig | None = None
+        judged: Verdict | None = None
         if self._fallback_state is not None:
-            self.running_verdict, bad = self._fallback_state
+            _, judged, bad = self._fallback_state
             self._fallback_state = None
         superseded = active.version != to_v  # another change came first; logged on its own
+        if not superseded:
+            self._judge_restored(active.config, to_v, judged)
         saved = superseded or self._save_rollback(active.config, to_v, from_v, bad, trip.kind)
         # Reported once the save was tried: a client that sees the rollback in a Status finds
         # its line in the change log (or the loop faulted because it could not be saved).
@@ -343,6 +359,19 @@ class ControllerService:
             loop_seq=seq, persisted=saved and not superseded, superseded=superseded,
             rollbacks=count, recorded_unsaved=not saved and self._unsaved_recorded,
         )
+
+    def _judge_restored(self, config: LoopConfig, version: int, judged: Verdict | None) -> None:
+        """The verdict the configuration rolled back to runs under: the one it was judged with,
+        if on the knowledge now, else judged again now (off the tick). If it fails the gate,
+        the loop faults (command 0): never run what fails the gate."""
+        k = self.knowledge
+        if judged is None or judged.knowledge_version != k.version:
+            judged = self.worker.check(config, k)
+        self.running_verdict = judged
+        if not judged.applicable:
+            self.rt.request_fault(
+                f"watchdog: rolled back to v{version}, which {_fails_gate(judged)}; stopped "
+                "(command 0): apply a configuration that passes, then reset")
 
     def rollback_not_saved(self, pending: PendingRollback, bad: LoopConfig | None) -> None:
         """At start: the configuration running is the rollback the change log records as not
@@ -471,6 +500,19 @@ class ControllerService:
                     f"; the running configuration v{active.version} is now judged "
                     f"{verdict.verdict}: " + "; ".join(verdict.reasons)
                 )
+            dropped = False
+            if self._fallback_state is not None:
+                # What the watchdog would roll back to is judged on it too: a rollback never
+                # restores what fails the gate now, nor shows an older verdict.
+                fb_config, _, bad = self._fallback_state
+                fb_verdict = self.worker.check(fb_config, new)
+                self._fallback_state = (fb_config, fb_verdict, bad)
+                if not fb_verdict.applicable:
+                    why = f"v{active.version - 1} before it {_fails_gate(fb_verdict)}"
+                    self.rt.submit(DropFallback(f"not rolled back: {why}"))
+                    message += f"; a watchdog trip faults (not rolled back: {why})"
+                    dropped = True
+            if verdict.verdict != "accept" or dropped:
                 self.warn(message, key=KNOWLEDGE_NOTE)
             return self.knowledge_reply(True, message)
 
@@ -590,6 +632,12 @@ class ControllerService:
             band = (f", {n} measured response(s) {min(m.freq_hz[0] for m in k.measured):.3g}-"
                     f"{max(m.freq_hz[-1] for m in k.measured):.3g} Hz")
         return f"v{k.version} {k.source}{band}"
+
+
+def _fails_gate(verdict: Verdict) -> str:
+    """'fails the gate on plant knowledge vK: reasons' (for a fault or a note)."""
+    return (f"fails the gate on plant knowledge v{verdict.knowledge_version}: "
+            + "; ".join(verdict.reasons))
 
 
 class RuntimeEvents:
