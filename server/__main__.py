@@ -33,6 +33,20 @@ def add_dashboard_arguments(p: argparse.ArgumentParser) -> None:
                    help="the .mcap recordings the Recordings tab lists and compares "
                    "(default $XDG_DATA_HOME/dobtune/recordings, else "
                    "~/.local/share/dobtune/recordings)")
+    add_candidates_argument(p)
+
+
+def add_candidates_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--candidates", type=Path, default=None, metavar="DIR",
+                   help="where each user's tuning candidates are kept, so that they survive "
+                   "a restart of the dashboard: DIR/<rig>/<user>.json (default "
+                   "$XDG_DATA_HOME/dobtune/candidates, else ~/.local/share/dobtune/candidates)")
+
+
+def candidates_dir(args: argparse.Namespace) -> Path:
+    from server.options import default_candidates_dir
+
+    return args.candidates if args.candidates is not None else default_candidates_dir()
 
 
 def run_dashboard_args(args: argparse.Namespace) -> int:
@@ -45,6 +59,7 @@ def run_dashboard_args(args: argparse.Namespace) -> int:
         DashboardOptions(
             connect=tuple(connect), rig_name=args.rig_name, host=args.host, port=args.port,
             auth=args.auth, user=args.user, fleet=args.fleet,
+            candidates_dir=candidates_dir(args),
             **({"recordings_dir": args.recordings} if args.recordings is not None else {}),
         )
     )
@@ -61,6 +76,7 @@ def add_demo_arguments(p: argparse.ArgumentParser) -> None:
                    help="the simulated rig's named disturbances (repeatable; default: "
                    "article-rig, the rate disturbances at P's input and the belt varying with "
                    "position; 'none' for the plain rig); the previews and Suggest use the same")
+    add_candidates_argument(p)
 
 
 def run_demo_args(args: argparse.Namespace) -> int:
@@ -78,6 +94,7 @@ def run_demo_args(args: argparse.Namespace) -> int:
             rigs=args.rigs,
             disturbances=(DemoOptions.disturbances if args.disturbance is None else
                           tuple(d for d in args.disturbance if d != "none")),
+            candidates_dir=candidates_dir(args),
         )
     )
 

@@ -122,7 +122,8 @@ class Dashboard:
         self._requests = Requests(max_workers=2, name="ctl-request")
         self.sessions = BrowserSessions(opts, users, self.client, self._requests)
         self.engine = TuningEngine(sim_disturbances=opts.sim_disturbances)
-        self.candidates = Candidates(self.engine, self._apply_async)
+        self.candidates = Candidates(self.engine, self._apply_async, opts.candidates_dir,
+                                     opts.rig_name)
         self.commands = CommandRouter(self.sessions, self._requests, self.candidates,
                                       self._show_command)
         self.access.on_estop = self.commands.estop_from_link
@@ -184,7 +185,7 @@ class Dashboard:
         self._close()
 
     def _close(self) -> None:
-        self.candidates.stop_all()
+        self.candidates.close()
         for panel in (self.live, self.identify, self.fleet):
             if panel is not None:
                 panel.stop()

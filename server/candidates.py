@@ -4,12 +4,14 @@ never edit one candidate. Every candidate follows the controller's active config
 
 Each candidate comes with its guided tuning path (server/panels/guide.py) above its controls,
 and is kept for a reload of its browser tab (server/candidate_store.py): a page that connects
-naming a slot gets the candidate kept for it."""
+naming a slot gets the candidate kept for it; with a directory, also after a restart of the
+dashboard (what went wrong with its files is shown to the user in the candidate's panel)."""
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from controller.core.config import LoopConfig
@@ -18,6 +20,7 @@ from server.candidate_store import CandidateStore
 from server.engine import TuningEngine
 from server.panels.guide import GuidePanel
 from server.panels.nominal_tuning import NominalTuningPanel
+from server.panels.tuning import kept_problem
 
 __all__ = ["Candidates"]
 
@@ -29,8 +32,10 @@ class Candidates:
     `panel_in` without a browser, as scripts and tests do) and the active configuration they
     start from."""
 
-    def __init__(self, engine: TuningEngine, apply_fn: ApplyFn) -> None:
-        """`apply_fn(panel, candidate, confirm, browser)` sends a panel's candidate."""
+    def __init__(self, engine: TuningEngine, apply_fn: ApplyFn, directory: Path | None = None,
+                 rig: str = "") -> None:
+        """`apply_fn(panel, candidate, confirm, browser)` sends a panel's candidate;
+        `directory`: where rig `rig`'s candidates are kept on disk (None: in memory only)."""
         self.engine = engine
         self._apply_fn = apply_fn
         self.panels: dict[int, NominalTuningPanel] = {}
@@ -46,8 +51,11 @@ class Candidates:
         self.trajectory: Trajectory | None = None
         self.guides: dict[int, GuidePanel] = {}
         """The guided tuning path of each browser (keyed as `panels`)."""
-        self.kept = CandidateStore()
-        """Each browser tab's candidate, kept for a reload of that tab."""
+        self._users: dict[int, str] = {}
+        """The user of each panel (keyed as `panels`)."""
+        self.kept = CandidateStore(directory=directory, rig=rig, check=kept_problem,
+                                   on_problem=self._show_problem)
+        """Each browser tab's candidate, kept for a reload of that tab (and a restart)."""
         self.who: Callable[[Any], tuple[str, str]] = lambda _browser: ("", "")
         """(user, candidate slot) of a browser (set by the dashboard)."""
         self.identify: Any = None
@@ -75,6 +83,7 @@ class Candidates:
         with self._lock:
             old = self.panels.pop(key, None)
             self.panels[key] = t
+            self._users[key] = user
             old_guide = self.guides.pop(key, None)
             if guide is not None:
                 self.guides[key] = guide
@@ -85,6 +94,7 @@ class Candidates:
         for stale in (old, old_guide):
             if stale is not None:
                 stale.stop()
+        t.show_kept_problem(self.kept.problem(user))
         if kept is not None:
             t.restore(kept)
         t.on_change = lambda p: self.kept.keep(user, slot, p.kept())
@@ -102,10 +112,23 @@ class Candidates:
         """The browser left: its panel stops."""
         with self._lock:
             t = self.panels.pop(browser_id, None)
+            self._users.pop(browser_id, None)
             guide = self.guides.pop(browser_id, None)
         for stale in (guide, t):
             if stale is not None:
                 stale.stop()
+
+    def _show_problem(self, user: str, text: str) -> None:
+        """`user`'s kept candidates: `text` (from the store's writer) in each of their panels."""
+        with self._lock:
+            panels = [t for key, t in self.panels.items() if self._users.get(key) == user]
+        for t in panels:
+            t.show_kept_problem(text)
+
+    def close(self) -> None:
+        """Every panel stopped, the kept candidates written."""
+        self.stop_all()
+        self.kept.close()
 
     def stop_all(self) -> None:
         with self._lock:

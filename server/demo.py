@@ -46,6 +46,8 @@ class DemoOptions:
     #: each listening on zenoh_port + i, different noise seeds and drive gains) behind it; the
     #: dashboard shows rig1 through the router (`dobtune ctl --connect ... rigs` lists all).
     rigs: int = 1
+    #: Where the dashboard keeps each user's candidates (`DashboardOptions.candidates_dir`).
+    candidates_dir: Path | None = None
     #: The simulated rig's named disturbances (`controller.sim.rig_disturbances`), given to
     #: the controller and to the dashboard's previews and Suggest alike.
     disturbances: tuple[str, ...] = ("article-rig",)
@@ -158,6 +160,7 @@ def run_demo(opts: DemoOptions) -> int:
         DashboardOptions(
             connect=(endpoint,), rig_name=opts.rig_name, host=opts.host, port=opts.port,
             verbose=opts.verbose, sim_disturbances=opts.disturbances,
+            candidates_dir=opts.candidates_dir,
         )
     ) as dash:
         print(f"dobtune demo: open {dash.url}  (simulated rig '{opts.rig_name}', "
@@ -205,7 +208,8 @@ def _run_fleet(opts: DemoOptions, router_ep: str) -> int:
         procs = stack.enter_context(fleet_processes(opts, root))
         dash = stack.enter_context(Dashboard(DashboardOptions(
             connect=(router_ep,), rig_name="rig1", host=opts.host, port=opts.port,
-            verbose=opts.verbose, fleet=True, sim_disturbances=opts.disturbances)))
+            verbose=opts.verbose, fleet=True, sim_disturbances=opts.disturbances,
+            candidates_dir=opts.candidates_dir)))
         print(f"dobtune demo: {opts.rigs} rigs behind the router {router_ep}; dashboard of rig1 "
               "(its Fleet tab shows them all): "
               f"{dash.url}; list them with: dobtune ctl --connect {router_ep} rigs", flush=True)

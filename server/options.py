@@ -7,14 +7,26 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["DashboardOptions", "dashboard_users", "default_recordings_dir"]
+__all__ = ["DashboardOptions", "dashboard_users", "default_candidates_dir",
+           "default_recordings_dir"]
+
+
+def data_dir() -> Path:
+    """The user's data directory for dobtune, outside any working tree ($XDG_DATA_HOME/dobtune,
+    else ~/.local/share/dobtune)."""
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "dobtune"
 
 
 def default_recordings_dir() -> Path:
-    """Where recordings go unless told: a data directory of the user's, outside any working
-    tree ($XDG_DATA_HOME/dobtune/recordings, else ~/.local/share/dobtune/recordings)."""
-    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
-    return Path(base) / "dobtune" / "recordings"
+    """Where recordings go unless told: <data>/recordings (`data_dir`)."""
+    return data_dir() / "recordings"
+
+
+def default_candidates_dir() -> Path:
+    """Where `dobtune dashboard` keeps each user's candidates unless told: <data>/candidates
+    (`data_dir`), one directory per rig."""
+    return data_dir() / "candidates"
 
 
 @dataclass(frozen=True)
@@ -40,6 +52,10 @@ class DashboardOptions:
     recordings_dir: Path = field(default_factory=lambda: default_recordings_dir())
     """The .mcap files the Recordings tab lists and compares (`dobtune record --out`, a
     controller's `<state-dir>/blackbox`)."""
+    candidates_dir: Path | None = None
+    """Where each user's candidates are kept on disk, so that they survive a restart of the
+    dashboard (`server.candidate_store`; None: in memory only, as scripts and tests run it;
+    `dobtune dashboard` and `dobtune demo` default to `default_candidates_dir`)."""
     fleet: bool = False
     """Also the fleet overview: every rig reachable through `connect` (a router), each with an
     E-STOP and a full view of its own."""

@@ -42,6 +42,8 @@ SERVER_MAY_IMPORT = (
     "controller.auth",
     # recordings (MCAP files) and their metrics: the Recordings panel lists and compares them
     "controller.recording",
+    # a file replaced whole or not at all: the dashboard's kept candidates
+    "controller.files",
 )
 
 
@@ -313,7 +315,7 @@ RULES = (
     "| only `controller/rig` imports python-can |",
     "| key strings (`dobtune/...`) only in `controller/protocol.py` |",
     "| `server` imports from the controller side only the pure packages, `protocol`, `client`, "
-    "`logs`, `auth`, `recording` |",
+    "`logs`, `auth`, `recording`, `files` |",
     "| `server` never imports `controller/cli` (but `server/__main__.py`, the `dobtune` entry "
     "point) |",
     "| no import cycles between modules (every import counted: lazy ones, package `__init__`) |",

@@ -282,3 +282,17 @@ def test_the_dashboard_prints_only_the_url_with_the_token(tmp_path: Path) -> Non
     urls = re.findall(r"https?://\S+", out)
     assert any(f":{port}/?token=" in u for u in urls), out
     assert all("?token=" in u for u in urls), out
+
+
+def test_kept_candidates_go_to_the_data_directory_unless_told(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import argparse
+
+    from server.__main__ import candidates_dir
+
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    told = argparse.Namespace(candidates=tmp_path / "mine")
+    assert candidates_dir(argparse.Namespace(candidates=None)) == (
+        tmp_path / "data" / "dobtune" / "candidates")
+    assert candidates_dir(told) == tmp_path / "mine"

@@ -8,6 +8,7 @@ path does not need one.
 
 from __future__ import annotations
 
+import dataclasses
 import html
 import math
 import time
@@ -212,4 +213,53 @@ def test_apply_is_off_for_the_active_configuration_and_refused_on_the_server(
         assert len(sent) == 1 and sent[0][1] != t.active
     finally:
         t._apply_fn = apply_fn
+        t.revert(say=False)
+
+
+def test_a_restored_candidate_is_stale_when_its_version_is_now_another_configuration(
+        dash: Dashboard) -> None:
+    """A candidate kept on disk comes back after a restart of the dashboard. If the controller
+    now runs its version number as another configuration (its state was reset since: the
+    demo's temporary state, a restart with --config), the controller would take its Apply
+    (the number matches): stale as one made against an older version, Apply off, and a press
+    that comes anyway sends nothing; Revert re-bases it. Kept against the same configuration,
+    it is not stale."""
+    t = dash.panel_of(None)
+    assert t is not None
+    was, was_version = t.active, t.active_version
+    v5 = LoopConfig(q_cutoff_hz=0.5)
+    reset_v5 = LoopConfig(q_cutoff_hz=0.5, cv_kp=1.0)
+    sent: list[Any] = []
+    apply_fn = t._apply_fn
+    t._apply_fn = lambda *a: sent.append(a)
+    try:
+        t.set_active(v5, 5)
+        t.revert()
+        t.cutoff_hz_input.value = _other_cutoff(t)
+        assert t.wait_idle(5.0) and not t.stale and not t.apply_button.disabled
+        kept = t.kept()
+        assert kept.base_version == 5 and kept.against == v5
+
+        t.set_active(reset_v5, 5)  # what the controller runs as v5 after the reset
+        t.restore(kept)
+        assert t.wait_idle(5.0)
+        assert t.stale and t.stale_by_reset and t.apply_button.disabled
+        assert "since reset" in t.apply_blocked()
+        assert "Based on v5 as it was" in t.stale_text.content
+        assert t.kept().against == v5  # kept again: still judged against what it was made on
+        t.apply()
+        assert not sent and "Not sent" in t.apply_result.content
+
+        t.revert()  # re-based on the present v5
+        t.cutoff_hz_input.value = _other_cutoff(t)
+        assert t.wait_idle(5.0) and not t.stale and not t.apply_button.disabled
+
+        t.set_active(v5, 5)
+        t.restore(kept)  # the controller's v5 is what it was: not stale
+        assert t.wait_idle(5.0) and not t.stale and not t.apply_button.disabled
+        t.restore(dataclasses.replace(kept, against=None))  # not known: taken as changed
+        assert t.wait_idle(5.0) and t.stale_by_reset and t.apply_button.disabled
+    finally:
+        t._apply_fn = apply_fn
+        t.set_active(was, was_version)
         t.revert(say=False)

@@ -42,7 +42,6 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -56,6 +55,7 @@ from controller.core.config import LoopConfig, config_from_builtins, config_to_b
 from controller.core.errors import ConfigError
 from controller.core.validate import split_msgspec_error
 from controller.core.verdict import VERDICT_KINDS, Verdict, VerdictMargins
+from controller.files import fsync_dir, write_atomically
 from controller.gate.knowledge import KnowledgeRecord
 
 __all__ = [
@@ -268,35 +268,16 @@ class StateStore:
 
     def _atomic_write(self, path: Path, data: bytes,
                       beside_dir_fsync: Callable[[], None] | None = None) -> None:
-        """Write `data` to a temporary file, fsync it, rename it over `path`, fsync the
+        """Replace `path` by `data` (`controller.files.write_atomically`), fsync the
         directory; `beside_dir_fsync` (which must not raise) runs on a thread of its own
         during the directory's fsync, and has ended when this returns."""
         try:
             try:
-                fd, tmp = tempfile.mkstemp(
-                    prefix=f".{path.name}.", suffix=".tmp", dir=self.directory
-                )
+                write_atomically(path, data)
             except FileNotFoundError:  # the directory vanished: make it again, once
                 self.directory.mkdir(parents=True, exist_ok=True)
-                fd, tmp = tempfile.mkstemp(
-                    prefix=f".{path.name}.", suffix=".tmp", dir=self.directory
-                )
+                write_atomically(path, data)
         except OSError as exc:
-            raise PersistenceError(f"{path}: cannot write: {exc}") from exc
-        try:
-            try:
-                os.fchmod(fd, 0o644)  # mkstemp's 0600 would hide the file from other tools
-                view = memoryview(data)
-                while view:
-                    n = os.write(fd, view)
-                    view = view[n:]
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-            os.replace(tmp, path)
-        except OSError as exc:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
             raise PersistenceError(f"{path}: cannot write: {exc}") from exc
         if beside_dir_fsync is None:
             self._fsync_dir()
@@ -319,15 +300,7 @@ class StateStore:
 
     def _fsync_dir(self) -> None:
         # The rename itself is durable only once the directory entry is on disk.
-        try:
-            dfd = os.open(self.directory, os.O_RDONLY)
-        except OSError:
-            return
-        try:
-            with contextlib.suppress(OSError):
-                os.fsync(dfd)
-        finally:
-            os.close(dfd)
+        fsync_dir(self.directory)
 
     # -- the e-stop / fault latch -------------------------------------------------------------
 

@@ -55,7 +55,7 @@ from server.suggest import (
 )
 from server.workers import LatestWins
 
-__all__ = ["StepState", "TuningPanel", "cutoff_marks", "format_gate_html"]
+__all__ = ["StepState", "TuningPanel", "cutoff_marks", "format_gate_html", "kept_problem"]
 
 log = logging.getLogger(__name__)
 
@@ -297,6 +297,10 @@ class TuningPanel:
         """The last Suggest's `TuneResult` (None: not run)."""
         self.suggest_state = StepState("todo")
         self.apply_state = StepState("todo")
+        self._restored = False
+        self._restored_against: LoopConfig | None = None
+        """Restored (`restore`) and not loaded or re-based since: the controller's
+        configuration at `base_version` when the candidate was kept (None: not known)."""
         self.sent: LoopConfig | None = None
         """The candidate of the last Apply pressed (`apply_state` is about it)."""
         """The last Apply of this panel: sending (running), accepted (done, `version`), not
@@ -341,6 +345,7 @@ class TuningPanel:
         self.computing = gui.add_html(_computing_html(True))
         self.verdict = gui.add_html('<div class="dt-verdict">evaluating...</div>')
         self.stale_text = gui.add_html('<div class="dt-stale"></div>')
+        self.kept_problem = gui.add_html(_kept_problem_html(""))
         self.diff_text = gui.add_html('<div class="dt-diff"></div>')
         self.apply_button = gui.add_button("Apply candidate", color="gray", disabled=True,
                                            hint="send to the controller; its gate decides")
@@ -421,9 +426,21 @@ class TuningPanel:
 
     @property
     def stale(self) -> bool:
-        """Made against an older active version than the controller's present one."""
-        return (self.base_version is not None and self.active_version is not None
-                and self.base_version != self.active_version)
+        """Made against an older active version than the controller's present one; or,
+        restored (`restore`), against a version the controller now runs as another
+        configuration than when the candidate was kept (or one not known then: its state was
+        reset since, e.g. the demo's, or a restart with --config)."""
+        if self.base_version is None or self.active_version is None:
+            return False
+        if self.base_version != self.active_version:
+            return True
+        return self._restored and self._restored_against != self.active
+
+    @property
+    def stale_by_reset(self) -> bool:
+        """Stale, though made against the present version number (see `stale`): the
+        controller would accept its Apply, so the dashboard refuses it."""
+        return self.stale and self.base_version == self.active_version
 
     # -- events (GUI thread pool: short) -----------------------------------------------------
 
@@ -457,16 +474,18 @@ class TuningPanel:
 
     def kept(self) -> KeptCandidate:
         """The candidate as its controls show it, with what it was made against."""
-        names = ("q_type", "cutoff_hz_input", *(a for a, _ in _SWITCHES),
-                 *(g.attr for g in _GAINS))
+        against = (self._restored_against if self._restored else self.active
+                   if self.base_version is not None and self.base_version == self.active_version
+                   else None)
         return KeptCandidate(self.base, self.base_version,
-                             tuple((n, getattr(self, n).value) for n in names),
-                             getattr(self, "nominal_override", None))
+                             tuple((n, getattr(self, n).value) for n in _KEPT_CONTROLS),
+                             getattr(self, "nominal_override", None), against)
 
     def restore(self, k: KeptCandidate) -> None:
         """The controls as `k` kept them, made against `k.base_version` (stale, as before the
         reload, if the active version has moved on since)."""
         self.base, self.base_version = k.base, k.base_version
+        self._restored, self._restored_against = True, k.against
         if hasattr(self, "nominal_override"):
             self.nominal_override = k.nominal
         self._suppress = True
@@ -479,7 +498,7 @@ class TuningPanel:
         set_html(self.stale_text, self._stale_html())
         self.apply_result.content = box(
             "dt-apply dt-apply-restored", NEUTRAL,
-            "Your candidate from before the reload"
+            "Your candidate from before the reload (or the dashboard's restart)"
             + (f" (made against v{k.base_version})." if k.base_version is not None else "."))
         self.request_update()
 
@@ -521,6 +540,8 @@ class TuningPanel:
         non-stale candidate that differs from the active configuration may be sent."""
         return ("computing the verdict" if self.computing_verdict
                 else "invalid candidate" if self._invalid
+                else "made against a version the controller has since reset (Revert first)"
+                if self.stale_by_reset
                 else "based on an older version (Revert first)" if self.stale
                 else "the candidate is the active configuration: nothing to send"
                 if self._same_as_active else "")
@@ -580,6 +601,7 @@ class TuningPanel:
         """This panel's own candidate became the active `version`: the candidate is now based
         on it (the controls keep what they show)."""
         self.base, self.base_version = cfg, version
+        self._restored = False
         set_html(self.stale_text, self._stale_html())
         self.request_update()
 
@@ -600,6 +622,15 @@ class TuningPanel:
             self.apply_result.content = box("dt-apply", REJECT, f"Not sent: {esc(str(exc))}")
             return
         self.sent = cand
+        if self.stale_by_reset:
+            # The controller would take it (its version number matches): refused here.
+            self.apply_result.content = box(
+                "dt-apply dt-apply-rejected", REJECT,
+                f"<b>Not sent</b>: made against v{self.base_version} as it was before the "
+                "controller's state was reset; Revert first.")
+            self.apply_state = StepState("failed", None,
+                                         "not sent: made against a version since reset")
+            return
         if cand == self.active and not self.stale:
             # Checked here too, whatever the browser's button showed: a new version of the
             # same configuration changes nothing on the rig.
@@ -679,6 +710,7 @@ class TuningPanel:
         through the gate like any candidate when applied), made against the active
         `version`."""
         self.base, self.base_version = a, version
+        self._restored = False
         set_html(self.stale_text, self._stale_html())
         self._suppress = True
         try:
@@ -816,9 +848,20 @@ class TuningPanel:
         return (f"<div class='dt-cutoff' style='font-size:13px'>Q cut-off "
                 f"<b>{cutoff_hz:.3f} Hz</b>{rec_txt}{warn}</div>")
 
+    def show_kept_problem(self, text: str) -> None:
+        """What the user should know about their candidates on disk ("" : nothing)."""
+        set_html(self.kept_problem, _kept_problem_html(text))
+
     def _stale_html(self) -> str:
         if not self.stale:
             return "<div class='dt-stale'></div>"
+        if self.stale_by_reset:
+            return box(
+                "dt-stale", CAUTION,
+                f"<b>Based on v{self.base_version} as it was</b>: the controller's "
+                f"v{self.active_version} is another configuration now (its state was reset "
+                "since this candidate was made). Apply is off; <b>Revert</b> loads "
+                f"v{self.active_version}.")
         return box(
             "dt-stale", CAUTION,
             f"<b>Based on v{self.base_version}</b>: the active configuration is now "
@@ -835,6 +878,38 @@ class TuningPanel:
             f"FF {'on' if a.ff_on else 'off'}, Cv {a.cv_kp:g}(1+{a.cv_ki_per_s:g}/s), "
             f"Cp {a.pos_kp_per_s:g}(1+{a.pos_ki_per_s:g}/s)</div>"
         )
+
+
+def _kept_problem_html(text: str) -> str:
+    if not text:
+        return "<div class='dt-kept-problem'></div>"
+    return box("dt-kept-problem", REJECT, esc(text))
+
+
+#: The controls a kept candidate holds (panel attributes; `kept`, `restore`).
+_KEPT_CONTROLS = ("q_type", "cutoff_hz_input", *(a for a, _ in _SWITCHES),
+                  *(g.attr for g in _GAINS))
+
+
+def kept_problem(k: KeptCandidate) -> str:
+    """Why `k` (read from a file) cannot be put back into the controls ("" : it can): its
+    controls must be this panel's, each once, with a value of the control's kind."""
+    names = [n for n, _ in k.controls]
+    if sorted(names) != sorted(_KEPT_CONTROLS):
+        return f"controls: expected {', '.join(_KEPT_CONTROLS)}, got {', '.join(names)}"
+    for name, value in k.controls:
+        if name == "q_type":
+            ok = value in _Q_LABELS
+        elif name == "cutoff_hz_input":
+            ok = isinstance(value, str) and len(value) <= 64
+        elif name in dict(_SWITCHES):
+            ok = isinstance(value, bool)
+        else:
+            g = next(g for g in _GAINS if g.attr == name)
+            ok = isinstance(value, float) and g.lo <= value <= g.hi
+        if not ok:
+            return f"controls.{name}: {value!r} is not a value of this control"
+    return ""
 
 
 def _apply_why_html(why: str) -> str:
