@@ -415,6 +415,10 @@ def check_port_free(host: str, port: int, what: str = "--port") -> None:
     if port == 0:
         return
     with socket.socket() as s:
+        # As the server binds (asyncio's reuse_address on POSIX): the connections of a
+        # dashboard just stopped, lingering in TIME_WAIT for a minute, do not make the port
+        # busy (a restart on the same port failed without it); a listener still does.
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind((host, port))
         except OSError as exc:

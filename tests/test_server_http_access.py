@@ -100,6 +100,27 @@ def test_a_busy_http_port_is_an_error_not_another_port(capsys: pytest.CaptureFix
             Dashboard(opts).__enter__()
 
 
+def test_a_port_whose_last_dashboard_just_stopped_is_free() -> None:
+    """A dashboard stopped while browsers were connected leaves its side of their connections
+    in TIME_WAIT for a minute: a restart on the same port must not count it as busy (found by
+    tests/browser/test_restart_browser.py); a listener still does."""
+    from server.app import PortBusy, check_port_free
+
+    with socket.socket() as listener:
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        port = listener.getsockname()[1]
+        with pytest.raises(PortBusy, match="in use"):
+            check_port_free("127.0.0.1", port)
+        browser = socket.create_connection(("127.0.0.1", port))
+        served, _ = listener.accept()
+        served.close()  # the server closes first: its side waits in TIME_WAIT
+        browser.recv(1)
+        browser.close()
+    check_port_free("127.0.0.1", port)
+
+
 def test_the_estop_link_needs_the_token_and_this_host(dash: Dashboard) -> None:
     """The always-visible E-STOP is a plain GET: anyone with the page (any role) may press it,
     nobody without the token, and no other host name (DNS rebinding)."""
