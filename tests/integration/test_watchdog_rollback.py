@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import pytest
 from helpers import no_new_files
 from procs import APPLY_TIMEOUT_S, Client, ControllerProcess, wait_until
@@ -165,6 +166,40 @@ def test_a_rollback_that_cannot_be_saved_is_never_undone_by_a_restart(
         saved = [x for x in log if "version" in x]
         assert saved[-1]["version"] == good_v and saved[-1]["new"]["cv_kp"] == first.config.cv_kp
         assert saved[-1]["old"]["cv_kp"] == 1.0
+
+
+def test_a_rollback_after_new_knowledge_shows_the_verdict_on_it(
+    controller: ControllerProcess, client: Client
+) -> None:
+    """Knowledge v2 (the model's gain x2) is adopted after the stiff apply: on it the loop
+    rolled back to is a caution (accept on v1). Status and History show the rollback's
+    verdict judged on v2, as the controller judges it now (they showed v1's accept)."""
+    first = client.get_config()
+    stiff = first.config.with_(cv_kp=1.0)
+    reply = client.config_raw(proto.encode(
+        proto.ConfigRequest(candidate=stiff, client="test", confirm=True)), APPLY_TIMEOUT_S)
+    assert reply.accepted, reply.reasons
+    assert first.verdict is not None and first.verdict.verdict == "accept"
+    current = proto.decode(client.query_raw(proto.key_knowledge(client.rig), None),
+                           proto.KnowledgeReply).record
+    a, b, c = current.model.pn_num
+    x2 = msgspec.structs.replace(current, model=msgspec.structs.replace(
+        current.model, pn_num=(2 * a, 2 * b, 2 * c)), source="gain x2")
+    adopted = proto.decode(client.query_raw(
+        proto.key_knowledge(client.rig), proto.encode(proto.KnowledgeRequest(record=x2)),
+        timeout_s=APPLY_TIMEOUT_S), proto.KnowledgeReply)
+    assert adopted.ok and "trip faults" not in adopted.message, adopted.message
+    k = adopted.record.version
+    assert client.command(proto.SimFault(plant_gain=5.0)).ok
+    st = _status_until(client, lambda s: s.rollbacks >= 1 and "rolled back" in s.watchdog, 30.0)
+    assert st.mode == "running" and st.config == first.config, st
+    assert st.verdict is not None and (st.verdict.verdict, st.verdict.knowledge_version) == (
+        "caution", k), st.verdict
+    history = proto.decode(client.query_raw(proto.key_history(client.rig), proto.encode(
+        proto.HistoryRequest(last=5))), proto.HistoryReply)
+    last = history.entries[-1]
+    assert last.version == st.config_version and last.client.startswith("watchdog rollback")
+    assert last.verdict == st.verdict
 
 
 def test_sim_fault_fields_are_validated_and_named(
