@@ -6,9 +6,9 @@ A field's own check can be declared with the field, in its annotation, and run b
     gain: Annotated[float, positive] = 1.0
     damping: Annotated[float, within(0.0, 1.0, lo_open=True)] = 0.05
 
-A check is any ``check(value, field)`` that raises `ConfigError` naming the field (`number`,
-`positive`, `nonnegative`, `within(...)`, `one_of(...)`); checks that involve several fields
-stay in ``__post_init__``, after `check_fields`.
+A check is any ``check(value, field)`` that raises `ConfigError` naming the field and returns
+the value (`number`, `positive`, `nonnegative`, `within(...)`, `one_of(...)`, `optional(...)`);
+checks that involve several fields stay in ``__post_init__``, after `check_fields`.
 """
 
 from __future__ import annotations
@@ -83,9 +83,19 @@ def one_of(choices: tuple[str, ...], what: str) -> Check:
     return check
 
 
-def check_fields(obj: object) -> None:
+def optional(check: Check) -> Check:
+    """A field's declared check that lets None through and gives any other value to `check`."""
+
+    def check_unless_none(value: object, field: str) -> object:
+        return None if value is None else check(value, field)
+
+    return check_unless_none
+
+
+def check_fields(obj: object, *, store: bool = False) -> None:
     """Run the checks declared in the annotations of `obj`'s fields, in field order (see the
-    module docstring); the first failing one raises."""
+    module docstring); the first failing one raises. With `store`, each field is set to what
+    its checks return (a float for a number, ...: a frozen dataclass's normal form)."""
     cls = type(obj)
     declared = _DECLARED.get(cls)
     if declared is None:
@@ -98,7 +108,9 @@ def check_fields(obj: object) -> None:
     for name, checks in declared:
         value = getattr(obj, name)
         for check in checks:
-            check(value, name)
+            value = check(value, name)
+        if store:
+            object.__setattr__(obj, name, value)
 
 
 #: Per class: (field name, its declared checks) in field order, read once from the annotations.

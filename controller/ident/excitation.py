@@ -38,13 +38,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 
 from controller.core.arrays import FloatArray, IntArray
 from controller.core.errors import ConfigError
-from controller.core.validate import nonnegative, positive
+from controller.core.validate import Check, check_fields, nonnegative, optional, positive
 
 __all__ = [
     "HARMONICS",
@@ -93,26 +93,36 @@ def _integer(value: object, name: str, minimum: int) -> int:
     return v
 
 
-def _set(obj: object, name: str, value: object) -> None:
-    object.__setattr__(obj, name, value)
+def _whole(minimum: int) -> Check:
+    """A field's declared check: `_integer` from `minimum` on."""
+
+    def check(value: object, name: str) -> int:
+        return _integer(value, name, minimum)
+
+    return check
 
 
-def _choice(value: object, name: str, choices: tuple[str, ...]) -> None:
-    if value not in choices:
-        raise ConfigError(name, f"must be one of {', '.join(choices)} (got {value!r})")
+def _bins(value: object, name: str) -> tuple[int, ...]:
+    return tuple(_integer(k, name, 1) for k in value)  # type: ignore[attr-defined]
+
+
+def _choice(choices: tuple[str, ...]) -> Check:
+    """A field's declared check: one of `choices`."""
+
+    def check(value: object, name: str) -> object:
+        if value not in choices:
+            raise ConfigError(name, f"must be one of {', '.join(choices)} (got {value!r})")
+        return value
+
+    return check
 
 
 def _check_band(spec: SteppedSineSpec | MultisineSpec) -> None:
-    fs = positive(spec.sample_rate_hz, "sample_rate_hz")
-    f_min = positive(spec.f_min_hz, "f_min_hz")
-    f_max = positive(spec.f_max_hz, "f_max_hz")
+    fs, f_min, f_max = spec.sample_rate_hz, spec.f_min_hz, spec.f_max_hz
     if f_min >= f_max:
         raise ConfigError("f_min_hz", f"must be < f_max_hz (got {f_min} >= {f_max})")
     if f_max >= fs / 2.0:
         raise ConfigError("f_max_hz", f"must be below Nyquist {fs / 2.0} Hz (got {f_max})")
-    _set(spec, "sample_rate_hz", fs)
-    _set(spec, "f_min_hz", f_min)
-    _set(spec, "f_max_hz", f_max)
 
 
 # ----------------------------------------------------------------------------- shared helpers
@@ -164,40 +174,32 @@ def schroeder_phases(bins: IntArray | FloatArray, amplitudes: FloatArray) -> Flo
 class SteppedSineSpec:
     """What to measure with a stepped sine; validated on construction."""
 
-    f_min_hz: float = 0.1
+    f_min_hz: Annotated[float, positive] = 0.1
     """Lowest frequency (before snapping to ``fs / L``)."""
-    f_max_hz: float = 20.0
+    f_max_hz: Annotated[float, positive] = 20.0
     """Highest frequency; below Nyquist."""
-    points_per_decade: int = 10
+    points_per_decade: Annotated[int, _whole(1)] = 10
     """Log spacing of the grid; points that snap to the same period are merged."""
-    amplitude_deg_s: float = 10.0
+    amplitude_deg_s: Annotated[float, positive] = 10.0
     """Speed amplitude (load side) before the window cap."""
-    window_deg: float | None = None
+    window_deg: Annotated[float | None, optional(positive)] = None
     """Largest allowed position excursion from the start of each point, or None."""
-    min_periods: int = 3
+    min_periods: Annotated[int, _whole(1)] = 3
     """At least this many whole periods in each measurement window (>= 2 for a variance)."""
-    min_measure_s: float = 2.0
+    min_measure_s: Annotated[float, nonnegative] = 2.0
     """At least this long a measurement window (more periods at high frequency)."""
-    settle_periods: int = 2
+    settle_periods: Annotated[int, _whole(0)] = 2
     """At least this many whole periods of settling before measuring (ramp-in included)."""
-    settle_s: float = 1.0
+    settle_s: Annotated[float, nonnegative] = 1.0
     """At least this long a settling time."""
-    ramp_periods: int = 1
+    ramp_periods: Annotated[int, _whole(0)] = 1
     """Linear amplitude ramp-in and ramp-out, in periods (0: abrupt start and stop)."""
-    sample_rate_hz: float = 1000.0
+    sample_rate_hz: Annotated[float, positive] = 1000.0
     """Loop rate."""
 
     def __post_init__(self) -> None:
+        check_fields(self, store=True)
         _check_band(self)
-        _set(self, "points_per_decade", _integer(self.points_per_decade, "points_per_decade", 1))
-        _set(self, "amplitude_deg_s", positive(self.amplitude_deg_s, "amplitude_deg_s"))
-        if self.window_deg is not None:
-            _set(self, "window_deg", positive(self.window_deg, "window_deg"))
-        _set(self, "min_periods", _integer(self.min_periods, "min_periods", 1))
-        _set(self, "min_measure_s", nonnegative(self.min_measure_s, "min_measure_s"))
-        _set(self, "settle_periods", _integer(self.settle_periods, "settle_periods", 0))
-        _set(self, "settle_s", nonnegative(self.settle_s, "settle_s"))
-        _set(self, "ramp_periods", _integer(self.ramp_periods, "ramp_periods", 0))
 
 
 @dataclass(frozen=True, slots=True)
@@ -328,57 +330,50 @@ def stepped_sine(spec: SteppedSineSpec) -> SteppedSine:
 class MultisineSpec:
     """A periodic multisine; validated on construction."""
 
-    f_min_hz: float = 0.1
+    f_min_hz: Annotated[float, positive] = 0.1
     """Lowest component; must be at least the resolution ``sample_rate_hz / period_samples``."""
-    f_max_hz: float = 20.0
+    f_max_hz: Annotated[float, positive] = 20.0
     """Highest component; below Nyquist."""
-    period_samples: int = 10000
+    period_samples: Annotated[int, _whole(4)] = 10000
     """Period ``N`` in samples; the frequency resolution is ``sample_rate_hz / N``."""
-    n_periods: int = 4
+    n_periods: Annotated[int, _whole(1)] = 4
     """Measured periods ``P`` (>= 2 for the spread between periods; 1 is enough with
     ``spread_from="lines"``)."""
-    transient_periods: int = 1
+    transient_periods: Annotated[int, _whole(0)] = 1
     """Leading periods that the estimator discards (settling)."""
-    amplitude_deg_s: float = 10.0
+    amplitude_deg_s: Annotated[float, positive] = 10.0
     """Peak speed of the whole signal."""
-    window_deg: float | None = None
+    window_deg: Annotated[float | None, optional(positive)] = None
     """Largest allowed position excursion from the start, or None."""
-    points_per_decade: int | None = None
+    points_per_decade: Annotated[int | None, optional(_whole(1))] = None
     """Log-spaced subset of the bins; None uses every bin in the band."""
-    position_knee_hz: float | None = None
+    position_knee_hz: Annotated[float | None, optional(positive)] = None
     """Below this frequency component speed amplitudes fall as f (constant position)."""
-    crest_iterations: int = 100
+    crest_iterations: Annotated[int, _whole(0)] = 100
     """Clip-and-restore iterations after the initial phases (0: the initial phases as they are)."""
-    sample_rate_hz: float = 1000.0
+    sample_rate_hz: Annotated[float, positive] = 1000.0
     """Loop rate."""
-    harmonics: Harmonics = "all"
+    harmonics: Annotated[Harmonics, _choice(HARMONICS)] = "all"
     """``odd``: only odd bins are excited (the rest are detection lines)."""
-    phases: PhaseKind = "schroeder"
+    phases: Annotated[PhaseKind, _choice(PHASES)] = "schroeder"
     """Initial phases: Schroeder's, or uniformly random (``seed``)."""
-    seed: int = 0
+    seed: Annotated[int, _whole(0)] = 0
     """Seed of the random phases (the same seed gives the same signal)."""
-    lead_samples: int = 0
+    lead_samples: Annotated[int, _whole(0)] = 0
     """Samples of the end of a period played before the transient and measured periods,
     faded in over its first half (the signal is periodic: the measured periods start in
     steady state once the plant has settled in the second half)."""
-    tail_samples: int = 0
+    tail_samples: Annotated[int, _whole(0)] = 0
     """Samples of the start of a period played, faded out, after the measured periods."""
-    spread_from: SpreadFrom = "periods"
+    spread_from: Annotated[SpreadFrom, _choice(SPREAD_FROM)] = "periods"
     """How the estimator gets each line's variance: between the measured periods (>= 2
     needed), or from the non-excited lines next to it (noise and nonlinear distortion)."""
-    skip_bins: tuple[int, ...] = ()
+    skip_bins: Annotated[tuple[int, ...], _bins] = ()
     """Bins left out of the excitation (detection lines kept free for a known periodic
     disturbance, see `controller.ident.plan`)."""
 
     def __post_init__(self) -> None:
-        _choice(self.harmonics, "harmonics", HARMONICS)
-        _choice(self.phases, "phases", PHASES)
-        _choice(self.spread_from, "spread_from", SPREAD_FROM)
-        _set(self, "seed", _integer(self.seed, "seed", 0))
-        _set(self, "lead_samples", _integer(self.lead_samples, "lead_samples", 0))
-        _set(self, "tail_samples", _integer(self.tail_samples, "tail_samples", 0))
-        _set(self, "period_samples", _integer(self.period_samples, "period_samples", 4))
-        _set(self, "skip_bins", tuple(_integer(k, "skip_bins", 1) for k in self.skip_bins))
+        check_fields(self, store=True)
         for name in ("lead_samples", "tail_samples"):
             if getattr(self, name) > self.period_samples:
                 raise ConfigError(
@@ -394,24 +389,6 @@ class MultisineSpec:
                 f"below the frequency resolution sample_rate_hz / period_samples = {resolution}"
                 f" Hz (got {self.f_min_hz})",
             )
-        _set(self, "n_periods", _integer(self.n_periods, "n_periods", 1))
-        _set(self, "transient_periods", _integer(self.transient_periods, "transient_periods", 0))
-        _set(self, "amplitude_deg_s", positive(self.amplitude_deg_s, "amplitude_deg_s"))
-        if self.window_deg is not None:
-            _set(self, "window_deg", positive(self.window_deg, "window_deg"))
-        if self.points_per_decade is not None:
-            _set(
-                self,
-                "points_per_decade",
-                _integer(self.points_per_decade, "points_per_decade", 1),
-            )
-        if self.position_knee_hz is not None:
-            _set(
-                self,
-                "position_knee_hz",
-                positive(self.position_knee_hz, "position_knee_hz"),
-            )
-        _set(self, "crest_iterations", _integer(self.crest_iterations, "crest_iterations", 0))
         if self.bins().size == 0:
             raise ConfigError("f_min_hz", "no DFT bin between f_min_hz and f_max_hz")
         if self.spread_from == "lines" and self.noise_bins().size == 0:
