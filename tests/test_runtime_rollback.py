@@ -230,6 +230,32 @@ def test_a_rollback_that_cannot_be_saved_is_recorded_so_a_restart_never_brings_b
     access.close()
 
 
+def test_an_apply_saved_before_the_retry_is_never_overwritten_by_the_older_rollback(
+    tmp_path: Path,
+) -> None:
+    """The rollback to v3 waits for its retry; the directory takes files again and an apply
+    (v4) is saved first: the retry must not write v3 over it (it did: a restart then came
+    back on v3 while v4 ran)."""
+    rt, _rig = _runtime()
+    svc, access = _service(rt, tmp_path)
+    svc.store.save(BAD, 2, Change(old=GOOD, old_version=1, verdict=None))  # the apply's save
+    with no_new_files(tmp_path):
+        _roll_back(rt)
+        svc.poll_rollback()
+        saved = svc.store.load()
+        assert saved is not None and svc.store.pending_rollback(saved) is not None
+    newer = GOOD.with_(q_cutoff_hz=0.8)
+    with _ticking(rt):
+        reply = svc.apply(newer, "test", confirm=True)
+        assert reply.accepted and reply.version == 4, reply.reasons
+        svc.poll_rollback()
+    saved = svc.store.load()
+    assert saved is not None and (saved.version, saved.config) == (4, newer)
+    assert svc.store.pending_rollback(saved) is None
+    assert not any("could not be saved" in e for e in svc.errors), svc.errors
+    access.close()
+
+
 def test_a_rollback_neither_saved_nor_recorded_stops_the_loop_and_is_audited(
     tmp_path: Path,
 ) -> None:

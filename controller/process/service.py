@@ -238,6 +238,9 @@ class ControllerService:
                 return self.config_reply(
                     accepted=False, reasons=[reason], verdict=verdict, field="state_dir"
                 )
+            # A rollback still unsaved is superseded: the active file holds this candidate
+            # now (a retry must never write the older configuration over it).
+            self._forget_unsaved()
             # The filters are built here (this thread); the tick only swaps them in. The
             # configuration running now goes with them, under the next version, as the
             # watchdog's rollback target (its filters are designed already: no design work),
@@ -318,8 +321,13 @@ class ControllerService:
         if not self._rollback_lock.acquire(blocking=False):
             return  # another thread is at it
         try:
-            if self._unsaved is not None:
-                self._save_rollback(*self._unsaved)
+            # The retry and an apply's save never interleave (skipped while one runs).
+            if self._unsaved is not None and self._apply_lock.acquire(blocking=False):
+                try:
+                    if self._unsaved is not None:
+                        self._save_rollback(*self._unsaved)
+                finally:
+                    self._apply_lock.release()
             if rt.rollbacks == self._rollbacks_seen or rt.last_rollback is None:
                 return
             with self._apply_lock:
@@ -422,10 +430,15 @@ class ControllerService:
             return False
         if self._unsaved is not None:
             log.info("the rollback to v%d is saved now", version)
+        self._forget_unsaved()
+        return True
+
+    def _forget_unsaved(self) -> None:
+        """No rollback waits for its save (saved, or superseded by a later save)."""
+        if self._unsaved is not None:
             self.clear_warning(UNSAVED_NOTE)
         self._unsaved = None
         self._unsaved_recorded = False
-        return True
 
     def poll_faults(self) -> None:
         """Audit every fault the loop entered (status thread): user `watchdog` for the
