@@ -209,16 +209,14 @@ class ServoLoop:
 
     def __init__(self, coefficients: LoopCoefficients) -> None:
         self._pending: PreparedCoefficients | None = None
-        self.u_prev = 0.0
-        self.w_prev = 0.0
-        self.d_hat = 0.0
-        self.pos_int = 0.0
-        self.cv_int = 0.0
-        self.e_pos_prev = 0.0
-        self.e_speed_prev = 0.0
-        self.speed_ref_deg_s = 0.0
-        self.speed_error_deg_s = 0.0
+        self.speed_ref_deg_s = self.speed_error_deg_s = 0.0
         self._take(PreparedCoefficients(coefficients))
+        self.reset()
+
+    def reset(self) -> None:
+        """Zero every state (e.g. after a fault, before re-enabling the drive)."""
+        self.u_prev = self.w_prev = self.d_hat = 0.0
+        self.pos_int = self.cv_int = self.e_pos_prev = self.e_speed_prev = 0.0
         self._f1.set_steady(0.0)
         self._f2.set_steady(0.0)
 
@@ -264,13 +262,6 @@ class ServoLoop:
             # DOB switched off: its last correction moves into the speed integrator.
             self.cv_int -= d_hat
             self.d_hat = 0.0
-
-    def reset(self) -> None:
-        """Zero every state (e.g. after a fault, before re-enabling the drive)."""
-        self.u_prev = self.w_prev = self.d_hat = 0.0
-        self.pos_int = self.cv_int = self.e_pos_prev = self.e_speed_prev = 0.0
-        self._f1.set_steady(0.0)
-        self._f2.set_steady(0.0)
 
     # -- the hot path --------------------------------------------------------------------------
 
