@@ -406,6 +406,7 @@ def test_a_start_saves_the_recorded_rollback_and_runs_it(tmp_path: Path) -> None
     store = _pending_state(tmp_path)
     start = _start(tmp_path)
     assert (start.config, start.version, start.fault, start.unsaved) == (GOOD, 3, "", None)
+    assert "rollback from v2 to v3, not saved before the restart, was saved" in start.note
     assert start.verdict.applicable and start.verdict.knowledge_version == 1
     saved = store.load()
     assert saved is not None and (saved.config, saved.version) == (GOOD, 3)

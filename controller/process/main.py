@@ -225,6 +225,8 @@ class _Start:
     """The watchdog's rollback the change log records, which could not be saved at start
     either (the service retries it)."""
     rolled_back_from: LoopConfig | None = None
+    note: str = ""
+    """For Status.notes ("": none)."""
 
 
 def _initial_config(
@@ -287,7 +289,10 @@ def _initial_config(
         return _Start(candidate, version, verdict, fault=fault, unsaved=pending,
                       rolled_back_from=None if saved is None else saved.config)
     log.info("config v%d from %s saved", version, source)
-    return _Start(candidate, version, verdict, fault=_unwritable_fault(unwritable))
+    note = "" if pending is None else (
+        f"the watchdog's rollback from v{pending.from_version} to v{version}, not saved before "
+        "the restart, was saved at start")
+    return _Start(candidate, version, verdict, fault=_unwritable_fault(unwritable), note=note)
 
 
 def _unwritable_fault(why: str) -> str:
@@ -476,6 +481,8 @@ def _run(
             _restore_latch(store, runtime, notes)
             if start.fault:
                 _start_faulted(runtime, start.fault, notes)
+            if start.note:
+                notes.append(start.note)
             if rig_faults:
                 runtime.fault = rig_faults[0]
                 if runtime.mode != ESTOP:
