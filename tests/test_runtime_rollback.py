@@ -26,7 +26,7 @@ from controller.process.analysis_worker import AnalysisWorker
 from controller.process.audit import AuditLog, audit_path
 from controller.process.options import ControllerOptions
 from controller.process.persistence import MAX_VERSION, Change, PendingRollback, StateStore
-from controller.process.requests import ApplyCoefficients, InjectFault
+from controller.process.requests import ApplyCoefficients, InjectFault, ResetFault
 from controller.process.runtime import FAULT, RUNNING, Runtime, RuntimeOptions
 from controller.process.service import ControllerService
 from controller.sim.sim_rig import RigFaults, SimRig
@@ -558,4 +558,15 @@ def test_a_restored_configuration_that_fails_the_gate_now_faults_the_loop(
     assert st.verdict is not None and (st.verdict.verdict, st.verdict.knowledge_version) == (
         "reject", 2)
     assert svc.history(5).entries[-1].verdict == st.verdict
+    # A reset would run it: refused until a configuration that passes is applied.
+    with _ticking(rt):
+        reply = svc.command(ResetFault(rt.estop_seq), "op")
+        assert not reply.ok and reply.message.startswith("reset: refused: watchdog: rolled back "
+                                                         "to v3, which fails the gate"), reply
+        assert rt.mode == FAULT
+        passing = OLD_LOOP.with_(cv_kp=0.17)  # accepted on the gain x3
+        applied = svc.apply(passing, "op")
+        assert applied.accepted and applied.verdict.knowledge_version == 2, applied.reasons
+        assert svc.command(ResetFault(rt.estop_seq), "op").ok
+        assert rt.mode != FAULT and rt.loop.active.config == passing
     access.close()

@@ -39,6 +39,7 @@ from controller.process.requests import (
     ApplyCoefficients,
     DropFallback,
     RequestBody,
+    ResetFault,
     RunProgram,
 )
 from controller.process.runtime import ESTOP, FAULT, Runtime, Ticket
@@ -113,6 +114,9 @@ class ControllerService:
         #: The change log records `_unsaved` (a restart comes back on it).
         self._unsaved_recorded = False
         self._fault_seen: str | None = None
+        #: Why a reset is refused ("": it is not): the watchdog rolled back to a configuration
+        #: that fails the gate now; an apply (or knowledge on which it passes) lifts it.
+        self._reset_refused = ""
         self.watchdog_text = ""
         self._identify_lock = threading.Lock()
         # The last rejection logged, when, and how many identical ones followed unlogged.
@@ -258,6 +262,7 @@ class ControllerService:
                 self.warn(reason)
                 return self.config_reply(accepted=False, reasons=[reason], verdict=verdict)
             self._wait_version(version)
+            self._reset_refused = ""  # what runs now passed the gate
             self.clear_warning(KNOWLEDGE_NOTE)  # it judged the configuration replaced now
             self._fallback_state = (
                 (active.config, self.running_verdict, candidate) if armed else None)
@@ -377,9 +382,10 @@ class ControllerService:
             judged = self.worker.check(config, k)
         self.running_verdict = judged
         if not judged.applicable:
-            self.rt.request_fault(
+            self._reset_refused = (
                 f"watchdog: rolled back to v{version}, which {_fails_gate(judged)}; stopped "
                 "(command 0): apply a configuration that passes, then reset")
+            self.rt.request_fault(self._reset_refused)
 
     def rollback_not_saved(self, pending: PendingRollback, bad: LoopConfig | None) -> None:
         """At start: the configuration running is the rollback the change log records as not
@@ -506,6 +512,8 @@ class ControllerService:
             active = self.rt.loop.active
             verdict = self.worker.check(active.config, new)
             self.running_verdict = verdict
+            if verdict.applicable:
+                self._reset_refused = ""
             message = f"plant knowledge v{version} adopted"
             self.clear_warning(KNOWLEDGE_NOTE)  # about older knowledge: no longer so
             if verdict.verdict != "accept":
@@ -542,7 +550,12 @@ class ControllerService:
         return proto.CommandReply(ok=False, message=message, mode=self.rt.mode, **kw)
 
     def command(self, request: RequestBody, client: str) -> proto.CommandReply:
-        """Hand `request` to the tick and wait for its answer (an EStop engages in `submit`)."""
+        """Hand `request` to the tick and wait for its answer (an EStop engages in `submit`).
+        A reset is refused while the configuration loaded fails the gate after a rollback."""
+        refused = self._reset_refused
+        if refused and isinstance(request, ResetFault):
+            log.warning("command ResetFault from %s: refused (%s)", client or "a client", refused)
+            return self.refused(f"reset: refused: {refused}")
         ticket = self.rt.submit(request)
         reply = self._ticket_reply(ticket, self.opts.command_timeout_s)
         name = type(request).__name__
