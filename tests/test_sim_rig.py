@@ -3,6 +3,7 @@ built here with python-control, and static belt mechanics."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import control as ct
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 from old_loop import OLD_LOOP
 
+from controller.core.errors import ConfigError
 from controller.core.trajectory import default_trajectory
 from controller.sim.disturbance import (
     DISTURBANCES,
@@ -219,6 +221,13 @@ def test_disturbance_registry_and_validation() -> None:
 def test_param_validation_names_the_field(field: str, value: float) -> None:
     with pytest.raises(ValueError, match=field):
         RigParams(**{field: value})  # type: ignore[arg-type]
+
+
+def test_every_param_is_checked() -> None:
+    """Each field declares its check (a new one without would take NaN silently)."""
+    for f in dataclasses.fields(RigParams):
+        with pytest.raises(ConfigError, match=rf"^{f.name}: must be finite, got nan$"):
+            RigParams(**{f.name: math.nan})  # type: ignore[arg-type]
 
 
 def test_rig_argument_validation() -> None:

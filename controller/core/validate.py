@@ -94,8 +94,9 @@ def optional(check: Check) -> Check:
 
 def check_fields(obj: object, *, store: bool = False) -> None:
     """Run the checks declared in the annotations of `obj`'s fields, in field order (see the
-    module docstring); the first failing one raises. With `store`, each field is set to what
-    its checks return (a float for a number, ...: a frozen dataclass's normal form)."""
+    module docstring), each on the value as given; the first failing one raises. With `store`,
+    each field is set to what its last check returns (a float for a number, ...: a frozen
+    dataclass's normal form)."""
     cls = type(obj)
     declared = _DECLARED.get(cls)
     if declared is None:
@@ -108,9 +109,9 @@ def check_fields(obj: object, *, store: bool = False) -> None:
     for name, checks in declared:
         value = getattr(obj, name)
         for check in checks:
-            value = check(value, name)
+            checked = check(value, name)
         if store:
-            object.__setattr__(obj, name, value)
+            object.__setattr__(obj, name, checked)
 
 
 #: Per class: (field name, its declared checks) in field order, read once from the annotations.

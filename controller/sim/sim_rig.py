@@ -80,7 +80,7 @@ faults); adding or removing the mode conserves momentum. Faults survive `reset()
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from typing import Annotated
 
 import numba
@@ -105,149 +105,115 @@ _TWO_PI = 2.0 * math.pi
 _NOISE_BLOCK = 4096
 
 
+def _integer(value: object, field: str) -> object:
+    if not isinstance(value, int):
+        raise ConfigError(field, f"must be an int, got {value!r}")
+    return value
+
+
+def _fraction(value: float, field: str) -> float:
+    if abs(value) >= 0.9:
+        raise ConfigError(field, f"must be in (-0.9, 0.9), got {value!r}")
+    return value
+
+
+def _encoder_bits(value: int, field: str) -> int:
+    if not 1 <= value <= 48:
+        raise ConfigError(field, f"must be in 1..48, got {value}")
+    return value
+
+
 @dataclass(frozen=True, slots=True)
 class RigParams:
     """Physical parameters of the simulated rig; defaults are control.md's reference model."""
 
-    gear_ratio: float = 132.0
+    gear_ratio: Annotated[float, positive] = 132.0
     """Motor revolutions per load revolution (gearbox; the belt is 1:1)."""
-    motor_inertia_kg_m2: float = 1.0e-5
+    motor_inertia_kg_m2: Annotated[float, positive] = 1.0e-5
     """Rotor inertia, motor side."""
-    motor_viscous_n_m_s_rad: float = 1.0e-6
+    motor_viscous_n_m_s_rad: Annotated[float, nonnegative] = 1.0e-6
     """Motor viscous friction, motor side."""
-    drive_kp_n_m_s_rad: float = 3.772e-3
+    drive_kp_n_m_s_rad: Annotated[float, nonnegative] = 3.772e-3
     """Drive I-P speed loop: proportional gain on the measured motor speed."""
-    drive_ki_n_m_rad: float = 0.8217
+    drive_ki_n_m_rad: Annotated[float, positive] = 0.8217
     """Drive I-P speed loop: integral gain on the speed error."""
-    drive_torque_limit_n_m: float = 0.25
+    drive_torque_limit_n_m: Annotated[float, positive] = 0.25
     """Drive output torque limit, motor side."""
-    drive_speed_window_s: float = 1.0e-3
+    drive_speed_window_s: Annotated[float, positive] = 1.0e-3
     """Drive speed estimate: motor-encoder count difference over this window."""
-    motor_encoder_counts_per_rev: int = 4000
+    motor_encoder_counts_per_rev: Annotated[int, positive, _integer] = 4000
     """Motor encoder resolution (1000 lines x 4)."""
-    belt_stiffness_n_m_rad: float = 186.2
+    belt_stiffness_n_m_rad: Annotated[float, positive] = 186.2
     """Belt stiffness, load side."""
-    belt_damping_n_m_s_rad: float = 0.386
+    belt_damping_n_m_s_rad: Annotated[float, nonnegative] = 0.386
     """Belt damping, load side."""
-    backlash_deg: float = 0.02
+    backlash_deg: Annotated[float, nonnegative] = 0.02
     """Total backlash (dead-zone width of the belt stretch), load side."""
-    load_inertia_kg_m2: float = 0.08
+    load_inertia_kg_m2: Annotated[float, positive] = 0.08
     """Turntable inertia."""
-    load_viscous_n_m_s_rad: float = 5.54
+    load_viscous_n_m_s_rad: Annotated[float, nonnegative] = 5.54
     """Load viscous friction."""
-    coulomb_torque_n_m: float = 0.25
+    coulomb_torque_n_m: Annotated[float, nonnegative] = 0.25
     """Load Coulomb (sliding) friction."""
-    static_torque_n_m: float = 0.35
+    static_torque_n_m: Annotated[float, number] = 0.35
     """Load static friction (breakaway); must be >= the Coulomb friction."""
-    stribeck_speed_deg_s: float = 0.2
+    stribeck_speed_deg_s: Annotated[float, positive] = 0.2
     """Speed scale of the Stribeck decay from static to Coulomb friction."""
-    bias_torque_n_m: float = 0.10
+    bias_torque_n_m: Annotated[float, number] = 0.10
     """Constant torque on the load (imbalance), positive direction."""
-    pulley_teeth: int = 30
+    pulley_teeth: Annotated[int, positive, _integer] = 30
     """Teeth per revolution: frequency of transmission error and ripple, per rev."""
-    transmission_error_deg: float = 0.01
+    transmission_error_deg: Annotated[float, nonnegative] = 0.01
     """Amplitude of the tooth-periodic transmission error, load side."""
-    ripple_torque_n_m: float = 0.05
+    ripple_torque_n_m: Annotated[float, nonnegative] = 0.05
     """Amplitude of the tooth-periodic ripple torque on the load."""
-    load_encoder_bits: int = 26
+    load_encoder_bits: Annotated[int, number, _integer, _encoder_bits] = 26
     """Load encoder resolution: 2**bits counts per revolution."""
-    position_noise_deg: float = 1.0e-5
+    position_noise_deg: Annotated[float, nonnegative] = 1.0e-5
     """Standard deviation of Gaussian noise on the measured load position (~2 LSB)."""
-    cogging_torque_n_m: float = 0.0
+    cogging_torque_n_m: Annotated[float, nonnegative] = 0.0
     """Amplitude of the motor's cogging torque, motor side (0 = none: the reference model)."""
-    cogging_periods_per_rev: int = 12
+    cogging_periods_per_rev: Annotated[int, positive, _integer] = 12
     """Cogging periods per MOTOR revolution (slots and poles of the motor)."""
     # -- rate disturbances at P's input (motor and gearbox side); 0 = off, the reference model
-    motor_coulomb_n_m: float = 0.0
+    motor_coulomb_n_m: Annotated[float, nonnegative] = 0.0
     """Coulomb friction of the motor and the gearbox input (no-load friction), motor side."""
-    gearbox_friction_fraction: float = 0.0
+    gearbox_friction_fraction: Annotated[float, nonnegative, _fraction] = 0.0
     """Load-dependent gearbox friction: this share of the transmitted torque (belt torque / N)
     is lost, motor side (1 - efficiency)."""
-    gearbox_backlash_deg: float = 0.0
+    gearbox_backlash_deg: Annotated[float, nonnegative] = 0.0
     """Gearbox backlash at its output, load side. The gearbox and pulley are massless here,
     so it is in series with the belt's dead zone and adds to it."""
-    drive_offset_rpm: float = 0.0
+    drive_offset_rpm: Annotated[float, number] = 0.0
     """Speed offset of the drive's speed loop, motor side: the motor turns at this speed when
     commanded zero (reference or speed-sensing offset)."""
-    drive_droop_rpm_per_n_m: float = 0.0
+    drive_droop_rpm_per_n_m: Annotated[float, nonnegative] = 0.0
     """Droop of the drive's speed loop, motor side: the regulated speed falls by this much per
     N m of drive torque (a drive tuned with droop, or a finite low-frequency speed-loop gain)."""
-    ratio_ripple_fraction: float = 0.0
+    ratio_ripple_fraction: Annotated[float, nonnegative, _fraction] = 0.0
     """Ripple of the transmission ratio (belt tension, pulley run-out), as a fraction: the
     pulley angle seen by the belt is theta + (a / n) sin(n theta), n = the periods below."""
-    ratio_ripple_periods_per_rev: int = 1
+    ratio_ripple_periods_per_rev: Annotated[int, positive, _integer] = 1
     """Ratio-ripple periods per LOAD revolution (1 = once per turn of the turntable)."""
     # -- plant varying with the turntable's position (belt span and tension)
-    belt_stiffness_variation: float = 0.0
+    belt_stiffness_variation: Annotated[float, number, _fraction] = 0.0
     """Belt stiffness k(theta) = k (1 + v cos theta) with theta the load angle: the tight span
     and its tension change once per turntable revolution."""
-    belt_damping_variation: float = 0.0
+    belt_damping_variation: Annotated[float, number, _fraction] = 0.0
     """Belt damping c(theta) = c (1 + v cos theta), like the stiffness."""
     # -- load encoder errors beyond noise and quantisation
-    encoder_cyclic_error_deg: float = 0.0
+    encoder_cyclic_error_deg: Annotated[float, nonnegative] = 0.0
     """Amplitude of the load encoder's interpolation (sub-divisional) error, load side."""
-    encoder_cyclic_periods_per_rev: int = 16384
+    encoder_cyclic_periods_per_rev: Annotated[int, positive, _integer] = 16384
     """Periods of that error per revolution (the encoder's signal periods)."""
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            number(getattr(self, f.name), f.name)
-        positive_fields = (
-            "gear_ratio",
-            "motor_inertia_kg_m2",
-            "drive_ki_n_m_rad",
-            "drive_torque_limit_n_m",
-            "drive_speed_window_s",
-            "motor_encoder_counts_per_rev",
-            "belt_stiffness_n_m_rad",
-            "load_inertia_kg_m2",
-            "stribeck_speed_deg_s",
-            "pulley_teeth",
-            "cogging_periods_per_rev",
-            "ratio_ripple_periods_per_rev",
-            "encoder_cyclic_periods_per_rev",
-        )
-        for name in positive_fields:
-            positive(getattr(self, name), name)
-        non_negative = (
-            "motor_viscous_n_m_s_rad",
-            "drive_kp_n_m_s_rad",
-            "belt_damping_n_m_s_rad",
-            "backlash_deg",
-            "load_viscous_n_m_s_rad",
-            "coulomb_torque_n_m",
-            "transmission_error_deg",
-            "ripple_torque_n_m",
-            "position_noise_deg",
-            "cogging_torque_n_m",
-            "motor_coulomb_n_m",
-            "gearbox_friction_fraction",
-            "gearbox_backlash_deg",
-            "drive_droop_rpm_per_n_m",
-            "ratio_ripple_fraction",
-            "encoder_cyclic_error_deg",
-        )
-        for name in non_negative:
-            nonnegative(getattr(self, name), name)
+        check_fields(self)
         if self.static_torque_n_m < self.coulomb_torque_n_m:
             raise ConfigError(
                 "static_torque_n_m",
                 f"must be >= coulomb_torque_n_m ({self.coulomb_torque_n_m!r}), "
                 f"got {self.static_torque_n_m!r}",
-            )
-        ints = ("motor_encoder_counts_per_rev", "pulley_teeth", "load_encoder_bits",
-                "cogging_periods_per_rev", "ratio_ripple_periods_per_rev",
-                "encoder_cyclic_periods_per_rev")
-        for name in ints:
-            if not isinstance(getattr(self, name), int):
-                raise ConfigError(name, f"must be an int, got {getattr(self, name)!r}")
-        for name in ("gearbox_friction_fraction", "ratio_ripple_fraction",
-                     "belt_stiffness_variation", "belt_damping_variation"):
-            if abs(getattr(self, name)) >= 0.9:
-                raise ConfigError(name, f"must be in (-0.9, 0.9), got {getattr(self, name)!r}")
-        if not 1 <= self.load_encoder_bits <= 48:
-            raise ConfigError(
-                "load_encoder_bits", f"must be in 1..48, got {self.load_encoder_bits}"
             )
 
 
