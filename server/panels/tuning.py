@@ -883,7 +883,9 @@ class TuningPanel:
 def _kept_problem_html(text: str) -> str:
     if not text:
         return "<div class='dt-kept-problem'></div>"
-    return box("dt-kept-problem", REJECT, esc(text))
+    # A file's path is long and has no spaces: broken anywhere rather than cut off.
+    return box("dt-kept-problem", REJECT,
+               f"<span style='overflow-wrap:anywhere'>{esc(text)}</span>")
 
 
 #: The controls a kept candidate holds (panel attributes; `kept`, `restore`).

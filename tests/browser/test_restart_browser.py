@@ -5,8 +5,8 @@ with its candidates kept in a directory of the test's; it is stopped (SIGTERM, a
 manager stops it) and started again on the same port with the same token, and the same browser
 tab is reloaded: the candidate's cut-off and its verdict are back as the user left them. Then
 the controller moves on while the dashboard is down: after the next restart the candidate
-comes back stale ("Based on vN", Apply off), never applicable as it was. What is checked is
-what the page shows; what the controller runs is read through a separate Zenoh client
+comes back stale ("Based on vN", Apply off), never applicable as it was; and a damaged file is
+said on the page (and kept aside). What is checked is what the page shows; what the controller runs is read through a separate Zenoh client
 (`probe`).
 """
 
@@ -152,5 +152,23 @@ def test_the_candidate_survives_a_dashboard_restart_and_comes_back_stale_if_the_
             page.screenshot(path=str(artifacts / "restart_stale.png"))
         after = probe.get_config()
         assert after.version == moved.version and after.config.q_cutoff_hz == other_hz
+
+        # The file is damaged while the dashboard is down: the page says so, and where the file
+        # went (kept aside, not deleted); the candidate starts from the active configuration.
+        files = list((kept / RIG).glob("*.json"))
+        assert [f.name for f in files] == ["_anyone.json"], files
+        files[0].write_bytes(files[0].read_bytes()[:40])
+        with _dashboard_process(controller_endpoint, port, kept):
+            page.reload(wait_until="domcontentloaded", timeout=FIRST_LOAD_S * 1000)
+            _ready(page)
+            wait_shown_text(page, ".dt-kept-problem", "could not be restored",
+                            FIRST_LOAD_S * 1000)
+            problem = _text(page, ".dt-kept-problem")
+            aside = [p for p in (kept / RIG).iterdir() if ".unreadable-" in p.name]
+            assert len(aside) == 1 and f"moved aside to {aside[0]}" in problem, problem
+            page.wait_for_selector(".dt-diff >> text=same as active", timeout=FIRST_LOAD_S * 1000)
+            assert float(cutoff_box(page).input_value()) == other_hz
+            page.locator(".dt-kept-problem").first.scroll_into_view_if_needed()
+            page.screenshot(path=str(artifacts / "restart_unreadable.png"))
     finally:
         context.close()
