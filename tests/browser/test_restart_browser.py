@@ -6,8 +6,8 @@ manager stops it) and started again on the same port with the same token, and th
 tab is reloaded: the candidate's cut-off and its verdict are back as the user left them. Then
 the controller moves on while the dashboard is down: after the next restart the candidate
 comes back stale ("Based on vN", Apply off), never applicable as it was; and a damaged file is
-said on the page (and kept aside). What is checked is what the page shows; what the controller runs is read through a separate Zenoh client
-(`probe`).
+said on the page (and kept aside). What is checked is what the page shows; what the
+controller runs is read through a separate Zenoh client (`probe`).
 """
 
 from __future__ import annotations
