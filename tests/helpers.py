@@ -81,7 +81,12 @@ def no_new_files(directory: Path) -> Iterator[None]:
         finally:
             directory.chmod(mode)
         return
-    subprocess.run(["chattr", "+i", str(directory)], check=True, capture_output=True)
+    done = subprocess.run(["chattr", "+i", str(directory)], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise AssertionError(
+            f"chattr +i {directory}: {done.stderr.strip()}: as root, this test needs a file "
+            "system with the immutable attribute (ext4, xfs, btrfs; not tmpfs), or run it as "
+            "another user (then chmod 555 is used)")
     try:
         probe = directory / ".no_new_files_probe"
         try:
