@@ -92,6 +92,47 @@ def test_the_search_answers_as_the_whole_search_evaluating_no_more() -> None:
         assert TopSearch(ok, GRID, 0.01).none() == (expected is None)
 
 
+def test_coarse_points_judged_together_give_the_same_answers() -> None:
+    """`prefetch` (the coarse points a question needs, judged at once by `ok_many`): the
+    answers are the whole search's; what is judged together is only coarse points up to the
+    first at which the question holds, each once."""
+    batched_any = False
+    for seed in range(300):
+        ok = islands(seed)
+        expected = reference_top(ok, GRID, 0.01)
+        for q in np.geomspace(0.005, 300.0, 25):
+            batches: list[list[float]] = []
+            singles: list[float] = []
+
+            def many(fcs: list[float], ok: Callable[[float], bool] = ok,
+                     batches: list[list[float]] = batches) -> list[bool]:
+                batches.append(list(fcs))
+                return [ok(fc) for fc in fcs]
+
+            def one(fc: float, ok: Callable[[float], bool] = ok,
+                    singles: list[float] = singles) -> bool:
+                singles.append(fc)
+                return ok(fc)
+
+            s = TopSearch(one, GRID, 0.01, many)
+            holds = lambda r, q=q: not q > r * 1.0001  # noqa: E731
+            if s.none():
+                assert expected is None
+                continue
+            s.prefetch(holds)
+            got = s.decide(holds)
+            assert got == holds(expected), (seed, q)
+            assert len(batches) <= 1
+            for batch in batches:
+                batched_any = True
+                needed = [float(g) for g in GRID if not holds(float(g))]
+                top = GRID[min(len(needed), GRID.size - 1)]
+                assert all(fc in GRID and fc <= top for fc in batch)
+                assert not set(batch) & set(singles) and len(set(batch)) == len(batch)
+            assert s.value() == expected
+    assert batched_any
+
+
 def test_a_search_shared_by_threads_gives_the_one_answer() -> None:
     for seed in range(40):
         ok = islands(seed)

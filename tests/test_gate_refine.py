@@ -14,7 +14,7 @@ from gate_cases import canon, knowledge_set, random_configs
 
 from controller.core.config import LoopConfig
 from controller.gate import analysis, search
-from controller.gate.margins import Evaluator, RefineTask
+from controller.gate.margins import Evaluator, GroupEvaluator, RefineTask
 from controller.gate.search import RecommendationSearch
 
 
@@ -109,3 +109,39 @@ def test_the_searchs_verdict_only_path_answers_as_the_whole_analysis() -> None:
             lambda fc, base=base: analysis.analyse(base.with_(q_cutoff_hz=fc), plants[0]).accepted,
             np.geomspace(0.02, 100.0, 16), 0.01)
         assert top is not None and s.gate.value() == top and s.gate.evaluations > 8
+
+
+def test_cutoffs_judged_together_answer_as_each_alone(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`accepted_cutoffs` (the coarse scan's cut-offs judged with one refinement) against
+    `accepted` of each cut-off alone and the whole analysis: the same answers, and every
+    refined crossing and peak bit for bit."""
+    plants = knowledge_set()
+    rng = np.random.default_rng(14)
+    refined: list[list[tuple[str, float, float, complex]]] = []
+    real = analysis.solve_groups
+
+    def spied(groups: list[list[RefineTask]], ev: GroupEvaluator) -> None:
+        real(groups, ev)
+        refined.extend([(t.key, t.x, t.value, t.out) for t in g] for g in groups)
+
+    monkeypatch.setattr(analysis, "solve_groups", spied)
+    answers, widest = [], 0
+    for k in range(5):
+        for _ in range(3):
+            base = LoopConfig(cv_kp=float(rng.uniform(0.2, 1.2)),
+                              pos_kp_per_s=float(rng.uniform(2.0, 14.0)),
+                              q_type=str(rng.choice(["q31", "q20"])))
+            fcs = [float(fc) for fc in np.geomspace(0.02, 100.0, 16)]
+            refined.clear()
+            together = analysis.accepted_cutoffs(base, fcs, plants[k])
+            widest = max(widest, len(refined))
+            batch = canon(refined)
+            refined.clear()
+            alone = [analysis.accepted(base.with_(q_cutoff_hz=fc), plants[k]) for fc in fcs]
+            assert together == alone, (k, base)
+            assert batch == canon(refined), (k, base)
+            whole = [analysis.analyse(base.with_(q_cutoff_hz=fc), plants[k]).accepted
+                     for fc in fcs]
+            assert together == whole, (k, base)
+            answers += together
+    assert 0.2 < np.mean(answers) < 0.8 and widest >= 5  # both answers; several refined at once

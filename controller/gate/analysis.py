@@ -71,6 +71,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Literal, TypeVar
 
 import numpy as np
@@ -90,15 +91,19 @@ from controller.gate.loop_model import (
     DB_3,
     TWO_PI,
     DobFilters,
+    GainBlocks,
     LoopBlocks,
     closed_loop_matrix,
     default_grid,
-    discrete_equivalent,
     discrete_plant,
     dob_filters,
+    gain_blocks,
     loop_blocks,
+    loop_blocks_groups,
     nominal_continuous_response,
     plant_response,
+    with_zoh,
+    zoh_terms,
 )
 from controller.gate.margins import (
     LoopCrossings,
@@ -111,6 +116,7 @@ from controller.gate.margins import (
     margins_of,
     peak_task,
     solve,
+    solve_groups,
     winding_ok,
 )
 
@@ -121,6 +127,7 @@ __all__ = [
     "GateLimits",
     "SourceResult",
     "accepted",
+    "accepted_cutoffs",
     "analyse",
 ]
 
@@ -320,6 +327,36 @@ class Analysis:
 # --------------------------------------------------------------------------- evidence
 
 
+class _Points:
+    """Frequencies with what depends on them alone (log f, the model's continuous response,
+    the ZOH terms, the bound's magnitude), each computed when first asked: the measured
+    responses of one analysis share their model, rate and bound, so one refinement round
+    computes these once for all of them."""
+
+    def __init__(self, f: FloatArray, rate_hz: float, model: NominalModel,
+                 bound: UncertaintyBound | None) -> None:
+        self.f, self.rate_hz, self.model, self.bound = f, rate_hz, model, bound
+
+    @cached_property
+    def log_f(self) -> FloatArray:
+        return np.log(self.f)
+
+    @cached_property
+    def nominal(self) -> ComplexArray:
+        return nominal_continuous_response(self.model, self.f)
+
+    @cached_property
+    def zoh(self) -> tuple[ComplexArray, FloatArray]:
+        return zoh_terms(self.f, self.rate_hz)
+
+    @cached_property
+    def bound_magnitude(self) -> FloatArray:
+        """|W| (without a bound: `UNRESOLVED_ALLOWANCE`, the plant unknown)."""
+        if self.bound is not None:
+            return self.bound.magnitude(self.f)
+        return np.full_like(self.f, UNRESOLVED_ALLOWANCE)
+
+
 #: `_MeasuredModel`s by (response object, rate, model, bound object): every candidate judged
 #: on the same knowledge shares them, with the grids they were asked for (the analysis grid
 #: with the measured points is the same for every candidate). Bounded.
@@ -392,7 +429,7 @@ class _MeasuredModel:
 
     def _kept_or(self, what: str, f: FloatArray, make: Callable[[FloatArray], np.ndarray],
                  keep: bool = True) -> np.ndarray:
-        if not keep or f.size < _BlocksMemo.MIN_POINTS:
+        if not keep or f.size < _GainMemo.MIN_POINTS:
             return make(f)
         key = (what, f.tobytes())
         got = self._kept.get(key)
@@ -403,8 +440,12 @@ class _MeasuredModel:
             self._kept[key] = got
         return got
 
-    def _ratio(self, f: FloatArray) -> ComplexArray:
-        xf = np.log(f)
+    def points(self, f: FloatArray) -> _Points:
+        """`f` with what depends on it alone, for this response's model, rate and bound."""
+        return _Points(f, self.rate_hz, self.model, self.bound)
+
+    def _ratio(self, pts: _Points) -> ComplexArray:
+        xf = pts.log_f
         return np.exp(np.interp(xf, self.xm, self.logmag) + 1j * np.interp(xf, self.xm, self.phase))
 
     def grid(self, f0: FloatArray) -> FloatArray:
@@ -421,12 +462,21 @@ class _MeasuredModel:
         """G_m at f (discrete), given the exact model G at f (`keep` false: a grid asked for
         once, not worth keeping)."""
         if self.sampled:
-            return g_model * self._kept_or("ratio", f, self._ratio, keep)
-        return self._kept_or("plant", f, self._continuous_plant, keep)
+            return g_model * self._kept_or("ratio", f, lambda ff: self._ratio(self.points(ff)),
+                                           keep)
+        return self._kept_or("plant", f, lambda ff: self._continuous_plant(self.points(ff)),
+                             keep)
 
-    def _continuous_plant(self, f: FloatArray) -> ComplexArray:
-        gc = nominal_continuous_response(self.model, f) * self._ratio(f)
-        return discrete_equivalent(gc, f, self.rate_hz)
+    def plant_at(self, pts: _Points, g_model: ComplexArray) -> ComplexArray:
+        """`plant` at points shared with other responses of the same model, rate and bound
+        (not kept)."""
+        if self.sampled:
+            return g_model * self._ratio(pts)
+        return self._continuous_plant(pts)
+
+    def _continuous_plant(self, pts: _Points) -> ComplexArray:
+        gc = pts.nominal * self._ratio(pts)
+        return with_zoh(gc, pts.zoh)
 
     def allowance(self, f: FloatArray, keep: bool = True) -> FloatArray:
         """a(f): the segment's allowance between measured points, beyond the band the edge's
@@ -436,18 +486,17 @@ class _MeasuredModel:
         up to its ends (with the point's own allowance there, a segment's peak at a measured
         point was sampled at the point's smaller allowance only and missed)."""
         f = np.asarray(f, dtype=np.float64)
-        return self._kept_or("allowance", f, self._allowance, keep)
+        return self._kept_or("allowance", f, lambda ff: self.allowance_at(self.points(ff)), keep)
 
-    def _allowance(self, f: FloatArray) -> FloatArray:
+    def allowance_at(self, pts: _Points) -> FloatArray:
+        """`allowance` at points shared with other responses (not kept)."""
+        f = pts.f
         i = np.searchsorted(self.fm, f, side="right") - 1
         inside = (i >= 0) & (i < self.fm.size - 1)
         a = np.empty_like(f)
         ii = np.clip(i, 0, self.fm.size - 2)
         a[inside] = self.segment[ii[inside]]
-        if self.bound is not None:
-            w = self.bound.magnitude(f)
-        else:
-            w = np.full_like(f, UNRESOLVED_ALLOWANCE)
+        w = pts.bound_magnitude
         below, above = f < self.fm[0], f > self.fm[-1]
         a[below] = self.point[0] + w[below]
         a[above] = self.point[-1] + w[above]
@@ -649,22 +698,63 @@ def accepted(cfg: LoopConfig, plant: PlantKnowledge | None = None,
     give a reason and stopping at the first: what the recommended cut-off's search asks of
     each cut-off (the charts, the bandwidth, the figures shown and the bound's peaks where
     measured responses decide are left out)."""
+    return accepted_cutoffs(cfg, [cfg.q_cutoff_hz], plant, limits)[0]
+
+
+def accepted_cutoffs(cfg: LoopConfig, cutoffs_hz: list[float],
+                     plant: PlantKnowledge | None = None,
+                     limits: GateLimits | None = None) -> list[bool]:
+    """`accepted` of cfg with each Q cut-off in `cutoffs_hz`, the cut-offs judged together:
+    one refinement for all of them, each round evaluating the loop, the plant model and every
+    measured response once for every cut-off's points (only the DOB's filters are evaluated
+    per cut-off). Each answer is `accepted`'s for that cut-off alone (every output is per
+    frequency point)."""
     plant = plant if plant is not None else PlantKnowledge()
     limits = limits if limits is not None else GateLimits()
     f = default_grid(cfg.rate_hz)
+    x = np.log(f)
     model = plant.model
     on = cfg.dob_on
-    used = dob_filters(cfg) if on else None
-    bk = loop_blocks(cfg, used, f, model)
-    one, ks, _ = _controller_parts(bk, on)
-    if not _noise_to_command(bk.g, ks, one)[0] <= limits.noise_to_command_max_db:
-        return False  # a caution
-    _, max_radius = _poles(cfg, used, model)
-    if not max_radius < limits.pole_radius_limit(cfg.rate_hz):
-        return False  # a rejection, or a caution with measured responses
-    judged = _evidence(cfg, plant, f, np.log(f), bk, limits, max_radius, None, used,
-                       decisive_only=True)
-    return judged is not None
+    answers = [False] * len(cutoffs_hz)
+    started: list[tuple[int, DobFilters | None, _Started]] = []
+    gains = _GainMemo(cfg, model)
+    for i, fc in enumerate(cutoffs_hz):
+        c = cfg.with_(q_cutoff_hz=fc)
+        used = dob_filters(c) if on else None
+        bk = loop_blocks(c, used, f, model, gains(f))
+        one, ks, _ = _controller_parts(bk, on)
+        if not _noise_to_command(bk.g, ks, one)[0] <= limits.noise_to_command_max_db:
+            continue  # a caution
+        _, max_radius = _poles(c, used, model)
+        if not max_radius < limits.pole_radius_limit(c.rate_hz):
+            continue  # a rejection, or a caution with measured responses
+        st = _evidence_start(c, plant, f, x, bk, limits, max_radius, None, used,
+                             decisive_only=True, gains=gains)
+        if st is not None:
+            started.append((i, used, st))
+    if not started:
+        return answers
+    # Every cut-off's evidence gives the same outputs of the blocks (its output functions
+    # hold the evidence, the DOB switch and the keys, the same for every cut-off): the first
+    # one's serve every cut-off's points.
+    first = started[0][2]
+    assert all(len(st.refinements) == len(first.refinements) for _, _, st in started)
+
+    def ev(fs: list[FloatArray]) -> list[Outputs]:
+        ff = np.concatenate(fs)
+        b = loop_blocks_groups(cfg, [u for _, u, _ in started], fs, model)
+        out = first.outputs(ff, b, _Points(ff, cfg.rate_hz, model, plant.bound))
+        split: list[Outputs] = []
+        start = 0
+        for ff in fs:
+            split.append({k: v[start : start + ff.size] for k, v in out.items()})
+            start += ff.size
+        return split
+
+    solve_groups([st.tasks for _, _, st in started], ev)
+    for i, _, st in started:
+        answers[i] = st.conclude() is not None
+    return answers
 
 
 def _poles(cfg: LoopConfig, used: DobFilters | None, model: NominalModel
@@ -687,16 +777,68 @@ def _noise_to_command(g: ComplexArray, ks: ComplexArray, one: ComplexArray
 def _evidence(
     cfg: LoopConfig, plant: PlantKnowledge, f: FloatArray, x: FloatArray, bk: LoopBlocks,
     limits: GateLimits, max_radius: float, gyw: ComplexArray | None,
-    used: DobFilters | None, *, decisive_only: bool = False,
+    used: DobFilters | None,
 ) -> tuple[ModelConclusion | None, list[SourceResult | None],
-           list[tuple[list[str], list[str]]]] | None:
+           list[tuple[list[str], list[str]]]]:
     """Every piece of evidence up to its crossings and peaks, refined together (one
     evaluation of the loop's blocks per round for all), then each concluded in turn: (the
     plant model's conclusion and each measured response's, the rejections and cautions of
-    each). With `decisive_only`, None at the first reason (the candidate is not accepted)."""
+    each)."""
+    st = _evidence_start(cfg, plant, f, x, bk, limits, max_radius, gyw, used)
+    assert st is not None  # (None only with decisive_only)
+    model = plant.model
+
+    def ev(ff: FloatArray) -> Outputs:
+        b = loop_blocks(cfg, used, ff, model)  # (points asked for once)
+        return st.outputs(ff, b, _Points(ff, cfg.rate_hz, model, plant.bound))
+
+    solve(st.tasks, ev)
+    got = st.conclude()
+    assert got is not None
+    return got
+
+
+class _Started:
+    """Every piece of evidence up to its refinement (`_evidence_start`): the tasks to refine
+    together, their outputs, then the conclusions."""
+
+    def __init__(self, parts: list[Generator[Refinement, None, Any]],
+                 refinements: list[Refinement], reasons: list[tuple[list[str], list[str]]],
+                 decisive_only: bool) -> None:
+        self.parts, self.refinements, self.reasons = parts, refinements, reasons
+        self.decisive_only = decisive_only
+        self.tasks = [t for tasks, _ in refinements for t in tasks]
+
+    def outputs(self, ff: FloatArray, b: LoopBlocks, pts: _Points) -> Outputs:
+        """Every evidence's outputs at `ff` (the blocks `b` and `pts` there)."""
+        out: Outputs = {}
+        for _, outputs in self.refinements:
+            out.update(outputs(ff, b, pts))
+        return out
+
+    def conclude(self) -> tuple[ModelConclusion | None, list[SourceResult | None],
+                                list[tuple[list[str], list[str]]]] | None:
+        """Once the tasks are refined: (the plant model's conclusion and each measured
+        response's, the rejections and cautions of each); with `decisive_only`, None on any
+        reason."""
+        model_part, *measured_parts = self.parts
+        model_concluded = _concluded(model_part)
+        measured = [_concluded(p) for p in measured_parts]
+        if self.decisive_only and any(rej or cau for rej, cau in self.reasons):
+            return None
+        return model_concluded, measured, self.reasons
+
+
+def _evidence_start(
+    cfg: LoopConfig, plant: PlantKnowledge, f: FloatArray, x: FloatArray, bk: LoopBlocks,
+    limits: GateLimits, max_radius: float, gyw: ComplexArray | None, used: DobFilters | None,
+    *, decisive_only: bool = False, gains: _GainMemo | None = None,
+) -> _Started | None:
+    """Every piece of evidence up to its refinement (with `decisive_only`, None at the first
+    reason: the candidate is not accepted; `gains`: the gains' blocks, shared)."""
     model = plant.model
     on = cfg.dob_on
-    blocks = _BlocksMemo(cfg, used, model)
+    blocks = _BlocksMemo(cfg, used, model, gains)
     reasons: list[tuple[list[str], list[str]]] = [([], []) for _ in range(len(plant.measured) + 1)]
     model_part = _model_evidence(
         cfg, plant, f, x, bk, limits, max_radius, on, gyw, *reasons[0], decisive_only)
@@ -717,20 +859,7 @@ def _evidence(
             return None  # (it stopped at a rejection)
         if decisive_only and (rej or cau):
             return None
-
-    def ev(ff: FloatArray) -> Outputs:
-        b = loop_blocks(cfg, used, ff, model)  # (points asked for once)
-        out: Outputs = {}
-        for _, outputs in refinements:
-            out.update(outputs(ff, b))
-        return out
-
-    solve([t for tasks, _ in refinements for t in tasks], ev)
-    model_concluded = _concluded(model_part)
-    measured = [_concluded(p) for p in measured_parts]
-    if decisive_only and any(rej or cau for rej, cau in reasons):
-        return None
-    return model_concluded, measured, reasons
+    return _Started(parts, refinements, reasons, decisive_only)
 
 
 def _margin_reasons(m: Margins, limits: GateLimits, where: str, out: list[str]) -> None:
@@ -832,9 +961,10 @@ def _round_up(f: float) -> str:
 
 #: What an evidence hands to the analysis's one refinement (`solve`) of every evidence's
 #: crossings and peaks: its tasks, and its outputs at any frequencies given the loop's blocks
-#: there (keys prefixed per evidence). Results are per frequency point, so refining every
-#: evidence's tasks together gives each task what refining it alone gives.
-Refinement = tuple[list[RefineTask], Callable[[FloatArray, LoopBlocks], Outputs]]
+#: there and what depends on the points alone (`_Points`; keys prefixed per evidence). Results
+#: are per frequency point, so refining every evidence's tasks together gives each task what
+#: refining it alone gives.
+Refinement = tuple[list[RefineTask], Callable[[FloatArray, LoopBlocks, _Points], Outputs]]
 
 
 ModelConclusion = tuple[SourceResult, Margins, Margins, float, LoopCrossings]
@@ -852,15 +982,15 @@ def _model_evidence(
     one, ks, kf = _controller_parts(bk, on)
     g = bk.g
 
-    def ev(ff: FloatArray, b: LoopBlocks) -> Outputs:
+    with_bound = bound is not None and not (decisive_only and has_measured)  # (else display)
+
+    def ev(ff: FloatArray, b: LoopBlocks, pts: _Points) -> Outputs:
         o, s_, f_ = _controller_parts(b, on)
-        out = {
-            "L": b.g * s_ / o,
-            "Lf": b.g * f_ / o,
-            "gyw": b.g * b.cv / (o + b.g * s_),
-        }
-        if bound is not None:
-            w = bound.magnitude(ff)
+        out = {"L": b.g * s_ / o, "Lf": b.g * f_ / o}
+        if gyw is not None:
+            out["gyw"] = b.g * b.cv / (o + b.g * s_)
+        if with_bound:
+            w = pts.bound_magnitude
             out["wts"] = w * b.g * s_ / (o + b.g * s_)
             out["wtf"] = w * b.g * f_ / (o + b.g * f_)
         return out
@@ -877,7 +1007,8 @@ def _model_evidence(
     bound_tasks: list[RefineTask] = []
     t_speed = g * ks / (one + g * ks)
     t_full = g * kf / (one + g * kf)
-    if bound is not None and not (decisive_only and has_measured):  # (then display only)
+    if with_bound:
+        assert bound is not None
         wmag = bound.magnitude(f)
         bound_tasks = [
             peak_task(x, wmag * np.abs(t_speed), "wts"),
@@ -949,25 +1080,48 @@ def _model_evidence(
     return src, margins, margins_full, bw, crossings_of(lt)
 
 
-class _BlocksMemo:
-    """`loop_blocks` of one analysis's loop per frequency grid (by its values): the measured
-    responses share their grids, and each asks for the same grid several times. Grids of a
-    few refinement points are computed every time (not worth a key)."""
+class _GainMemo:
+    """`gain_blocks` of one loop's gains per frequency grid (by its values), shared by the
+    cut-offs judged together (`accepted_cutoffs`). Grids of a few refinement points are
+    computed every time (not worth a key)."""
 
     MIN_POINTS = 64
 
-    def __init__(self, cfg: LoopConfig, used: object, model: NominalModel) -> None:
+    def __init__(self, cfg: LoopConfig, model: NominalModel) -> None:
+        self._cfg, self._model = cfg, model
+        self._memo: dict[bytes, GainBlocks] = {}
+
+    def __call__(self, f: FloatArray) -> GainBlocks:
+        if f.size < self.MIN_POINTS:
+            return gain_blocks(self._cfg, f, self._model)
+        key = f.tobytes()
+        b = self._memo.get(key)
+        if b is None:
+            b = self._memo[key] = gain_blocks(self._cfg, f, self._model)
+        return b
+
+
+class _BlocksMemo:
+    """`loop_blocks` of one analysis's loop per frequency grid (by its values): the measured
+    responses share their grids, and each asks for the same grid several times (`gains`:
+    the gains' blocks, shared with other cut-offs)."""
+
+    MIN_POINTS = _GainMemo.MIN_POINTS
+
+    def __init__(self, cfg: LoopConfig, used: DobFilters | None, model: NominalModel,
+                 gains: _GainMemo | None = None) -> None:
         self._cfg, self._used, self._model = cfg, used, model
+        self._gains = gains if gains is not None else _GainMemo(cfg, model)
         self._memo: dict[bytes, LoopBlocks] = {}
 
     def __call__(self, f: FloatArray) -> LoopBlocks:
         if f.size < self.MIN_POINTS:
-            return loop_blocks(self._cfg, self._used, f, self._model)  # type: ignore[arg-type]
+            return loop_blocks(self._cfg, self._used, f, self._model, self._gains(f))
         key = f.tobytes()
         b = self._memo.get(key)
         if b is None:
-            b = self._memo[key] = loop_blocks(
-                self._cfg, self._used, f, self._model)  # type: ignore[arg-type]
+            b = self._memo[key] = loop_blocks(self._cfg, self._used, f, self._model,
+                                              self._gains(f))
         return b
 
 
@@ -986,7 +1140,7 @@ def _measured_evidence(
 
     def parts(ff: FloatArray) -> tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray,
                                        LoopBlocks]:
-        key = ff.tobytes() if ff.size >= _BlocksMemo.MIN_POINTS else None
+        key = ff.tobytes() if ff.size >= _GainMemo.MIN_POINTS else None
         got = memo.get(key) if key is not None else None
         if got is None:
             b = lb(ff)
@@ -1030,10 +1184,10 @@ def _measured_evidence(
     x = np.log(f)
     gm, one, ks, kf, bk = parts(f)
 
-    def ev(ff: FloatArray, b: LoopBlocks) -> Outputs:
+    def ev(ff: FloatArray, b: LoopBlocks, pts: _Points) -> Outputs:
         o, s_, f_ = _controller_parts(b, on)
-        g2 = mm.plant(ff, b.g, keep=False)
-        a = mm.allowance(ff, keep=False)
+        g2 = mm.plant_at(pts, b.g)
+        a = mm.allowance_at(pts)
         return {
             tag + "L": g2 * s_ / o,
             tag + "Lf": g2 * f_ / o,

@@ -69,9 +69,20 @@ def discrete_equivalent(response: ArrayLike, freq_hz: ArrayLike, rate_hz: float)
 
     The k = 0 term of the exact sampled response; accurate well below Nyquist.
     """
+    return with_zoh(response, zoh_terms(freq_hz, rate_hz))
+
+
+def zoh_terms(freq_hz: ArrayLike, rate_hz: float) -> tuple[ComplexArray, FloatArray]:
+    """(e^{-jwTs}, sinc(w Ts/2)) at `freq_hz`: what `discrete_equivalent` multiplies by
+    (`with_zoh`), for responses that share their frequencies."""
     x = np.pi * np.asarray(freq_hz, dtype=np.float64) / rate_hz  # w Ts / 2
-    sinc = np.sinc(x / np.pi)
-    return np.asarray(response, dtype=np.complex128) * np.exp(-2j * x) * sinc * sinc
+    return np.exp(-2j * x), np.sinc(x / np.pi)
+
+
+def with_zoh(response: ArrayLike, terms: tuple[ComplexArray, FloatArray]) -> ComplexArray:
+    """`discrete_equivalent` of `response` given its frequencies' `zoh_terms`."""
+    delay, sinc = terms
+    return np.asarray(response, dtype=np.complex128) * delay * sinc * sinc
 
 
 @dataclass(frozen=True, eq=False)
@@ -208,22 +219,58 @@ class LoopBlocks:
 
 
 def loop_blocks(
-    cfg: LoopConfig, dob: DobFilters | None, f: FloatArray, plant: NominalModel
+    cfg: LoopConfig, dob: DobFilters | None, f: FloatArray, plant: NominalModel,
+    gains: GainBlocks | None = None,
 ) -> LoopBlocks:
     """The blocks at `f` with `plant` (the plant model: never the candidate's own `nominal`,
-    which is only the DOB's internal model) as G."""
+    which is only the DOB's internal model) as G (`gains`: `gain_blocks` at f, given)."""
+    zinv, g, cv, ctot = gains if gains is not None else gain_blocks(cfg, f, plant)
+    if dob is None:
+        zero = np.zeros_like(zinv)
+        return LoopBlocks(zinv, g, cv, ctot, zero, zero)
+    f1, f2d = _dob_blocks(dob, f, cfg.rate_hz, zinv)
+    return LoopBlocks(zinv, g, cv, ctot, f1, f2d)
+
+
+def loop_blocks_groups(
+    cfg: LoopConfig, dobs: list[DobFilters | None], fs: list[FloatArray], plant: NominalModel
+) -> LoopBlocks:
+    """`loop_blocks` at the points of every group in `fs`, one after the other, with group
+    i's DOB filters `dobs[i]` (the same loop but for the DOB's cut-off): each point's blocks
+    as `loop_blocks` gives them for its group alone (the filters are evaluated per group)."""
+    f = np.concatenate(fs)
+    zinv, g, cv, ctot = gain_blocks(cfg, f, plant)
+    f1s, f2ds = [], []
+    start = 0
+    for dob, ff in zip(dobs, fs, strict=True):
+        if dob is None:
+            f1 = f2d = np.zeros(ff.size, dtype=np.complex128)
+        else:
+            f1, f2d = _dob_blocks(dob, ff, cfg.rate_hz, zinv[start : start + ff.size])
+        f1s.append(f1)
+        f2ds.append(f2d)
+        start += ff.size
+    return LoopBlocks(zinv, g, cv, ctot, np.concatenate(f1s), np.concatenate(f2ds))
+
+
+GainBlocks = tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray]
+
+
+def gain_blocks(cfg: LoopConfig, f: FloatArray, plant: NominalModel) -> GainBlocks:
+    """(z^-1, G, Cv, C_tot) at `f`: the blocks that do not depend on the DOB."""
     ts = cfg.period_s
     zinv = np.exp(-1j * TWO_PI * ts * f)
     g = plant_response(discrete_plant(plant, cfg.rate_hz), zinv)
     cv = tustin_pi(cfg.cv_kp, cfg.cv_ki_per_s, ts, zinv)
     cp = tustin_pi(cfg.pos_kp_per_s, cfg.pos_ki_per_s, ts, zinv)
     ctot = cv * (1.0 + cp * ts / (1.0 - zinv))
-    if dob is None:
-        zero = np.zeros_like(zinv)
-        return LoopBlocks(zinv, g, cv, ctot, zero, zero)
-    f1 = sos_response(dob.f1_sos, f, cfg.rate_hz)
-    f2d = sos_response(dob.f2_sos, f, cfg.rate_hz) * zinv
-    return LoopBlocks(zinv, g, cv, ctot, f1, f2d)
+    return zinv, g, cv, ctot
+
+
+def _dob_blocks(dob: DobFilters, f: FloatArray, rate_hz: float, zinv: ComplexArray
+                ) -> tuple[ComplexArray, ComplexArray]:
+    """(F1, F2 z^-1) at `f` (z^-1 given there)."""
+    return sos_response(dob.f1_sos, f, rate_hz), sos_response(dob.f2_sos, f, rate_hz) * zinv
 
 
 # --------------------------------------------------------------------------- closed-loop poles

@@ -66,42 +66,78 @@ def solve(tasks: list[RefineTask], ev: Evaluator, n: int = 9, rounds: int = 2) -
     """Refine all tasks together: each round evaluates n points per bracket in one batched
     call and shrinks every bracket n/2-fold; a final secant (roots) or parabola (extrema)
     step and one more batched evaluation give the values at the refined frequencies."""
-    if not tasks:
-        return
+    if tasks:
+        solve_groups([tasks], lambda fs: [ev(fs[0])], n, rounds)
+
+
+GroupEvaluator = Callable[[list[FloatArray]], list[Outputs]]
+
+
+def solve_groups(groups: list[list[RefineTask]], ev: GroupEvaluator, n: int = 9,
+                 rounds: int = 2) -> None:
+    """`solve` for several groups of tasks at once (each group's outputs its own: one loop
+    per group), every round one call of `ev` with each group's points (as `solve` hands
+    them to its evaluator). Every group holds a task."""
+    assert all(groups) and n > 1
     for _ in range(rounds):
-        pts = np.concatenate([np.linspace(t.lo, t.hi, n) for t in tasks])
-        outs = ev(np.exp(pts))
-        for j, t in enumerate(tasks):
-            p = pts[j * n : (j + 1) * n]
-            v = t.fn(outs[t.key][j * n : (j + 1) * n])
-            if t.kind == 0:
-                s = np.sign(v)
-                k = np.nonzero(s[:-1] != s[1:])[0]
-                if k.size:
-                    i = int(k[0])
-                    t.lo, t.hi = float(p[i]), float(p[i + 1])
-                    a, b = float(v[i]), float(v[i + 1])
-                    t.x = t.lo if a == b else (t.lo * b - t.hi * a) / (b - a)
-                else:
-                    t.x = float(p[int(np.argmin(np.abs(v)))])
-                continue
-            sv = np.where(np.isfinite(v), -t.kind * v, np.inf)
-            i = int(np.argmin(sv))
-            if not sv[i] >= -t.kind * t.best_v:  # also true while best_v is nan
-                t.best_x, t.best_v = float(p[i]), float(v[i])
-            i0, i1 = max(i - 1, 0), min(i + 1, n - 1)
-            t.lo, t.hi = float(p[i0]), float(p[i1])
-            t.x = float(p[i])
-            if 0 < i < n - 1:
-                den = sv[i - 1] - 2.0 * sv[i] + sv[i + 1]
-                if den > 0:
-                    t.x = float(p[i] + 0.5 * (p[1] - p[0]) * (sv[i - 1] - sv[i + 1]) / den)
-    final = ev(np.exp(np.array([t.x for t in tasks])))
+        pts = [_brackets(g, n) for g in groups]
+        outs = ev([np.exp(p) for p in pts])
+        for g, gp, go in zip(groups, pts, outs, strict=True):
+            _round(g, gp, go, n)
+    finals = ev([np.exp(np.array([t.x for t in g])) for g in groups])
+    for g, final in zip(groups, finals, strict=True):
+        for j, t in enumerate(g):
+            t.out = complex(final[t.key][j])
+            t.value = float(t.fn(final[t.key][j : j + 1])[0])
+            if t.kind != 0 and not (-t.kind * t.value <= -t.kind * t.best_v):
+                t.x, t.value = t.best_x, t.best_v
+
+
+def _brackets(tasks: list[RefineTask], n: int) -> FloatArray:
+    """np.linspace(t.lo, t.hi, n) of every task, one after the other, computed for all at
+    once as np.linspace computes each (k * step + lo, the last point hi; k / (n - 1) * delta
+    where the step is 0)."""
+    lo = np.array([t.lo for t in tasks])
+    hi = np.array([t.hi for t in tasks])
+    delta = hi - lo
+    step = delta / (n - 1)
+    k = np.arange(n, dtype=np.float64)
+    y = k * step[:, None]
+    zero = step == 0
+    if np.any(zero):
+        y[zero] = (k / (n - 1)) * delta[zero, None]
+    y += lo[:, None]
+    y[:, -1] = hi
+    return y.ravel()
+
+
+def _round(tasks: list[RefineTask], pts: FloatArray, outs: Outputs, n: int) -> None:
+    """One round of `solve` for `tasks` given their outputs at `pts` (n points each)."""
     for j, t in enumerate(tasks):
-        t.out = complex(final[t.key][j])
-        t.value = float(t.fn(final[t.key][j : j + 1])[0])
-        if t.kind != 0 and not (-t.kind * t.value <= -t.kind * t.best_v):
-            t.x, t.value = t.best_x, t.best_v
+        p = pts[j * n : (j + 1) * n]
+        v = t.fn(outs[t.key][j * n : (j + 1) * n])
+        if t.kind == 0:
+            s = np.sign(v)
+            k = np.nonzero(s[:-1] != s[1:])[0]
+            if k.size:
+                i = int(k[0])
+                t.lo, t.hi = float(p[i]), float(p[i + 1])
+                a, b = float(v[i]), float(v[i + 1])
+                t.x = t.lo if a == b else (t.lo * b - t.hi * a) / (b - a)
+            else:
+                t.x = float(p[int(np.argmin(np.abs(v)))])
+            continue
+        sv = np.where(np.isfinite(v), -t.kind * v, np.inf)
+        i = int(np.argmin(sv))
+        if not sv[i] >= -t.kind * t.best_v:  # also true while best_v is nan
+            t.best_x, t.best_v = float(p[i]), float(v[i])
+        i0, i1 = max(i - 1, 0), min(i + 1, n - 1)
+        t.lo, t.hi = float(p[i0]), float(p[i1])
+        t.x = float(p[i])
+        if 0 < i < n - 1:
+            den = sv[i - 1] - 2.0 * sv[i] + sv[i + 1]
+            if den > 0:
+                t.x = float(p[i] + 0.5 * (p[1] - p[0]) * (sv[i - 1] - sv[i + 1]) / den)
 
 
 def log_mag(h: ComplexArray) -> FloatArray:

@@ -23,7 +23,7 @@ import numpy as np
 from controller.core.arrays import ComplexArray
 from controller.core.config import LoopConfig
 from controller.core.qfilter import Q_TYPES, QType, check_q_type, design_q
-from controller.gate.analysis import GateLimits, accepted
+from controller.gate.analysis import GateLimits, accepted, accepted_cutoffs
 from controller.gate.knowledge import (
     DIVERGENCE_FRACTION,
     MeasuredResponse,
@@ -222,12 +222,13 @@ class RecommendationSearch:
         """`holds(recommended_hz)` (None when there is no recommendation) for a `holds` that
         is monotone non-decreasing in the cut-off (once true, true for every larger one),
         evaluating the gate's region only until the answer is certain."""
-        if self.none():
+        if self.spread is not None and (self.spread_hz is None or not holds(self.spread_hz)):
+            # No recommendation, or min(gate, spread) <= spread: False unless the gate has
+            # none either.
+            return None if self.none() else False
+        if self.gate.none():  # (the first point alone: often all that a rejection needs)
             return None
-        if self.spread is not None:
-            assert self.spread_hz is not None
-            if not holds(self.spread_hz):
-                return False  # min(gate, spread) <= spread
+        self.gate.prefetch(holds)
         return self.gate.decide(holds)
 
     @property
@@ -346,7 +347,10 @@ def _gate_search(
     def ok(fc: float) -> bool:
         return accepted(base.with_(q_cutoff_hz=fc), plant, limits)
 
-    return TopSearch(ok, np.geomspace(lowest_hz, top, coarse_points), rel_tol)
+    def ok_many(fcs: list[float]) -> list[bool]:
+        return accepted_cutoffs(base, fcs, plant, limits)
+
+    return TopSearch(ok, np.geomspace(lowest_hz, top, coarse_points), rel_tol, ok_many)
 
 
 def _top_of(ok: Callable[[float], bool], grid: np.ndarray, rel_tol: float) -> float | None:
@@ -379,8 +383,10 @@ class TopSearch:
     from the same state make the same next state, and a thread that stepped from an older
     one sets a state the search has passed through (its work is redone, never wrong)."""
 
-    def __init__(self, ok: Callable[[float], bool], grid: np.ndarray, rel_tol: float) -> None:
+    def __init__(self, ok: Callable[[float], bool], grid: np.ndarray, rel_tol: float,
+                 ok_many: Callable[[list[float]], list[bool]] | None = None) -> None:
         self._ok = ok
+        self._ok_many = ok_many
         self._grid = tuple(float(g) for g in grid)
         self._rel_tol = rel_tol
         self._state = _TopState(0, None, None, False, None)
@@ -401,6 +407,22 @@ class TopSearch:
         if good is None:
             good = self._seen[fc] = bool(self._ok(fc))
         return good
+
+    def prefetch(self, holds: Callable[[float], bool]) -> None:
+        """Evaluate together (`ok_many`: one refinement for all) the coarse points `decide`
+        (holds) evaluates if they are all ok: from where the scan stands up to the first
+        point at which `holds` is true. Only what is evaluated changes, never the order of
+        the search's steps: a point after one that is not ok is evaluated for nothing."""
+        st = self._state
+        if self._ok_many is None or st.done or st.hi is not None:
+            return
+        grid = self._grid
+        if not holds(grid[-1]):
+            return  # (decide answers at the first ok point)
+        end = next(k for k in range(st.next, len(grid)) if holds(grid[k]))
+        todo = [fc for fc in grid[st.next : end + 1] if fc not in self._seen]
+        if len(todo) > 1:
+            self._seen.update(zip(todo, (bool(v) for v in self._ok_many(todo)), strict=True))
 
     def _step(self, st: _TopState) -> _TopState:
         """The state after one more evaluation (`st` not done)."""
