@@ -2,13 +2,16 @@
 
 The controller runs as its own process (as on a real rig), listening on loopback; the dashboard
 connects to it. Ctrl-C / SIGTERM stops the dashboard, then the controller (SIGINT, then SIGTERM,
-then SIGKILL if it does not exit), and removes the temporary state directory.
+then SIGKILL if it does not exit), and removes the temporary state directory. The children are
+started with `--parent-pid`: a demo killed outright (SIGKILL) leaves no controller or router
+running (they stop themselves; only the temporary state directory stays).
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import signal
 import subprocess
 import sys
@@ -72,10 +75,16 @@ def _disturbance_args(names: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(a for n in names for a in ("--disturbance", n))
 
 
-def router_command(endpoint: str, log_level: str = "info") -> list[str]:
+def router_command(endpoint: str, log_level: str = "info",
+                   extra: tuple[str, ...] = ()) -> list[str]:
     code = ("import sys; from server.__main__ import dobtune_main; "
             "sys.exit(dobtune_main(['router', *sys.argv[1:]]))")
-    return [sys.executable, "-c", code, "--listen", endpoint, "--log-level", log_level]
+    return [sys.executable, "-c", code, "--listen", endpoint, "--log-level", log_level, *extra]
+
+
+def _with_us() -> tuple[str, ...]:
+    """A child of the demo stops itself once the demo is gone (also when it was SIGKILLed)."""
+    return ("--parent-pid", str(os.getpid()))
 
 
 @contextlib.contextmanager
@@ -84,13 +93,13 @@ def fleet_processes(opts: DemoOptions, state_root: Path) -> Iterator[list[subpro
     router_ep = f"tcp/127.0.0.1:{opts.zenoh_port}"
     procs: list[subprocess.Popen[Any]] = []
     try:
-        procs.append(subprocess.Popen(router_command(router_ep, opts.log_level)))
+        procs.append(subprocess.Popen(router_command(router_ep, opts.log_level, _with_us())))
         for i in range(1, opts.rigs + 1):
             ep = f"tcp/127.0.0.1:{opts.zenoh_port + i}"
             procs.append(subprocess.Popen(controller_command(
                 ep, f"rig{i}", state_root / f"rig{i}", opts.log_level,
                 ("--connect", router_ep, "--seed", str(i),
-                 *_disturbance_args(opts.disturbances)),
+                 *_disturbance_args(opts.disturbances), *_with_us()),
             )))
         yield procs
     finally:
@@ -127,7 +136,8 @@ def controller_process(
         if state_dir is None:
             state_dir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="dobtune-")))
         proc = subprocess.Popen(controller_command(
-            endpoint, rig_name, state_dir, log_level, _disturbance_args(disturbances)))
+            endpoint, rig_name, state_dir, log_level,
+            (*_disturbance_args(disturbances), *_with_us())))
         try:
             yield proc
         finally:

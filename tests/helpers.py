@@ -1,5 +1,5 @@
 """Helpers every test folder shares: free loopback ports, waiting on conditions, whether a
-controller answers.
+controller answers, starting a child process that dies with the test process.
 
 Tests wait on a condition with a generous deadline, never a fixed sleep standing in for
 synchronisation (the machine may be at load 15).
@@ -8,15 +8,70 @@ synchronisation (the machine may be at load 15).
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
+import signal
 import socket
 import subprocess
+import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["answers", "free_port", "no_new_files", "port_is_free", "wait_for", "wait_until"]
+__all__ = ["answers", "children", "free_port", "gone", "no_new_files", "port_is_free", "spawn",
+           "wait_for", "wait_until"]
+
+_PR_SET_PDEATHSIG = 1
+#: libc's prctl, looked up now: the child calls it between fork and exec, where it should do
+#: as little as possible (no import, no library loading).
+_prctl = ctypes.CDLL(None, use_errno=True).prctl
+
+
+def spawn(args: Sequence[str], **popen_kwargs: Any) -> subprocess.Popen[Any]:
+    """`subprocess.Popen(args, **popen_kwargs)` for a test's child (a controller, a router, a
+    demo): the kernel SIGKILLs it when this test process dies, however it dies (a suite run
+    killed at its timeout leaves no controller or router running). Linux's
+    PR_SET_PDEATHSIG, which follows the thread that started the child: only from the main
+    thread (a child of another thread would die when that thread ends)."""
+    if threading.current_thread() is not threading.main_thread():
+        raise RuntimeError("spawn: start test processes from the main thread (PR_SET_PDEATHSIG "
+                           "would kill the child when this thread ends)")
+    parent = os.getpid()
+
+    def die_with_parent() -> None:
+        if _prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+        if os.getppid() != parent:  # the test process died before prctl: nobody to signal
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    return subprocess.Popen(args, preexec_fn=die_with_parent, **popen_kwargs)
+
+
+def _stat(pid: int | str) -> list[str] | None:
+    """/proc/PID/stat's fields after the command name (state, ppid, ...); None: no such pid."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()
+    except (FileNotFoundError, ProcessLookupError):
+        return None
+
+
+def gone(pid: int) -> bool:
+    """True once process `pid` has ended (no such process, or a zombie nobody reaped yet)."""
+    fields = _stat(pid)
+    return fields is None or fields[0] in ("Z", "X")
+
+
+def children(pid: int) -> list[int]:
+    """The live child processes of `pid` (from /proc)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            fields = _stat(entry)
+            if fields is not None and fields[1] == str(pid) and fields[0] not in ("Z", "X"):
+                out.append(int(entry))
+    return out
 
 
 def free_port() -> int:

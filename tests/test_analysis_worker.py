@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import spawn
 from old_loop import OLD_LOOP
 
 from controller.core.config import LoopConfig
@@ -137,7 +138,7 @@ def test_the_worker_ends_when_the_controller_is_killed(tmp_path: Path) -> None:
         "print(r.call(os.getpid), flush=True)\n"
         "time.sleep(60)\n"
     )
-    proc = subprocess.Popen(
+    proc = spawn(
         [sys.executable, "-c", code], stdout=subprocess.PIPE, cwd=Path(__file__).parents[1]
     )
     try:

@@ -16,6 +16,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
+from helpers import spawn
 
 from controller.core.config import LoopConfig, config_from_builtins
 from controller.core.verdict import Verdict, VerdictMargins
@@ -461,8 +462,8 @@ def test_a_process_killed_anywhere_comes_back_on_what_it_reported_or_newer(
     for _ in range(5):
         state = tmp_path / f"state{_}"
         StateStore(state).save(LoopConfig(), 1)
-        proc = subprocess.Popen([sys.executable, "-c", _SAVER, str(state)],
-                                stdout=subprocess.PIPE, text=True, env=env)
+        proc = spawn([sys.executable, "-c", _SAVER, str(state)],
+                     stdout=subprocess.PIPE, text=True, env=env)
         assert proc.stdout is not None
         reported = 1
         for _line in range(int(rng.integers(1, 40))):

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers import free_port, port_is_free, wait_for
+from helpers import free_port, port_is_free, spawn, wait_for
 
 from controller.cli.frd_files import write_frd_csv
 from controller.core.config import NominalModel
@@ -110,8 +110,8 @@ def test_the_demo_waits_for_its_controller_however_long_and_says_so(
     ready = [x for x in out.splitlines() if x.startswith("dobtune demo: controller")][-1]
     assert ready.startswith("dobtune demo: controller ready after"), out
     # --rate-hz nan: refused at start, exits 2.
-    bad = subprocess.Popen([*controller_command(endpoint, "demowait", tmp_path / "s2"),
-                            "--rate-hz", "nan"])
+    bad = spawn([*controller_command(endpoint, "demowait", tmp_path / "s2"),
+                 "--rate-hz", "nan"])
     with Dashboard(opts) as d:
         assert not wait_for_controller(d, bad, threading.Event(), progress_every_s=0.2)
     assert bad.wait() == 2
@@ -263,7 +263,7 @@ def test_the_dashboard_prints_only_the_url_with_the_token(tmp_path: Path) -> Non
 
     port = free_port()
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "XDG_DATA_HOME": str(tmp_path)}
-    proc = subprocess.Popen(
+    proc = spawn(
         [sys.executable, "-m", "server", "--port", str(port),
          "--connect", f"tcp/127.0.0.1:{free_port()}"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)

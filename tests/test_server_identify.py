@@ -12,14 +12,13 @@ IdentifyStart and the identify queryable; Abort through IdentifyAbort keeps the 
 from __future__ import annotations
 
 import dataclasses
-import subprocess
 import tempfile
 import time
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from helpers import free_port, wait_for
+from helpers import free_port, spawn, wait_for
 
 from controller import protocol as proto
 from controller.core.config import LoopConfig
@@ -232,7 +231,7 @@ def remote_dash() -> Iterator[Dashboard]:
     with tempfile.TemporaryDirectory(prefix="dobtune-identify-") as state:
         from pathlib import Path
 
-        proc = subprocess.Popen(controller_command(endpoint, "idtest", Path(state)))
+        proc = spawn(controller_command(endpoint, "idtest", Path(state)))
         try:
             opts = DashboardOptions(connect=(endpoint,), rig_name="idtest", port=free_port(),
                                     verbose=False)

@@ -75,6 +75,38 @@ def add_log_level(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _pid(text: str) -> int:
+    try:
+        pid = int(text)
+    except ValueError:
+        pid = 0
+    if pid <= 0:
+        raise argparse.ArgumentTypeError(f"expected a process id (> 0), got {text!r}")
+    return pid
+
+
+def add_parent_pid(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument(
+        "--parent-pid", type=_pid, default=None, metavar="PID",
+        help=f"stop (as on SIGTERM) once process PID, which started this {what}, is gone: a "
+        f"launcher killed outright (SIGKILL) leaves no {what} running (`dobtune demo` passes "
+        "its own)",
+    )
+
+
+def end_with_parent(parent_pid: int | None, say: Callable[[str], None]) -> None:
+    """With `--parent-pid`: stop this process (SIGTERM to itself) when that parent is gone."""
+    if parent_pid is None:
+        return
+    from controller.process.parent_watch import stop_self, watch_parent
+
+    def gone() -> None:
+        say(f"the process that started this one (pid {parent_pid}) is gone: stopping")
+        stop_self()
+
+    watch_parent(parent_pid, gone)
+
+
 def build_parser(
     prog: str, description: str | None, commands: dict[str, Command]
 ) -> argparse.ArgumentParser:

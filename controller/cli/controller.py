@@ -7,6 +7,8 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from controller.cli.common import add_parent_pid, end_with_parent
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plant", choices=("sim", "can"), default="sim", help="default: sim")
@@ -60,6 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="allow a non-loopback --listen or --connect without --auth (anyone who reaches "
         "it may act)",
     )
+    add_parent_pid(p, "controller")
     p.add_argument(
         "--sim-drive-node",
         action="store_true",
@@ -71,6 +74,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     def say(text: str) -> None:
         print(f"dobtune controller: {text}", file=sys.stderr, flush=True)
+
+    end_with_parent(args.parent_pid, say)
 
     try:
         return _run(args, say)

@@ -20,6 +20,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from controller.cli.common import add_parent_pid, end_with_parent
+
 __all__ = ["router_options"]
 
 DEFAULT_ROUTER_LISTEN = ("tcp/127.0.0.1:7446",)
@@ -44,6 +46,10 @@ def run(args: argparse.Namespace) -> int:
     from controller.client.session import connect
     from controller.logs import setup_logging
 
+    def say(text: str) -> None:
+        print(f"dobtune router: {text}", file=sys.stderr, flush=True)
+
+    end_with_parent(args.parent_pid, say)
     setup_logging(args.log_level, "router")
     listen = args.listen or list(DEFAULT_ROUTER_LISTEN)
     try:
@@ -84,4 +90,5 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "who reaches the router may act on every rig behind it)")
     p.add_argument("--rig-name", action="append", default=[], metavar="R",
                    help="with --auth: a rig the router serves (repeatable)")
+    add_parent_pid(p, "router")
 

@@ -11,29 +11,22 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import threading
-import time
+
+from controller.process.parent_watch import watch_parent
 
 __all__ = ["worker_init"]
 
 PR_SET_PDEATHSIG = 1
 
 
-def _end_with_parent(parent_pid: int, death_signal: bool, poll_s: float = 0.5) -> None:
+def _end_with_parent(parent_pid: int, death_signal: bool) -> None:
     """This worker ends when the controller does, even if it was SIGKILLed: a thread watches
-    the parent's pid (the worker is re-parented when the parent dies), and with
-    `death_signal` the kernel also sends SIGKILL at once (Linux prctl PR_SET_PDEATHSIG; only
-    for a worker started by the main thread: the signal follows the thread that started it)."""
+    the parent's pid (`parent_watch`), and with `death_signal` the kernel also sends SIGKILL
+    at once (Linux prctl PR_SET_PDEATHSIG; only for a worker started by the main thread: the
+    signal follows the thread that started it)."""
     if death_signal:
         _set_death_signal()
-
-    def watch() -> None:
-        while True:
-            if os.getppid() != parent_pid:
-                os._exit(1)
-            time.sleep(poll_s)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+    watch_parent(parent_pid, lambda: os._exit(1))
 
 
 def _set_death_signal() -> None:

@@ -8,14 +8,13 @@ numbers the page shows.
 from __future__ import annotations
 
 import re
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 from conftest import CONTROLLER_START_S, FINITE_JS, FIRST_LOAD_S, free_port, only_panel, ready_page
-from helpers import wait_for
+from helpers import spawn, wait_for
 
 from controller.client import ClientOptions, ControllerClient
 from controller.core.config import LoopConfig
@@ -39,7 +38,7 @@ def endpoint(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     d = tmp_path_factory.mktemp("demovalue")
     ep = f"tcp/127.0.0.1:{free_port()}"
     args = tuple(a for n in DISTURBANCES for a in ("--disturbance", n))
-    proc = subprocess.Popen(controller_command(ep, RIG, d / "state", "warning", args))
+    proc = spawn(controller_command(ep, RIG, d / "state", "warning", args))
     try:
         yield ep
     finally:

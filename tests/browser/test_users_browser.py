@@ -14,7 +14,6 @@ again by the controller, which sees the real user behind each change):
 from __future__ import annotations
 
 import contextlib
-import subprocess
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -30,7 +29,7 @@ from conftest import (
     free_port,
     set_number,
 )
-from helpers import answers, wait_for
+from helpers import answers, spawn, wait_for
 
 from controller.auth import init_auth_dir, new_users
 from controller.client import ClientOptions, ControllerClient
@@ -49,8 +48,8 @@ def env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     auth = base / "auth"
     init_auth_dir(auth, new_users([("op1", "operator"), ("view", "viewer")]))
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = subprocess.Popen(controller_command(endpoint, RIG, base / "state",
-                                               extra=("--auth", str(auth))))
+    proc = spawn(controller_command(endpoint, RIG, base / "state",
+                                    extra=("--auth", str(auth))))
     try:
         opts = ClientOptions(connect=(endpoint,), rig_name=RIG, auth=auth, user="view",
                              client_name="probe", connect_timeout_s=CONTROLLER_START_S)

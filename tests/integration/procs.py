@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
-from helpers import free_port, port_is_free, wait_until
+from helpers import free_port, port_is_free, spawn, wait_until
 
 from controller import protocol as proto
 from controller.client.controller_client import ClientOptions
@@ -103,8 +103,7 @@ def start_controller(
     if tree is not None:
         env["PYTHONPATH"] = str(tree)
     with open(log_path, "ab") as log:
-        proc = subprocess.Popen(cmd, cwd=tree or REPO, stdout=log, stderr=subprocess.STDOUT,
-                                env=env)
+        proc = spawn(cmd, cwd=tree or REPO, stdout=log, stderr=subprocess.STDOUT, env=env)
     return ControllerProcess(port=port, rig=rig, state_dir=state_dir, proc=proc, log_path=log_path)
 
 

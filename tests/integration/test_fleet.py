@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers import spawn
 from procs import REPO, ControllerProcess, free_port, port_is_free, wait_until
 
 from controller.cli.commands import controller_commands
@@ -26,8 +27,8 @@ ROUTER_CODE = ("import sys; from server.__main__ import dobtune_main; "
 
 def _router(port: int, log: Path, *extra: str) -> subprocess.Popen[bytes]:
     with open(log, "ab") as f:
-        return subprocess.Popen([sys.executable, "-c", ROUTER_CODE, "--listen",
-                                 f"tcp/127.0.0.1:{port}", *extra], cwd=REPO, stdout=f, stderr=f)
+        return spawn([sys.executable, "-c", ROUTER_CODE, "--listen",
+                      f"tcp/127.0.0.1:{port}", *extra], cwd=REPO, stdout=f, stderr=f)
 
 
 def _stop(p: subprocess.Popen[bytes]) -> None:

@@ -22,7 +22,7 @@ from typing import Any
 import msgspec
 import pytest
 import zenoh
-from helpers import answers
+from helpers import answers, spawn
 from procs import REPO, ControllerProcess, free_port, start_controller, wait_until
 
 from controller import protocol as proto
@@ -496,8 +496,8 @@ def test_a_client_that_listens_is_checked_too() -> None:
 
 def test_an_insecure_router_on_all_interfaces_starts(tmp_path: Path) -> None:
     port = free_port()
-    proc = subprocess.Popen([*router_command(f"tcp/0.0.0.0:{port}", "warning"), "--insecure"],
-                            stderr=subprocess.PIPE, text=True, cwd=REPO)
+    proc = spawn([*router_command(f"tcp/0.0.0.0:{port}", "warning"), "--insecure"],
+                 stderr=subprocess.PIPE, text=True, cwd=REPO)
     try:
         assert proc.stderr is not None
         line = proc.stderr.readline()
