@@ -23,7 +23,7 @@ from typing import Any
 
 import pytest
 from conftest import FIRST_LOAD_S, RIG, VIEWPORT, cutoff_box, set_number, wait_shown_text
-from helpers import free_port, wait_for
+from helpers import free_port, spawn, wait_for
 
 from controller.client import ControllerClient
 
@@ -47,7 +47,7 @@ APPLY_DISABLED_JS = """() => [...document.querySelectorAll('button')].find(
 def _dashboard_process(endpoint: str, port: int, kept: Path) -> Iterator[str]:
     """The dashboard in a process of its own; its URL once it listens. Stopped with SIGTERM
     (it must then exit 0)."""
-    proc = subprocess.Popen(
+    proc = spawn(
         [sys.executable, "-c", _DASHBOARD, endpoint, RIG, str(port), TOKEN, str(kept)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
