@@ -365,6 +365,9 @@ Y_STEPS = {"y": 10.0, "deg": 45.0}
 #: dB in tens, degrees in multiples of 15 (so -180 is a tick).
 _DB_INCRS = (10, 20, 40, 60, 100, 200)
 _DEG_INCRS = (15, 30, 45, 90, 180, 360)
+#: A configuration version is a whole number: its axis is ticked in whole steps (uPlot's own
+#: choice put ticks at 2.5).
+VERSION_INCRS = tuple(m * 10**e for e in range(17) for m in (1, 2, 5))
 
 
 def _margin_line(label: str, color: str, scale: str = "y") -> dict[str, Any]:
@@ -703,7 +706,8 @@ def _live_spec(key: str, title: str, unit: str, *series: tuple[dict[str, Any], s
         axes=(
             _T_AXIS,
             {"label": unit, "scale": "y"},
-            {"label": "config v", "scale": "ver", "side": 1, "grid": {"show": False}},
+            {"label": "config v", "scale": "ver", "side": 1, "grid": {"show": False},
+             "incrs": VERSION_INCRS},
         ),
         height=170,
         columns=tuple(c for _, c in series),

@@ -96,6 +96,14 @@ def test_live_data_is_relative_to_newest_sample() -> None:
     assert set(data["error"][-1]) == {1.0, 2.0}
 
 
+def test_the_config_version_axis_ticks_whole_versions() -> None:
+    for spec in charts.LIVE_CHARTS:
+        (axis,) = [a for a in spec.axes if a.get("scale") == "ver"]
+        incrs = axis["incrs"]
+        assert all(isinstance(i, int) and i >= 1 for i in incrs)
+        assert list(incrs) == sorted(incrs) and incrs[-1] >= 2**53 - 1  # MAX_VERSION
+
+
 def test_live_data_empty() -> None:
     data = charts.live_data(np.zeros(0), {}, np.zeros(0))
     assert all(len(d[0]) == 2 for d in data.values())
