@@ -13,7 +13,7 @@ import pytest
 from gate_cases import canon, knowledge_set, random_configs
 
 from controller.core.config import LoopConfig
-from controller.gate import analysis, search
+from controller.gate import analysis, margins, search
 from controller.gate.margins import Evaluator, GroupEvaluator, RefineTask
 from controller.gate.search import RecommendationSearch
 
@@ -145,3 +145,46 @@ def test_cutoffs_judged_together_answer_as_each_alone(monkeypatch: pytest.Monkey
             assert together == whole, (k, base)
             answers += together
     assert 0.2 < np.mean(answers) < 0.8 and widest >= 5  # both answers; several refined at once
+
+
+def test_the_refinement_of_every_task_at_once_equals_each_alone_on_odd_values() -> None:
+    """`solve` (every task refined together, each round's brackets made for all at once)
+    against `plain_solve` on outputs with NaN, inf, zeros, ties and -1 (the loop through -1):
+    every task's state bit for bit."""
+    rng = np.random.default_rng(15)
+    fns = [margins.log_mag, margins.neg_arg, margins.dist_of, margins.abs_of,
+           margins.bandwidth_of]
+
+    def ev(ff: np.ndarray) -> dict[str, np.ndarray]:
+        # A fixed function of each point (so both refinements see the same values).
+        u = (np.sin(ff * 7919.0) + 1.0) / 2.0
+        out = {}
+        for j, key in enumerate(("a", "b", "c")):
+            h = np.cos(3.0 * ff + j) * (1.0 + j / ff) + 1j * np.sin(ff * (j + 1.5))
+            h = np.where(u < 0.04, np.nan, h)
+            h = np.where((u > 0.96), np.inf, h)
+            h = np.where((u > 0.5) & (u < 0.53), 0.0, h)
+            h = np.where((u > 0.7) & (u < 0.75), -1.0, h)
+            out[key] = h if j < 2 else np.ones_like(h)  # ("c": ties everywhere)
+        return out
+
+    odd = 0
+    for _ in range(300):
+        made = []
+        for _ in range(int(rng.integers(1, 14))):
+            lo = float(rng.uniform(-3.0, 2.0))
+            t = RefineTask(str(rng.choice(["a", "b", "c"])), int(rng.choice([0, -1, 1])),
+                           fns[int(rng.integers(0, len(fns)))], lo,
+                           lo + float(rng.choice([0.0, rng.exponential(0.5)])))
+            if t.kind and rng.random() < 0.5:
+                t.best_x, t.best_v = lo, float(rng.standard_normal())
+            made.append(t)
+        together = [RefineTask(**vars(t)) for t in made]
+        alone = [RefineTask(**vars(t)) for t in made]
+        with np.errstate(all="ignore"):  # (log of 0, inf - inf: the odd values)
+            margins.solve(together, ev)
+            plain_solve(alone, ev)
+        a, b = canon([vars(t) for t in together]), canon([vars(t) for t in alone])
+        assert a == b
+        odd += sum(not math.isfinite(t.value) for t in together)
+    assert odd > 20  # the odd values were met
