@@ -44,11 +44,12 @@ APPLY_DISABLED_JS = """() => [...document.querySelectorAll('button')].find(
 
 
 @contextlib.contextmanager
-def _dashboard_process(endpoint: str, port: int, kept: Path) -> Iterator[str]:
+def _dashboard_process(endpoint: str, port: int, kept: Path, token: str = TOKEN
+                       ) -> Iterator[str]:
     """The dashboard in a process of its own; its URL once it listens. Stopped with SIGTERM
     (it must then exit 0)."""
     proc = spawn(
-        [sys.executable, "-c", _DASHBOARD, endpoint, RIG, str(port), TOKEN, str(kept)],
+        [sys.executable, "-c", _DASHBOARD, endpoint, RIG, str(port), token, str(kept)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
     assert proc.stdout is not None
@@ -59,7 +60,7 @@ def _dashboard_process(endpoint: str, port: int, kept: Path) -> Iterator[str]:
                  FIRST_LOAD_S, "the dashboard printed no URL")
         assert proc.poll() is None, "".join(lines)
         url = next(ln for ln in lines if "?token=" in ln).split()[2]
-        assert url == f"http://127.0.0.1:{port}/?token={TOKEN}", lines
+        assert url == f"http://127.0.0.1:{port}/?token={token}", lines
         yield url
     finally:
         proc.send_signal(signal.SIGTERM)
@@ -134,13 +135,15 @@ def test_the_candidate_survives_a_dashboard_restart_and_comes_back_stale_if_the_
             page.screenshot(path=str(artifacts / "restart_kept.png"))
 
         # While the dashboard is down, someone else applies: after the next restart the
-        # candidate is back, stale (made against the old version), Apply off.
+        # candidate is back, stale (made against the old version), Apply off. This start has
+        # a new token, as `dobtune dashboard` makes one per start: the user opens the new URL
+        # in the same tab.
         other_hz = 0.6 if start.config.q_cutoff_hz != 0.6 else 0.65
         moved = probe.apply(start.config.with_(q_cutoff_hz=other_hz),
                             expect_version=start.version)
         assert moved.accepted, moved
-        with _dashboard_process(controller_endpoint, port, kept):
-            page.reload(wait_until="domcontentloaded", timeout=FIRST_LOAD_S * 1000)
+        with _dashboard_process(controller_endpoint, port, kept, TOKEN + "-new") as new_url:
+            page.goto(new_url, wait_until="domcontentloaded", timeout=FIRST_LOAD_S * 1000)
             _ready(page)
             wait_shown_text(page, ".dt-stale", f"Based on v{start.version}", FIRST_LOAD_S * 1000)
             assert f"now v{moved.version}" in _text(page, ".dt-stale")
@@ -158,8 +161,8 @@ def test_the_candidate_survives_a_dashboard_restart_and_comes_back_stale_if_the_
         files = list((kept / RIG).glob("*.json"))
         assert [f.name for f in files] == ["_anyone.json"], files
         files[0].write_bytes(files[0].read_bytes()[:40])
-        with _dashboard_process(controller_endpoint, port, kept):
-            page.reload(wait_until="domcontentloaded", timeout=FIRST_LOAD_S * 1000)
+        with _dashboard_process(controller_endpoint, port, kept) as url:
+            page.goto(url, wait_until="domcontentloaded", timeout=FIRST_LOAD_S * 1000)
             _ready(page)
             wait_shown_text(page, ".dt-kept-problem", "could not be restored",
                             FIRST_LOAD_S * 1000)
