@@ -48,6 +48,28 @@ def spawn(args: Sequence[str], **popen_kwargs: Any) -> subprocess.Popen[Any]:
     return subprocess.Popen(args, preexec_fn=die_with_parent, **popen_kwargs)
 
 
+class Output:
+    """A child's merged stdout/stderr, read into `lines` by a thread (the pipe never fills)."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        assert proc.stdout is not None, "start the child with stdout=subprocess.PIPE, text=True"
+        self.proc = proc
+        self.lines: list[str] = []
+        self.reader = threading.Thread(target=lambda: self.lines.extend(proc.stdout or ()),
+                                       daemon=True)
+        self.reader.start()
+
+    def text(self) -> str:
+        return "".join(self.lines)
+
+    def wait_url(self, timeout_s: float) -> str:
+        """The dashboard's URL with its token, once printed (fails at once if it exits)."""
+        wait_for(lambda: any("?token=" in ln for ln in self.lines)
+                 or self.proc.poll() is not None, timeout_s, "the dashboard printed no URL")
+        assert self.proc.poll() is None, self.text()
+        return next(ln for ln in self.lines if "?token=" in ln).split()[2]
+
+
 def _stat(pid: int | str) -> list[str] | None:
     """/proc/PID/stat's fields after the command name (state, ppid, ...); None: no such pid."""
     try:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from helpers import free_port, port_is_free, spawn, wait_for
+from helpers import Output, free_port, port_is_free, spawn, wait_for
 
 from controller.cli.frd_files import write_frd_csv
 from controller.core.config import NominalModel
@@ -259,7 +259,6 @@ def test_the_dashboard_prints_only_the_url_with_the_token(tmp_path: Path) -> Non
     dashboard's URL: every http URL the dashboard prints must carry ?token=."""
     import os
     import re
-    import threading
 
     port = free_port()
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "XDG_DATA_HOME": str(tmp_path)}
@@ -267,21 +266,17 @@ def test_the_dashboard_prints_only_the_url_with_the_token(tmp_path: Path) -> Non
         [sys.executable, "-m", "server", "--port", str(port),
          "--connect", f"tcp/127.0.0.1:{free_port()}"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-    lines: list[str] = []
-    assert proc.stdout is not None
-    reader = threading.Thread(target=lambda: lines.extend(proc.stdout or ()), daemon=True)
-    reader.start()
+    out = Output(proc)
     try:
-        wait_for(lambda: any("?token=" in ln for ln in lines) or proc.poll() is not None,
-                 CONTROLLER_START_S, "no URL printed")
+        out.wait_url(CONTROLLER_START_S)
     finally:
         proc.terminate()
         proc.wait(timeout=30)
-        reader.join(timeout=10)
-    out = "".join(lines)
-    urls = re.findall(r"https?://\S+", out)
-    assert any(f":{port}/?token=" in u for u in urls), out
-    assert all("?token=" in u for u in urls), out
+        out.reader.join(timeout=10)
+    text = out.text()
+    urls = re.findall(r"https?://\S+", text)
+    assert any(f":{port}/?token=" in u for u in urls), text
+    assert all("?token=" in u for u in urls), text
 
 
 def test_kept_candidates_go_to_the_data_directory_unless_told(

@@ -16,14 +16,13 @@ import contextlib
 import signal
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 from conftest import FIRST_LOAD_S, RIG, VIEWPORT, cutoff_box, set_number, wait_shown_text
-from helpers import free_port, spawn, wait_for
+from helpers import Output, free_port, spawn
 
 from controller.client import ControllerClient
 
@@ -51,16 +50,10 @@ def _dashboard_process(endpoint: str, port: int, kept: Path, token: str = TOKEN
     proc = spawn(
         [sys.executable, "-c", _DASHBOARD, endpoint, RIG, str(port), token, str(kept)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    lines: list[str] = []
-    assert proc.stdout is not None
-    reader = threading.Thread(target=lambda: lines.extend(proc.stdout or ()), daemon=True)
-    reader.start()
+    out = Output(proc)
     try:
-        wait_for(lambda: any("?token=" in ln for ln in lines) or proc.poll() is not None,
-                 FIRST_LOAD_S, "the dashboard printed no URL")
-        assert proc.poll() is None, "".join(lines)
-        url = next(ln for ln in lines if "?token=" in ln).split()[2]
-        assert url == f"http://127.0.0.1:{port}/?token={token}", lines
+        url = out.wait_url(FIRST_LOAD_S)
+        assert url == f"http://127.0.0.1:{port}/?token={token}", out.lines
         yield url
     finally:
         proc.send_signal(signal.SIGTERM)
@@ -70,8 +63,8 @@ def _dashboard_process(endpoint: str, port: int, kept: Path, token: str = TOKEN
             proc.kill()
             proc.wait()
             raise
-        reader.join(timeout=10)
-    assert code == 0, "".join(lines)
+        out.reader.join(timeout=10)
+    assert code == 0, out.text()
 
 
 def _ready(page: Any) -> None:
