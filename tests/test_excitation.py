@@ -253,6 +253,7 @@ def test_cap_speed_amplitude() -> None:
         ({"settle_periods": 1.5}, "settle_periods"),
         ({"ramp_periods": -1}, "ramp_periods"),
         ({"points_per_decade": 0}, "points_per_decade"),
+        ({"points_per_decade": 10**9}, "points_per_decade"),  # a billion frequencies built
         ({"settle_s": -1.0}, "settle_s"),
         ({"sample_rate_hz": 0.0}, "sample_rate_hz"),
         ({"f_min_hz": "1"}, "f_min_hz"),
@@ -273,6 +274,8 @@ def test_stepped_sine_errors_name_the_field(kwargs: dict[str, object], field: st
         ({"f_max_hz": 501.0}, "f_max_hz"),
         ({"f_max_hz": math.nan}, "f_max_hz"),
         ({"period_samples": 1000.5}, "period_samples"),
+        ({"period_samples": 10**10}, "period_samples"),
+        ({"points_per_decade": 10**9}, "points_per_decade"),
         ({"n_periods": 2.5}, "n_periods"),
         ({"n_periods": 0}, "n_periods"),
         ({"transient_periods": -1}, "transient_periods"),

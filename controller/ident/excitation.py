@@ -77,7 +77,13 @@ SPREAD_FROM: tuple[SpreadFrom, ...] = ("periods", "lines")
 # --------------------------------------------------------------------------- validation helpers
 
 
-def _integer(value: object, name: str, minimum: int) -> int:
+#: Bounds that keep a spec from asking for more points or samples than any measurement uses
+#: (1e9 points per decade made a spec's construction build a billion frequencies).
+MAX_POINTS_PER_DECADE = 1000
+MAX_PERIOD_SAMPLES = 10_000_000
+
+
+def _integer(value: object, name: str, minimum: int, maximum: int | None = None) -> int:
     """Whole numbers only: 3 and 3.0 pass, 2.5, NaN, True do not."""
     if isinstance(value, bool):
         raise ConfigError(name, f"must be an integer (got {value!r})")
@@ -90,14 +96,16 @@ def _integer(value: object, name: str, minimum: int) -> int:
         raise ConfigError(name, f"must be an integer (got {value!r})")
     if v < minimum:
         raise ConfigError(name, f"must be >= {minimum} (got {v})")
+    if maximum is not None and v > maximum:
+        raise ConfigError(name, f"must be <= {maximum} (got {v})")
     return v
 
 
-def _whole(minimum: int) -> Check:
-    """A field's declared check: `_integer` from `minimum` on."""
+def _whole(minimum: int, maximum: int | None = None) -> Check:
+    """A field's declared check: `_integer` from `minimum` on (up to `maximum`)."""
 
     def check(value: object, name: str) -> int:
-        return _integer(value, name, minimum)
+        return _integer(value, name, minimum, maximum)
 
     return check
 
@@ -178,7 +186,7 @@ class SteppedSineSpec:
     """Lowest frequency (before snapping to ``fs / L``)."""
     f_max_hz: Annotated[float, positive] = 20.0
     """Highest frequency; below Nyquist."""
-    points_per_decade: Annotated[int, _whole(1)] = 10
+    points_per_decade: Annotated[int, _whole(1, MAX_POINTS_PER_DECADE)] = 10
     """Log spacing of the grid; points that snap to the same period are merged."""
     amplitude_deg_s: Annotated[float, positive] = 10.0
     """Speed amplitude (load side) before the window cap."""
@@ -334,7 +342,7 @@ class MultisineSpec:
     """Lowest component; must be at least the resolution ``sample_rate_hz / period_samples``."""
     f_max_hz: Annotated[float, positive] = 20.0
     """Highest component; below Nyquist."""
-    period_samples: Annotated[int, _whole(4)] = 10000
+    period_samples: Annotated[int, _whole(4, MAX_PERIOD_SAMPLES)] = 10000
     """Period ``N`` in samples; the frequency resolution is ``sample_rate_hz / N``."""
     n_periods: Annotated[int, _whole(1)] = 4
     """Measured periods ``P`` (>= 2 for the spread between periods; 1 is enough with
@@ -345,7 +353,7 @@ class MultisineSpec:
     """Peak speed of the whole signal."""
     window_deg: Annotated[float | None, optional(positive)] = None
     """Largest allowed position excursion from the start, or None."""
-    points_per_decade: Annotated[int | None, optional(_whole(1))] = None
+    points_per_decade: Annotated[int | None, optional(_whole(1, MAX_POINTS_PER_DECADE))] = None
     """Log-spaced subset of the bins; None uses every bin in the band."""
     position_knee_hz: Annotated[float | None, optional(positive)] = None
     """Below this frequency component speed amplitudes fall as f (constant position)."""
