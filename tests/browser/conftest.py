@@ -141,6 +141,24 @@ def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> 
             _SHARED.close()
 
 
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Any:
+    """A failed browser test's page as it was (the `page` fixture's), saved beside the other
+    artifacts as failed_<test>.png and named in the report: what the user would have seen
+    (a later test of the module failing behind it shows whether the page was still usable)."""
+    rep = yield
+    page = getattr(item, "funcargs", {}).get("page")
+    if rep.when == "call" and rep.failed and page is not None and not page.is_closed():
+        path = ARTIFACTS / f"failed_{item.name}.png"
+        try:
+            ARTIFACTS.mkdir(exist_ok=True)
+            page.screenshot(path=str(path), timeout=15_000)
+            rep.sections.append(("failure screenshot", str(path)))
+        except Exception as exc:  # the report says why; the test's own failure stands
+            rep.sections.append(("failure screenshot", f"not taken: {exc!r}"))
+    return rep
+
+
 @pytest.fixture(scope="module")
 def chromium_browser() -> Any:
     """The browser tests' shared Chromium (`_SharedChromium`); a module opens its pages in

@@ -13,7 +13,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import FINITE_JS, FIRST_LOAD_S, cutoff_box, open_when_ready, set_number
+from conftest import (
+    FINITE_JS,
+    FIRST_LOAD_S,
+    cutoff_box,
+    open_when_ready,
+    set_number,
+    wait_shown_text,
+)
 from helpers import wait_for
 
 from controller.client import ControllerClient
@@ -61,7 +68,7 @@ def test_each_browser_edits_its_own_candidate(
         # A applies: the controller runs 0.8 Hz; B's candidate is now based on an old version.
         page.wait_for_selector(".dt-verdict.dt-accept", timeout=15_000)
         page.get_by_role("button", name="Apply candidate").click()
-        page.wait_for_selector(".dt-apply >> text=Accepted", timeout=15_000)
+        wait_shown_text(page, ".dt-apply", "Accepted", 60_000)
         v2 = probe.get_config()
         assert v2.version == start.version + 1 and v2.config.q_cutoff_hz == 0.8
         other.wait_for_selector(f".dt-stale >> text=Based on v{start.version}", timeout=15_000)

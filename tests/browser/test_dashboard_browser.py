@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import FINITE_JS, set_number, slider_row
+from conftest import FINITE_JS, set_number, slider_row, wait_shown_text
 from helpers import wait_for
 
 from controller.client import ControllerClient
@@ -135,12 +135,12 @@ def test_cutoff_slider_changes_bode_and_margins(page: Any, artifacts: Path) -> N
 
 
 
-def _apply(page: Any, verdict: str, answer: str, screenshot: Path) -> None:
+def _apply(page: Any, verdict: str, answer: str, text: str, screenshot: Path) -> None:
     """Once the page shows `verdict` (accept / reject), press Apply and wait for the controller's
-    `answer` (a selector)."""
+    answer: an element `answer` (a selector) shown with `text` in it (`wait_shown_text`)."""
     page.wait_for_selector(f".dt-verdict.dt-{verdict}", timeout=15_000)
     page.get_by_role("button", name="Apply candidate").click()
-    page.wait_for_selector(answer, timeout=10_000)
+    wait_shown_text(page, answer, text, 60_000)
     page.screenshot(path=str(screenshot))
 
 
@@ -151,7 +151,7 @@ def test_apply_stable_candidate_changes_controller_config(
     set_number(page, "Q cut-off (Hz)", 1.0)  # typed in Hz; the log slider follows
     page.wait_for_selector(".dt-cutoff >> text=1.000 Hz", timeout=15_000)
     set_number(page, "Cv Kp", 1.2)
-    _apply(page, "accept", "text=Accepted", artifacts / "browser_3_apply_accepted.png")
+    _apply(page, "accept", ".dt-apply", "Accepted", artifacts / "browser_3_apply_accepted.png")
     after = probe.get_config()  # through Zenoh, not through the page
     assert after.version > before.version
     assert math.isclose(after.config.q_cutoff_hz, 1.0, rel_tol=1e-3)
@@ -164,7 +164,7 @@ def test_apply_unstable_candidate_is_refused_and_config_unchanged(
     before = probe.get_config()
     set_number(page, "Cv Ki (1/s)", 55.0)  # the earlier default's integral: with Kp 3, unstable
     set_number(page, "Cv Kp", 3.0)
-    _apply(page, "reject", ".dt-apply-rejected", artifacts / "browser_4_apply_rejected.png")
+    _apply(page, "reject", ".dt-apply-rejected", "", artifacts / "browser_4_apply_rejected.png")
     reasons = page.locator(".dt-reject-reason").all_inner_texts()
     assert reasons and all(r.strip() for r in reasons)
     after = probe.get_config()
@@ -192,7 +192,7 @@ def test_a_caution_applies_only_after_the_dialog(
     page.screenshot(path=str(artifacts / "browser_4b_caution_dialog.png"))
     assert probe.get_config().version == before.version  # nothing sent yet
     page.get_by_role("button", name="Apply anyway").click()
-    page.wait_for_selector("text=Accepted", timeout=10_000)
+    wait_shown_text(page, ".dt-apply", "Accepted", 60_000)
     after = probe.get_config()
     assert after.version == before.version + 1 and math.isclose(after.config.q_cutoff_hz, 5.0)
     # Back to a calm configuration for the tests that follow. Should the watchdog roll the
@@ -215,8 +215,10 @@ def test_a_caution_applies_only_after_the_dialog(
         if _text(page, ".dt-stale").strip():
             continue
         page.get_by_role("button", name="Apply candidate").click()
-        page.wait_for_selector(".dt-apply >> text=/Accepted|Rejected by the controller/",
-                               timeout=10_000)
+        page.wait_for_function("""() => [...document.querySelectorAll('.dt-apply')].some(
+          e => e.offsetParent !== null
+               && /Accepted|Rejected by the controller/.test(e.innerText))""",
+                               timeout=60_000, polling=100)
         reply = _text(page, ".dt-apply")
         if "Accepted" in reply:
             break

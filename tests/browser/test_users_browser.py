@@ -28,6 +28,7 @@ from conftest import (
     cutoff_box,
     free_port,
     set_number,
+    wait_shown_text,
 )
 from helpers import answers, spawn, wait_for
 
@@ -188,7 +189,7 @@ def test_the_operator_applies_as_itself(env: dict[str, Any], pages: dict[str, An
     page.wait_for_selector(".dt-cutoff >> text=1.000 Hz", timeout=15_000)
     page.wait_for_selector(".dt-verdict.dt-accept", timeout=15_000)
     page.get_by_role("button", name="Apply candidate").click()
-    page.wait_for_selector(".dt-apply >> text=Accepted", timeout=15_000)
+    wait_shown_text(page, ".dt-apply", "Accepted", 60_000)
     page.screenshot(path=str(artifacts / "users_2_operator_applied.png"))
     after = probe.get_config()
     assert after.version == before.version + 1 and after.config.q_cutoff_hz == 1.0
