@@ -11,13 +11,12 @@ from functools import lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import linalg
 
 from controller.core.arrays import ComplexArray, FloatArray
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.discrete import SosArray, sos_response
 from controller.core.dob import design_dob
-from controller.core.lti import ss2tf, zpk2ss
+from controller.core.lti import expm, ss2tf, zpk2ss
 from controller.gate.knowledge import (
     TWO_PI,
     readonly,
@@ -112,7 +111,7 @@ def discrete_plant(nominal: NominalModel, rate_hz: float) -> DiscretePlant:
     big[:n, n + 1 :] = b
     big[n, :n] = c[0]
     big[n, n + 1] = d[0, 0]
-    e = linalg.expm(big * ts)
+    e = expm(big * ts)
     phi, gam = e[:n, :n], e[:n, n + 1]
     dth_x, dth_u = e[n, :n], e[n, n + 1]
     # X = [x; w; theta]: w[k+1] = (theta[k+1] - theta[k]) / Ts.

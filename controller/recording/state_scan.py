@@ -17,9 +17,9 @@ from concurrent.futures import Executor, Future
 from typing import Any
 
 import msgspec
-import numba
 import numpy as np
 
+from controller.core.numba_start import numba
 from controller.core.samples import STATE_COLUMNS
 
 #: The keys of a /state message in `Recorder.state`'s order; all but the last are numbers.

@@ -34,7 +34,6 @@ from dataclasses import dataclass
 from types import CodeType, FunctionType
 from typing import Any
 
-import numba
 import numpy as np
 from numba.extending import register_jitable
 
@@ -42,6 +41,7 @@ from controller.core import loop as loop_module
 from controller.core import ramp, trajectory
 from controller.core.arrays import FloatArray
 from controller.core.loop import ServoLoop
+from controller.core.numba_start import numba
 from controller.core.ramp import Ramp
 from controller.core.trajectory import KIND_CODE, Trajectory
 from controller.sim import sim_rig

@@ -83,11 +83,11 @@ import math
 from dataclasses import dataclass, replace
 from typing import Annotated
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
 from controller.core.errors import ConfigError
+from controller.core.numba_start import numba
 from controller.core.validate import (
     check_fields,
     in_range,
