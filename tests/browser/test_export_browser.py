@@ -171,34 +171,36 @@ def test_png_of_a_bode_chart_is_the_chart_as_drawn(
 def test_png_of_the_nyquist_view(page: Any, dashboard: Dashboard, artifacts: Path) -> None:
     """The Nyquist view is SVG, not uPlot: its own PNG button, the same kind of file."""
     _ready(page, dashboard)
-    page.get_by_role("tab", name="Nyquist", exact=True).click()  # the Bode tab's sub-tab
-    page.wait_for_selector(".dt-nyquist polyline.dt-nyq-cand", state="attached",
-                           timeout=20_000)
-    # The views as laid out on the screen (with and without the DOB), at print resolution:
-    # 3 pixels per CSS pixel, at least 1800 wide.
-    size = page.evaluate("""() => {
-      const rs = [...document.querySelectorAll('.dt-nyquist-box svg')]
-        .map(g => g.getBoundingClientRect());
-      const k = Math.max(3, 1800 / (Math.max(...rs.map(r => r.right))
-                                    - Math.min(...rs.map(r => r.left))));
-      return [Math.max(...rs.map(r => r.bottom)) - Math.min(...rs.map(r => r.top)),
-              Math.max(...rs.map(r => r.right)) - Math.min(...rs.map(r => r.left))]
-        .map(v => Math.round(v * k));
-    }""")
-    button = page.locator(".dt-png-nyquist")
-    button.wait_for(timeout=15_000)
-    with page.expect_download(timeout=15_000) as got:
-        button.click()
-    dl = got.value
-    assert dl.suggested_filename == "dobtune-nyquist-speed-loop.png"
-    blob = Path(dl.path()).read_bytes()
-    (artifacts / "export_nyquist.png").write_bytes(blob)
-    px = _png(blob)
-    assert list(px.shape[:2]) == size and size[1] >= 1800
-    assert len(np.unique(px.reshape(-1, 3), axis=0)) > 20
-    near = np.all(np.abs(px.astype(int) - CANDIDATE_RGB) <= 12, axis=2)
-    assert near.sum() > 30, near.sum()  # the candidate's loop is drawn
-    page.get_by_role("tab", name="Decide", exact=True).click()  # back to the other tests' view
+    try:
+        page.get_by_role("tab", name="Nyquist", exact=True).click()  # the Bode tab's sub-tab
+        page.wait_for_selector(".dt-nyquist polyline.dt-nyq-cand", state="attached",
+                               timeout=20_000)
+        # The views as laid out on the screen (with and without the DOB), at print resolution:
+        # 3 pixels per CSS pixel, at least 1800 wide.
+        size = page.evaluate("""() => {
+          const rs = [...document.querySelectorAll('.dt-nyquist-box svg')]
+            .map(g => g.getBoundingClientRect());
+          const k = Math.max(3, 1800 / (Math.max(...rs.map(r => r.right))
+                                        - Math.min(...rs.map(r => r.left))));
+          return [Math.max(...rs.map(r => r.bottom)) - Math.min(...rs.map(r => r.top)),
+                  Math.max(...rs.map(r => r.right)) - Math.min(...rs.map(r => r.left))]
+            .map(v => Math.round(v * k));
+        }""")
+        button = page.locator(".dt-png-nyquist")
+        button.wait_for(timeout=15_000)
+        with page.expect_download(timeout=60_000) as got:
+            button.click()
+        dl = got.value
+        assert dl.suggested_filename == "dobtune-nyquist-speed-loop.png"
+        blob = Path(dl.path()).read_bytes()
+        (artifacts / "export_nyquist.png").write_bytes(blob)
+        px = _png(blob)
+        assert list(px.shape[:2]) == size and size[1] >= 1800
+        assert len(np.unique(px.reshape(-1, 3), axis=0)) > 20
+        near = np.all(np.abs(px.astype(int) - CANDIDATE_RGB) <= 12, axis=2)
+        assert near.sum() > 30, near.sum()  # the candidate's loop is drawn
+    finally:  # back to the other tests' view, also after a failure
+        page.get_by_role("tab", name="Decide", exact=True).click()
 
 
 def _selected_tabs(page: Any) -> list[str]:
@@ -245,9 +247,10 @@ def test_the_url_keeps_the_selected_tabs(page: Any, dashboard: Dashboard, artifa
                          timeout=FIRST_LOAD_S * 1000)
     finally:
         other.close()
-    # Back to the tabs the other tests expect.
-    page.get_by_role("tab", name="Bode").click()
-    page.get_by_role("tab", name="Tune").click()
+        # Back to the tabs the other tests expect (also after a failure: the module's later
+        # tests read the Tune tab).
+        page.get_by_role("tab", name="Bode").click()
+        page.get_by_role("tab", name="Tune").click()
     page.wait_for_function("() => location.hash === '#tab=Tune&plot=Bode&bode=Decide'",
                            timeout=FIRST_LOAD_S * 1000)
 
