@@ -267,11 +267,15 @@ def test_trajectory_stop_and_start_commands(controller: ControllerProcess, clien
     assert wait_until(lambda: client.fresh_status().trajectory == traj, 5.0)
     stop = client.command(proto.Stop())
     assert stop.ok and stop.mode == "stopped"
-    st = client.fresh_status()
-    assert st.mode == "stopped" and st.trajectory.kind == "hold"
+    # A status built just before the command can still arrive after its reply: wait for the
+    # published state, then check it holds.
+    assert wait_until(lambda: client.fresh_status().mode == "stopped", 5.0)
+    assert client.fresh_status().trajectory.kind == "hold"
     start = client.command(proto.Start())
     assert start.ok and start.mode == "running"
-    assert client.fresh_status().trajectory == traj
+    assert wait_until(lambda: client.fresh_status().mode == "running", 5.0)
+    st = client.fresh_status()
+    assert st.mode == "running" and st.trajectory == traj
 
 
 def test_restart_restores_the_last_accepted_config(
