@@ -327,6 +327,10 @@ class Analysis:
 # --------------------------------------------------------------------------- evidence
 
 
+_Intervals = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                   np.ndarray | None]
+
+
 class _Points:
     """Frequencies with what depends on them alone (log f, the model's continuous response,
     the ZOH terms, the bound's magnitude), each computed when first asked: the measured
@@ -336,6 +340,7 @@ class _Points:
     def __init__(self, f: FloatArray, rate_hz: float, model: NominalModel,
                  bound: UncertaintyBound | None) -> None:
         self.f, self.rate_hz, self.model, self.bound = f, rate_hz, model, bound
+        self._intervals: dict[bytes, _Intervals] = {}
 
     @cached_property
     def log_f(self) -> FloatArray:
@@ -348,6 +353,24 @@ class _Points:
     @cached_property
     def zoh(self) -> tuple[ComplexArray, FloatArray]:
         return zoh_terms(self.f, self.rate_hz)
+
+    def intervals(self, fm: FloatArray) -> _Intervals:
+        """Where the points fall among measured points `fm` (strictly increasing): inside
+        the band (and the index of the interval of each point inside), below it, above it,
+        exactly at a measured point (and its index; None: at none). Kept per `fm`: the
+        responses measured at the same frequencies share it."""
+        key = fm.tobytes()
+        got = self._intervals.get(key)
+        if got is None:
+            f = self.f
+            i = np.searchsorted(fm, f, side="right") - 1
+            inside = (i >= 0) & (i < fm.size - 1)
+            segment = np.clip(i, 0, fm.size - 2)[inside]
+            # At a measured point (the points are strictly increasing: i is its index).
+            exact = (i >= 0) & (fm[np.maximum(i, 0)] == f)
+            j = np.searchsorted(fm, f[exact]) if np.any(exact) else None
+            got = self._intervals[key] = (inside, segment, f < fm[0], f > fm[-1], exact, j)
+        return got
 
     @cached_property
     def bound_magnitude(self) -> FloatArray:
@@ -491,19 +514,13 @@ class _MeasuredModel:
     def allowance_at(self, pts: _Points) -> FloatArray:
         """`allowance` at points shared with other responses (not kept)."""
         f = pts.f
-        i = np.searchsorted(self.fm, f, side="right") - 1
-        inside = (i >= 0) & (i < self.fm.size - 1)
+        inside, segment, below, above, exact, j = pts.intervals(self.fm)
         a = np.empty_like(f)
-        ii = np.clip(i, 0, self.fm.size - 2)
-        a[inside] = self.segment[ii[inside]]
+        a[inside] = self.segment[segment]
         w = pts.bound_magnitude
-        below, above = f < self.fm[0], f > self.fm[-1]
         a[below] = self.point[0] + w[below]
         a[above] = self.point[-1] + w[above]
-        # At a measured point (the points are strictly increasing: i is the point's index).
-        exact = (i >= 0) & (self.fm[np.maximum(i, 0)] == f)
-        if np.any(exact):
-            j = np.searchsorted(self.fm, f[exact])
+        if j is not None:
             # (The band's edges keep their point allowance: beyond them the analysis grid
             # samples the allowance of the outside, which starts there.)
             seg = np.concatenate([[0.0], self.segment, [0.0]])
