@@ -8,7 +8,7 @@ with a traceback).
 
 from __future__ import annotations
 
-import contextlib
+import logging
 import os
 import signal
 
@@ -30,12 +30,21 @@ def _end_with_parent(parent_pid: int, death_signal: bool) -> None:
 
 
 def _set_death_signal() -> None:
-    with contextlib.suppress(Exception):
-        import ctypes
-        import ctypes.util
+    """The kernel's SIGKILL when the parent dies; where it cannot be had (no Linux libc), the
+    parent watch alone ends the worker, and the log says why."""
+    import ctypes
+    import ctypes.util
 
+    try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        failed = libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0
+        why = os.strerror(ctypes.get_errno()) if failed else ""
+    except (OSError, AttributeError) as exc:  # no libc, or one without prctl
+        failed, why = True, str(exc)
+    if failed:
+        logging.getLogger(__name__).warning(
+            "analysis worker: no death signal (prctl PR_SET_PDEATHSIG: %s); it ends when "
+            "its parent-pid watch sees the controller gone", why)
 
 
 def worker_init(parent_pid: int, death_signal: bool) -> None:
@@ -45,5 +54,8 @@ def worker_init(parent_pid: int, death_signal: bool) -> None:
     # The loop's process wins the CPU over an analysis on a busy machine (also over this
     # worker's loading: at normal priority it slowed the controller's own start by ~15 % at
     # load 20-25, bench_startup).
-    with contextlib.suppress(OSError):
+    try:
         os.nice(10)
+    except OSError as exc:
+        logging.getLogger(__name__).warning(
+            "analysis worker: runs at the controller's priority (os.nice: %s)", exc)
