@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -16,9 +17,24 @@ from controller.gate.knowledge import COMMISSIONING_BOUND, MeasuredResponse, Pla
 from controller.gate.loop_model import nominal_continuous_response
 
 
-def canon(v: object) -> object:
-    """A JSON-able form of `v` that holds every bit of its numbers (arrays by a hash of their
-    bytes, floats in hex)."""
+def json_form(v: object, leaf: Callable[[object], object]) -> object:
+    """`v` (dataclasses, tuples, lists, numpy scalars, plain values) as JSON-able values;
+    `leaf(x)` gives the form of a number or array, or NotImplemented for anything else."""
+    done = leaf(v)
+    if done is not NotImplemented:
+        return done
+    if isinstance(v, (np.floating, np.complexfloating)):
+        return json_form(v.item(), leaf)
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        return {f.name: json_form(getattr(v, f.name), leaf) for f in dataclasses.fields(v)}
+    if isinstance(v, (tuple, list)):
+        return [json_form(x, leaf) for x in v]
+    if v is None or isinstance(v, (str, int, bool)):
+        return v
+    return repr(v)
+
+
+def _bits(v: object) -> object:
     if isinstance(v, np.ndarray):
         return [str(v.dtype), list(v.shape),
                 hashlib.sha256(np.ascontiguousarray(v).tobytes()).hexdigest()]
@@ -26,15 +42,13 @@ def canon(v: object) -> object:
         return float.hex(v)
     if isinstance(v, complex):
         return [float.hex(v.real), float.hex(v.imag)]
-    if isinstance(v, (np.floating, np.complexfloating)):
-        return canon(v.item())
-    if dataclasses.is_dataclass(v) and not isinstance(v, type):
-        return {f.name: canon(getattr(v, f.name)) for f in dataclasses.fields(v)}
-    if isinstance(v, (tuple, list)):
-        return [canon(x) for x in v]
-    if v is None or isinstance(v, (str, int, bool)):
-        return v
-    return repr(v)
+    return NotImplemented
+
+
+def canon(v: object) -> object:
+    """A JSON-able form of `v` that holds every bit of its numbers (arrays by a hash of their
+    bytes, floats in hex)."""
+    return json_form(v, _bits)
 
 
 def random_configs(n: int, seed: int) -> list[tuple[LoopConfig, int]]:

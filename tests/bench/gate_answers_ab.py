@@ -35,28 +35,26 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
 
-def plain(v: object) -> object:
-    """A JSON-able form of `v` with its numbers as numbers (complex as [re, im]; non-finite
-    floats as strings) for `--quantify`."""
-    import dataclasses
-
+def _numbers(v: object) -> object:
     import numpy as np
 
     if isinstance(v, np.ndarray):
         return plain(v.tolist())
-    if isinstance(v, (np.floating, np.complexfloating, np.bool_)):
-        return plain(v.item())
+    if isinstance(v, np.bool_):
+        return bool(v)
     if isinstance(v, complex):
         return {"re": plain(v.real), "im": plain(v.imag)}
     if isinstance(v, float):
         return v if np.isfinite(v) else repr(v)
-    if dataclasses.is_dataclass(v) and not isinstance(v, type):
-        return {f.name: plain(getattr(v, f.name)) for f in dataclasses.fields(v)}
-    if isinstance(v, (tuple, list)):
-        return [plain(x) for x in v]
-    if v is None or isinstance(v, (str, int, bool)):
-        return v
-    return repr(v)
+    return NotImplemented
+
+
+def plain(v: object) -> object:
+    """A JSON-able form of `v` with its numbers as numbers (complex as [re, im]; non-finite
+    floats as strings) for `--quantify`."""
+    from gate_cases import json_form
+
+    return json_form(v, _numbers)
 
 
 def child(n: int, seed: int, searches: int, numbers: bool = False) -> None:
