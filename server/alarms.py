@@ -53,9 +53,14 @@ class AlarmBoard:
             added = True
         self._rollbacks = st.rollbacks
         if st.mode == "estop" and (self._mode != "estop" or st.estop_seq != self._estop_seq):
-            self.alarms.append(Alarm("estop", "red", "E-STOP",
-                                     "speed command 0, drive disabled", now))
-            added = True
+            # A new e-stop while the latch stands and its alarm is still shown is that alarm
+            # (one press is two e-stops: the put on the e-stop key, then the EStop command,
+            # each a new estop_seq); once acknowledged, a new press is a new alarm.
+            shown = self._mode == "estop" and any(a.kind == "estop" for a in self.alarms)
+            if not shown:
+                self.alarms.append(Alarm("estop", "red", "E-STOP",
+                                         "speed command 0, drive disabled", now))
+                added = True
         faults = tuple(st.faults)
         fault_key = faults if st.mode != "estop" and (st.mode == "fault" or faults) else None
         if fault_key is not None and fault_key != self._fault_key:

@@ -32,6 +32,19 @@ def test_a_rollback_before_the_dashboard_started_is_no_alarm_an_estop_in_force_i
     assert [a.level for a in b.alarms] == ["red", "red"]
 
 
+def test_a_press_is_one_estop_alarm_while_the_latch_stands_unacknowledged() -> None:
+    """A dashboard press is two e-stops (the put on the e-stop key, then the EStop command),
+    each with its estop_seq: a status between them showed two red alarms for one press."""
+    b = AlarmBoard()
+    b.observe(status(mode="running"), 0.0)
+    assert b.observe(status(mode="estop", estop_seq=100), 1.0)
+    assert not b.observe(status(mode="estop", estop_seq=103), 1.2)  # the command, latched
+    assert [a.kind for a in b.alarms] == ["estop"]
+    assert b.acknowledge() == 1
+    assert b.observe(status(mode="estop", estop_seq=900), 9.0)  # pressed again, seen anew
+    assert [(a.kind, a.at_s) for a in b.alarms] == [("estop", 9.0)]
+
+
 def test_a_fault_is_red_once_per_fault_set() -> None:
     b = AlarmBoard()
     b.observe(status(), 0.0)
