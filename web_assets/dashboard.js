@@ -393,21 +393,29 @@
     box.dataset.freqHz = String(f);
   }
 
-  // A zoom of one chart's frequency axis sets the other's.
-  let syncing = false;
+  // A zoom of one chart's frequency axis sets the other's. The other chart's answer (its own
+  // setScale hook, in the commit uPlot runs as a microtask) goes no further: a range the two
+  // charts do not both map onto itself (NaN, or a log range each snaps elsewhere) bounced
+  // between them forever, one microtask each, and the page never ran a task again (frozen:
+  // no timers, no websocket, no input).
+  const answering = new WeakSet();
   function syncX(u, key) {
-    if (key !== "x" || syncing) return;
+    if (key !== "x") return;
+    if (answering.has(u)) {
+      answering.delete(u);
+      return;
+    }
     const { mag, phase } = loopCharts();
     const other = u === mag ? phase : u === phase ? mag : null;
     if (!other) return;
     const { min, max } = u.scales.x;
+    if (!(isFinite(min) && isFinite(max) && min > 0 && max > min)) return;
     if (other.scales.x.min === min && other.scales.x.max === max) return;
-    syncing = true;
-    try {
-      other.setScale("x", { min, max });
-    } finally {
-      syncing = false;
-    }
+    answering.add(other);
+    other.setScale("x", { min, max });
+    // Queued after its commit, so it runs after it: a commit that changes nothing fires no
+    // hook, and the mark must not swallow the next zoom.
+    queueMicrotask(() => answering.delete(other));
   }
 
   function labelMargins(u) {

@@ -144,6 +144,46 @@ RED_ROWS_JS = """(label) => {
 }"""
 
 
+#: JS: set the magnitude chart's x scale to a range neither chart maps onto itself (NaN) and
+#: count the setScale hooks of both charts until the page runs its next task. A hook past the
+#: 1000th throws, which ends uPlot's commit: a bounce between the charts is counted, not hung.
+BOUNCE_JS = """async ([mag, phase]) => {
+  const charts = Object.values(window.__viserTestpoints?.uplots || {}).map(e => e.chart)
+    .filter(u => document.body.contains(u.root));
+  const m = charts.find(u => u.series.some(s => s.label === mag));
+  const p = charts.find(u => u.series.some(s => s.label === phase));
+  const before = [m.scales.x.min, m.scales.x.max];
+  let hooks = 0;
+  const count = () => { if (++hooks > 1000) throw new Error("setScale bounced"); };
+  m.hooks.setScale.push(count);
+  p.hooks.setScale.push(count);
+  try {
+    m.setScale("x", {min: NaN, max: NaN});
+    await new Promise(r => setTimeout(r, 0));
+  } catch (err) {
+    console.warn(err);
+  }
+  m.hooks.setScale.splice(m.hooks.setScale.indexOf(count), 1);
+  p.hooks.setScale.splice(p.hooks.setScale.indexOf(count), 1);
+  m.setScale("x", {min: before[0], max: before[1]});
+  return hooks;
+}"""
+
+
+def test_a_zoom_the_other_chart_cannot_take_does_not_bounce_between_them(
+        page: Any, dashboard: Dashboard) -> None:
+    """The magnitude and phase charts keep one frequency axis: a zoom of one sets the other's.
+    A range that does not map onto itself (NaN here) bounced between the two forever, one
+    microtask each: the page ran no task again (seen as a frozen page after a caution apply
+    and a watchdog rollback). Now the other chart's answer goes no further."""
+    _panel(page, dashboard)
+    hooks = page.evaluate(BOUNCE_JS, [MAG, PHASE])
+    assert hooks <= 4, f"{hooks} setScale hooks: the zoom bounced between the charts"
+    before = _chart(page, MAG)["x"]
+    wait_for(lambda: _chart(page, MAG)["x"] == _chart(page, PHASE)["x"] == before, SLOW_S,
+             "the charts did not come back to one range")
+
+
 def test_the_minus_180_line_is_a_horizontal_line_at_minus_180_deg(
         page: Any, dashboard: Dashboard) -> None:
     """The phase chart's -180 deg marker is one horizontal line across the plot at the pixel
