@@ -393,6 +393,9 @@
     box.dataset.freqHz = String(f);
   }
 
+  // A usable range of a log frequency axis.
+  const goodRange = (min, max) => isFinite(min) && isFinite(max) && min > 0 && max > min;
+
   // A zoom of one chart's frequency axis sets the other's. The other chart's answer (its own
   // setScale hook, in the commit uPlot runs as a microtask) goes no further: a range the two
   // charts do not both map onto itself (NaN, or a log range each snaps elsewhere) bounced
@@ -409,7 +412,7 @@
     const other = u === mag ? phase : u === phase ? mag : null;
     if (!other) return;
     const { min, max } = u.scales.x;
-    if (!(isFinite(min) && isFinite(max) && min > 0 && max > min)) return;
+    if (!goodRange(min, max)) return;
     if (other.scales.x.min === min && other.scales.x.max === max) return;
     answering.add(other);
     other.setScale("x", { min, max });
@@ -467,6 +470,20 @@
       return true;
     }
     return false;
+  }
+
+  // A frequency chart's x range back to its data when it is not a finite positive range:
+  // viser's keeper of the zoom (x bounds relative to the data's) left NaN on a chart that got
+  // new data while its tab was hidden (seen: the loop phase chart at NaN..1 after an apply
+  // with the live traces shown), and the chart drew nothing when its tab came back.
+  function repairLogX() {
+    for (const u of uplots()) {
+      const sc = u.scales.x;
+      if (!sc || sc.distr !== 3 || goodRange(sc.min, sc.max)) continue;
+      const xs = u.data && u.data[0];
+      if (!xs || xs.length < 2 || !goodRange(xs[0], xs[xs.length - 1])) continue;
+      u.setScale("x", { min: xs[0], max: xs[xs.length - 1] });
+    }
   }
 
   function hookLoopCharts() {
@@ -601,6 +618,7 @@
       addPngButtons();
       addNyquistButtons();
       hookLoopCharts();
+      repairLogX();
       hideLogBoxes();
       if (Object.keys(want).length) restore();
       syncUrl();
