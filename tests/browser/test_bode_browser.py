@@ -392,6 +392,9 @@ BODE_SUBTAB_JS = """() => {
 #: JS: whether the Nyquist view is drawn with a size (shown).
 NYQUIST_SHOWN_JS = """() => [...document.querySelectorAll('.dt-nyquist-box svg')].some(
   s => s.getBoundingClientRect().width > 0)"""
+#: JS: a live chart is drawn on screen (the Live traces plots tab is shown).
+LIVE_TRACES_SHOWN_JS = """() => [...document.querySelectorAll('.u-title')].some(
+  t => t.textContent === 'Position error' && t.getBoundingClientRect().width > 0)"""
 
 
 def test_the_url_keeps_the_bode_sub_tab_over_a_reload(dashboard: Dashboard, page: Any) -> None:
@@ -421,3 +424,15 @@ def test_the_url_keeps_the_bode_sub_tab_over_a_reload(dashboard: Dashboard, page
     page.wait_for_function(NYQUIST_SHOWN_JS, timeout=SLOW_S * 1000)
     page.get_by_role("tab", name="Decide", exact=True).click(timeout=SLOW_S * 1000)
     page.wait_for_function("() => location.hash.includes('bode=Decide')", timeout=SLOW_S * 1000)
+    # A page opened on another plots tab with a Bode sub-tab in its URL (a link, a bookmark):
+    # the Bode tab opens on that sub-tab.
+    page.evaluate("() => history.replaceState(null, '', location.pathname + location.search"
+                  " + '#tab=Live&plot=Live+traces&bode=Nyquist')")
+    before = set(dashboard.server.get_clients())
+    page.reload(wait_until="domcontentloaded", timeout=SLOW_S * 2000)
+    wait_for(lambda: set(dashboard.server.get_clients()) - before, SLOW_S * 2,
+             "the reloaded page never connected")
+    page.wait_for_function(LIVE_TRACES_SHOWN_JS, timeout=SLOW_S * 2000)
+    page.get_by_role("tab", name="Bode", exact=True).click(timeout=SLOW_S * 1000)
+    page.wait_for_function(NYQUIST_SHOWN_JS, timeout=SLOW_S * 1000)
+    assert "bode=Nyquist" in page.url, page.url
