@@ -152,18 +152,27 @@ def test_loop_health_states_its_normal_range_and_is_red_only_outside_it(
     page.wait_for_selector(".dt-health >> text=late ticks", timeout=60_000)
     page.wait_for_function("() => !document.querySelector('.dt-health')?.innerText"
                            ".includes('waiting for statuses')", timeout=60_000)
-    # Text and colour read together (the box is redrawn a few times a second).
-    text, red = page.evaluate("""() => {
-      const e = document.querySelector('.dt-health');
-      return [e.innerText, getComputedStyle(e).color];
-    }""")
-    late = re.search(r"late ticks ([\d.]+) % \(normal ≤ 2 %\)", text)
-    lost = re.search(r"lost ticks ([\d.]+) % \(≤ 2 %\)", text)
-    jitter = re.search(r"jitter p99−p50 (\d+) us \(≤ 500 us\)", text)
-    assert late and lost and jitter, text
-    outside = (float(late[1]) > 2 or float(lost[1]) > 2 or float(jitter[1]) > 500)
-    if float(late[1]) == 2.0 or float(lost[1]) == 2.0 or float(jitter[1]) == 500:
-        pytest.skip(f"a number shown is at its bound, rounded: {text}")
+    # Text and colour read together (the box is redrawn a few times a second); a reading
+    # with a number at its bound, rounded (2.0 % may be 2.04 %), judges nothing: read again.
+    got: list[Any] = []
+
+    def judgeable() -> bool:
+        text, red = page.evaluate("""() => {
+          const e = document.querySelector('.dt-health');
+          return [e.innerText, getComputedStyle(e).color];
+        }""")
+        late = re.search(r"late ticks ([\d.]+) % \(normal ≤ 2 %\)", text)
+        lost = re.search(r"lost ticks ([\d.]+) % \(≤ 2 %\)", text)
+        jitter = re.search(r"jitter p99−p50 (\d+) us \(≤ 500 us\)", text)
+        assert late and lost and jitter, text
+        nums = (float(late[1]), float(lost[1]), float(jitter[1]))
+        got[:] = [text, red, nums]
+        return nums[0] != 2.0 and nums[1] != 2.0 and nums[2] != 500
+
+    wait_for(judgeable, 120.0, "for 120 s every reading had a number at its bound "
+             "(2.0 %, 500 us)", poll_s=0.5)
+    text, red, (late_pct, lost_pct, jitter_us) = got
+    outside = late_pct > 2 or lost_pct > 2 or jitter_us > 500
     # Red exactly when a number shown is outside its stated range (no fault in this run).
     assert ("OUTSIDE" in text) == outside, text
     assert (red == "rgb(214, 39, 40)") == outside, (red, text)
