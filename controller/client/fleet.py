@@ -55,6 +55,24 @@ class _Rig:
     next_keep: int = 0  #: the next sequence number kept in the trace
 
 
+def _keep_status(r: _Rig, st: proto.Status) -> None:
+    r.status, r.status_at, r.unread = st, time.monotonic(), ""
+
+
+def _keep_state(r: _Rig, b: proto.StateBatch) -> None:
+    """Every DECIMATE-th error sample of the batch into the rig's trace."""
+    if r.trace is None:
+        r.trace = deque(maxlen=TRACE_POINTS)
+    n = len(b.error_deg)
+    i = max(0, r.next_keep - b.seq0)
+    if i > n + DECIMATE or r.next_keep - b.seq0 > 10 * TRACE_POINTS * DECIMATE:
+        i = 0  # the controller restarted (its sequence began again)
+    while i < n:
+        r.trace.append(b.error_deg[i])
+        i += DECIMATE
+    r.next_keep = b.seq0 + i
+
+
 class FleetMonitor:
     """Liveliness, status and state of every rig through one Zenoh session (not owned)."""
 
@@ -108,10 +126,11 @@ class FleetMonitor:
             else:
                 self._alive.add(rig)
 
-    def _own(self, sample: Any, kind: type[M]) -> tuple[str, M] | None:
-        """(rig, message) of a status or state sample; None (counted) for one that does not
-        decode, or a rig speaking for another (the key is what the access control checks: a
-        controller may put on its own rig's keys only)."""
+    def _take(self, sample: Any, kind: type[M], keep: Callable[[_Rig, M], None]) -> None:
+        """`keep` a status or state sample in its rig's record (made on the rig's first word),
+        under the lock; a sample that does not decode, or a rig speaking for another (the key
+        is what the access control checks: a controller may put on its own rig's keys only),
+        is counted in `decode_errors` and not kept."""
         rig = proto.rig_of_key(sample.key_expr)
         try:
             msg = proto.decode(sample.payload.to_bytes(), kind)
@@ -120,38 +139,18 @@ class FleetMonitor:
             if kind is proto.Status:
                 with self._lock:
                     self._rigs.setdefault(rig, _Rig()).unread = str(exc)[:300]
-            return None
+            return
         if msg.rig != rig:
             self.decode_errors += 1
-            return None
-        return rig, msg
+            return
+        with self._lock:
+            keep(self._rigs.setdefault(rig, _Rig()), msg)
 
     def _on_status(self, sample: Any) -> None:
-        got = self._own(sample, proto.Status)
-        if got is None:
-            return
-        rig, st = got
-        with self._lock:
-            r = self._rigs.setdefault(rig, _Rig())
-            r.status, r.status_at, r.unread = st, time.monotonic(), ""
+        self._take(sample, proto.Status, _keep_status)
 
     def _on_state(self, sample: Any) -> None:
-        got = self._own(sample, proto.StateBatch)
-        if got is None:
-            return
-        rig, b = got
-        with self._lock:
-            r = self._rigs.setdefault(rig, _Rig())
-            if r.trace is None:
-                r.trace = deque(maxlen=TRACE_POINTS)
-            n = len(b.error_deg)
-            i = max(0, r.next_keep - b.seq0)
-            if i > n + DECIMATE or r.next_keep - b.seq0 > 10 * TRACE_POINTS * DECIMATE:
-                i = 0  # the controller restarted (its sequence began again)
-            while i < n:
-                r.trace.append(b.error_deg[i])
-                i += DECIMATE
-            r.next_keep = b.seq0 + i
+        self._take(sample, proto.StateBatch, _keep_state)
 
     # -- reading -------------------------------------------------------------------------------
 
