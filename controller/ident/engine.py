@@ -322,15 +322,9 @@ def run_identification(
         records.append(position_record(exc, raw, i, c, done, n_seg, spec.closed, cfg.rate_hz))
         if abort is not None:
             break
-    result = IdentifyResult(
-        spec=spec,
-        config=cfg,
-        excitation=exc,
-        positions=tuple(records),
-        complete=abort is None,
-        abort_reason=None if abort is None else abort.reason,
-        simulated_s=run.tick / cfg.rate_hz,
-    )
+    result = IdentifyResult.measured(spec, cfg, exc, records,
+                                     None if abort is None else abort.reason,
+                                     run.tick / cfg.rate_hz)
     if abort is not None:
         raise IdentifyAborted(abort.reason, abort.limit, result)
     if progress is not None:
@@ -389,15 +383,7 @@ def result_from_program(
             exc_index=exc_i[m],
         )
         records.append(position_record(exc, raw, i, c, done, n_seg, spec.closed, rate))
-    result = IdentifyResult(
-        spec=spec,
-        config=cfg,
-        excitation=exc,
-        positions=tuple(records),
-        complete=abort_reason is None,
-        abort_reason=abort_reason,
-        simulated_s=n_done / rate,
-    )
+    result = IdentifyResult.measured(spec, cfg, exc, records, abort_reason, n_done / rate)
     if abort_reason is None and analyse:
         result = analyse_result(result)
     return result

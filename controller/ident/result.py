@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -177,6 +178,16 @@ class IdentifyResult:
     """Q31 at the recommended cut-off and at 1.5x it (fitted nominal)."""
     notes: tuple[str, ...] = ()
     """What could not be done as asked (fit band widened, no usable fit, ...)."""
+
+    @classmethod
+    def measured(cls, spec: IdentifySpec, config: LoopConfig, excitation: Excitation,
+                 positions: Sequence[PositionRecord], abort_reason: str | None,
+                 simulated_s: float) -> IdentifyResult:
+        """What a run measured, nothing derived yet (`analyse_result` adds that): complete
+        unless it was aborted (`abort_reason`)."""
+        return cls(spec=spec, config=config, excitation=excitation, positions=tuple(positions),
+                   complete=abort_reason is None, abort_reason=abort_reason,
+                   simulated_s=simulated_s)
 
     @property
     def fitted_config(self) -> LoopConfig | None:
