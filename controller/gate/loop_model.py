@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike
 from controller.core.arrays import ComplexArray, FloatArray
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.discrete import SosArray, sos_response
-from controller.core.dob import design_dob
+from controller.core.dob import cancel_common_roots, design_dob, poly_roots_gain
 from controller.core.lti import expm, ss2tf, zpk2ss
 from controller.gate.knowledge import (
     TWO_PI,
@@ -35,23 +35,13 @@ def _default_grid(rate_hz: float, n: int) -> FloatArray:
     return readonly(np.geomspace(0.01, 0.4999 * rate_hz, n))
 
 
-def poly_roots(p: tuple[float, float, float]) -> tuple[list[complex], float]:
-    c = np.trim_zeros(np.asarray(p, dtype=np.float64), "f")
-    return [complex(r) for r in np.roots(c)], float(c[0])
-
-
 def mp_zpk(nominal: NominalModel) -> tuple[list[complex], list[complex], float]:
     """Mn(s) Pn(s) as zeros, poles, gain; common roots cancelled."""
-    zeros, kn = poly_roots(nominal.pn_num)
-    pm, km = poly_roots(nominal.mn_den)
-    pd, kd = poly_roots(nominal.pn_den)
+    zeros, kn = poly_roots_gain(nominal.pn_num)
+    pm, km = poly_roots_gain(nominal.mn_den)
+    pd, kd = poly_roots_gain(nominal.pn_den)
     poles = pm + pd
-    for z in list(zeros):
-        for i, p in enumerate(poles):
-            if abs(z - p) <= 1e-9 * max(1.0, abs(p)):
-                zeros.remove(z)
-                del poles[i]
-                break
+    cancel_common_roots(zeros, poles)
     return zeros, poles, kn / (km * kd)
 
 
