@@ -302,14 +302,20 @@ def parse_heartbeat(data: bytes) -> int:
     return data[0]
 
 
+def _make_word_velocity(word_field: str, word: int, velocity_field: str, velocity: int) -> bytes:
+    """A u16 word + an i32 velocity, the layout RPDO1 and TPDO1 share; a value out of its
+    range is named by its field."""
+    try:
+        return _CW_VEL.pack(word, velocity)
+    except struct.error:
+        _check_u(word_field, word, 16)
+        _check_i32(velocity_field, velocity)
+        raise
+
+
 def make_rpdo_command(controlword: int, target_velocity: int) -> bytes:
     """RPDO1: controlword (u16) + target velocity (i32, drive velocity units)."""
-    try:
-        return _CW_VEL.pack(controlword, target_velocity)
-    except struct.error:
-        _check_u("controlword", controlword, 16)
-        _check_i32("target_velocity", target_velocity)
-        raise
+    return _make_word_velocity("controlword", controlword, "target_velocity", target_velocity)
 
 
 def parse_rpdo_command(data: bytes) -> tuple[int, int]:
@@ -320,12 +326,7 @@ def parse_rpdo_command(data: bytes) -> tuple[int, int]:
 
 def make_tpdo_status_velocity(statusword: int, velocity_actual: int) -> bytes:
     """TPDO1: statusword (u16) + velocity actual value (i32, drive velocity units)."""
-    try:
-        return _CW_VEL.pack(statusword, velocity_actual)
-    except struct.error:
-        _check_u("statusword", statusword, 16)
-        _check_i32("velocity_actual", velocity_actual)
-        raise
+    return _make_word_velocity("statusword", statusword, "velocity_actual", velocity_actual)
 
 
 def parse_tpdo_status_velocity(data: bytes) -> tuple[int, int]:
