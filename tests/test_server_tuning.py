@@ -263,3 +263,37 @@ def test_a_restored_candidate_is_stale_when_its_version_is_now_another_configura
         t._apply_fn = apply_fn
         t.set_active(was, was_version)
         t.revert(say=False)
+
+
+def test_a_status_loading_the_first_version_does_not_undo_a_load_made_meanwhile(
+        dash: Dashboard) -> None:
+    """A fresh panel loads the first active version a status brings (on the status thread).
+    A load of another version (History's "use as candidate", on a GUI thread) that starts
+    once the panel shows that active version must win: the status thread's load of the
+    first version finished before it, never after (CI once kept the active v2 as the
+    candidate after "use v1"). Repeated: each round races the two threads afresh."""
+    import threading
+
+    t = dash.panel_of(None)
+    assert t is not None
+    was, was_version = t.active, t.active_version
+    v1, v2 = LoopConfig(), LoopConfig(q_cutoff_hz=0.8, cv_kp=1.2)
+    try:
+        for k in range(30):
+            t.base_version = None  # as built: no version known yet
+            t.active, t.active_version = v1, None
+            status = threading.Thread(target=t.set_active, args=(v2, 2 + k))
+            status.start()
+            deadline = time.monotonic() + 10.0
+            while t.active_version != 2 + k:  # what "the panel shows v2" is to a caller
+                assert time.monotonic() < deadline, "the status never reached the panel"
+            t.load(v1, 2 + k, say_text="Loaded v1 from the history as the candidate.")
+            status.join(10.0)
+            assert not status.is_alive()
+            assert t.wait_idle(10.0)
+            assert t.candidate() == v1, f"round {k}: the status's load of v2 came after"
+            assert t.base_version == 2 + k
+    finally:
+        t.set_active(was, was_version)
+        t.revert(say=False)
+        assert t.wait_idle(10.0)

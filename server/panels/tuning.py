@@ -268,6 +268,10 @@ class TuningPanel:
         self._suppress = False
         self._reply_version: int | None = None
         self._gen_lock = threading.Lock()
+        self._controls_lock = threading.RLock()
+        """Held while the controls are set as a whole (`load`, `restore`) and while
+        `set_active` decides whether the first known version loads them: a status thread's
+        first load must not interleave with a browser's load of another version."""
         self._submitted_gen = 0
         self._done_gen = 0
         self.on_change: Callable[[TuningPanel], None] | None = None
@@ -484,23 +488,24 @@ class TuningPanel:
     def restore(self, k: KeptCandidate) -> None:
         """The controls as `k` kept them, made against `k.base_version` (stale, as before the
         reload, if the active version has moved on since)."""
-        self.base, self.base_version = k.base, k.base_version
-        self._restored, self._restored_against = True, k.against
-        if hasattr(self, "nominal_override"):
-            self.nominal_override = k.nominal
-        self._suppress = True
-        try:
-            for name, value in k.controls:
-                getattr(self, name).value = value
-            self._read_cutoff_text()
-        finally:
-            self._suppress = False
-        set_html(self.stale_text, self._stale_html())
-        self.apply_result.content = box(
-            "dt-apply dt-apply-restored", NEUTRAL,
-            "Your candidate from before the reload (or the dashboard's restart)"
-            + (f" (made against v{k.base_version})." if k.base_version is not None else "."))
-        self.request_update()
+        with self._controls_lock:
+            self.base, self.base_version = k.base, k.base_version
+            self._restored, self._restored_against = True, k.against
+            if hasattr(self, "nominal_override"):
+                self.nominal_override = k.nominal
+            self._suppress = True
+            try:
+                for name, value in k.controls:
+                    getattr(self, name).value = value
+                self._read_cutoff_text()
+            finally:
+                self._suppress = False
+            set_html(self.stale_text, self._stale_html())
+            self.apply_result.content = box(
+                "dt-apply dt-apply-restored", NEUTRAL,
+                "Your candidate from before the reload (or the dashboard's restart)"
+                + (f" (made against v{k.base_version})." if k.base_version is not None else "."))
+            self.request_update()
 
     def _on_cutoff_slider(self, _event: Any) -> None:
         """A drag of the slider: the cut-off (3 significant digits) and the Hz field follow."""
@@ -576,26 +581,27 @@ class TuningPanel:
         """The controller's active configuration changed (any browser or client may have
         applied it). The candidate stays as it is (based on its version: the panel says so);
         the first one known loads the controls."""
-        if cfg == self.active and version == self.active_version:
-            return
-        self.active = cfg
-        self.active_version = version
-        self.active_text.content = self._active_html()
-        shown = self._reply_version
-        if shown is not None and version is not None and version > shown:
-            # The apply box spoke of v{shown}; the controller has moved on (a rollback, or
-            # another browser): no success text stands for a state that is gone.
-            self._reply_version = None
-            self.apply_result.content = box(
-                "dt-apply dt-apply-superseded", CAUTION,
-                f"<b>Active config is now v{version}</b>, no longer v{shown} of your last "
-                "apply: changed since (a watchdog rollback or another client; see the alarms "
-                "and History).")
-        if self.base_version is None and version is not None:
-            self.load(cfg, version)
-        else:
-            set_html(self.stale_text, self._stale_html())
-            self.request_update()
+        with self._controls_lock:
+            if cfg == self.active and version == self.active_version:
+                return
+            self.active = cfg
+            self.active_version = version
+            self.active_text.content = self._active_html()
+            shown = self._reply_version
+            if shown is not None and version is not None and version > shown:
+                # The apply box spoke of v{shown}; the controller has moved on (a rollback, or
+                # another browser): no success text stands for a state that is gone.
+                self._reply_version = None
+                self.apply_result.content = box(
+                    "dt-apply dt-apply-superseded", CAUTION,
+                    f"<b>Active config is now v{version}</b>, no longer v{shown} of your last "
+                    "apply: changed since (a watchdog rollback or another client; see the alarms "
+                    "and History).")
+            if self.base_version is None and version is not None:
+                self.load(cfg, version)
+            else:
+                set_html(self.stale_text, self._stale_html())
+                self.request_update()
 
     def rebase(self, cfg: LoopConfig, version: int) -> None:
         """This panel's own candidate became the active `version`: the candidate is now based
@@ -709,26 +715,27 @@ class TuningPanel:
         """Set every control to `a` (a revert, or an older version from the history: it goes
         through the gate like any candidate when applied), made against the active
         `version`."""
-        self.base, self.base_version = a, version
-        self._restored = False
-        set_html(self.stale_text, self._stale_html())
-        self._suppress = True
-        try:
-            self.q_type.value = _label_of(a.q_type)
-            self.cutoff_log.value = _cutoff_log(a.q_cutoff_hz)
-            self.cutoff_hz_input.value = _fmt_hz_value(a.q_cutoff_hz)
-            self._cutoff_hz = float(a.q_cutoff_hz)
-            self._cutoff_error = ""
-            if say_text:  # (a reply box from an earlier candidate no longer applies)
-                self._reply_version = None
-                self.apply_result.content = box("dt-apply", NEUTRAL, esc(say_text))
-            for attr, _label in _SWITCHES:
-                getattr(self, attr).value = bool(getattr(a, attr))
-            for g in _GAINS:
-                getattr(self, g.attr).value = g.position(a)
-        finally:
-            self._suppress = False
-        self.request_update()
+        with self._controls_lock:
+            self.base, self.base_version = a, version
+            self._restored = False
+            set_html(self.stale_text, self._stale_html())
+            self._suppress = True
+            try:
+                self.q_type.value = _label_of(a.q_type)
+                self.cutoff_log.value = _cutoff_log(a.q_cutoff_hz)
+                self.cutoff_hz_input.value = _fmt_hz_value(a.q_cutoff_hz)
+                self._cutoff_hz = float(a.q_cutoff_hz)
+                self._cutoff_error = ""
+                if say_text:  # (a reply box from an earlier candidate no longer applies)
+                    self._reply_version = None
+                    self.apply_result.content = box("dt-apply", NEUTRAL, esc(say_text))
+                for attr, _label in _SWITCHES:
+                    getattr(self, attr).value = bool(getattr(a, attr))
+                for g in _GAINS:
+                    getattr(self, g.attr).value = g.position(a)
+            finally:
+                self._suppress = False
+            self.request_update()
 
     # -- the workers -------------------------------------------------------------------------
 
