@@ -486,6 +486,52 @@
     }
   }
 
+  // A chart's axes recomputed at its new size. uPlot's redraw(rebuildPaths, recalcAxes) sets its
+  // "recompute the axes" flag to recalcAxes: a redraw between setSize and uPlot's commit (a
+  // microtask) cancels the recomputation setSize asked for. uplot-react does just that when a
+  // resize and new data come in one React render (a tab shown while the live charts stream):
+  // the chart drew at its new width with the axes of the old one, after width 0 no x ticks,
+  // labels or grid at all, until its y range changed (up to ~15 s seen, on 1-2 of the 4 live
+  // charts after most Live traces -> Bode -> Live traces). A resized chart's next redraws
+  // recompute its axes, until the commit that applies the size (its "setSize" hook).
+  const resized = new WeakSet();
+  const wrapped = new WeakSet();
+  const sizeApplied = (u) => resized.delete(u);
+  function keepAxesOnResize(u) {
+    if (wrapped.has(u)) return;
+    wrapped.add(u);
+    const setSize = u.setSize;
+    const redraw = u.redraw;
+    u.setSize = (size) => {
+      resized.add(u);
+      setSize(size);
+    };
+    u.redraw = (rebuildPaths, recalcAxes) => redraw(rebuildPaths, recalcAxes || resized.has(u));
+    addHook(u, "setSize", sizeApplied);
+  }
+
+  // Axes with a valid range and room for ticks but none found, recomputed once per size: the
+  // resizes before keepAxesOnResize wrapped the chart (it wraps charts at the next upkeep).
+  // One redraw with no new scale fires no setScale hook (nothing for syncX to answer).
+  const axesRepairedAt = new WeakMap();
+  function repairAxes() {
+    for (const u of uplots()) {
+      keepAxesOnResize(u);
+      const size = `${u.bbox.width}x${u.bbox.height}`;
+      const missing = u.axes.some((a) => {
+        const sc = u.scales[a.scale];
+        const room = a.side % 2 ? u.bbox.height : u.bbox.width;
+        return a.show && a._found && a._found[1] === 0 && room > 0 && sc &&
+          isFinite(sc.min) && isFinite(sc.max) && sc.max > sc.min;
+      });
+      if (!missing) axesRepairedAt.delete(u);
+      else if (axesRepairedAt.get(u) !== size) {
+        axesRepairedAt.set(u, size);
+        u.redraw(false, true);
+      }
+    }
+  }
+
   function hookLoopCharts() {
     const { mag, phase } = loopCharts();
     for (const u of [mag, phase]) {
@@ -619,6 +665,7 @@
       addNyquistButtons();
       hookLoopCharts();
       repairLogX();
+      repairAxes();
       hideLogBoxes();
       if (Object.keys(want).length) restore();
       syncUrl();

@@ -99,6 +99,126 @@ def test_live_traces_draw_the_window_after_a_tab_round_trip_and_a_reload(
               f"{c['first']:.2f}..{c['last']:.2f} s, {c['inside']}/{c['n']} samples drawn")
 
 
+#: JS: a draw hook on each live chart that logs, per frame uPlot draws, what its time axis
+#: shows: uPlot draws an axis's tick labels (`_values` at `_splits`), ticks and grid only when
+#: it found a tick spacing (`_found[1]` > 0). Charts rebuilt since are hooked when it runs again.
+TICK_LOG_JS = """() => {
+  const log = (window.__dtTickLog ??= {});
+  for (const e of Object.values(window.__viserTestpoints?.uplots || {})) {
+    const c = e.chart;
+    if (!c.series.some(s => s.label === 'config v') || c.__dtTickHook) continue;
+    c.__dtTickHook = true;
+    c.hooks.draw = c.hooks.draw || [];
+    c.hooks.draw.push(u => {
+      const title = u.root.querySelector('.u-title')?.textContent || '';
+      const a = u.axes[0], found = a._found || [0, 0];
+      const labels = found[1] > 0 ? (a._values || []).filter(v => v !== null && v !== '') : [];
+      const splits = found[1] > 0 ? a._splits || [] : [];
+      (log[title] ??= []).push({t: performance.now(), w: u.bbox.width / devicePixelRatio,
+                                labels: labels.length, lo: splits[0], hi: splits.at(-1)});
+    });
+  }
+  return Object.keys(log).length;
+}"""
+
+#: JS: per live chart, its frames drawn since page time `since` (ms), and the columns of its
+#: canvas under the plot (the x tick labels' strip) that hold ink, as the positions of its
+#: first and last tick (canvas px) and the ink's left and right edge.
+TICKS_SINCE_JS = """(since) => {
+  const out = {};
+  for (const e of Object.values(window.__viserTestpoints?.uplots || {})) {
+    const u = e.chart;
+    if (!u.series.some(s => s.label === 'config v')) continue;
+    const title = u.root.querySelector('.u-title')?.textContent || '';
+    const frames = (window.__dtTickLog?.[title] || []).filter(f => f.t >= since);
+    const cv = u.ctx.canvas, top = u.bbox.top + u.bbox.height + 2;
+    let left = null, right = null;
+    if (cv.width > 0 && cv.height - top > 0) {
+      const px = u.ctx.getImageData(0, top, cv.width, cv.height - top).data;
+      for (let x = 0; x < cv.width; x++) {
+        for (let y = 0; y < cv.height - top; y++) {
+          if (px[(y * cv.width + x) * 4 + 3] > 96) {
+            left ??= x;
+            right = x;
+            break;
+          }
+        }
+      }
+    }
+    const sp = u.axes[0]._splits || [];
+    out[title] = {frames, left, right, first_tick: sp.length ? u.valToPos(sp[0], 'x', true) : null,
+                  last_tick: sp.length ? u.valToPos(sp.at(-1), 'x', true) : null};
+  }
+  return out;
+}"""
+
+#: Frames each live chart draws at full width after its tab is shown before a round is read.
+TICK_FRAMES = 10
+
+
+def _shows_ticks(f: dict[str, Any], window_s: float) -> bool:
+    """A frame whose time axis has tick labels spanning about -window..0 s."""
+    return bool(f["labels"] >= 3 and f["lo"] is not None
+                and f["lo"] <= -0.8 * window_s and f["hi"] >= -0.2 * window_s
+                and f["lo"] >= -window_s - 1e-6 and f["hi"] <= 1e-6)
+
+
+def test_live_charts_show_their_time_ticks_after_tab_round_trips(page: Any) -> None:
+    """Live traces -> Bode -> Live traces, several times: every frame each live chart draws
+    once shown has its time axis's tick labels (seen: 1-2 of the 4 charts drew none, nor the
+    x grid, for up to ~15 s after most round trips: uPlot's redraw after a resize dropped the
+    axes' recomputation). Counted in frames, not seconds: a loaded machine slows the frames,
+    not what each of them shows."""
+    page.get_by_role("tab", name="Live", exact=True).click()
+    set_number(page, "Window (s)", LIVE_WINDOW_S)
+    page.get_by_role("tab", name="Tune").click()
+    page.get_by_role("tab", name="Live traces").click()
+    _live_ok(page, LIVE_WINDOW_S)
+    bad: list[str] = []
+    for rnd in range(6):
+        page.get_by_role("tab", name="Bode").click()
+        page.wait_for_function(
+            "() => [...document.querySelectorAll('.u-title')].some(t => t.textContent"
+            ".startsWith('Open loop') && t.getBoundingClientRect().width > 0)", timeout=60_000)
+        # Hidden: viser's charts shrink to width 0 (where uPlot finds no x ticks at all).
+        page.wait_for_function(
+            "() => Object.values(window.__viserTestpoints?.uplots || {}).filter(e => e.chart"
+            ".series.some(s => s.label === 'config v')).every(e => e.chart.width === 0)",
+            timeout=60_000)
+        page.evaluate(TICK_LOG_JS)
+        since = page.evaluate("performance.now()")
+        page.get_by_role("tab", name="Live traces").click()
+        deadline = time.monotonic() + 90.0
+        while True:
+            page.evaluate(TICK_LOG_JS)  # charts rebuilt by the tab switch get the hook too
+            got = page.evaluate(TICKS_SINCE_JS, since)
+            wide = {t: [f for f in c["frames"] if f["w"] > 100] for t, c in got.items()}
+            if len(wide) == 4 and all(len(fs) >= TICK_FRAMES for fs in wide.values()):
+                break
+            assert time.monotonic() < deadline, (
+                f"round {rnd}: the live charts drew too few frames in 90 s: "
+                f"{ {t: len(fs) for t, fs in wide.items()} }")
+            time.sleep(0.2)
+        for title, fs in wide.items():
+            missing = [f for f in fs if not _shows_ticks(f, LIVE_WINDOW_S)]
+            first_ok = next((f["t"] for f in fs if _shows_ticks(f, LIVE_WINDOW_S)), None)
+            lag = "never" if first_ok is None else f"{(first_ok - fs[0]['t']) / 1000:.2f} s"
+            c = got[title]
+            print(f"round {rnd} {title[:24]!r}: {len(missing)}/{len(fs)} frames without "
+                  f"time ticks, ticks {lag} after the first frame; label ink "
+                  f"{c['left']}..{c['right']} px, ticks at {c['first_tick']}..{c['last_tick']}")
+            if missing:
+                bad.append(f"round {rnd} {title!r}: {len(missing)} of {len(fs)} frames "
+                           f"without time ticks (first: {missing[0]}), ticks {lag} after")
+            # What the canvas holds now: ink in the label strip from the first tick's label
+            # to the last's (a label is centred on its tick).
+            elif c["left"] is None or not (
+                    c["left"] <= c["first_tick"] + 20 and c["right"] >= c["last_tick"] - 20):
+                bad.append(f"round {rnd} {title!r}: no tick labels drawn under the plot: {c}")
+    page.get_by_role("tab", name="Tune").click()
+    assert not bad, "\n".join(bad)
+
+
 def _reset(probe: ControllerClient) -> bool:
     """Reset, acknowledging the latest e-stop the probe saw."""
     st = probe.status
