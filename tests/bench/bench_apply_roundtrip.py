@@ -197,8 +197,12 @@ def breakdown(plant: PlantKnowledge, new: list[LoopConfig], get_ms: float) -> No
             t("search (whole, as before)", whole, cfg)
             t("nonlinear check", nonlinear_check, cfg, plant.model)
             t("filter design", LoopCoefficients.build, cfg, v)
-            t("persistence (save + log, fsyncs)", persist, cfg, v, prev)
-            t("persistence (save, then log)", persist_before, cfg, v, prev)
+            # Each way first every other time: neither is always timed right after the
+            # other's fsyncs.
+            saves = [("persistence (save + log, fsyncs)", persist),
+                     ("persistence (save, then log)", persist_before)]
+            for name, fn in saves if v % 2 == 0 else saves[::-1]:
+                t(name, fn, cfg, v, prev)
             prev = cfg
     print("  where a new-gains apply's time goes (this tree's code in this process, over the "
           "same candidates; CPU time is what the load does not stretch):")
