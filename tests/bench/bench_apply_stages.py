@@ -98,7 +98,8 @@ def main() -> int:
             client_gc.append((info["generation"], gc_start[0], time.perf_counter()))
 
     calls: list[tuple[str, float, float]] = []
-    with tempfile.TemporaryDirectory(prefix="bench-stages-") as d, \
+    # (The worker, ended by its parent's death, may write a last line while this is removed.)
+    with tempfile.TemporaryDirectory(prefix="bench-stages-", ignore_cleanup_errors=True) as d, \
             contextlib.ExitStack() as stack:
         prefix = str(Path(d) / "probe")
         os.environ["DOBTUNE_APPLY_PROBE"] = prefix
