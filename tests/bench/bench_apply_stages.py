@@ -1,13 +1,14 @@
 """Benchmark: where an apply's round trip goes, stage by stage, in a real controller.
 
-    PYTHONPATH=$PWD .venv/bin/python tests/bench/bench_apply_stages.py [--n 40] [--reps 2]
+    PYTHONPATH=$PWD .venv/bin/python tests/bench/bench_apply_stages.py [--n 40] [--reps 1]
 
 One controller (this tree) on the plant knowledge of `bench_apply_roundtrip` (three measured
-responses) gets its new-gains and cut-off-only candidates, `--reps` times over. The controller
-runs with `apply_stages_probe/sitecustomize.py` (on its PYTHONPATH only), which time-stamps
-each apply's stages in the controller and the analysis worker (one clock for every process).
-Per kind of candidate, for each stage: wall p50 / p90 / p99 / max and its mean over the
-slowest 5 % of round trips (what the tail is made of):
+responses) gets its new-gains and cut-off-only candidates, `--reps` times over (a repeat may
+find the worker's verdict or the gains' search cached: `--reps 1` for fresh ones only). The
+controller runs with `apply_stages_probe/sitecustomize.py` (on its PYTHONPATH only), which
+time-stamps each apply's stages in the controller and the analysis worker (one clock for
+every process). Per kind of candidate, for each stage: wall p50 / p90 / p99 / max and its
+mean over the slowest 5 % of round trips (what the tail is made of):
 
 * client -> node: the request's way to the controller's Zenoh callback;
 * queue: the callback's hand-off to the config worker thread;
@@ -82,7 +83,8 @@ def _row(kind: str, t0: float, t1: float, rec: dict[str, Any], gate: dict[str, A
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--n", type=int, default=40, help="candidates per kind (default 40)")
-    p.add_argument("--reps", type=int, default=2, help="times each candidate is sent")
+    p.add_argument("--reps", type=int, default=1,
+                   help="times each candidate is sent (default 1; repeats may be cached)")
     p.add_argument("--seed", type=int, default=1)
     a = p.parse_args()
     plant = three_positions(source="bench: 3 positions")
