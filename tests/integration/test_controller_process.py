@@ -2,6 +2,11 @@
 
 The stream test runs DOBTUNE_STREAM_S seconds (default 10, what CI runs). Timing assertions
 compare counters against a baseline taken in the same test: the machine is shared.
+
+The tests that take `controller` share one (`module_controller`): each reads only what it
+changed itself (versions relative to the one it found) and leaves the loop running on the
+trajectory it found (an e-stop is reset in `finally`). The restart and start-up tests start
+controllers of their own.
 """
 
 from __future__ import annotations
@@ -29,6 +34,21 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 STREAM_S = float(os.environ.get("DOBTUNE_STREAM_S", "10"))
 ENC = msgspec.msgpack.encode
 V = proto.PROTOCOL_VERSION  # the version this side speaks
+
+
+@pytest.fixture(scope="module")
+def controller(module_controller: ControllerProcess) -> ControllerProcess:
+    return module_controller
+
+
+def _running_again(client: Client) -> None:
+    """Back to running (from an e-stop: reset, then start), as the next test expects."""
+    mode = client.fresh_status().mode
+    if mode == "estop":
+        assert client.reset().ok
+    if mode != "running":
+        assert client.command(proto.Start()).ok
+    assert wait_until(lambda: client.fresh_status().mode == "running", 10.0)
 
 
 def _active_file(proc: ControllerProcess) -> bytes:
@@ -219,63 +239,76 @@ def test_malformed_and_hostile_payloads_are_rejected_naming_the_field(
 def test_estop_command_zeroes_the_command_at_the_next_tick(
     controller: ControllerProcess, client: Client
 ) -> None:
-    with client.state() as col:
-        # Wait for motion: the sine's command is non-zero.
-        assert wait_until(
-            lambda: any(abs(x) > 0.5 for _, b in col.batches() for x in b.command_deg_s), 10.0
-        )
-        reply = client.command(proto.EStop())
-        assert reply.ok and reply.mode == "estop", reply
-        assert reply.seq >= 0 and reply.received_seq >= 0
-        # The tick running when the request arrived finishes; the next one commands 0.
-        assert reply.seq <= reply.received_seq + 2, reply
-        assert col.wait_for_seq(reply.seq + 100, 5.0)
-    samples = col.samples()
-    assert samples[reply.seq - 1]["command_deg_s"] != 0.0
-    for s in range(reply.seq, reply.seq + 100):
-        assert samples[s]["command_deg_s"] == 0.0, s
-        assert samples[s]["mode"] == "estop"
-    st = client.fresh_status()
-    assert st.mode == "estop" and st.estop_seq == reply.seq
-    # Start is refused until reset; reset -> stopped (holding), start -> running again.
-    assert not client.command(proto.Start()).ok
-    reset = client.reset()
-    assert reset.ok and reset.mode == "stopped"
-    start = client.command(proto.Start())
-    assert start.ok and start.mode == "running"
+    try:
+        with client.state() as col:
+            # Wait for motion: the sine's command is non-zero.
+            assert wait_until(
+                lambda: any(abs(x) > 0.5 for _, b in col.batches() for x in b.command_deg_s),
+                10.0)
+            reply = client.command(proto.EStop())
+            assert reply.ok and reply.mode == "estop", reply
+            assert reply.seq >= 0 and reply.received_seq >= 0
+            # The tick running when the request arrived finishes; the next one commands 0.
+            assert reply.seq <= reply.received_seq + 2, reply
+            assert col.wait_for_seq(reply.seq + 100, 5.0)
+        samples = col.samples()
+        assert samples[reply.seq - 1]["command_deg_s"] != 0.0
+        for s in range(reply.seq, reply.seq + 100):
+            assert samples[s]["command_deg_s"] == 0.0, s
+            assert samples[s]["mode"] == "estop"
+        st = client.fresh_status()
+        assert st.mode == "estop" and st.estop_seq == reply.seq
+        # Start is refused until reset; reset -> stopped (holding), start -> running again.
+        assert not client.command(proto.Start()).ok
+        reset = client.reset()
+        assert reset.ok and reset.mode == "stopped"
+        start = client.command(proto.Start())
+        assert start.ok and start.mode == "running"
+    finally:
+        _running_again(client)
 
 
 def test_estop_key_put_stops_whatever_the_payload(
     controller: ControllerProcess, client: Client
 ) -> None:
-    with client.state() as col:
-        assert wait_until(lambda: len(col.batches()) > 0, 5.0)
-        client.put_estop(b"\x00 not even msgpack")
-        put_seq = col.last_seq()
-        assert wait_until(lambda: client.fresh_status().mode == "estop", 5.0)
-        st = client.fresh_status()
-        assert col.wait_for_seq(st.estop_seq + 20, 5.0)
-    samples = col.samples()
-    assert st.estop_seq > put_seq
-    assert all(samples[s]["command_deg_s"] == 0.0 for s in range(st.estop_seq, st.estop_seq + 20))
+    try:
+        with client.state() as col:
+            assert wait_until(lambda: len(col.batches()) > 0, 5.0)
+            client.put_estop(b"\x00 not even msgpack")
+            put_seq = col.last_seq()
+            assert wait_until(lambda: client.fresh_status().mode == "estop", 5.0)
+            st = client.fresh_status()
+            assert col.wait_for_seq(st.estop_seq + 20, 5.0)
+        samples = col.samples()
+        assert st.estop_seq > put_seq
+        assert all(samples[s]["command_deg_s"] == 0.0
+                   for s in range(st.estop_seq, st.estop_seq + 20))
+    finally:
+        _running_again(client)
 
 
 def test_trajectory_stop_and_start_commands(controller: ControllerProcess, client: Client) -> None:
+    found = client.fresh_status().trajectory
     traj = Trajectory(kind="hold", offset_deg=2.0)
-    r = client.command(proto.SetTrajectory(trajectory=traj))
-    assert r.ok and r.mode == "running"
-    assert wait_until(lambda: client.fresh_status().trajectory == traj, 5.0)
-    stop = client.command(proto.Stop())
-    assert stop.ok and stop.mode == "stopped"
-    # A status built just before the command can still arrive after its reply: wait for the
-    # published state, then check it holds.
-    assert wait_until(lambda: client.fresh_status().mode == "stopped", 5.0)
-    assert client.fresh_status().trajectory.kind == "hold"
-    start = client.command(proto.Start())
-    assert start.ok and start.mode == "running"
-    assert wait_until(lambda: client.fresh_status().mode == "running", 5.0)
-    st = client.fresh_status()
-    assert st.mode == "running" and st.trajectory == traj
+    assert traj != found
+    try:
+        r = client.command(proto.SetTrajectory(trajectory=traj))
+        assert r.ok and r.mode == "running"
+        assert wait_until(lambda: client.fresh_status().trajectory == traj, 5.0)
+        stop = client.command(proto.Stop())
+        assert stop.ok and stop.mode == "stopped"
+        # A status built just before the command can still arrive after its reply: wait for
+        # the published state, then check it holds.
+        assert wait_until(lambda: client.fresh_status().mode == "stopped", 5.0)
+        assert client.fresh_status().trajectory.kind == "hold"
+        start = client.command(proto.Start())
+        assert start.ok and start.mode == "running"
+        assert wait_until(lambda: client.fresh_status().mode == "running", 5.0)
+        st = client.fresh_status()
+        assert st.mode == "running" and st.trajectory == traj
+    finally:
+        assert client.command(proto.SetTrajectory(trajectory=found)).ok
+        _running_again(client)
 
 
 def test_restart_restores_the_last_accepted_config(
