@@ -143,6 +143,12 @@ class Dashboard:
         self._hidden_3d: set[int] = set()
         """The browsers (client ids) whose 3-D view is hidden."""
         self._hidden_3d_lock = threading.Lock()
+        self._live_hidden: set[str] = set()
+        """The pages (their page script's id) whose Live traces tab is not shown: the live
+        charts' data does not go to them (25 pushes/s of ~60 kB, which a page that has
+        nothing to draw them on still received and decoded)."""
+        self._live_hidden_lock = threading.Lock()
+        self.access.on_view = self._on_view
 
     @property
     def users(self) -> dict[str, Any]:
@@ -260,7 +266,7 @@ class Dashboard:
         live = LivePanel(
             gui, self.client, self.commands.command_async, on_status=self._on_status,
             on_frame=self._on_frame, rate_hz=self.opts.live_rate_hz,
-            max_points=self.opts.live_max_points,
+            max_points=self.opts.live_max_points, audience=self._live_audience,
         )
         self.live = live
         self.history = HistoryPanel(gui, self.client, self._requests, self.candidates.panel_of)
@@ -369,19 +375,56 @@ class Dashboard:
         client.camera.position = (0.75, -0.85, 0.75)
         client.camera.look_at = (0.15, 0.0, 0.05)
 
+    def _connection_of(self, browser: Any) -> Any:
+        """viser's websocket connection of `browser` (None: none, or gone)."""
+        if browser is None or self.server is None:
+            return None
+        return self.server._websock_server._live_connections.get(browser.client_id)
+
     def _slot_of(self, browser: Any) -> str:
         """The candidate slot the browser's page named ("" : none: a page without the page
         script, or no browser)."""
-        if browser is None or self.server is None:
-            return ""
-        conn = self.server._websock_server._live_connections.get(browser.client_id)
+        conn = self._connection_of(browser)
         return self.access.slot_of_connection(conn) if conn is not None else ""
+
+    def _page_of(self, browser: Any) -> str:
+        """The id the browser's page named ("": a page without the page script, or no
+        browser)."""
+        conn = self._connection_of(browser)
+        return self.access.page_of_connection(conn) if conn is not None else ""
+
+    def _on_view(self, page: str, live_shown: bool) -> None:
+        """A page says whether it shows the live traces (its page script, on each change and
+        every few seconds); one that shows them again gets their present data at once."""
+        with self._live_hidden_lock:
+            was_hidden = page in self._live_hidden
+            (self._live_hidden.discard if live_shown else self._live_hidden.add)(page)
+        if live_shown and was_hidden and self.live is not None and self.server is not None:
+            for browser in self.server.get_clients().values():
+                if self._page_of(browser) == page:
+                    self.live.show_in(browser)
+
+    def _live_audience(self) -> list[Any]:
+        """The browsers the live charts' data goes to: every one but the pages that said
+        their Live traces tab is not shown (a page without the page script gets it all)."""
+        if self.server is None:
+            return []
+        with self._live_hidden_lock:
+            hidden = set(self._live_hidden)
+        return [b for b in self.server.get_clients().values()
+                if not hidden or self._page_of(b) not in hidden]
 
     def _on_client_disconnect(self, client: Any) -> None:
         self.sessions.left(client.client_id)
         self.candidates.drop(client.client_id)
         with self._hidden_3d_lock:
             self._hidden_3d.discard(client.client_id)
+        # Forget the pages gone (a page that reported before its websocket was up reports
+        # again within seconds).
+        if self.server is not None:
+            pages = {self._page_of(b) for b in self.server.get_clients().values()}
+            with self._live_hidden_lock:
+                self._live_hidden &= pages
 
     def _fetch_active(self) -> None:
         try:

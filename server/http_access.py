@@ -42,8 +42,8 @@ from urllib.parse import parse_qs, urlsplit
 from server.assets import web_asset
 from server.escape import esc
 
-__all__ = ["COOKIE", "ESTOP_LINK_HTML", "ESTOP_PATH", "PAGE_SCRIPT_FILE", "HttpAccess", "Refused",
-           "install", "page_script_html", "title_html"]
+__all__ = ["COOKIE", "ESTOP_LINK_HTML", "ESTOP_PATH", "PAGE_SCRIPT_FILE", "VIEW_PATH", "HttpAccess",
+           "Refused", "install", "page_script_html", "title_html"]
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +51,10 @@ COOKIE = "dobtune_token"
 #: GET with the cookie (or token): e-stop, outside viser's websocket. The page's always-visible
 #: E-STOP is a plain link to it (into a hidden frame): no script, no websocket needed.
 ESTOP_PATH = "/__dobtune_estop"
+#: GET with the cookie, from the page script: whether the page shows the live traces
+#: (`?dt_page=<the page's id>&live=1`, `live=0`: another plots tab), so that their data goes
+#: only to the pages that show them (`HttpAccess.on_view`). Answered 204, 400 naming a bad field.
+VIEW_PATH = "/__dobtune_view"
 #: Put into the page itself (outside viser's panels, which unmount what they collapse): fixed
 #: to the window above everything, whatever is collapsed or scrolled; a link into a hidden
 #: frame, so it needs neither script nor websocket.
@@ -120,6 +124,8 @@ class HttpAccess:
         default_factory=weakref.WeakKeyDictionary, repr=False)
     _slot_by_connection: weakref.WeakKeyDictionary[Any, str] = field(
         default_factory=weakref.WeakKeyDictionary, repr=False)
+    _page_by_connection: weakref.WeakKeyDictionary[Any, str] = field(
+        default_factory=weakref.WeakKeyDictionary, repr=False)
     page_extra: str = ""
     """HTML put at the end of the page's body (the index page only)."""
     page_script: str = field(default_factory=page_script_html, repr=False)
@@ -127,6 +133,10 @@ class HttpAccess:
     on_estop: Callable[[str], str] | None = None
     """Called with the user for a request to ESTOP_PATH (on the server's event loop: it must
     not block); returns the text to answer."""
+
+    on_view: Callable[[str, bool], None] | None = None
+    """Called with a page's id and whether it shows the live traces, for a request to
+    VIEW_PATH (on the server's event loop: it must not block)."""
 
     def token_of(self, user: str = "") -> str:
         return self.users[user] if self.users else self.token
@@ -140,6 +150,11 @@ class HttpAccess:
         """The candidate slot the page behind this websocket named ("": none; see
         `slot_of_path`)."""
         return self._slot_by_connection.get(connection, "")
+
+    def page_of_connection(self, connection: Any) -> str:
+        """The id of the page behind this websocket (`?dt_page=...`, one per page load; "":
+        none, a page without the page script)."""
+        return self._page_by_connection.get(connection, "")
 
     def allowed_hosts(self) -> set[str]:
         hosts = {self.host, "localhost", "127.0.0.1"}
@@ -170,7 +185,7 @@ class HttpAccess:
         query = parse_qs(urlsplit(path).query)
         by_query = self._user_by(query["token"][0] if query.get("token") else None) is not None
         by_cookie = self._user_by(_cookie(headers.get("Cookie", ""), COOKIE)) is not None
-        if urlsplit(path).path == ESTOP_PATH:  # an action: the same Host check as a websocket
+        if urlsplit(path).path in (ESTOP_PATH, VIEW_PATH):  # actions: a websocket's Host check
             host = headers.get("Host", "")
             if self.port and host not in self.allowed_hosts():
                 return f"host {host!r} is not this dashboard", False
@@ -216,11 +231,16 @@ class HttpAccess:
                     "Content-Type": "text/html; charset=utf-8",
                     "Content-Length": str(len(body)), "Cache-Control": "no-store",
                 }), body)
+            if urlsplit(request.path).path == VIEW_PATH:
+                return self._view(request.path)
             if "Upgrade" in request.headers:
                 self._by_connection[connection] = user
                 slot = slot_of_path(request.path)
                 if slot:
                     self._slot_by_connection[connection] = slot
+                page = _id_param(request.path, PAGE_PARAM)
+                if page:
+                    self._page_by_connection[connection] = page
             response = process_request(connection, request) if process_request else None
             extra = self.page_extra + self.page_script
             if extra and response is not None and urlsplit(request.path).path in (
@@ -233,6 +253,24 @@ class HttpAccess:
             return response
 
         return gated
+
+    def _view(self, path: str) -> Any:
+        """A page's report of what it shows (VIEW_PATH): 204, or 400 naming the bad field."""
+        from websockets.datastructures import Headers
+        from websockets.http11 import Response
+
+        page = _id_param(path, PAGE_PARAM)
+        live = parse_qs(urlsplit(path).query).get("live", [])
+        bad = (PAGE_PARAM if not page else
+               "live" if live not in (["0"], ["1"]) else "")
+        if bad:
+            body = f"{bad}: missing or not valid".encode()
+            return Response(400, "Bad Request", Headers(**{
+                "Content-Type": "text/plain; charset=utf-8", "Content-Length": str(len(body)),
+            }), body)
+        if self.on_view is not None:
+            self.on_view(page, live == ["1"])
+        return Response(204, "No Content", Headers(**{"Cache-Control": "no-store"}), b"")
 
     @contextlib.contextmanager
     def serving(self) -> Iterator[None]:
@@ -258,7 +296,17 @@ def slot_of_path(path: str) -> str:
     slot). The page script (web_assets/dashboard.js) makes one per browser tab, kept in the
     tab's sessionStorage, so a reload of the tab finds its candidate again (the candidate is
     then checked like any other: it names only where to look)."""
-    values = parse_qs(urlsplit(path).query).get(SLOT_PARAM, [])
+    return _id_param(path, SLOT_PARAM)
+
+
+#: The query parameter that names the page (one id per page load, web_assets/dashboard.js):
+#: in its websocket's URL and its VIEW_PATH reports.
+PAGE_PARAM = "dt_page"
+
+
+def _id_param(path: str, name: str) -> str:
+    """The id the query parameter `name` of `path` holds ("": none, or not an id)."""
+    values = parse_qs(urlsplit(path).query).get(name, [])
     return values[0] if values and _SLOT_RE.fullmatch(values[0]) else ""
 
 

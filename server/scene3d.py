@@ -8,6 +8,7 @@ load turns; the reference angle is a translucent ghost marker on the turntable r
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,10 @@ MOTOR_PULLEY_R = 0.025
 MOTOR_X = 0.36
 BELT_Z = 0.05
 N_BELT_MARKERS = 16
+#: The scene moves at most this often (the live refresh runs at 25 Hz): each move is four
+#: messages to every browser and a redraw of its 3-D view (software WebGL on a machine without
+#: a GPU); at 25 Hz they were ~100 messages/s to each page, shown or not.
+SCENE_RATE_HZ = 10.0
 
 
 def _quat_z(angle_rad: float) -> tuple[float, float, float, float]:
@@ -51,7 +56,8 @@ def _add_pulley(scene: Any, wheel: str, mark: str, radius: float, mark_width: fl
 
 
 class TurntableScene:
-    """Scene handles; `update(load_deg, ref_deg)` only moves existing nodes."""
+    """Scene handles; `update(load_deg, ref_deg)` only moves existing nodes (at most
+    SCENE_RATE_HZ times a second)."""
 
     def __init__(self, scene: Any) -> None:
         self.scene = scene
@@ -86,6 +92,7 @@ class TurntableScene:
         scene.add_label("/reference/ghost/label", "reference",
                         position=(0.0, 0.0, 0.03))
         self._last: tuple[float, float] | None = None
+        self._moved_at = -math.inf
 
     def _markers(self, load_deg: float) -> np.ndarray:
         # The belt moves by load angle * load pulley radius (positive angle: counter-clockwise).
@@ -98,9 +105,10 @@ class TurntableScene:
     def update(self, load_deg: float, ref_deg: float) -> None:
         """Rotate the load and the motor pulley to `load_deg`, the ghost to `ref_deg`."""
         key = (round(load_deg, 3), round(ref_deg, 3))
-        if key == self._last:
+        now = time.monotonic()
+        if key == self._last or now - self._moved_at < 1.0 / SCENE_RATE_HZ:
             return
-        self._last = key
+        self._last, self._moved_at = key, now
         a = math.radians(load_deg)
         self.load.wxyz = _quat_z(a)
         self.motor.wxyz = _quat_z(a * LOAD_PULLEY_R / MOTOR_PULLEY_R)

@@ -9,12 +9,12 @@ import urllib.request
 from collections.abc import Iterator
 
 import pytest
-from helpers import free_port
+from helpers import free_port, wait_for
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from server.app import Dashboard, DashboardOptions
-from server.http_access import COOKIE, ESTOP_PATH, HttpAccess
+from server.http_access import COOKIE, ESTOP_PATH, VIEW_PATH, HttpAccess
 
 
 @pytest.fixture(scope="module")
@@ -144,3 +144,43 @@ def test_the_estop_link_needs_the_token_and_this_host(dash: Dashboard) -> None:
         assert calls == [""]
     finally:
         dash.access.on_estop = real
+
+
+def test_a_page_says_whether_it_shows_the_live_traces(dash: Dashboard) -> None:
+    """The page script reports whether its page shows the live traces (VIEW_PATH, as the E-STOP:
+    the token and this host); the page is known by the id its websocket named. A bad report is
+    refused naming its field. (That the data then goes to the other pages only: the browser
+    test test_ui_browser.py, with real pages.)"""
+    import viser
+
+    page = "p" * 24
+    url = f"http://{_base(dash)}{VIEW_PATH}"
+    ok = {"Cookie": f"{COOKIE}={dash.access.token}"}
+    with connect(f"ws://{_base(dash)}/?dt_page={page}", additional_headers=ok, open_timeout=5,
+                 subprotocols=[f"viser-v{viser.__version__}"]):  # type: ignore[list-item]
+        assert dash.server is not None
+        conns = dash.server._websock_server._live_connections
+        wait_for(lambda: any(dash.access.page_of_connection(c) == page
+                             for c in list(conns.values())), 10.0,
+                 "the websocket's page id is not known")
+        with pytest.raises(urllib.error.HTTPError) as err:
+            urllib.request.urlopen(f"{url}?dt_page={page}&live=0", timeout=5)
+        assert err.value.code == 401 and page not in dash._live_hidden
+        rebound = {**ok, "Host": f"evil:{dash.access.port}"}
+        with pytest.raises(urllib.error.HTTPError):
+            urllib.request.urlopen(urllib.request.Request(
+                f"{url}?dt_page={page}&live=0", headers=rebound), timeout=5)
+        assert page not in dash._live_hidden
+        for query, field in (("dt_page=x&live=0", "dt_page"), (f"dt_page={page}&live=2", "live"),
+                             (f"dt_page={page}", "live")):
+            with pytest.raises(urllib.error.HTTPError) as err:
+                urllib.request.urlopen(urllib.request.Request(f"{url}?{query}", headers=ok),
+                                       timeout=5)
+            assert err.value.code == 400 and err.value.read().decode().startswith(field)
+        assert page not in dash._live_hidden
+        for live, hidden in (("0", True), ("1", False), ("0", True)):
+            with urllib.request.urlopen(
+                    urllib.request.Request(f"{url}?dt_page={page}&live={live}", headers=ok),
+                    timeout=5) as r:
+                assert r.status == 204 and r.headers["Cache-Control"] == "no-store"
+            assert (page in dash._live_hidden) is hidden, f"live={live}"

@@ -51,11 +51,14 @@
     }
     return id;
   }
+  // This page load's id: its websocket names it, and so do its reports of what it shows.
+  const PAGE_ID = Array.from(crypto.getRandomValues(new Uint8Array(12)),
+                             (b) => b.toString(16).padStart(2, "0")).join("");
   (function nameSlot() {
     const p = new URLSearchParams(location.search);
     const scheme = location.protocol === "https:" ? "wss://" : "ws://";
     p.set("websocket", scheme + location.host + location.pathname.replace(/\/$/, "") +
-      "/?dt_slot=" + slotId());
+      "/?dt_slot=" + slotId() + "&dt_page=" + PAGE_ID);
     history.replaceState(history.state, "", location.pathname + "?" + p.toString() +
       location.hash);
   })();
@@ -655,6 +658,40 @@
     }
   }
 
+  // ---- what the page shows, to the dashboard ---------------------------------------------------
+  // The live charts' data goes only to the pages that show the Live traces tab
+  // (server/http_access.py VIEW_PATH): the page says so when that changes, and every
+  // REPORT_EVERY_MS (a dashboard restarted meanwhile knows it again).
+
+  const VIEW_PATH = "/__dobtune_view";
+  const LIVE_TAB = "Live traces";
+  const REPORT_EVERY_MS = 10000;
+  const RETRY_MS = 2000;
+  let reported = null; // [live shown, when] of the last report the dashboard took
+  let reporting = false;
+  let failedAt = 0; // when the last report failed (0: it did not)
+  function reportView() {
+    const sel = selectedIn(groups().plot);
+    if (!sel || reporting || Date.now() - failedAt < RETRY_MS) return; // tabs not drawn yet
+    const live = tabLabel(sel) === LIVE_TAB;
+    if (reported && reported[0] === live && Date.now() - reported[1] < REPORT_EVERY_MS) return;
+    reporting = true;
+    const fail = (why) => {
+      if (!failedAt) console.warn("dobtune: the view report failed:", why);
+      failedAt = Date.now();
+    };
+    fetch(`${VIEW_PATH}?dt_page=${PAGE_ID}&live=${live ? 1 : 0}`,
+          { credentials: "same-origin", cache: "no-store" })
+      .then((r) => {
+        if (!r.ok) return fail(`HTTP ${r.status}`);
+        reported = [live, Date.now()];
+        failedAt = 0;
+      }, fail)
+      .finally(() => {
+        reporting = false;
+      });
+  }
+
   // ---- upkeep ----------------------------------------------------------------------------------
 
   let pending = false;
@@ -669,6 +706,7 @@
       hideLogBoxes();
       if (Object.keys(want).length) restore();
       syncUrl();
+      reportView();
     } catch (err) {
       console.error("dobtune page script:", err);
     }

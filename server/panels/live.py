@@ -1,8 +1,8 @@
 """Live panel: rolling traces, metrics, loop health, connection banner, trajectory, e-stop.
 
 The GUI is built once; one thread (`server.workers.Periodic`) refreshes the charts at
-`rate_hz` from the client's ring buffer and the slower texts at a few Hz, assigning only
-changed properties.
+`rate_hz` from the client's ring buffer (their data to the browsers `audience` names: those
+that show them) and the slower texts at a few Hz, assigning only changed properties.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from server import charts
 from server.alarms import AlarmBoard, alarms_html
 from server.escape import esc
 from server.health import HealthJudgement, TimingHistory, health_html, judge_timing
-from server.panels.widgets import add_chart, confirm, set_html
+from server.panels.widgets import add_chart, confirm, send_data, set_html
 from server.workers import Periodic
 
 __all__ = ["LivePanel", "LiveStats", "banner_html", "window_metrics"]
@@ -128,6 +128,7 @@ class LivePanel:
         on_frame: Callable[[dict[str, float] | None], None] | None = None,
         rate_hz: float = 25.0,
         max_points: int = 1000,
+        audience: Callable[[], list[Any]] | None = None,
     ) -> None:
         self.gui = gui
         self.client = client
@@ -136,6 +137,8 @@ class LivePanel:
         self._on_frame = on_frame
         self.rate_hz = rate_hz
         self.max_points = max_points
+        self._audience = audience
+        """The browsers the charts' data goes to (those that show them); None: every one."""
         self.stats = LiveStats()
         self._charts: dict[str, Any] = {}
         self._last_total = -1
@@ -235,6 +238,11 @@ class LivePanel:
                 cursor={"show": True, "drag": {"x": False, "y": False}},
             )
 
+    def show_in(self, browser: Any) -> None:
+        """The charts' present data to `browser` (its page shows them from now on)."""
+        for handle in self._charts.values():
+            send_data(handle, handle.data, [browser])
+
     # -- running -----------------------------------------------------------------------------
 
     def start(self) -> None:
@@ -266,8 +274,13 @@ class LivePanel:
                 self._last_window = window
             cols, version = ring.window(window)
             data = charts.live_data(cols["t_s"], cols, version, self.max_points)
-            for key, handle in self._charts.items():
-                handle.data = data[key]
+            if self._audience is None:
+                for key, handle in self._charts.items():
+                    handle.data = data[key]
+            else:
+                browsers = self._audience()
+                for key, handle in self._charts.items():
+                    send_data(handle, data[key], browsers)
             self.stats.chart_pushes += 1
             if self._on_frame is not None:
                 self._on_frame(ring.latest())

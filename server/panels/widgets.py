@@ -13,7 +13,7 @@ from server.escape import esc
 from server.export import chart_csv, export_filename
 
 __all__ = ["ACCEPT", "EXPORT_LABEL", "NEUTRAL", "REJECT", "add_chart", "add_export_row", "box",
-           "confirm", "reason_list", "set_html", "set_width_in"]
+           "confirm", "reason_list", "send_data", "set_html", "set_width_in"]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +89,19 @@ def set_width_in(browser: Any, panel: Any, width_px: float) -> None:
     handle = MainPanelHandle(browser.gui)
     handle._placement_uuid = panel._placement_uuid
     handle.set_width(width_px)
+
+
+def send_data(chart: Any, data: Any, browsers: Any) -> None:
+    """A uPlot handle's `data` set here (its CSV reads it) and sent to `browsers` only, where
+    an assignment to `chart.data` goes to every browser (and stays in viser's buffer for the
+    browsers that connect later: a browser that gets none of these shows the data it had)."""
+    from viser._messages import GuiUpdateMessage
+
+    value = chart._cast_value_recursive(chart._prop_hints["data"], data, "data")
+    chart._impl.props.data = value
+    message = GuiUpdateMessage(chart._impl.uuid, {"data": value})
+    for browser in browsers:
+        browser.gui._websock_interface.queue_message(message)
 
 
 def set_html(handle: Any, content: str) -> None:

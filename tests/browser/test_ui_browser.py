@@ -11,7 +11,15 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import ARTIFACTS, FIRST_LOAD_S, only_panel, set_number, wait_shown_text
+from conftest import (
+    ARTIFACTS,
+    FIRST_LOAD_S,
+    VIEWPORT,
+    only_panel,
+    open_when_ready,
+    set_number,
+    wait_shown_text,
+)
 from helpers import wait_for
 
 from controller import protocol as proto
@@ -490,3 +498,52 @@ def test_empty_charts_draw_no_fake_data(page: Any) -> None:
         assert all(s["n"] == 0 for s in chart["finite"]), chart
         assert chart["ymin"] is not None and chart["ymax"] is not None, chart
         assert chart["ymax"] > chart["ymin"], chart
+
+
+#: JS: per live chart, how many times uPlot took new data (a setData hook, added at first call).
+SETS_JS = """() => Object.values(window.__viserTestpoints?.uplots || {}).map(e => e.chart)
+  .filter(c => c.series.some(s => s.label === 'config v')).map(c => {
+    if (c.__dtSets === undefined) {
+      c.__dtSets = 0;
+      (c.hooks.setData ??= []).push(() => { c.__dtSets++; });
+    }
+    return c.__dtSets;
+  })"""
+#: JS: the id this page load named in its websocket's URL (web_assets/dashboard.js PAGE_ID;
+#: viser writes that URL into the page's own unescaped).
+PAGE_ID_JS = """() => (location.href.match(/[?&]dt_page=([0-9a-f]+)/) || [])[1] || null"""
+
+
+def test_live_data_goes_only_to_the_pages_that_show_it(page: Any, dashboard: Dashboard) -> None:
+    """A page whose plots show another tab than Live traces gets none of the live charts' data
+    (25 pushes/s, ~1.2 MB/s, it had nothing to draw on); another page that shows them gets it;
+    the first page's charts draw the window as soon as it shows them."""
+    assert dashboard.live is not None and dashboard.server is not None
+    page.get_by_role("tab", name="Bode").click()
+    hidden_id = page.evaluate(PAGE_ID_JS)
+    assert hidden_id, page.url
+    wait_for(lambda: hidden_id in dashboard._live_hidden, 60.0,
+             "the page never said its live traces are hidden")
+    ctx = page.context.browser.new_context(viewport=VIEWPORT)
+    try:
+        other = ctx.new_page()
+        open_when_ready(other, dashboard, FIRST_LOAD_S)
+        other.get_by_role("tab", name="Live traces").click()
+        _live_ok(other, LIVE_WINDOW_S)
+        hidden0, shown0 = page.evaluate(SETS_JS), other.evaluate(SETS_JS)
+        pushes0 = dashboard.live.stats.chart_pushes
+        wait_for(lambda: dashboard.live.stats.chart_pushes >= pushes0 + 50, 60.0,
+                 "the dashboard stopped pushing the live charts")
+        wait_for(lambda: min(b - a for a, b in zip(shown0, other.evaluate(SETS_JS),
+                                                   strict=True)) >= 10, 60.0,
+                 "the page that shows the live traces got too little of their data")
+        hidden1 = page.evaluate(SETS_JS)
+        assert hidden1 == hidden0, (f"the page that hides the live traces got their data: "
+                                    f"{hidden0} -> {hidden1} updates per chart over "
+                                    f"{dashboard.live.stats.chart_pushes - pushes0} pushes")
+        page.get_by_role("tab", name="Live traces").click()
+        _live_ok(page, LIVE_WINDOW_S)  # (its charts may be new: no counts to compare)
+    finally:
+        ctx.close()
+    wait_for(lambda: len(dashboard.panels) == 1, 60.0, "the second page never left")
+    page.get_by_role("tab", name="Tune").click()
