@@ -395,11 +395,20 @@ class Dashboard:
 
     def _on_view(self, page: str, live_shown: bool) -> None:
         """A page says whether it shows the live traces (its page script, on each change and
-        every few seconds); one that shows them again gets their present data at once."""
+        every few seconds); one that shows them again gets their present data at once. Only
+        the pages connected now are kept: ids made up by a client do not pile up (a page that
+        reported before its websocket was up gets the data until its next report)."""
+        if self.server is None:
+            return
+        connected = any(self.access.page_of_connection(c) == page
+                        for c in list(self.server._websock_server._live_connections.values()))
         with self._live_hidden_lock:
             was_hidden = page in self._live_hidden
-            (self._live_hidden.discard if live_shown else self._live_hidden.add)(page)
-        if live_shown and was_hidden and self.live is not None and self.server is not None:
+            if live_shown:
+                self._live_hidden.discard(page)
+            elif connected:
+                self._live_hidden.add(page)
+        if live_shown and was_hidden and self.live is not None:
             for browser in self.server.get_clients().values():
                 if self._page_of(browser) == page:
                     self.live.show_in(browser)

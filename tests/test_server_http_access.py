@@ -184,3 +184,10 @@ def test_a_page_says_whether_it_shows_the_live_traces(dash: Dashboard) -> None:
                     timeout=5) as r:
                 assert r.status == 204 and r.headers["Cache-Control"] == "no-store"
             assert (page in dash._live_hidden) is hidden, f"live={live}"
+        # A hostile client's made-up ids (no page of theirs is connected) are not kept.
+        for k in range(200):
+            with urllib.request.urlopen(urllib.request.Request(
+                    f"{url}?dt_page={k:024d}&live=0", headers=ok), timeout=5) as r:
+                assert r.status == 204
+        made_up = {f"{k:024d}" for k in range(200)}
+        assert page in dash._live_hidden and not made_up & dash._live_hidden
