@@ -6,6 +6,7 @@ code this replaced: tests/bench/gate_answers_ab.py --before REV.)"""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -14,6 +15,7 @@ from gate_cases import canon, knowledge_set, random_configs
 
 from controller.core.config import LoopConfig
 from controller.gate import analysis, margins, search
+from controller.gate.knowledge import COMMISSIONING_BOUND, PlantKnowledge
 from controller.gate.margins import Evaluator, GroupEvaluator, RefineTask
 from controller.gate.search import RecommendationSearch
 
@@ -188,3 +190,41 @@ def test_the_refinement_of_every_task_at_once_equals_each_alone_on_odd_values() 
         assert a == b
         odd += sum(not math.isfinite(t.value) for t in together)
     assert odd > 20  # the odd values were met
+
+
+def test_each_measured_response_judged_beside_others_as_alone(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The measured responses' first pass (their loops as rows of one array where they share
+    a grid) against each response judged alone: every figure of its evidence bit for bit, on
+    knowledge that mixes responses sharing a grid, one on a grid of its own, and loops that
+    turn fast enough to be refined."""
+    plants = knowledge_set()
+    mixed = [dataclasses.replace(m, name=f"{k}/{m.name}")
+             for k in (0, 3, 4) for m in plants[k].measured]
+    both = PlantKnowledge(tuple(mixed), COMMISSIONING_BOUND, plants[0].model)
+    alone = [PlantKnowledge((m,), COMMISSIONING_BOUND, plants[0].model) for m in mixed]
+    rows: list[int] = []
+    refined = 0
+    real_windings, real_refine = margins.windings_ok, analysis.refine_by_phase
+
+    def windings(d: np.ndarray, m: list[int]) -> list[bool]:
+        rows.append(d.shape[0])
+        return real_windings(d, m)
+
+    def refine(*args: object) -> object:
+        nonlocal refined
+        refined += 1
+        return real_refine(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(analysis, "windings_ok", windings)
+    monkeypatch.setattr(analysis, "refine_by_phase", refine)
+    stable = set()
+    for cfg, _ in random_configs(40, 23):
+        a = analysis.analyse(cfg, both)
+        stable |= {s.base_loop_stable for s in a.sources[1:]}
+        for i, k in enumerate(alone):
+            assert canon(a.sources[1 + i]) == canon(analysis.analyse(cfg, k).sources[1]), (cfg, i)
+    # Judged together (both loops of several responses in one array), refined alone, and
+    # responses that prove the loop stable and others that do not.
+    assert max(rows) >= 6 and refined > 0 and stable == {True, False}

@@ -107,17 +107,20 @@ from controller.gate.loop_model import (
 )
 from controller.gate.margins import (
     LoopCrossings,
+    LoopTasks,
     Margins,
     Outputs,
     RefineTask,
     bandwidth_of,
     crossings_of,
-    loop_tasks,
+    loop_tasks_rows,
     margins_of,
     peak_task,
+    peak_tasks_rows,
     solve,
     solve_groups,
     winding_ok,
+    windings_ok,
 )
 
 __all__ = [
@@ -722,10 +725,11 @@ def accepted_cutoffs(cfg: LoopConfig, cutoffs_hz: list[float],
                      plant: PlantKnowledge | None = None,
                      limits: GateLimits | None = None) -> list[bool]:
     """`accepted` of cfg with each Q cut-off in `cutoffs_hz`, the cut-offs judged together:
-    one refinement for all of them, each round evaluating the loop, the plant model and every
-    measured response once for every cut-off's points (only the DOB's filters are evaluated
-    per cut-off). Each answer is `accepted`'s for that cut-off alone (every output is per
-    frequency point)."""
+    the measured responses' first passes of every cut-off as rows of one array
+    (`_MeasuredPasses`), then one refinement for all of them, each round evaluating the loop,
+    the plant model and every measured response once for every cut-off's points (only the
+    DOB's filters are evaluated per cut-off). Each answer is `accepted`'s for that cut-off
+    alone (every output is per frequency point)."""
     plant = plant if plant is not None else PlantKnowledge()
     limits = limits if limits is not None else GateLimits()
     f = default_grid(cfg.rate_hz)
@@ -735,6 +739,7 @@ def accepted_cutoffs(cfg: LoopConfig, cutoffs_hz: list[float],
     answers = [False] * len(cutoffs_hz)
     started: list[tuple[int, DobFilters | None, _Started]] = []
     gains = _GainMemo(cfg, model)
+    survivors: list[tuple[int, LoopConfig, DobFilters | None, LoopBlocks, float]] = []
     for i, fc in enumerate(cutoffs_hz):
         c = cfg.with_(q_cutoff_hz=fc)
         used = dob_filters(c) if on else None
@@ -745,8 +750,13 @@ def accepted_cutoffs(cfg: LoopConfig, cutoffs_hz: list[float],
         _, max_radius = _poles(c, used, model)
         if not max_radius < limits.pole_radius_limit(c.rate_hz):
             continue  # a rejection, or a caution with measured responses
+        survivors.append((i, c, used, bk, max_radius))
+    if survivors:
+        passes = _MeasuredPasses(plant, f, [(c, _BlocksMemo(c, used, model, gains))
+                                            for _, c, used, _, _ in survivors])
+    for case, (i, c, used, bk, max_radius) in enumerate(survivors):
         st = _evidence_start(c, plant, f, x, bk, limits, max_radius, None, used,
-                             decisive_only=True, gains=gains)
+                             decisive_only=True, batch=(passes, case))
         if st is not None:
             started.append((i, used, st))
     if not started:
@@ -849,21 +859,21 @@ class _Started:
 def _evidence_start(
     cfg: LoopConfig, plant: PlantKnowledge, f: FloatArray, x: FloatArray, bk: LoopBlocks,
     limits: GateLimits, max_radius: float, gyw: ComplexArray | None, used: DobFilters | None,
-    *, decisive_only: bool = False, gains: _GainMemo | None = None,
+    *, decisive_only: bool = False, batch: tuple[_MeasuredPasses, int] | None = None,
 ) -> _Started | None:
     """Every piece of evidence up to its refinement (with `decisive_only`, None at the first
-    reason: the candidate is not accepted; `gains`: the gains' blocks, shared)."""
-    model = plant.model
+    reason: the candidate is not accepted; `batch`: the measured responses' first passes,
+    shared with other cut-offs, and this candidate's place among them)."""
     on = cfg.dob_on
-    blocks = _BlocksMemo(cfg, used, model, gains)
+    if batch is None:
+        batch = (_MeasuredPasses(plant, f, [(cfg, _BlocksMemo(cfg, used, plant.model))]), 0)
+    passes, case = batch
     reasons: list[tuple[list[str], list[str]]] = [([], []) for _ in range(len(plant.measured) + 1)]
     model_part = _model_evidence(
         cfg, plant, f, x, bk, limits, max_radius, on, gyw, *reasons[0], decisive_only)
     measured_parts = [
-        _measured_evidence(
-            cfg, _measured_model(m, cfg.rate_hz, model, plant.bound), f, blocks, f"{i}:",
-            limits, *reasons[i + 1], decisive_only)
-        for i, m in enumerate(plant.measured)
+        _measured_evidence(cfg, passes, case, i, f, limits, *reasons[i + 1], decisive_only)
+        for i in range(len(passes.mms))
     ]
     parts: list[Generator[Refinement, None, Any]] = [model_part, *measured_parts]
     refinements: list[Refinement] = []
@@ -1012,8 +1022,7 @@ def _model_evidence(
             out["wtf"] = w * b.g * f_ / (o + b.g * f_)
         return out
 
-    lt = loop_tasks(x, g * ks / one, "L")
-    ltf = loop_tasks(x, g * kf / one, "Lf")
+    lt, ltf = loop_tasks_rows(x, g * np.stack([ks, kf]) / one, ["L", "Lf"])
     tasks = lt.all() + ltf.all()
     below = np.nonzero(np.abs(gyw) < DB_3)[0] if gyw is not None else np.zeros(0, dtype=int)
     bw_task = None
@@ -1142,64 +1151,184 @@ class _BlocksMemo:
         return b
 
 
+@dataclass(frozen=True, eq=False)
+class _FirstPass:
+    """A measured response's evidence up to its refinement: the grid (the analysis grid with
+    the measured points, refined where the loop turns fast), the argument principle's answer,
+    |T| of both loops there, its allowance, and the tasks to refine."""
+
+    f: FloatArray
+    x: FloatArray
+    stable: bool
+    t_speed: FloatArray
+    t_full: FloatArray
+    allowance: FloatArray
+    lt: LoopTasks
+    ltf: LoopTasks
+    sp: RefineTask
+    fp: RefineTask
+
+
+class _MeasuredPasses:
+    """Every measured response's `_FirstPass` for one or more candidates that differ only in
+    the DOB's cut-off (`cases`: each one's configuration and loop blocks), computed together
+    when the first is asked for.
+
+    The grid: the analysis grid, every measured point (the allowance jumps there) and the
+    middle of every measured interval (each interval's allowance sampled inside it, also when
+    the points coincide with the analysis grid), refined where the loop turns fast (the phase
+    of 1 + L moves more than 20 deg between neighbours: a sharp resonance or a pass close to
+    -1 between grid points is followed, not stepped over). The responses that share a grid
+    (measured at the same frequencies) share it for every candidate, and their loops with
+    every candidate are judged as rows of one array, each row as the response alone gives it
+    with that candidate alone (every value is per point); a response whose loop turns too
+    fast on that grid is refined alone."""
+
+    def __init__(self, plant: PlantKnowledge, f0: FloatArray,
+                 cases: list[tuple[LoopConfig, _BlocksMemo]]) -> None:
+        rate_hz = cases[0][0].rate_hz
+        self.mms = [_measured_model(m, rate_hz, plant.model, plant.bound)
+                    for m in plant.measured]
+        self.tags = [f"{i}:" for i in range(len(self.mms))]
+        self._f0, self._cases = f0, cases
+        self._passes: dict[tuple[int, int], _FirstPass] | None = None
+
+    def blocks(self, case: int) -> _BlocksMemo:
+        return self._cases[case][1]
+
+    def get(self, case: int, i: int) -> _FirstPass:
+        """Response i's pass with candidate `case`."""
+        if self._passes is None:
+            self._passes = self._compute()
+        return self._passes[case, i]
+
+    def _compute(self) -> dict[tuple[int, int], _FirstPass]:
+        mms = self.mms
+        grids = [mm.grid(self._f0) for mm in mms]
+        by_grid: dict[bytes, list[int]] = {}
+        for i, g in enumerate(grids):
+            by_grid.setdefault(g.tobytes(), []).append(i)
+        passes: dict[tuple[int, int], _FirstPass] = {}
+        for rows in by_grid.values():
+            f = grids[rows[0]]
+            k = len(rows)
+            gk_parts: list[ComplexArray] = []
+            d_parts: list[ComplexArray] = []
+            ones: list[ComplexArray] = []
+            for cfg, lb in self._cases:
+                b = lb(f)
+                one, ks, kf = _controller_parts(b, cfg.dob_on)
+                gm = np.stack([mms[i].plant(f, b.g) for i in rows])
+                gk = np.concatenate([gm * ks, gm * kf])  # (the speed loops, then the whole's)
+                gk_parts.append(gk)
+                d_parts.append(one + gk)
+                ones.append(one)
+            # Row (c, loop, j): candidate c's speed loop (0) or whole servo (1) with rows[j].
+            gk_all = np.concatenate(gk_parts)
+            d = np.concatenate(d_parts)
+            fine = np.all(np.isfinite(d), axis=1) & ~np.any(d == 0, axis=1)
+            turns = np.any(np.abs(np.angle(d[:, 1:] / d[:, :-1])) > _MAX_PHASE_STEP_RAD, axis=1)
+            clean = (fine & ~turns).tolist()
+            together: list[tuple[int, int]] = []  # (case, j)
+            for c in range(len(self._cases)):
+                for j in range(k):
+                    r = 2 * k * c + j
+                    if clean[r] and clean[r + k]:
+                        together.append((c, j))
+                    else:
+                        passes[c, rows[j]] = self._alone(
+                            c, rows[j], f, [(d[r], fine[r], clean[r]),
+                                            (d[r + k], fine[r + k], clean[r + k])])
+            if together:
+                # (On an unrefined grid the union of both loops' grids is the grid itself.)
+                speed = [2 * k * c + j for c, j in together]
+                both = speed + [r + k for r in speed]
+                ms = [_integrators(self._cases[c][0], False) for c, _ in together]
+                mf = [_integrators(self._cases[c][0], True) for c, _ in together]
+                stable = windings_ok(d[both], ms + mf)
+                n = len(together)
+                one_rows = np.stack([ones[c] for c, _ in together] * 2)
+                made = self._tasks(f, gk_all[both], d[both], one_rows,
+                                   [(c, rows[j]) for c, j in together],
+                                   [s1 and s2 for s1, s2 in zip(stable[:n], stable[n:],
+                                                                strict=True)])
+                passes.update(made)
+        return passes
+
+    def _alone(self, case: int, i: int, f: FloatArray,
+               loops: list[tuple[ComplexArray, bool, bool]]) -> _FirstPass:
+        """Response i's pass with candidate `case` on its own, given (1 - F2 z^-1 + G_m (C +
+        F1) on f, finite and non-zero, turning slowly enough) of its speed loop and its whole
+        servo: a loop that turns too fast is refined (`refine_by_phase`)."""
+        mm = self.mms[i]
+        cfg, lb = self._cases[case]
+        on = cfg.dob_on
+
+        def d_of(full: bool) -> Callable[[FloatArray], ComplexArray]:
+            def d(ff: FloatArray) -> ComplexArray:
+                b = lb(ff)
+                o, s_, f_ = _controller_parts(b, on)
+                return o + mm.plant(ff, b.g) * (f_ if full else s_)
+            return d
+
+        r_speed, r_full = (
+            None if not fine else (f, d) if clean else refine_by_phase(d_of(full), f)
+            for full, (d, fine, clean) in zip((False, True), loops, strict=True)
+        )
+        stable = (
+            r_speed is not None and r_full is not None
+            and winding_ok(r_speed[1], _integrators(cfg, False))
+            and winding_ok(r_full[1], _integrators(cfg, True))
+        )
+        if r_speed is not None and r_full is not None:
+            f = np.union1d(r_speed[0], r_full[0])
+        b = lb(f)
+        one, ks, kf = _controller_parts(b, on)
+        gm = mm.plant(f, b.g)
+        gk = np.stack([gm * ks, gm * kf])
+        return self._tasks(f, gk, one + gk, one, [(case, i)], [stable])[case, i]
+
+    def _tasks(self, f: FloatArray, gk: ComplexArray, d: ComplexArray, one: ComplexArray,
+               which: list[tuple[int, int]], stable: list[bool]
+               ) -> dict[tuple[int, int], _FirstPass]:
+        """The passes of (candidate, response) pairs `which` on the grid f, given G_m (Cv +
+        F1) and G_m (C_tot + F1) of each (rows: every pair's speed loop, then every pair's
+        whole servo), 1 - F2 z^-1 + those (the loops' denominators) and 1 - F2 z^-1 (one row,
+        or a row per row)."""
+        x = np.log(f)
+        tags = [self.tags[i] for _, i in which]
+        t = np.abs(gk / d)
+        kept = {i: self.mms[i].allowance(f) for i in {i for _, i in which}}
+        a = np.stack([kept[i] for _, i in which])
+        lts = loop_tasks_rows(x, gk / one, [tg + "L" for tg in tags] + [tg + "Lf" for tg in tags])
+        peaks = peak_tasks_rows(x, np.concatenate([a, a]) * t,
+                                [tg + "ts" for tg in tags] + [tg + "tf" for tg in tags])
+        n = len(which)
+        return {
+            w: _FirstPass(f, x, stable[j], t[j], t[n + j], a[j], lts[j], lts[n + j], peaks[j],
+                          peaks[n + j])
+            for j, w in enumerate(which)
+        }
+
+
 def _measured_evidence(
-    cfg: LoopConfig, mm: _MeasuredModel, f0: FloatArray, lb: _BlocksMemo, tag: str,
-    limits: GateLimits, rejections: list[str], cautions: list[str], decisive_only: bool = False,
+    cfg: LoopConfig, passes: _MeasuredPasses, case: int, i: int, f0: FloatArray,
+    limits: GateLimits, rejections: list[str], cautions: list[str],
+    decisive_only: bool = False,
 ) -> Generator[Refinement, None, SourceResult | None]:
     """A measured response's evidence (`decisive_only`: only what can give a reason, None for
-    the conclusion, and no refinement after a rejection by the argument principle)."""
+    the conclusion, and no refinement after a rejection by the argument principle), from its
+    first pass (`_MeasuredPasses`: the grid, the argument principle, the tasks)."""
     on = cfg.dob_on
+    mm, tag, lb = passes.mms[i], passes.tags[i], passes.blocks(case)
     where = f"measured response {mm.name!r}"
-    # (plant, 1 - F2 z^-1, Cv + F1, C_tot + F1, the blocks) per grid: the stability test asks
-    # for the speed loop's and the whole servo's on the same grid, the margins once more.
-    memo: dict[bytes, tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray,
-                            LoopBlocks]] = {}
-
-    def parts(ff: FloatArray) -> tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray,
-                                       LoopBlocks]:
-        key = ff.tobytes() if ff.size >= _GainMemo.MIN_POINTS else None
-        got = memo.get(key) if key is not None else None
-        if got is None:
-            b = lb(ff)
-            o, s_, f_ = _controller_parts(b, on)
-            got = (mm.plant(ff, b.g), o, s_, f_, b)
-            if key is not None:
-                memo[key] = got
-        return got
-
-    def blocks(ff: FloatArray) -> tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray]:
-        return parts(ff)[:4]
-
-    def d_speed(ff: FloatArray) -> ComplexArray:
-        g2, o, s_, _ = blocks(ff)
-        return o + g2 * s_
-
-    def d_full(ff: FloatArray) -> ComplexArray:
-        g2, o, _, f_ = blocks(ff)
-        return o + g2 * f_
-
-    # The grid: the analysis grid, every measured point (the allowance jumps there) and the
-    # middle of every measured interval (each interval's allowance sampled inside it, also
-    # when the points coincide with the analysis grid), refined where the loop turns fast
-    # (the phase of 1 + L moves more than 20 deg between neighbours: a sharp resonance or a
-    # pass close to -1 between grid points is followed, not stepped over).
-    f = mm.grid(f0)
-    r_speed = refine_by_phase(d_speed, f)
-    r_full = refine_by_phase(d_full, f)
-    stable = (
-        r_speed is not None
-        and r_full is not None
-        and winding_ok(r_speed[1], _integrators(cfg, False))
-        and winding_ok(r_full[1], _integrators(cfg, True))
-    )
+    first = passes.get(case, i)
+    stable = first.stable
     if not stable:
         rejections.append(f"unstable or not proven stable with the {where} (argument principle)")
         if decisive_only:
             return None
-    if r_speed is not None and r_full is not None:
-        f = np.union1d(r_speed[0], r_full[0])
-    x = np.log(f)
-    gm, one, ks, kf, bk = parts(f)
+    f, x = first.f, first.x
 
     def ev(ff: FloatArray, b: LoopBlocks, pts: _Points) -> Outputs:
         o, s_, f_ = _controller_parts(b, on)
@@ -1212,13 +1341,8 @@ def _measured_evidence(
             tag + "tf": a * g2 * f_ / (o + g2 * f_),
         }
 
-    a = mm.allowance(f)
-    t_speed = np.abs(gm * ks / (one + gm * ks))
-    t_full = np.abs(gm * kf / (one + gm * kf))
-    lt = loop_tasks(x, gm * ks / one, tag + "L")
-    ltf = loop_tasks(x, gm * kf / one, tag + "Lf")
-    sp = peak_task(x, a * t_speed, tag + "ts")
-    fp = peak_task(x, a * t_full, tag + "tf")
+    a, t_speed, t_full = first.allowance, first.t_speed, first.t_full
+    lt, ltf, sp, fp = first.lt, first.ltf, first.sp, first.fp
     yield [*lt.all(), *ltf.all(), sp, fp], ev
     margins, margins_full = margins_of(lt), margins_of(ltf)
     if stable:
@@ -1247,7 +1371,7 @@ def _measured_evidence(
             )
     if decisive_only:
         return None
-    dq = a * np.abs(bk.f2d)
+    dq = a * np.abs(lb(f).f2d)
     j = int(np.argmax(dq))
     with np.errstate(divide="ignore"):
         inv = -20.0 * np.log10(np.interp(np.log(f0), x, a))

@@ -79,18 +79,54 @@ def solve_groups(groups: list[list[RefineTask]], ev: GroupEvaluator, n: int = 9,
     per group), every round one call of `ev` with each group's points (as `solve` hands
     them to its evaluator). Every group holds a task."""
     assert all(groups) and n > 1
+    plans = [_Plan(g) for g in groups]
     for _ in range(rounds):
         pts = [_brackets(g, n) for g in groups]
         outs = ev([np.exp(p) for p in pts])
-        for g, gp, go in zip(groups, pts, outs, strict=True):
-            _round(g, gp, go, n)
+        for g, plan, gp, go in zip(groups, plans, pts, outs, strict=True):
+            _round(g, plan, gp, go, n)
     finals = ev([np.exp(np.array([t.x for t in g])) for g in groups])
-    for g, final in zip(groups, finals, strict=True):
-        for j, t in enumerate(g):
-            t.out = complex(final[t.key][j])
-            t.value = float(t.fn(final[t.key][j : j + 1])[0])
+    for g, plan, final in zip(groups, plans, finals, strict=True):
+        out = plan.outputs(final, 1)[:, 0]
+        value = plan.values(final, 1)[:, 0]
+        for t, o, v in zip(g, out.tolist(), value.tolist(), strict=True):
+            t.out, t.value = o, v
             if t.kind != 0 and not (-t.kind * t.value <= -t.kind * t.best_v):
                 t.x, t.value = t.best_x, t.best_v
+
+
+class _Plan:
+    """A group's tasks as `_round` takes them by array: the rows of each (key, function)
+    pair, the roots' rows and the extrema's rows with their sign (-kind)."""
+
+    def __init__(self, tasks: list[RefineTask]) -> None:
+        keys: dict[str, int] = {}
+        by: dict[Callable[[ComplexArray], FloatArray], list[int]] = {}
+        for j, t in enumerate(tasks):
+            keys.setdefault(t.key, len(keys))
+            by.setdefault(t.fn, []).append(j)
+        self.keys = list(keys)
+        self.key_of = np.array([keys[t.key] for t in tasks])
+        self.fns = [(fn, np.array(rows)) for fn, rows in by.items()]
+        kinds = np.array([t.kind for t in tasks])
+        self.roots = np.nonzero(kinds == 0)[0]
+        self.extrema = np.nonzero(kinds != 0)[0]
+        self.sign = (-kinds[self.extrema]).astype(np.float64)
+
+    def outputs(self, outs: Outputs, n: int) -> ComplexArray:
+        """Each task's own output at its n points (a row per task) from `outs` (n points
+        per task, every key)."""
+        m = self.key_of.size
+        stacked = np.stack([outs[k] for k in self.keys]).reshape(len(self.keys), m, n)
+        return stacked[self.key_of, np.arange(m)]
+
+    def values(self, outs: Outputs, n: int) -> FloatArray:
+        """Each task's function of its own output at its n points (a row per task)."""
+        h = self.outputs(outs, n)
+        v = np.empty(h.shape)
+        for fn, rows in self.fns:
+            v[rows] = fn(h[rows])
+        return v
 
 
 def _brackets(tasks: list[RefineTask], n: int) -> FloatArray:
@@ -111,33 +147,54 @@ def _brackets(tasks: list[RefineTask], n: int) -> FloatArray:
     return y.ravel()
 
 
-def _round(tasks: list[RefineTask], pts: FloatArray, outs: Outputs, n: int) -> None:
-    """One round of `solve` for `tasks` given their outputs at `pts` (n points each)."""
-    for j, t in enumerate(tasks):
-        p = pts[j * n : (j + 1) * n]
-        v = t.fn(outs[t.key][j * n : (j + 1) * n])
-        if t.kind == 0:
-            s = np.sign(v)
-            k = np.nonzero(s[:-1] != s[1:])[0]
-            if k.size:
-                i = int(k[0])
-                t.lo, t.hi = float(p[i]), float(p[i + 1])
-                a, b = float(v[i]), float(v[i + 1])
-                t.x = t.lo if a == b else (t.lo * b - t.hi * a) / (b - a)
-            else:
-                t.x = float(p[int(np.argmin(np.abs(v)))])
-            continue
-        sv = np.where(np.isfinite(v), -t.kind * v, np.inf)
-        i = int(np.argmin(sv))
-        if not sv[i] >= -t.kind * t.best_v:  # also true while best_v is nan
-            t.best_x, t.best_v = float(p[i]), float(v[i])
-        i0, i1 = max(i - 1, 0), min(i + 1, n - 1)
-        t.lo, t.hi = float(p[i0]), float(p[i1])
-        t.x = float(p[i])
-        if 0 < i < n - 1:
-            den = sv[i - 1] - 2.0 * sv[i] + sv[i + 1]
-            if den > 0:
-                t.x = float(p[i] + 0.5 * (p[1] - p[0]) * (sv[i - 1] - sv[i + 1]) / den)
+def _round(tasks: list[RefineTask], plan: _Plan, pts: FloatArray, outs: Outputs, n: int
+           ) -> None:
+    """One round of `solve` for `tasks` given their outputs at `pts` (n points each), all
+    tasks' values and steps as arrays (each row as the task alone computes it: roots, the
+    first sign change's secant, else the point of least |value|; extrema, the best point
+    kept and a parabola through the best point and its neighbours)."""
+    m = len(tasks)
+    p = pts.reshape(m, n)
+    v = plan.values(outs, n)
+    if plan.roots.size:
+        rows = plan.roots
+        vr, pr = v[rows], p[rows]
+        s = np.sign(vr)
+        change = s[:, :-1] != s[:, 1:]
+        has = change.any(axis=1)
+        i = np.where(has, change.argmax(axis=1), np.argmin(np.abs(vr), axis=1))
+        r = np.arange(rows.size)
+        j = np.minimum(i + 1, n - 1)
+        lo, hi = pr[r, i], pr[r, j]
+        a, b = vr[r, i], vr[r, j]
+        with np.errstate(all="ignore"):  # (rows where a == b, or without a change: unused)
+            secant = (lo * b - hi * a) / (b - a)
+        x = np.where(has, np.where(a == b, lo, secant), lo)
+        for t, h, lo_, hi_, x_ in zip([tasks[k] for k in rows.tolist()], has.tolist(),
+                                      lo.tolist(), hi.tolist(), x.tolist(), strict=True):
+            if h:
+                t.lo, t.hi = lo_, hi_
+            t.x = x_
+    if plan.extrema.size:
+        rows = plan.extrema
+        ve, pe = v[rows], p[rows]
+        sg = plan.sign
+        sv = np.where(np.isfinite(ve), sg[:, None] * ve, np.inf)
+        i = np.argmin(sv, axis=1)
+        r = np.arange(rows.size)
+        i0, i1 = np.maximum(i - 1, 0), np.minimum(i + 1, n - 1)
+        svi, pi = sv[r, i], pe[r, i]
+        with np.errstate(all="ignore"):  # (inf - inf at the edges or odd values: unused)
+            den = sv[r, i0] - 2.0 * sv[r, i] + sv[r, i1]
+            step = pi + 0.5 * (pe[:, 1] - pe[:, 0]) * (sv[r, i0] - sv[r, i1]) / den
+        x = np.where((i > 0) & (i < n - 1) & (den > 0), step, pi)
+        for t, sgn, s_, bx, bv, lo_, hi_, x_ in zip(
+            [tasks[k] for k in rows.tolist()], sg.tolist(), svi.tolist(), pi.tolist(),
+            ve[r, i].tolist(), pe[r, i0].tolist(), pe[r, i1].tolist(), x.tolist(), strict=True,
+        ):
+            if not s_ >= sgn * t.best_v:  # also true while best_v is nan
+                t.best_x, t.best_v = bx, bv
+            t.lo, t.hi, t.x = lo_, hi_, x_
 
 
 def log_mag(h: ComplexArray) -> FloatArray:
@@ -172,22 +229,36 @@ class LoopTasks:
 
 def loop_tasks(x: FloatArray, loop: ComplexArray, key: str) -> LoopTasks:
     """Brackets of every gain crossover, every negative-real-axis crossing and min |1 + L|."""
-    logm = np.log(np.abs(loop))
-    ok = np.isfinite(logm[:-1]) & np.isfinite(logm[1:])
-    gi = np.nonzero(ok & (np.sign(logm[:-1]) != np.sign(logm[1:])))[0]
-    arg = np.angle(-loop)
-    pi_ = np.nonzero(
-        (np.sign(arg[:-1]) != np.sign(arg[1:]))
-        & (np.abs(arg[:-1]) < 0.5 * np.pi)
-        & (np.abs(arg[1:]) < 0.5 * np.pi)
-    )[0]
-    dist = np.abs(1.0 + loop)
-    i = int(np.argmin(np.where(np.isfinite(dist), dist, np.inf)))
-    return LoopTasks(
-        gain=[RefineTask(key, 0, log_mag, float(x[k]), float(x[k + 1])) for k in gi],
-        phase=[RefineTask(key, 0, neg_arg, float(x[k]), float(x[k + 1])) for k in pi_],
-        ms=RefineTask(key, -1, dist_of, float(x[max(i - 1, 0)]), float(x[min(i + 1, x.size - 1)])),
+    return loop_tasks_rows(x, loop[None], [key])[0]
+
+
+def loop_tasks_rows(x: FloatArray, loops: ComplexArray, keys: list[str]) -> list[LoopTasks]:
+    """`loop_tasks` of each row of `loops` (one loop per row, on the same points x), computed
+    for all rows at once (every value per point, as for each row alone)."""
+    logm = np.log(np.abs(loops))
+    ok = np.isfinite(logm[:, :-1]) & np.isfinite(logm[:, 1:])
+    gain = ok & (np.sign(logm[:, :-1]) != np.sign(logm[:, 1:]))
+    arg = np.angle(-loops)
+    phase = (
+        (np.sign(arg[:, :-1]) != np.sign(arg[:, 1:]))
+        & (np.abs(arg[:, :-1]) < 0.5 * np.pi)
+        & (np.abs(arg[:, 1:]) < 0.5 * np.pi)
     )
+    dist = np.abs(1.0 + loops)
+    least = np.argmin(np.where(np.isfinite(dist), dist, np.inf), axis=1).tolist()
+    xs = x.tolist()
+    last = len(xs) - 1
+    gains: list[list[RefineTask]] = [[] for _ in keys]
+    phases: list[list[RefineTask]] = [[] for _ in keys]
+    for r, k in zip(*(v.tolist() for v in np.nonzero(gain)), strict=True):
+        gains[r].append(RefineTask(keys[r], 0, log_mag, xs[k], xs[k + 1]))
+    for r, k in zip(*(v.tolist() for v in np.nonzero(phase)), strict=True):
+        phases[r].append(RefineTask(keys[r], 0, neg_arg, xs[k], xs[k + 1]))
+    return [
+        LoopTasks(gain=gains[r], phase=phases[r],
+                  ms=RefineTask(key, -1, dist_of, xs[max(i - 1, 0)], xs[min(i + 1, last)]))
+        for r, (key, i) in enumerate(zip(keys, least, strict=True))
+    ]
 
 
 def margins_of(t: LoopTasks) -> Margins:
@@ -243,10 +314,21 @@ def crossings_of(t: LoopTasks) -> LoopCrossings:
 
 
 def peak_task(x: FloatArray, vals: FloatArray, key: str) -> RefineTask:
-    i = int(np.argmax(np.where(np.isfinite(vals), vals, -np.inf)))
-    t = RefineTask(key, 1, abs_of, float(x[max(i - 1, 0)]), float(x[min(i + 1, x.size - 1)]))
-    t.best_x, t.best_v = float(x[i]), float(vals[i])
-    return t
+    return peak_tasks_rows(x, vals[None], [key])[0]
+
+
+def peak_tasks_rows(x: FloatArray, vals: FloatArray, keys: list[str]) -> list[RefineTask]:
+    """`peak_task` of each row of `vals` (on the same points x), for all rows at once."""
+    best = np.argmax(np.where(np.isfinite(vals), vals, -np.inf), axis=1)
+    xs = x.tolist()
+    last = len(xs) - 1
+    tasks = []
+    for key, i, v in zip(keys, best.tolist(), vals[np.arange(len(keys)), best].tolist(),
+                         strict=True):
+        t = RefineTask(key, 1, abs_of, xs[max(i - 1, 0)], xs[min(i + 1, last)])
+        t.best_x, t.best_v = xs[i], v
+        tasks.append(t)
+    return tasks
 
 
 def winding_ok(one_plus_l: ComplexArray, m_integrators: int) -> bool:
@@ -256,17 +338,28 @@ def winding_ok(one_plus_l: ComplexArray, m_integrators: int) -> bool:
     The grid must start where the integrators dominate (|L| >> 1) and end where |L| << 1;
     otherwise the loop is reported as not proven stable.
     """
-    if not np.all(np.isfinite(one_plus_l)) or np.any(one_plus_l == 0):
-        return False
-    if m_integrators > 0 and abs(one_plus_l[0]) < 2.0:
-        return False
-    if abs(one_plus_l[-1] - 1.0) > 0.5:
-        return False
-    ph = np.unwrap(np.angle(one_plus_l))
-    start = -0.5 * np.pi * m_integrators
-    ph = ph - TWO_PI * np.round((ph[0] - start) / TWO_PI)
-    if abs(ph[0] - start) > np.radians(60.0):
-        return False
-    return bool(abs(ph[-1]) < 0.5 * np.pi)
+    return windings_ok(one_plus_l[None], [m_integrators])[0]
 
 
+def windings_ok(one_plus_l: ComplexArray, m_integrators: list[int]) -> list[bool]:
+    """`winding_ok` of each row of `one_plus_l` (on the same points) with its number of
+    integrators, the phases of all rows unwrapped at once."""
+    fine = (np.all(np.isfinite(one_plus_l), axis=1) & ~np.any(one_plus_l == 0, axis=1)).tolist()
+    ends = [
+        ok and not (m > 0 and abs(d[0]) < 2.0) and not abs(d[-1] - 1.0) > 0.5
+        for ok, m, d in zip(fine, m_integrators, one_plus_l, strict=True)
+    ]
+    if not any(ends):
+        return ends
+    ph = np.unwrap(np.angle(one_plus_l), axis=1)
+    answers = []
+    for ok, m, p in zip(ends, m_integrators, ph, strict=True):
+        if not ok:
+            answers.append(False)
+            continue
+        start = -0.5 * np.pi * m
+        turns = TWO_PI * np.round((p[0] - start) / TWO_PI)
+        first, final = p[0] - turns, p[-1] - turns
+        answers.append(not abs(first - start) > np.radians(60.0)
+                       and bool(abs(final) < 0.5 * np.pi))
+    return answers
