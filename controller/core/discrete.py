@@ -53,11 +53,20 @@ def sos_dc_gain(sos: SosArray) -> float:
 
 def sos_response(sos: SosArray, freq_hz: np.ndarray, rate_hz: float) -> np.ndarray:
     """Complex frequency response of the sections at `freq_hz` (vectorised, off the tick)."""
+    return sos_responses((sos,), freq_hz, rate_hz)[0]
+
+
+def sos_responses(soss: Sequence[SosArray], freq_hz: np.ndarray, rate_hz: float
+                  ) -> list[np.ndarray]:
+    """`sos_response` of each filter in `soss` at the same frequencies (z^-1 computed once)."""
     zinv = np.exp(-2j * np.pi * np.asarray(freq_hz, float) / rate_hz)
-    h = np.ones_like(zinv)
-    for b0, b1, b2, _a0, a1, a2 in sos:
-        h *= (b0 + zinv * (b1 + zinv * b2)) / (1.0 + zinv * (a1 + zinv * a2))
-    return h
+    out = []
+    for sos in soss:
+        h = np.ones_like(zinv)
+        for b0, b1, b2, _a0, a1, a2 in sos:
+            h *= (b0 + zinv * (b1 + zinv * b2)) / (1.0 + zinv * (a1 + zinv * a2))
+        out.append(h)
+    return out
 
 
 # -- the tick's filter arithmetic: plain functions of flat sequences (a tuple and a list in the

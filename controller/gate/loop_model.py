@@ -14,7 +14,7 @@ from numpy.typing import ArrayLike
 
 from controller.core.arrays import ComplexArray, FloatArray
 from controller.core.config import LoopConfig, NominalModel
-from controller.core.discrete import SosArray, sos_response
+from controller.core.discrete import SosArray, sos_responses
 from controller.core.dob import cancel_common_roots, design_dob, poly_roots_gain
 from controller.core.lti import expm, ss2tf, zpk2ss
 from controller.gate.knowledge import (
@@ -259,7 +259,8 @@ def gain_blocks(cfg: LoopConfig, f: FloatArray, plant: NominalModel) -> GainBloc
 def _dob_blocks(dob: DobFilters, f: FloatArray, rate_hz: float, zinv: ComplexArray
                 ) -> tuple[ComplexArray, ComplexArray]:
     """(F1, F2 z^-1) at `f` (z^-1 given there)."""
-    return sos_response(dob.f1_sos, f, rate_hz), sos_response(dob.f2_sos, f, rate_hz) * zinv
+    f1, f2 = sos_responses((dob.f1_sos, dob.f2_sos), f, rate_hz)
+    return f1, f2 * zinv
 
 
 # --------------------------------------------------------------------------- closed-loop poles
@@ -335,8 +336,8 @@ def closed_loop_matrix(
     if hv == 0.0:
         drop.append(icv)
     if drop:
-        keep = np.setdiff1d(np.arange(n), drop)
-        a = a[np.ix_(keep, keep)]
+        keep = np.array([i for i in range(n) if i not in drop])
+        a = a[keep][:, keep]
     return a
 
 
