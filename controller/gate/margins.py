@@ -79,50 +79,55 @@ def solve_groups(groups: list[list[RefineTask]], ev: GroupEvaluator, n: int = 9,
     per group), every round one call of `ev` with each group's points (as `solve` hands
     them to its evaluator). Every group holds a task."""
     assert all(groups) and n > 1
-    plans = [_Plan(g) for g in groups]
+    plan = _Plan(groups)
+    tasks = [t for g in groups for t in g]
+    ends = np.cumsum([len(g) for g in groups])[:-1]
     for _ in range(rounds):
-        pts = [_brackets(g, n) for g in groups]
-        outs = ev([np.exp(p) for p in pts])
-        for g, plan, gp, go in zip(groups, plans, pts, outs, strict=True):
-            _round(g, plan, gp, go, n)
+        pts = _brackets(tasks, n)
+        outs = ev([np.exp(p) for p in np.split(pts, ends * n)])
+        _round(tasks, plan, pts, plan.outputs(outs, n), n)
     finals = ev([np.exp(np.array([t.x for t in g])) for g in groups])
-    for g, plan, final in zip(groups, plans, finals, strict=True):
-        out = plan.outputs(final, 1)[:, 0]
-        value = plan.values(final, 1)[:, 0]
-        for t, o, v in zip(g, out.tolist(), value.tolist(), strict=True):
-            t.out, t.value = o, v
-            if t.kind != 0 and not (-t.kind * t.value <= -t.kind * t.best_v):
-                t.x, t.value = t.best_x, t.best_v
+    out = plan.outputs(finals, 1)
+    value = plan.values(out)[:, 0]
+    for t, o, v in zip(tasks, out[:, 0].tolist(), value.tolist(), strict=True):
+        t.out, t.value = o, v
+        if t.kind != 0 and not (-t.kind * t.value <= -t.kind * t.best_v):
+            t.x, t.value = t.best_x, t.best_v
 
 
 class _Plan:
-    """A group's tasks as `_round` takes them by array: the rows of each (key, function)
-    pair, the roots' rows and the extrema's rows with their sign (-kind)."""
+    """Every group's tasks, one group after the other, as `_round` takes them by array: the
+    rows of each function, the roots' rows and the extrema's rows with their sign (-kind),
+    and in each group the key each task reads."""
 
-    def __init__(self, tasks: list[RefineTask]) -> None:
-        keys: dict[str, int] = {}
+    def __init__(self, groups: list[list[RefineTask]]) -> None:
+        self.keys: list[tuple[list[str], np.ndarray]] = []
+        for g in groups:
+            keys: dict[str, int] = {}
+            for t in g:
+                keys.setdefault(t.key, len(keys))
+            self.keys.append((list(keys), np.array([keys[t.key] for t in g])))
         by: dict[Callable[[ComplexArray], FloatArray], list[int]] = {}
-        for j, t in enumerate(tasks):
-            keys.setdefault(t.key, len(keys))
+        for j, t in enumerate(t for g in groups for t in g):
             by.setdefault(t.fn, []).append(j)
-        self.keys = list(keys)
-        self.key_of = np.array([keys[t.key] for t in tasks])
         self.fns = [(fn, np.array(rows)) for fn, rows in by.items()]
-        kinds = np.array([t.kind for t in tasks])
+        kinds = np.array([t.kind for g in groups for t in g])
         self.roots = np.nonzero(kinds == 0)[0]
         self.extrema = np.nonzero(kinds != 0)[0]
         self.sign = (-kinds[self.extrema]).astype(np.float64)
 
-    def outputs(self, outs: Outputs, n: int) -> ComplexArray:
-        """Each task's own output at its n points (a row per task) from `outs` (n points
-        per task, every key)."""
-        m = self.key_of.size
-        stacked = np.stack([outs[k] for k in self.keys]).reshape(len(self.keys), m, n)
-        return stacked[self.key_of, np.arange(m)]
+    def outputs(self, outs: list[Outputs], n: int) -> ComplexArray:
+        """Each task's own output at its n points (a row per task) from each group's `outs`
+        (n points per task, every key)."""
+        rows = []
+        for (keys, key_of), o in zip(self.keys, outs, strict=True):
+            m = key_of.size
+            stacked = np.stack([o[k] for k in keys]).reshape(len(keys), m, n)
+            rows.append(stacked[key_of, np.arange(m)])
+        return rows[0] if len(rows) == 1 else np.concatenate(rows)
 
-    def values(self, outs: Outputs, n: int) -> FloatArray:
-        """Each task's function of its own output at its n points (a row per task)."""
-        h = self.outputs(outs, n)
+    def values(self, h: ComplexArray) -> FloatArray:
+        """Each task's function of its own outputs `h` (a row per task)."""
         v = np.empty(h.shape)
         for fn, rows in self.fns:
             v[rows] = fn(h[rows])
@@ -147,15 +152,15 @@ def _brackets(tasks: list[RefineTask], n: int) -> FloatArray:
     return y.ravel()
 
 
-def _round(tasks: list[RefineTask], plan: _Plan, pts: FloatArray, outs: Outputs, n: int
+def _round(tasks: list[RefineTask], plan: _Plan, pts: FloatArray, h: ComplexArray, n: int
            ) -> None:
-    """One round of `solve` for `tasks` given their outputs at `pts` (n points each), all
-    tasks' values and steps as arrays (each row as the task alone computes it: roots, the
-    first sign change's secant, else the point of least |value|; extrema, the best point
-    kept and a parabola through the best point and its neighbours)."""
+    """One round of `solve` for `tasks` given their own outputs `h` at `pts` (n points each,
+    a row per task), all tasks' values and steps as arrays (each row as the task alone
+    computes it: roots, the first sign change's secant, else the point of least |value|;
+    extrema, the best point kept and a parabola through the best point and its neighbours)."""
     m = len(tasks)
     p = pts.reshape(m, n)
-    v = plan.values(outs, n)
+    v = plan.values(h)
     if plan.roots.size:
         rows = plan.roots
         vr, pr = v[rows], p[rows]
