@@ -65,6 +65,13 @@ class TurntableScene:
         seg = np.linalg.norm(np.diff(self._path, axis=0), axis=1)
         self._arc = np.concatenate([[0.0], np.cumsum(seg)])
         scene.set_up_direction("+z")
+        # Flat lighting: viser's default shadows (cascaded shadow maps) and its environment map
+        # made each redraw cost ~100 ms of the page's main thread in software WebGL (a browser
+        # without a GPU, as in CI): the page was busy 100 % of the time and every click or
+        # keystroke waited 0.3-0.5 s. Without them, ~30 ms (the page's main thread: `busy_pct` of
+        # tests/bench/bench_dashboard.py --page).
+        scene.configure_default_lights(enabled=True, cast_shadow=False)
+        scene.configure_environment_map(hdri=None)
         scene.add_grid("/grid", width=1.2, height=1.2, cell_size=0.1, position=(0.15, 0.0, 0.0))
         scene.add_box("/base", dimensions=(0.7, 0.4, 0.02), color=(70, 74, 82),
                       position=(0.16, 0.0, 0.01))

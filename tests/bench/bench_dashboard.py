@@ -1,7 +1,8 @@
 """Dashboard benchmarks: slider-to-update latency (server side, p50/p99); live refresh rate in
 the browser and the dashboard process's CPU while one headless browser watches the live tab;
-with --page, page load (to the controls visible, to the verdict drawn) and verdict update
-(typed cut-off to the verdict's text changed) in Chromium on the machine as it is ("idle") and
+with --page, page load (to the controls visible, to the verdict drawn), how busy the page's main
+thread is once loaded (long tasks, % of 3 s) and verdict update (typed cut-off to the verdict's
+text changed) in Chromium on the machine as it is ("idle") and
 with --hogs busy processes beside it ("loaded"), each half with the load `uptime` printed;
 bounded (--loads, --verdicts, --phase-timeout per awaited phase, named when it times out,
 --budget per half), progress on stderr.
@@ -169,12 +170,12 @@ def bench_live(seconds: float, browsers: int = 1) -> dict[str, float]:
             "seconds": w1 - w0}
 
 
-def _stats(xs: list[float]) -> dict[str, float]:
+def _stats(xs: list[float], unit: str = "s") -> dict[str, float]:
     if not xs:
         return {"n": 0}
     a = np.array(xs)
-    return {"n": len(xs), "p50_s": float(np.percentile(a, 50)),
-            "max_s": float(a.max()), "min_s": float(a.min())}
+    return {"n": len(xs), f"p50_{unit}": float(np.percentile(a, 50)),
+            f"max_{unit}": float(a.max()), f"min_{unit}": float(a.min())}
 
 
 def _spin() -> None:
@@ -198,6 +199,19 @@ CONTROLS_SHOWN_JS = """() => [...document.querySelectorAll('label')].some(
 VERDICT_DRAWN_JS = """() => (document.querySelector('.dt-verdict')?.innerText || '')
   .includes('Verdict')"""
 SETTLED_JS = "() => !document.querySelector('.dt-computing-on')"
+#: The share of `ms` the page's main thread spent in long tasks (> 50 ms each: the browser's
+#: own measure of "busy": input waits for them), and the frames drawn per second.
+MAIN_THREAD_JS = """(ms) => new Promise(resolve => {
+  let busy = 0, frames = 0, go = true;
+  const t0 = performance.now();
+  const o = new PerformanceObserver(l => { for (const e of l.getEntries())  // within the window
+    busy += Math.max(0, Math.min(e.startTime + e.duration, t0 + ms) - Math.max(e.startTime, t0)); });
+  o.observe({type: 'longtask', buffered: false});
+  function frame() { frames++; if (go) requestAnimationFrame(frame); }
+  requestAnimationFrame(frame);
+  setTimeout(() => { go = false; o.disconnect();
+                     resolve([100 * busy / ms, frames / (ms / 1000)]); }, ms);
+})"""
 VERDICT_CHANGED_JS = """(before) => {
   const t = document.querySelector('.dt-verdict')?.innerText || '';
   return !document.querySelector('.dt-computing-on') && t !== before && t.includes('Verdict');
@@ -258,6 +272,7 @@ def bench_page(loads: int, verdicts: int, hogs: int, phase_timeout_s: float,
             controls_s: list[float] = []
             verdict_drawn_s: list[float] = []
             verdict_s: list[float] = []
+            busy: dict[str, list[float]] = {"busy_pct": [], "frames_per_s": []}
             for k in range(loads):
                 if over_budget():
                     say(f"budget {budget_s:.0f} s spent: {k} of {loads} page loads")
@@ -273,6 +288,10 @@ def bench_page(loads: int, verdicts: int, hogs: int, phase_timeout_s: float,
                     verdict_drawn_s.append(time.perf_counter() - t0)
                     say(f"page load {k + 1}/{loads}: controls {controls_s[-1]:.2f} s, verdict "
                         f"{verdict_drawn_s[-1]:.2f} s")
+                    pct, fps = pg.evaluate(MAIN_THREAD_JS, 3000)
+                    busy["busy_pct"].append(pct)
+                    busy["frames_per_s"].append(fps)
+                    say(f"page {k + 1}: main thread busy {pct:.0f} % of 3 s, {fps:.0f} frames/s")
                     if k == loads - 1:
                         verdict_s += _verdict_updates(pg, verdicts, until, say, over_budget,
                                                       timeouts)
@@ -286,6 +305,8 @@ def bench_page(loads: int, verdicts: int, hogs: int, phase_timeout_s: float,
                     "page_load_to_controls": _stats(controls_s),
                     "page_load_to_verdict": _stats(verdict_drawn_s),
                     "verdict_update": _stats(verdict_s),
+                    "main_thread_busy": _stats(busy["busy_pct"], "pct"),
+                    "frames": _stats(busy["frames_per_s"], "per_s"),
                     "phase_timeout_s": phase_timeout_s, "timeouts": timeouts,
                     "seconds": time.monotonic() - t_half}
         finally:
