@@ -348,23 +348,20 @@ def winding_ok(one_plus_l: ComplexArray, m_integrators: int) -> bool:
 
 def windings_ok(one_plus_l: ComplexArray, m_integrators: list[int]) -> list[bool]:
     """`winding_ok` of each row of `one_plus_l` (on the same points) with its number of
-    integrators, the phases of all rows unwrapped at once."""
-    fine = (np.all(np.isfinite(one_plus_l), axis=1) & ~np.any(one_plus_l == 0, axis=1)).tolist()
-    ends = [
-        ok and not (m > 0 and abs(d[0]) < 2.0) and not abs(d[-1] - 1.0) > 0.5
-        for ok, m, d in zip(fine, m_integrators, one_plus_l, strict=True)
-    ]
-    if not any(ends):
-        return ends
+    integrators, all rows at once (each row's numbers as `winding_ok` computes them alone)."""
+    fine = np.all(np.isfinite(one_plus_l), axis=1) & ~np.any(one_plus_l == 0, axis=1)
+    m = np.array(m_integrators)
+    # (|1 + L| at the ends of each row as numpy's scalar abs gives it, as `winding_ok` did.)
+    first_abs = np.array([abs(z) for z in one_plus_l[:, 0]])
+    last_abs = np.array([abs(z - 1.0) for z in one_plus_l[:, -1]])
+    with np.errstate(invalid="ignore"):  # (rows not finite: not fine)
+        ends = fine & ~((m > 0) & (first_abs < 2.0)) & ~(last_abs > 0.5)
+    if not np.any(ends):
+        return [False] * m.size
     ph = np.unwrap(np.angle(one_plus_l), axis=1)
-    answers = []
-    for ok, m, p in zip(ends, m_integrators, ph, strict=True):
-        if not ok:
-            answers.append(False)
-            continue
-        start = -0.5 * np.pi * m
-        turns = TWO_PI * np.round((p[0] - start) / TWO_PI)
-        first, final = p[0] - turns, p[-1] - turns
-        answers.append(not abs(first - start) > np.radians(60.0)
-                       and bool(abs(final) < 0.5 * np.pi))
-    return answers
+    start = -0.5 * np.pi * m
+    turns = TWO_PI * np.round((ph[:, 0] - start) / TWO_PI)
+    first, final = ph[:, 0] - turns, ph[:, -1] - turns
+    with np.errstate(invalid="ignore"):
+        ok = ends & ~(np.abs(first - start) > np.radians(60.0)) & (np.abs(final) < 0.5 * np.pi)
+    return [bool(v) for v in ok.tolist()]
