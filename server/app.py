@@ -33,6 +33,7 @@ from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
 from controller.client.recorder import RecordOptions
 from controller.core.config import LoopConfig
+from controller.core.heap import freeze_startup_heap
 from server.assets import web_asset
 from server.candidates import Candidates
 from server.commands import CommandRouter
@@ -492,6 +493,7 @@ def run_dashboard(opts: DashboardOptions) -> int:
         print(f"dobtune dashboard: {exc}", flush=True)
         return 2
     with stop_requested() as stop, Dashboard(opts) as dash:
+        freeze_startup_heap()
         print(f"dobtune dashboard: {dash.url}  (rig '{opts.rig_name}' via "
               f"{', '.join(opts.connect)})", flush=True)
         for name, user in sorted(users.items()):

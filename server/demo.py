@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from controller.core.errors import ConfigError
+from controller.core.heap import freeze_startup_heap
 from controller.sim.rig_disturbances import rig_setup
 from server.app import Dashboard, DashboardOptions, PortBusy, check_port_free, stop_requested
 
@@ -173,6 +174,7 @@ def run_demo(opts: DemoOptions) -> int:
             candidates_dir=opts.candidates_dir,
         )
     ) as dash:
+        freeze_startup_heap()
         print(f"dobtune demo: open {dash.url}  (simulated rig '{opts.rig_name}', "
               f"disturbances: {'+'.join(opts.disturbances) or 'none'}, "
               f"controller on {endpoint}; Ctrl-C stops both)", flush=True)
@@ -220,6 +222,7 @@ def _run_fleet(opts: DemoOptions, router_ep: str) -> int:
             connect=(router_ep,), rig_name="rig1", host=opts.host, port=opts.port,
             verbose=opts.verbose, fleet=True, sim_disturbances=opts.disturbances,
             candidates_dir=opts.candidates_dir)))
+        freeze_startup_heap()
         print(f"dobtune demo: {opts.rigs} rigs behind the router {router_ep}; dashboard of rig1 "
               "(its Fleet tab shows them all): "
               f"{dash.url}; list them with: dobtune ctl --connect {router_ep} rigs", flush=True)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
-import gc
 import logging
 import os
 import threading
@@ -22,6 +21,7 @@ from typing import Any
 import msgspec
 
 from controller.core.config import LoopConfig
+from controller.core.heap import freeze_startup_heap
 from controller.core.loop import LoopCoefficients
 from controller.core.verdict import Verdict
 from controller.gate.knowledge import KnowledgeRecord
@@ -133,8 +133,7 @@ def _warm_up() -> None:
     # What is loaded now (~110 000 objects: the analysis's modules, numba's kernel) is never
     # scanned by the collector again, as in the controller: a full collection of it cost
     # ~40 ms of CPU, and one came inside an apply every few dozen.
-    gc.collect()
-    gc.freeze()
+    freeze_startup_heap()
 
 
 class AnalysisWorker:
