@@ -32,9 +32,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-sys.path[:0] = [str(ROOT / "tests" / "browser"), str(ROOT / "tests")]
-from conftest import MAIN_THREAD_JS  # noqa: E402  (tests/browser/conftest.py)
-
 from server.app import Dashboard, DashboardOptions  # noqa: E402
 from server.demo import controller_process, stop_process  # noqa: E402
 
@@ -202,6 +199,20 @@ CONTROLS_SHOWN_JS = """() => [...document.querySelectorAll('label')].some(
 VERDICT_DRAWN_JS = """() => (document.querySelector('.dt-verdict')?.innerText || '')
   .includes('Verdict')"""
 SETTLED_JS = "() => !document.querySelector('.dt-computing-on')"
+#: The share of `ms` the page's main thread spent in long tasks (> 50 ms each: the browser's
+#: own measure of "busy": input waits for them), and the frames drawn per second.
+MAIN_THREAD_JS = """(ms) => new Promise(resolve => {
+  let busy = 0, frames = 0, go = true;
+  const t0 = performance.now();
+  const o = new PerformanceObserver(l => { for (const e of l.getEntries()) {  // in the window
+    const end = Math.min(e.startTime + e.duration, t0 + ms);
+    busy += Math.max(0, end - Math.max(e.startTime, t0)); } });
+  o.observe({type: 'longtask', buffered: false});
+  function frame() { frames++; if (go) requestAnimationFrame(frame); }
+  requestAnimationFrame(frame);
+  setTimeout(() => { go = false; o.disconnect();
+                     resolve([100 * busy / ms, frames / (ms / 1000)]); }, ms);
+})"""
 VERDICT_CHANGED_JS = """(before) => {
   const t = document.querySelector('.dt-verdict')?.innerText || '';
   return !document.querySelector('.dt-computing-on') && t !== before && t.includes('Verdict');

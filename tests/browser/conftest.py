@@ -214,22 +214,6 @@ FINITE_JS = """(label) => {
 }"""
 
 
-#: JS: the share of `ms` the page's main thread spent in long tasks (> 50 ms each: the browser's
-#: own measure of "busy": input waits for them), and the frames drawn per second.
-MAIN_THREAD_JS = """(ms) => new Promise(resolve => {
-  let busy = 0, frames = 0, go = true;
-  const t0 = performance.now();
-  const o = new PerformanceObserver(l => { for (const e of l.getEntries()) {  // in the window
-    const end = Math.min(e.startTime + e.duration, t0 + ms);
-    busy += Math.max(0, end - Math.max(e.startTime, t0)); } });
-  o.observe({type: 'longtask', buffered: false});
-  function frame() { frames++; if (go) requestAnimationFrame(frame); }
-  requestAnimationFrame(frame);
-  setTimeout(() => { go = false; o.disconnect();
-                     resolve([100 * busy / ms, frames / (ms / 1000)]); }, ms);
-})"""
-
-
 def slider_row(page: Any, label: str) -> Any:
     fid = page.locator("label", has_text=label).first.get_attribute("for")
     return page.locator(f"[id='{fid}']")
