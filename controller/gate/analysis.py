@@ -1227,7 +1227,9 @@ class _MeasuredPasses:
             gk_all = np.concatenate(gk_parts)
             d = np.concatenate(d_parts)
             fine = np.all(np.isfinite(d), axis=1) & ~np.any(d == 0, axis=1)
-            turns = np.any(np.abs(np.angle(d[:, 1:] / d[:, :-1])) > _MAX_PHASE_STEP_RAD, axis=1)
+            with np.errstate(all="ignore"):  # (rows not finite or through 0: not fine)
+                turns = np.any(np.abs(np.angle(d[:, 1:] / d[:, :-1])) > _MAX_PHASE_STEP_RAD,
+                               axis=1)
             clean = (fine & ~turns).tolist()
             together: list[tuple[int, int]] = []  # (case, j)
             for c in range(len(self._cases)):

@@ -358,10 +358,10 @@ def windings_ok(one_plus_l: ComplexArray, m_integrators: list[int]) -> list[bool
         ends = fine & ~((m > 0) & (first_abs < 2.0)) & ~(last_abs > 0.5)
     if not np.any(ends):
         return [False] * m.size
-    ph = np.unwrap(np.angle(one_plus_l), axis=1)
-    start = -0.5 * np.pi * m
-    turns = TWO_PI * np.round((ph[:, 0] - start) / TWO_PI)
-    first, final = ph[:, 0] - turns, ph[:, -1] - turns
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"):  # (rows not finite: not `ends`)
+        ph = np.unwrap(np.angle(one_plus_l), axis=1)
+        start = -0.5 * np.pi * m
+        turns = TWO_PI * np.round((ph[:, 0] - start) / TWO_PI)
+        first, final = ph[:, 0] - turns, ph[:, -1] - turns
         ok = ends & ~(np.abs(first - start) > np.radians(60.0)) & (np.abs(final) < 0.5 * np.pi)
     return [bool(v) for v in ok.tolist()]
