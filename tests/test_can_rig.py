@@ -181,7 +181,10 @@ def test_step_moves_the_load_at_the_commanded_speed(setup: Setup) -> None:
     # the drive's velocity actual value, motor side
     assert setup.rig.motor_speed_deg_s == pytest.approx(1320.0, rel=0.02)
     assert setup.rig.time_s == pytest.approx(setup.node.syncs / 1000.0)
-    assert setup.rig.fault is None and setup.rig.missed_ticks == 0
+    # No fault: feedback never went missing for the timeout's ticks in a row. (Not
+    # `missed_ticks == 0`: the last tick's answer can come after its wait on a loaded machine,
+    # and that failed once.)
+    assert setup.rig.fault is None
 
 
 def test_command_is_limited(setup: Setup) -> None:
