@@ -5,7 +5,7 @@ Every test under `tests/integration/` is marked `integration` and every one unde
 `tests/browser/` `browser`, here, so no file can forget it. The fast subset is
 `pytest -m "not integration and not browser and not slow"` (README).
 
-Under pytest-xdist (`bash .ci/test -n 2`, README) the tests are handed to the workers
+Under pytest-xdist (`bash .ci/test` runs `-n 2`, README) the tests are handed to the workers
 a file at a time (each module's module-scoped fixtures start once), except `tests/browser/`,
 which goes to one worker as a whole, one module after another: one Chromium and one demo
 controller at a time (two at once on 2 cores starve each other's page loads). The browser
