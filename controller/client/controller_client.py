@@ -367,10 +367,15 @@ class ControllerClient:
                           self.opts.apply_timeout_s)
 
     def knowledge(self, request: proto.KnowledgeRequest | None = None) -> proto.KnowledgeReply:
-        """The controller's plant knowledge, or (with a request) adopt new knowledge."""
+        """The controller's plant knowledge, or (with a request) adopt new knowledge: that
+        judges the active configuration on it through the gate, as an apply does, so it is
+        given an apply's time (a loaded machine took more than a plain query's)."""
         req = request if request is not None else proto.KnowledgeRequest()
         req = msgspec.structs.replace(req, client=self.opts.client_name, lease=self.lease_token)
-        return self.query(proto.key_knowledge(self.opts.rig_name), req, proto.KnowledgeReply)
+        adopting = req.record is not None or req.adopt_run is not None
+        timeout_s = self.opts.apply_timeout_s if adopting else None
+        return self.query(proto.key_knowledge(self.opts.rig_name), req, proto.KnowledgeReply,
+                          timeout_s)
 
     def command(self, body: proto.CommandBody) -> proto.CommandReply:
         msg = proto.Command(body=body, client=self.opts.client_name, lease=self.lease_token)

@@ -34,8 +34,12 @@ ARTICLE = NominalModel()
 
 def _knowledge(c: Client, req: proto.KnowledgeRequest | None = None) -> proto.KnowledgeReply:
     payload = proto.encode(req) if req is not None else None
+    # Adopting knowledge runs the gate (as an apply): an apply's time, as the product client
+    # gives it (a plain query's 5 s timed out with two busy loops beside the suite).
+    adopting = req is not None and (req.record is not None or req.adopt_run is not None)
+    timeout_s = APPLY_TIMEOUT_S if adopting else None
     return proto.decode(
-        c.query_raw(proto.key_knowledge(c.rig), payload), proto.KnowledgeReply
+        c.query_raw(proto.key_knowledge(c.rig), payload, timeout_s), proto.KnowledgeReply
     )
 
 
