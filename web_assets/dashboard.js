@@ -572,6 +572,10 @@
 
   let want = parseView(location.hash); // read now: viser rewrites the URL when it starts
   let restoreUntil = Date.now() + RESTORE_FOR_MS;
+  // Tabs of a group inside a tab that was not shown when the rest was restored, selected as
+  // soon as that group is drawn: under load the group's strip came after the rest and the
+  // Bode tab then opened on Decide in place of the URL's Nyquist.
+  let deferred = {};
 
   const selectedIn = (tabs) => (tabs || []).find((t) => t.getAttribute("aria-selected") === "true");
 
@@ -586,7 +590,10 @@
         // select (the fragment keeps it for when that tab is shown).
         const open = selectedIn(g[parent[0]]);
         const shown = parent[0] in want ? want[parent[0]] : open && tabLabel(open);
-        if (shown && shown !== parent[1]) continue;
+        if (shown && shown !== parent[1]) {
+          deferred[key] = label;
+          continue;
+        }
       }
       if (!tab) {
         done = false;
@@ -603,8 +610,19 @@
     }
     if (done) want = {};
     else if (Date.now() > restoreUntil) {
+      deferred = {};
       console.warn("dobtune: tabs from the URL not found:", JSON.stringify(want));
       want = {};
+    }
+  }
+
+  function restoreDeferred() {
+    const g = groups();
+    for (const [key, label] of Object.entries(deferred)) {
+      const tab = (g[key] || []).find((t) => tabLabel(t) === label);
+      if (!tab) continue;
+      delete deferred[key];
+      if (tab.getAttribute("aria-selected") !== "true") tab.click();
     }
   }
 
@@ -634,6 +652,7 @@
     const w = parseView(location.hash);
     if (Object.keys(w).length) {
       want = w;
+      deferred = {};
       restoreUntil = Date.now() + RESTORE_FOR_MS;
     }
     schedule();
@@ -705,6 +724,7 @@
       repairAxes();
       hideLogBoxes();
       if (Object.keys(want).length) restore();
+      else if (Object.keys(deferred).length) restoreDeferred();
       syncUrl();
       reportView();
     } catch (err) {
