@@ -15,6 +15,7 @@ import msgspec
 
 from controller.core.config import LoopConfig
 from controller.core.samples import STATE_COLUMNS
+from controller.core.timing import LoopTiming
 from controller.core.trajectory import Trajectory
 from controller.core.validate import split_msgspec_error
 from controller.core.verdict import Verdict
@@ -163,19 +164,8 @@ def state_batch(
 # -- status -----------------------------------------------------------------------------------
 
 
-class Timing(msgspec.Struct, frozen=True, kw_only=True):
-    """Loop timing over the last status interval (microseconds), and counters since start."""
-
-    period_p50_us: float
-    period_p99_us: float
-    period_max_us: float
-    compute_p50_us: float
-    compute_p99_us: float
-    compute_max_us: float
-    ticks: int
-    overruns: int
-    skipped_ticks: int
-    dropped_samples: int = 0  # samples the publisher could not take (gaps in `state`)
+#: Loop timing over the last status interval (the runtime's own type, one definition).
+Timing = LoopTiming
 
 
 class Status(_Msg, frozen=True, kw_only=True):

@@ -40,6 +40,7 @@ import numpy as np
 from controller.core.loop import PreparedCoefficients, ServoLoop
 from controller.core.ramp import Ramp
 from controller.core.samples import STATE_COLUMNS
+from controller.core.timing import LoopTiming
 from controller.core.trajectory import Trajectory
 from controller.core.watchdog import Watchdog, WatchdogLimits, WatchdogTrip
 from controller.ident.program import ExcitationProgram
@@ -67,7 +68,6 @@ __all__ = [
     "Runtime",
     "RuntimeOptions",
     "Ticket",
-    "TimingSnapshot",
     "try_realtime_priority",
 ]
 
@@ -128,23 +128,6 @@ class RuntimeOptions:
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 < value <= 1e4):
                 raise ValueError(f"{name}: {value!r} out of range (0, 1e4]")
-
-
-@dataclass(frozen=True)
-class TimingSnapshot:
-    """Loop timing over the ticks since the previous snapshot (microseconds) + counters."""
-
-    period_p50_us: float
-    period_p99_us: float
-    period_max_us: float
-    compute_p50_us: float
-    compute_p99_us: float
-    compute_max_us: float
-    samples: int
-    ticks: int
-    overruns: int
-    skipped_ticks: int
-    dropped_samples: int
 
 
 class Ticket:
@@ -384,7 +367,7 @@ class Runtime:
 
     # -- timing statistics (any thread) --------------------------------------------------------
 
-    def timing_snapshot(self) -> TimingSnapshot:
+    def timing_snapshot(self) -> LoopTiming:
         """Percentiles over the ticks since the previous snapshot (at most the history)."""
         end = self._ti
         cap = len(self._period_us)
@@ -399,7 +382,7 @@ class Runtime:
             c = np.asarray(self._compute_us)[idx]
         pp = np.percentile(p, [50, 99])
         cp = np.percentile(c, [50, 99])
-        return TimingSnapshot(
+        return LoopTiming(
             period_p50_us=float(pp[0]),
             period_p99_us=float(pp[1]),
             period_max_us=float(p.max()),

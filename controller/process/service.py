@@ -616,9 +616,7 @@ class ControllerService:
 
     def status(self, extra_notes: tuple[str, ...] = ()) -> proto.Status:
         rt = self.rt
-        snap = rt.timing_snapshot()
-        # Timing carries the snapshot's fields under the same names (all but `samples`).
-        timing = proto.Timing(**{f: getattr(snap, f) for f in proto.Timing.__struct_fields__})
+        timing = rt.timing_snapshot()
         faults = [rt.fault] if rt.fault else []
         if rt.mode == ESTOP:
             faults.append(f"e-stop ({rt.estop_source}) at seq {rt.estop_seq}")
