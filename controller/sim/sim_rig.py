@@ -58,6 +58,10 @@ span and its tension change once per revolution). The load encoder adds an inter
 `encoder_cyclic_error_deg` sin(`encoder_cyclic_periods_per_rev` theta) before quantisation.
 `controller.sim.rig_disturbances` names plausible values for each.
 
+A transport delay of the command (`command_delay_ticks`, whole control ticks; 0 by default,
+and then the kernel skips it): the drive acts on the command sent that many ticks before,
+through a delay line in the state array (zeros after a reset).
+
 The kernel is compiled with numba and works on two preallocated float64 arrays (parameters and
 state); `SimRig` wraps it. The external disturbance is sampled once per tick and held. One
 control tick is `advance_tick(x, p, command_deg_s, torque_n_m, noise_deg) -> (pos_deg, rate_deg_s)`
@@ -114,6 +118,12 @@ def _integer(value: object, field: str) -> object:
 def _fraction(value: float, field: str) -> float:
     if abs(value) >= 0.9:
         raise ConfigError(field, f"must be in (-0.9, 0.9), got {value!r}")
+    return value
+
+
+def _delay_ticks(value: int, field: str) -> int:
+    if not 0 <= value <= 100:
+        raise ConfigError(field, f"must be in 0..100, got {value}")
     return value
 
 
@@ -206,6 +216,10 @@ class RigParams:
     """Amplitude of the load encoder's interpolation (sub-divisional) error, load side."""
     encoder_cyclic_periods_per_rev: Annotated[int, positive, _integer] = 16384
     """Periods of that error per revolution (the encoder's signal periods)."""
+    # -- transport delay of the command (a fieldbus, a drive's input filter)
+    command_delay_ticks: Annotated[int, number, _integer, _delay_ticks] = 0
+    """Whole control ticks the drive receives the speed command late (0 = none: the reference
+    model; the kernel then skips the delay line and runs bit-identically)."""
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -271,11 +285,14 @@ _P_KVAR = _P_PENDING + 11  # belt stiffness variation with the load angle
 _P_CVAR = _P_PENDING + 12  # belt damping variation with the load angle
 _P_ENC_CYC = _P_PENDING + 13  # encoder interpolation error amplitude, deg
 _P_ENC_N = _P_PENDING + 14  # its periods per revolution
-_P_LEN = _P_PENDING + 15
+_P_DELAY = _P_PENDING + 15  # command delay, whole ticks (0 = none)
+_P_LEN = _P_PENDING + 16
 
-# State array layout; the motor-encoder ring buffer (counts) follows _X_RING. _X_Q / _X_QD:
-# deflection of the extra mode's payload relative to the hub, and its rate.
-_X_THM, _X_WM, _X_THL, _X_WL, _X_XI, _X_TAU, _X_POSM, _X_RIDX, _X_Q, _X_QD, _X_RING = range(11)
+# State array layout; the motor-encoder ring buffer (counts) follows _X_RING (nwin entries),
+# then the command delay line (`command_delay_ticks` entries, its next slot at _X_DIDX).
+# _X_Q / _X_QD: deflection of the extra mode's payload relative to the hub, and its rate.
+_X_THM, _X_WM, _X_THL, _X_WL, _X_XI, _X_TAU, _X_POSM, _X_RIDX, _X_Q, _X_QD, _X_DIDX = range(11)
+_X_RING = 11
 
 
 def _param_array(
@@ -325,6 +342,7 @@ def _param_array(
     a[_P_CVAR] = p.belt_damping_variation
     a[_P_ENC_CYC] = p.encoder_cyclic_error_deg
     a[_P_ENC_N] = p.encoder_cyclic_periods_per_rev
+    a[_P_DELAY] = p.command_delay_ticks
     return a, nwin
 
 
@@ -400,6 +418,12 @@ def advance_tick(
         raise ValueError("disturbance torque must be finite")
     if p[_P_PENDING] != 0.0:
         _take_faults(x, p)
+    if p[_P_DELAY] != 0.0:  # the drive acts on the command of `delay` ticks ago
+        slot = _X_RING + int(p[_P_NWIN]) + int(x[_X_DIDX])
+        late = x[slot]
+        x[slot] = command_deg_s
+        x[_X_DIDX] = (x[_X_DIDX] + 1.0) % p[_P_DELAY]
+        command_deg_s = late
     n = p[_P_N]
     jm = p[_P_JM]
     bm = p[_P_BM]
@@ -584,7 +608,7 @@ class SimRig:
         number(initial_position_deg, "initial_position_deg")
         self._params = params
         self._p, nwin = _param_array(params, rate_hz, substeps)
-        self._x = np.zeros(_X_RING + nwin)
+        self._x = np.zeros(_X_RING + nwin + params.command_delay_ticks)
         self._faults = _NO_FAULTS
         self._period_s = 1.0 / rate_hz
         self._seed = seed
