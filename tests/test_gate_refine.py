@@ -14,7 +14,7 @@ import pytest
 from gate_cases import canon, knowledge_set, random_configs
 
 from controller.core.config import LoopConfig
-from controller.gate import analysis, margins, search
+from controller.gate import analysis, margins, measured_evidence, search
 from controller.gate.knowledge import COMMISSIONING_BOUND, PlantKnowledge
 from controller.gate.margins import Evaluator, GroupEvaluator, RefineTask
 from controller.gate.search import RecommendationSearch
@@ -206,7 +206,7 @@ def test_each_measured_response_judged_beside_others_as_alone(
     alone = [PlantKnowledge((m,), COMMISSIONING_BOUND, plants[0].model) for m in mixed]
     rows: list[int] = []
     refined = 0
-    real_windings, real_refine = margins.windings_ok, analysis.refine_by_phase
+    real_windings, real_refine = margins.windings_ok, measured_evidence.refine_by_phase
 
     def windings(d: np.ndarray, m: list[int]) -> list[bool]:
         rows.append(d.shape[0])
@@ -217,8 +217,9 @@ def test_each_measured_response_judged_beside_others_as_alone(
         refined += 1
         return real_refine(*args)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(analysis, "windings_ok", windings)
-    monkeypatch.setattr(analysis, "refine_by_phase", refine)
+    # (The measured responses' first pass lives in measured_evidence.)
+    monkeypatch.setattr(measured_evidence, "windings_ok", windings)
+    monkeypatch.setattr(measured_evidence, "refine_by_phase", refine)
     stable = set()
     for cfg, _ in random_configs(40, 23):
         a = analysis.analyse(cfg, both)
