@@ -18,12 +18,12 @@ from typing import Any
 import msgspec
 
 from controller import protocol as proto
-from controller.core.config import LoopConfig, config_from_builtins
-from controller.core.errors import ConfigError
+from controller.core.config import LoopConfig
 from controller.core.verdict import Verdict
 from controller.gate.knowledge import KnowledgeRecord
 from controller.process.access import Access
 from controller.process.analysis_worker import AnalysisWorker
+from controller.process.history import history_reply
 from controller.process.identify_runs import IdentifyRuns
 from controller.process.options import ControllerOptions
 from controller.process.persistence import (
@@ -33,7 +33,6 @@ from controller.process.persistence import (
     PendingRollback,
     PersistenceError,
     StateStore,
-    verdict_of_change,
 )
 from controller.process.requests import (
     ApplyCoefficients,
@@ -64,12 +63,6 @@ def config_changes(old: LoopConfig, new: LoopConfig) -> str:
     a, b = msgspec.structs.asdict(old), msgspec.structs.asdict(new)
     diff = [f"{k} {a[k]} -> {b[k]}" for k in a if a[k] != b[k]]
     return ", ".join(diff) or "no change"
-
-
-def _entry_name(item: dict[str, Any]) -> str:
-    """How a change-log line is named in a message: by its version if it has one."""
-    v = item.get("version")
-    return f"v{v}" if isinstance(v, int) and not isinstance(v, bool) else "an entry"
 
 
 class ControllerService:
@@ -283,34 +276,7 @@ class ControllerService:
 
     def history(self, last: int) -> proto.HistoryReply:
         """The newest `last` applied configurations from the change log (oldest first)."""
-        if isinstance(last, bool) or not 1 <= last <= 1000:
-            return proto.HistoryReply(
-                ok=False, field="last", message=f"last: {last} not in 1..1000"
-            )
-        try:
-            items = self.store.read_changes()[-last:]
-        except OSError as exc:
-            return proto.HistoryReply(ok=False, field="state_dir",
-                                      message=f"state_dir: the change log cannot be read: {exc}")
-        entries = []
-        unread: list[str] = []
-        for item in items:
-            try:
-                entries.append(proto.HistoryEntry(
-                    version=int(item["version"]), time_s=float(item.get("time_s") or 0.0),
-                    client=str(item.get("client", ""))[:200],
-                    config=config_from_builtins(item["new"]),
-                    verdict=verdict_of_change(item),
-                ))
-            except KeyError as exc:
-                unread.append(f"{_entry_name(item)}: {exc.args[0]}: missing")
-            except (TypeError, ValueError, ConfigError) as exc:
-                unread.append(f"{_entry_name(item)}: {exc}")
-        # A line this version cannot read is left out, and the reply says which and why.
-        message = "" if not unread else (
-            f"{len(unread)} entr{'y' if len(unread) == 1 else 'ies'} of the change log not "
-            f"shown ({'; '.join(unread[:3])[:600]})")
-        return proto.HistoryReply(ok=True, entries=entries, message=message)
+        return history_reply(self.store.read_changes, last)
 
     # -- watchdog ------------------------------------------------------------------------------
 
