@@ -95,6 +95,7 @@ ACTIONS = frozenset({
     "fault",
     "controller.start",
     "controller.stop",
+    "request.budget",    # requests over a user's budget, refused by the edge (a count)
     RECOVERED,
 })
 #: accepted / refused: a request's fate; failed: accepted but could not be carried out;
