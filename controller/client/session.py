@@ -26,6 +26,8 @@ import zenoh
 from controller import protocol as proto
 from controller.auth import (
     AuthError,
+    User,
+    Users,
     acl_config,
     check_name,
     load_users,
@@ -71,6 +73,11 @@ class SessionOptions:
     serve: tuple[str, ...] = ()
     """With `auth` (a directory): accept logins of its users and enforce the access control for
     these rigs (a controller, a router)."""
+    internal: tuple[User, ...] = ()
+    """With `serve`: accounts of this process's own helpers (the controller's edge process),
+    accepted beside the users file's; their dictionary goes to `internal_dir`, never to the
+    auth directory."""
+    internal_dir: Path | None = None
     fail_after_s: float | None = None
     """With `auth` as a client: opening raises when no connection is made within this long."""
     insecure: bool = False
@@ -164,7 +171,8 @@ def session_config(o: SessionOptions) -> zenoh.Config:
             conf.insert_json5("mode", json.dumps(o.mode))
         return conf
     if o.serve:
-        return server_config(Path(o.auth), o.serve, o.listen, o.connect, mode=o.mode or "peer")
+        return server_config(Path(o.auth), o.serve, o.listen, o.connect, mode=o.mode or "peer",
+                             internal=o.internal, internal_dir=o.internal_dir)
     if not o.user:
         raise ValueError("user: required with auth")
     return client_config(o.auth, o.user, o.connect, o.listen, fail_after_s=o.fail_after_s,
@@ -185,6 +193,8 @@ def server_config(
     listen: Iterable[str] = DEFAULT_LISTEN,
     connect: Iterable[str] = (),
     mode: str = "peer",
+    internal: Sequence[User] = (),
+    internal_dir: Path | None = None,
 ) -> zenoh.Config:
     """The configuration of a controller (mode "peer") or router serving `rig_names`.
 
@@ -208,9 +218,13 @@ def server_config(
         proto.check_rig_name(rig)
     users = load_users(directory)
     try:
-        acl = acl_config(users, rig_names)
+        acl = acl_config([*users, *internal], rig_names)
     except ValueError as exc:
         raise AuthError(f"{users.path}: {exc}") from None
+    if internal:
+        if internal_dir is None:
+            raise ValueError("internal: needs internal_dir (where its dictionary is written)")
+        users = Users(internal_dir, {**users.by_name, **{u.name: u for u in internal}})
     dictionary = write_dictionary(users)
     conf = zenoh_config(listen, ())
     conf.insert_json5("mode", json.dumps(mode))
