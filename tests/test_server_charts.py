@@ -339,6 +339,6 @@ def test_crossover_marks_follow_their_definition_at_every_crossing() -> None:
         n = int(rng.integers(1, 40))
         c = rng.choice(values, size=n) * rng.uniform(0.5, 2.0, size=n)
         want = walked(c)
-        np.testing.assert_array_equal(charts._marks(c), want)
+        np.testing.assert_array_equal(charts.crossing_marks(c), want)
         crossings += int(np.count_nonzero(want == 0.0))
     assert crossings > 1000  # the sequences did cross
