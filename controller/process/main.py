@@ -11,8 +11,11 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
+import secrets
 import signal
 import sys
+import tempfile
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -22,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 import msgspec
 
 from controller import protocol as proto
+from controller.auth import User
 from controller.client.session import (
     SessionOptions,
     check_endpoint,
@@ -38,6 +42,8 @@ from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, Plan
 from controller.process.access import Access
 from controller.process.analysis_worker import AnalysisWorker
 from controller.process.audit import AuditError, AuditLog, audit_path
+from controller.process.edge import EdgeSpec
+from controller.process.edge_link import EdgeLink, free_loopback_port
 from controller.process.node import ZenohNode
 from controller.process.options import ControllerOptions
 from controller.process.persistence import (
@@ -128,15 +134,48 @@ def _open_access(opts: ControllerOptions, warn: Callable[[str], None]) -> Access
     return Access(users, opts.rig_name, audit, warn)
 
 
-def _session(opts: ControllerOptions) -> Any:
+@dataclass(frozen=True)
+class _EdgeLogin:
+    """How the edge process reaches the loop process's session (or the router)."""
+
+    session: SessionOptions
+    """The edge process's own session."""
+    listen: tuple[str, ...] = ()
+    """A private loopback endpoint the loop process's session listens on for it."""
+    internal: tuple[User, ...] = ()
+    """Its account on the loop process's session (with authentication)."""
+
+
+def _edge_login(opts: ControllerOptions) -> _EdgeLogin:
+    """The edge process's way in: without authentication, a private loopback endpoint of the
+    loop process's session; with it, that endpoint and an account of its own (role
+    controller, a random password, accepted by this session only); behind an authenticating
+    router, the router, as this controller's own account."""
+    if opts.auth_dir is not None and opts.connect:
+        return _EdgeLogin(SessionOptions(connect=opts.connect, auth=opts.auth_dir,
+                                         user=opts.auth_user, mode="client"))
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    if opts.auth_dir is None:
+        return _EdgeLogin(SessionOptions(connect=(endpoint,), mode="client"), (endpoint,))
+    account = User(f"edge-{secrets.token_hex(6)}", "controller", (opts.rig_name,),
+                   secrets.token_urlsafe(24))
+    return _EdgeLogin(SessionOptions(connect=(endpoint,), auth=account.password,
+                                     user=account.name, mode="client"), (endpoint,), (account,))
+
+
+def _session(opts: ControllerOptions, edge: _EdgeLogin | None = None,
+             private_dir: Path | None = None) -> Any:
     import zenoh
 
     from controller.auth import AuthError, load_users
 
     auth_errors: tuple[type[Exception], ...] = ()
+    extra = edge.listen if edge is not None else ()
+    internal = edge.internal if edge is not None else ()
     try:
         if opts.auth_dir is None:
-            so = SessionOptions(listen=opts.listen, connect=opts.connect, insecure=opts.insecure)
+            so = SessionOptions(listen=(*opts.listen, *extra), connect=opts.connect,
+                                insecure=opts.insecure)
             unreachable = (f"--listen {', '.join(opts.listen)}: cannot open the Zenoh session (is "
                            f"the port in use by another controller? choose another with "
                            f"--listen)")
@@ -154,8 +193,9 @@ def _session(opts: ControllerOptions) -> Any:
                                f"{opts.auth_user!r} within {ROUTER_LOGIN_S:g} s (router "
                                f"unreachable, or it refused the credentials)")
             else:
-                so = SessionOptions(listen=opts.listen, auth=opts.auth_dir,
-                                    serve=(opts.rig_name,))
+                so = SessionOptions(listen=(*opts.listen, *extra), auth=opts.auth_dir,
+                                    serve=(opts.rig_name,), internal=internal,
+                                    internal_dir=private_dir)
                 unreachable = (f"--listen {', '.join(opts.listen)}: cannot open the Zenoh "
                                f"session (port in use?)")
         return connect(so)
@@ -512,11 +552,25 @@ def _run(
                     lambda: access.record("controller.stop", "controller", "noted",
                                           version_before=runtime.loop.active.version)
                 )
-                session = closing.enter_context(_session(opts))
+                edge_login = _edge_login(opts) if opts.edge_in_subprocess else None
+                private_dir = Path(closing.enter_context(
+                    tempfile.TemporaryDirectory(prefix="dobtune-edge-")))
+                session = closing.enter_context(_session(opts, edge_login, private_dir))
                 node = ZenohNode(service)
+                edge: EdgeLink | None = None
                 try:
-                    node.declare(session)
-                    node.start_threads()
+                    node.declare(session, queryables=edge_login is None)
+                    node.start_threads(workers=edge_login is None)
+                    if edge_login is not None:
+                        edge = node.edge = EdgeLink(node, EdgeSpec(
+                            rig=opts.rig_name, session=edge_login.session,
+                            auth_dir=opts.auth_dir, state_dir=store.directory,
+                            max_payload_bytes=opts.max_payload_bytes,
+                            max_pending_queries=opts.max_pending_queries,
+                            budget_per_s=(opts.request_budget_per_s
+                                          if opts.auth_dir is not None else None),
+                            parent_pid=os.getpid()))
+                        edge.start()  # from this (the main) thread: its death signal
                     if opts.realtime_priority:
                         notes.append(try_realtime_priority())
                         log.info("%s", notes[-1])
@@ -533,6 +587,8 @@ def _run(
                         runtime.run()
                 finally:
                     runtime.stop()
+                    if edge is not None:
+                        edge.close()
                     node.close()
     finally:
         sys.setswitchinterval(previous_switch)

@@ -161,12 +161,16 @@ class ZenohNode:
         self.state_pub: Any = None
         self.status_pub: Any = None
         self.shed_queries = 0
+        #: The edge process's link (`controller.process.edge_link`), when it serves requests.
+        self.edge: Any = None
         #: The latch as last written (the store's view at start).
         self._latch_written: Latch | None = service.store.load_latch_or_none()
 
     # -- lifecycle ---------------------------------------------------------------------------
 
-    def declare(self, session: Any) -> None:
+    def declare(self, session: Any, *, queryables: bool = True) -> None:
+        """Publishers, liveliness, the e-stop subscribers and (`queryables`) the request
+        queryables on `session`."""
         import zenoh
 
         rig = self.opts.rig_name
@@ -184,8 +188,9 @@ class ZenohNode:
         self._entities.append(session.liveliness().declare_token(proto.key_alive(rig)))
         # Callbacks: hand over and return (no decoding, no Zenoh calls, no blocking). With
         # authentication the requests arrive on per-user scopes only (the key names the user).
+        # With the edge process (`controller.process.edge`) it declares them, not this one.
         scoped = proto.any_user_key if self.access.auth else (lambda k: k)
-        for key, q in (
+        for key, q in () if not queryables else (
             (proto.key_config(rig), self.config_q),
             (proto.key_command(rig), self.command_q),
             (proto.key_identify(rig), self.identify_q),
@@ -229,8 +234,9 @@ class ZenohNode:
 
         return put
 
-    def start_threads(self) -> None:
-        for name, target in (
+    def start_threads(self, *, workers: bool = True) -> None:
+        """The publishers' and the latch's threads, and (`workers`) the request workers."""
+        threads = (
             ("state-publisher", self._publish_state),
             ("status", self._publish_status),
             ("latch", self._persist_latch),
@@ -243,7 +249,8 @@ class ZenohNode:
             ),
             ("lease-worker", lambda: self.serve_queue(self.lease_q, self.handle_lease)),
             ("history-worker", lambda: self.serve_queue(self.history_q, self.handle_history)),
-        ):
+        )
+        for name, target in threads if workers else threads[:3]:
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
             self._threads.append(t)
@@ -315,7 +322,7 @@ class ZenohNode:
         self._bb_mode, self._bb_rollbacks = mode, rollbacks
 
     def status(self) -> proto.Status:
-        shed = self.shed_queries
+        shed = self.shed_queries + (self.edge.shed if self.edge is not None else 0)
         return self.service.status((f"{shed} queries shed (flood)",) if shed else ())
 
     def _publish_status(self) -> None:
@@ -327,6 +334,8 @@ class ZenohNode:
                 self.service.poll_faults()
                 self.access.poll()
                 self._black_box()
+                if self.edge is not None:
+                    self.edge.push()  # what a rollback or new knowledge changed
                 self.status_pub.put(
                     proto.encode(self.status()), encoding=proto.encoding(proto.Status)
                 )

@@ -49,6 +49,13 @@ class ControllerOptions:
     keep the loop's thread waiting for the interpreter lock."""
     gate_in_subprocess: bool = True
     """Run the stability analysis in a worker process (see AnalysisWorker)."""
+    edge_in_subprocess: bool = True
+    """Serve the request queryables from the edge process (`controller.process.edge`), apart
+    from the loop's process (False: from threads of this process, as before issue 31)."""
+    request_budget_per_s: float = 50.0
+    """With `auth_dir`: requests a second each user may send (bursts of twice that); beyond,
+    a request is refused at once, naming the budget (`controller.process.budget`; the edge
+    process only)."""
     auth_dir: Path | None = None
     """`dobtune auth init` directory: user/password authentication, access control per role,
     requests on per-user key scopes, the operator lease enforced for every user."""

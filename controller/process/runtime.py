@@ -25,7 +25,6 @@ command 0, drive stopped, until reset). Only the tick changes the mode.
 from __future__ import annotations
 
 import contextlib
-import itertools
 import math
 import os
 import threading
@@ -236,7 +235,8 @@ class Runtime:
         self._inbox: deque[Ticket] = deque()
         self._estop_request: str | None = None
         self._fault_request: str | None = None
-        self._arrivals = itertools.count()
+        self._arrival_lock = threading.Lock()
+        self._last_arrival = 0
         self._arrival_local = threading.local()
         self._estop_lock = threading.Lock()
         self._estop_arrival = -1
@@ -291,8 +291,13 @@ class Runtime:
 
     def next_arrival(self) -> int:
         """A new arrival stamp (any thread; increasing): the edge stamps each request when it
-        arrives, in the order the transport delivered it."""
-        return next(self._arrivals)
+        arrives, in the order the transport delivered it. The stamps are `time.monotonic_ns`
+        (one clock for the whole machine: the edge process stamps its queries with it too),
+        made strictly increasing within this process."""
+        now = time.monotonic_ns()
+        with self._arrival_lock:
+            stamp = self._last_arrival = max(now, self._last_arrival + 1)
+        return stamp
 
     @contextlib.contextmanager
     def arrival_scope(self, arrival: int) -> Iterator[None]:

@@ -1,0 +1,288 @@
+"""The controller's edge process: every request queryable, apart from the loop's process.
+
+The loop's process (`controller.process.main`) keeps the 1 kHz tick, the e-stop subscriber
+(its own Zenoh session, its own callback), the streams and the service. This child process
+opens a Zenoh session of its own (a client of the loop process's session, or of the router
+the controller logs in to) and declares the request queryables. Per query, in the Zenoh
+callback, before anything is read: the sender's request budget (`controller.process.budget`,
+with authentication: the user the key scope names), refused at once with a reply naming the
+budget; then a bounded queue per request kind (beyond it a query is shed, as before).
+
+A worker thread per kind then serves its queue:
+- reads answered here, without the loop's process: history (read from the change log),
+  configuration and plant knowledge (the loop process's latest snapshot of their replies:
+  `EdgeSnapshot`, sent with every reply that may change them and whenever they change);
+- everything else (applies, commands, adopting knowledge, the lease, identification) is
+  forwarded over the kind's pipe to the loop process, one request at a time per kind, which
+  handles it as before (`ZenohNode.handle_*`: lease, gate, audit) and sends the reply back.
+  A payload over the size limit is not sent: only its size, for the refusal that names it.
+
+So whatever clients send, the loop process sees at most one request per kind at a time, each
+within its sender's budget, and no read at all: the interpreter lock the loop needs is not
+theirs to take. The process is niced, ignores Ctrl-C and ends with its parent
+(`controller.process.worker_start`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+from controller import protocol as proto
+from controller.client.session import SessionOptions, connect
+from controller.process.budget import RequestBudget
+from controller.process.history import history_reply
+from controller.process.persistence import StateStore
+from controller.process.worker_start import worker_init
+
+__all__ = ["FORWARDED", "KINDS", "EdgeSnapshot", "EdgeSpec", "edge_main"]
+
+log = logging.getLogger(__name__)
+
+#: Request kinds (queryables) and the key each is served on.
+KINDS: dict[str, Callable[[str], str]] = {
+    "config": proto.key_config,
+    "command": proto.key_command,
+    "identify": proto.key_identify,
+    "knowledge": proto.key_knowledge,
+    "lease": proto.key_lease,
+    "history": proto.key_history,
+}
+#: The kinds the loop process serves (each over a pipe of its own); history never reaches it.
+FORWARDED = ("config", "command", "identify", "knowledge", "lease")
+_REPLY_TYPES: dict[str, type[proto.Message]] = {
+    "config": proto.ConfigReply,
+    "command": proto.CommandReply,
+    "identify": proto.IdentifyStatus,
+    "knowledge": proto.KnowledgeReply,
+    "lease": proto.LeaseReply,
+    "history": proto.HistoryReply,
+}
+#: How often the budget's refusals are reported to the loop process (audit, status).
+REPORT_S = 1.0
+INTERNAL_ERROR = b"internal error: the request was not served (see the controller's log)"
+
+
+@dataclass(frozen=True)
+class EdgeSpec:
+    """What the edge process needs (pickled to it)."""
+
+    rig: str
+    session: SessionOptions
+    auth_dir: Path | None
+    state_dir: Path
+    max_payload_bytes: int
+    max_pending_queries: int
+    budget_per_s: float | None
+    """Requests a second per authenticated user (None: no budget, without authentication)."""
+    parent_pid: int
+
+
+@dataclass(frozen=True)
+class EdgeSnapshot:
+    """The loop process's replies to a configuration GET and a knowledge GET, numbered: the
+    edge keeps the newest (`generation`), whichever pipe it came by."""
+
+    generation: int
+    config: bytes
+    knowledge: bytes
+
+
+class _ChangeLogReader(StateStore):
+    """The state directory's change log, read only (opening a `StateStore` would remove
+    temporary files the loop process may be writing)."""
+
+    def __init__(self, directory: Path) -> None:  # no super().__init__: nothing created
+        self.directory = Path(directory)
+
+
+class _Edge:
+    def __init__(self, spec: EdgeSpec, conns: dict[str, Connection], control: Connection,
+                 ) -> None:
+        self.spec = spec
+        self.conns = conns
+        self.control = control
+        self.queues: dict[str, queue.SimpleQueue[Any]] = {k: queue.SimpleQueue() for k in KINDS}
+        self.budget = (RequestBudget(spec.budget_per_s)
+                       if spec.budget_per_s is not None else None)
+        self.refusal = self.budget.refusal.encode() if self.budget is not None else b""
+        self.snapshot: EdgeSnapshot | None = None
+        self._snap_lock = threading.Lock()
+        self.changes = _ChangeLogReader(spec.state_dir)
+        self.shed = 0
+        self.stop = threading.Event()
+        self._control_lock = threading.Lock()
+
+    # -- Zenoh callbacks: budget, then hand over ---------------------------------------------
+
+    def on_query(self, kind: str) -> Callable[[Any], None]:
+        q = self.queues[kind]
+        limit = self.spec.max_pending_queries
+        budget = self.budget
+        refusal = self.refusal
+        user_of_key = proto.user_of_key
+        clock = time.monotonic_ns
+
+        def put(query: Any) -> None:
+            arrival = clock()
+            if budget is not None and not budget.allow(
+                    user_of_key(query.key_expr) or "anonymous"):
+                with contextlib.suppress(Exception):
+                    query.reply_err(refusal)
+                    query.drop()
+                return
+            if q.qsize() < limit:
+                q.put((query, arrival))
+            else:
+                self.shed += 1  # released unanswered (the client times out)
+
+        return put
+
+    # -- workers -------------------------------------------------------------------------------
+
+    def serve(self, kind: str) -> None:
+        q = self.queues[kind]
+        encoding = proto.encoding(_REPLY_TYPES[kind])
+        while True:
+            query, arrival = q.get()
+            if query is None:
+                return
+            try:
+                payload = query.payload
+                data = b"" if payload is None else payload.to_bytes()
+                reply = self.answer(kind, str(query.key_expr), arrival, data)
+                if reply is None:
+                    query.reply_err(INTERNAL_ERROR)
+                else:
+                    query.reply(query.key_expr, reply, encoding=encoding)
+            except Exception as exc:  # never let a query end the worker
+                log.warning("edge: %s query: %s: %s", kind, type(exc).__name__, exc)
+                with contextlib.suppress(Exception):
+                    query.reply_err(INTERNAL_ERROR)
+            finally:
+                with contextlib.suppress(Exception):
+                    query.drop()
+
+    def answer(self, kind: str, key: str, arrival: int, data: bytes) -> bytes | None:
+        """The reply's bytes (None: an internal error, told as such)."""
+        too_large = len(data) > self.spec.max_payload_bytes
+        if kind == "history":
+            return self.history(data, too_large)
+        if not too_large:
+            local = self.read_locally(kind, data)
+            if local is not None:
+                return local
+        conn = self.conns[kind]
+        # Over the limit: only the size goes (the loop process names it in the refusal).
+        conn.send((key, arrival, None if too_large else data, len(data)))
+        reply, snap = conn.recv()
+        if snap is not None:
+            self.take(snap)
+        return reply  # type: ignore[no-any-return]
+
+    def read_locally(self, kind: str, data: bytes) -> bytes | None:
+        """A GET of the configuration or the plant knowledge, from the snapshot (None: not a
+        GET, or malformed, or no snapshot yet: the loop process answers)."""
+        snap = self.snapshot
+        if snap is None or kind not in ("config", "knowledge"):
+            return None
+        try:
+            if kind == "config":
+                if data and proto.decode(data, proto.ConfigRequest).candidate is not None:
+                    return None
+                return snap.config
+            if data:
+                req = proto.decode(data, proto.KnowledgeRequest)
+                if req.record is not None or req.adopt_run is not None:
+                    return None
+            return snap.knowledge
+        except proto.ProtocolError:
+            return None  # refused (and audited) by the loop process, naming the field
+
+    def history(self, data: bytes, too_large: bool) -> bytes:
+        if too_large:
+            return proto.encode(proto.HistoryReply(
+                ok=False, field="payload", message=f"payload: {len(data)} bytes is over the "
+                f"limit of {self.spec.max_payload_bytes}"))
+        try:
+            req = proto.decode(data, proto.HistoryRequest) if data else proto.HistoryRequest()
+        except proto.ProtocolError as exc:
+            return proto.encode(proto.HistoryReply(ok=False, message=str(exc), field=exc.field))
+        return proto.encode(history_reply(self.changes.read_changes, req.last))
+
+    def take(self, snap: EdgeSnapshot) -> None:
+        with self._snap_lock:
+            if self.snapshot is None or snap.generation > self.snapshot.generation:
+                self.snapshot = snap
+
+    # -- the control pipe ------------------------------------------------------------------------
+
+    def read_control(self) -> None:
+        """Snapshots from the loop process; `None` (or its end) stops this process."""
+        while True:
+            try:
+                msg = self.control.recv()
+            except (EOFError, OSError):
+                msg = None
+            if msg is None:
+                self.stop.set()
+                return
+            if isinstance(msg, EdgeSnapshot):
+                self.take(msg)
+
+    def send_control(self, msg: Any) -> None:
+        with self._control_lock:
+            self.control.send(msg)
+
+    def report(self) -> None:
+        """The budget's refusals and the shed queries, every REPORT_S while there are any."""
+        shed = 0
+        while not self.stop.wait(REPORT_S):
+            refused = self.budget.take_refusals() if self.budget is not None else {}
+            new_shed, shed = self.shed - shed, self.shed
+            if refused or new_shed:
+                with contextlib.suppress(OSError, ValueError):
+                    self.send_control(("refused", refused, new_shed))
+
+    # -- the process -----------------------------------------------------------------------------
+
+    def run(self) -> None:
+        import zenoh
+
+        rig = self.spec.rig
+        scoped = proto.any_user_key if self.spec.auth_dir is not None else (lambda k: k)
+        threads = [threading.Thread(target=self.read_control, name="control", daemon=True),
+                   threading.Thread(target=self.report, name="report", daemon=True)]
+        threads += [threading.Thread(target=self.serve, args=(k,), name=f"{k}-worker",
+                                     daemon=True) for k in KINDS]
+        for t in threads:
+            t.start()
+        with connect(self.spec.session) as session:
+            entities = [
+                session.declare_queryable(
+                    scoped(key(rig)),
+                    zenoh.handlers.Callback(self.on_query(kind), indirect=False))
+                for kind, key in KINDS.items()
+            ]
+            self.send_control(("ready",))
+            self.stop.wait()
+            for e in entities:
+                with contextlib.suppress(Exception):
+                    e.undeclare()
+            for q in self.queues.values():
+                q.put((None, 0))
+
+
+def edge_main(spec: EdgeSpec, conns: dict[str, Connection], control: Connection) -> None:
+    """The edge process's body (multiprocessing target)."""
+    worker_init(spec.parent_pid, True)  # Ctrl-C ignored, ends with its parent, niced
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s edge: %(message)s")
+    _Edge(spec, conns, control).run()

@@ -1,0 +1,235 @@
+"""The loop process's side of the edge process (`controller.process.edge`): start it, serve
+what it forwards, keep it informed, start it again if it dies.
+
+- One thread per forwarded kind reads the kind's pipe and calls the node's handler
+  (`ZenohNode.handle_*`: lease, gate, audit), with the arrival stamp the edge gave the query
+  (`time.monotonic_ns`, the same clock as the loop's e-stop stamps, across processes); the
+  reply goes back with the newest `EdgeSnapshot` when the request may have changed it, so a
+  read that follows an apply's reply sees the applied configuration.
+- The status thread calls `push()`: a snapshot that changed (a watchdog rollback, new plant
+  knowledge) goes over the control pipe.
+- The control pipe brings the edge's refusals (request budget, shed queries): one audit record
+  per user and report, and a Status.notes line.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import socket
+import threading
+import time
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+from typing import Any
+
+from controller import protocol as proto
+from controller.process.edge import FORWARDED, EdgeSnapshot, EdgeSpec, edge_main
+
+__all__ = ["EdgeLink", "Oversized", "free_loopback_port"]
+
+log = logging.getLogger(__name__)
+
+#: How long `close` waits for the edge process to end before killing it.
+CLOSE_S = 5.0
+#: The shortest time between two starts of the edge process.
+RESTART_S = 1.0
+
+
+def free_loopback_port() -> int:
+    """A TCP port free on 127.0.0.1 now (for the loop session's private endpoint)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Oversized(bytes):
+    """An empty payload standing for one of `size` bytes that the edge did not send (over
+    the size limit): `len()` is the size, so the handler's size check refuses it, naming it."""
+
+    size: int
+
+    def __new__(cls, size: int) -> Oversized:
+        obj = super().__new__(cls, b"")
+        obj.size = size
+        return obj
+
+    def __len__(self) -> int:
+        return self.size
+
+
+class EdgeLink:
+    """Runs the edge process for one node (`node.handle_*`, `node.service`)."""
+
+    def __init__(self, node: Any, spec: EdgeSpec) -> None:
+        self.node = node
+        self.service = node.service
+        self.spec = spec
+        self.rt = node.rt
+        self._handlers: dict[str, Callable[[bytes, Any], bytes]] = {
+            "config": node.handle_config,
+            "command": node.handle_command,
+            "identify": node.handle_identify,
+            "knowledge": node.handle_knowledge,
+            "lease": node.handle_lease,
+        }
+        self._snap_lock = threading.Lock()
+        self._snap_key: tuple[Any, ...] = ()
+        self._snap: EdgeSnapshot | None = None
+        self._pushed = -1
+        self._control: Connection | None = None
+        self._control_lock = threading.Lock()
+        self._proc: Any = None
+        self._closing = threading.Event()
+        self._started_at = 0.0
+        self.ready = threading.Event()
+        self.refused: dict[str, int] = {}
+        """Requests refused by the budget since the start, by user."""
+        self.shed = 0
+        self.restarts = 0
+
+    # -- snapshots -----------------------------------------------------------------------------
+
+    def snapshot(self) -> EdgeSnapshot:
+        """The replies to a configuration GET and a knowledge GET now (encoded again only when
+        what they show changed: the active coefficients, the verdict, the knowledge)."""
+        svc = self.service
+        key = (svc.rt.loop.active, svc.running_verdict, svc.knowledge)
+        with self._snap_lock:
+            snap = self._snap
+            if snap is None or any(a is not b for a, b in zip(key, self._snap_key, strict=True)):
+                gen = 0 if snap is None else snap.generation + 1
+                snap = self._snap = EdgeSnapshot(
+                    gen, proto.encode(svc.active_config()),
+                    proto.encode(svc.knowledge_reply(True)))
+                self._snap_key = key
+            return snap
+
+    def push(self) -> None:
+        """Send the snapshot over the control pipe if it changed since the last push."""
+        snap = self.snapshot()
+        if snap.generation != self._pushed:
+            self._send_control(snap)
+            self._pushed = snap.generation
+
+    def _send_control(self, msg: Any) -> None:
+        with self._control_lock:
+            if self._control is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    self._control.send(msg)
+
+    # -- the process ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the edge process and the threads that serve it."""
+        ctx = multiprocessing.get_context("spawn")
+        ours: dict[str, Connection] = {}
+        theirs: dict[str, Connection] = {}
+        for kind in FORWARDED:
+            ours[kind], theirs[kind] = ctx.Pipe(duplex=True)
+        control, their_control = ctx.Pipe(duplex=True)
+        spec = self.spec
+        proc = ctx.Process(target=edge_main, args=(spec, theirs, their_control),
+                           name="dobtune-edge", daemon=True)
+        self._started_at = time.monotonic()
+        proc.start()
+        for c in (*theirs.values(), their_control):
+            c.close()  # the child's ends: ours see EOF when it dies
+        with self._control_lock:
+            self._control = control
+        self._proc = proc
+        self.push_now(control)
+        for kind, conn in ours.items():
+            threading.Thread(target=self._serve, args=(kind, conn), name=f"edge-{kind}",
+                             daemon=True).start()
+        threading.Thread(target=self._read_control, args=(control, proc), name="edge-control",
+                         daemon=True).start()
+
+    def push_now(self, control: Connection) -> None:
+        snap = self.snapshot()
+        with self._control_lock, contextlib.suppress(OSError, ValueError):
+            control.send(snap)
+        self._pushed = snap.generation
+
+    def close(self) -> None:
+        self._closing.set()
+        self._send_control(None)
+        proc = self._proc
+        if proc is not None:
+            proc.join(CLOSE_S)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(CLOSE_S)
+        with self._control_lock:
+            if self._control is not None:
+                self._control.close()
+                self._control = None
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else self._proc.pid
+
+    # -- threads -------------------------------------------------------------------------------
+
+    def _serve(self, kind: str, conn: Connection) -> None:
+        handle = self._handlers[kind]
+        access = self.service.access
+        rt = self.rt
+        with conn:
+            while True:
+                try:
+                    key, arrival, data, size = conn.recv()
+                except (EOFError, OSError):
+                    return  # the edge process ended
+                snap: EdgeSnapshot | None = None
+                try:
+                    who = access.who(key)
+                    with rt.arrival_scope(arrival):
+                        reply: bytes | None = handle(
+                            Oversized(size) if data is None else data, who)
+                    if kind != "identify" and kind != "lease":
+                        snap = self.snapshot()
+                except Exception as exc:  # never end the thread: the client is told
+                    self.service.warn(f"query handler error: {type(exc).__name__}: {exc}")
+                    reply = None
+                try:
+                    conn.send((reply, snap))
+                except (OSError, ValueError):
+                    return
+
+    def _read_control(self, control: Connection, proc: Any) -> None:
+        while True:
+            try:
+                msg = control.recv()
+            except (EOFError, OSError):
+                break
+            if msg == ("ready",):
+                self.ready.set()
+                log.info("edge process %d serving requests", proc.pid)
+            elif isinstance(msg, tuple) and msg[0] == "refused":
+                self._refused(msg[1], msg[2])
+        proc.join(CLOSE_S)
+        if self._closing.is_set():
+            return
+        # The edge process died: requests go unanswered until it is back.
+        self.ready.clear()
+        self.restarts += 1
+        self.service.warn(f"edge process ended (exit code {proc.exitcode}); started again",
+                          key="edge")
+        wait = RESTART_S - (time.monotonic() - self._started_at)
+        if wait > 0 and self._closing.wait(wait):
+            return
+        self.start()
+
+    def _refused(self, refused: dict[str, int], shed: int) -> None:
+        access = self.service.access
+        budget = f"{self.spec.budget_per_s:g} requests/s per user"
+        for user, n in refused.items():
+            self.refused[user] = self.refused.get(user, 0) + n
+            access.record("request.budget", user, "refused", count=n, budget=budget)
+        self.shed += shed
+        if refused:
+            users = ", ".join(f"{u} {n}" for u, n in sorted(self.refused.items()))
+            self.service.warn(f"request budget ({budget}): {sum(self.refused.values())} "
+                              f"requests refused ({users})", key="budget")
