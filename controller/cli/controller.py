@@ -57,6 +57,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "authenticating router with; the controller then listens nowhere",
     )
     p.add_argument(
+        "--request-budget",
+        type=float,
+        default=50.0,
+        metavar="N",
+        help="with --auth: requests a second each user may send (bursts of 2N); beyond, a "
+        "request is refused at once, naming the budget (default: 50)",
+    )
+    p.add_argument(
         "--insecure",
         action="store_true",
         help="allow a non-loopback --listen or --connect without --auth (anyone who reaches "
@@ -110,6 +118,7 @@ def _run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
         auth_dir=args.auth,
         auth_user=args.user,
         insecure=args.insecure,
+        request_budget_per_s=args.request_budget,
     )
     try:
         code = run_controller(opts, ready=say)
