@@ -78,7 +78,7 @@ def _disturbance_args(names: tuple[str, ...]) -> tuple[str, ...]:
 
 def router_command(endpoint: str, log_level: str = "info",
                    extra: tuple[str, ...] = ()) -> list[str]:
-    code = ("import sys; from server.__main__ import dobtune_main; "
+    code = ("import sys; from controller.cli.main import dobtune_main; "
             "sys.exit(dobtune_main(['router', *sys.argv[1:]]))")
     return [sys.executable, "-c", code, "--listen", endpoint, "--log-level", log_level, *extra]
 

@@ -144,18 +144,39 @@ def test_protocol_imports_only_plain_data() -> None:
     assert not bad, bad
 
 
+#: The commands that run the dashboard: the only controller modules that import `server`, and
+#: only inside a function (when the command runs), never at import time.
+LOADS_THE_DASHBOARD = ("controller.cli.dashboard", "controller.cli.demo")
+
+
+def module_level_imports(mod: str) -> set[str]:
+    """The modules `mod` imports at import time (statements at module level, not in a
+    function or class body)."""
+    out: set[str] = set()
+    tree = ast.parse(MODULES[mod].read_text())
+    for node in tree.body:
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            out.add(resolve(mod, node))
+    return out
+
+
 def test_controller_never_imports_server() -> None:
     bad = bad_imports(lambda mod: mod.startswith("controller"),
-                      lambda _mod, name: name.split(".")[0] in ("server", "viser"))
+                      lambda mod, name: name.split(".")[0] == "viser"
+                      or (name.split(".")[0] == "server" and mod not in LOADS_THE_DASHBOARD))
     assert not bad, bad
+    eager = [f"{mod}: {name}" for mod in LOADS_THE_DASHBOARD
+             for name in module_level_imports(mod) if name.split(".")[0] == "server"]
+    assert not eager, eager
 
 
 def test_server_imports_only_the_controllers_public_side() -> None:
     def outside(mod: str, name: str) -> bool:
         target = project_target(name) or name
         return (name.startswith("controller") and not within(target, SERVER_MAY_IMPORT)
-                # the `dobtune` entry point composes the controller's commands with the
-                # dashboard's
+                # `python -m server` is `dobtune dashboard`
                 and not (mod == "server.__main__" and within(target, ("controller.cli",))))
 
     bad = bad_imports(lambda mod: mod.startswith("server"), outside)
@@ -311,13 +332,84 @@ RULES = (
     "| `gate` imports `core`; `sim` imports `core`; `ident` and `tune` import `core`, `gate`, "
     "`sim` |",
     "| `controller/protocol.py` imports only `core`, `ident.spec`, `gate.knowledge` |",
-    "| `controller` never imports `server` or `viser` |",
+    "| `controller` never imports `server` or `viser`, but `controller/cli/dashboard.py` and "
+    "`demo.py` (`dobtune dashboard`, `dobtune demo`) load `server` when they run (inside a "
+    "function, never at import time) |",
     "| only `controller/rig` imports python-can |",
     "| key strings (`dobtune/...`) only in `controller/protocol.py` |",
     "| `server` imports from the controller side only the pure packages, `protocol`, `client`, "
     "`logs`, `auth`, `recording`, `files` |",
-    "| `server` never imports `controller/cli` (but `server/__main__.py`, the `dobtune` entry "
-    "point) |",
+    "| `server` never imports `controller/cli` (but `server/__main__.py`: `python -m server` is "
+    "`dobtune dashboard`) |",
+    "| each package imports exactly what its row of the packages table says it may import "
+    "(nothing else, and nothing listed goes unused) |",
     "| no import cycles between modules (every import counted: lazy ones, package `__init__`) |",
     "| no private name (`_x`) imported from or accessed on another module |",
 )
+
+
+# -- the packages table's "may import" column, both ways -------------------------------------
+
+
+def packages_table(doc: str | None = None) -> dict[str, tuple[str, ...]]:
+    """The packages table of docs/architecture.md: each row's package or module (dotted) ->
+    what it may import (dotted, the backticked names of the last column: `x` is controller.x,
+    `server...` the dashboard's)."""
+    import re
+
+    doc = doc if doc is not None else (ROOT / "docs" / "architecture.md").read_text()
+    section = doc.split("## Packages", 1)[1].split("\n## ", 1)[0]
+    rows: dict[str, tuple[str, ...]] = {}
+    for line in section.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) != 3 or not cells[0].startswith("`"):
+            continue
+        path = cells[0].strip("`").removesuffix("/").removesuffix(".py")
+        names = re.findall(r"`([^`]+)`", cells[2])
+        rows[path.replace("/", ".")] = tuple(
+            n.replace("/", ".") if n.startswith("server") else f"controller.{n}" for n in names)
+    return rows
+
+
+def row_of(mod: str, rows: dict[str, tuple[str, ...]]) -> str | None:
+    """The table row a module belongs to (the longest row prefix)."""
+    best = [r for r in rows if within(mod, (r,))]
+    return max(best, key=len) if best else None
+
+
+def row_imports(rows: dict[str, tuple[str, ...]], mods: dict[str, Path] = MODULES
+                ) -> dict[str, set[str]]:
+    """Each row's imports of project modules outside the row (every import counted; for the
+    dashboard's rows, only those of the controller side)."""
+    graph = module_graph(mods)
+    out: dict[str, set[str]] = {r: set() for r in rows}
+    for mod, targets in graph.items():
+        r = row_of(mod, rows)
+        if r is None:
+            continue
+        for t in targets:
+            if within(t, (r,)) or row_of(t, rows) == r:
+                continue
+            if r.startswith("server") and not t.startswith("controller"):
+                continue  # (the dashboard's own parts: the server rows' rules)
+            out[r].add(t)
+    return out
+
+
+def test_every_module_has_a_row_in_the_packages_table() -> None:
+    rows = packages_table()
+    missing = sorted(m for m in MODULES if m not in PACKAGES and row_of(m, rows) is None)
+    assert not missing, f"docs/architecture.md's packages table has no row for {missing}"
+
+
+def test_each_package_imports_what_its_row_says_and_nothing_else() -> None:
+    """The "may import" column is true both ways: every import is listed, and every listed
+    name is imported (a stale claim fails too)."""
+    rows = packages_table()
+    got = row_imports(rows)
+    unlisted, unused = [], []
+    for r, allowed in rows.items():
+        unlisted += [f"{r} imports {t}" for t in sorted(got[r]) if not within(t, allowed)]
+        unused += [f"{r} lists {a}" for a in allowed if not any(within(t, (a,)) for t in got[r])]
+    assert not unlisted, f"not in the packages table's 'may import' column: {unlisted}"
+    assert not unused, f"listed in 'may import' but not imported: {unused}"

@@ -1,13 +1,13 @@
 """The controller side's `dobtune` commands. Each module (`controller.cli.<name>`: its
 `add_arguments` and `run`) is imported only when its command is used (`lazy_command`), so
 listing them loads no analysis, no numba, no scipy, no Zenoh and no dashboard, and one command
-loads only its own code."""
+loads only its own code (`dashboard` and `demo` load `server/` when they run)."""
 
 from __future__ import annotations
 
 from controller.cli.common import Command, lazy_command
 
-__all__ = ["controller_commands"]
+__all__ = ["all_commands", "controller_commands"]
 
 #: (name, module under controller.cli, help, long-running: takes --log-level).
 _COMMANDS = (
@@ -27,9 +27,21 @@ _COMMANDS = (
     ("autotune", "autotune", "search the Q type and cut-off on the simulated rig", False),
     ("paper", "paper", "the article's experiments on the simulated rig: report.md + PNGs", False),
 )
+#: The commands that run the dashboard (their modules load `server/` when they run).
+_DASHBOARD_COMMANDS = (
+    ("dashboard", "dashboard", "run the dashboard (viser)", True),
+    ("demo", "demo", "simulated controller + dashboard, prints the URL", True),
+)
 
 
 def controller_commands() -> dict[str, Command]:
     """Every controller-side command by name."""
     return {name: lazy_command(name, help, f"controller.cli.{module}", long_running=long)
             for name, module, help, long in _COMMANDS}
+
+
+def all_commands() -> dict[str, Command]:
+    """Every `dobtune` command by name: the controller side's, then the dashboard's."""
+    return {**controller_commands(),
+            **{name: lazy_command(name, help, f"controller.cli.{module}", long_running=long)
+               for name, module, help, long in _DASHBOARD_COMMANDS}}

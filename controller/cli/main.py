@@ -1,0 +1,15 @@
+"""`dobtune` console script (all subcommands) and `python -m server` (the dashboard)."""
+
+from __future__ import annotations
+
+from controller.cli.commands import all_commands
+from controller.cli.common import build_parser
+
+__all__ = ["dobtune_main"]
+
+
+def dobtune_main(argv: list[str] | None = None) -> int:
+    """The `dobtune` command line: parse `argv` (default sys.argv[1:]), run the command."""
+    cmds = all_commands()
+    args = build_parser("dobtune", __doc__, cmds).parse_args(argv)
+    return cmds[args.command].run(args)
