@@ -1,7 +1,14 @@
 """The layout in numbers: modules per package and their sizes, and the package dependency graph
 (every import counted, as tests/test_layout.py counts them); optionally for an older commit too.
 
-    .venv/bin/python tests/bench/layout_figures.py [--before REV]
+    .venv/bin/python tests/bench/layout_figures.py [--before REV] [--doc]
+
+Also: the largest class of each package (lines, methods), package cycles (packages that import
+each other), `Any` in the signatures of `server/` (annotations of parameters and returns), and
+the private-attribute reaches: `x._name` where x is not `self`/`cls` (another object's or
+module's private part), counted per package with the modules that make them. `--doc` writes
+this tree's table into docs/architecture.md between the `layout-figures` markers (the doc's
+numbers are this script's, never typed by hand).
 
 A package is a folder of `controller/` or `server/` (`controller.protocol` and the other
 top-level modules stand alone). Lines are physical lines of the .py files. The graph lists,
@@ -12,6 +19,7 @@ test's (`test_no_import_cycles`), run here on the same graph and printed as a co
 from __future__ import annotations
 
 import argparse
+import ast
 import subprocess
 import sys
 import tarfile
@@ -24,6 +32,9 @@ sys.path.insert(0, str(REPO / "tests"))
 
 from test_layout import PACKAGES, import_cycles, module_graph, modules  # noqa: E402
 
+DOC = REPO / "docs" / "architecture.md"
+BEGIN, END = "<!-- layout-figures: begin -->", "<!-- layout-figures: end -->"
+
 
 def package_of(mod: str, mods: dict[str, Path]) -> str:
     """The folder a module lives in (a package's __init__ belongs to that package)."""
@@ -31,6 +42,80 @@ def package_of(mod: str, mods: dict[str, Path]) -> str:
         return mod
     parent = mod.rsplit(".", 1)[0]
     return parent if parent not in PACKAGES else mod
+
+
+def classes(path: Path) -> list[tuple[int, int, str]]:
+    """(lines, methods, name) of every class of a module."""
+    tree = ast.parse(path.read_text())
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ClassDef):
+            n = (node.end_lineno or node.lineno) - node.lineno + 1
+            methods = sum(isinstance(b, ast.FunctionDef | ast.AsyncFunctionDef) for b in node.body)
+            out.append((n, methods, node.name))
+    return out
+
+
+def any_in_signatures(path: Path) -> int:
+    """Parameters and returns annotated with `Any` (alone or inside), of every function."""
+    count = 0
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            a = node.args
+            anns = [x.annotation for x in (*a.posonlyargs, *a.args, *a.kwonlyargs,
+                                           *([a.vararg] if a.vararg else []),
+                                           *([a.kwarg] if a.kwarg else []))]
+            anns.append(node.returns)
+            count += sum(1 for t in anns if t is not None and "Any" in {
+                n.id for n in ast.walk(t) if isinstance(n, ast.Name)} | {
+                n.attr for n in ast.walk(t) if isinstance(n, ast.Attribute)})
+    return count
+
+
+def private_reaches(path: Path) -> int:
+    """`x._name` (not dunder) where x is not `self` or `cls`: a reach into another object's or
+    module's private part."""
+    count = 0
+    for node in ast.walk(ast.parse(path.read_text())):
+        if (isinstance(node, ast.Attribute) and node.attr.startswith("_")
+                and not node.attr.startswith("__")
+                and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))):
+            count += 1
+    return count
+
+
+def package_cycles(pkg_graph: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """Pairs of packages that import each other (directly)."""
+    return sorted((a, b) for a in pkg_graph for b in pkg_graph[a]
+                  if a < b and a in pkg_graph.get(b, set()))
+
+
+def table(root: Path) -> str:
+    """The per-package table (markdown) of the tree at `root`."""
+    mods = modules(root)
+    rows: dict[str, list[tuple[int, str, Path]]] = defaultdict(list)
+    for mod, path in mods.items():
+        folder = mod if path.name == "__init__.py" else mod.rsplit(".", 1)[0]
+        key = folder.replace(".", "/") + ("/*.py" if folder in PACKAGES else "/")
+        rows[key].append((len(path.read_text().splitlines()), mod, path))
+    out = ["| folder | files | lines | largest module | largest class (lines, methods) |",
+           "|---|---|---|---|---|"]
+    for pkg in sorted(rows):
+        rs = rows[pkg]
+        n, big, _ = max(rs)
+        cls = max(((*c, m) for _, m, p in rs for c in classes(p)), default=None)
+        cell = (f"`{cls[2]}` ({cls[3].rsplit('.', 1)[-1]}.py, {cls[0]}, {cls[1]})"
+                if cls else "-")
+        out.append(f"| `{pkg}` | {len(rs)} | {sum(r for r, _, _ in rs)} | "
+                   f"`{big.rsplit('.', 1)[-1]}` {n} | {cell} |")
+    return "\n".join(out)
+
+
+def write_doc() -> None:
+    doc = DOC.read_text()
+    head, rest = doc.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    DOC.write_text(f"{head}{BEGIN}\n{table(REPO)}\n{END}{tail}")
 
 
 def report(root: Path, title: str) -> None:
@@ -57,12 +142,44 @@ def report(root: Path, title: str) -> None:
         print(f"  {pkg} -> {', '.join(sorted(pkg_graph[pkg])) or '-'}")
     print(f"module import cycles: {len(import_cycles(graph))}; "
           f"module import edges: {sum(len(v) for v in graph.values())}")
+    def folder(m: str) -> str:
+        return m if mods[m].name == "__init__.py" else m.rsplit(".", 1)[0]
+
+    edges: dict[tuple[str, str], int] = defaultdict(int)
+    for m, targets in graph.items():
+        for t in targets:
+            if folder(m) != folder(t) and t not in PACKAGES:
+                edges[folder(m), folder(t)] += 1
+    cyc = sorted((a, b) for a, b in edges if a < b and (b, a) in edges)
+    print(f"folder cycles (folders importing each other, imports each way): {len(cyc)} "
+          + ", ".join(f"{a} {edges[a, b]} -> {b}, {edges[b, a]} back" for a, b in cyc))
+    print("largest class per package (lines, methods):")
+    for pkg in sorted(sizes):
+        cls = max(((*c, m) for m in mods if package_of(m, mods) == pkg
+                   for c in classes(mods[m])), default=None)
+        if cls:
+            print(f"  {pkg:28s} {cls[2]} ({cls[3]}): {cls[0]} lines, {cls[1]} methods")
+    anys = {m: any_in_signatures(p) for m, p in mods.items() if m.startswith("server")}
+    print(f"Any in server/ signatures: {sum(anys.values())} "
+          f"({', '.join(f'{m} {n}' for m, n in sorted(anys.items()) if n)})")
+    reach = {m: private_reaches(p) for m, p in mods.items()}
+    by_pkg: dict[str, int] = defaultdict(int)
+    for m, n in reach.items():
+        by_pkg[".".join(m.split(".")[:2])] += n
+    print(f"private-attribute reaches (x._name, x not self/cls): {sum(reach.values())}; "
+          + ", ".join(f"{k} {v}" for k, v in sorted(by_pkg.items()) if v))
+    print("  where (server/): " + ", ".join(
+        f"{m} {n}" for m, n in sorted(reach.items()) if n and m.startswith("server")))
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--before", help="also the tree of this commit (git archive)")
+    ap.add_argument("--doc", action="store_true",
+                    help="write this tree's table into docs/architecture.md")
     args = ap.parse_args()
+    if args.doc:
+        write_doc()
     if args.before:
         with tempfile.TemporaryDirectory() as tmp:
             tar = Path(tmp) / "tree.tar"
