@@ -29,7 +29,7 @@ PURE_MAY_IMPORT = {
     "controller.gate": ("controller.core",),
     "controller.sim": ("controller.core",),
     "controller.ident": ("controller.core", "controller.gate", "controller.sim"),
-    "controller.tune": ("controller.core", "controller.gate", "controller.sim"),
+    "controller.tune": ("controller.core", "controller.gate", "controller.sim", "controller.ident"),
 }
 #: The wire contract imports only plain data types.
 PROTOCOL_MAY_IMPORT = ("controller.core", "controller.ident.spec", "controller.gate.knowledge")
@@ -329,8 +329,8 @@ RULES = (
     "| pure packages (`core`, `gate`, `sim`, `ident`, `tune`) import no zenoh, can, viser, "
     "threading, multiprocessing, subprocess, socket, asyncio, concurrent, signal, logging |",
     "| pure packages do no file I/O |",
-    "| `gate` imports `core`; `sim` imports `core`; `ident` and `tune` import `core`, `gate`, "
-    "`sim` |",
+    "| `gate` imports `core`; `sim` imports `core`; `ident` imports `core`, `gate`, `sim`; "
+    "`tune` imports those and `ident` |",
     "| `controller/protocol.py` imports only `core`, `ident.spec`, `gate.knowledge` |",
     "| `controller` never imports `server` or `viser`, but `controller/cli/dashboard.py` and "
     "`demo.py` (`dobtune dashboard`, `dobtune demo`) load `server` when they run (inside a "

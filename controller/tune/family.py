@@ -1,0 +1,168 @@
+"""A family of simulated rigs that are not the default (pure): drawn from a seed within stated
+ranges, each with its exact linear response (what the gate judges the tuned loop on: "the true
+rig's model") and its nonlinear simulation (where the tuned loop is run).
+
+Ranges (issue 35), each factor log-uniform:
+| what | range |
+|---|---|
+| load inertia | x0.3 - x3 of 0.08 kg m^2 |
+| belt stiffness | x0.5 - x2 of 186.2 N m/rad |
+| drive gain (u -> w at all frequencies; `RigFaults.plant_gain`) | x0.5 - x2 |
+| a resonance (20 % of the load on a spring, read by the encoder) | 20 - 150 Hz, z 0.01 - 0.1 |
+| command delay (`RigParams.command_delay_ticks`) | 1 - 3 ticks |
+| disturbances | the article rig's (`rig_setup(("article-rig",))`) |
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from controller.core.arrays import ComplexArray, FloatArray
+from controller.core.config import NominalModel
+from controller.gate.knowledge import COMMISSIONING_BOUND, MeasuredResponse, PlantKnowledge
+from controller.ident.model_fit import fit_second_order
+from controller.sim.rig_disturbances import rig_setup
+from controller.sim.sim_rig import RigFaults, RigParams
+from controller.tune.plant import SimPlant
+
+__all__ = ["RANGES", "FamilyRig", "draw_family", "true_knowledge", "true_response"]
+
+RANGES: dict[str, tuple[float, float]] = {
+    "inertia_factor": (0.3, 3.0),
+    "stiffness_factor": (0.5, 2.0),
+    "drive_gain": (0.5, 2.0),
+    "resonance_hz": (20.0, 150.0),
+    "resonance_damping": (0.01, 0.1),
+}
+DELAY_TICKS = (1, 3)
+#: The positions the true rig's responses are taken at (the belt's tension varies with cos).
+POSITIONS_DEG = (0.0, 90.0, 180.0)
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class FamilyRig:
+    index: int
+    inertia_factor: float
+    stiffness_factor: float
+    drive_gain: float
+    resonance_hz: float
+    resonance_damping: float
+    delay_ticks: int
+    params: RigParams
+    faults: RigFaults
+
+    @property
+    def plant(self) -> SimPlant:
+        setup = rig_setup(("article-rig",), base=self.params)
+        return SimPlant.of_setup(setup, source=f"true rig {self.index}", faults=self.faults)
+
+    def describe(self) -> str:
+        return (f"J x{self.inertia_factor:.2f}, k x{self.stiffness_factor:.2f}, gain "
+                f"x{self.drive_gain:.2f}, mode {self.resonance_hz:.0f} Hz "
+                f"z {self.resonance_damping:.3f}, delay {self.delay_ticks}")
+
+
+def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
+    return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+
+
+def draw_family(seed: int, n: int = 20) -> tuple[FamilyRig, ...]:
+    """`n` rigs drawn from `seed` within `RANGES` (log-uniform) and `DELAY_TICKS`."""
+    if n < 1:
+        raise ValueError("n: at least one rig")
+    rng = np.random.default_rng(seed)
+    base = RigParams()
+    out = []
+    for i in range(n):
+        v = {k: _log_uniform(rng, *r) for k, r in RANGES.items()}
+        delay = int(rng.integers(DELAY_TICKS[0], DELAY_TICKS[1] + 1))
+        params = replace(
+            base,
+            load_inertia_kg_m2=base.load_inertia_kg_m2 * v["inertia_factor"],
+            belt_stiffness_n_m_rad=base.belt_stiffness_n_m_rad * v["stiffness_factor"],
+            command_delay_ticks=delay,
+        )
+        faults = RigFaults(plant_gain=v["drive_gain"], resonance_hz=v["resonance_hz"],
+                           resonance_damping=v["resonance_damping"])
+        out.append(FamilyRig(i, v["inertia_factor"], v["stiffness_factor"], v["drive_gain"],
+                             v["resonance_hz"], v["resonance_damping"], delay, params, faults))
+    return tuple(out)
+
+
+def true_response(params: RigParams, faults: RigFaults, freq_hz: FloatArray,
+                  position_deg: float = 0.0, rate_hz: float = 1000.0) -> ComplexArray:
+    """u -> w of the simulated rig (continuous, load-side rates) linearised about a one-way
+    motion at `position_deg` (belt loaded, friction constant, no ripple, the backlash taken
+    up): G = gain Ki T H / A e^{-s d Ts} with
+      H = (2 z w s + w^2) / (s^2 + 2 z w s + w^2)  the payload of the extra mode as the
+          encoder reads it (1 without one),
+      T = (k + c s) / (Jh s^2 + Jp H s^2 + (bl + c) s + k)  hub over pulley angle,
+      A = (Jm s^2 + bm s + (k + c s)(1 - T)/N^2)(s + Ki r)/s + (Ki + Kp s) D  the motor with the
+          drive's I-P loop (droop r) and its speed estimate over the window, D = (1 -
+          e^{-s Tw})/(s Tw);
+    k and c at the position (`belt_*_variation` x cos theta), d the command delay in ticks."""
+    p = params
+    s = TWO_PI * 1j * np.asarray(freq_hz, dtype=np.float64)
+    th = math.radians(position_deg)
+    k = p.belt_stiffness_n_m_rad * (1.0 + p.belt_stiffness_variation * math.cos(th))
+    c = p.belt_damping_n_m_s_rad * (1.0 + p.belt_damping_variation * math.cos(th))
+    jl = p.load_inertia_kg_m2
+    h: ComplexArray | float = 1.0
+    jp = 0.0
+    if faults.resonance_hz > 0.0:
+        w = TWO_PI * faults.resonance_hz
+        zw2 = 2.0 * faults.resonance_damping * w
+        h = (zw2 * s + w * w) / (s * s + zw2 * s + w * w)
+        jp = faults.resonance_mass_fraction * jl
+    t = (k + c * s) / ((jl - jp) * s**2 + jp * h * s**2 + (p.load_viscous_n_m_s_rad + c) * s + k)
+    tw = p.drive_speed_window_s
+    d = (1.0 - np.exp(-s * tw)) / (s * tw)
+    n = p.gear_ratio
+    droop = p.drive_droop_rpm_per_n_m * TWO_PI / 60.0
+    ki = p.drive_ki_n_m_rad
+    mech = (p.motor_inertia_kg_m2 * s**2 + p.motor_viscous_n_m_s_rad * s
+            + (k + c * s) * (1 - t) / n**2)
+    a = mech * (s + ki * droop) / s + (ki + p.drive_kp_n_m_s_rad * s) * d
+    delay = np.exp(-s * p.command_delay_ticks / rate_hz)
+    return np.asarray(faults.plant_gain * ki * t * h / a * delay, dtype=np.complex128)
+
+
+def response_grid(faults: RigFaults, rate_hz: float) -> FloatArray:
+    """0.1 Hz to 0.45 x the rate, log-spaced, dense around the extra mode (a lightly damped
+    mode needs points within its half-power band, or the gate asks to measure denser)."""
+    f = np.geomspace(0.1, 0.45 * rate_hz, 300)
+    if faults.resonance_hz > 0.0:
+        fr = faults.resonance_hz
+        f = np.concatenate([f, np.geomspace(0.8 * fr, 1.4 * fr, 240)])
+    return np.unique(f[f < 0.45 * rate_hz])
+
+
+def true_knowledge(params: RigParams, faults: RigFaults, rate_hz: float = 1000.0,
+                   base: NominalModel | None = None) -> PlantKnowledge:
+    """The true rig as the gate's evidence: its exact linear response at `POSITIONS_DEG`
+    (continuous, `response_grid`), a second-order model fitted to them below 5 Hz with their
+    DC gain, and the commissioning bound beyond the band."""
+    base = base or NominalModel()
+    f = response_grid(faults, rate_hz)
+    measured = tuple(
+        MeasuredResponse(f"true {pos:g} deg", f, true_response(params, faults, f, pos, rate_hz))
+        for pos in POSITIONS_DEG)
+    return PlantKnowledge(measured=measured, bound=COMMISSIONING_BOUND,
+                          model=fitted_model(measured, base), source="true rig")
+
+
+def fitted_model(measured: tuple[MeasuredResponse, ...], base: NominalModel) -> NominalModel:
+    """A second order (with the responses' DC gain) fitted below 5 Hz: the model the gate's
+    interpolation refers to."""
+    f = np.concatenate([m.freq_hz for m in measured])
+    h = np.concatenate([m.response for m in measured])
+    gain = float(np.mean([abs(m.response[0]) for m in measured]))
+    fit = fit_second_order(f, h / gain, model="unit_dc", f_lo_hz=None, f_hi_hz=5.0)
+    a2, a1 = fit.params["a2"], fit.params["a1"]
+    m2, m1, m0 = base.mn_den
+    return NominalModel(mn_den=base.mn_den, pn_num=(gain * m2, gain * m1, gain * m0),
+                        pn_den=(a2, a1, 1.0))

@@ -1,0 +1,447 @@
+"""The cascade's linear design on the plant knowledge (pure): the speed PI, then the position
+PI, then the velocity feedforward gain, placed by the field's rules against every piece of
+evidence at once (control.md, "Tuning the whole loop on a measured plant").
+
+Evidence: the knowledge's model (the exact sampled plant, ZOH with the backward-difference
+rate) and each measured response (one per position), taken as the gate takes it: the ratio
+R = G_m / G_model interpolated in log magnitude and unwrapped phase, linear in log f, held at
+the band's edges, on top of the sampled model. Continuous measurements get the ZOH +
+backward-difference equivalent first (`controller.gate.loop_model.discrete_equivalent`).
+
+The loops exactly as `controller.core.loop` runs them at Ts = 1 / rate:
+    Cv(z) = kp (1 + ki Ts/2 (z + 1)/(z - 1)),  speed loop  L_v = Cv G
+    T_v = L_v / (1 + L_v),  position loop  L_p = Cp T_v Ts / (1 - z^-1),  Cp like Cv
+
+Procedure (`design_speed`, `design_position`):
+1. Speed loop: for a crossover f_c on a log grid (0.2 Hz up to a twentieth of the loop rate,
+   bisected at the end), the integral corner at f_c / `corner_ratio` and kp so that the
+   evidence with the most gain at f_c crosses there (the others cross lower). A crossover is
+   feasible when on every evidence the gain margin >= `gain_margin_db`, the phase margin >=
+   `phase_margin_deg` and the robust figure max |a T_v| <= `robust_peak_max`, and the whole
+   servo broken at the command, L = G Cv (1 + Cp Ts/(1 - z^-1)) with the position loop placed
+   by step 2's rule, meets the same margins (the gate judges that loop too). a = the stated
+   bound |W| where the plant is known only within it (the model without measurements; beyond
+   a measured band the edge allowance + |W|), the measurement's spread (at least
+   `MIN_ALLOWANCE`) inside a measured band. The highest crossover feasible
+   from the bottom of the grid up is chosen; the first infeasible one names what limits it.
+2. Position loop: the crossover `position_ratio` below the speed loop's, its integral corner
+   at a `position_corner_ratio`-th of it, kp_pos so the evidence with the most gain crosses
+   there; if the margins (of the position loop and of the whole servo) fail on some evidence
+   the crossover steps down (ratio up to 10).
+3. Feedforward: k_ff = Re(1 / T_v) at the trajectory's frequency on the model (the gain that
+   cancels the reference lag of the velocity path; 1 for a speed loop with integral action at
+   low frequency).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from controller.core.arrays import ComplexArray, FloatArray
+from controller.gate.knowledge import MIN_ALLOWANCE, MeasuredResponse, PlantKnowledge
+from controller.gate.loop_model import (
+    discrete_equivalent,
+    discrete_plant,
+    nominal_continuous_response,
+    plant_response,
+)
+
+__all__ = [
+    "DesignTargets",
+    "Evidence",
+    "LoopMargins",
+    "PositionDesign",
+    "SpeedDesign",
+    "design_position",
+    "design_speed",
+    "evidence_of",
+    "feedforward_gain",
+    "first_resonance_hz",
+    "loop_margins",
+    "pi_response",
+]
+
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class DesignTargets:
+    """The stated targets of the linear design (control.md: Kollmorgen's 8 dB / 45 deg, the
+    cascade's 4-5x and the PI corners at or below a third of each crossover)."""
+
+    gain_margin_db: float = 8.0
+    phase_margin_deg: float = 45.0
+    corner_ratio: float = 4.0
+    """Speed crossover / speed integral corner (>= 3)."""
+    position_ratio: float = 4.0
+    """Speed crossover / position crossover (4-5)."""
+    position_corner_ratio: float = 4.0
+    """Position crossover / position integral corner (>= 3)."""
+    robust_peak_max: float = 0.7
+    """max |a T_v| for the stated bound and the measurement's allowance (the gate cautions at
+    0.8): robust stability with 30 % to spare."""
+
+    def __post_init__(self) -> None:
+        if not (self.gain_margin_db > 0 and 0 < self.phase_margin_deg < 90):
+            raise ValueError("targets: gain margin > 0 dB, phase margin in (0, 90) deg")
+        if self.corner_ratio < 3 or self.position_corner_ratio < 3:
+            raise ValueError("targets: integral corners at or below a third of the crossover")
+        if not 2 <= self.position_ratio <= 10:
+            raise ValueError("targets: position_ratio in [2, 10]")
+        if not 0 < self.robust_peak_max < 1:
+            raise ValueError("targets: robust_peak_max in (0, 1)")
+
+
+@dataclass(frozen=True, eq=False)
+class Evidence:
+    """One plant the design must hold on: its sampled response u -> w on the design grid and
+    the allowance a(f) the robust figure weighs T_v with."""
+
+    name: str
+    g: ComplexArray
+    allowance: FloatArray
+
+
+@dataclass(frozen=True)
+class LoopMargins:
+    gain_margin_db: float
+    """Smallest over the phase crossovers above the lowest gain crossover (inf: none)."""
+    phase_margin_deg: float
+    """Smallest over the gain crossovers (inf: none)."""
+    crossover_hz: float
+    """The highest gain crossover (nan: none)."""
+    phase_crossover_hz: float
+    """Where the gain margin is taken (nan: none)."""
+
+
+def design_grid(rate_hz: float, n: int = 1500) -> FloatArray:
+    return np.geomspace(0.01, 0.499 * rate_hz, n)
+
+
+def _zinv(f: FloatArray, rate_hz: float) -> ComplexArray:
+    return np.exp(-1j * TWO_PI * f / rate_hz)
+
+
+def pi_response(kp: float, ki_per_s: float, f: FloatArray, rate_hz: float) -> ComplexArray:
+    """kp (1 + ki Ts/2 (1 + z^-1)/(1 - z^-1)): the loop's Tustin PI."""
+    zi = _zinv(f, rate_hz)
+    return kp * (1.0 + ki_per_s / (2.0 * rate_hz) * (1.0 + zi) / (1.0 - zi))
+
+
+def _ratio_on(m: MeasuredResponse, model_at: ComplexArray, f: FloatArray) -> ComplexArray:
+    """m / model, interpolated on `f` (log magnitude, unwrapped phase, linear in log f; held
+    at the band's edges)."""
+    r = m.response / model_at
+    x = np.log(m.freq_hz)
+    xf = np.log(f)
+    mag = np.interp(xf, x, np.log(np.abs(r)))
+    ph = np.interp(xf, x, np.unwrap(np.angle(r)))
+    return np.exp(mag + 1j * ph)
+
+
+def evidence_of(knowledge: PlantKnowledge, rate_hz: float, f: FloatArray) -> list[Evidence]:
+    """The model and every measured response on `f` (see the module docstring)."""
+    pl = discrete_plant(knowledge.model, rate_hz)
+    g_model = plant_response(pl, _zinv(f, rate_hz))
+    w = (knowledge.bound.magnitude(f) if knowledge.bound is not None
+         else np.zeros_like(f))
+    out: list[Evidence] = []
+    if not knowledge.measured:
+        out.append(Evidence("model", g_model, np.maximum(w, MIN_ALLOWANCE)))
+        return out
+    for m in knowledge.measured:
+        if m.sampled:
+            ref = plant_response(pl, _zinv(m.freq_hz, rate_hz))
+        else:
+            ref = nominal_continuous_response(knowledge.model, m.freq_hz)
+        g = g_model * _ratio_on(m, ref, f)
+        lo, hi = float(m.freq_hz[0]), float(m.freq_hz[-1])
+        sp = np.full(f.shape, MIN_ALLOWANCE)
+        if m.spread is not None:
+            sp = np.maximum(np.interp(np.log(f), np.log(m.freq_hz), m.spread), MIN_ALLOWANCE)
+        outside = (f < lo) | (f > hi)
+        a = np.where(outside, sp + w, sp)
+        out.append(Evidence(m.name, g, a))
+    return out
+
+
+def continuous_evidence(response: ComplexArray, f: FloatArray, rate_hz: float) -> ComplexArray:
+    """A continuous response's sampled equivalent (for a plant given as G_c(jw))."""
+    return discrete_equivalent(response, f, rate_hz)
+
+
+def _crossings(y: FloatArray, f: FloatArray) -> list[tuple[int, float]]:
+    """(index, frequency) where y changes sign between f[i] and f[i+1] (linear in log f)."""
+    s = np.sign(y)
+    idx = np.flatnonzero(s[:-1] * s[1:] < 0)
+    out = []
+    for i in idx:
+        t = y[i] / (y[i] - y[i + 1])
+        out.append((int(i), float(math.exp(math.log(f[i]) + t * math.log(f[i + 1] / f[i])))))
+    return out
+
+
+def loop_margins(loop: ComplexArray, f: FloatArray) -> LoopMargins:
+    """Gain and phase margins of an open loop given on a dense grid `f` (interpolated in
+    log f between points)."""
+    mag_db = 20.0 * np.log10(np.abs(loop))
+    ph = np.degrees(np.unwrap(np.angle(loop)))
+    gc = _crossings(mag_db, f)
+    pm = math.inf
+    fc = math.nan
+    for i, fx in gc:
+        t = math.log(fx / f[i]) / math.log(f[i + 1] / f[i])
+        p = ph[i] + t * (ph[i + 1] - ph[i])
+        margin = (p + 180.0) % 360.0
+        margin = margin - 360.0 if margin > 180.0 else margin
+        pm = min(pm, margin)
+        fc = fx
+    gm = math.inf
+    fp = math.nan
+    first = gc[0][1] if gc else f[0]
+    for k in range(-6, 3):
+        for i, fx in _crossings(ph - (-180.0 + 360.0 * k), f):
+            if fx < first:
+                continue
+            t = math.log(fx / f[i]) / math.log(f[i + 1] / f[i])
+            g = -(mag_db[i] + t * (mag_db[i + 1] - mag_db[i]))
+            if g < gm:
+                gm, fp = g, fx
+    return LoopMargins(float(gm), float(pm), float(fc), float(fp))
+
+
+@dataclass(frozen=True)
+class EvidenceFigures:
+    name: str
+    margins: LoopMargins
+    robust_peak: float
+
+
+@dataclass(frozen=True)
+class SpeedDesign:
+    kp: float
+    ki_per_s: float
+    crossover_hz: float
+    figures: tuple[EvidenceFigures, ...]
+    limit: str
+    """What stops a higher crossover, in words."""
+
+    @property
+    def corner_hz(self) -> float:
+        return self.ki_per_s / TWO_PI
+
+
+@dataclass(frozen=True)
+class PositionDesign:
+    kp_per_s: float
+    ki_per_s: float
+    crossover_hz: float
+    ratio: float
+    figures: tuple[EvidenceFigures, ...]
+    limit: str
+
+    @property
+    def corner_hz(self) -> float:
+        return self.ki_per_s / TWO_PI
+
+
+def _at(f: FloatArray, y: ComplexArray, fx: float) -> complex:
+    x = np.log(f)
+    xf = math.log(fx)
+    return complex(np.exp(np.interp(xf, x, np.log(np.abs(y)))
+                          + 1j * np.interp(xf, x, np.unwrap(np.angle(y)))))
+
+
+def _speed_figures(ev: list[Evidence], kp: float, ki: float, f: FloatArray,
+                   rate_hz: float) -> list[EvidenceFigures]:
+    c = pi_response(kp, ki, f, rate_hz)
+    out = []
+    for e in ev:
+        lv = c * e.g
+        t = lv / (1.0 + lv)
+        out.append(EvidenceFigures(e.name, loop_margins(lv, f),
+                                   float(np.max(e.allowance * np.abs(t)))))
+    return out
+
+
+def _shortfall(figs: list[EvidenceFigures], targets: DesignTargets, robust: bool) -> str | None:
+    """What the first evidence misses of the targets (None: all met)."""
+    for fg in figs:
+        m = fg.margins
+        if not m.phase_margin_deg >= targets.phase_margin_deg:
+            return (f"phase margin {m.phase_margin_deg:.1f} deg < {targets.phase_margin_deg:g}"
+                    f" deg on {fg.name} (the plant's lag and the loop's delay at "
+                    f"{m.crossover_hz:.3g} Hz)")
+        if not m.gain_margin_db >= targets.gain_margin_db:
+            return (f"gain margin {m.gain_margin_db:.1f} dB < {targets.gain_margin_db:g} dB on "
+                    f"{fg.name} (phase crossover at {m.phase_crossover_hz:.3g} Hz)")
+        if robust and not fg.robust_peak <= targets.robust_peak_max:
+            return (f"robust figure max|a T| {fg.robust_peak:.2f} > {targets.robust_peak_max:g}"
+                    f" on {fg.name} (the plant is known there only within the stated bound)")
+    return None
+
+
+def design_speed(knowledge: PlantKnowledge, rate_hz: float,
+                 targets: DesignTargets | None = None, f: FloatArray | None = None,
+                 ) -> SpeedDesign:
+    """Step 1 of the module docstring."""
+    targets = targets or DesignTargets()
+    f = design_grid(rate_hz) if f is None else f
+    ev = evidence_of(knowledge, rate_hz, f)
+    best: tuple[float, float, float, list[EvidenceFigures]] | None = None
+    limit = f"the grid's top ({rate_hz / 20:g} Hz, a twentieth of the loop rate)"
+    integ = (1.0 / rate_hz) / (1.0 - _zinv(f, rate_hz))
+
+    def trial(fc: float) -> tuple[float, float, list[EvidenceFigures], str | None]:
+        ki = TWO_PI * fc / targets.corner_ratio
+        c1 = complex(pi_response(1.0, ki, np.array([fc]), rate_hz)[0])
+        kp = min(1.0 / abs(c1 * _at(f, e.g, fc)) for e in ev)
+        return judged(kp, ki, fc)
+
+    def judged(kp: float, ki: float, fc: float,
+               ) -> tuple[float, float, list[EvidenceFigures], str | None]:
+        figs = _speed_figures(ev, kp, ki, f, rate_hz)
+        miss = _shortfall(figs, targets, robust=True)
+        if miss is None:  # the whole servo, with the position loop placed by the rule
+            plants = [t * integ for t in speed_closed(ev, kp, ki, f, rate_hz)]
+            cp = _position_pi(plants, fc / targets.position_ratio, targets, f, rate_hz)
+            cv = pi_response(kp, ki, f, rate_hz)
+            whole = [EvidenceFigures(f"{e.name} (whole servo)",
+                                     loop_margins(e.g * cv * (1.0 + cp * integ), f), math.nan)
+                     for e in ev]
+            miss = _shortfall(whole, targets, robust=False)
+        return kp, ki, figs, miss
+
+    grid = np.geomspace(0.2, rate_hz / 20.0, 40)
+    for j, fc in enumerate(grid):
+        kp, ki, figs, miss = trial(float(fc))
+        if miss is not None:
+            limit = f"at {fc:.3g} Hz: {miss}"
+            if best is not None:  # bisect between the last feasible and this one
+                lo, hi = float(grid[j - 1]), float(fc)
+                for _ in range(6):
+                    mid = math.sqrt(lo * hi)
+                    kp, ki, figs, miss = trial(mid)
+                    if miss is None:
+                        best, lo = (kp, ki, mid, figs), mid
+                    else:
+                        limit, hi = f"at {mid:.3g} Hz: {miss}", mid
+            break
+        best = (kp, ki, float(fc), figs)
+    if best is None:
+        # Nothing from 0.2 Hz up: a resonance (or a delay) the PI cannot cross below with its
+        # corner under the crossover. Lower the whole PI's gain instead (an integral-dominant
+        # loop, its corner above a low crossover) until the targets are met; a notch or
+        # low-pass filter on the speed command is what would let the loop be faster.
+        kp0, ki0, _, _ = trial(0.2)
+        for scale in np.geomspace(0.9, 0.01, 30):
+            kp = kp0 * float(scale)
+            lv = pi_response(kp, ki0, f, rate_hz) * ev[0].g
+            fc_low = loop_margins(lv, f).crossover_hz
+            if not math.isfinite(fc_low):
+                continue
+            kp, ki, figs, miss = judged(kp, ki0, fc_low)
+            if miss is None:
+                best = (kp, ki, fc_low, figs)
+                # then the integral gain up (the crossover kp ki rises with it) while the
+                # targets hold
+                for _ in range(40):
+                    ki_up = ki * 1.25
+                    lv = pi_response(kp, ki_up, f, rate_hz) * ev[0].g
+                    fc_up = loop_margins(lv, f).crossover_hz
+                    if not math.isfinite(fc_up) or ki_up >= rate_hz / 2:
+                        break
+                    *_, figs_up, miss_up = judged(kp, ki_up, fc_up)
+                    if miss_up is not None:
+                        break
+                    ki, best = ki_up, (kp, ki_up, fc_up, figs_up)
+                limit = (f"{limit}; the PI's gain lowered to x{scale:.2g} (integral corner above"
+                         f" the crossover): a filter on the speed command would be needed to "
+                         f"go faster")
+                break
+    if best is None:
+        raise ValueError(f"no speed crossover from 0.2 Hz meets the targets ({limit})")
+    kp, ki, fc, figs = best
+    cross = max(fg.margins.crossover_hz for fg in figs)
+    return SpeedDesign(kp, ki, cross, tuple(figs), limit)
+
+
+def _position_pi(plants: list[ComplexArray], fc: float, targets: DesignTargets, f: FloatArray,
+                 rate_hz: float) -> ComplexArray:
+    """Cp crossing over at `fc` on the evidence with the most gain, corner by the targets."""
+    ki = TWO_PI * fc / targets.position_corner_ratio
+    c1 = complex(pi_response(1.0, ki, np.array([fc]), rate_hz)[0])
+    kp = min(1.0 / abs(c1 * _at(f, p, fc)) for p in plants)
+    return pi_response(kp, ki, f, rate_hz)
+
+
+def speed_closed(ev: list[Evidence], kp: float, ki: float, f: FloatArray,
+                 rate_hz: float) -> list[ComplexArray]:
+    """T_v = Cv G / (1 + Cv G) on every evidence."""
+    c = pi_response(kp, ki, f, rate_hz)
+    return [c * e.g / (1.0 + c * e.g) for e in ev]
+
+
+def design_position(knowledge: PlantKnowledge, rate_hz: float, speed: SpeedDesign,
+                    targets: DesignTargets | None = None, f: FloatArray | None = None,
+                    ) -> PositionDesign:
+    """Step 2 of the module docstring."""
+    targets = targets or DesignTargets()
+    f = design_grid(rate_hz) if f is None else f
+    ev = evidence_of(knowledge, rate_hz, f)
+    integ = (1.0 / rate_hz) / (1.0 - _zinv(f, rate_hz))
+    plants = [t * integ for t in speed_closed(ev, speed.kp, speed.ki_per_s, f, rate_hz)]
+    cv = pi_response(speed.kp, speed.ki_per_s, f, rate_hz)
+    first_miss = ""
+    for ratio in np.geomspace(targets.position_ratio, 10.0, 12):
+        fc = speed.crossover_hz / ratio
+        ki = TWO_PI * fc / targets.position_corner_ratio
+        c1 = complex(pi_response(1.0, ki, np.array([fc]), rate_hz)[0])
+        kp = min(1.0 / abs(c1 * _at(f, p, fc)) for p in plants)
+        c = pi_response(kp, ki, f, rate_hz)
+        figs = [EvidenceFigures(e.name, loop_margins(c * p, f), math.nan)
+                for e, p in zip(ev, plants, strict=True)]
+        figs += [EvidenceFigures(f"{e.name} (whole servo)",
+                                 loop_margins(e.g * cv * (1.0 + c * integ), f), math.nan)
+                 for e in ev]
+        miss = _shortfall(figs, targets, robust=False)
+        if miss is None:
+            limit = (f"{ratio:.2g}x below the speed loop (the cascade rule)"
+                     if not first_miss else f"stepped down from {targets.position_ratio:g}x: "
+                     f"{first_miss}")
+            cross = max(fg.margins.crossover_hz for fg in figs[: len(ev)])
+            return PositionDesign(kp, ki, cross, float(ratio), tuple(figs), limit)
+        first_miss = first_miss or miss
+    raise ValueError(f"no position crossover up to 10x below the speed loop meets the targets "
+                     f"({first_miss})")
+
+
+def feedforward_gain(knowledge: PlantKnowledge, rate_hz: float, speed: SpeedDesign,
+                     freq_hz: float) -> float:
+    """Step 3: Re(1 / T_v) at `freq_hz` on the model, clipped to the loop's [0, 2]."""
+    f = np.array([max(freq_hz, 1e-3)])
+    pl = discrete_plant(knowledge.model, rate_hz)
+    g = plant_response(pl, _zinv(f, rate_hz))
+    c = pi_response(speed.kp, speed.ki_per_s, f, rate_hz)
+    t = complex((c * g / (1.0 + c * g))[0])
+    return float(min(2.0, max(0.0, (1.0 / t).real)))
+
+
+def first_resonance_hz(knowledge: PlantKnowledge, rate_hz: float) -> float | None:
+    """The lowest frequency above 2 Hz where some measured response peaks by >= 3 dB over the
+    lowest magnitude below it (a resonance the speed loop must stay clear of); None if the
+    measurements show none."""
+    found: list[float] = []
+    for m in knowledge.measured:
+        mag = 20.0 * np.log10(np.abs(m.response))
+        f = m.freq_hz
+        for i in range(1, len(f) - 1):
+            if f[i] < 2.0 or not (mag[i] >= mag[i - 1] and mag[i] > mag[i + 1]):
+                continue
+            if mag[i] - float(np.min(mag[: i + 1])) >= 3.0:
+                found.append(float(f[i]))
+                break
+    return min(found) if found else None

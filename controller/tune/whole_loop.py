@@ -1,0 +1,445 @@
+"""Tune the whole loop (pure): the speed PI, the position PI, the velocity feedforward gain and
+the DOB's Q type and cut-off together, for a chosen objective, on the measured plant, accepted
+by the gate. It applies nothing: the result is a candidate for the gate and Apply.
+
+The procedure, as a field engineer tunes a cascade (control.md, "Tuning the whole loop on a
+measured plant"):
+1. Speed and position PIs by the field's rules on every piece of evidence in the plant
+   knowledge (every measured position, the model, the stated bound):
+   `controller.tune.loop_design` (speed crossover as high as gain margin >= 8 dB, phase
+   margin >= 45 deg and the robust figure <= 0.7 allow; position loop 4x below; integral
+   corners a quarter of each crossover). Rounded to three significant figures.
+2. Feedforward gain: Re(1 / T_v) at the trajectory's frequency (about 1), if allowed.
+3. The gate judges this loop with the DOB off (`controller.gate.verdict.judge`); should it not
+   accept it (the gate's evidence is wider than the design's), both loops' gains step down by
+   15 % until it does.
+4. The DOB: every Q type over a log grid of cut-offs (then refined around the best), each
+   judged first (only `accept` counts; a rejected one is never run), then run on the plant
+   (`SimPlant`: the rig's twin when the knowledge holds measurements; the compiled offline
+   loop, `controller.sim.offline`) on the objective's trajectory; the DOB off is a candidate.
+   Score: the objective's error (RMSE or peak, deg) + `noise_weight` x the command noise
+   (RMS above 20 Hz, deg/s); a candidate whose command noise exceeds the budget does not
+   count.
+5. A small local refinement by coordinate steps (each loop's gain x/÷ 1.15, the feedforward
+   gain +- 0.03, the cut-off x/÷ 1.3), each step kept only if it meets the design's targets on
+   the evidence, the gate accepts it, and it scores better; two rounds at most.
+6. The best is judged once more with the nonlinear check (if given) and the recommended
+   cut-off; if that does not accept it, the next best that does is taken.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from controller.core.config import LoopConfig
+from controller.core.trajectory import Trajectory
+from controller.gate.knowledge import PlantKnowledge
+from controller.gate.verdict import NonlinearCheck, judge
+from controller.sim.experiment import run_experiment
+from controller.tune.autotune import command_noise_deg_s
+from controller.tune.loop_design import (
+    DesignTargets,
+    PositionDesign,
+    SpeedDesign,
+    design_grid,
+    design_position,
+    design_speed,
+    evidence_of,
+    feedforward_gain,
+    first_resonance_hz,
+    loop_margins,
+    pi_response,
+    speed_closed,
+)
+from controller.tune.plant import SimPlant
+
+__all__ = ["Candidate", "Objective", "WholeLoopResult", "evaluate", "reference_lag",
+           "tune_whole_loop"]
+
+OBJECTIVES = ("rmse", "peak")
+GAIN_STEP = 1.15
+CUTOFF_STEP = 1.3
+FF_STEP = 0.03
+
+
+@dataclass(frozen=True)
+class Objective:
+    """What the tune optimises: `metric` of the position error on `trajectory` (run for
+    `duration_s`), + `noise_weight` x the command noise; a candidate whose command noise is
+    above `noise_budget_deg_s` (None: twice the designed loop's without DOB) does not count.
+    `feedforward`: whether velocity feedforward may be used."""
+
+    trajectory: Trajectory = field(default_factory=Trajectory)
+    metric: str = "rmse"
+    duration_s: float = 15.0
+    noise_weight: float = 0.001
+    noise_budget_deg_s: float | None = None
+    feedforward: bool = True
+
+    def __post_init__(self) -> None:
+        if self.metric not in OBJECTIVES:
+            raise ValueError(f"objective: {self.metric!r} is not one of {', '.join(OBJECTIVES)}")
+        if not (math.isfinite(self.noise_weight) and self.noise_weight >= 0):
+            raise ValueError(f"noise_weight: {self.noise_weight!r} must be >= 0")
+        b = self.noise_budget_deg_s
+        if b is not None and not (math.isfinite(b) and b > 0):
+            raise ValueError(f"noise_budget_deg_s: {b!r} must be > 0")
+        if not 2.5 < self.duration_s <= 600:
+            raise ValueError(f"duration_s: {self.duration_s!r} must be in (2.5, 600] s")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    config: LoopConfig
+    verdict: str
+    rmse_deg: float = math.nan
+    peak_error_deg: float = math.nan
+    command_noise_deg_s: float = math.nan
+    score: float = math.inf
+    """The objective (inf: not run, or diverged)."""
+
+    def error_deg(self, metric: str) -> float:
+        return self.rmse_deg if metric == "rmse" else self.peak_error_deg
+
+
+def evaluate(cfg: LoopConfig, plant: SimPlant, objective: Objective,
+             knowledge: PlantKnowledge | None, *, nonlinear: NonlinearCheck | None = None,
+             ) -> Candidate:
+    """Judge `cfg` on `knowledge` (None: not judged, verdict "unjudged"); run it on `plant`
+    unless rejected. A run that diverges scores inf."""
+    verdict = "unjudged"
+    if knowledge is not None:
+        verdict = judge(cfg, knowledge, nonlinear=nonlinear, recommendation=False).verdict
+        if verdict == "reject":
+            return Candidate(cfg, verdict)
+    traj = objective.trajectory
+    try:
+        res = run_experiment(cfg, traj, objective.duration_s,
+                             rig=plant.rig_on(traj, cfg.rate_hz), disturbance_name=plant.label)
+    except ValueError:  # the rig refuses a non-finite command: the loop diverged
+        return Candidate(cfg, verdict)
+    noise = command_noise_deg_s(res.command_deg_s, cfg.rate_hz)
+    err = res.rmse_deg if objective.metric == "rmse" else res.peak_error_deg
+    score = err + objective.noise_weight * noise
+    return Candidate(cfg, verdict, res.rmse_deg, res.peak_error_deg, noise,
+                     score if math.isfinite(score) else math.inf)
+
+
+def reference_lag(cfg: LoopConfig, knowledge: PlantKnowledge, trajectory: Trajectory) -> float:
+    """The position error a linear loop on the knowledge's model makes following `trajectory`
+    alone (no disturbance, no friction): RMS deg for a sine (A |E(j w0)| / sqrt 2), the steady
+    error for a ramp (slope |E(jw)/jw| as w -> 0), 0 otherwise. E = (1 - k_ff I T_v jw) /
+    (1 + I T_v Cp), I = Ts / (1 - z^-1): the reference lag the DOB cannot remove (eq. 15 =
+    eq. 18)."""
+    if trajectory.kind == "sine":
+        f0 = trajectory.omega_rad_s / (2 * math.pi)
+    elif trajectory.kind == "ramp":
+        f0 = 1e-3
+    else:
+        return 0.0
+    rate = cfg.rate_hz
+    f = np.array([f0])
+    ev = evidence_of(PlantKnowledge(model=knowledge.model), rate, f)
+    tv = speed_closed(ev, cfg.cv_kp, cfg.cv_ki_per_s, f, rate)[0]
+    zi = np.exp(-2j * math.pi * f / rate)
+    integ = (1.0 / rate) / (1.0 - zi)
+    cp = pi_response(cfg.pos_kp_per_s, cfg.pos_ki_per_s, f, rate)
+    kff = cfg.ff_gain if cfg.ff_on else 0.0
+    e = complex(((1.0 - kff * integ * tv * 2j * math.pi * f) / (1.0 + integ * tv * cp))[0])
+    if trajectory.kind == "sine":
+        return abs(trajectory.amplitude_deg) * abs(e) / math.sqrt(2.0)
+    return abs(trajectory.slope_deg_s) * abs(e) / (2 * math.pi * f0)
+
+
+def _r3(v: float) -> float:
+    return float(f"{v:.3g}")
+
+
+def meets_targets(cfg: LoopConfig, knowledge: PlantKnowledge, targets: DesignTargets,
+                  ) -> str | None:
+    """The speed and position loops of `cfg` (DOB off) against the design's targets on every
+    evidence: None if met, else what is missed."""
+    rate = cfg.rate_hz
+    f = design_grid(rate, 800)
+    ev = evidence_of(knowledge, rate, f)
+    c = pi_response(cfg.cv_kp, cfg.cv_ki_per_s, f, rate)
+    zi = np.exp(-2j * math.pi * f / rate)
+    integ = (1.0 / rate) / (1.0 - zi)
+    cp = pi_response(cfg.pos_kp_per_s, cfg.pos_ki_per_s, f, rate)
+    for e in ev:
+        lv = c * e.g
+        t = lv / (1.0 + lv)
+        loops = (("speed", loop_margins(lv, f)), ("position", loop_margins(cp * t * integ, f)),
+                 ("whole servo", loop_margins(lv * (1.0 + cp * integ), f)))
+        for which, m in loops:
+            if not (m.gain_margin_db >= targets.gain_margin_db
+                    and m.phase_margin_deg >= targets.phase_margin_deg):
+                return (f"{which} loop on {e.name}: GM {m.gain_margin_db:.1f} dB, PM "
+                        f"{m.phase_margin_deg:.1f} deg")
+        peak = float(np.max(e.allowance * np.abs(t)))
+        if peak > targets.robust_peak_max:
+            return f"robust figure {peak:.2f} on {e.name}"
+    return None
+
+
+@dataclass(frozen=True)
+class WholeLoopResult:
+    best: Candidate | None
+    """The candidate (accepted by the gate; None: nothing the gate accepts was found)."""
+    designed: Candidate
+    """Steps 1-3: the PIs and feedforward, DOB off."""
+    start: Candidate
+    """The configuration the tune started from (`base`), as it is, on the same plant."""
+    speed: SpeedDesign
+    position: PositionDesign
+    dob_curve: tuple[Candidate, ...]
+    explanation: tuple[str, ...]
+    targets: DesignTargets
+    objective: Objective
+    plant_source: str
+    runs: int
+    elapsed_s: float
+    backoff_steps: int = 0
+    best_dob_off: Candidate | None = None
+    """The candidate's PIs and feedforward with the DOB off (what the DOB adds)."""
+
+
+def tune_whole_loop(
+    base: LoopConfig,
+    knowledge: PlantKnowledge,
+    plant: SimPlant,
+    objective: Objective | None = None,
+    targets: DesignTargets | None = None,
+    *,
+    q_types: tuple[str, ...] = ("q31", "q20"),
+    cutoffs: int = 7,
+    lowest_hz: float = 0.1,
+    highest_hz: float = 20.0,
+    refine_rounds: int = 2,
+    nonlinear: NonlinearCheck | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> WholeLoopResult:
+    """The procedure of the module docstring; `base` gives the rate, the DOB's nominal model
+    and the command limit (and is the starting point the result is compared with)."""
+    t0 = time.perf_counter()
+    objective = objective or Objective()
+    targets = targets or DesignTargets()
+    if not 0.0 < lowest_hz < highest_hz < base.rate_hz / 2:
+        raise ValueError(f"cut-off range: need 0 < {lowest_hz} < {highest_hz} < Nyquist")
+    rate = base.rate_hz
+    runs = [0]
+    total = 3 + len(q_types) * (cutoffs + 2) + refine_rounds * 8
+
+    def run(cfg: LoopConfig, judged: bool = True) -> Candidate:
+        runs[0] += 1
+        if progress is not None:
+            progress(min(0.99, runs[0] / total))
+        return evaluate(cfg, plant, objective, knowledge if judged else None)
+
+    # 1-2: the linear design.
+    speed = design_speed(knowledge, rate, targets)
+    position = design_position(knowledge, rate, speed, targets)
+    traj = objective.trajectory
+    f0 = traj.omega_rad_s / (2 * math.pi) if traj.kind == "sine" else 1e-3
+    ff = feedforward_gain(knowledge, rate, speed, f0) if objective.feedforward else 1.0
+    cfg0 = base.with_(cv_kp=_r3(speed.kp), cv_ki_per_s=_r3(speed.ki_per_s),
+                      pos_kp_per_s=_r3(position.kp_per_s), pos_ki_per_s=_r3(position.ki_per_s),
+                      ff_on=objective.feedforward, ff_gain=round(ff, 3), dob_on=False)
+    # 3: the gate on the design, DOB off.
+    backoff = 0
+    designed = run(cfg0)
+    while designed.verdict != "accept" and backoff < 6:
+        backoff += 1
+        s = GAIN_STEP ** -backoff
+        cfg = cfg0.with_(cv_kp=_r3(cfg0.cv_kp * s), cv_ki_per_s=_r3(cfg0.cv_ki_per_s * s),
+                         pos_kp_per_s=_r3(cfg0.pos_kp_per_s * s),
+                         pos_ki_per_s=_r3(cfg0.pos_ki_per_s * s))
+        designed = run(cfg)
+    start = run(base, judged=True)
+    budget = (objective.noise_budget_deg_s if objective.noise_budget_deg_s is not None
+              else 2.0 * designed.command_noise_deg_s)
+
+    def counts(c: Candidate) -> bool:
+        return (c.verdict == "accept" and math.isfinite(c.score)
+                and c.command_noise_deg_s <= budget)
+
+    seen: dict[tuple[object, ...], Candidate] = {}
+
+    def key(cfg: LoopConfig) -> tuple[object, ...]:
+        return (cfg.cv_kp, cfg.cv_ki_per_s, cfg.pos_kp_per_s, cfg.pos_ki_per_s, cfg.ff_on,
+                cfg.ff_gain, cfg.dob_on, cfg.q_type if cfg.dob_on else "",
+                cfg.q_cutoff_hz if cfg.dob_on else 0.0)
+
+    def cached(cfg: LoopConfig) -> Candidate:
+        k = key(cfg)
+        if k not in seen:
+            seen[k] = run(cfg)
+        return seen[k]
+
+    seen[key(designed.config)] = designed
+    # 4: the DOB's Q type and cut-off on the plant.
+    curve: list[Candidate] = []
+    pi_cfg = designed.config
+    if designed.verdict == "accept":
+        for qt in q_types:
+            grid = np.geomspace(lowest_hz, highest_hz, cutoffs)
+            pts = [cached(pi_cfg.with_(dob_on=True, q_type=qt, q_cutoff_hz=_r3(float(fc))))
+                   for fc in grid]
+            ok = [i for i, p in enumerate(pts) if counts(p)]
+            if ok:
+                i = min(ok, key=lambda k: pts[k].score)
+                lo = grid[max(i - 1, 0)]
+                hi = grid[min(i + 1, len(grid) - 1)]
+                for fc in np.geomspace(lo, hi, 4)[1:-1]:
+                    pts.append(cached(pi_cfg.with_(dob_on=True, q_type=qt,
+                                                   q_cutoff_hz=_r3(float(fc)))))
+            curve += sorted(pts, key=lambda p: p.config.q_cutoff_hz)
+    pool = [c for c in [designed, *curve] if counts(c)]
+    best = min(pool, key=lambda c: c.score) if pool else None
+    # 5: local refinement.
+    if best is not None:
+        for _ in range(refine_rounds):
+            improved = False
+            for cfg in _neighbours(best.config, objective.feedforward):
+                if key(cfg) in seen:
+                    c = seen[key(cfg)]
+                else:
+                    if meets_targets(cfg, knowledge, targets) is not None:
+                        continue
+                    c = cached(cfg)
+                if counts(c) and c.score < best.score:
+                    best, improved = c, True
+            if not improved:
+                break
+    # 6: the final verdict, with the nonlinear check and the recommendation.
+    ranked = sorted((c for c in seen.values() if counts(c)), key=lambda c: c.score)
+    final: Candidate | None = None
+    for c in ranked[:5]:
+        v = judge(c.config, knowledge, nonlinear=nonlinear).verdict
+        if v == "accept":
+            final = c
+            break
+    same_off = cached(final.config.with_(dob_on=False)) if final is not None else None
+    elapsed = time.perf_counter() - t0
+    if progress is not None:
+        progress(1.0)
+    res = WholeLoopResult(final, designed, start, speed, position, tuple(curve), (), targets,
+                          objective, plant.source, runs[0], elapsed, backoff, same_off)
+    return _explained(res, knowledge)
+
+
+def _neighbours(cfg: LoopConfig, ff_allowed: bool) -> list[LoopConfig]:
+    out = []
+    for s in (GAIN_STEP, 1.0 / GAIN_STEP):
+        out.append(cfg.with_(cv_kp=_r3(cfg.cv_kp * s), cv_ki_per_s=_r3(cfg.cv_ki_per_s * s)))
+        out.append(cfg.with_(pos_kp_per_s=_r3(cfg.pos_kp_per_s * s),
+                             pos_ki_per_s=_r3(cfg.pos_ki_per_s * s)))
+    if ff_allowed and cfg.ff_on:
+        for d in (FF_STEP, -FF_STEP):
+            out.append(cfg.with_(ff_gain=round(min(2.0, max(0.0, cfg.ff_gain + d)), 3)))
+    if cfg.dob_on:
+        for s in (CUTOFF_STEP, 1.0 / CUTOFF_STEP):
+            fc = _r3(cfg.q_cutoff_hz * s)
+            if fc < cfg.rate_hz / 2:
+                out.append(cfg.with_(q_cutoff_hz=fc))
+    return out
+
+
+def _pct(a: float, b: float) -> str:
+    return f"{100.0 * (a - b) / b:+.0f} %" if b > 0 and math.isfinite(a) else "-"
+
+
+def _explained(res: WholeLoopResult, knowledge: PlantKnowledge) -> WholeLoopResult:
+    """The result with its explanation, in an engineer's terms."""
+    obj, t, sp, po = res.objective, res.targets, res.speed, res.position
+    m = obj.metric
+    lines = [
+        f"plant: {res.plant_source}; gate evidence: {knowledge.describe()}",
+        f"targets: speed loop GM >= {t.gain_margin_db:g} dB and PM >= "
+        f"{t.phase_margin_deg:g} deg on every evidence, robust figure max|a T| <= "
+        f"{t.robust_peak_max:g} for the stated bound; position loop {t.position_ratio:g}x "
+        f"below it; integral corners 1/{t.corner_ratio:g} (speed) and "
+        f"1/{t.position_corner_ratio:g} (position) of each crossover",
+    ]
+    worst = min(sp.figures, key=lambda fg: fg.margins.phase_margin_deg)
+    res_hz = first_resonance_hz(knowledge, res.designed.config.rate_hz)
+    lines.append(
+        f"speed loop: crosses over at {sp.crossover_hz:.3g} Hz (Cv = {sp.kp:.3g} (1 + "
+        f"{sp.ki_per_s:.3g}/s), integral corner {sp.corner_hz:.3g} Hz); worst evidence "
+        f"{worst.name}: GM {worst.margins.gain_margin_db:.1f} dB, PM "
+        f"{worst.margins.phase_margin_deg:.1f} deg; a higher crossover is limited by: "
+        f"{sp.limit}"
+        + (f"; the first measured resonance is at {res_hz:.3g} Hz (crossover at "
+           f"{sp.crossover_hz / res_hz:.2f} of it; the field's rule: about half)"
+           if res_hz else "; the measurements show no resonance"))
+    pw = min(po.figures, key=lambda fg: fg.margins.phase_margin_deg)
+    lines.append(
+        f"position loop: crosses over at {po.crossover_hz:.3g} Hz ({po.ratio:.2g}x below the "
+        f"speed loop; Cp = {po.kp_per_s:.3g} (1 + {po.ki_per_s:.3g}/s), corner "
+        f"{po.corner_hz:.3g} Hz); worst evidence {pw.name}: GM "
+        f"{pw.margins.gain_margin_db:.1f} dB, PM {pw.margins.phase_margin_deg:.1f} deg; set "
+        f"by: {po.limit}")
+    if res.backoff_steps:
+        lines.append(f"the gate did not accept the design as placed: both loops' gains stepped "
+                     f"down {res.backoff_steps} x 15 %")
+    st = res.start
+    lag_start = reference_lag(st.config, knowledge, obj.trajectory)
+    lines.append(
+        f"starting loop ({_describe(st.config)}): {m} {st.error_deg(m):.4g} deg, command noise "
+        f"{st.command_noise_deg_s:.3g} deg/s ({st.verdict}); its reference lag alone (linear, "
+        f"model): {lag_start:.4g} deg RMS"
+        + (f" = {100 * (lag_start / st.rmse_deg) ** 2:.0f} % of its mean-square error"
+           if obj.trajectory.kind == "sine" and st.rmse_deg > 0 else ""))
+    d = res.designed
+    lines.append(
+        f"designed PIs{' + feedforward' if d.config.ff_on else ''}, DOB off: {m} "
+        f"{d.error_deg(m):.4g} deg ({_pct(d.error_deg(m), st.error_deg(m))} against the "
+        f"starting loop), command noise {d.command_noise_deg_s:.3g} deg/s ({d.verdict})"
+        + (f"; feedforward gain {d.config.ff_gain:.3g} removes the velocity path's reference "
+           f"lag (linear, model: {reference_lag(d.config, knowledge, obj.trajectory):.3g} deg "
+           f"RMS left)" if d.config.ff_on else ""))
+    b = res.best
+    if b is None:
+        lines.append("no candidate the gate accepts was found: nothing to propose")
+        return _with(res, lines)
+    dob_runs = [c for c in res.dob_curve if c.verdict == "accept" and math.isfinite(c.score)]
+    if b.config.dob_on:
+        ref = res.best_dob_off or res.designed
+        lines.append(
+            f"DOB: {b.config.q_type} at {b.config.q_cutoff_hz:.3g} Hz: {m} "
+            f"{b.error_deg(m):.4g} deg against {ref.error_deg(m):.4g} with the DOB off "
+            f"({_pct(b.error_deg(m), ref.error_deg(m))}); it rejects the rate disturbance "
+            f"below about half its cut-off and costs above it (the waterbed) and in command "
+            f"noise: {b.command_noise_deg_s:.3g} against {ref.command_noise_deg_s:.3g} deg/s "
+            f"({_pct(b.command_noise_deg_s, ref.command_noise_deg_s)})")
+    else:
+        best_dob = min(dob_runs, key=lambda c: c.score) if dob_runs else None
+        lines.append(
+            "DOB off: no Q setting the gate accepts beats it on this plant and trajectory"
+            + (f" (best DOB: {best_dob.config.q_type} at {best_dob.config.q_cutoff_hz:.3g} Hz,"
+               f" {m} {best_dob.error_deg(m):.4g} deg, noise "
+               f"{best_dob.command_noise_deg_s:.3g} deg/s)" if best_dob else ""))
+    lines.append(
+        f"candidate ({_describe(b.config)}): {m} {b.error_deg(m):.4g} deg "
+        f"({_pct(b.error_deg(m), st.error_deg(m))} against the starting loop), peak "
+        f"{b.peak_error_deg:.4g} deg, command noise {b.command_noise_deg_s:.3g} deg/s; "
+        f"accepted by the gate; {res.runs} runs in {res.elapsed_s:.1f} s")
+    return _with(res, lines)
+
+
+def _describe(c: LoopConfig) -> str:
+    dob = f"{c.q_type} {c.q_cutoff_hz:.3g} Hz" if c.dob_on else "DOB off"
+    ff = f"FF {c.ff_gain:.3g}" if c.ff_on else "no FF"
+    return (f"Cv {c.cv_kp:.3g} (1 + {c.cv_ki_per_s:.3g}/s), Cp {c.pos_kp_per_s:.3g} (1 + "
+            f"{c.pos_ki_per_s:.3g}/s), {ff}, {dob}")
+
+
+def _with(res: WholeLoopResult, lines: list[str]) -> WholeLoopResult:
+    from dataclasses import replace
+
+    return replace(res, explanation=tuple(lines))
