@@ -40,7 +40,8 @@ from server.commands import CommandRouter
 from server.engine import TuningEngine
 from server.escape import esc
 from server.fleet import FleetMonitor, FleetPanel
-from server.http_access import ESTOP_LINK_HTML, HttpAccess, title_html
+from server.http_access import GateOpen, HttpAccess, title_html
+from server.message_gate import MessageGate
 from server.options import DashboardOptions, dashboard_users
 from server.panels.history import HistoryPanel
 from server.panels.identify import IdentifyPanel
@@ -48,9 +49,16 @@ from server.panels.knowledge import KnowledgePanel
 from server.panels.live import LivePanel
 from server.panels.nominal_tuning import NominalTuningPanel
 from server.panels.recordings import COMPARE_TAB, RecordingsPanel
-from server.panels.widgets import set_width_in
+from server.panels.widgets import EXPORT_LABEL
 from server.scene3d import TurntableScene
-from server.session import BrowserSessions, leased
+from server.session import BrowserSessions, leased, tell
+from server.viser_adapter import (
+    connection_of,
+    disable_share_url,
+    filter_incoming,
+    live_connections,
+    set_width_in,
+)
 from server.workers import Requests, run_logged
 
 __all__ = [
@@ -128,8 +136,10 @@ class Dashboard:
         self.commands = CommandRouter(self.sessions, self._requests, self.candidates,
                                       self._show_command)
         self.access.on_estop = self.commands.estop_from_link
-        self.access.page_extra = ESTOP_LINK_HTML + title_html(opts.rig_name)
+        self.access.page_extra = title_html(opts.rig_name)
         self.server: Any = None
+        self.messages: MessageGate | None = None
+        """The judge of every message a browser sends (built with the server)."""
         self.identify: IdentifyPanel | None = None
         self.recordings: RecordingsPanel | None = None
         self.live: LivePanel | None = None
@@ -181,14 +191,21 @@ class Dashboard:
                 server = viser.ViserServer(host=self.opts.host, port=self.opts.port,
                                            verbose=False)
             self.access.port = server.get_port()
-            # Never open a public share tunnel from this app.
-            server.request_share_url = lambda *a, **k: None  # type: ignore[method-assign]
+            disable_share_url(server)  # never a public share tunnel from this app
             self.server = server
+            self.messages = MessageGate(role_of=self._role_of, shared_gui=server.gui,
+                                        gui_of=self._gui_of, tell=self._tell,
+                                        open_if=_is_export_row)
+            filter_incoming(server, self.messages)
+            self.access.prove(self.opts.host)  # GateOpen: nothing is served
             self._build(server)
             undo.pop_all()
         return self
 
     def __exit__(self, *exc: object) -> None:
+        self._close()
+
+    def close(self) -> None:
         self._close()
 
     def _close(self) -> None:
@@ -286,6 +303,9 @@ class Dashboard:
                                   hint="in this browser: the charts take the 3-D view's space, "
                                   "or give it back")
             view.on_click(lambda e: self._toggle_3d(e.client))
+        assert self.messages is not None and live.estop_button is not None
+        self.messages.open_to_all(live.estop_button)  # every role, each browser's own view
+        self.messages.open_to_all(view)
         with tabs.add_tab("Identify"):
             self.identify.build_controls()
         if self.opts.fleet:
@@ -360,7 +380,7 @@ class Dashboard:
         point its camera at the turntable."""
         if self.users:
             # viser keeps each client's websocket; the gate noted whose token opened it.
-            conn = self.server._websock_server._live_connections.get(client.client_id)
+            conn = connection_of(self.server, client.client_id)
             user = self.access.user_of_connection(conn) if conn is not None else None
             if user is None:
                 log.error("browser %s: no user for its connection: it may only watch",
@@ -380,7 +400,7 @@ class Dashboard:
         """viser's websocket connection of `browser` (None: none, or gone)."""
         if browser is None or self.server is None:
             return None
-        return self.server._websock_server._live_connections.get(browser.client_id)
+        return connection_of(self.server, browser.client_id)
 
     def _slot_of(self, browser: Any) -> str:
         """The candidate slot the browser's page named ("" : none: a page without the page
@@ -402,7 +422,7 @@ class Dashboard:
         if self.server is None:
             return
         connected = any(self.access.page_of_connection(c) == page
-                        for c in list(self.server._websock_server._live_connections.values()))
+                        for c in live_connections(self.server).values())
         with self._live_hidden_lock:
             was_hidden = page in self._live_hidden
             if live_shown:
@@ -424,8 +444,28 @@ class Dashboard:
         return [b for b in self.server.get_clients().values()
                 if not hidden or self._page_of(b) not in hidden]
 
+    def _role_of(self, client_id: int) -> str | None:
+        """The role of the user at browser `client_id` ("operator" with one identity: every
+        browser may change the rig; None: not signed in)."""
+        if not self.users:
+            return "operator"
+        user = self.sessions.user_of(self._browser(client_id))
+        return None if user is None else str(self.users[user].role)
+
+    def _browser(self, client_id: int) -> Any:
+        return None if self.server is None else self.server.get_clients().get(client_id)
+
+    def _gui_of(self, client_id: int) -> Any:
+        browser = self._browser(client_id)
+        return None if browser is None else browser.gui
+
+    def _tell(self, client_id: int, why: str) -> None:
+        tell(self._browser(client_id), "Refused", why, "red")
+
     def _on_client_disconnect(self, client: Any) -> None:
         self.sessions.left(client.client_id)
+        if self.messages is not None:
+            self.messages.forget(client.client_id)
         self.candidates.drop(client.client_id)
         with self._hidden_3d_lock:
             self._hidden_3d.discard(client.client_id)
@@ -454,6 +494,15 @@ class Dashboard:
     def _on_frame(self, latest: dict[str, float] | None) -> None:
         if latest is not None and self.scene is not None:
             self.scene.update(latest["pos_deg"], latest["ref_deg"])
+
+
+def _is_export_row(handle: Any) -> bool:
+    """A chart's Export row (server/panels/widgets.py): its CSV goes to the browser that
+    pressed it alone, so any role may press it."""
+    import viser
+
+    return (isinstance(handle, viser.GuiButtonGroupHandle) and handle.label == EXPORT_LABEL
+            and tuple(handle.options) == ("CSV",))
 
 
 class PortBusy(RuntimeError):
@@ -492,12 +541,18 @@ def run_dashboard(opts: DashboardOptions) -> int:
     except ValueError as exc:  # AuthError included: it names the file and field
         print(f"dobtune dashboard: {exc}", flush=True)
         return 2
-    with stop_requested() as stop, Dashboard(opts) as dash:
-        freeze_startup_heap()
-        print(f"dobtune dashboard: {dash.url}  (rig '{opts.rig_name}' via "
-              f"{', '.join(opts.connect)})", flush=True)
-        for name, user in sorted(users.items()):
-            print(f"dobtune dashboard: {user.role} {name}: {dash.url_for(name)}", flush=True)
-        while not stop.wait(0.5):
-            pass
+    with stop_requested() as stop:
+        try:
+            dash = Dashboard(opts).__enter__()
+        except GateOpen as exc:  # nothing is served
+            print(f"dobtune dashboard: {exc}", flush=True)
+            return 2
+        with contextlib.closing(dash):
+            freeze_startup_heap()
+            print(f"dobtune dashboard: {dash.url}  (rig '{opts.rig_name}' via "
+                  f"{', '.join(opts.connect)})", flush=True)
+            for name, user in sorted(users.items()):
+                print(f"dobtune dashboard: {user.role} {name}: {dash.url_for(name)}", flush=True)
+            while not stop.wait(0.5):
+                pass
     return 0

@@ -1,24 +1,38 @@
-"""Who may open the dashboard: a token in the URL (as Jupyter does), Origin and Host checks.
+"""Who may open the dashboard: a token in the URL (as Jupyter does), bound to its origin.
 
 viser has no authentication and accepts any Origin: anyone who reaches the port could press any
 control (a raw websocket client can press a hidden or disabled one). The dashboard therefore
-checks every HTTP request and the websocket handshake before viser sees them:
+checks every HTTP request and the websocket handshake before viser sees them (`HttpAccess.wrap`,
+put in front of viser's server by `server.viser_adapter.gated_serve`):
 
-- The printed URL carries `?token=<random>`; with several users (`HttpAccess.users`), each user has
-  a token of their own and the dashboard knows which user is behind each websocket
-  (`user_of_connection`). A request with the right token gets the page and
-  a cookie (HttpOnly, SameSite=Strict) that the page's own requests and its websocket then
-  carry; a request with neither gets 401 and a short page that says how to get in.
-- The websocket handshake needs the cookie, an allowed Host (the configured host, localhost
-  and 127.0.0.1 at the dashboard's port) and, when the client sends one (browsers always do),
-  an Origin of that same host: a page on another site cannot drive the dashboard from the
-  user's browser (cross-site websocket hijacking), and a raw client without the token cannot
-  connect at all.
+- The printed URL carries `?token=<random>`; with several users (`HttpAccess.users`), each user
+  has a token of their own and the dashboard knows which user is behind each websocket
+  (`user_of_connection`). Every request must carry the token itself, in its URL: the page
+  (`/?token=...`), its websocket (the page script adds `token` to viser's websocket URL) and
+  the page's own requests (the E-STOP link, written into the page with the token of the
+  user who opened it, and the view reports).
+- No cookie. Browsers do not bind cookies to a port: a cookie of 127.0.0.1:8080 is sent to
+  every other port of 127.0.0.1, so any local web server (a developer's, a notebook's) would
+  receive the bearer secret and could use it from a raw client (measured: a page of another
+  port received the operator's cookie and a plain `<img>` there fired the E-STOP link). The
+  token lives only where other origins cannot read it: the page's URL and the page itself
+  (the same-origin policy does bind those to the port), with `Referrer-Policy: no-referrer`
+  so that it does not leave in a Referer. A cookie an older version set is deleted.
+- Origin binding on every request: the Host must be this dashboard (the configured host,
+  localhost or 127.0.0.1 at its port: DNS rebinding); an Origin, when sent (browsers send it
+  on the websocket handshake and on scripted requests), must be this dashboard's; a
+  `Sec-Fetch-Site` (every current browser sends it) must be `same-origin` on the websocket
+  and the dashboard's own routes: a page of another port (`same-site`) or another site
+  (`cross-site`) fires nothing even if it learnt a token, and an `<img>` or link there to the
+  E-STOP is refused. The page itself may be opened from anywhere (a terminal, the Fleet tab's
+  link to another rig's view on another port): its URL's token is the proof, and no other
+  origin may frame it (`frame-ancestors 'self'`).
+- A request refused gets 401 (403 for a websocket) and a short page that says how to get in.
+- Fail closed: until `prove` has shown, by requests without the token on loopback, that this
+  check answers in front of every route (the page, the websocket, each of the dashboard's own
+  routes), even a request with the token gets 503; `prove` raises `GateOpen` if not.
 
-How: viser starts its server with `websockets.asyncio.server.serve(..., process_request=...)`;
-`install` wraps that function once per process so that the `process_request` of a server
-started while a `HttpAccess` is being installed runs its check first (`HttpAccess.serving`). The
-comparison of tokens is constant-time.
+The comparison of tokens is constant-time.
 """
 
 from __future__ import annotations
@@ -28,58 +42,68 @@ import dataclasses
 import gzip
 import hmac
 import http
+import http.client
 import logging
 import re
 import secrets
-import threading
 import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import parse_qs, quote, urlsplit
 
+from server import viser_adapter
 from server.assets import web_asset
 from server.escape import esc
 
-__all__ = ["COOKIE", "ESTOP_LINK_HTML", "ESTOP_PATH", "PAGE_SCRIPT_FILE", "VIEW_PATH", "HttpAccess",
-           "Refused", "install", "page_script_html", "title_html"]
+__all__ = ["ESTOP_PATH", "LEGACY_COOKIE", "PAGE_SCRIPT_FILE", "VIEW_PATH", "GateOpen",
+           "HttpAccess", "Refused", "estop_link_html", "page_script_html", "title_html"]
 
 log = logging.getLogger(__name__)
 
-COOKIE = "dobtune_token"
-#: GET with the cookie (or token): e-stop, outside viser's websocket. The page's always-visible
-#: E-STOP is a plain link to it (into a hidden frame): no script, no websocket needed.
+#: The cookie older versions kept the token in (sent to every port of the host: deleted).
+LEGACY_COOKIE = "dobtune_token"
+#: GET with the token, from this dashboard's page: e-stop, outside viser's websocket. The
+#: page's always-visible E-STOP is a plain link to it (into a hidden frame): no script, no
+#: websocket needed.
 ESTOP_PATH = "/__dobtune_estop"
-#: GET with the cookie, from the page script: whether the page shows the live traces
+#: GET with the token, from the page script: whether the page shows the live traces
 #: (`?dt_page=<the page's id>&live=1`, `live=0`: another plots tab), so that their data goes
 #: only to the pages that show them (`HttpAccess.on_view`). Answered 204, 400 naming a bad field.
 VIEW_PATH = "/__dobtune_view"
-#: Put into the page itself (outside viser's panels, which unmount what they collapse): fixed
-#: to the window above everything, whatever is collapsed or scrolled; a link into a hidden
-#: frame, so it needs neither script nor websocket.
-ESTOP_LINK_HTML = (
-    f"<a class='dt-estop-fixed' href='{ESTOP_PATH}' target='dt-estop-frame' title='E-STOP: "
-    "speed command 0 and drive disabled' style='position:fixed;left:50%;bottom:18px;"
-    "transform:translateX(-50%);z-index:2147483647;background:#d62728;color:#fff;"
-    "font:bold 22px sans-serif;letter-spacing:1px;padding:14px 34px;border-radius:8px;"
-    "border:3px solid #7f0000;box-shadow:0 2px 10px rgba(0,0,0,.35);text-decoration:none'>"
-    "E-STOP</a><iframe name='dt-estop-frame' title='e-stop answer' style='display:none'>"
-    "</iframe>"
-)
 #: The page's own script: a PNG button beside every chart's CSV button, and the selected tabs
 #: kept in the URL's fragment (put into the page after `HttpAccess.page_extra`).
 PAGE_SCRIPT_FILE = web_asset("dashboard.js")
-_lock = threading.Lock()
-#: One server start at a time: the gate a starting server takes is the one being installed.
-_starting = threading.Lock()
-_pending: list[HttpAccess] = []
-_installed = False
+
+
+def estop_link_html(token: str) -> str:
+    """The page's E-STOP (put into the page itself, outside viser's panels, which unmount what
+    they collapse): fixed to the window above everything, whatever is collapsed or scrolled; a
+    link with the token of the page's user into a hidden frame, so it needs neither script nor
+    websocket."""
+    return (
+        f"<a class='dt-estop-fixed' href='{ESTOP_PATH}?token={esc(quote(token))}' "
+        "target='dt-estop-frame' title='E-STOP: "
+        "speed command 0 and drive disabled' style='position:fixed;left:50%;bottom:18px;"
+        "transform:translateX(-50%);z-index:2147483647;background:#d62728;color:#fff;"
+        "font:bold 22px sans-serif;letter-spacing:1px;padding:14px 34px;border-radius:8px;"
+        "border:3px solid #7f0000;box-shadow:0 2px 10px rgba(0,0,0,.35);text-decoration:none'>"
+        "E-STOP</a><iframe name='dt-estop-frame' title='e-stop answer' style='display:none'>"
+        "</iframe>"
+    )
+
 
 _DENIED_PAGE = (
     "<!doctype html><meta charset=utf-8><title>dobtune: token required</title>"
     "<p style='font:16px sans-serif;margin:2em'>This dashboard needs its access token: open "
-    "the URL the dashboard printed when it started (it ends in <code>?token=...</code>).</p>"
+    "the URL the dashboard printed when it started (it ends in <code>?token=...</code>), in "
+    "a tab of its own: other sites and other local ports cannot use it.</p>"
+)
+_STARTING_PAGE = (
+    "<!doctype html><meta charset=utf-8><title>dobtune: starting</title>"
+    "<p style='font:16px sans-serif;margin:2em'>The dashboard is starting: reload in a moment."
+    "</p>"
 )
 
 
@@ -127,13 +151,16 @@ class HttpAccess:
     _page_by_connection: weakref.WeakKeyDictionary[Any, str] = field(
         default_factory=weakref.WeakKeyDictionary, repr=False)
     page_extra: str = ""
-    """HTML put at the end of the page's body (the index page only)."""
+    """HTML put at the end of the page's body (the index page only), after the E-STOP link."""
     page_script: str = field(default_factory=page_script_html, repr=False)
     """A script element put after `page_extra` (by default web_assets/dashboard.js)."""
     on_estop: Callable[[str], str] | None = None
     """Called with the user for a request to ESTOP_PATH (on the server's event loop: it must
     not block); returns the text to answer."""
 
+    proven: bool = False
+    """Whether `prove` has shown the check in front of every route (until then nothing is
+    served: 503)."""
     on_view: Callable[[str, bool], None] | None = None
     """Called with a page's id and whether it shows the live traces, for a request to
     VIEW_PATH (on the server's event loop: it must not block)."""
@@ -172,68 +199,59 @@ class HttpAccess:
                 found = user
         return found
 
-    def user_of(self, path: str, headers: Any) -> str | None:
-        """The user a request speaks for: its URL token first, else its cookie."""
+    def user_of(self, path: str) -> str | None:
+        """The user a request speaks for: the token in its URL (None: nobody's)."""
         query = parse_qs(urlsplit(path).query)
-        by_query = self._user_by(query["token"][0] if query.get("token") else None)
-        if by_query is not None:
-            return by_query
-        return self._user_by(_cookie(headers.get("Cookie", ""), COOKIE))
+        return self._user_by(query["token"][0] if query.get("token") else None)
 
-    def check(self, path: str, headers: Any) -> tuple[str, bool]:
-        """("", set_cookie) when the request may go on, else why not."""
-        query = parse_qs(urlsplit(path).query)
-        by_query = self._user_by(query["token"][0] if query.get("token") else None) is not None
-        by_cookie = self._user_by(_cookie(headers.get("Cookie", ""), COOKIE)) is not None
-        if urlsplit(path).path in (ESTOP_PATH, VIEW_PATH):  # actions: a websocket's Host check
-            host = headers.get("Host", "")
-            if self.port and host not in self.allowed_hosts():
-                return f"host {host!r} is not this dashboard", False
-            if not (by_cookie or by_query):
-                return "no valid token", False
-            return "", False
-        if headers.get("Upgrade", "").lower() == "websocket":
-            host = headers.get("Host", "")
-            if self.port and host not in self.allowed_hosts():
-                return f"host {host!r} is not this dashboard", False
-            origin = headers.get("Origin")
-            if origin is not None and urlsplit(origin).netloc != host:
-                return f"origin {origin!r} is not this dashboard ({host})", False
-            if not (by_cookie or by_query):
-                return "no valid token", False
-            return "", False
-        if not (by_cookie or by_query):
-            return "no valid token", False
-        return "", by_query
+    def check(self, path: str, headers: Any) -> str:
+        """"" when the request may go on, else why not (see the module's description)."""
+        host = headers.get("Host", "")
+        if self.port and host not in self.allowed_hosts():
+            return f"host {host!r} is not this dashboard"
+        origin = headers.get("Origin")
+        if origin is not None and urlsplit(origin).netloc != host:
+            return f"origin {origin!r} is not this dashboard ({host})"
+        page = urlsplit(path).path in PAGE_PATHS and "Upgrade" not in headers
+        site = headers.get("Sec-Fetch-Site")
+        if not page and site is not None and site != "same-origin":
+            return f"a request from another site or port (Sec-Fetch-Site: {site})"
+        if self.user_of(path) is None:
+            return "no valid token"
+        return ""
 
     def wrap(self, process_request: Callable[..., Any] | None) -> Callable[..., Any]:
+        """viser's `process_request` with this check in front of it."""
         from websockets.datastructures import Headers
         from websockets.http11 import Response
 
+        def answer(status: http.HTTPStatus, body: bytes) -> Any:
+            return Response(status.value, status.phrase, Headers(**{
+                "Content-Type": "text/html; charset=utf-8", "Content-Length": str(len(body)),
+                "Cache-Control": "no-store", "Referrer-Policy": "no-referrer",
+            }), body)
+
         def gated(connection: Any, request: Any) -> Any:
-            why, set_cookie = self.check(request.path, request.headers)
+            why = self.check(request.path, request.headers)
+            upgrade = "Upgrade" in request.headers
             if why:
                 self.refused += 1
-                status = http.HTTPStatus.FORBIDDEN if "Upgrade" in request.headers else (
-                    http.HTTPStatus.UNAUTHORIZED)
-                body = _DENIED_PAGE.encode()
-                return Response(status.value, status.phrase, Headers(**{
-                    "Content-Type": "text/html; charset=utf-8",
-                    "Content-Length": str(len(body)),
-                }), body)
-            user = self.user_of(request.path, request.headers)
+                log.debug("refused %s: %s", urlsplit(request.path).path, why)
+                return answer(http.HTTPStatus.FORBIDDEN if upgrade else
+                              http.HTTPStatus.UNAUTHORIZED, _DENIED_PAGE.encode())
+            if not self.proven:
+                return answer(http.HTTPStatus.SERVICE_UNAVAILABLE, _STARTING_PAGE.encode())
+            user = self.user_of(request.path)
             assert user is not None  # check() passed
-            if urlsplit(request.path).path == ESTOP_PATH and self.on_estop is not None:
+            route = urlsplit(request.path).path
+            if route == ESTOP_PATH and self.on_estop is not None:
                 text = self.on_estop(user)
-                body = (f"<!doctype html><meta charset=utf-8><title>E-STOP</title>"
-                        f"<p>{esc(text)}</p>").encode()
-                return Response(200, "OK", Headers(**{
-                    "Content-Type": "text/html; charset=utf-8",
-                    "Content-Length": str(len(body)), "Cache-Control": "no-store",
-                }), body)
-            if urlsplit(request.path).path == VIEW_PATH:
+                return answer(http.HTTPStatus.OK, (
+                    f"<!doctype html><meta charset=utf-8><title>E-STOP</title>"
+                    f"<p>{esc(text)}</p>").encode())
+            if route == VIEW_PATH:
                 return self._view(request.path)
-            if "Upgrade" in request.headers:
+            if upgrade:
                 self._by_connection[connection] = user
                 slot = slot_of_path(request.path)
                 if slot:
@@ -242,17 +260,44 @@ class HttpAccess:
                 if page:
                     self._page_by_connection[connection] = page
             response = process_request(connection, request) if process_request else None
-            extra = self.page_extra + self.page_script
-            if extra and response is not None and urlsplit(request.path).path in (
-                    "/", "/index.html"):
+            if response is not None and route in PAGE_PATHS:
+                extra = estop_link_html(self.token_of(user)) + self.page_extra + self.page_script
                 response = _with_extra(response, extra)
-            if set_cookie and response is not None:
-                response.headers["Set-Cookie"] = (
-                    f"{COOKIE}={self.token_of(user)}; HttpOnly; SameSite=Strict; Path=/"
-                )
+                response.headers["Referrer-Policy"] = "no-referrer"
+                response.headers["Content-Security-Policy"] = "frame-ancestors 'self'"
+                response.headers["Cache-Control"] = "no-store"
+                response.headers["Set-Cookie"] = (  # a token an older version left in a cookie
+                    f"{LEGACY_COOKIE}=; Max-Age=0; HttpOnly; SameSite=Strict; Path=/")
             return response
 
         return gated
+
+    def prove(self, host: str, timeout_s: float = 5.0) -> None:
+        """Show that this check answers in front of every route of the server it was put in
+        front of: a request without the token, on loopback, to the page, the websocket and
+        each of the dashboard's own routes, must be refused by this check (its count of
+        refusals goes up by one each time). Then requests with the token are served; else
+        `GateOpen`, naming the routes that were not refused."""
+        loopback = {"": "127.0.0.1", "0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)
+        open_routes = []
+        for route, upgrade in PROOF_ROUTES:
+            before = self.refused
+            status: int | str
+            try:
+                status = _request_status(loopback, self.port, route, upgrade, timeout_s)
+            except (OSError, http.client.HTTPException) as exc:
+                status = f"no answer ({exc})"
+            refused_here = self.refused == before + 1 and status in (401, 403)
+            if not refused_here:
+                what = "websocket" if upgrade else route.split("?")[0]
+                open_routes.append(f"{what} (answered {status} without the token)")
+        if open_routes:
+            raise GateOpen(
+                "the access gate is not in front of every route: " + "; ".join(open_routes) +
+                ". Refusing to serve: anyone who reaches the port could use the dashboard. "
+                "viser or websockets may start the server in a way server/viser_adapter.py "
+                "does not know (run tests/test_viser_adapter.py)")
+        self.proven = True
 
     def _view(self, path: str) -> Any:
         """A page's report of what it shows (VIEW_PATH): 204, or 400 naming the bad field."""
@@ -275,15 +320,36 @@ class HttpAccess:
     @contextlib.contextmanager
     def serving(self) -> Iterator[None]:
         """Servers started (by viser) inside this block are checked by this one."""
-        install()
-        with _starting:
-            with _lock:
-                _pending.append(self)
-            try:
-                yield
-            finally:
-                with _lock, contextlib.suppress(ValueError):
-                    _pending.remove(self)
+        with viser_adapter.gated_serve(self.wrap):
+            yield
+
+
+class GateOpen(RuntimeError):
+    """The access gate is not in front of every route: the dashboard must not serve."""
+
+
+#: The page's paths (viser serves its page at both).
+PAGE_PATHS = ("/", "/index.html")
+#: What `HttpAccess.prove` asks without the token: (path, as a websocket handshake).
+PROOF_ROUTES: tuple[tuple[str, bool], ...] = (
+    ("/", False), ("/index.html", False), ("/", True), (ESTOP_PATH, False),
+    (f"{VIEW_PATH}?dt_page={'0' * 24}&live=1", False),
+)
+
+
+def _request_status(host: str, port: int, path: str, upgrade: bool, timeout_s: float) -> int:
+    """The status of one GET (a websocket handshake if `upgrade`) without any token."""
+    conn = http.client.HTTPConnection(host, port, timeout=timeout_s)
+    try:
+        headers = {"Host": f"{'localhost' if ':' in host else host}:{port}"}
+        if upgrade:
+            headers.update({"Upgrade": "websocket", "Connection": "Upgrade",
+                            "Sec-WebSocket-Version": "13",
+                            "Sec-WebSocket-Key": "ZG9idHVuZS1wcm9vZi0xNg=="})
+        conn.request("GET", path, headers=headers)
+        return conn.getresponse().status
+    finally:
+        conn.close()
 
 
 #: The query parameter of the websocket's URL that names the page's candidate slot.
@@ -323,33 +389,3 @@ def _with_extra(response: Any, extra: str) -> Any:
     del response.headers["Content-Length"]  # a multi-dict: assigning would add a second one
     response.headers["Content-Length"] = str(len(body))
     return dataclasses.replace(response, body=body)
-
-
-def _cookie(header: str, name: str) -> str | None:
-    for part in header.split(";"):
-        k, eq, v = part.strip().partition("=")
-        if eq and k == name:
-            return v
-    return None
-
-
-def install() -> None:
-    """Wrap `websockets.asyncio.server.serve` once: a server started while an HttpAccess is pending
-    gets its check in front of its `process_request`."""
-    global _installed
-    with _lock:
-        if _installed:
-            return
-        import websockets.asyncio.server as ws_server
-
-        original = ws_server.serve
-
-        def serve(*args: Any, **kwargs: Any) -> Any:
-            with _lock:
-                gate = _pending[-1] if _pending else None
-            if gate is not None:
-                kwargs["process_request"] = gate.wrap(kwargs.get("process_request"))
-            return original(*args, **kwargs)
-
-        ws_server.serve = serve  # type: ignore[misc,assignment]
-        _installed = True

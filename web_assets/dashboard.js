@@ -54,11 +54,17 @@
   // This page load's id: its websocket names it, and so do its reports of what it shows.
   const PAGE_ID = Array.from(crypto.getRandomValues(new Uint8Array(12)),
                              (b) => b.toString(16).padStart(2, "0")).join("");
+  // The access token (server/http_access.py): from the page's own URL into its websocket's
+  // and its reports' (no cookie: a cookie would reach every port of this host).
+  const TOKEN_PARAM = (() => {
+    const token = new URLSearchParams(location.search).get("token");
+    return token ? "&token=" + encodeURIComponent(token) : "";
+  })();
   (function nameSlot() {
     const p = new URLSearchParams(location.search);
     const scheme = location.protocol === "https:" ? "wss://" : "ws://";
     p.set("websocket", scheme + location.host + location.pathname.replace(/\/$/, "") +
-      "/?dt_slot=" + slotId() + "&dt_page=" + PAGE_ID);
+      "/?dt_slot=" + slotId() + "&dt_page=" + PAGE_ID + TOKEN_PARAM);
     history.replaceState(history.state, "", location.pathname + "?" + p.toString() +
       location.hash);
   })();
@@ -699,7 +705,7 @@
       if (!failedAt) console.warn("dobtune: the view report failed:", why);
       failedAt = Date.now();
     };
-    fetch(`${VIEW_PATH}?dt_page=${PAGE_ID}&live=${live ? 1 : 0}`,
+    fetch(`${VIEW_PATH}?dt_page=${PAGE_ID}&live=${live ? 1 : 0}${TOKEN_PARAM}`,
           { credentials: "same-origin", cache: "no-store" })
       .then((r) => {
         if (!r.ok) return fail(`HTTP ${r.status}`);

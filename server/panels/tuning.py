@@ -53,6 +53,7 @@ from server.suggest import (
     suggest_html,
     suggested_config,
 )
+from server.viser_adapter import set_slider_marks
 from server.workers import LatestWins
 
 __all__ = ["StepState", "TuningPanel", "cutoff_marks", "format_gate_html", "kept_problem"]
@@ -774,10 +775,8 @@ class TuningPanel:
     def _update_marks(self, rec: float | None) -> None:
         marks = cutoff_marks(rec)
         if marks != self._marks:
-            from viser._messages import GuiSliderMark  # viser exposes marks only at creation
-
             self._marks = marks
-            self.cutoff_log._marks = tuple(GuiSliderMark(value=v, label=t) for v, t in marks)
+            set_slider_marks(self.cutoff_log, marks)  # viser takes marks only at creation
 
     def _run_preview(self, item: tuple[LoopConfig, LoopConfig, Trajectory]) -> None:
         cand, active, traj = item

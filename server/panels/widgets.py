@@ -8,12 +8,13 @@ from collections.abc import Callable
 from typing import Any
 
 from controller.core.arrays import FloatArray
+from server import viser_adapter
 from server.charts import ChartSpec
 from server.escape import esc
 from server.export import chart_csv, export_filename
 
 __all__ = ["ACCEPT", "EXPORT_LABEL", "NEUTRAL", "REJECT", "add_chart", "add_export_row", "box",
-           "confirm", "reason_list", "send_data", "set_html", "set_width_in"]
+           "confirm", "reason_list", "send_data", "set_html"]
 
 log = logging.getLogger(__name__)
 
@@ -79,29 +80,11 @@ def add_export_row(gui: Any, spec: ChartSpec, chart: Any) -> Any:
     return row
 
 
-def set_width_in(browser: Any, panel: Any, width_px: float) -> None:
-    """The docked `panel` (a panel of the shared GUI) `width_px` wide in `browser` alone:
-    viser's `set_width` goes to every browser; the same placement message sent on the
-    browser's own GUI goes to it only (a width beyond the screen leaves the 3-D view viser's
-    120 px sliver)."""
-    from viser._gui_handles import MainPanelHandle  # the placement commands of any panel
-
-    handle = MainPanelHandle(browser.gui)
-    handle._placement_uuid = panel._placement_uuid
-    handle.set_width(width_px)
-
-
 def send_data(chart: Any, data: Any, browsers: Any) -> None:
     """A uPlot handle's `data` set here (its CSV reads it) and sent to `browsers` only, where
     an assignment to `chart.data` goes to every browser (and stays in viser's buffer for the
     browsers that connect later: a browser that gets none of these shows the data it had)."""
-    from viser._messages import GuiUpdateMessage
-
-    value = chart._cast_value_recursive(chart._prop_hints["data"], data, "data")
-    chart._impl.props.data = value
-    message = GuiUpdateMessage(chart._impl.uuid, {"data": value})
-    for browser in browsers:
-        browser.gui._websock_interface.queue_message(message)
+    viser_adapter.send_prop_to(chart, "data", data, browsers)
 
 
 def set_html(handle: Any, content: str) -> None:

@@ -1,0 +1,187 @@
+"""Every message a browser sends, judged by its sender's role before viser handles it.
+
+viser copies any attribute a client names in a GUI update onto the control's server-side state
+(one message from a viewer removed the E-STOP button's callback for every browser; `removed:
+true` did the same to Reset fault), takes values outside a dropdown's options or a slider's
+range, and `disabled` only greys the control in the page. What passes here:
+
+- a GUI value update (`updates == {"value": v}`, nothing else) on a control that exists, is
+  neither disabled nor hidden, and that the sender's role may change, with a value the control
+  could have shown: a dropdown's or button group's option, a number inside its range (finite),
+  a checkbox's bool, a text of at most `MAX_TEXT` characters;
+- who may change what: a control of the browser's own GUI (its candidate) is the browser's;
+  a shared control (the server's GUI) only an operator's (or anybody's with one identity),
+  but for the ones marked `open_to_all` (the E-STOP, each browser's own view: export, the 3-D
+  view's toggle), which any signed-in browser may press;
+- the browser's own camera (finite numbers), and an operator's file uploads to an upload
+  button (`FileTransferStartUpload` on one, then that transfer's parts).
+
+Everything else is refused: counted, logged (at most one line per browser and reason per
+`LOG_EVERY_S`, with the number held back), and a role refusal told to that browser.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from server import viser_adapter
+
+__all__ = ["LOG_EVERY_S", "MAX_TEXT", "MessageGate"]
+
+log = logging.getLogger(__name__)
+
+#: At most one log line per browser and kind of refusal in this many seconds.
+LOG_EVERY_S = 10.0
+#: The longest text a text field takes (characters).
+MAX_TEXT = 4096
+#: Upload transfers remembered per browser (a browser that starts more loses the oldest).
+MAX_TRANSFERS = 8
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+@dataclass
+class MessageGate:
+    """The judge of one dashboard's incoming messages (`viser_adapter.filter_incoming`)."""
+
+    role_of: Callable[[int], str | None]
+    """The role of the browser (viser client id): "operator", "viewer"; None: not signed in."""
+    shared_gui: Any
+    """The server's GUI (the shared controls)."""
+    gui_of: Callable[[int], Any]
+    """The browser's own GUI (None: gone)."""
+    tell: Callable[[int, str], None] = lambda _c, _t: None
+    """Tells the browser why (a role refusal)."""
+    open_if: Callable[[Any], bool] = lambda _h: False
+    """Whether a shared control is open to every role by what it is (a chart's Export row)."""
+    refused: int = 0
+    """Messages refused so far."""
+    _open: set[str] = field(default_factory=set)
+    _uploads: dict[int, list[str]] = field(default_factory=dict)
+    _last_log: dict[tuple[int, str], tuple[float, int]] = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def open_to_all(self, handle: Any) -> None:
+        """Any signed-in browser may press this shared control (the E-STOP, a browser's own
+        view)."""
+        self._open.add(viser_adapter.control_uuid(handle))
+
+    def __call__(self, client_id: int, message: Any, report: bool) -> bool:
+        why = self.why_refused(client_id, message)
+        if why is None:
+            return True
+        if report:
+            self._refuse(client_id, type(message).__name__, why)
+        return False
+
+    def forget(self, client_id: int) -> None:
+        with self._lock:
+            self._uploads.pop(client_id, None)
+            for key in [k for k in self._last_log if k[0] == client_id]:
+                del self._last_log[key]
+
+    # -- the rules ---------------------------------------------------------------------------
+
+    def why_refused(self, client_id: int, message: Any) -> str | None:
+        """None: viser may handle it; else why not."""
+        from viser import _messages as m  # message classes: see viser_adapter's tests
+
+        role = self.role_of(client_id)
+        if isinstance(message, m.GuiUpdateMessage):
+            return self._update(client_id, role, message)
+        if isinstance(message, m.ViewerCameraMessage):
+            numbers = [*message.wxyz, *message.position, message.fov, message.near, message.far,
+                       *message.look_at, *message.up_direction]
+            return None if all(_number(v) for v in numbers) else "camera: a number not finite"
+        if isinstance(message, m.FileTransferStartUpload):
+            return self._upload_start(client_id, role, message)
+        if isinstance(message, m.FileTransferPart):
+            with self._lock:
+                known = message.transfer_uuid in self._uploads.get(client_id, [])
+            return None if known else "upload part of a transfer not started here"
+        return "not a message a page sends"
+
+    def _control(self, client_id: int, uuid: str) -> tuple[Any, bool]:
+        """(the control, whether it is shared), (None, False): none."""
+        own_gui = self.gui_of(client_id)
+        own = viser_adapter.input_handle(own_gui, uuid) if own_gui is not None else None
+        if own is not None:
+            return own, False
+        shared = viser_adapter.input_handle(self.shared_gui, uuid)
+        return shared, shared is not None
+
+    def _update(self, client_id: int, role: str | None, message: Any) -> str | None:
+        import viser
+
+        handle, shared = self._control(client_id, message.uuid)
+        if handle is None:
+            return "no such control"
+        label = getattr(handle, "label", "?")
+        if set(message.updates) != {"value"}:
+            return f"{label}: only a value may change, not {sorted(message.updates)}"
+        if handle.disabled or not handle.visible:
+            return f"{label}: the control is {'disabled' if handle.disabled else 'hidden'}"
+        if (shared and role != "operator" and message.uuid not in self._open
+                and not self.open_if(handle)):
+            return f"ROLE{label}"
+        v = message.updates["value"]
+        if isinstance(handle, (viser.GuiButtonGroupHandle, viser.GuiDropdownHandle)):
+            return None if isinstance(v, str) and v in handle.options else (
+                f"{label}: {v!r} is not one of its options")
+        if isinstance(handle, (viser.GuiSliderHandle, viser.GuiNumberHandle)):
+            lo, hi = handle.min, handle.max
+            inside = _number(v) and (lo is None or v >= lo) and (hi is None or v <= hi)
+            return None if inside else f"{label}: {v!r} is outside [{lo}, {hi}] or not a number"
+        if isinstance(handle, (viser.GuiButtonHandle, viser.GuiCheckboxHandle)):
+            return None if isinstance(v, bool) else f"{label}: {v!r} is not true or false"
+        if isinstance(handle, viser.GuiTextHandle):
+            return None if isinstance(v, str) and len(v) <= MAX_TEXT else (
+                f"{label}: not a text of at most {MAX_TEXT} characters")
+        return f"{label}: a {type(handle).__name__} takes no value from a page"
+
+    def _upload_start(self, client_id: int, role: str | None, message: Any) -> str | None:
+        import viser
+
+        handle, shared = self._control(client_id, message.source_component_uuid)
+        if not isinstance(handle, viser.GuiUploadButtonHandle):
+            return "upload to something that is not an upload button"
+        if handle.disabled or not handle.visible:
+            return f"{handle.label}: the control is disabled or hidden"
+        if shared and role != "operator":
+            return f"ROLE{handle.label}"
+        with self._lock:
+            transfers = self._uploads.setdefault(client_id, [])
+            transfers.append(message.transfer_uuid)
+            del transfers[:-MAX_TRANSFERS]
+        return None
+
+    # -- refusing ----------------------------------------------------------------------------
+
+    def _refuse(self, client_id: int, kind: str, why: str) -> None:
+        role_refusal = why.startswith("ROLE")
+        if role_refusal:
+            role = self.role_of(client_id)
+            who = "this browser is not signed in" if role is None else f"a {role}"
+            why = (f"{why[4:]}: refused for {who}: viewers watch and may E-STOP, not change "
+                   "the rig")
+        now = time.monotonic()
+        key = (client_id, kind + (why if role_refusal else why.split(":")[0]))
+        with self._lock:
+            self.refused += 1
+            last, held = self._last_log.get(key, (-math.inf, 0))
+            if now - last < LOG_EVERY_S:
+                self._last_log[key] = (last, held + 1)
+                return
+            self._last_log[key] = (now, 0)
+        more = f" ({held} more like it held back)" if held else ""
+        log.warning("browser %s: %s refused: %s%s", client_id, kind, why, more)
+        if role_refusal:
+            self.tell(client_id, why)
