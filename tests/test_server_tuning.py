@@ -297,3 +297,77 @@ def test_a_status_loading_the_first_version_does_not_undo_a_load_made_meanwhile(
         t.set_active(was, was_version)
         t.revert(say=False)
         assert t.wait_idle(10.0)
+
+
+def _browser_update(handle: Any, value: Any, pool: Any, order: list[int] | None = None,
+                    settle: Any = None) -> None:
+    """What viser does with a browser's change of `handle`: the value set, then each of the
+    handle's update callbacks submitted to its thread pool (here one after the other in
+    `order`, `settle()` between them: the worst interleaving, each callback's work done
+    before the next starts). Reaches viser's handle state (`_impl`): the path viser's own
+    `_handle_gui_updates` takes for a browser's message."""
+    import viser
+
+    handle._impl.value = type(handle._impl.value)(value)
+    cbs = list(handle._impl.update_cb)
+    for i in order if order is not None else range(len(cbs)):
+        pool.submit(cbs[i], viser.GuiEvent(None, None, handle)).result(timeout=10.0)
+        if settle is not None:
+            settle()
+
+
+def test_a_drag_raced_against_the_verdict_leaves_the_last_drags_verdict(
+    dash: Dashboard,
+) -> None:
+    """Each control has one callback (the cut-off slider had two, run by viser's thread pool
+    in any order, sharing an unlocked flag: a drag could leave the verdict of the cut-off
+    before it). Drags of the cut-off, each callback run as viser runs a browser's (in the
+    worst order, the verdict computed between them), raced against drags of a gain in
+    another thread: the verdict shown at the end is the final controls'."""
+    import random
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    t = dash.panel_of(None)
+    assert t is not None
+    controls = [t.q_type, t.cutoff_log, t.cutoff_hz_input, t.dob_on, t.ff_on, t.cv_kp, t.cv_ki,
+                t.pos_kp, t.pos_ki]
+    assert [len(h._impl.update_cb) for h in controls] == [1] * len(controls)
+    rng = random.Random(7)
+    cutoffs = [round(rng.uniform(-0.9, 0.5), 3) for _ in range(12)]
+    gains = [round(rng.uniform(0.8, 1.6), 2) for _ in range(40)]
+    with ThreadPoolExecutor(4) as pool:
+        stop = threading.Event()
+
+        def drag_gain() -> None:
+            for g in gains:
+                if stop.is_set():
+                    return
+                _browser_update(t.cv_kp, g, pool)
+
+        other = threading.Thread(target=drag_gain)
+        other.start()
+        n = len(t.cutoff_log._impl.update_cb)
+        worst = list(reversed(range(n)))  # (the update first, when there were two)
+        try:
+            for log_hz in cutoffs[:-1]:
+                _browser_update(t.cutoff_log, log_hz, pool, order=worst,
+                                settle=lambda: t.wait_idle(10.0))
+        finally:
+            stop.set()
+            other.join(timeout=30.0)
+        # The last drag alone (no later event of another control re-judges the candidate).
+        _browser_update(t.cutoff_log, cutoffs[-1], pool, order=worst,
+                        settle=lambda: t.wait_idle(10.0))
+    try:
+        assert t.wait_idle(10.0)
+        ev = t.last_evaluation
+        assert ev is not None
+        want = 10.0 ** cutoffs[-1]
+        assert ev.config.q_cutoff_hz == pytest.approx(want, rel=5e-3), (ev.config, want)
+        assert ev.config == t.candidate()  # the verdict shown is of the controls as they are
+        assert float(t.cutoff_hz_input.value) == pytest.approx(want, rel=5e-3)
+        assert not t.computing_verdict
+    finally:
+        t.revert()
+        assert t.wait_idle(10.0)

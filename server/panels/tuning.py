@@ -12,7 +12,8 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -266,7 +267,10 @@ class TuningPanel:
         self.base_version: int | None = None
         """The active version this candidate was made against (None: not known yet)."""
         self.trajectory = Trajectory()
-        self._suppress = False
+        self._writing = threading.local()
+        """`on` while this thread sets controls itself: the callbacks viser then runs at once
+        in this thread are its own echoes, not a user's change (a flag of this thread only:
+        another thread's user event is never taken for one)."""
         self._reply_version: int | None = None
         self._gen_lock = threading.Lock()
         self._controls_lock = threading.RLock()
@@ -339,7 +343,7 @@ class TuningPanel:
         self.cutoff_hz_input.on_update(self._on_cutoff_hz_typed)
         self.cutoff_log.on_update(self._on_cutoff_slider)
         self.cutoff_text = gui.add_html(self._cutoff_html(a.q_cutoff_hz, None))
-        controls = [self.q_type, self.cutoff_log]
+        controls = [self.q_type]  # (one callback each; the cut-off's two have their own)
         for attr, label in _SWITCHES:
             setattr(self, attr, gui.add_checkbox(label, bool(getattr(a, attr))))
             controls.append(getattr(self, attr))
@@ -449,12 +453,28 @@ class TuningPanel:
 
     # -- events (GUI thread pool: short) -----------------------------------------------------
 
+    @contextmanager
+    def _setting_controls(self) -> Iterator[None]:
+        """This thread sets controls: their callbacks (run at once, in this thread) are
+        echoes."""
+        prev = getattr(self._writing, "on", False)
+        self._writing.on = True
+        try:
+            yield
+        finally:
+            self._writing.on = prev
+
+    def _echo(self) -> bool:
+        """The present callback is the echo of this thread's own setting of a control."""
+        return bool(getattr(self._writing, "on", False))
+
     def _on_cutoff_hz_typed(self, _event: Any) -> None:
         """The Hz field is the value (never written back while typed); the slider follows."""
-        if self._suppress:
+        if self._echo():
             return
-        self._read_cutoff_text()
-        self.request_update()
+        with self._controls_lock:
+            self._read_cutoff_text()
+            self.request_update()
 
     def _read_cutoff_text(self) -> None:
         text = str(self.cutoff_hz_input.value).strip()
@@ -469,11 +489,8 @@ class TuningPanel:
         else:
             self._cutoff_error = ""
             self._cutoff_hz = hz
-            prev, self._suppress = self._suppress, True
-            try:
+            with self._setting_controls():
                 self.cutoff_log.value = _cutoff_log(hz)
-            finally:
-                self._suppress = prev
 
     # -- kept for a reload (server/candidate_store.py) -------------------------------------------
 
@@ -494,13 +511,10 @@ class TuningPanel:
             self._restored, self._restored_against = True, k.against
             if hasattr(self, "nominal_override"):
                 self.nominal_override = k.nominal
-            self._suppress = True
-            try:
+            with self._setting_controls():
                 for name, value in k.controls:
                     getattr(self, name).value = value
                 self._read_cutoff_text()
-            finally:
-                self._suppress = False
             set_html(self.stale_text, self._stale_html())
             self.apply_result.content = box(
                 "dt-apply dt-apply-restored", NEUTRAL,
@@ -509,19 +523,21 @@ class TuningPanel:
             self.request_update()
 
     def _on_cutoff_slider(self, _event: Any) -> None:
-        """A drag of the slider: the cut-off (3 significant digits) and the Hz field follow."""
-        if self._suppress:
+        """A drag of the slider (its one callback): the cut-off (3 significant digits) and the
+        Hz field follow, then the verdict is asked for, in that order and under the controls'
+        lock (viser runs a control's callbacks on its thread pool in any order: with the
+        update in a callback of its own, a drag could be judged before its cut-off was read)."""
+        if self._echo():
             return
-        self._cutoff_hz = float(f"{10.0 ** float(self.cutoff_log.value):.3g}")
-        self._cutoff_error = ""
-        prev, self._suppress = self._suppress, True
-        try:
-            self.cutoff_hz_input.value = _fmt_hz_value(self._cutoff_hz)
-        finally:
-            self._suppress = prev
+        with self._controls_lock:
+            self._cutoff_hz = float(f"{10.0 ** float(self.cutoff_log.value):.3g}")
+            self._cutoff_error = ""
+            with self._setting_controls():
+                self.cutoff_hz_input.value = _fmt_hz_value(self._cutoff_hz)
+            self.request_update()
 
     def _on_control(self, _event: Any) -> None:
-        if not self._suppress:
+        if not self._echo():
             self.request_update()
 
     def request_update(self) -> None:
@@ -720,8 +736,7 @@ class TuningPanel:
             self.base, self.base_version = a, version
             self._restored = False
             set_html(self.stale_text, self._stale_html())
-            self._suppress = True
-            try:
+            with self._setting_controls():
                 self.q_type.value = _label_of(a.q_type)
                 self.cutoff_log.value = _cutoff_log(a.q_cutoff_hz)
                 self.cutoff_hz_input.value = _fmt_hz_value(a.q_cutoff_hz)
@@ -734,8 +749,6 @@ class TuningPanel:
                     getattr(self, attr).value = bool(getattr(a, attr))
                 for g in _GAINS:
                     getattr(self, g.attr).value = g.position(a)
-            finally:
-                self._suppress = False
             self.request_update()
 
     # -- the workers -------------------------------------------------------------------------
