@@ -195,6 +195,7 @@ class Dashboard:
             self.server = server
             self.messages = MessageGate(role_of=self._role_of, shared_gui=server.gui,
                                         gui_of=self._gui_of, tell=self._tell,
+                                        name_of=self._name_of,
                                         open_if=_is_export_row)
             filter_incoming(server, self.messages)
             self.access.prove(self.opts.host)  # GateOpen: nothing is served
@@ -451,6 +452,9 @@ class Dashboard:
             return "operator"
         user = self.sessions.user_of(self._browser(client_id))
         return None if user is None else str(self.users[user].role)
+
+    def _name_of(self, client_id: int) -> str:
+        return self.sessions.user_of(self._browser(client_id)) or ""
 
     def _browser(self, client_id: int) -> Any:
         return None if self.server is None else self.server.get_clients().get(client_id)

@@ -58,6 +58,8 @@ class MessageGate:
     """The server's GUI (the shared controls)."""
     gui_of: Callable[[int], Any]
     """The browser's own GUI (None: gone)."""
+    name_of: Callable[[int], str] = lambda _c: ""
+    """The name of the user at the browser (for a refusal's text)."""
     tell: Callable[[int, str], None] = lambda _c, _t: None
     """Tells the browser why (a role refusal)."""
     open_if: Callable[[Any], bool] = lambda _h: False
@@ -169,9 +171,9 @@ class MessageGate:
         role_refusal = why.startswith("ROLE")
         if role_refusal:
             role = self.role_of(client_id)
-            who = "this browser is not signed in" if role is None else f"a {role}"
-            why = (f"{why[4:]}: refused for {who}: viewers watch and may E-STOP, not change "
-                   "the rig")
+            who = ("this browser is not signed in" if role is None else
+                   f"{self.name_of(client_id) or 'this browser'} is a {role}")
+            why = f"{why[4:]}: {who}: viewers watch and may E-STOP, not change the rig"
         now = time.monotonic()
         key = (client_id, kind + (why if role_refusal else why.split(":")[0]))
         with self._lock:
