@@ -35,7 +35,7 @@ from controller.client.recorder import RecordOptions
 from controller.core.config import LoopConfig
 from controller.core.heap import freeze_startup_heap
 from server.assets import web_asset
-from server.candidates import Candidates
+from server.candidates import CandidatePlace, Candidates
 from server.commands import CommandRouter
 from server.engine import TuningEngine
 from server.escape import esc
@@ -131,10 +131,11 @@ class Dashboard:
         self._requests = Requests(max_workers=2, name="ctl-request")
         self.sessions = BrowserSessions(opts, users, self.client, self._requests)
         self.engine = TuningEngine(sim_disturbances=opts.sim_disturbances)
-        self.candidates = Candidates(self.engine, self._apply_async, opts.candidates_dir,
-                                     opts.rig_name)
-        self.commands = CommandRouter(self.sessions, self._requests, self.candidates,
-                                      self._show_command)
+        self.candidates = Candidates(self.engine, self.sessions, self._requests, self.client,
+                                     self._who, opts.candidates_dir, opts.rig_name)
+        self.commands = CommandRouter(self.sessions, self._requests, self._show_command)
+        self._place: CandidatePlace | None = None
+        """Where each browser's candidate is built (the shared GUI's tabs, once built)."""
         self.access.on_estop = self.commands.estop_from_link
         self.access.page_extra = title_html(opts.rig_name)
         self.server: Any = None
@@ -256,7 +257,8 @@ class Dashboard:
 
     def panel_in(self, gui: Any, browser: Any = None) -> NominalTuningPanel:
         """A candidate panel of its own in `gui` (`Candidates.panel_in`)."""
-        return self.candidates.panel_in(gui, browser)
+        assert self._place is not None, "the dashboard's GUI is not built yet"
+        return self.candidates.panel_in(gui, self._place, browser)
 
     def panel_of(self, browser: Any) -> NominalTuningPanel | None:
         """The candidate panel of `browser` (None: the one built without a browser)."""
@@ -289,14 +291,12 @@ class Dashboard:
         )
         self.live = live
         self.history = HistoryPanel(gui, self.client, self._requests, self.candidates.panel_of)
-        self.candidates.identify, self.candidates.client = self.identify, self.client
-        self.candidates.who = lambda b: (self.sessions.user_of(b) or "", self._slot_of(b))
 
         gui.add_html(_asset("header.html", "<b>dobtune</b>"))
         live.build_banner()
         live.build_estop()
         tabs = gui.add_tab_group()
-        with tabs.add_tab("Tune") as self.candidates.tune_tab:
+        with tabs.add_tab("Tune") as tune_tab:
             self.knowledge.build()
         with tabs.add_tab("Live"):
             live.build_controls()
@@ -329,7 +329,7 @@ class Dashboard:
             gui.add_markdown(_asset("help.md", "Help texts are missing (web_assets/help.md)."))
 
         plots = gui.add_panel()
-        with plots.add_tab("Bode") as self.candidates.bode_tab:
+        with plots.add_tab("Bode") as bode_tab:
             pass  # each browser's candidate charts, built when it connects
         with plots.add_tab("Live traces"):
             live.build_charts()
@@ -341,6 +341,7 @@ class Dashboard:
         run_logged(lambda: gui.main_panel.dock_left(), what="docking the controls left")
         run_logged(plots.set_width, PLOTS_WIDTH_PX, what="sizing the plots panel")
         self.plots = plots
+        self._place = CandidatePlace(tune_tab, bode_tab, self.identify)
 
         server.on_client_connect(self._on_client_connect)
         server.on_client_disconnect(self._on_client_disconnect)
@@ -368,10 +369,6 @@ class Dashboard:
 
     # -- wiring ------------------------------------------------------------------------------
 
-    def _apply_async(self, panel: Any, cand: LoopConfig, confirm: bool = False,
-                     browser: Any = None) -> None:
-        self.commands.apply_async(panel, cand, confirm, browser)
-
     def _show_command(self, html: str) -> None:
         if self.live is not None:
             self.live.command_result.content = html
@@ -393,7 +390,7 @@ class Dashboard:
                 client.gui.add_html(
                     f"<div class='dt-whoami' style='font-size:12px'>Signed in as "
                     f"<b>{esc(user)}</b>, {esc(role)}{note}</div>")
-        self.candidates.panel_in(client.gui, client)
+        self.panel_in(client.gui, client)
         client.camera.position = (0.75, -0.85, 0.75)
         client.camera.look_at = (0.15, 0.0, 0.05)
 
@@ -402,6 +399,10 @@ class Dashboard:
         if browser is None or self.server is None:
             return None
         return connection_of(self.server, browser.client_id)
+
+    def _who(self, browser: Any) -> tuple[str, str]:
+        """(user, candidate slot) of a browser: whose candidate it edits, and which."""
+        return self.sessions.user_of(browser) or "", self._slot_of(browser)
 
     def _slot_of(self, browser: Any) -> str:
         """The candidate slot the browser's page named ("" : none: a page without the page

@@ -11,20 +11,35 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from controller.client import ControllerClient
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
+from server.candidate_apply import CandidateApply
 from server.candidate_store import CandidateStore
 from server.engine import TuningEngine
 from server.panels.guide import GuidePanel
+from server.panels.identify import IdentifyPanel
 from server.panels.nominal_tuning import NominalTuningPanel
 from server.panels.tuning import kept_problem
+from server.session import BrowserSessions
+from server.workers import Requests
 
-__all__ = ["Candidates"]
+__all__ = ["CandidatePlace", "Candidates"]
 
-ApplyFn = Callable[[Any, LoopConfig, bool, Any], None]
+
+@dataclass(frozen=True)
+class CandidatePlace:
+    """Where a browser's candidate is built in the dashboard's GUI: its controls (with its
+    guided path) in the Tune tab, its charts in the Bode tab; the identification panel its
+    guide reads."""
+
+    tune_tab: Any
+    bode_tab: Any
+    identify: IdentifyPanel | None
 
 
 class Candidates:
@@ -32,20 +47,23 @@ class Candidates:
     `panel_in` without a browser, as scripts and tests do) and the active configuration they
     start from."""
 
-    def __init__(self, engine: TuningEngine, apply_fn: ApplyFn, directory: Path | None = None,
-                 rig: str = "") -> None:
-        """`apply_fn(panel, candidate, confirm, browser)` sends a panel's candidate;
-        `directory`: where rig `rig`'s candidates are kept on disk (None: in memory only)."""
+    def __init__(self, engine: TuningEngine, sessions: BrowserSessions, requests: Requests,
+                 client: ControllerClient, who: Callable[[Any], tuple[str, str]],
+                 directory: Path | None = None, rig: str = "") -> None:
+        """`sessions`, `requests`: how a candidate's Apply reaches the controller (its
+        `CandidateApply`); `client`: the controller client the guides read; `who(browser)`:
+        the (user, candidate slot) of a browser; `directory`: where rig `rig`'s candidates are
+        kept on disk (None: in memory only)."""
         self.engine = engine
-        self._apply_fn = apply_fn
+        self.applier = CandidateApply(sessions, requests, self.set_active)
+        """Every candidate panel's Apply (the reply's active configuration comes back here)."""
+        self.client = client
+        self.who = who
         self.panels: dict[int, NominalTuningPanel] = {}
         self._lock = threading.Lock()
         self._build_lock = threading.Lock()
         """A viser tab takes one `with` at a time: browsers that connect at once build their
         panels one after the other."""
-        self.tune_tab: Any = None
-        self.bode_tab: Any = None
-        """Where a candidate's controls and charts go (set when the shared GUI is built)."""
         self.active: LoopConfig | None = None
         self.active_version: int | None = None
         self.trajectory: Trajectory | None = None
@@ -56,28 +74,22 @@ class Candidates:
         self.kept = CandidateStore(directory=directory, rig=rig, check=kept_problem,
                                    on_problem=self._show_problem)
         """Each browser tab's candidate, kept for a reload of that tab (and a restart)."""
-        self.who: Callable[[Any], tuple[str, str]] = lambda _browser: ("", "")
-        """(user, candidate slot) of a browser (set by the dashboard)."""
-        self.identify: Any = None
-        self.client: Any = None
-        """The identification panel and the controller client the guides read (set by the
-        dashboard when it has built them; a guide without a client is not built)."""
 
-    def panel_in(self, gui: Any, browser: Any = None) -> NominalTuningPanel:
+    def panel_in(self, gui: Any, place: CandidatePlace, browser: Any = None
+                 ) -> NominalTuningPanel:
         """A candidate panel of its own in `gui` (a browser's `client.gui`; or the shared GUI
-        without a browser): controls in the Tune tab, charts in the Bode tab, started on the
-        active configuration when it is known."""
-        t = NominalTuningPanel(gui, self.engine, self._apply_fn)
+        without a browser), built at `place`: controls in the Tune tab, charts in the Bode
+        tab, started on the active configuration when it is known."""
         user, slot = self.who(browser)
+        t = NominalTuningPanel(gui, self.engine, self.applier,
+                               on_change=lambda p: self.kept.keep(user, slot, p.kept()))
         kept = self.kept.get(user, slot)
-        guide = (GuidePanel(gui, t, self.identify, self.client) if self.client is not None
-                 else None)
+        guide = GuidePanel(gui, t, place.identify, self.client)
         with self._build_lock:
-            with self.tune_tab:
-                if guide is not None:
-                    guide.build()
+            with place.tune_tab:
+                guide.build()
                 t.build_controls()
-            with self.bode_tab:
+            with place.bode_tab:
                 t.build_charts()
         key = getattr(browser, "client_id", -1)
         with self._lock:
@@ -85,8 +97,7 @@ class Candidates:
             self.panels[key] = t
             self._users[key] = user
             old_guide = self.guides.pop(key, None)
-            if guide is not None:
-                self.guides[key] = guide
+            self.guides[key] = guide
             if self.active is not None:
                 t.set_active(self.active, self.active_version)
             if self.trajectory is not None:
@@ -97,10 +108,8 @@ class Candidates:
         t.show_kept_problem(self.kept.problem(user))
         if kept is not None:
             t.restore(kept)
-        t.on_change = lambda p: self.kept.keep(user, slot, p.kept())
         t.start()
-        if guide is not None:
-            guide.start()
+        guide.start()
         return t
 
     def panel_of(self, browser: Any) -> NominalTuningPanel | None:

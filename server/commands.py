@@ -1,6 +1,6 @@
-"""Command routing: a browser's apply and commands (E-STOP included) to the controller, through
-that browser's acting client (`server.session`), in a worker; the reply shown where it belongs
-(the candidate's panel, the Live tab's command line)."""
+"""Command routing: a browser's commands (E-STOP included) to the controller, through that
+browser's acting client (`server.session`), in a worker; the reply shown in the Live tab's
+command line. (A candidate's Apply: `server.candidate_apply`.)"""
 
 from __future__ import annotations
 
@@ -10,8 +10,6 @@ from typing import Any
 
 from controller import protocol as proto
 from controller.client import ControllerClient, ControllerUnavailable
-from controller.core.config import LoopConfig
-from server.candidates import Candidates
 from server.escape import esc
 from server.http_access import Refused
 from server.session import BrowserSessions
@@ -30,40 +28,12 @@ def command_html(text: str, ok: bool) -> str:
 class CommandRouter:
     """Sends what browsers ask for; GUI callbacks call the `*_async` methods and return."""
 
-    def __init__(self, sessions: BrowserSessions, requests: Requests, candidates: Candidates,
+    def __init__(self, sessions: BrowserSessions, requests: Requests,
                  show_command: Callable[[str], None]) -> None:
         """`show_command(html)`: the outcome of a command, for every browser (Live tab)."""
         self.sessions = sessions
         self._requests = requests
-        self.candidates = candidates
         self._show_command = show_command
-
-    # -- apply ---------------------------------------------------------------------------------
-
-    def apply_async(self, panel: Any, cand: LoopConfig, confirm: bool = False,
-                    browser: Any = None) -> None:
-        self._requests.submit(self.apply, panel, cand, confirm, browser)
-
-    def apply(self, t: Any, cand: LoopConfig, confirm: bool = False, browser: Any = None) -> None:
-        """Send `t`'s candidate, made against `t.base_version` (the controller refuses it if
-        the active version has moved on), and show the reply on `t`."""
-        expect = t.base_version
-        try:
-            reply = self.sessions.act(browser, "apply", lambda c: c.apply(
-                cand, confirm=confirm, expect_version=expect))
-        except Refused as exc:
-            t.note_refused(str(exc))
-            return  # logged, and told to the browser that asked (only)
-        except (ControllerUnavailable, proto.ProtocolError) as exc:
-            log.warning("apply failed: %s", exc)
-            t.show_error(str(exc))
-            return
-        log.info("apply: %s, version %d", "accepted" if reply.accepted else "rejected",
-                 reply.version)
-        t.show_reply(reply.accepted, reply.version, list(reply.reasons))
-        self.candidates.set_active(reply.config, reply.version)
-        if reply.accepted:
-            t.rebase(reply.config, reply.version)
 
     # -- commands ------------------------------------------------------------------------------
 

@@ -92,12 +92,13 @@ def test_short_identification_fills_charts_and_shows_fit_and_cutoffs(
 
 
 def test_use_as_nominal_changes_candidate_and_reevaluates_without_apply(
-    dash: Dashboard, short_run: IdentifyPanel,
+    dash: Dashboard, short_run: IdentifyPanel, monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     t = dash.panel_of(None)
     assert isinstance(t, NominalTuningPanel)
     applied: list[LoopConfig] = []
-    t._apply_fn = lambda _panel, c, _confirm=False, _browser=None: applied.append(c)
+    monkeypatch.setattr(t.applier, "submit",
+                        lambda _panel, c, _confirm=False, _browser=None: applied.append(c))
     assert t.wait_idle(5.0)
     r = short_run.result
     assert r is not None and r.nominal is not None
@@ -245,13 +246,16 @@ def remote_dash() -> Iterator[Dashboard]:
 
 
 @pytest.mark.integration
-def test_short_identification_on_the_controller(remote_dash: Dashboard) -> None:
+def test_short_identification_on_the_controller(
+    remote_dash: Dashboard, monkeypatch: pytest.MonkeyPatch,
+) -> None:
     d = remote_dash
     p, t = d.identify, d.panel_of(None)
     assert p is not None and isinstance(t, NominalTuningPanel)
     assert p.settings().where == WHERE_CONTROLLER  # the default when a controller is known
     applied: list[LoopConfig] = []
-    t._apply_fn = lambda _panel, c, _confirm=False, _browser=None: applied.append(c)
+    monkeypatch.setattr(t.applier, "submit",
+                        lambda _panel, c, _confirm=False, _browser=None: applied.append(c))
     before = d.client.get_config()
     t0 = time.perf_counter()
     assert p.start(dataclasses.replace(SHORT, where=WHERE_CONTROLLER))

@@ -120,8 +120,8 @@ def test_suggest_puts_the_best_accepted_setting_into_the_candidate_never_applies
     t = dash.panel_of(None)
     assert t is not None
     sent: list[object] = []
-    apply_fn = t._apply_fn
-    t._apply_fn = lambda *a: sent.append(a)
+    submit = t.applier.submit
+    t.applier.submit = lambda *a: sent.append(a)  # type: ignore[method-assign]
     try:
         t.revert(say=False)
         assert t.wait_idle(5.0)
@@ -154,7 +154,7 @@ def test_suggest_puts_the_best_accepted_setting_into_the_candidate_never_applies
         assert np.isfinite(q31[0]) and np.isfinite(q20[0])  # uPlot's scale needs them
         assert not sent  # a suggestion is never applied
     finally:
-        t._apply_fn = apply_fn
+        t.applier.submit = submit  # type: ignore[method-assign]
         t.revert(say=False)
 
 
@@ -200,8 +200,8 @@ def test_apply_is_off_for_the_active_configuration_and_refused_on_the_server(
     assert t.candidate() == t.active and t.apply_button.disabled
     assert t.apply_button.color == "gray"
     sent: list[Any] = []
-    apply_fn = t._apply_fn
-    t._apply_fn = lambda *a: sent.append(a)
+    submit = t.applier.submit
+    t.applier.submit = lambda *a: sent.append(a)  # type: ignore[method-assign]
     try:
         t.apply()
         assert not sent and "the candidate is the active configuration" in t.apply_result.content
@@ -212,7 +212,7 @@ def test_apply_is_off_for_the_active_configuration_and_refused_on_the_server(
         t.apply()
         assert len(sent) == 1 and sent[0][1] != t.active
     finally:
-        t._apply_fn = apply_fn
+        t.applier.submit = submit  # type: ignore[method-assign]
         t.revert(say=False)
 
 
@@ -230,8 +230,8 @@ def test_a_restored_candidate_is_stale_when_its_version_is_now_another_configura
     v5 = LoopConfig(q_cutoff_hz=0.5)
     reset_v5 = LoopConfig(q_cutoff_hz=0.5, cv_kp=1.0)
     sent: list[Any] = []
-    apply_fn = t._apply_fn
-    t._apply_fn = lambda *a: sent.append(a)
+    submit = t.applier.submit
+    t.applier.submit = lambda *a: sent.append(a)  # type: ignore[method-assign]
     try:
         t.set_active(v5, 5)
         t.revert()
@@ -260,7 +260,7 @@ def test_a_restored_candidate_is_stale_when_its_version_is_now_another_configura
         t.restore(dataclasses.replace(kept, against=None))  # not known: taken as changed
         assert t.wait_idle(5.0) and t.stale_by_reset and t.apply_button.disabled
     finally:
-        t._apply_fn = apply_fn
+        t.applier.submit = submit  # type: ignore[method-assign]
         t.set_active(was, was_version)
         t.revert(say=False)
 

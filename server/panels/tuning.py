@@ -22,6 +22,7 @@ from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PositionSpread
 from server import charts
+from server.candidate_apply import CandidateApply
 from server.candidate_store import KeptCandidate
 from server.engine import (
     CUTOFF_MAX_HZ,
@@ -253,14 +254,16 @@ class TuningPanel:
         self,
         gui: Any,
         engine: TuningEngine,
-        apply_fn: Callable[[TuningPanel, LoopConfig, bool, Any], None],
+        applier: CandidateApply,
         initial: LoopConfig | None = None,
+        on_change: Callable[[TuningPanel], None] | None = None,
     ) -> None:
-        """`apply_fn(panel, candidate, confirm, browser)` sends a candidate (with
-        `panel.base_version` as the expected version) and shows the reply on `panel`."""
+        """`applier` sends a candidate (with `base_version` as the expected version) and
+        shows the reply here; `on_change(panel)` (GUI thread, short): the candidate may have
+        changed (called once the panel is started)."""
         self.gui = gui
         self.engine = engine
-        self._apply_fn = apply_fn
+        self.applier = applier
         self.active: LoopConfig = initial or LoopConfig()
         self.active_version: int | None = None
         self.base: LoopConfig = self.active
@@ -279,8 +282,8 @@ class TuningPanel:
         first load must not interleave with a browser's load of another version."""
         self._submitted_gen = 0
         self._done_gen = 0
-        self.on_change: Callable[[TuningPanel], None] | None = None
-        """Called (GUI thread, short) whenever the candidate may have changed."""
+        self._on_change = on_change
+        self._started = False
         self._invalid = False
         self._same_as_active = False
         self._verdict_color = "gray"
@@ -387,6 +390,7 @@ class TuningPanel:
         self._suggest_chart = view.suggest_chart
 
     def start(self) -> None:
+        self._started = True
         self._worker.start()
         self._preview_worker.start()
         self._suggest_worker.start()
@@ -541,8 +545,8 @@ class TuningPanel:
             self.request_update()
 
     def request_update(self) -> None:
-        if self.on_change is not None and self.verdict is not None:
-            self.on_change(self)
+        if self._on_change is not None and self._started and self.verdict is not None:
+            self._on_change(self)
         with self._gen_lock:
             self._submitted_gen += 1
             gen = self._submitted_gen
@@ -679,7 +683,7 @@ class TuningPanel:
         self._reply_version = None
         self.apply_state = StepState("running", None, "sending to the controller")
         self.apply_result.content = box("dt-apply", NEUTRAL, "Sending the candidate...")
-        self._apply_fn(self, cand, False, browser)
+        self.applier.submit(self, cand, False, browser)
 
     def _confirm_caution(self, cand: LoopConfig, reasons: tuple[str, ...], browser: Any) -> None:
         """A dialog (in the browser that asked) listing the reasons; only "Apply anyway"
@@ -691,7 +695,7 @@ class TuningPanel:
                                          "sending to the controller (caution confirmed)")
             self.apply_result.content = box("dt-apply", NEUTRAL,
                                             "Sending the candidate (confirmed)...")
-            self._apply_fn(self, cand, True, who)
+            self.applier.submit(self, cand, True, who)
 
         confirm(self.gui, browser, "Apply with caution?",
                 "The gate's verdict is <b>caution</b>:"
