@@ -66,6 +66,8 @@ _REPLY_TYPES: dict[str, type[proto.Message]] = {
     "lease": proto.LeaseReply,
     "history": proto.HistoryReply,
 }
+#: How often the edge tries to connect until the loop process's session listens.
+CONNECT_RETRY_S = 0.1
 #: How often the budget's refusals are reported to the loop process (audit, status).
 REPORT_S = 1.0
 INTERNAL_ERROR = b"internal error: the request was not served (see the controller's log)"
@@ -254,6 +256,19 @@ class _Edge:
 
     # -- the process -----------------------------------------------------------------------------
 
+    def open_session(self) -> Any:
+        """The edge's session, tried again every CONNECT_RETRY_S until the loop process's
+        session listens (the edge starts first); None if told to stop meanwhile."""
+        import zenoh
+
+        while not self.stop.is_set():
+            try:
+                return connect(self.spec.session)
+            except zenoh.ZError as exc:
+                log.debug("not connected yet: %s", exc)
+                self.stop.wait(CONNECT_RETRY_S)
+        return None
+
     def run(self) -> None:
         import zenoh
 
@@ -265,7 +280,10 @@ class _Edge:
                                      daemon=True) for k in KINDS]
         for t in threads:
             t.start()
-        with connect(self.spec.session) as session:
+        session = self.open_session()
+        if session is None:
+            return
+        with session:
             entities = [
                 session.declare_queryable(
                     scoped(key(rig)),

@@ -60,20 +60,15 @@ class Oversized(bytes):
 
 
 class EdgeLink:
-    """Runs the edge process for one node (`node.handle_*`, `node.service`)."""
+    """Runs the edge process: `start()` early (it loads and connects beside the controller's
+    start-up), `attach(node)` once the node exists (the forwarded requests wait until then)."""
 
-    def __init__(self, node: Any, spec: EdgeSpec) -> None:
-        self.node = node
-        self.service = node.service
+    def __init__(self, spec: EdgeSpec) -> None:
         self.spec = spec
-        self.rt = node.rt
-        self._handlers: dict[str, Callable[[bytes, Any], bytes]] = {
-            "config": node.handle_config,
-            "command": node.handle_command,
-            "identify": node.handle_identify,
-            "knowledge": node.handle_knowledge,
-            "lease": node.handle_lease,
-        }
+        self.node: Any = None
+        self.service: Any = None
+        self.rt: Any = None
+        self._handlers: dict[str, Callable[[bytes, Any], bytes]] = {}
         self._snap_lock = threading.Lock()
         self._snap_key: tuple[Any, ...] = ()
         self._snap: EdgeSnapshot | None = None
@@ -81,6 +76,7 @@ class EdgeLink:
         self._control: Connection | None = None
         self._control_lock = threading.Lock()
         self._proc: Any = None
+        self._conns: dict[str, Connection] = {}
         self._closing = threading.Event()
         self._started_at = 0.0
         self.ready = threading.Event()
@@ -106,10 +102,10 @@ class EdgeLink:
                 self._snap_key = key
             return snap
 
-    def push(self) -> None:
+    def push(self, *, always: bool = False) -> None:
         """Send the snapshot over the control pipe if it changed since the last push."""
         snap = self.snapshot()
-        if snap.generation != self._pushed:
+        if always or snap.generation != self._pushed:
             self._send_control(snap)
             self._pushed = snap.generation
 
@@ -122,15 +118,14 @@ class EdgeLink:
     # -- the process ---------------------------------------------------------------------------
 
     def start(self) -> None:
-        """Start the edge process and the threads that serve it."""
+        """Start the edge process (and, once attached, the threads that serve it)."""
         ctx = multiprocessing.get_context("spawn")
         ours: dict[str, Connection] = {}
         theirs: dict[str, Connection] = {}
         for kind in FORWARDED:
             ours[kind], theirs[kind] = ctx.Pipe(duplex=True)
         control, their_control = ctx.Pipe(duplex=True)
-        spec = self.spec
-        proc = ctx.Process(target=edge_main, args=(spec, theirs, their_control),
+        proc = ctx.Process(target=edge_main, args=(self.spec, theirs, their_control),
                            name="dobtune-edge", daemon=True)
         self._started_at = time.monotonic()
         proc.start()
@@ -139,18 +134,31 @@ class EdgeLink:
         with self._control_lock:
             self._control = control
         self._proc = proc
-        self.push_now(control)
-        for kind, conn in ours.items():
-            threading.Thread(target=self._serve, args=(kind, conn), name=f"edge-{kind}",
-                             daemon=True).start()
+        self._conns = ours
         threading.Thread(target=self._read_control, args=(control, proc), name="edge-control",
                          daemon=True).start()
+        if self.node is not None:
+            self._serve_threads()
 
-    def push_now(self, control: Connection) -> None:
-        snap = self.snapshot()
-        with self._control_lock, contextlib.suppress(OSError, ValueError):
-            control.send(snap)
-        self._pushed = snap.generation
+    def attach(self, node: Any) -> None:
+        """Serve the edge's forwarded requests with `node`'s handlers from now on."""
+        self.node = node
+        self.service = node.service
+        self.rt = node.rt
+        self._handlers = {
+            "config": node.handle_config,
+            "command": node.handle_command,
+            "identify": node.handle_identify,
+            "knowledge": node.handle_knowledge,
+            "lease": node.handle_lease,
+        }
+        self._serve_threads()
+
+    def _serve_threads(self) -> None:
+        self.push(always=True)  # a new process has none
+        for kind, conn in self._conns.items():
+            threading.Thread(target=self._serve, args=(kind, conn), name=f"edge-{kind}",
+                             daemon=True).start()
 
     def close(self) -> None:
         self._closing.set()
@@ -207,7 +215,7 @@ class EdgeLink:
             if msg == ("ready",):
                 self.ready.set()
                 log.info("edge process %d serving requests", proc.pid)
-            elif isinstance(msg, tuple) and msg[0] == "refused":
+            elif isinstance(msg, tuple) and msg[0] == "refused" and self.service is not None:
                 self._refused(msg[1], msg[2])
         proc.join(CLOSE_S)
         if self._closing.is_set():
@@ -215,8 +223,11 @@ class EdgeLink:
         # The edge process died: requests go unanswered until it is back.
         self.ready.clear()
         self.restarts += 1
-        self.service.warn(f"edge process ended (exit code {proc.exitcode}); started again",
-                          key="edge")
+        text = f"edge process ended (exit code {proc.exitcode}); started again"
+        if self.service is not None:
+            self.service.warn(text, key="edge")
+        else:
+            log.warning("%s", text)
         wait = RESTART_S - (time.monotonic() - self._started_at)
         if wait > 0 and self._closing.wait(wait):
             return

@@ -73,6 +73,9 @@ log = logging.getLogger(__name__)
 
 #: How long a controller behind an authenticating router tries to log in at start.
 ROUTER_LOGIN_S = 10.0
+#: How long the start waits for the edge process to serve requests (it loads and connects
+#: beside the rest of the start-up) before the loop starts without it.
+EDGE_READY_S = 60.0
 
 
 class StartupError(RuntimeError):
@@ -92,6 +95,9 @@ def _check_options(opts: ControllerOptions) -> None:
         _sim_setup(opts)
     if opts.rate_hz is not None and not math.isfinite(opts.rate_hz):
         raise StartupError(f"--rate-hz: must be finite, got {opts.rate_hz}")
+    if not (math.isfinite(opts.request_budget_per_s) and opts.request_budget_per_s > 0):
+        raise StartupError(f"--request-budget: {opts.request_budget_per_s} is not a positive "
+                           "number of requests a second")
     if not (0.01 <= opts.status_period_s <= 10.0):
         raise StartupError(f"status_period_s: {opts.status_period_s} out of range [0.01, 10]")
     if opts.auth_dir is None:
@@ -467,10 +473,24 @@ def run_controller(opts: ControllerOptions, *, ready: Callable[[str], None] | No
     # the shutdown half-way.
     previous = {s: signal.signal(s, stopper.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     runner: AnalysisWorker | None = None
+    edge: EdgeLink | None = None
     try:
         runner = AnalysisWorker(subprocess=opts.gate_in_subprocess)
-        _run(opts, runner, stopper, ready)
+        _check_options(opts)
+        edge_login = _edge_login(opts) if opts.edge_in_subprocess else None
+        if edge_login is not None:
+            # Started first: it loads and connects beside the rest of the start-up.
+            edge = EdgeLink(EdgeSpec(
+                rig=opts.rig_name, session=edge_login.session, auth_dir=opts.auth_dir,
+                state_dir=opts.state_path, max_payload_bytes=opts.max_payload_bytes,
+                max_pending_queries=opts.max_pending_queries,
+                budget_per_s=opts.request_budget_per_s if opts.auth_dir is not None else None,
+                parent_pid=os.getpid()))
+            edge.start()  # from this (the main) thread: its death signal
+        _run(opts, runner, stopper, ready, edge_login, edge)
     finally:
+        if edge is not None:
+            edge.close()
         if runner is not None:
             runner.close()
         for s, h in previous.items():
@@ -483,8 +503,9 @@ def _run(
     runner: AnalysisWorker,
     stopper: _Stopper,
     ready: Callable[[str], None] | None,
+    edge_login: _EdgeLogin | None = None,
+    edge: EdgeLink | None = None,
 ) -> None:
-    _check_options(opts)
     runner.command_limit_max_deg_s = _rig_command_limit(opts)
     # The analysis worker starts loading now, beside the rest of the start-up; the first check
     # runs here, before the loop (the worker may still be loading: behind a busy machine it
@@ -552,25 +573,20 @@ def _run(
                     lambda: access.record("controller.stop", "controller", "noted",
                                           version_before=runtime.loop.active.version)
                 )
-                edge_login = _edge_login(opts) if opts.edge_in_subprocess else None
                 private_dir = Path(closing.enter_context(
                     tempfile.TemporaryDirectory(prefix="dobtune-edge-")))
                 session = closing.enter_context(_session(opts, edge_login, private_dir))
                 node = ZenohNode(service)
-                edge: EdgeLink | None = None
                 try:
-                    node.declare(session, queryables=edge_login is None)
-                    node.start_threads(workers=edge_login is None)
-                    if edge_login is not None:
-                        edge = node.edge = EdgeLink(node, EdgeSpec(
-                            rig=opts.rig_name, session=edge_login.session,
-                            auth_dir=opts.auth_dir, state_dir=store.directory,
-                            max_payload_bytes=opts.max_payload_bytes,
-                            max_pending_queries=opts.max_pending_queries,
-                            budget_per_s=(opts.request_budget_per_s
-                                          if opts.auth_dir is not None else None),
-                            parent_pid=os.getpid()))
-                        edge.start()  # from this (the main) thread: its death signal
+                    node.declare(session, queryables=edge is None)
+                    if edge is not None:
+                        node.edge = edge
+                        edge.attach(node)
+                        # Requests are served before the first status says the rig is there.
+                        if not edge.ready.wait(EDGE_READY_S):
+                            service.warn(f"edge process: not serving requests after "
+                                         f"{EDGE_READY_S:g} s; the loop starts without")
+                    node.start_threads(workers=edge is None)
                     if opts.realtime_priority:
                         notes.append(try_realtime_priority())
                         log.info("%s", notes[-1])
@@ -588,7 +604,7 @@ def _run(
                 finally:
                     runtime.stop()
                     if edge is not None:
-                        edge.close()
+                        edge.close()  # no request reaches the node any more
                     node.close()
     finally:
         sys.setswitchinterval(previous_switch)

@@ -5,7 +5,10 @@ Threads (the loop's own thread is the main thread, see `controller.process.main`
 - status: Status every `status_period_s`, and the log records of what the loop did.
 - config, command, identify workers: decode a query, convert the wire message to the
   runtime's domain request (`controller.process.requests`), let the service
-  (`controller.process.service`) do it, encode and send its reply.
+  (`controller.process.service`) do it, encode and send its reply. By default the queryables
+  are the edge process's (`controller.process.edge`): its forwarded requests reach the same
+  `handle_*` methods from `controller.process.edge_link`'s threads, and these workers are not
+  started; this process keeps the publishers and the e-stop subscribers.
 - latch: writes the e-stop/fault latch to the state directory whenever the mode enters or
   leaves estop/fault (`StateStore.save_latch`), so a restart comes back latched.
 Zenoh callbacks only hand the query to a worker's queue (or, for the e-stop key, set the

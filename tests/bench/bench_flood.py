@@ -1,6 +1,7 @@
 """Benchmark: the loop and the e-stop under a client's request flood (issue 31 item 1).
 
-    .venv/bin/python tests/bench/bench_flood.py [--seconds 20] [--tree DIR] [--runs none,viewer,operator]
+    .venv/bin/python tests/bench/bench_flood.py [--seconds 20] [--tree DIR] [--budget N]
+        [--runs none,viewer,operator]
 
 One controller with authentication (`--auth`, users op1 operator, view viewer, watch viewer),
 `--realtime-priority` as on a rig. Each run lasts `--seconds`: `none` (no flood), `viewer` (a
@@ -17,8 +18,8 @@ Printed per run: e-stop put -> tick p50/p99/max, ticks, skipped ticks (% of the 
 period, the flood's answers and refusals (a refusal naming the request budget, a refused
 change, a query that got no answer).
 
-`--tree DIR` runs the controller of another source tree (e.g. a clone of an older commit);
-the clients are this tree's.
+`--budget N` gives the controller `--request-budget N`. `--tree DIR` runs the controller of
+another source tree (e.g. a clone of an older commit); the clients are this tree's.
 """
 
 from __future__ import annotations
@@ -39,12 +40,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: helpers, for procs
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
 
-from procs import StateCollector, start_controller, wait_until  # noqa: E402
+from procs import StateCollector, start_controller, wait_until
 
-from controller import protocol as proto  # noqa: E402
-from controller.auth import init_auth_dir, new_users  # noqa: E402
-from controller.client import ClientOptions, ControllerClient, ControllerUnavailable  # noqa: E402
-from controller.core.config import LoopConfig  # noqa: E402
+from controller import protocol as proto
+from controller.auth import init_auth_dir, new_users
+from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
+from controller.core.config import LoopConfig
 
 RIG = "bench-flood"
 THREADS = 4
@@ -200,14 +201,18 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--tree", type=Path, default=None)
     ap.add_argument("--runs", default="none,viewer,operator")
+    ap.add_argument("--budget", type=float, default=None,
+                    help="--request-budget of the controller (e.g. 1e6: the process split "
+                    "alone, no budget in effect)")
     args = ap.parse_args()
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         auth = Path(tmp) / "auth"
         init_auth_dir(auth, new_users([("op1", "operator"), ("view", "viewer"),
                                        ("watch", "viewer")]))
+        budget = () if args.budget is None else ("--request-budget", f"{args.budget:g}")
         proc = start_controller(Path(tmp) / "state", rig=RIG, tree=args.tree,
-                                extra_args=("--auth", str(auth), "--realtime-priority"))
+                                extra_args=("--auth", str(auth), "--realtime-priority", *budget))
         try:
             def ready() -> bool:
                 assert proc.proc.poll() is None, proc.log()
@@ -224,6 +229,8 @@ def main() -> None:
         finally:
             proc.stop()
     tree = f" (controller from {args.tree})" if args.tree else ""
+    if args.budget is not None:
+        tree += f", --request-budget {args.budget:g}"
     print(f"flood table{tree}: {args.seconds:g} s per run, e-stop put every 0.3 s, "
           f"load avg {os.getloadavg()[0]:.1f}")
     print(f"{'run':9} {'e-stops':>7} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'ticks':>6} "
