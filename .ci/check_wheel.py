@@ -82,10 +82,10 @@ def main() -> int:
                 raise SystemExit("no URL from the installed dashboard within 120 s")
             with urllib.request.urlopen(url, timeout=30) as r:
                 page = r.read().decode()
-                cookie = r.headers["Set-Cookie"].split(";")[0]
+            token = url.split("?token=", 1)[1]
             assert script_line in page, "the page has no page script (web_assets/dashboard.js)"
             print(f"wheel: the installed dashboard serves its page script ({wheel.name})")
-            check_help(port, cookie, help_line)
+            check_help(port, token, help_line)
             print("wheel: the installed dashboard serves its help texts")
         finally:
             dash.terminate()
@@ -95,7 +95,7 @@ def main() -> int:
     return 0
 
 
-def check_help(port: int, cookie: str, help_line: str) -> None:
+def check_help(port: int, token: str, help_line: str) -> None:
     """The help texts arrive over the dashboard's websocket (the shared GUI's markdown)."""
     import msgspec
     import viser
@@ -104,8 +104,8 @@ def check_help(port: int, cookie: str, help_line: str) -> None:
 
     host = f"127.0.0.1:{port}"
     zstd = zstandard.ZstdDecompressor()
-    with connect(f"ws://{host}/", open_timeout=30, max_size=None, ping_interval=None,
-                 additional_headers={"Cookie": cookie, "Origin": f"http://{host}"},
+    with connect(f"ws://{host}/?token={token}", open_timeout=30, max_size=None,
+                 ping_interval=None, additional_headers={"Origin": f"http://{host}"},
                  subprotocols=[f"viser-v{viser.__version__}"]) as ws:  # type: ignore[list-item]
         ws.send(msgspec.msgpack.encode({
             "type": "ViewerCameraMessage", "wxyz": (1.0, 0.0, 0.0, 0.0),

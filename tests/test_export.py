@@ -196,7 +196,7 @@ def test_the_gate_puts_the_page_script_into_the_page_only() -> None:
         return Response(200, "OK", Headers({"Content-Type": "text/html",
                                             "Content-Length": str(len(page))}), page)
 
-    g = HttpAccess("127.0.0.1", token="t" * 32)
+    g = HttpAccess("127.0.0.1", token="t" * 32, proven=True)
     g.page_extra = "<a class='x'>E</a>"
     gated = g.wrap(viser)
     got = gated(None, Request(f"/?token={'t' * 32}", Headers({"Host": "127.0.0.1"})))
