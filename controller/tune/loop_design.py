@@ -331,37 +331,45 @@ def design_speed(knowledge: PlantKnowledge, rate_hz: float,
                         limit, hi = f"at {mid:.3g} Hz: {miss}", mid
             break
         best = (kp, ki, float(fc), figs)
-    if best is None:
-        # Nothing from 0.2 Hz up: a resonance (or a delay) the PI cannot cross below with its
-        # corner under the crossover. Lower the whole PI's gain instead (an integral-dominant
-        # loop, its corner above a low crossover) until the targets are met; a notch or
-        # low-pass filter on the speed command is what would let the loop be faster.
+    if best is None or best[2] < 0.5 * first_mode_hz(ev, f):
+        # Nothing from 0.2 Hz up, or a crossover well below the plant's own corner: the
+        # proportional gain is what the margins limit (the plant is flat up to its corner, so
+        # |kp G| is about kp g there, whatever the crossover asked for). Lower the PI's gain
+        # until the targets are met, then raise its integral gain while they hold (corner
+        # above the crossover); the faster of the two designs is kept. A notch or low-pass
+        # filter on the speed command is what would let the loop be faster still.
         kp0, ki0, _, _ = trial(0.2)
-        for scale in np.geomspace(0.9, 0.01, 30):
+        found = None
+        for scale in np.geomspace(0.9, 0.05, 12):
             kp = kp0 * float(scale)
             lv = pi_response(kp, ki0, f, rate_hz) * ev[0].g
             fc_low = loop_margins(lv, f).crossover_hz
             if not math.isfinite(fc_low):
                 continue
             kp, ki, figs, miss = judged(kp, ki0, fc_low)
-            if miss is None:
-                best = (kp, ki, fc_low, figs)
-                # then the integral gain up (the crossover kp ki rises with it) while the
-                # targets hold
-                for _ in range(40):
-                    ki_up = ki * 1.25
-                    lv = pi_response(kp, ki_up, f, rate_hz) * ev[0].g
-                    fc_up = loop_margins(lv, f).crossover_hz
-                    if not math.isfinite(fc_up) or ki_up >= rate_hz / 2:
-                        break
-                    *_, figs_up, miss_up = judged(kp, ki_up, fc_up)
-                    if miss_up is not None:
-                        break
-                    ki, best = ki_up, (kp, ki_up, fc_up, figs_up)
-                limit = (f"{limit}; the PI's gain lowered to x{scale:.2g} (integral corner above"
-                         f" the crossover): a filter on the speed command would be needed to "
-                         f"go faster")
-                break
+            if miss is not None:
+                continue
+            cand = (kp, ki, fc_low, figs)
+            # then the integral gain up (the crossover rises with it) while the targets hold
+            for _ in range(25):
+                ki_up = ki * 1.4
+                lv = pi_response(kp, ki_up, f, rate_hz) * ev[0].g
+                fc_up = loop_margins(lv, f).crossover_hz
+                if not math.isfinite(fc_up) or ki_up >= rate_hz / 2:
+                    break
+                *_, figs_up, miss_up = judged(kp, ki_up, fc_up)
+                if miss_up is not None:
+                    break
+                ki, cand = ki_up, (kp, ki_up, fc_up, figs_up)
+            if found is None or cand[2] > found[0][2]:
+                found = (cand, float(scale))
+            elif found is not None:
+                break  # lower gains only lower the crossover from here
+        if found is not None and (best is None or found[0][2] > best[2]):
+            best = found[0]
+            limit = (f"{limit}; the PI's gain lowered to x{found[1]:.2g} and its integral gain "
+                     f"raised (corner above the crossover): a filter on the speed command "
+                     f"would be needed to go faster")
     if best is None:
         raise ValueError(f"no speed crossover from 0.2 Hz meets the targets ({limit})")
     kp, ki, fc, figs = best
@@ -376,6 +384,18 @@ def _position_pi(plants: list[ComplexArray], fc: float, targets: DesignTargets, 
     c1 = complex(pi_response(1.0, ki, np.array([fc]), rate_hz)[0])
     kp = min(1.0 / abs(c1 * _at(f, p, fc)) for p in plants)
     return pi_response(kp, ki, f, rate_hz)
+
+
+def first_mode_hz(ev: list[Evidence], f: FloatArray) -> float:
+    """The plant's corner: the lowest frequency where some evidence falls 3 dB below its
+    low-frequency gain."""
+    out = float(f[-1])
+    for e in ev:
+        mag = np.abs(e.g)
+        below = np.flatnonzero(mag < mag[0] / math.sqrt(2.0))
+        if below.size:
+            out = min(out, float(f[below[0]]))
+    return out
 
 
 def speed_closed(ev: list[Evidence], kp: float, ki: float, f: FloatArray,
