@@ -20,17 +20,28 @@ cannot be read or makes no sense is moved aside (`<file>.unreadable-<time>`, nev
 nor deleted) and its user is told (`problem`); so is a write that fails (the candidate is then
 in memory only).
 
+Several dashboards may keep their candidates in one directory (two dashboards of one rig, a
+restart beside the old one): a write is a read-modify-write of the user's file under an
+exclusive lock of the rig's directory (`fcntl.flock` on `<directory>/<rig>/.lock`), and it
+changes only the slots this dashboard changed since its last write: another dashboard's
+candidates in the file stay (before, each dashboard rewrote the file with its own memory, and
+a user's candidate kept by the other one vanished). The file keeps a user's `PER_USER` most
+recently changed slots.
+
 Nothing here is trusted: a file's values are checked (`check`) and go back into the controls
 and through the same checks as typed ones.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
+import os
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -51,6 +62,21 @@ FILE_FORMAT = 1
 ANYONE_FILE = "_anyone.json"
 #: Most tabs kept per user (the oldest go first).
 PER_USER = 32
+#: The lock file of a rig's directory (held while a user's file is read and rewritten).
+LOCK_FILE = ".lock"
+
+
+@contextlib.contextmanager
+def _directory_locked(directory: Path) -> Iterator[None]:
+    """An exclusive `flock` of `directory`'s lock file, held for the block: one dashboard at a
+    time reads and rewrites the files in it (the lock goes with the process, so a crashed
+    dashboard never leaves it taken). FileNotFoundError: no directory."""
+    fd = os.open(directory / LOCK_FILE, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 @dataclass(frozen=True)
@@ -143,7 +169,8 @@ class CandidateStore:
         """Users whose unreadable file could not be moved aside: never overwritten."""
         self._dir_problem = ""
         """The rig's directory cannot be listed: no file is read, none is written."""
-        self._dirty: set[str] = set()
+        self._dirty: dict[str, set[str]] = {}
+        """user -> the slots changed here and not yet written."""
         self._writing = False
         self._cond = threading.Condition(self._lock)
         self._stop = False
@@ -162,19 +189,19 @@ class CandidateStore:
         with self._lock:
             self._put(user, slot, kept)
             if self.directory is not None:
-                self._dirty.add(user)
+                self._dirty.setdefault(user, set()).add(slot)
                 self._cond.notify_all()
 
     def _put(self, user: str, slot: str, kept: KeptCandidate) -> None:
-        """(Lock held.) Keep, then drop the least recently changed beyond the limits."""
+        """(Lock held.) Keep, then drop the least recently changed beyond the limits (from
+        memory: a user's file keeps their `PER_USER` most recently changed slots)."""
         self._kept[(user, slot)] = kept
         self._kept.move_to_end((user, slot))
         mine = [k for k in self._kept if k[0] == user]
         for key in mine[: max(0, len(mine) - PER_USER)]:
             del self._kept[key]
         while len(self._kept) > self.capacity:
-            (gone, _slot), _ = self._kept.popitem(last=False)
-            self._dirty.add(gone)
+            self._kept.popitem(last=False)
 
     def get(self, user: str, slot: str) -> KeptCandidate | None:
         if not slot:
@@ -199,12 +226,23 @@ class CandidateStore:
         return self.directory / user_file_name(user)
 
     def _read_all(self) -> None:
-        """Every user's file of this rig into memory (the most recently saved files last)."""
+        """Every user's file of this rig into memory (the most recently saved files last),
+        under the directory's lock (another dashboard's write in progress is not cut short)."""
+        assert self.directory is not None
+        try:
+            with _directory_locked(self.directory):
+                self._read_all_locked()
+        except FileNotFoundError:
+            return
+        except OSError as exc:  # no lock file here (a read-only directory): nobody writes
+            log.warning("kept candidates: %s cannot be locked (%s): read without the lock",
+                        self.directory, exc)
+            self._read_all_locked()
+
+    def _read_all_locked(self) -> None:
         assert self.directory is not None
         try:
             names = sorted(p.name for p in self.directory.iterdir())
-        except FileNotFoundError:
-            return
         except OSError as exc:  # every user is told; nothing is written over what is there
             log.error("kept candidates: %s cannot be listed: %s", self.directory, exc)
             self._dir_problem = (f"The kept candidates in {self.directory} cannot be read "
@@ -315,31 +353,40 @@ class CandidateStore:
                     self._cond.wait()
                 if self._stop and not self._dirty:
                     return
-                user = self._dirty.pop()
+                user, slots = self._dirty.popitem()
                 self._writing = True
-                doc = _UserFile(
-                    format=FILE_FORMAT, rig=self.rig, user=user, saved_at_s=time.time(),
-                    candidates=[_Kept(slot=slot, base=k.base, base_version=k.base_version,
-                                      against=k.against, controls=list(k.controls),
-                                      nominal=k.nominal)
-                                for (u, slot), k in self._kept.items() if u == user])
+                # Least recently changed first; a slot dropped from memory meanwhile is not
+                # written (the file keeps what it had).
+                mine = [_Kept(slot=slot, base=k.base, base_version=k.base_version,
+                              against=k.against, controls=list(k.controls), nominal=k.nominal)
+                        for (u, slot), k in self._kept.items() if u == user and slot in slots]
                 skip = user in self._no_write or bool(self._dir_problem)
             try:
                 if not skip:
-                    self._write(user, doc)
+                    self._write(user, mine)
             finally:
                 with self._lock:
                     self._writing = False
                     self._cond.notify_all()
 
-    def _write(self, user: str, doc: _UserFile) -> None:
+    def _write(self, user: str, mine: list[_Kept]) -> None:
+        """`user`'s file with the slots `mine` changed here, under the directory's lock: the
+        file as it is now (another dashboard's slots in it stay), `mine` put in as the most
+        recently changed."""
         assert self.directory is not None
         try:
             path = self.path_of(user)
-            data = msgspec.json.format(_encoder.encode(doc), indent=1) + b"\n"
             self.directory.mkdir(parents=True, exist_ok=True)
-            write_atomically(path, data)
-            fsync_dir(self.directory)
+            with _directory_locked(self.directory):
+                now = self._read_file(user)  # an unreadable one is moved aside, as at start
+                ours = {k.slot for k in mine}
+                merged = [k for k in (now.candidates if now is not None else ())
+                          if k.slot not in ours] + mine
+                doc = _UserFile(format=FILE_FORMAT, rig=self.rig, user=user,
+                                saved_at_s=time.time(), candidates=merged[-PER_USER:])
+                data = msgspec.json.format(_encoder.encode(doc), indent=1) + b"\n"
+                write_atomically(path, data)
+                fsync_dir(self.directory)
             text = ""
         except (OSError, ValueError) as exc:  # ValueError: a user name no file can have
             log.error("kept candidates of user %r not written: %s", user, exc)

@@ -1,12 +1,16 @@
 """The kept candidates on disk (server/candidate_store.py): one file per user per rig, read
 when the store opens, rewritten atomically after each change; a failed write leaves the
 previous file; an unreadable file is moved aside and its user told; no user or rig name can
-point outside the store's directory."""
+point outside the store's directory; two dashboards on one directory keep each other's
+candidates (issue 31 item 6), in one process and in two writing at once."""
 
 from __future__ import annotations
 
 import errno
 import os
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
 import msgspec
@@ -14,6 +18,8 @@ import pytest
 
 from controller.core.config import LoopConfig, NominalModel
 from server.candidate_store import (
+    LOCK_FILE,
+    PER_USER,
     CandidateStore,
     KeptCandidate,
     rig_dir_name,
@@ -55,7 +61,7 @@ def test_candidates_come_back_after_a_restart(tmp_path: Path) -> None:
     store.keep("alice", "", _kept("0.1"))  # no slot: nothing to come back to
     _closed(store)
     rig_dir = tmp_path / RIG
-    assert sorted(p.name for p in rig_dir.iterdir()) == ["_anyone.json", "alice.json"]
+    assert sorted(p.name for p in rig_dir.iterdir()) == [LOCK_FILE, "_anyone.json", "alice.json"]
 
     again = _store(tmp_path)
     try:
@@ -93,7 +99,8 @@ def test_a_failed_write_leaves_the_previous_file_and_says_so(
         store.keep("alice", "tab-aaaaaaaa", _kept("0.7"))
         assert store.flush(30.0)
         assert path.read_bytes() == before  # the previous file, whole
-        assert sorted(p.name for p in path.parent.iterdir()) == ["alice.json"]  # no temp left
+        # No temporary file left (the lock file stays: it is the directory's).
+        assert sorted(p.name for p in path.parent.iterdir()) == [LOCK_FILE, "alice.json"]
         assert "not saved to disk" in store.problem("alice")
         assert "No space left on device" in store.problem("alice")
         assert told == [("alice", store.problem("alice"))]
@@ -236,3 +243,99 @@ def test_every_rig_name_is_one_directory_inside_the_store(tmp_path: Path, rig: s
 def test_distinct_rig_names_get_distinct_directories() -> None:
     names = ["a.b", "a%2Eb", "a b", "a%20b", "..", "%2E.", "%", "%25"]
     assert len({rig_dir_name(n) for n in names}) == len(names)
+
+
+def test_two_dashboards_on_one_directory_keep_each_others_candidates(tmp_path: Path) -> None:
+    """Issue 31: two dashboards on one candidates directory, both started before either wrote:
+    each rewrote alice's file with its own memory, and the candidate kept by the other one
+    vanished. Now a write changes only the slots its dashboard changed."""
+    first, second = _store(tmp_path), _store(tmp_path)  # both read an empty directory
+    try:
+        first.keep("alice", "tab-first000", _kept("0.8"))
+        assert first.flush(30.0)
+        second.keep("alice", "tab-second00", _kept("0.9"))
+        assert second.flush(30.0)
+        first.keep("alice", "tab-first000", _kept("0.85"))  # its own slot changed again
+        assert first.flush(30.0)
+        assert first.problem("alice") == second.problem("alice") == ""
+    finally:
+        first.close()
+        second.close()
+    again = _store(tmp_path)
+    try:
+        assert again.get("alice", "tab-first000") == _kept("0.85")
+        assert again.get("alice", "tab-second00") == _kept("0.9")
+    finally:
+        again.close()
+
+
+def test_a_users_file_keeps_the_latest_slots_of_every_dashboard(tmp_path: Path) -> None:
+    first, second = _store(tmp_path), _store(tmp_path)
+    try:
+        for i in range(PER_USER):
+            first.keep("alice", f"tab-a{i:07d}", _kept(f"0.{i + 1}"))
+        assert first.flush(30.0)
+        second.keep("alice", "tab-b0000000", _kept("0.9"))
+        assert second.flush(30.0)
+    finally:
+        first.close()
+        second.close()
+    again = _store(tmp_path)
+    try:
+        assert len(again) == PER_USER  # the oldest of the first's went
+        assert again.get("alice", "tab-a0000000") is None
+        assert again.get("alice", "tab-b0000000") == _kept("0.9")
+        assert again.get("alice", f"tab-a{PER_USER - 1:07d}") is not None
+    finally:
+        again.close()
+
+
+_WRITER = textwrap.dedent("""
+    import sys
+    from pathlib import Path
+    from controller.core.config import LoopConfig
+    from server.candidate_store import CandidateStore, KeptCandidate
+    root, name, n = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3])
+    store = CandidateStore(directory=root, rig="bench-1")
+    print("ready", flush=True)
+    sys.stdin.readline()  # both processes have read the directory: go
+    base = LoopConfig(q_cutoff_hz=0.5)
+    for i in range(n):
+        store.keep("alice", f"tab-{name}{i:04d}",
+                   KeptCandidate(base, 3, (("cutoff_hz_input", f"0.{i + 1}"),), None, base))
+        assert store.flush(60.0)
+    store.close()
+    assert store.problem("alice") == "", store.problem("alice")
+    print("done", flush=True)
+""")
+
+
+def test_two_dashboard_processes_writing_at_once_lose_nothing(tmp_path: Path) -> None:
+    """Two processes (two dashboards) each keep alice's candidates as fast as they can, on one
+    directory: every slot of both is in her file at the end (the lock makes each
+    read-modify-write whole)."""
+    n = PER_USER // 2
+    procs = [subprocess.Popen([sys.executable, "-c", _WRITER, str(tmp_path), name, str(n)],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+             for name in ("aaaa", "bbbb")]
+    try:
+        for p in procs:
+            assert p.stdout is not None and p.stdout.readline().strip() == "ready"
+        for p in procs:
+            assert p.stdin is not None
+            p.stdin.write("go\n")
+            p.stdin.flush()
+        for p in procs:
+            out, _ = p.communicate(timeout=120)
+            assert p.returncode == 0 and "done" in out, out
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    store = CandidateStore(directory=tmp_path, rig="bench-1")
+    try:
+        assert len(store) == 2 * n
+        assert all(store.get("alice", f"tab-{name}{i:04d}") is not None
+                   for name in ("aaaa", "bbbb") for i in range(n))
+    finally:
+        store.close()
