@@ -57,6 +57,7 @@ from server.viser_adapter import (
     disable_share_url,
     filter_incoming,
     live_connections,
+    resend_value,
     set_width_in,
 )
 from server.workers import Requests, run_logged
@@ -196,7 +197,7 @@ class Dashboard:
             self.server = server
             self.messages = MessageGate(role_of=self._role_of, shared_gui=server.gui,
                                         gui_of=self._gui_of, tell=self._tell,
-                                        name_of=self._name_of,
+                                        name_of=self._name_of, restore=self._restore,
                                         open_if=_is_export_row)
             filter_incoming(server, self.messages)
             self.access.prove(self.opts.host)  # GateOpen: nothing is served
@@ -463,6 +464,11 @@ class Dashboard:
     def _gui_of(self, client_id: int) -> Any:
         browser = self._browser(client_id)
         return None if browser is None else browser.gui
+
+    def _restore(self, client_id: int, handle: Any) -> None:
+        browser = self._browser(client_id)
+        if browser is not None:
+            resend_value(handle, browser)
 
     def _tell(self, client_id: int, why: str) -> None:
         tell(self._browser(client_id), "Refused", why, "red")

@@ -17,7 +17,8 @@ range, and `disabled` only greys the control in the page. What passes here:
   button (`FileTransferStartUpload` on one, then that transfer's parts).
 
 Everything else is refused: counted, logged (at most one line per browser and reason per
-`LOG_EVERY_S`, with the number held back), and a role refusal told to that browser.
+`LOG_EVERY_S`, with the number held back), a role refusal told to that browser, and a refused
+value sent back as the dashboard holds it (the page would otherwise show the value it sent).
 """
 
 from __future__ import annotations
@@ -44,6 +45,13 @@ MAX_TEXT = 4096
 MAX_TRANSFERS = 8
 
 
+def _is_button(handle: Any) -> bool:
+    """A button's value is a press, not a state to show again."""
+    import viser
+
+    return isinstance(handle, (viser.GuiButtonHandle, viser.GuiButtonGroupHandle))
+
+
 def _number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
@@ -62,6 +70,8 @@ class MessageGate:
     """The name of the user at the browser (for a refusal's text)."""
     tell: Callable[[int, str], None] = lambda _c, _t: None
     """Tells the browser why (a role refusal)."""
+    restore: Callable[[int, Any], None] = lambda _c, _h: None
+    """Sends the control's value as kept here to the browser whose change was refused."""
     open_if: Callable[[Any], bool] = lambda _h: False
     """Whether a shared control is open to every role by what it is (a chart's Export row)."""
     refused: int = 0
@@ -82,6 +92,7 @@ class MessageGate:
             return True
         if report:
             self._refuse(client_id, type(message).__name__, why)
+            self._restore(client_id, message)
         return False
 
     def forget(self, client_id: int) -> None:
@@ -166,6 +177,17 @@ class MessageGate:
         return None
 
     # -- refusing ----------------------------------------------------------------------------
+
+    def _restore(self, client_id: int, message: Any) -> None:
+        """A refused value change: the page is sent the value kept here (it shows the value
+        it sent until told otherwise)."""
+        from viser import _messages as m
+
+        if not isinstance(message, m.GuiUpdateMessage) or "value" not in message.updates:
+            return
+        handle, _ = self._control(client_id, message.uuid)
+        if handle is not None and not _is_button(handle):
+            self.restore(client_id, handle)
 
     def _refuse(self, client_id: int, kind: str, why: str) -> None:
         role_refusal = why.startswith("ROLE")

@@ -28,8 +28,8 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 __all__ = ["IncomingJudge", "connection_of", "control_uuid", "disable_share_url",
-           "filter_incoming", "gated_serve", "input_handle", "live_connections", "send_prop_to",
-           "set_slider_marks", "set_width_in"]
+           "filter_incoming", "gated_serve", "input_handle", "live_connections", "resend_value",
+           "send_prop_to", "set_slider_marks", "set_width_in"]
 
 #: judge(client_id, message, report) -> whether viser may handle the message; `report`: the
 #: call that should count, log and tell (the server-level dispatch; the per-client dispatch of
@@ -135,6 +135,16 @@ def send_prop_to(handle: Any, prop: str, value: Any, browsers: Any) -> None:
     message = GuiUpdateMessage(handle._impl.uuid, {prop: value})
     for browser in browsers:
         browser.gui._websock_interface.queue_message(message)
+
+
+def resend_value(handle: Any, browser: Any) -> None:
+    """The control's value (as kept here) sent again to `browser` alone: its page shows what
+    the dashboard holds after a change it refused (a `GuiUpdateMessage` on the browser GUI's
+    `_websock_interface`, as `send_prop_to`)."""
+    from viser._messages import GuiUpdateMessage
+
+    browser.gui._websock_interface.queue_message(
+        GuiUpdateMessage(handle._impl.uuid, {"value": handle.value}))
 
 
 def set_slider_marks(slider: Any, marks: tuple[tuple[float, str], ...]) -> None:

@@ -99,6 +99,19 @@ def test_a_choice_outside_its_options_is_refused(dash: Dashboard, raw: RawViser,
     assert dash.live.trajectory.value == before
 
 
+def test_a_refused_value_is_sent_back_to_that_page(dash: Dashboard, raw: RawViser) -> None:
+    """The page shows what it sent until told otherwise: a refused value is answered with the
+    value the dashboard keeps."""
+    assert dash.live is not None
+    trajectory = dash.live.trajectory
+    kept, uuid = trajectory.value, control_uuid(trajectory)
+    raw.update(uuid, {"value": "bogus"})
+    raw.pump_until(lambda: any(m["type"] == "GuiUpdateMessage" and m["uuid"] == uuid
+                               and m["updates"] == {"value": kept} for m in raw.messages),
+                   20.0, "the kept value was not sent back")
+    assert trajectory.value == kept
+
+
 def test_a_disabled_or_unknown_control_and_other_messages_are_refused(
     dash: Dashboard, raw: RawViser
 ) -> None:

@@ -214,3 +214,16 @@ def test_the_judge_sees_every_message_before_viser_handles_it(
     assert judged.count(("GuiUpdateMessage", True)) == 4  # reported once per message
     assert sorted(pressed) == ["own", "shared"]  # the refused two reached nothing
     shared.remove()
+
+
+def test_a_value_is_sent_again_to_one_browser(served: tuple[Any, _Seen],
+                                              raw: tuple[RawViser, Any]) -> None:
+    server, _ = served
+    c, browser = raw
+    dropdown = server.gui.add_dropdown("resend", ("a", "b"), initial_value="b")
+    uuid = viser_adapter.control_uuid(dropdown)
+    viser_adapter.resend_value(dropdown, browser)
+    c.pump_until(lambda: any(m["type"] == "GuiUpdateMessage" and m["uuid"] == uuid
+                             and m["updates"] == {"value": "b"} for m in c.messages),
+                 20.0, "the value never came")
+    dropdown.remove()
