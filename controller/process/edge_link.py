@@ -74,7 +74,9 @@ class EdgeLink:
         self._snap: EdgeSnapshot | None = None
         self._pushed = -1
         self._control: Connection | None = None
-        self._control_lock = threading.Lock()
+        self._outbox: EdgeSnapshot | None = None
+        self._wake = threading.Event()
+        threading.Thread(target=self._pusher, name="edge-push", daemon=True).start()
         self._proc: Any = None
         self._conns: dict[str, Connection] = {}
         self._closing = threading.Event()
@@ -103,22 +105,31 @@ class EdgeLink:
             return snap
 
     def push(self, *, always: bool = False) -> None:
-        """Send the snapshot over the control pipe if it changed since the last push."""
+        """Hand the snapshot to the pusher thread if it changed since the last push (never
+        blocks: an edge process that does not read its pipe holds up no caller)."""
         snap = self.snapshot()
         if always or snap.generation != self._pushed:
-            self._send_control(snap)
+            self._outbox = snap
             self._pushed = snap.generation
+            self._wake.set()
 
-    def _send_control(self, msg: Any) -> None:
-        with self._control_lock:
-            if self._control is not None:
+    def _pusher(self) -> None:
+        """Sends the newest snapshot handed over (older ones are skipped)."""
+        while not self._closing.is_set():
+            self._wake.wait()
+            self._wake.clear()
+            snap, self._outbox = self._outbox, None
+            control = self._control
+            if snap is not None and control is not None:
                 with contextlib.suppress(OSError, ValueError):
-                    self._control.send(msg)
+                    control.send(snap)
 
     # -- the process ---------------------------------------------------------------------------
 
     def start(self) -> None:
         """Start the edge process (and, once attached, the threads that serve it)."""
+        if self._closing.is_set():
+            return
         ctx = multiprocessing.get_context("spawn")
         ours: dict[str, Connection] = {}
         theirs: dict[str, Connection] = {}
@@ -131,8 +142,7 @@ class EdgeLink:
         proc.start()
         for c in (*theirs.values(), their_control):
             c.close()  # the child's ends: ours see EOF when it dies
-        with self._control_lock:
-            self._control = control
+        self._control = control
         self._proc = proc
         self._conns = ours
         threading.Thread(target=self._read_control, args=(control, proc), name="edge-control",
@@ -161,18 +171,20 @@ class EdgeLink:
                              daemon=True).start()
 
     def close(self) -> None:
+        """End the edge process (SIGTERM: nothing of it needs saving; SIGKILL if it lingers)."""
         self._closing.set()
-        self._send_control(None)
+        self._wake.set()
         proc = self._proc
         if proc is not None:
+            proc.terminate()
             proc.join(CLOSE_S)
             if proc.is_alive():
                 proc.kill()
                 proc.join(CLOSE_S)
-        with self._control_lock:
-            if self._control is not None:
-                self._control.close()
-                self._control = None
+        control, self._control = self._control, None
+        if control is not None:
+            with contextlib.suppress(OSError):
+                control.close()
 
     @property
     def pid(self) -> int | None:
