@@ -105,8 +105,7 @@ class MessageGate:
 
     def why_refused(self, client_id: int, message: Any) -> str | None:
         """None: viser may handle it; else why not."""
-        from viser import _messages as m  # message classes: see viser_adapter's tests
-
+        m = viser_adapter.messages()
         role = self.role_of(client_id)
         if isinstance(message, m.GuiUpdateMessage):
             return self._update(client_id, role, message)
@@ -181,8 +180,7 @@ class MessageGate:
     def _restore(self, client_id: int, message: Any) -> None:
         """A refused value change: the page is sent the value kept here (it shows the value
         it sent until told otherwise)."""
-        from viser import _messages as m
-
+        m = viser_adapter.messages()
         if not isinstance(message, m.GuiUpdateMessage) or "value" not in message.updates:
             return
         handle, _ = self._control(client_id, message.uuid)

@@ -28,8 +28,8 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 __all__ = ["IncomingJudge", "connection_of", "control_uuid", "disable_share_url",
-           "filter_incoming", "gated_serve", "input_handle", "live_connections", "resend_value",
-           "send_prop_to", "set_slider_marks", "set_width_in"]
+           "filter_incoming", "gated_serve", "input_handle", "live_connections", "messages",
+           "resend_value", "send_prop_to", "set_slider_marks", "set_width_in"]
 
 #: judge(client_id, message, report) -> whether viser may handle the message; `report`: the
 #: call that should count, log and tell (the server-level dispatch; the per-client dispatch of
@@ -109,6 +109,16 @@ def input_handle(gui: Any, uuid: str) -> Any:
 def control_uuid(handle: Any) -> str:
     """The id viser's messages name a GUI control by (`_impl.uuid`: no public name)."""
     return str(handle._impl.uuid)
+
+
+def messages() -> Any:
+    """viser's message classes (`viser._messages`: private; the message gate reads
+    `GuiUpdateMessage.uuid/updates`, `ViewerCameraMessage`'s numbers,
+    `FileTransferStartUpload.source_component_uuid/transfer_uuid`,
+    `FileTransferPart.transfer_uuid`)."""
+    from viser import _messages
+
+    return _messages
 
 
 def set_width_in(browser: Any, panel: Any, width_px: float) -> None:

@@ -227,3 +227,18 @@ def test_a_value_is_sent_again_to_one_browser(served: tuple[Any, _Seen],
                              and m["updates"] == {"value": "b"} for m in c.messages),
                  20.0, "the value never came")
     dropdown.remove()
+
+
+def test_the_incoming_messages_have_the_fields_the_message_gate_reads() -> None:
+    import dataclasses
+
+    m = viser_adapter.messages()
+
+    def fields(cls: Any) -> set[str]:
+        return {f.name for f in dataclasses.fields(cls)}
+
+    assert {"uuid", "updates"} <= fields(m.GuiUpdateMessage)
+    assert {"wxyz", "position", "fov", "near", "far", "look_at", "up_direction"} <= fields(
+        m.ViewerCameraMessage)
+    assert {"source_component_uuid", "transfer_uuid"} <= fields(m.FileTransferStartUpload)
+    assert {"transfer_uuid"} <= fields(m.FileTransferPart)
