@@ -142,7 +142,7 @@ def test_suggest_puts_the_best_accepted_setting_into_the_candidate_never_applies
         assert t.candidate() == want
         assert "dt-suggest-done" in t.suggest_text.content
         # The chart: every point run, at its cut-off, in its Q type's column.
-        x, q31, q20, off, _mark = t._suggest_chart.data
+        x, q31, q20, off, _mark = t.suggest.chart.data  # type: ignore[union-attr]
         for p in res.curve:
             col = q31 if p.q_type == "q31" else q20
             i = int(np.flatnonzero(x == p.q_cutoff_hz)[0])  # refined points may be close

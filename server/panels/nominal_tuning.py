@@ -38,6 +38,12 @@ class NominalTuningPanel(TuningPanel):
         self.nominal_override = None
         super().revert(say)
 
+    def nominal(self) -> NominalModel | None:
+        return self.nominal_override
+
+    def restore_nominal(self, nominal: NominalModel | None) -> None:
+        self.nominal_override = nominal
+
     def _cutoff_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
                      error: str = "") -> str:
         html = super()._cutoff_html(cutoff_hz, rec, known, error)
