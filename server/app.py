@@ -284,11 +284,12 @@ class Dashboard:
                                       config_fn=lambda: self.candidates.active or LoopConfig(),
                                       add_measured=self.knowledge.add_identified,
                                       client=self.client, client_for=self.sessions.client_for,
-                                      leased=leased)
+                                      leased=leased, authorize=self.sessions.check_may_change)
         live = LivePanel(
             gui, self.client, self.commands.command_async, on_status=self._on_status,
             on_frame=self._on_frame, rate_hz=self.opts.live_rate_hz,
             max_points=self.opts.live_max_points, audience=self._live_audience,
+            authorize=self.sessions.check_may_change,
         )
         self.live = live
         self.history = HistoryPanel(gui, self.client, self._requests, self.candidates.panel_of)

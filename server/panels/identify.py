@@ -141,12 +141,17 @@ class IdentifyPanel:
         client: ControllerClient | None = None,
         client_for: Callable[[Any, str], ControllerClient] | None = None,
         leased: Callable[[ControllerClient, Callable[[], Any]], Any] | None = None,
+        authorize: Callable[[Any, str], object] | None = None,
     ) -> None:
         """`tuning_for(browser)`: the candidate panel of that browser ("Use as nominal model"
         puts the fit there); `config_fn()`: the active configuration (the offline run's loop).
         `client`: the controller (None: offline only); `client_for(browser, action)`: the
         client that acts for a browser (raises `Refused`); `leased(client, act)`: `act()`
-        under that client's operator lease. Without them, `client` acts as it is."""
+        under that client's operator lease. Without them, `client` acts as it is.
+        `authorize(browser, action)`: raises `Refused` (told to that browser) unless the user
+        at `browser` may start or abort a run (operators: an offline run is one at a time,
+        so a viewer's would block the operator's); None: anyone may (one identity)."""
+        self._authorize = authorize
         self.gui = gui
         self._tuning_for = tuning_for
         self._config_fn = config_fn or LoopConfig
@@ -284,6 +289,8 @@ class IdentifyPanel:
         """Start a run unless one is running; False (and a message) if not started."""
         s = settings or self.settings()
         try:
+            if self._authorize is not None:
+                self._authorize(browser, "identification")
             spec = s.spec()
             cfg = self._config_fn()
             check_rate(spec, cfg.rate_hz)
@@ -336,6 +343,11 @@ class IdentifyPanel:
         tell(browser, "Identification", text, "orange")
 
     def abort(self, browser: Any = None) -> bool:
+        if self._authorize is not None:
+            try:
+                self._authorize(browser, "abort the identification")
+            except Refused:
+                return False  # told to that browser alone
         if self._run_client is not None and self.state == RUNNING:
             try:
                 self._client_for(browser, "abort")

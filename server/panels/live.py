@@ -24,6 +24,7 @@ from server import charts
 from server.alarms import AlarmBoard, alarms_html
 from server.escape import esc
 from server.health import HealthJudgement, TimingHistory, health_html, judge_timing
+from server.http_access import Refused
 from server.panels.widgets import add_chart, confirm, send_data, set_html
 from server.workers import Periodic
 
@@ -129,8 +130,13 @@ class LivePanel:
         rate_hz: float = 25.0,
         max_points: int = 1000,
         audience: Callable[[], list[Any]] | None = None,
+        authorize: Callable[[Any, str], object] | None = None,
     ) -> None:
+        """`authorize(browser, action)`: raises `Refused` (told to that browser) unless the
+        user at `browser` may change the rig (operators): acknowledging the alarms clears
+        them for every browser. None: anyone may (one identity)."""
         self.gui = gui
+        self._authorize = authorize
         self.client = client
         self._send = send_command
         self._on_status = on_status
@@ -165,14 +171,23 @@ class LivePanel:
         self.ack_button = self.gui.add_button(
             "Acknowledge alarms", color="yellow", visible=False,
             hint="the alarms above are seen: clear them (History keeps every change)")
-        self.ack_button.on_click(lambda _e: self.acknowledge_alarms())
+        self.ack_button.on_click(lambda e: self.acknowledge_alarms(e.client))
 
-    def acknowledge_alarms(self) -> None:
+    def acknowledge_alarms(self, browser: Any = None) -> bool:
+        """Clear the alarms for every browser: an operator's press (a viewer's is refused,
+        told to that browser: the alarms stay for everyone). False: refused."""
+        if self._authorize is not None:
+            try:
+                self._authorize(browser, "Acknowledge alarms")
+            except Refused:
+                return False
         with self._alarm_lock:
             self.alarm_board.acknowledge()
             self._show_alarms()
+        return True
 
-    def _observe_alarms(self, st: proto.Status) -> None:
+    def observe_alarms(self, st: proto.Status) -> None:
+        """Note the alarms a status raises (each status once, by `tick`) and show them."""
         with self._alarm_lock:
             if self.alarm_board.observe(st):
                 self._show_alarms()
@@ -290,7 +305,7 @@ class LivePanel:
         st = self.client.status
         if st is not None and st is not self._last_status_seen:
             self._last_status_seen = st
-            self._observe_alarms(st)
+            self.observe_alarms(st)
             run = _run_trajectory(st)
             kind = run.kind if run is not None else ""
             if kind != self._controller_traj_kind and kind in TRAJECTORY_KINDS:
