@@ -336,6 +336,45 @@ def test_a_rewritten_chain_is_caught_against_an_anchor(tmp_path: Path) -> None:
     assert not result.ok and "anchor" in result.reason
 
 
+def test_the_status_anchor_form_seq_hash_is_accepted(tmp_path: Path) -> None:
+    """Issue 31 item 5: `--anchor <seq>:<sha256>`, the form Status.audit_head carries, said
+    "not in the chain" on an intact log. Now it is checked as what it says: the record with
+    that seq has that hash."""
+    from controller.process.access import Access
+
+    path = make_log(tmp_path)
+    access = Access(None, "r", AuditLog(path, rig="r"), lambda *a, **k: None)
+    head = access.head  # what the controller publishes as Status.audit_head
+    access.close()
+    seq, digest = head.split(":")
+    assert int(seq) == 5 and len(digest) == 64
+    assert verify(path, anchor=head).ok
+    code, text = cli_verify(tmp_path, anchor=head)
+    assert code == 0 and "chain intact" in text, text
+    # The hash alone still works; the same hash under another seq is not that record.
+    assert verify(path, anchor=digest).ok
+    wrong = verify(path, anchor=f"4:{digest}")
+    assert not wrong.ok and "anchor" in wrong.reason
+    # The attack the anchor exists for: the last record cut off.
+    path.write_bytes(b"".join(lines_of(path)[:-1]))
+    assert verify(path).ok
+    code, text = cli_verify(tmp_path, anchor=head)
+    assert code == 1 and "not in the chain" in text
+    # An earlier head still verifies against the shortened log.
+    earlier = json.loads(lines_of(path)[-1])
+    assert cli_verify(tmp_path, anchor=f"{earlier['seq']}:{earlier['hash']}")[0] == 0
+
+
+@pytest.mark.parametrize("bad", ["", "5:", ":abc", "x:" + "a" * 64, "-1:" + "a" * 64,
+                                 "5:" + "a" * 63, "g" * 64])
+def test_a_malformed_anchor_is_bad_input_naming_the_form(tmp_path: Path, bad: str) -> None:
+    make_log(tmp_path)
+    code, text = cli_verify(tmp_path, anchor=bad)
+    assert code == 2 and "<seq>:<sha256>" in text, text
+    with pytest.raises(ValueError, match="anchor"):
+        verify(tmp_path / AUDIT_FILE, anchor=bad)
+
+
 # -- crash recovery --------------------------------------------------------------------------
 
 

@@ -3,9 +3,10 @@
 DIR is the controller's state directory (the log is `DIR/audit.jsonl`) or the log file itself.
 `verify` exit codes: 0 the chain is intact, 1 it is not (an edited, deleted, inserted or moved
 line, a truncated hash, a missing anchor, a torn line, or a damaged log the controller set
-aside next to it), 2 bad input (no such log, unreadable). A torn line (a crash while writing,
-or the last record erased) fails the check even when the controller acknowledged it on
-restart, unless `--accept-torn-tail` is given: it then lists what it accepted.
+aside next to it), 2 bad input (no such log, unreadable, an anchor of neither form). A torn
+line (a crash while writing, or the last record erased) fails the check even when the
+controller acknowledged it on restart, unless `--accept-torn-tail` is given: it then lists
+what it accepted.
 `show` exits 0, or 2 on bad input.
 """
 
@@ -23,6 +24,7 @@ from controller.process.audit import (
     CORE_KEYS,
     VerifyResult,
     iter_lines,
+    parse_anchor,
     parse_record,
     verify,
 )
@@ -119,6 +121,11 @@ def verify_main(
     """Check the chain; print the verdict. Returns the exit code. A torn line fails the check
     unless `accept_torn_tail` (then it is printed as accepted)."""
     path = log_file(target)
+    if anchor is not None:
+        try:
+            parse_anchor(anchor)
+        except ValueError as exc:
+            return _bad_input(str(exc), out, as_json)
     if not path.is_file():
         return _missing(path, out, as_json)
     try:
@@ -156,8 +163,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "intact, 1 altered, 2 bad input)"
     )
     check.add_argument("dir", type=Path, metavar="DIR", help="state directory (or audit.jsonl)")
-    check.add_argument("--anchor", default=None, metavar="HASH",
-                       help="a record hash known from elsewhere that must be in the chain")
+    check.add_argument("--anchor", default=None, metavar="SEQ:HASH",
+                       help="a record known from elsewhere that must be in the chain: "
+                       "<seq>:<sha256> as Status.audit_head gives it, or a bare record hash")
     check.add_argument("--json", action="store_true")
     check.add_argument("--accept-torn-tail", action="store_true",
                        help="accept torn lines (a crash while writing; also what erasing the "

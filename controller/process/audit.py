@@ -66,6 +66,7 @@ __all__ = [
     "VerifyResult",
     "audit_path",
     "iter_lines",
+    "parse_anchor",
     "parse_record",
     "verify",
 ]
@@ -234,13 +235,32 @@ def _acknowledges(rec: Mapping[str, Any], damaged: bytes, after_seq: int) -> boo
     )
 
 
+def parse_anchor(anchor: str) -> tuple[int | None, str]:
+    """(seq or None, hash) of an anchor: `<seq>:<sha256>` (the form of `Status.audit_head`
+    and `AuditLog.head`) or a bare `<sha256>`. ValueError naming the form if it is neither."""
+    text = anchor.strip().lower()
+    seq_text, sep, digest = text.rpartition(":")
+    seq: int | None = None
+    if sep:
+        if not seq_text.isdigit():
+            raise ValueError(f"anchor {anchor!r}: expected <seq>:<sha256> or <sha256> "
+                             f"(seq a non-negative integer)")
+        seq = int(seq_text)
+    if not _HEX64.fullmatch(digest):
+        raise ValueError(f"anchor {anchor!r}: expected <seq>:<sha256> or <sha256> "
+                         f"(sha256 as 64 hex digits)")
+    return seq, digest
+
+
 def verify(
     path: str | os.PathLike[str], anchor: str | None = None, *, accept_torn_tail: bool = False
 ) -> VerifyResult:
     """Check the whole chain of the audit log at `path` (a file).
 
-    `anchor`: a record `hash` known from elsewhere that must be in the chain (detects lines
-    cut off the end, or a rewritten chain). A torn line (acknowledged by the controller or the
+    `anchor`: a record known from elsewhere that must be in the chain (detects lines cut off
+    the end, or a rewritten chain): `<seq>:<sha256>` (`Status.audit_head`: the record with that
+    seq must have that hash) or a bare record `hash` (see `parse_anchor`; ValueError if it is
+    neither). A torn line (acknowledged by the controller or the
     unterminated last line) is evidence, not intact: it fails the check unless
     `accept_torn_tail`, and is then listed in `accepted_torn`. OSError if the file cannot be
     read."""
@@ -248,6 +268,7 @@ def verify(
     notes: list[str] = []
     accepted: list[str] = []
     pending: tuple[int, bytes, str, bool] | None = None  # a bad line: acknowledged next?
+    anchor_seq, anchor_hash = parse_anchor(anchor) if anchor is not None else (None, "")
     anchor_seen = anchor is None
 
     def bad(line_no: int, why: str) -> VerifyResult:
@@ -285,7 +306,9 @@ def verify(
         if not complete:
             notes.append(f"line {n}: last record complete but without its final newline")
         chain.advance(line, rec)
-        anchor_seen = anchor_seen or rec["hash"] == anchor
+        anchor_seen = anchor_seen or (
+            rec["hash"] == anchor_hash and anchor_seq in (None, rec["seq"])
+        )
     if pending is not None:
         bad_no, bad_bytes, bad_why, complete = pending
         if complete or not accept_torn_tail:
