@@ -25,6 +25,9 @@ _COMMANDS = (
     ("report", "report", "HTML report (and CSV) of one or two recordings", False),
     ("router", "router", "a Zenoh router for many rigs and sites", True),
     ("autotune", "autotune", "search the Q type and cut-off on the simulated rig", False),
+    ("tune", "tune",
+     "tune the whole loop (PIs, feedforward, Q) on the plant: exit 0 candidate, 1 none, 2 bad "
+     "input", False),
     ("paper", "paper", "the article's experiments on the simulated rig: report.md + PNGs", False),
 )
 #: The commands that run the dashboard (their modules load `server/` when they run).

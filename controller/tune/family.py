@@ -320,13 +320,18 @@ def run_rig(rig: FamilyRig, objective: Objective, base: LoopConfig | None = None
     t1 = time.perf_counter()
     setup = rig_setup(("article-rig",))
     sim = twin(known, plant) if twin is not None else stand_in_twin(known, setup)
-    tr = tune_whole_loop(base, known, sim, objective)
-    t2 = time.perf_counter()
     truth = true_knowledge(rig.params, rig.faults, base.rate_hz, base.nominal)
-    tuned = (evaluate(tr.best.config, plant, objective, truth) if tr.best is not None
-             else None)
     default = evaluate(base, plant, objective, truth)
     brute = brute_force(base, truth, plant, objective, grid)
+    t1b = time.perf_counter()
+    try:
+        tr = tune_whole_loop(base, known, sim, objective)
+    except ValueError as exc:  # no placement meets the targets: the outcome says why
+        return RigOutcome(rig, None, None, default, brute, t1 - t0,
+                          time.perf_counter() - t1b, sim.source, (f"no design: {exc}",))
+    t2 = time.perf_counter()
+    tuned = (evaluate(tr.best.config, plant, objective, truth) if tr.best is not None
+             else None)
     misses = (meets_targets(brute.config, truth, tr.targets) if brute is not None else None)
-    return RigOutcome(rig, tr.best, tuned, default, brute, t1 - t0, t2 - t1, sim.source,
+    return RigOutcome(rig, tr.best, tuned, default, brute, t1 - t0, t2 - t1b, sim.source,
                       tr.explanation, misses)

@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -242,8 +242,19 @@ def tune_whole_loop(
         return evaluate(cfg, plant, objective, knowledge if judged else None)
 
     # 1-2: the linear design.
-    speed = design_speed(knowledge, rate, targets)
-    position = design_position(knowledge, rate, speed, targets)
+    # A speed loop whose closed response peaks can leave the position loop no placement that
+    # meets the targets: then the speed loop is designed again with 10 deg more phase margin.
+    speed_targets = targets
+    for attempt in range(4):
+        speed = design_speed(knowledge, rate, speed_targets)
+        try:
+            position = design_position(knowledge, rate, speed, targets)
+            break
+        except ValueError:
+            if attempt == 3 or speed_targets.phase_margin_deg + 10.0 >= 90.0:
+                raise
+            speed_targets = replace(speed_targets,
+                                    phase_margin_deg=speed_targets.phase_margin_deg + 10.0)
     traj = objective.trajectory
     f0 = traj.omega_rad_s / (2 * math.pi) if traj.kind == "sine" else 1e-3
     ff = feedforward_gain(knowledge, rate, speed, f0) if objective.feedforward else 1.0
@@ -440,6 +451,4 @@ def _describe(c: LoopConfig) -> str:
 
 
 def _with(res: WholeLoopResult, lines: list[str]) -> WholeLoopResult:
-    from dataclasses import replace
-
     return replace(res, explanation=tuple(lines))
