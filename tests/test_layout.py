@@ -17,6 +17,7 @@ PACKAGES = ("controller", "server")
 #: Pure packages: math and plain data, no I/O frameworks, no threads, no processes.
 PURE = (
     "controller.core", "controller.gate", "controller.sim", "controller.ident", "controller.tune",
+    "controller.twin",
 )
 #: What a pure package may not import (top-level module names).
 IMPURE_LIBS = {
@@ -29,7 +30,9 @@ PURE_MAY_IMPORT = {
     "controller.gate": ("controller.core",),
     "controller.sim": ("controller.core",),
     "controller.ident": ("controller.core", "controller.gate", "controller.sim"),
-    "controller.tune": ("controller.core", "controller.gate", "controller.sim", "controller.ident"),
+    "controller.tune": ("controller.core", "controller.gate", "controller.sim", "controller.ident",
+                        "controller.twin"),
+    "controller.twin": ("controller.core", "controller.gate", "controller.sim", "controller.ident"),
 }
 #: The wire contract imports only plain data types.
 PROTOCOL_MAY_IMPORT = ("controller.core", "controller.ident.spec", "controller.gate.knowledge")
@@ -326,11 +329,11 @@ def test_the_docs_show_the_rules_the_tests_enforce() -> None:
 
 #: The rules table of docs/architecture.md, row by row (each enforced by a test above).
 RULES = (
-    "| pure packages (`core`, `gate`, `sim`, `ident`, `tune`) import no zenoh, can, viser, "
+    "| pure packages (`core`, `gate`, `sim`, `ident`, `tune`, `twin`) import no zenoh, can, viser, "
     "threading, multiprocessing, subprocess, socket, asyncio, concurrent, signal, logging |",
     "| pure packages do no file I/O |",
     "| `gate` imports `core`; `sim` imports `core`; `ident` imports `core`, `gate`, `sim`; "
-    "`tune` imports those and `ident` |",
+    "`twin` imports `core`, `gate`, `sim`, `ident`; `tune` imports those and `twin` |",
     "| `controller/protocol.py` imports only `core`, `ident.spec`, `gate.knowledge` |",
     "| `controller` never imports `server` or `viser`, but `controller/cli/dashboard.py` and "
     "`demo.py` (`dobtune dashboard`, `dobtune demo`) load `server` when they run (inside a "

@@ -1,0 +1,274 @@
+"""Building the rig's twin from the plant knowledge (pure).
+
+`twin_from_knowledge` fits the simulated rig (`controller.sim.sim_rig`) to the responses
+measured at each position: starting from a base rig (the built-in one unless told), it fits
+the load inertia, the belt stiffness, the load's viscous friction, the drive's gain (all as
+factors) and the belt stiffness's variation with the angle (k (1 + v cos theta): what makes the
+positions differ), for each whole number of ticks of command delay, by nonlinear least squares
+on the log of the response ratio (magnitude in nepers, phase in radians) over the measured
+band; the delay whose fit is best is kept. The exact linear response of the simulated rig
+about a one-way motion (`rig_response`) is what the fit compares with the measurements: the
+same physics the compiled offline loop runs.
+
+Each position's fit is then stated in dB and degrees (`PositionFit`). Beside the dynamics:
+the sensor noise, friction and backlash (estimated where the caller passes what estimates
+them, else the base rig's, and the twin says so), and the disturbance the DOB has been
+estimating (`d_hat` over a recent window: level and spectrum; its mean becomes the drive's
+speed offset in the twin).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import re
+from dataclasses import replace
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from controller.core.arrays import ComplexArray, FloatArray
+from controller.gate.knowledge import MeasuredResponse, PlantKnowledge
+from controller.gate.loop_model import discrete_equivalent
+from controller.sim.sim_rig import RigFaults, RigParams
+from controller.twin.model import (
+    DisturbanceEstimate,
+    NonlinearEstimate,
+    PositionFit,
+    RigTwin,
+    knowledge_digest,
+)
+
+__all__ = [
+    "MAX_DELAY_TICKS",
+    "disturbance_estimate",
+    "position_fit",
+    "position_of",
+    "rig_response",
+    "twin_from_knowledge",
+    "twin_response",
+]
+
+TWO_PI = 2.0 * math.pi
+#: Command delays tried, whole ticks.
+MAX_DELAY_TICKS = 4
+#: The fitted band ends here (x the loop rate): the sampled rate's own factor dominates above.
+BAND_END_OF_RATE = 0.4
+#: Weight of the pull towards the base rig (log factors): the response alone leaves inertia,
+#: stiffness and friction free to scale together; the twin keeps the smallest change.
+PRIOR_WEIGHT = 0.05
+_POS = re.compile(r"(-?\d+(?:\.\d+)?)\s*deg$")
+
+
+def position_of(name: str) -> float | None:
+    """The turntable angle in a measured response's name ("pos1_120deg" -> 120), None if the
+    name carries none."""
+    m = _POS.search(name)
+    return float(m.group(1)) if m else None
+
+
+def rig_response(params: RigParams, faults: RigFaults, freq_hz: FloatArray,
+                 position_deg: float = 0.0, rate_hz: float = 1000.0) -> ComplexArray:
+    """u -> w of the simulated rig (continuous, load-side rates) linearised about a one-way
+    motion at `position_deg` (belt loaded, friction constant, no ripple, the backlash taken
+    up): G = gain Ki T H / A e^{-s d Ts} with
+      H = (2 z w s + w^2) / (s^2 + 2 z w s + w^2)  the payload of the extra mode as the
+          encoder reads it (1 without one),
+      T = (k + c s) / (Jh s^2 + Jp H s^2 + (bl + c) s + k)  hub over pulley angle,
+      A = (Jm s^2 + bm s + (k + c s)(1 - T)/N^2)(s + Ki r)/s + (Ki + Kp s) D  the motor with the
+          drive's I-P loop (droop r) and its speed estimate over the window, D = (1 -
+          e^{-s Tw})/(s Tw);
+    k and c at the position (`belt_*_variation` x cos theta), d the command delay in ticks."""
+    p = params
+    s = TWO_PI * 1j * np.asarray(freq_hz, dtype=np.float64)
+    th = math.radians(position_deg)
+    k = p.belt_stiffness_n_m_rad * (1.0 + p.belt_stiffness_variation * math.cos(th))
+    c = p.belt_damping_n_m_s_rad * (1.0 + p.belt_damping_variation * math.cos(th))
+    jl = p.load_inertia_kg_m2
+    h: ComplexArray | float = 1.0
+    jp = 0.0
+    if faults.resonance_hz > 0.0:
+        w = TWO_PI * faults.resonance_hz
+        zw2 = 2.0 * faults.resonance_damping * w
+        h = (zw2 * s + w * w) / (s * s + zw2 * s + w * w)
+        jp = faults.resonance_mass_fraction * jl
+    t = (k + c * s) / ((jl - jp) * s**2 + jp * h * s**2 + (p.load_viscous_n_m_s_rad + c) * s + k)
+    tw = p.drive_speed_window_s
+    d = (1.0 - np.exp(-s * tw)) / (s * tw)
+    n = p.gear_ratio
+    droop = p.drive_droop_rpm_per_n_m * TWO_PI / 60.0
+    ki = p.drive_ki_n_m_rad
+    mech = (p.motor_inertia_kg_m2 * s**2 + p.motor_viscous_n_m_s_rad * s
+            + (k + c * s) * (1 - t) / n**2)
+    a = mech * (s + ki * droop) / s + (ki + p.drive_kp_n_m_s_rad * s) * d
+    delay = np.exp(-s * p.command_delay_ticks / rate_hz)
+    return np.asarray(faults.plant_gain * ki * t * h / a * delay, dtype=np.complex128)
+
+
+def twin_response(twin: RigTwin, freq_hz: FloatArray, position_deg: float = 0.0) -> ComplexArray:
+    """The twin's linear response u -> w at `position_deg` (continuous)."""
+    return rig_response(twin.params, twin.faults, freq_hz, position_deg, twin.rate_hz)
+
+
+def _continuous(m: MeasuredResponse, rate_hz: float) -> ComplexArray:
+    if not m.sampled:
+        return m.response
+    factor = discrete_equivalent(np.ones(m.freq_hz.size), m.freq_hz, rate_hz)
+    return np.asarray(m.response / factor, dtype=np.complex128)
+
+
+def position_fit(name: str, position_deg: float, freq_hz: FloatArray, measured: ComplexArray,
+                 predicted: ComplexArray) -> PositionFit:
+    """The twin's error at one position: 20 log10 |pred / meas| and the angle of the ratio."""
+    ratio = predicted / measured
+    db = 20.0 * np.log10(np.abs(ratio))
+    deg = np.degrees(np.angle(ratio))
+    i = int(np.argmax(np.abs(db)))
+    return PositionFit(
+        name=name, position_deg=position_deg, f_lo_hz=float(freq_hz[0]),
+        f_hi_hz=float(freq_hz[-1]), points=int(freq_hz.size),
+        rms_db=float(np.sqrt(np.mean(db**2))), max_db=float(np.max(np.abs(db))),
+        rms_deg=float(np.sqrt(np.mean(deg**2))), max_deg=float(np.max(np.abs(deg))),
+        max_at_hz=float(freq_hz[i]))
+
+
+def disturbance_estimate(d_hat_deg_s: FloatArray, period_s: float,
+                         bins: int = 24) -> DisturbanceEstimate:
+    """Level and spectrum of the DOB's estimate over a window (one-sided amplitude, in
+    `bins` log-spaced bands from 1/window to the Nyquist frequency: the largest line of
+    each)."""
+    d = np.asarray(d_hat_deg_s, dtype=np.float64)
+    if d.size < 16 or not np.all(np.isfinite(d)):
+        raise ValueError("d_hat: need at least 16 finite samples")
+    n = d.size
+    mean = float(np.mean(d))
+    spec = np.abs(np.fft.rfft(d - mean)) * 2.0 / n
+    f = np.fft.rfftfreq(n, period_s)
+    edges = np.geomspace(f[1], f[-1], bins + 1)
+    fs, amps = [], []
+    for lo, hi in itertools.pairwise(edges):
+        sel = np.flatnonzero((f >= lo) & (f < hi))
+        if sel.size:
+            j = sel[int(np.argmax(spec[sel]))]
+            fs.append(float(f[j]))
+            amps.append(float(spec[j]))
+    return DisturbanceEstimate(window_s=n * period_s, rms_deg_s=float(np.std(d)),
+                               mean_deg_s=mean, freq_hz=tuple(fs), amplitude_deg_s=tuple(amps))
+
+
+_FACTORS = ("inertia", "stiffness", "viscous", "gain")
+
+
+def _apply(base: RigParams, x: FloatArray, delay: int) -> tuple[RigParams, RigFaults]:
+    fi, fk, fb, g = (float(math.exp(v)) for v in x[:4])
+    params = replace(base, load_inertia_kg_m2=base.load_inertia_kg_m2 * fi,
+                     belt_stiffness_n_m_rad=base.belt_stiffness_n_m_rad * fk,
+                     load_viscous_n_m_s_rad=base.load_viscous_n_m_s_rad * fb,
+                     belt_stiffness_variation=float(np.clip(x[4], -0.85, 0.85)),
+                     command_delay_ticks=delay)
+    return params, RigFaults(plant_gain=min(99.0, g))
+
+
+def twin_from_knowledge(
+    knowledge: PlantKnowledge,
+    *,
+    rate_hz: float = 1000.0,
+    base: RigParams | None = None,
+    d_hat_deg_s: FloatArray | None = None,
+    d_hat_period_s: float = 1.0e-3,
+    position_noise_deg: float | None = None,
+    source: str = "",
+) -> RigTwin:
+    """The twin of the plant `knowledge` describes (see the module docstring).
+
+    `base`: the rig whose structure and nonlinear parts the twin starts from (default: the
+    built-in rig, `RigParams()`); `d_hat_deg_s`: the DOB's estimate over a recent window
+    (`d_hat_period_s` apart), stated and its mean taken as the drive's speed offset;
+    `position_noise_deg`: the encoder noise estimated from recorded running (else the base
+    rig's, said so). Without measured responses the twin is the base rig, unfitted (its notes
+    say so). Raises ValueError if the fit fails (no finite point in the band)."""
+    base = base or RigParams()
+    notes: list[str] = []
+    how: list[str] = []
+    data = []
+    for m in knowledge.measured:
+        pos = position_of(m.name)
+        if pos is None:
+            notes.append(f"{m.name}: no angle in the name, taken at 0 deg")
+            pos = 0.0
+        f = m.freq_hz
+        keep = f <= BAND_END_OF_RATE * rate_hz
+        h = _continuous(m, rate_hz)[keep]
+        wt = np.ones(int(keep.sum()))
+        if m.spread is not None:  # a point the measurement itself doubts weighs less
+            wt = 1.0 / (0.05 + np.asarray(m.spread)[keep])
+        if keep.sum() >= 2:
+            data.append((m.name, pos, f[keep], h, wt))
+    params, faults = base, RigFaults()
+    fitted: dict[str, float] = {}
+    fits: list[PositionFit] = []
+    if data:
+        params, faults, fitted = _fit(base, data, rate_hz)
+        fits = [position_fit(name, pos, f, h, rig_response(params, faults, f, pos, rate_hz))
+                for name, pos, f, h, _ in data]
+    else:
+        notes.append("nothing measured: the twin is the base rig, unfitted")
+    disturbance = None
+    if d_hat_deg_s is not None:
+        disturbance = disturbance_estimate(d_hat_deg_s, d_hat_period_s)
+        offset_rpm = disturbance.mean_deg_s * params.gear_ratio / 6.0
+        params = replace(params, drive_offset_rpm=params.drive_offset_rpm + offset_rpm)
+        how.append(f"drive offset {params.drive_offset_rpm:.3g} rpm: the mean of d_hat over "
+                   f"{disturbance.window_s:.3g} s ({disturbance.mean_deg_s:.3g} deg/s)")
+    if position_noise_deg is not None:
+        params = replace(params, position_noise_deg=float(position_noise_deg))
+        how.append(f"encoder noise {position_noise_deg:.3g} deg: estimated from recorded running")
+    else:
+        how.append(f"encoder noise {params.position_noise_deg:.3g} deg: assumed (base rig)")
+    how.append(f"friction {params.coulomb_torque_n_m:g}/{params.static_torque_n_m:g} N m, "
+               f"backlash {params.backlash_deg + params.gearbox_backlash_deg:g} deg: assumed "
+               f"(base rig)")
+    nonlinear = NonlinearEstimate(
+        coulomb_torque_n_m=params.coulomb_torque_n_m, static_torque_n_m=params.static_torque_n_m,
+        backlash_deg=params.backlash_deg + params.gearbox_backlash_deg,
+        position_noise_deg=params.position_noise_deg, how=tuple(how))
+    return RigTwin(
+        knowledge_version=knowledge.version, knowledge_digest=knowledge_digest(knowledge),
+        source=source or knowledge.source, rate_hz=rate_hz, params=params, faults=faults,
+        fitted=fitted, positions=tuple(fits), nonlinear=nonlinear, disturbance=disturbance,
+        notes=tuple(notes))
+
+
+def _fit(base: RigParams, data: list[tuple[str, float, FloatArray, ComplexArray, FloatArray]],
+         rate_hz: float) -> tuple[RigParams, RigFaults, dict[str, float]]:
+    """Least squares on ln(H_twin / H_meas) for each delay; the best delay's parameters."""
+    spread = len({pos for _, pos, *_ in data}) > 1
+
+    def residual(x: FloatArray, delay: int) -> FloatArray:
+        p, fl = _apply(base, x, delay)
+        out = []
+        for _, pos, f, h, wt in data:
+            r = np.log(rig_response(p, fl, f, pos, rate_hz) / h)
+            out.append(wt * r.real)
+            out.append(wt * r.imag)
+        out.append(PRIOR_WEIGHT * x[:4])  # the least change from the base rig that fits
+        return np.concatenate(out)
+
+    best = None
+    x0 = np.zeros(5)
+    x0[4] = base.belt_stiffness_variation
+    lo = np.array([-3.0, -3.0, -3.0, -3.0, -0.85 if spread else -1e-9])
+    hi = np.array([3.0, 3.0, 3.0, 3.0, 0.85 if spread else 1e-9])
+    x0 = np.clip(x0, lo, hi)
+    for delay in range(MAX_DELAY_TICKS + 1):
+        r = least_squares(residual, x0, args=(delay,), bounds=(lo, hi), loss="soft_l1",
+                          f_scale=0.05, x_scale=0.3)
+        if best is None or r.cost < best[0]:
+            best = (r.cost, r.x, delay)
+    assert best is not None
+    _, x, delay = best
+    params, faults = _apply(base, x, delay)
+    fitted = {f"{k}_factor": float(math.exp(v)) for k, v in zip(_FACTORS, x[:4], strict=True)}
+    fitted["stiffness_variation"] = float(x[4])
+    fitted["delay_ticks"] = float(delay)
+    return params, faults, fitted
