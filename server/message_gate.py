@@ -14,7 +14,12 @@ range, and `disabled` only greys the control in the page. What passes here:
   but for the ones marked `open_to_all` (the E-STOP, each browser's own view: export, the 3-D
   view's toggle), which any signed-in browser may press;
 - the browser's own camera (finite numbers), and an operator's file uploads to an upload
-  button (`FileTransferStartUpload` on one, then that transfer's parts).
+  button (`FileTransferStartUpload` on one, then that transfer's parts), capped while they
+  arrive: a file announced over `MAX_UPLOAD_BYTES` or in more than `MAX_UPLOAD_PARTS` parts is
+  refused at its start, and a transfer whose parts bring more bytes than it announced is
+  dropped at that part (viser's buffer of it too). Before, viser buffered whatever parts came
+  until the last one, and the 5 MB limit was checked on the assembled file: an upload that
+  never completed grew the dashboard by 300 MB in 5 s (tests/bench/bench_upload_memory.py).
 
 Everything else is refused: counted, logged (at most one line per browser and reason per
 `LOG_EVERY_S`, with the number held back), a role refusal told to that browser, and a refused
@@ -32,8 +37,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from server import viser_adapter
+from server.measured import MAX_BYTES
 
-__all__ = ["LOG_EVERY_S", "MAX_TEXT", "MessageGate"]
+__all__ = ["LOG_EVERY_S", "MAX_TEXT", "MAX_UPLOAD_BYTES", "MAX_UPLOAD_PARTS", "MessageGate"]
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +47,13 @@ log = logging.getLogger(__name__)
 LOG_EVERY_S = 10.0
 #: The longest text a text field takes (characters).
 MAX_TEXT = 4096
-#: Upload transfers remembered per browser (a browser that starts more loses the oldest).
+#: Upload transfers remembered per browser (a browser that starts more loses the oldest, and
+#: viser's buffer of it).
 MAX_TRANSFERS = 8
+#: The largest file a page may upload (bytes): the measured responses' CSV limit.
+MAX_UPLOAD_BYTES = MAX_BYTES
+#: Most parts an upload may come in (viser's page sends 512 KiB parts: 10 for 5 MB).
+MAX_UPLOAD_PARTS = 64
 
 
 def _is_button(handle: Any) -> bool:
@@ -77,7 +88,8 @@ class MessageGate:
     refused: int = 0
     """Messages refused so far."""
     _open: set[str] = field(default_factory=set)
-    _uploads: dict[int, list[str]] = field(default_factory=dict)
+    _uploads: dict[int, dict[str, list[int]]] = field(default_factory=dict)
+    """Per browser, its transfers (oldest first): [bytes announced, bytes received]."""
     _last_log: dict[tuple[int, str], tuple[float, int]] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -87,7 +99,7 @@ class MessageGate:
         self._open.add(viser_adapter.control_uuid(handle))
 
     def __call__(self, client_id: int, message: Any, report: bool) -> bool:
-        why = self.why_refused(client_id, message)
+        why = self.why_refused(client_id, message, count=report)
         if why is None:
             return True
         if report:
@@ -103,8 +115,9 @@ class MessageGate:
 
     # -- the rules ---------------------------------------------------------------------------
 
-    def why_refused(self, client_id: int, message: Any) -> str | None:
-        """None: viser may handle it; else why not."""
+    def why_refused(self, client_id: int, message: Any, count: bool = True) -> str | None:
+        """None: viser may handle it; else why not. `count`: an upload's part counts against
+        its transfer (each message is judged at both dispatches, counted once)."""
         m = viser_adapter.messages()
         role = self.role_of(client_id)
         if isinstance(message, m.GuiUpdateMessage):
@@ -114,11 +127,9 @@ class MessageGate:
                        *message.look_at, *message.up_direction]
             return None if all(_number(v) for v in numbers) else "camera: a number not finite"
         if isinstance(message, m.FileTransferStartUpload):
-            return self._upload_start(client_id, role, message)
+            return self._upload_start(client_id, role, message, count)
         if isinstance(message, m.FileTransferPart):
-            with self._lock:
-                known = message.transfer_uuid in self._uploads.get(client_id, [])
-            return None if known else "upload part of a transfer not started here"
+            return self._upload_part(client_id, message, count)
         return "not a message a page sends"
 
     def _control(self, client_id: int, uuid: str) -> tuple[Any, bool]:
@@ -159,7 +170,8 @@ class MessageGate:
                 f"{label}: not a text of at most {MAX_TEXT} characters")
         return f"{label}: a {type(handle).__name__} takes no value from a page"
 
-    def _upload_start(self, client_id: int, role: str | None, message: Any) -> str | None:
+    def _upload_start(self, client_id: int, role: str | None, message: Any,
+                      count: bool) -> str | None:
         import viser
 
         handle, shared = self._control(client_id, message.source_component_uuid)
@@ -169,11 +181,49 @@ class MessageGate:
             return f"{handle.label}: the control is disabled or hidden"
         if shared and role != "operator":
             return f"ROLE{handle.label}"
+        size, parts = message.size_bytes, message.part_count
+        if not 0 <= size <= MAX_UPLOAD_BYTES:
+            return (f"{handle.label}: a file of {size} bytes: more than the {MAX_UPLOAD_BYTES} "
+                    "an upload may have")
+        if not 0 <= parts <= MAX_UPLOAD_PARTS or (parts == 0) != (size == 0):
+            return f"{handle.label}: {parts} parts for {size} bytes"
+        if not count:
+            return None
         with self._lock:
-            transfers = self._uploads.setdefault(client_id, [])
-            transfers.append(message.transfer_uuid)
-            del transfers[:-MAX_TRANSFERS]
+            transfers = self._uploads.setdefault(client_id, {})
+            transfers.pop(message.transfer_uuid, None)
+            transfers[message.transfer_uuid] = [size, 0]
+            dropped = list(transfers)[:-MAX_TRANSFERS]
+            for uuid in dropped:
+                del transfers[uuid]
+        for uuid in dropped:
+            self._drop_upload(client_id, uuid)
         return None
+
+    def _upload_part(self, client_id: int, message: Any, count: bool) -> str | None:
+        uuid = message.transfer_uuid
+        with self._lock:
+            transfer = self._uploads.get(client_id, {}).get(uuid)
+            if transfer is None:
+                return "upload part of a transfer not started here"
+            announced, received = transfer[0], transfer[1] + len(message.content)
+            if received <= announced:
+                if count:
+                    transfer[1] = received
+                return None
+            if count:
+                del self._uploads[client_id][uuid]
+        if count:
+            self._drop_upload(client_id, uuid)
+        return (f"upload: {received} bytes or more where {announced} were announced: the "
+                "upload is dropped")
+
+    def _drop_upload(self, client_id: int, transfer_uuid: str) -> None:
+        """viser's buffer of a transfer dropped (the shared GUI's and the browser's own)."""
+        viser_adapter.drop_upload(self.shared_gui, transfer_uuid)
+        own_gui = self.gui_of(client_id)
+        if own_gui is not None:
+            viser_adapter.drop_upload(own_gui, transfer_uuid)
 
     # -- refusing ----------------------------------------------------------------------------
 

@@ -153,3 +153,37 @@ def test_refusals_are_logged_at_a_bounded_rate(dash: Dashboard, raw: RawViser,
     assert 1 <= len(lines) <= 2, lines
     assert "E-STOP" in lines[0] and "only a value may change" in lines[0]
     assert LOG_EVERY_S >= 1.0
+
+
+def test_an_upload_goes_only_to_an_upload_button_and_its_parts_only_after_it_started(
+    dash: Dashboard, raw: RawViser
+) -> None:
+    """An operator's upload (one identity: every browser's) passes: viser acknowledges its
+    part; a start on a control that is not an upload button, and parts of a transfer never
+    started, are refused."""
+    assert dash.messages is not None and dash.live is not None
+    raw.pump_until(lambda: any(m["type"] == "GuiUploadButtonMessage" for m in raw.messages),
+                   30.0, "no upload button was sent")
+    button = next(m["uuid"] for m in raw.messages if m["type"] == "GuiUploadButtonMessage")
+    refused = dash.messages.refused
+
+    def start(uuid: str, transfer: str) -> None:
+        raw.send({"type": "FileTransferStartUpload", "source_component_uuid": uuid,
+                  "transfer_uuid": transfer, "filename": "m.csv", "mime_type": "text/csv",
+                  "part_count": 1, "size_bytes": 3})
+
+    def part(uuid: str, transfer: str) -> None:
+        raw.send({"type": "FileTransferPart", "source_component_uuid": uuid,
+                  "transfer_uuid": transfer, "part_index": 0, "content": b"a,b"})
+
+    start(control_uuid(dash.live.estop_button), "not-a-button")
+    part(control_uuid(dash.live.estop_button), "not-a-button")
+    part(button, "never-started")
+    start(button, "good")
+    part(button, "good")
+    raw.pump_until(lambda: any(m["type"] == "FileTransferPartAck"
+                               and m["transfer_uuid"] == "good" for m in raw.messages),
+                   30.0, "the upload's part was not acknowledged")
+    assert dash.messages.refused == refused + 3
+    assert not any(m["type"] == "FileTransferPartAck" and m["transfer_uuid"] != "good"
+                   for m in raw.messages)
