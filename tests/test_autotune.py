@@ -16,7 +16,7 @@ from controller.gate.knowledge import COMMISSIONING_BOUND, PlantKnowledge
 from controller.gate.verdict import judge
 from controller.sim.disturbance import disturbance_from_name
 from controller.sim.experiment import run_experiment
-from controller.tune.autotune import autotune
+from controller.tune.autotune import autotune, run_point
 
 K = PlantKnowledge(bound=COMMISSIONING_BOUND)
 
@@ -105,3 +105,26 @@ def test_command_noise_is_the_rms_above_20_hz() -> None:
     u = 100.0 * np.sin(2 * np.pi * 1.0 * t) + 2.0 * np.sin(2 * np.pi * 50.0 * t)
     want = math.hypot(2.0 / math.sqrt(1 + (20 / 50) ** 4), 100.0 / math.sqrt(1 + 20.0**4))
     assert command_noise_deg_s(u, 1000.0) == pytest.approx(want / math.sqrt(2), rel=0.01)
+
+
+def test_autotune_runs_on_the_twin_when_something_was_measured() -> None:
+    """Issue 35 item 2: with measured responses the runs are the twin's (here a rig with twice
+    the drive gain), not the built-in model's; with nothing measured the result says so."""
+    from controller.sim.rig_disturbances import rig_setup
+    from controller.sim.sim_rig import RigFaults, RigParams
+    from controller.tune.family import true_knowledge
+    from controller.tune.plant import BUILT_IN, plant_for
+
+    cfg = LoopConfig()
+    traj = default_trajectory("sine")
+    measured = true_knowledge(RigParams(), RigFaults(plant_gain=2.0))
+    kw = dict(duration_s=6.0, points=2, refine=0, q_types=("q31",), lowest_hz=0.3,
+              highest_hz=1.0, setup=rig_setup(()))
+    on_twin = autotune(cfg, measured, traj, **kw)  # type: ignore[arg-type]
+    on_model = autotune(cfg, PlantKnowledge(bound=COMMISSIONING_BOUND), traj, **kw)  # type: ignore[arg-type]
+    assert on_model.plant_source == BUILT_IN and BUILT_IN in on_model.summary()
+    assert "twin" in on_twin.plant_source and "gain x2.00" in on_twin.plant_source
+    twin = plant_for(measured, rig_setup(()))
+    again = run_point(cfg.with_(dob_on=False), traj, 6.0, plant=twin)
+    assert on_twin.baseline.rmse_deg == pytest.approx(again.rmse_deg, rel=1e-12)
+    assert on_twin.baseline.rmse_deg != pytest.approx(on_model.baseline.rmse_deg, rel=0.01)

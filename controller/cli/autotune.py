@@ -4,11 +4,14 @@
                      [--disturbance NAME ...] [--objective rmse|peak] [--noise-weight W]
                      [--duration S] [--points N] [--json]
 
-Every candidate is judged by the gate first (only accepted ones can be the best unless
+The runs are made on the rig's twin when the knowledge holds measured responses, on the
+built-in model only when nothing was measured (the summary and `plant` say which). Every
+candidate is judged by the gate first (only accepted ones can be the best unless
 `--allow-caution`) (on the plant knowledge: `--knowledge`, default the
 simulated rig's model with the commissioning bound); rejected ones are not run. `--json` prints
 one object: `best` (config, rmse_deg, peak_error_deg, verdict), `baseline` (DOB off),
-`dob_helps`, `summary` and `curve` (q_type, q_cutoff_hz, rmse_deg, peak_error_deg, verdict).
+`dob_helps`, `plant`, `summary` and `curve` (q_type, q_cutoff_hz, rmse_deg, peak_error_deg,
+verdict).
 Nothing is applied. Exit codes: 0 done, 2 bad input.
 """
 
@@ -71,6 +74,7 @@ def autotune_main(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
             "best": _point(res.best, True) if res.best else None,
             "baseline": _point(res.baseline, True),
             "dob_helps": res.dob_helps,
+            "plant": res.plant_source,
             "summary": res.summary(),
             "curve": [_point(p) for p in res.curve],
         }, allow_nan=False) + "\n")

@@ -4,8 +4,10 @@ search instead of by hand.
 For each Q type, the cut-off is swept on a log grid (then refined around the best point) with
 the loop's other settings fixed; every candidate is judged first by the gate on the plant
 knowledge (`controller.gate.verdict.judge`: a rejected one is never run; a caution is run and
-marked), then run on the nonlinear simulated rig (`controller.sim.experiment.run_experiment`,
-the controller's own loop) on the chosen trajectory and disturbance. The score is the chosen
+marked), then run on the nonlinear simulated plant (`controller.sim.experiment.run_experiment`,
+the controller's own loop) on the chosen trajectory and disturbance: the rig's twin when the
+plant knowledge holds measured responses, the built-in model only when nothing was measured
+(`controller.tune.plant.plant_for`; the result names it). The score is the chosen
 error metric (RMSE or peak |error|, deg) plus `noise_weight` x the RMS of the speed command
 above `NOISE_BAND_HZ` (deg/s): a cut-off that buys a little error with a noisy drive is not
 best. Only candidates the gate accepts count for the best (with `allow_caution`, cautions
@@ -29,7 +31,8 @@ from controller.gate.knowledge import PlantKnowledge
 from controller.gate.verdict import NonlinearCheck, judge
 from controller.sim.disturbance import Disturbance
 from controller.sim.experiment import ExperimentResult, run_experiment
-from controller.sim.rig_disturbances import RigSetup, build_rig
+from controller.sim.rig_disturbances import RigSetup, build_rig, rig_setup
+from controller.tune.plant import BUILT_IN, SimPlant, plant_for
 
 __all__ = ["NOISE_BAND_HZ", "Point", "TuneResult", "autotune", "command_noise_deg_s",
            "run_point"]
@@ -64,12 +67,17 @@ class TuneResult:
     """The same gains, DOB off."""
     curve: tuple[Point, ...] = field(default_factory=tuple)
     objective: str = "rmse"
+    plant_source: str = BUILT_IN
+    """What the runs were made on (the rig's twin, or the built-in model)."""
 
     @property
     def dob_helps(self) -> bool:
         return self.best is not None and self.best.score < self.baseline.score
 
     def summary(self) -> str:
+        return f"{self._verdict_text()} (predicted on the {self.plant_source})"
+
+    def _verdict_text(self) -> str:
         b = self.baseline
         if self.best is None:
             return "no DOB setting tried is accepted by the gate: keep the DOB off"
@@ -97,12 +105,18 @@ def run_point(
     *,
     setup: RigSetup | None = None,
     disturbance: Disturbance | None = None,
+    plant: SimPlant | None = None,
 ) -> ExperimentResult:
     """One run as the autotune makes it: the nonlinear simulated rig (with `setup`'s named
-    disturbances, noise seed 0, starting on the trajectory) and `cfg`'s loop. The dashboard's
-    preview makes the same run, so its numbers are the search's."""
-    if setup is not None and disturbance is not None:
-        raise ValueError("disturbance: give a torque profile or a rig setup, not both")
+    disturbances, noise seed 0, starting on the trajectory) and `cfg`'s loop; with `plant`,
+    that plant (the rig's twin) instead. The dashboard's preview makes the same run, so its
+    numbers are the search's."""
+    if sum(x is not None for x in (setup, disturbance, plant)) > 1:
+        raise ValueError("disturbance: give a torque profile, a rig setup or a plant, not two")
+    if plant is not None:
+        return run_experiment(cfg, trajectory, duration_s,
+                              rig=plant.rig_on(trajectory, cfg.rate_hz),
+                              disturbance_name=plant.label)
     rig = None if setup is None else build_rig(
         setup, rate_hz=cfg.rate_hz, seed=0, initial_position_deg=trajectory.at(0.0)[0])
     return run_experiment(cfg, trajectory, duration_s, disturbance=disturbance, rig=rig,
@@ -127,12 +141,18 @@ def autotune(
     nonlinear: NonlinearCheck | None = None,
     allow_caution: bool = False,
     progress: Callable[[float], None] | None = None,
+    sim_plant: SimPlant | None = None,
 ) -> TuneResult:
     """Search the Q type and cut-off; see the module's docstring. `setup`: the named belt
     disturbances (`controller.sim.rig_disturbances.rig_setup`) the runs are made with, instead
-    of a load-torque `disturbance`."""
+    of a load-torque `disturbance`. The runs are made on `sim_plant`, default the twin of the
+    rig `plant` describes when it holds measured responses (`controller.tune.plant.plant_for`,
+    with `setup`'s disturbances), the built-in model when nothing was measured (or with a
+    load-torque `disturbance`); the result says which."""
     if setup is not None and disturbance is not None:
         raise ValueError("disturbance: give a torque profile or a rig setup, not both")
+    if sim_plant is None and disturbance is None:
+        sim_plant = plant_for(plant, setup if setup is not None else rig_setup(()))
     if objective not in OBJECTIVES:
         raise ValueError(f"objective: {objective!r} is not one of {', '.join(OBJECTIVES)}")
     if not (0.0 < lowest_hz < highest_hz < base.rate_hz / 2):
@@ -154,7 +174,8 @@ def autotune(
         if verdict == "reject":
             tick()
             return Point(cfg, verdict)
-        res = run_point(cfg, trajectory, duration_s, setup=setup, disturbance=disturbance)
+        res = (run_point(cfg, trajectory, duration_s, plant=sim_plant) if sim_plant is not None
+               else run_point(cfg, trajectory, duration_s, disturbance=disturbance))
         noise = command_noise_deg_s(res.command_deg_s, cfg.rate_hz)
         err = res.rmse_deg if objective == "rmse" else res.peak_error_deg
         tick()
@@ -180,4 +201,5 @@ def autotune(
         progress(1.0)
     runnable = [p for p in curve if p.verdict in counted]
     best = min(runnable, key=lambda p: p.score) if runnable else None
-    return TuneResult(best, baseline, tuple(curve), objective)
+    return TuneResult(best, baseline, tuple(curve), objective,
+                      sim_plant.source if sim_plant is not None else BUILT_IN)
