@@ -27,9 +27,9 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import Any
 
-__all__ = ["IncomingJudge", "connection_of", "control_uuid", "disable_share_url",
-           "filter_incoming", "gated_serve", "input_handle", "live_connections", "messages",
-           "resend_value", "send_prop_to", "set_slider_marks", "set_width_in"]
+__all__ = ["IncomingJudge", "connection_of", "control_uuid", "disable_share_url", "drop_upload",
+           "filter_incoming", "gated_serve", "hide_in", "input_handle", "live_connections",
+           "messages", "resend_value", "send_prop_to", "set_slider_marks", "set_width_in"]
 
 #: judge(client_id, message, report) -> whether viser may handle the message; `report`: the
 #: call that should count, log and tell (the server-level dispatch; the per-client dispatch of
@@ -121,6 +121,13 @@ def messages() -> Any:
     return _messages
 
 
+def drop_upload(gui: Any, transfer_uuid: str) -> None:
+    """Forget the parts of upload `transfer_uuid` buffered so far in a GUI (the server's or one
+    client's): `GuiApi._current_file_upload_states`, where viser keeps an upload's parts until
+    its last one arrives or its browser disconnects."""
+    gui._current_file_upload_states.pop(transfer_uuid, None)
+
+
 def set_width_in(browser: Any, panel: Any, width_px: float) -> None:
     """The docked `panel` (a panel of the shared GUI) `width_px` wide in `browser` alone:
     viser's `set_width` goes to every browser; the same placement message sent through a
@@ -145,6 +152,16 @@ def send_prop_to(handle: Any, prop: str, value: Any, browsers: Any) -> None:
     message = GuiUpdateMessage(handle._impl.uuid, {prop: value})
     for browser in browsers:
         browser.gui._websock_interface.queue_message(message)
+
+
+def hide_in(handle: Any, browser: Any) -> None:
+    """A shared control hidden in `browser`'s page alone, its state here unchanged (other
+    browsers still show it): a `GuiUpdateMessage` of `visible` on the browser GUI's
+    `_websock_interface`, as `resend_value`."""
+    from viser._messages import GuiUpdateMessage
+
+    browser.gui._websock_interface.queue_message(
+        GuiUpdateMessage(handle._impl.uuid, {"visible": False}))
 
 
 def resend_value(handle: Any, browser: Any) -> None:
