@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 from helpers import free_port, wait_for
-from viser_raw import RawViser
+from viser_raw import RawViser, connected
 
 from server.app import Dashboard, DashboardOptions
 from server.message_gate import LOG_EVERY_S
@@ -32,10 +32,7 @@ def dash() -> Iterator[Dashboard]:
 
 @pytest.fixture
 def raw(dash: Dashboard) -> Iterator[RawViser]:
-    assert dash.server is not None
-    before = set(dash.server.get_clients())
-    with RawViser(dash.url.replace("http://", "ws://"), origin=dash.url.split("/?")[0]) as c:
-        wait_for(lambda: set(dash.server.get_clients()) - before, 20.0, "never connected")
+    with connected(dash) as c:
         yield c
 
 

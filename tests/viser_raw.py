@@ -3,7 +3,9 @@ URL (its token), send any message, read what the server sends (decoded)."""
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import msgspec
@@ -58,3 +60,16 @@ class RawViser:
                 self._frame(self.ws.recv(timeout=min(left, 1.0)))
             except TimeoutError:
                 continue
+
+
+@contextlib.contextmanager
+def connected(dash: Any, url: str | None = None) -> Iterator[RawViser]:
+    """A raw client of the dashboard `dash` (a `server.app.Dashboard`) through `url` (default:
+    its printed URL, with its token), once viser counts it as connected."""
+    from helpers import wait_for
+
+    url = url or dash.url
+    before = set(dash.server.get_clients())
+    with RawViser(url.replace("http://", "ws://"), origin=url.split("/?")[0]) as c:
+        wait_for(lambda: set(dash.server.get_clients()) - before, 20.0, "never connected")
+        yield c
