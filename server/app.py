@@ -223,7 +223,7 @@ class Dashboard:
         with self._views_lock:
             views, self._views = list(self._views.values()), {}
         for v in views:
-            run_logged(v._close, what="closing a rig's full view")
+            run_logged(v.close, what="closing a rig's full view")
         self._requests.shutdown()
         if self.server is not None:
             run_logged(self.server.stop, what="stopping the viser server")
