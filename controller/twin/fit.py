@@ -160,11 +160,15 @@ _FACTORS = ("inertia", "stiffness", "viscous", "gain")
 
 
 def _apply(base: RigParams, x: FloatArray, delay: int) -> tuple[RigParams, RigFaults]:
+    """x: log factors of inertia, stiffness, viscous friction and gain; the stiffness's and
+    the damping's variation with the angle; the drive's droop in 1000 rpm per N m."""
     fi, fk, fb, g = (float(math.exp(v)) for v in x[:4])
     params = replace(base, load_inertia_kg_m2=base.load_inertia_kg_m2 * fi,
                      belt_stiffness_n_m_rad=base.belt_stiffness_n_m_rad * fk,
                      load_viscous_n_m_s_rad=base.load_viscous_n_m_s_rad * fb,
                      belt_stiffness_variation=float(np.clip(x[4], -0.85, 0.85)),
+                     belt_damping_variation=float(np.clip(x[5], -0.85, 0.85)),
+                     drive_droop_rpm_per_n_m=float(max(0.0, 1000.0 * x[6])),
                      command_delay_ticks=delay)
     return params, RigFaults(plant_gain=min(99.0, g))
 
@@ -255,11 +259,13 @@ def _fit(base: RigParams, data: list[tuple[str, float, FloatArray, ComplexArray,
         return np.concatenate(out)
 
     best = None
-    x0 = np.zeros(5)
-    x0[4] = base.belt_stiffness_variation
-    lo = np.array([-3.0, -3.0, -3.0, -3.0, -0.85 if spread else -1e-9])
-    hi = np.array([3.0, 3.0, 3.0, 3.0, 0.85 if spread else 1e-9])
-    x0 = np.clip(x0, lo, hi)
+    vary = 0.85 if spread else 1e-9
+    x0 = np.array([0.0, 0.0, 0.0, 0.0, base.belt_stiffness_variation,
+                   base.belt_damping_variation,
+                   max(0.1, base.drive_droop_rpm_per_n_m / 1000.0)])  # off its bound
+    lo = np.array([-3.0, -3.0, -3.0, -3.0, -vary, -vary, 0.0])
+    hi = np.array([3.0, 3.0, 3.0, 3.0, vary, vary, 5.0])
+    x0 = np.clip(x0, lo + 1e-12, hi - 1e-12)
     for delay in range(MAX_DELAY_TICKS + 1):
         r = least_squares(residual, x0, args=(delay,), bounds=(lo, hi), loss="soft_l1",
                           f_scale=0.05, x_scale=0.3)
@@ -269,6 +275,8 @@ def _fit(base: RigParams, data: list[tuple[str, float, FloatArray, ComplexArray,
     _, x, delay = best
     params, faults = _apply(base, x, delay)
     fitted = {f"{k}_factor": float(math.exp(v)) for k, v in zip(_FACTORS, x[:4], strict=True)}
-    fitted["stiffness_variation"] = float(x[4])
+    fitted["stiffness_variation"] = params.belt_stiffness_variation
+    fitted["damping_variation"] = params.belt_damping_variation
+    fitted["droop_rpm_per_n_m"] = params.drive_droop_rpm_per_n_m
     fitted["delay_ticks"] = float(delay)
     return params, faults, fitted
