@@ -39,6 +39,7 @@ from controller.tls import client_tls, server_tls
 
 __all__ = [
     "DEFAULT_LISTEN",
+    "MAX_MESSAGE_BYTES",
     "SessionOptions",
     "check_endpoint",
     "client_config",
@@ -52,6 +53,14 @@ __all__ = [
 
 #: The controller's default: loopback only, never all interfaces.
 DEFAULT_LISTEN: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+
+#: The largest Zenoh message any session of the project assembles (Zenoh's default: 1 GiB).
+#: A longer one is dropped while its fragments arrive, before it is whole, so it never costs
+#: more than this much memory (issue 31: four 200 MB queries from a viewer took a controller
+#: to 1.34 GB before its 64 KiB request limit could refuse them). The largest legitimate
+#: message is a 1000-entry history reply: about 0.4 MB, 8 MB with every entry's verdict
+#: carrying 24 reasons of 300 characters (tests/test_session_limits.py).
+MAX_MESSAGE_BYTES = 16 * 1024 * 1024
 
 _PROTOCOLS = ("tcp/", "udp/", "tls/", "quic/", "unixsock-stream/", "ws/")
 
@@ -139,7 +148,8 @@ def exposure_problem(listen: Iterable[str], connect: Iterable[str], insecure: bo
 def zenoh_config(
     listen: Iterable[str] = DEFAULT_LISTEN, connect: Iterable[str] = ()
 ) -> zenoh.Config:
-    """A peer configuration with exactly these endpoints and multicast scouting off."""
+    """A peer configuration with exactly these endpoints, multicast scouting off and no
+    message over MAX_MESSAGE_BYTES assembled (every other configuration builds on it)."""
     listen_l = [check_endpoint(e) for e in listen]
     connect_l = [check_endpoint(e) for e in connect]
     conf = zenoh.Config()
@@ -154,6 +164,8 @@ def zenoh_config(
         "connect/retry", "{period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2}"
     )
     conf.insert_json5("listen/exit_on_failure", "true")
+    # Oversized messages refused before they are assembled (see MAX_MESSAGE_BYTES).
+    conf.insert_json5("transport/link/rx/max_message_size", json.dumps(MAX_MESSAGE_BYTES))
     return conf
 
 
