@@ -385,9 +385,13 @@ class Dashboard:
             if user is None:
                 log.error("browser %s: no user for its connection: it may only watch",
                           client.client_id)
+                if self.knowledge is not None:
+                    self.knowledge.offer_to(client, False)
             else:
                 self.sessions.signed_in(client.client_id, user)
                 role = self.users[user].role
+                if self.knowledge is not None:
+                    self.knowledge.offer_to(client, role == "operator")
                 note = " (watch and E-STOP only)" if role == "viewer" else ""
                 client.gui.add_html(
                     f"<div class='dt-whoami' style='font-size:12px'>Signed in as "

@@ -15,8 +15,9 @@ from controller.gate.knowledge import MeasuredResponse
 from server.engine import TuningEngine
 from server.escape import esc
 from server.http_access import Refused
-from server.measured import read_measured
+from server.measured import MAX_BYTES, read_measured
 from server.session import BrowserSessions
+from server.viser_adapter import hide_in
 from server.workers import Refetch, Requests
 
 __all__ = ["ORDER_LAST", "KnowledgePanel"]
@@ -51,13 +52,20 @@ class KnowledgePanel:
 
     def build(self) -> None:
         """Below each browser's own candidate controls (built when it connects)."""
-        upload = self.gui.add_upload_button("Upload measured responses (CSV)",
-                                            mime_type="text/csv,.csv", color="gray",
-                                            order=ORDER_LAST)
+        self.upload = upload = self.gui.add_upload_button(
+            "Upload measured responses (CSV)", mime_type="text/csv,.csv", color="gray",
+            order=ORDER_LAST, hint="an operator's: the controller adopts them into its plant "
+            f"knowledge (at most {MAX_BYTES // 1_000_000} MB)")
         self.text = self.gui.add_html(
             "<div class='dt-measured' style='font-size:12px;color:#555'>No measured "
             "responses: 1/|Delta| is the stated bound.</div>", order=ORDER_LAST + 1)
         upload.on_upload(self._on_upload)
+
+    def offer_to(self, browser: Any, may_upload: bool) -> None:
+        """The upload button in `browser`'s page only when its user may use it (operators):
+        a viewer's page does not show it (and the message gate refuses a viewer's upload)."""
+        if not may_upload:
+            hide_in(self.upload, browser)
 
     def fetch(self) -> None:
         """The controller's plant knowledge: the dashboard judges on nothing else."""

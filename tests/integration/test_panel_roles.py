@@ -142,3 +142,34 @@ def test_without_users_any_browser_may(tmp_path: Path) -> None:
         assert d.live is not None
         d.live.observe_alarms(status(mode="estop", estop_seq=3))
         assert d.live.acknowledge_alarms(None) is True and not d.live.alarm_board.alarms
+
+
+def _hidden_in(raw: RawViser, uuid: str) -> bool:
+    return any(m.get("type") == "GuiUpdateMessage" and m.get("uuid") == uuid
+               and m.get("updates") == {"visible": False} for m in raw.messages)
+
+
+def test_the_upload_is_offered_to_operators_only(
+        dash: Dashboard, browsers: dict[str, tuple[RawViser, Any]]) -> None:
+    """The viewer's page hides the Upload measured responses button (the operator's shows
+    it); the viewer's upload, sent anyway, is refused at its start and nothing is buffered."""
+    assert dash.knowledge is not None and dash.messages is not None and dash.server is not None
+    uuid = control_uuid(dash.knowledge.upload)
+    view_raw, _viewer = browsers["view"]
+    op_raw, _operator = browsers["op1"]
+    view_raw.pump_until(lambda: _hidden_in(view_raw, uuid), 20.0,
+                        "the viewer's page was not told to hide the upload button")
+    assert dash.knowledge.upload.visible  # hidden there only: the state here is unchanged
+    refused = dash.messages.refused
+    view_raw.send({"type": "FileTransferStartUpload", "source_component_uuid": uuid,
+                   "transfer_uuid": "viewer-upload", "filename": "x.csv",
+                   "mime_type": "text/csv", "part_count": 1, "size_bytes": 10})
+    view_raw.send({"type": "FileTransferPart", "source_component_uuid": uuid,
+                   "transfer_uuid": "viewer-upload", "part_index": 0, "content": b"0123456789"})
+    wait_for(lambda: dash.messages is not None and dash.messages.refused >= refused + 2, 20.0,
+             "the viewer's upload was not refused")
+    assert "viewer-upload" not in dash.server.gui._current_file_upload_states
+    # The operator's page (everything it was sent by now) has no such message.
+    op_raw.pump_until(lambda: any(m.get("type") == "GuiUploadButtonMessage"
+                                  for m in op_raw.messages), 20.0, "no upload button")
+    assert not _hidden_in(op_raw, uuid)
