@@ -158,6 +158,7 @@ class HttpAccess:
     """Called with the user for a request to ESTOP_PATH (on the server's event loop: it must
     not block); returns the text to answer."""
 
+    _proofs_refused: set[str] = field(default_factory=set, repr=False)
     proven: bool = False
     """Whether `prove` has shown the check in front of every route (until then nothing is
     served: 503)."""
@@ -236,6 +237,9 @@ class HttpAccess:
             upgrade = "Upgrade" in request.headers
             if why:
                 self.refused += 1
+                proof = request.headers.get(PROOF_HEADER)
+                if proof:
+                    self._proofs_refused.add(proof)
                 log.debug("refused %s: %s", urlsplit(request.path).path, why)
                 return answer(http.HTTPStatus.FORBIDDEN if upgrade else
                               http.HTTPStatus.UNAUTHORIZED, _DENIED_PAGE.encode())
@@ -275,19 +279,20 @@ class HttpAccess:
     def prove(self, host: str, timeout_s: float = 5.0) -> None:
         """Show that this check answers in front of every route of the server it was put in
         front of: a request without the token, on loopback, to the page, the websocket and
-        each of the dashboard's own routes, must be refused by this check (its count of
-        refusals goes up by one each time). Then requests with the token are served; else
+        each of the dashboard's own routes, must be refused by this check (each request
+        carries a nonce the check notes when it refuses it: a browser refused meanwhile
+        proves nothing and spoils nothing). Then requests with the token are served; else
         `GateOpen`, naming the routes that were not refused."""
         loopback = {"": "127.0.0.1", "0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)
         open_routes = []
         for route, upgrade in PROOF_ROUTES:
-            before = self.refused
+            nonce = secrets.token_hex(8)
             status: int | str
             try:
-                status = _request_status(loopback, self.port, route, upgrade, timeout_s)
+                status = _request_status(loopback, self.port, route, upgrade, nonce, timeout_s)
             except (OSError, http.client.HTTPException) as exc:
                 status = f"no answer ({exc})"
-            refused_here = self.refused == before + 1 and status in (401, 403)
+            refused_here = nonce in self._proofs_refused and status in (401, 403)
             if not refused_here:
                 what = "websocket" if upgrade else route.split("?")[0]
                 open_routes.append(f"{what} (answered {status} without the token)")
@@ -328,6 +333,8 @@ class GateOpen(RuntimeError):
     """The access gate is not in front of every route: the dashboard must not serve."""
 
 
+#: The header that marks `HttpAccess.prove`'s own requests (a nonce each).
+PROOF_HEADER = "X-Dobtune-Gate-Proof"
 #: The page's paths (viser serves its page at both).
 PAGE_PATHS = ("/", "/index.html")
 #: What `HttpAccess.prove` asks without the token: (path, as a websocket handshake).
@@ -337,11 +344,12 @@ PROOF_ROUTES: tuple[tuple[str, bool], ...] = (
 )
 
 
-def _request_status(host: str, port: int, path: str, upgrade: bool, timeout_s: float) -> int:
+def _request_status(host: str, port: int, path: str, upgrade: bool, nonce: str,
+                    timeout_s: float) -> int:
     """The status of one GET (a websocket handshake if `upgrade`) without any token."""
     conn = http.client.HTTPConnection(host, port, timeout=timeout_s)
     try:
-        headers = {"Host": f"{'localhost' if ':' in host else host}:{port}"}
+        headers = {"Host": f"{'localhost' if ':' in host else host}:{port}", PROOF_HEADER: nonce}
         if upgrade:
             headers.update({"Upgrade": "websocket", "Connection": "Upgrade",
                             "Sec-WebSocket-Version": "13",

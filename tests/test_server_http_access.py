@@ -299,3 +299,31 @@ def test_a_dashboard_whose_gate_is_not_in_front_refuses_to_start(
     out = capsys.readouterr().out
     assert "dobtune dashboard: the access gate is not in front of every route" in out
     assert "token=" not in out  # no URL was printed
+
+
+def test_the_proof_holds_while_other_browsers_are_refused(dash: Dashboard) -> None:
+    """A browser tab left open from an earlier run reconnects with its old token, refused
+    over and over, as the dashboard proves its gate: the proof knows its own requests (a
+    nonce each) and is neither spoiled nor helped by them."""
+    import threading
+
+    stop = threading.Event()
+    sent = [0]
+
+    def old_tab() -> None:
+        while not stop.is_set():
+            with contextlib.suppress(urllib.error.HTTPError, OSError):
+                urllib.request.urlopen(f"http://{_base(dash)}/?token=old", timeout=5)
+            sent[0] += 1
+
+    before = dash.access.refused
+    thread = threading.Thread(target=old_tab)
+    thread.start()
+    try:
+        wait_for(lambda: sent[0] >= 3, 10.0, "the old tab sent nothing")
+        for _ in range(3):
+            dash.access.prove("127.0.0.1")
+    finally:
+        stop.set()
+        thread.join()
+    assert dash.access.refused - before == sent[0] + 3 * len(PROOF_ROUTES)
