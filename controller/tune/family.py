@@ -31,7 +31,7 @@ from controller.ident.spec import IdentifySpec
 from controller.sim.rig_disturbances import rig_setup
 from controller.sim.sim_rig import RigFaults, RigParams
 from controller.tune.loop_design import DesignTargets
-from controller.tune.plant import SimPlant, stand_in_twin
+from controller.tune.plant import SimPlant, plant_for
 from controller.tune.whole_loop import (
     Candidate,
     Objective,
@@ -310,7 +310,8 @@ class RigOutcome:
 def run_rig(rig: FamilyRig, objective: Objective, base: LoopConfig | None = None,
             grid: BruteGrid | None = None, twin: Callable[[PlantKnowledge, SimPlant], SimPlant]
             | None = None) -> RigOutcome:
-    """Identify `rig`, build its twin (`twin(knowledge, true plant)`: default the stand-in),
+    """Identify `rig`, build its twin (`twin(knowledge, true plant)`: default the rig's twin,
+    `controller.tune.plant.plant_for`),
     tune the whole loop on the twin and the identified knowledge, then judge and run the
     candidate, the default starting loop and the brute-force search on the true rig."""
     base = base or LoopConfig()
@@ -319,7 +320,7 @@ def run_rig(rig: FamilyRig, objective: Objective, base: LoopConfig | None = None
     known = identify(plant, base)
     t1 = time.perf_counter()
     setup = rig_setup(("article-rig",))
-    sim = twin(known, plant) if twin is not None else stand_in_twin(known, setup)
+    sim = twin(known, plant) if twin is not None else plant_for(known, setup, base.rate_hz)
     truth = true_knowledge(rig.params, rig.faults, base.rate_hz, base.nominal)
     default = evaluate(base, plant, objective, truth)
     brute = brute_force(base, truth, plant, objective, grid)

@@ -5,18 +5,16 @@ built-in model when nothing was measured). Everything that predicts (`dobtune tu
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field, replace
-
-import numpy as np
+from dataclasses import dataclass, field
 
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PlantKnowledge
 from controller.sim.disturbance import Disturbance
 from controller.sim.rig_disturbances import FrictionChange, RigSetup, ScheduledRig
 from controller.sim.sim_rig import RigFaults, RigParams, SimRig
+from controller.twin.fit import twin_from_knowledge
 
-__all__ = ["BUILT_IN", "SimPlant", "plant_for", "stand_in_twin"]
+__all__ = ["BUILT_IN", "SimPlant", "plant_for"]
 
 #: The source of a plant that was not measured: the built-in article rig.
 BUILT_IN = "built-in model (nothing measured: the article rig, not yours)"
@@ -62,28 +60,16 @@ class SimPlant:
         return self.rig(rate_hz, trajectory.at(0.0)[0], seed)
 
 
-def stand_in_twin(knowledge: PlantKnowledge, setup: RigSetup) -> SimPlant:
-    """A first twin from the measured responses, until the rig's own twin (fitted per position,
-    friction and noise estimated) is built: the built-in rig with `setup`'s disturbances, its
-    load inertia scaled so that the belt mode's natural frequency is the fitted model's
-    (w_n^2 ~ k / J) and its drive gain the measured responses' low-frequency gain. Resonances
-    and delay beyond the fit are not modelled."""
+def plant_for(knowledge: PlantKnowledge, setup: RigSetup, rate_hz: float = 1000.0) -> SimPlant:
+    """What predictions run on: the rig's twin (`controller.twin.fit.twin_from_knowledge`,
+    fitted to the measured responses, with `setup`'s disturbances on top) when the knowledge
+    holds measurements, else the built-in model (its `source` says so). Raises ValueError if
+    the twin cannot be fitted (never a silent fall back to the built-in model)."""
     if not knowledge.measured:
         return SimPlant.of_setup(setup)
-    pn_den = knowledge.model.pn_den
-    ref = RigParams()
-    base = setup.params
-    a2_ref = 0.0005169  # the built-in rig's Pn denominator (control.md eq. 34)
-    scale = pn_den[0] / a2_ref if pn_den[0] > 0 else 1.0
-    gain = float(np.median([abs(m.response[0]) for m in knowledge.measured]))
-    params = replace(base, load_inertia_kg_m2=ref.load_inertia_kg_m2 * scale)
-    faults = RigFaults(plant_gain=min(100.0, gain)) if math.isfinite(gain) else RigFaults()
-    return SimPlant(params, faults, setup.torque, setup.friction_changes,
-                    f"stand-in twin of {knowledge.describe()} (inertia x{scale:.2f}, gain "
-                    f"x{gain:.2f})", setup.label)
-
-
-def plant_for(knowledge: PlantKnowledge, setup: RigSetup) -> SimPlant:
-    """What predictions run on: the twin when the knowledge holds measurements, else the
-    built-in model (its `source` says so)."""
-    return stand_in_twin(knowledge, setup)
+    tw = twin_from_knowledge(knowledge, rate_hz=rate_hz, base=setup.params)
+    fitted = ", ".join(f"{k} {v:.3g}" for k, v in tw.fitted.items())
+    worst = tw.worst_fit
+    fit = f"; worst position fit {worst.rms_db:.2f} dB rms" if worst is not None else ""
+    return SimPlant(tw.params, tw.faults, setup.torque, setup.friction_changes,
+                    f"rig's twin of {knowledge.describe()} ({fitted}{fit})", setup.label)

@@ -6,7 +6,7 @@
 Draws N (default 20) rigs from the seed (printed; `controller.tune.family.RANGES`: inertia
 x0.3-3, belt stiffness x0.5-2, drive gain x0.5-2, a 20-150 Hz mode with damping 0.01-0.1,
 1-3 ticks of delay, the article rig's disturbances). For each: identify offline (3 positions,
-0.3-20 Hz multisine), build the twin (the stand-in until the rig's own twin exists), tune the
+0.3-20 Hz multisine), build the rig's twin (controller/twin: fitted to the responses), tune the
 whole loop on it (the objective: the article's 5 sin(0.5 t) deg, RMSE + 0.001 x command
 noise), then judge and run on the TRUE rig: the candidate, the default starting loop and a
 brute-force grid (`BruteGrid`: 9 speed-PI x 6 position-PI scales of the default loop, DOB off,
