@@ -49,7 +49,7 @@ def sha(data: bytes) -> str:
 
 
 def make_log(directory: Path, extra: int = 0) -> Path:
-    """Six varied records (plus `extra` estops) in `directory/audit.jsonl`."""
+    """Six varied records (plus `extra`: e-stop, reset, e-stop ...) in `directory/audit.jsonl`."""
     with AuditLog(audit_path(directory), rig="bench", clock=clock()) as log:
         log.record("controller.start", "controller", "noted", version_before=3, version_after=3)
         log.record("lease.acquire", "alice", "accepted", holder="alice", token_id="ab12")
@@ -59,8 +59,9 @@ def make_log(directory: Path, extra: int = 0) -> Path:
                    reason="not the lease holder")
         log.record("estop", "bob", "accepted", version_before=4, version_after=4)
         log.record("reset", "alice", "accepted", version_before=4, version_after=4)
-        for _ in range(extra):
-            log.record("estop", "carol", "accepted", version_before=4, version_after=4)
+        for i in range(extra):  # each e-stop written: a reset between (repeats are counted)
+            log.record("estop" if i % 2 == 0 else "reset", "carol", "accepted",
+                       version_before=4, version_after=4)
     return directory / AUDIT_FILE
 
 
@@ -157,7 +158,7 @@ def test_every_record_is_fsynced(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     monkeypatch.setattr(os, "fsync", counting_fsync)
     with AuditLog(tmp_path / AUDIT_FILE) as log:
         for _ in range(3):
-            log.record("estop", "a", "accepted")
+            log.record("command", "a", "accepted")
     assert len(calls) == 3
 
 
@@ -609,7 +610,7 @@ def test_records_held_while_the_log_cannot_be_written_are_written_later_in_order
     warnings: list[str] = []
     access = Access(None, "r", audit, lambda text, key=None: warnings.append(text))
     access.start()
-    access.record("estop", "a", "accepted", n=0)
+    access.record("command", "a", "accepted", n=0)
     assert access.flush()
     # The log's descriptor now refuses writes (what a full or failing disk does): the records
     # pile up instead of being dropped.
@@ -617,7 +618,7 @@ def test_records_held_while_the_log_cannot_be_written_are_written_later_in_order
     bad = os.open(os.devnull, os.O_RDONLY)
     os.dup2(bad, audit._fd)
     for n in range(1, 6):
-        access.record("estop", "a", "accepted", n=n)
+        access.record("command", "a", "accepted", n=n)
     assert not access.flush(0.5) and access.pending >= 5
     assert any("cannot be written" in w and "held in order" in w for w in warnings)
     assert len(lines_of(path)) == 1
@@ -631,3 +632,135 @@ def test_records_held_while_the_log_cannot_be_written_are_written_later_in_order
     recs = [json.loads(x) for x in lines_of(path)]
     assert [r["n"] for r in recs] == list(range(7))  # none lost, in order
     assert verify(path).ok
+
+
+# -- e-stops repeated while latched: counted, not written one by one (issue 31 item 2) -------
+
+
+def _ms_clock() -> Callable[[], float]:
+    ticks = itertools.count()
+    return lambda: T0 + next(ticks) * 0.001
+
+
+def _key_estop(log: AuditLog, user: str = "public", client: str = "viewer-flood",
+               session: str = "abc:1") -> dict[str, Any] | None:
+    """An e-stop as the controller's e-stop subscriber records it (controller/process/node.py)."""
+    return log.record("estop", user, "accepted", source="estop key", key="dobtune/r/estop",
+                      claimed_client=client, claimed_session=session)
+
+
+def test_an_estop_flood_while_latched_is_one_record_with_its_count(tmp_path: Path) -> None:
+    """Before: every put on the e-stop key was a record of its own, fsynced (a viewer's 10 s
+    flood: 155 000 records, 63 MB). Now: the first at once, the rest one count, written
+    before the reset that ends the latch; the chain verifies."""
+    path = tmp_path / AUDIT_FILE
+    with AuditLog(path, rig="r", clock=_ms_clock()) as log:
+        first = _key_estop(log)
+        assert first is not None and first["action"] == "estop"
+        assert len(lines_of(path)) == 1  # the real e-stop is on disk at once
+        assert all(_key_estop(log) is None for _ in range(20_000))
+        assert len(lines_of(path)) == 1
+        log.record("reset", "op", "accepted", estop_seq=7)
+        after = _key_estop(log)  # a new latch: written at once
+        assert after is not None
+    recs = [json.loads(x) for x in lines_of(path)]
+    assert [r["action"] for r in recs] == ["estop", "estop.repeated", "reset", "estop"]
+    rep = recs[1]
+    assert (rep["count"], rep["latched_seq"], rep["by_user"]) == (20_000, 0, {"public": 20_000})
+    assert rep["first_time"] < rep["last_time"] <= recs[2]["time"]
+    assert len(path.read_bytes()) < 2_000
+    assert verify(path).ok
+    code, text = cli_verify(tmp_path)
+    assert code == 0 and "chain intact, 4 records" in text
+
+
+def test_repeated_estops_are_written_at_a_bounded_rate_while_they_go_on(tmp_path: Path) -> None:
+    path = tmp_path / AUDIT_FILE
+    with AuditLog(path, rig="r", clock=_ms_clock(), repeat_interval_s=1.0) as log:
+        _key_estop(log)
+        for _ in range(10_000):  # 10 s of the log's clock
+            _key_estop(log)
+        written = [json.loads(x) for x in lines_of(path)]
+    recs = [json.loads(x) for x in lines_of(path)]
+    counts = [r["count"] for r in recs if r["action"] == "estop.repeated"]
+    # One count a second while they go on (each with the e-stop that found the second over),
+    # the rest at close: none lost, none counted twice.
+    assert 9 <= len(counts) <= 11 and sum(counts) == 10_000
+    assert len(written) == len(recs) - 1  # the last count was written by close
+    assert verify(path).ok
+
+
+def test_distinct_senders_are_written_up_to_a_bound_then_counted(tmp_path: Path) -> None:
+    """While latched, the first e-stop of each sender (user, key, claims) is still written in
+    full, up to ESTOP_SENDERS_MAX of them: a flood varying its claims stays bounded."""
+    path = tmp_path / AUDIT_FILE
+    with AuditLog(path, rig="r", clock=_ms_clock()) as log:
+        _key_estop(log, "op", "dashboard")
+        assert _key_estop(log, "view", "cli") is not None  # another user's: in full
+        assert _key_estop(log, "view", "cli") is None  # the same again: counted
+        for n in range(1000):
+            _key_estop(log, "public", f"forged-{n}", session=f"s{n}")
+        log.record("controller.stop", "controller", "noted")
+    recs = [json.loads(x) for x in lines_of(path)]
+    full = [r for r in recs if r["action"] == "estop"]
+    assert len(full) == audit_mod.ESTOP_SENDERS_MAX
+    assert [r["claimed_client"] for r in full[:3]] == ["dashboard", "cli", "forged-0"]
+    (rep,) = [r for r in recs if r["action"] == "estop.repeated"]
+    assert rep["count"] == 1 + 1000 - (audit_mod.ESTOP_SENDERS_MAX - 2)
+    assert rep["by_user"] == {"view": 1, "public": 1000 - (audit_mod.ESTOP_SENDERS_MAX - 2)}
+    assert recs[-1]["action"] == "controller.stop" and recs[-2] is rep
+    assert verify(path).ok
+
+
+def test_a_refused_reset_does_not_end_the_latch(tmp_path: Path) -> None:
+    path = tmp_path / AUDIT_FILE
+    with AuditLog(path, rig="r", clock=_ms_clock()) as log:
+        _key_estop(log)
+        log.record("reset", "view", "refused", reason="lease: view is a viewer")
+        assert _key_estop(log) is None
+    assert [json.loads(x)["action"] for x in lines_of(path)] == [
+        "estop", "reset", "estop.repeated"]
+
+
+def test_a_count_that_cannot_be_written_is_kept_and_written_later(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / AUDIT_FILE
+    real_write = os.write
+    with AuditLog(path, rig="r", clock=_ms_clock()) as log:
+        _key_estop(log)
+        for _ in range(5):
+            _key_estop(log)
+
+        def fail(fd: int, data: Any) -> int:
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(os, "write", fail)
+        with pytest.raises(AuditError):
+            log.record("reset", "op", "accepted")
+        monkeypatch.setattr(os, "write", real_write)
+        log.record("reset", "op", "accepted")  # what the writer thread retries
+    recs = [json.loads(x) for x in lines_of(path)]
+    assert [r["action"] for r in recs] == ["estop", "estop.repeated", "reset"]
+    assert recs[1]["count"] == 5
+    assert verify(path).ok
+
+
+def test_an_estop_flood_through_the_writer_thread_is_o1_records(tmp_path: Path) -> None:
+    """The controller's path: the e-stop callback queues a record (Access.record) and the
+    writer thread writes it. 50 000 e-stops, then the operator's reset: three records."""
+    from controller.process.access import Access
+
+    path = tmp_path / AUDIT_FILE
+    access = Access(None, "r", AuditLog(path, rig="r"), lambda *a, **k: None)
+    access.start()
+    for _ in range(50_000):
+        access.record("estop", "local", "accepted", source="estop key", key="dobtune/r/estop",
+                      claimed_client="flood")
+    access.record("reset", "local", "accepted", estop_seq=1)
+    assert access.flush(60.0)
+    access.close()
+    recs = [json.loads(x) for x in lines_of(path)]
+    assert [r["action"] for r in recs] == ["estop", "estop.repeated", "reset"]
+    assert recs[1]["count"] == 49_999
+    assert cli_verify(tmp_path)[0] == 0

@@ -34,6 +34,18 @@ Crash policy, applied when the log is opened (only the end of the file is read):
 Nothing is silently chained over. `AuditLog.recovered` says what was found (for the logs and
 the Status notes).
 
+Repeated e-stops (issue 31: ten seconds of a viewer's puts on the e-stop key made 155 000
+records, 63 MB, each fsynced, 40 s of backlog in front of real actions): an accepted e-stop
+opens a latch, in the log's view, that an accepted `reset` (or the controller's start or stop)
+closes. The first e-stop is written at once, as is the first of each of up to
+ESTOP_SENDERS_MAX distinct senders (user, key and claims: `ESTOP_SENDER_FIELDS`) while it is
+latched; every other e-stop while latched is counted, and the count is written as one
+`estop.repeated` record (`count`, `first_time`, `last_time`, `by_user`, `latched_seq`: the
+e-stop it repeats) before the record that closes the latch, at close, and at most every
+`repeat_interval_s` while they go on (with the e-stop that finds the interval over). A crash
+loses the count since the last such record, never an e-stop that changed anything: the loop
+was already stopped and latched by the recorded one.
+
 Thread-safe (one lock). A record is a write plus an fsync: never call `record` on the loop's
 tick; the process queues actions and records them from another thread.
 """
@@ -47,7 +59,7 @@ import re
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -58,6 +70,9 @@ __all__ = [
     "ACTIONS",
     "AUDIT_FILE",
     "CORE_KEYS",
+    "ESTOP_REPEATED",
+    "ESTOP_SENDERS_MAX",
+    "ESTOP_SENDER_FIELDS",
     "GENESIS",
     "OUTCOMES",
     "RECOVERED",
@@ -78,6 +93,14 @@ AUDIT_FILE = "audit.jsonl"
 GENESIS = "0" * 64
 #: The record written after damage found on open.
 RECOVERED = "audit.recovered"
+#: The count of e-stops repeated while latched (see the module's docstring).
+ESTOP_REPEATED = "estop.repeated"
+#: While latched, the first e-stop of this many distinct senders is written in full.
+ESTOP_SENDERS_MAX = 8
+#: The fields (beside `user`) that tell one e-stop's sender from another's.
+ESTOP_SENDER_FIELDS = ("source", "key", "claimed_client", "claimed_session", "command")
+#: `by_user` of an `estop.repeated` record names at most this many users ("..." the rest).
+_BY_USER_MAX = 32
 
 #: What can be recorded (a typo is an error, not a new kind of record).
 ACTIONS = frozenset({
@@ -348,6 +371,30 @@ def _read_tail(f: BinaryIO, size: int) -> tuple[list[bytes], bool]:
     return parts[-2:], ends_nl
 
 
+@dataclass
+class _Repeats:
+    """E-stops counted while latched, not yet written."""
+
+    count: int = 0
+    first_s: float = 0.0
+    last_s: float = 0.0
+    by_user: dict[str, int] = field(default_factory=dict)
+
+    def add(self, user: str, now_s: float) -> None:
+        if not self.count:
+            self.first_s = now_s
+        self.count += 1
+        self.last_s = now_s
+        if user in self.by_user or len(self.by_user) < _BY_USER_MAX:
+            self.by_user[user] = self.by_user.get(user, 0) + 1
+        else:
+            self.by_user["..."] = self.by_user.get("...", 0) + 1
+
+
+def _sender(user: str, fields: Mapping[str, Any]) -> tuple[str, ...]:
+    return (user, *(str(fields.get(k, "")) for k in ESTOP_SENDER_FIELDS))
+
+
 class AuditLog:
     """The controller's audit log (append-only, fsynced, hash-chained, thread-safe)."""
 
@@ -357,12 +404,20 @@ class AuditLog:
         *,
         rig: str = "",
         clock: Callable[[], float] | None = None,
+        repeat_interval_s: float = 60.0,
     ) -> None:
         """Open (or create) the log at `path` and recover the chain's tail (see the module's
-        crash policy); `clock` returns UNIX seconds (default `time.time`)."""
+        crash policy); `clock` returns UNIX seconds (default `time.time`);
+        `repeat_interval_s`: the longest time e-stops repeated while latched go unwritten
+        while they go on."""
         self.path = Path(path)
         self.rig = rig
         self._clock = clock if clock is not None else time.time
+        self.repeat_interval_s = repeat_interval_s
+        #: seq of the e-stop record that latched (None: not latched in the log's view)
+        self._latched_seq: int | None = None
+        self._senders: set[tuple[str, ...]] = set()
+        self._repeats = _Repeats()
         self._lock = threading.Lock()
         self._fd = -1
         self._prev = GENESIS
@@ -392,11 +447,13 @@ class AuditLog:
         version_before: int | None = None,
         version_after: int | None = None,
         **fields: Any,
-    ) -> dict[str, Any]:
-        """Append one record and fsync it; return it as stored (non-finite floats are null).
+    ) -> dict[str, Any] | None:
+        """Append one record and fsync it; return it as stored (non-finite floats are null),
+        or None for an e-stop repeated while latched, counted instead (module docstring).
 
         ValueError for an unknown action or outcome or a reserved field name; AuditError if the
-        file cannot be written (the next call checks the tail again before writing)."""
+        file cannot be written (the next call checks the tail again before writing; nothing
+        of this call was recorded or counted)."""
         if action not in ACTIONS:
             raise ValueError(f"unknown audit action {action!r}")
         if outcome not in OUTCOMES:
@@ -414,22 +471,35 @@ class AuditLog:
                 raise AuditError(f"{self.path}: closed")
             if self._suspect:
                 self._recover_tail()
-            return self._append(
-                {
-                    **fields,
-                    "action": action,
-                    "user": user,
-                    "outcome": outcome,
-                    "version_before": version_before,
-                    "version_after": version_after,
-                }
-            )
+            body = {
+                **fields,
+                "action": action,
+                "user": user,
+                "outcome": outcome,
+                "version_before": version_before,
+                "version_after": version_after,
+            }
+            if action == "estop" and outcome == "accepted":
+                return self._estop(body, _sender(user, fields))
+            if (action == "reset" and outcome == "accepted") or action in (
+                "controller.start", "controller.stop"
+            ):
+                self._write_repeats()
+                rec = self._append(body)
+                self._latched_seq, self._senders = None, set()
+                return rec
+            return self._append(body)
 
     def close(self) -> None:
+        """Write the count of repeated e-stops if any (AuditError if it cannot), then close."""
         with self._lock:
-            if self._fd >= 0:
-                os.close(self._fd)
-                self._fd = -1
+            try:
+                if self._fd >= 0 and self._repeats.count:
+                    self._write_repeats()
+            finally:
+                if self._fd >= 0:
+                    os.close(self._fd)
+                    self._fd = -1
 
     def __enter__(self) -> AuditLog:
         return self
@@ -438,6 +508,44 @@ class AuditLog:
         self.close()
 
     # -- internals (called with the lock held) -----------------------------------------------
+
+    def _estop(self, body: dict[str, Any], sender: tuple[str, ...]) -> dict[str, Any] | None:
+        """An accepted e-stop: written when it latches or is a new sender's (of the first
+        ESTOP_SENDERS_MAX), else counted; the count written when it is repeat_interval_s old."""
+        if self._latched_seq is None or (
+            sender not in self._senders and len(self._senders) < ESTOP_SENDERS_MAX
+        ):
+            rec = self._append(body)
+            if self._latched_seq is None:
+                self._latched_seq = rec["seq"]
+            self._senders.add(sender)
+            return rec
+        now = self._clock()
+        if self._repeats.count and now - self._repeats.first_s >= self.repeat_interval_s:
+            self._write_repeats((body["user"], now))  # this one included; raises: not counted
+        else:
+            self._repeats.add(body["user"], now)
+        return None
+
+    def _write_repeats(self, extra: tuple[str, float] | None = None) -> None:
+        """Write the counted e-stops (and `extra`) as one record; the count restarts only once
+        it is written."""
+        counted = _Repeats(self._repeats.count, self._repeats.first_s, self._repeats.last_s,
+                           dict(self._repeats.by_user))
+        if extra is not None:
+            counted.add(*extra)
+        if not counted.count:
+            return
+        self._append({
+            "action": ESTOP_REPEATED, "user": "controller", "outcome": "noted",
+            "version_before": None, "version_after": None,
+            "count": counted.count, "first_time": _utc_iso(counted.first_s),
+            "last_time": _utc_iso(counted.last_s), "by_user": counted.by_user,
+            "latched_seq": self._latched_seq,
+            "note": f"{counted.count} e-stop(s) while latched by the e-stop at seq "
+                    f"{self._latched_seq}, counted, not written one by one",
+        })
+        self._repeats = _Repeats()
 
     def _open(self) -> None:
         try:
