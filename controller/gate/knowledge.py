@@ -24,6 +24,7 @@ __all__ = [
     "COMMISSIONING_BOUND",
     "DIVERGENCE_FRACTION",
     "MIN_ALLOWANCE",
+    "UNCERTAINTY_SIGMAS",
     "BoundRecord",
     "KnowledgeRecord",
     "MeasuredRecord",
@@ -223,6 +224,9 @@ class PlantKnowledge:
 #: Responses "agree" at a frequency while they differ from their common centre by at most this
 #: fraction (|H_i / H_ref - 1|): 1 dB in magnitude alone (10^(1/20) - 1), 7 deg in phase alone.
 DIVERGENCE_FRACTION = 10.0 ** (1.0 / 20.0) - 1.0
+#: A difference between positions within this many standard uncertainties of the responses
+#: (their `spread`) is not taken as a difference of the plant.
+UNCERTAINTY_SIGMAS = 2.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -235,11 +239,19 @@ class PositionSpread:
         H_ref = exp(mean_i ln H_i)           (geometric mean: mean dB, mean phase)
         relative(f) = max_i |H_i / H_ref - 1|
 
-    `relative` is a multiplicative plant error Delta that a single model of the plant must
-    allow wherever the turntable stands: the small-gain figure of the DOB, ||Delta Q||, uses it
-    (`controller.gate.search`). `divergence_hz` is the lowest frequency where `relative`
-    exceeds `DIVERGENCE_FRACTION` (interpolated in log f; None if the responses agree on the
-    whole band): the model is trusted below it.
+    Judged against the measurement's own uncertainty: each response's `spread` (its relative
+    standard uncertainty per point, from the noise lines or coherence; 0 where None) is
+    `UNCERTAINTY_SIGMAS` times taken off its difference, so a point the measurement cannot
+    resolve (a low-coherence point, friction at a low frequency) is not a divergence of the
+    plant. `measured` is the difference before that (max_i |H_i / H_ref - 1|), `uncertainty`
+    what was taken off (max_i of k u_i).
+
+    `relative` (max_i max(0, |H_i / H_ref - 1| - k u_i)) is a multiplicative plant error Delta
+    that a single model of the plant must allow wherever the turntable stands: the small-gain
+    figure of the DOB, ||Delta Q||, uses it (`controller.gate.search`; the gate still judges
+    every measured response on its own). `divergence_hz` is the lowest frequency where
+    `relative` exceeds `DIVERGENCE_FRACTION` (interpolated in log f; None if the responses
+    agree on the whole band): the model is trusted below it.
     """
 
     names: tuple[str, ...]
@@ -250,6 +262,10 @@ class PositionSpread:
     phase_deg: FloatArray
     """max - min of the phases in deg."""
     divergence_hz: float | None
+    measured: FloatArray | None = None
+    """max_i |H_i / H_ref - 1| before the uncertainty is taken off (None: as `relative`)."""
+    uncertainty: FloatArray | None = None
+    """max_i k u_i: the part of a difference the measurement cannot resolve."""
 
     def at(self, freq_hz: ArrayLike) -> FloatArray:
         """`relative` at any frequency: linear in log f inside the band, held at the band's
@@ -290,12 +306,17 @@ def position_spread(
             + 1j * np.interp(x, np.log(m.freq_hz), ph)
         )
     ln = np.array(logs)
+    unc = np.array([
+        np.zeros(f.size) if m.spread is None
+        else UNCERTAINTY_SIGMAS * np.interp(x, np.log(m.freq_hz), m.spread)
+        for m in measured])
     # Whole turns between responses are not a difference of the plant: align each phase to
     # the first response's at the lowest common frequency.
     turns = np.round((ln[:, 0].imag - ln[0, 0].imag) / TWO_PI)
     ln = ln - 1j * TWO_PI * turns[:, None]
     ref = ln.mean(axis=0)
-    rel = np.max(np.abs(np.exp(ln - ref[None, :]) - 1.0), axis=0)
+    diff = np.abs(np.exp(ln - ref[None, :]) - 1.0)
+    rel = np.max(np.maximum(0.0, diff - unc), axis=0)
     mag_db = 20.0 / math.log(10.0) * (ln.real.max(axis=0) - ln.real.min(axis=0))
     phase_deg = np.degrees(ln.imag.max(axis=0) - ln.imag.min(axis=0))
     return PositionSpread(
@@ -305,6 +326,8 @@ def position_spread(
         mag_db=readonly(mag_db),
         phase_deg=readonly(phase_deg),
         divergence_hz=_first_crossing(f, rel, DIVERGENCE_FRACTION),
+        measured=readonly(np.max(diff, axis=0)),
+        uncertainty=readonly(np.max(unc, axis=0)),
     )
 
 

@@ -49,6 +49,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from controller.core.arrays import ComplexArray, FloatArray, IntArray
 from controller.gate.frd_csv import FrdLike, mag_db_of, phase_deg_of
+from controller.gate.knowledge import UNCERTAINTY_SIGMAS
 from controller.ident.excitation import Multisine, SteppedSine
 
 __all__ = [
@@ -352,7 +353,9 @@ def estimate_stepped_sine(
 
 @dataclass(frozen=True, eq=False)
 class Agreement:
-    """How far several responses on one grid agree (e.g. measured at different positions)."""
+    """How far several responses on one grid agree (e.g. measured at different positions),
+    judged against the measurement's own uncertainty: a difference within `UNCERTAINTY_SIGMAS`
+    of the responses' standard deviations is not counted against them."""
 
     freq_hz: FloatArray
     spread_db: FloatArray
@@ -362,10 +365,37 @@ class Agreement:
     tol_db: float
     tol_deg: float
     agree_below_hz: float
-    """Highest grid frequency below which every point is within both tolerances (0.0 if the
-    lowest point already disagrees)."""
+    """Highest grid frequency up to which every point is within both tolerances (plus the
+    uncertainty); 0.0 if the lowest point already differs (`differs_at_lowest`)."""
     first_disagree_hz: float | None
-    """Lowest frequency out of tolerance, None if all agree."""
+    """Lowest frequency out of tolerance beyond the uncertainty, None if all agree."""
+    uncertainty_db: FloatArray | None = None
+    """k x the largest magnitude standard deviation at each frequency (None: not known)."""
+    uncertainty_deg: FloatArray | None = None
+    unresolved_hz: tuple[float, ...] = ()
+    """Frequencies whose difference exceeds the tolerances but not the uncertainty: the
+    measurement cannot tell there whether the responses agree."""
+
+    @property
+    def differs_at_lowest(self) -> bool:
+        return self.first_disagree_hz is not None and self.first_disagree_hz <= self.freq_hz[0]
+
+    def describe(self) -> str:
+        """One sentence that agrees with the numbers."""
+        tol = f"{self.tol_db:g} dB / {self.tol_deg:g} deg"
+        if self.first_disagree_hz is None:
+            text = f"curves agree within {tol} on the whole band"
+        elif self.differs_at_lowest:
+            text = (f"curves differ by more than {tol} already at the lowest frequency "
+                    f"({self.first_disagree_hz:.3g} Hz)")
+        else:
+            text = (f"curves agree within {tol} up to {self.agree_below_hz:.3g} Hz "
+                    f"(differ from {self.first_disagree_hz:.3g} Hz)")
+        if self.unresolved_hz:
+            at = ", ".join(f"{f:.3g}" for f in self.unresolved_hz)
+            text += (f"; at {at} Hz the difference is within the measurement's uncertainty "
+                     f"({UNCERTAINTY_SIGMAS:g} sigma): not counted")
+        return text
 
 
 def shared_grid(responses: Sequence[FrdLike]) -> FloatArray:
@@ -382,7 +412,8 @@ def shared_grid(responses: Sequence[FrdLike]) -> FloatArray:
 def agreement(
     responses: Sequence[FrdLike], tol_db: float = 1.0, tol_deg: float = 10.0
 ) -> Agreement:
-    """Frequency up to which the responses agree within ``tol_db`` and ``tol_deg``.
+    """Frequency up to which the responses agree within ``tol_db`` and ``tol_deg`` (beyond
+    `UNCERTAINTY_SIGMAS` standard deviations of the estimates when they carry them).
 
     This is the article's "the curves agree below about 1 Hz": the model is trusted below
     ``agree_below_hz`` and not above.
@@ -397,7 +428,18 @@ def agreement(
     rel_phase = np.degrees(np.angle(h / h[0][None, :]))
     spread_db = np.max(mag, axis=0) - np.min(mag, axis=0)
     spread_deg = np.max(rel_phase, axis=0) - np.min(rel_phase, axis=0)
-    bad = np.flatnonzero((spread_db > tol_db) | (spread_deg > tol_deg))
+    unc_db = unc_deg = None
+    over = (spread_db > tol_db) | (spread_deg > tol_deg)
+    bad_mask = over
+    if all(isinstance(r, FrdEstimate) for r in responses):
+        ests = [r for r in responses if isinstance(r, FrdEstimate)]
+        sd_db = np.nan_to_num(np.array([e.mag_std_db for e in ests]), nan=0.0)
+        sd_deg = np.nan_to_num(np.array([e.phase_std_deg for e in ests]), nan=0.0)
+        unc_db = UNCERTAINTY_SIGMAS * np.max(sd_db, axis=0)
+        unc_deg = UNCERTAINTY_SIGMAS * np.max(sd_deg, axis=0)
+        bad_mask = (spread_db > tol_db + unc_db) | (spread_deg > tol_deg + unc_deg)
+    bad = np.flatnonzero(bad_mask)
+    unresolved = tuple(float(x) for x in f[over & ~bad_mask])
     if bad.size == 0:
         below, first = float(f[-1]), None
     else:
@@ -411,6 +453,9 @@ def agreement(
         tol_deg=float(tol_deg),
         agree_below_hz=below,
         first_disagree_hz=first,
+        uncertainty_db=unc_db,
+        uncertainty_deg=unc_deg,
+        unresolved_hz=unresolved,
     )
 
 

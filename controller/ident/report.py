@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from controller.core.config import NominalModel, config_to_builtins
-from controller.gate.knowledge import DIVERGENCE_FRACTION, PositionSpread
+from controller.gate.knowledge import DIVERGENCE_FRACTION, UNCERTAINTY_SIGMAS, PositionSpread
 from controller.gate.search import SPREAD_MARGIN
 from controller.ident.result import IdentifyResult, PositionRecord
 
@@ -128,6 +128,8 @@ def summary_json(
             "first_disagree_hz": agree.first_disagree_hz,
             "tol_db": agree.tol_db,
             "tol_deg": agree.tol_deg,
+            "unresolved_hz": list(agree.unresolved_hz),
+            "text": agree.describe(),
         },
         "agreement_freq_hz": None if agree is None else agree.agree_below_hz,
         "recommended_cutoff_hz": dict(result.recommended_cutoff_hz),
@@ -163,6 +165,7 @@ def _spread_json(sp: PositionSpread | None) -> dict[str, Any] | None:
         "relative": sp.relative.tolist(),
         "mag_db": sp.mag_db.tolist(),
         "phase_deg": sp.phase_deg.tolist(),
+        "uncertainty": None if sp.uncertainty is None else sp.uncertainty.tolist(),
     }
 
 
@@ -200,12 +203,7 @@ def report_text(summary: dict[str, Any], out_dir: Path) -> str:
         )
     agree = summary["agreement"]
     if agree is not None:
-        first = agree["first_disagree_hz"]
-        lines.append(
-            f"  curves agree within {agree['tol_db']:g} dB / {agree['tol_deg']:g} deg below "
-            f"{agree['agree_below_hz']:.3g} Hz"
-            + (f" (spread from {first:.3g} Hz)" if first is not None else " (whole band)")
-        )
+        lines.append(f"  {agree['text']}")
     top = summary["search_limit_hz"]
 
     def cutoffs(rec: dict[str, float | None]) -> str:
@@ -231,10 +229,19 @@ def report_text(summary: dict[str, Any], out_dir: Path) -> str:
             f"{x:g} Hz {np.interp(np.log(x), np.log(f), db):.2f} dB" for x in marks)
         lines.append(
             "  position spread (max - min |H|): " + (by_f or "outside the marks")
-            + "; responses diverge (> "
+            + "; beyond the measurement's uncertainty the responses diverge (> "
             + f"{20 * math.log10(1 + sp['divergence_fraction']):.2g} dB) "
             + (f"above {div:.3g} Hz" if div is not None else "nowhere on the band")
         )
+        unc = sp.get("uncertainty")
+        if unc is not None:
+            u = np.asarray(unc)
+            worst = int(np.argmax(u))
+            if u[worst] > sp["divergence_fraction"]:
+                lines.append(
+                    f"  the measurement's own uncertainty ({UNCERTAINTY_SIGMAS:g} sigma) reaches "
+                    f"{20 * math.log10(1 + u[worst]):.2g} dB at {f[worst]:.3g} Hz (noise lines, "
+                    "friction at small amplitude): differences there are not the plant's")
         if summary.get("recommended_cutoff_hz_gate_only"):
             lines.append(
                 "  without the spread as evidence (gate alone): "

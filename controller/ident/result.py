@@ -35,6 +35,7 @@ from controller.ident.estimate import (
     Agreement,
     FrdEstimate,
     agreement,
+    coherence_std,
     estimate_multisine,
     estimate_stepped_sine,
 )
@@ -197,7 +198,8 @@ class IdentifyResult:
     def measured_responses(self) -> tuple[MeasuredResponse, ...]:
         """The complete positions' responses as the gate's plant knowledge."""
         return tuple(
-            MeasuredResponse(name=p.name, freq_hz=p.estimate.freq_hz, response=p.estimate.response)
+            MeasuredResponse(name=p.name, freq_hz=p.estimate.freq_hz, response=p.estimate.response,
+                             spread=relative_uncertainty_of(p.estimate))
             for p in self.positions
             if p.complete and p.estimate is not None and p.estimate.freq_hz.size >= 2
         )
@@ -215,6 +217,18 @@ class IdentifyAborted(RuntimeError):
 
 
 # ------------------------------------------------------------------------------ estimation
+
+
+def relative_uncertainty_of(est: FrdEstimate) -> FloatArray:
+    """The estimate's relative standard uncertainty per point, |dH| / |H| = sqrt(e_mag^2 +
+    e_phase^2) (nepers and radians), from its magnitude and phase standard deviations (the
+    noise lines or the periods), or from its coherence where those are not known."""
+    mag_db, ph_deg = est.mag_std_db, est.phase_std_deg
+    alt_db, alt_deg = coherence_std(est.coherence, np.maximum(est.n_averages, 1))
+    mag_db = np.where(np.isfinite(mag_db), mag_db, alt_db)
+    ph_deg = np.where(np.isfinite(ph_deg), ph_deg, alt_deg)
+    u = np.hypot(mag_db * math.log(10.0) / 20.0, np.radians(ph_deg))
+    return np.asarray(np.nan_to_num(u, nan=0.0, posinf=1.0), dtype=np.float64)
 
 
 def continuous_equivalent(est: FrdEstimate, rate_hz: float) -> FrdEstimate:
