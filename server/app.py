@@ -48,7 +48,7 @@ from server.panels.identify import IdentifyPanel
 from server.panels.knowledge import KnowledgePanel
 from server.panels.live import LivePanel
 from server.panels.nominal_tuning import NominalTuningPanel
-from server.panels.recordings import COMPARE_TAB, RecordingsPanel
+from server.panels.recordings import RecordingsPanel
 from server.panels.widgets import EXPORT_LABEL
 from server.scene3d import TurntableScene
 from server.session import BrowserSessions, leased, tell
@@ -337,8 +337,7 @@ class Dashboard:
             live.build_charts()
         with plots.add_tab("Identify"):
             self.identify.build_charts()
-        with plots.add_tab(COMPARE_TAB):
-            recordings.build_compare()
+        recordings.build_compare(plots)  # each browser's comparison, built when it connects
         plots.dock_right()
         run_logged(lambda: gui.main_panel.dock_left(), what="docking the controls left")
         run_logged(plots.set_width, PLOTS_WIDTH_PX, what="sizing the plots panel")
@@ -397,6 +396,8 @@ class Dashboard:
                     f"<div class='dt-whoami' style='font-size:12px'>Signed in as "
                     f"<b>{esc(user)}</b>, {esc(role)}{note}</div>")
         self.panel_in(client.gui, client)
+        if self.recordings is not None:
+            self.recordings.compare_in(client.gui, client)
         client.camera.position = (0.75, -0.85, 0.75)
         client.camera.look_at = (0.15, 0.0, 0.05)
 
@@ -483,6 +484,8 @@ class Dashboard:
         if self.messages is not None:
             self.messages.forget(client.client_id)
         self.candidates.drop(client.client_id)
+        if self.recordings is not None:
+            self.recordings.drop(client.client_id)
         with self._hidden_3d_lock:
             self._hidden_3d.discard(client.client_id)
         # Forget the pages gone (a page that reported before its websocket was up reports

@@ -98,7 +98,7 @@ def gui() -> Iterator[object]:
 
 @pytest.mark.slow
 def test_the_panel_lists_and_compares_two_runs(gui: object, tmp_path: Path) -> None:
-    from server.panels.recordings import RecordingsPanel
+    from server.panels.recordings import NOT_LISTED, RecordingsPanel
 
     before = LoopConfig()
     after = before.with_(q_cutoff_hz=0.8)
@@ -107,27 +107,28 @@ def test_the_panel_lists_and_compares_two_runs(gui: object, tmp_path: Path) -> N
     (tmp_path / "3-broken.mcap").write_bytes(b"not an mcap file")
     panel = RecordingsPanel(gui, tmp_path)
     panel.build(background=False)
-    panel.build_compare()  # after the list was read: the pickers offer its files
+    view = panel.compare_in(gui)  # after the list was read: the pickers offer its files
     assert [r.name for r in panel.rows] == ["1-before.mcap", "2-after.mcap"]
     listing = panel.list_box.content
     assert "1-before.mcap" in listing and "3-broken.mcap" in listing  # named, not hidden
     assert f"{panel.rows[1].peak_error_deg:.4g} deg" in listing
-    assert panel.pick_b.value == "2-after.mcap"
-    html = panel.compare("1-before.mcap", "2-after.mcap")
+    assert view.pick_b.value == "2-after.mcap"
+    html = view.compare("1-before.mcap", "2-after.mcap")
     assert "q_cutoff_hz" in html and "0.8" in html and "-3.70 s" in html
     assert "Per configuration version" in html and "B v1" in html
     assert "1-before.mcap" in html and "2-after.mcap" in html  # both runs named
     # B's change against A: its peak is half of A's (-50 %), computed here from the rows.
     a, b = panel.rows
     assert f"{b.peak_error_deg - a.peak_error_deg:+.4g} deg (-50 %)" in html
-    x, ea, eb = panel.chart.data
+    x, ea, eb = view.chart.data
     assert len(x) <= 2000 and np.max(np.abs(eb)) == pytest.approx(
         0.5 * np.max(np.abs(ea)), rel=0.05)
     # The references overlaid: B shifted by the lag lies on A.
-    xr, ra, rb = panel.ref_chart.data
+    xr, ra, rb = view.ref_chart.data
     np.testing.assert_array_equal(xr, x)
     np.testing.assert_allclose(rb, ra, atol=0.05)
-    assert "Cannot compare" in panel.compare("1-before.mcap", "3-broken.mcap")
+    # A file the list shows as unreadable is not one of its recordings: not opened.
+    assert NOT_LISTED in view.compare("1-before.mcap", "3-broken.mcap")
 
 
 def _reversal_metrics_by_loops(t: np.ndarray, ref: np.ndarray,

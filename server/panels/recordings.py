@@ -4,10 +4,14 @@ errors aligned on their reference trajectory, metrics side by side, the configur
 a time scrubber replays the overlay through a window; Record / Stop records the rig into the
 directory (the recorder of `dobtune record`, in a thread of this process).
 
-Two places: `build` (the controls' Recordings tab: the directory, Record / Stop, the list) and
-`build_compare` (the plots panel's wide Compare runs tab: the pickers, the two runs' names and
+Two places: `build` (the controls' Recordings tab: the directory, Record / Stop, the list,
+shared) and the plots panel's wide Compare runs tab (`build_compare`), where each browser gets
+a `CompareView` of its own when it connects (`compare_in`): the pickers, the two runs' names and
 numbers side by side, the overlay charts of their errors and of their references, the replay
-scrubber, the configuration diff).
+scrubber, the configuration diff. What one browser compares is shown to that browser only, and
+any role may compare (it changes nothing); a comparison opens only recordings the list shows,
+by name (issue 31: it opened `../` and absolute paths, showed them to every browser, and its
+error told whether such a file existed).
 
 Reading and the metrics are `controller.recording` (the same as `dobtune report`); the
 alignment and the diff are `controller.recording.compare` (pure). Files are read in the
@@ -38,8 +42,8 @@ from server.escape import esc
 from server.http_access import Refused
 from server.panels.widgets import NEUTRAL, add_chart, box, set_html
 
-__all__ = ["COMPARE_TAB", "OVERLAY_CHART", "REFERENCE_CHART", "RecordingsPanel", "compare_html",
-           "list_html"]
+__all__ = ["COMPARE_TAB", "NOT_LISTED", "OVERLAY_CHART", "REFERENCE_CHART", "CompareView",
+           "RecordingsPanel", "compare_html", "list_html"]
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +75,9 @@ _NONE = "-"
 _MAX_POINTS = 2000
 #: The replay window: the scrubber shows the overlay's last this many seconds up to its time.
 REPLAY_WINDOW_S = 10.0
+#: A comparison's answer to a name the list does not show (the same whether or not a file of
+#: that name exists anywhere).
+NOT_LISTED = "Pick two of the recordings listed in the Recordings tab."
 #: Configuration fields shown in the list (the rest are in the diff).
 _SHOWN = ("dob_on", "q_type", "q_cutoff_hz", "ff_on")
 
@@ -166,17 +173,15 @@ class RecordingsPanel:
         self.recording_to: Path | None = None
         self.last_record_output = ""
         self.record_box: Any = None
-        self.scrub: Any = None
-        self._aligned: Any = None
         self._lock = threading.Lock()
+        self._build_lock = threading.Lock()
+        self.compare_tab: Any = None
+        """The plots panel's Compare runs tab (`build_compare`; None: not built)."""
+        self._views: dict[int, CompareView] = {}
+        """Each browser's comparison by viser client id (-1: built without a browser)."""
         self._cache: dict[Path, tuple[tuple[int, float], SummaryRow]] = {}
         self.rows: list[SummaryRow] = []
-        self.chart: Any = None
-        self.ref_chart: Any = None
         self.list_box: Any = None
-        self.compare_box: Any = None
-        self.pick_a: Any = None
-        self.pick_b: Any = None
 
     def build(self, background: bool = True) -> None:
         """The directory, Record / Stop and the list; the directory is then read in a thread
@@ -203,30 +208,37 @@ class RecordingsPanel:
         else:
             self.refresh()
 
-    def build_compare(self) -> None:
-        """The comparison, in the wide plots panel: the pickers, the two runs' names and
-        numbers, the overlay charts, the replay scrubber."""
-        gui = self.gui
-        self.pick_a = gui.add_dropdown("A (before)", (_NONE,), initial_value=_NONE)
-        self.pick_b = gui.add_dropdown("B (after)", (_NONE,), initial_value=_NONE)
-        compare = gui.add_button("Compare", hint="overlay B's error on A's, aligned on the "
-                                 "reference trajectory; metrics and configuration diff")
-        compare.on_click(lambda _e: self.compare(self.pick_a.value, self.pick_b.value))
-        self.compare_box = gui.add_html(box(
-            "dt-compare", NEUTRAL, "Pick two recordings (the list: the controls' Recordings "
-            "tab) and press Compare."))
-        # Empty: NaN on a fixed y scale draws nothing (zeros drew a flat line that read as data).
-        for attr, spec in (("chart", OVERLAY_CHART), ("ref_chart", REFERENCE_CHART)):
-            empty = (np.array([0.0, 1.0]), np.full(2, np.nan), np.full(2, np.nan))
-            handle = add_chart(gui, spec, empty)
-            handle.scales = ranged_scales(spec, empty)
-            setattr(self, attr, handle)
-        self.scrub = gui.add_slider(
-            "Replay at (s)", min=0.0, max=1.0, step=0.1, initial_value=1.0,
-            hint=f"the overlay's last {REPLAY_WINDOW_S:g} s up to this time; the end shows the "
-            "whole run")
-        self.scrub.on_update(lambda _e: self.replay(float(self.scrub.value)))
-        self._show_names(self.rows)
+    def build_compare(self, plots: Any) -> None:
+        """The plots panel's Compare runs tab; each browser's comparison is built in it when
+        the browser connects (`compare_in`)."""
+        self.compare_tab = plots.add_tab(COMPARE_TAB)
+
+    def compare_in(self, gui: Any, browser: Any = None) -> CompareView:
+        """A comparison of `browser`'s own, in its `gui` (in the Compare runs tab when
+        `build_compare` made one; else where `gui` builds now), offering the files listed."""
+        view = CompareView(gui, self)
+        with self._build_lock:  # a tab takes one `with` at a time
+            if self.compare_tab is not None:
+                with self.compare_tab:
+                    view.build()
+            else:
+                view.build()
+        key = getattr(browser, "client_id", -1)
+        with self._lock:
+            self._views[key] = view
+            rows = self.rows
+        view.show_names(rows)
+        return view
+
+    def drop(self, browser_id: int) -> None:
+        """The browser left: its comparison goes (its GUI went with it)."""
+        with self._lock:
+            self._views.pop(browser_id, None)
+
+    def view_of(self, browser: Any) -> CompareView | None:
+        """`browser`'s comparison (None: none; no browser: the one built without one)."""
+        with self._lock:
+            return self._views.get(getattr(browser, "client_id", -1))
 
     # -- the list ------------------------------------------------------------------------------
 
@@ -262,59 +274,16 @@ class RecordingsPanel:
         return rows
 
     def _show_names(self, rows: list[SummaryRow]) -> None:
-        """The pickers offer the files listed (B: the newest when A and B are the same)."""
-        names = tuple(r.name for r in rows) or (_NONE,)
-        for pick in (self.pick_a, self.pick_b):
-            if pick is not None and tuple(pick.options) != names:
-                pick.options = names
-        if self.pick_b is not None and len(rows) >= 2 and self.pick_b.value == rows[0].name:
-            self.pick_b.value = rows[-1].name
+        with self._lock:
+            views = list(self._views.values())
+        for view in views:
+            view.show_names(rows)
 
-    # -- two runs ------------------------------------------------------------------------------
-
-    def compare(self, name_a: str, name_b: str) -> str:
-        """Overlay B on A; returns (and shows) the comparison's HTML, or why not."""
-        if _NONE in (name_a, name_b):
-            return self._say("Pick two recordings.")
-        try:
-            rec_a, rec_b = read_recordings((self.directory / name_a, self.directory / name_b))
-            al = align_runs(*_columns(rec_a), *_columns(rec_b))
-        except (OSError, ValueError) as exc:
-            return self._say(f"Cannot compare: {exc}")
-        row_a = summary_row(name_a, rec_a.configs, metrics(rec_a))
-        row_b = summary_row(name_b, rec_b.configs, metrics(rec_b))
-        html = compare_html(row_a, row_b, al.lag_s, al.correlation)
-        self._aligned = al
-        if self.scrub is not None:
-            end = float(al.t_s[-1]) if len(al.t_s) else 1.0
-            self.scrub.max = round(max(end, 0.1), 1)
-            self.scrub.value = self.scrub.max  # the whole run
-        self.replay(math.inf)
-        return self._say(html, raw=True)
-
-    def replay(self, t_s: float) -> tuple[np.ndarray, ...] | None:
-        """The overlay up to `t_s` in a REPLAY_WINDOW_S window (inf, or the end: all of it);
-        returns the error chart's data (None: nothing compared yet). The reference chart
-        shows the same window."""
-        al = self._aligned
-        if al is None or len(al.t_s) == 0:
-            return None
-        t, ea, eb, ra, rb = al.t_s, al.error_a_deg, al.error_b_deg, al.ref_a_deg, al.ref_b_deg
-        if t_s < float(t[-1]) - 1e-9:
-            keep = (t >= t_s - REPLAY_WINDOW_S) & (t <= t_s)
-            if np.count_nonzero(keep) >= 2:
-                t, ea, eb, ra, rb = t[keep], ea[keep], eb[keep], ra[keep], rb[keep]
-        x, (da, db) = minmax_decimate(t, [ea, eb], _MAX_POINTS)
-        data = (x, da, db)
-        xr, (dra, drb) = minmax_decimate(t, [ra, rb], _MAX_POINTS)
-        for handle, spec, d in ((self.chart, OVERLAY_CHART, data),
-                                (self.ref_chart, REFERENCE_CHART, (xr, dra, drb))):
-            if handle is not None:
-                scales = ranged_scales(spec, d)
-                if scales != handle.scales:  # a new scale re-creates the chart
-                    handle.scales = scales
-                handle.data = d
-        return data
+    def listed_path(self, name: str) -> Path | None:
+        """The file of recording `name` when the list shows it (None: it does not)."""
+        with self._lock:
+            listed = any(r.name == name for r in self.rows)
+        return self.directory / name if listed and Path(name).name == name else None
 
     # -- recording -----------------------------------------------------------------------------
 
@@ -387,6 +356,105 @@ class RecordingsPanel:
             color = "color:#d62728;" if error else ""
             set_html(self.record_box, f"<div class='dt-record' style='font-size:12px;{color}'>"
                      f"{esc(text)}</div>")
+
+
+class CompareView:
+    """One browser's comparison in the Compare runs tab: its pickers (the files listed), the
+    two runs' names and numbers, the overlay charts, the replay scrubber."""
+
+    def __init__(self, gui: Any, panel: RecordingsPanel) -> None:
+        self.gui = gui
+        self.panel = panel
+        self._aligned: Any = None
+        self.pick_a: Any = None
+        self.pick_b: Any = None
+        self.compare_button: Any = None
+        self.compare_box: Any = None
+        self.chart: Any = None
+        self.ref_chart: Any = None
+        self.scrub: Any = None
+
+    def build(self) -> None:
+        gui = self.gui
+        self.pick_a = gui.add_dropdown("A (before)", (_NONE,), initial_value=_NONE)
+        self.pick_b = gui.add_dropdown("B (after)", (_NONE,), initial_value=_NONE)
+        self.compare_button = gui.add_button(
+            "Compare", hint="overlay B's error on A's, aligned on the reference trajectory; "
+            "metrics and configuration diff (in this browser)")
+        self.compare_button.on_click(
+            lambda _e: self.compare(self.pick_a.value, self.pick_b.value))
+        self.compare_box = gui.add_html(box(
+            "dt-compare", NEUTRAL, "Pick two recordings (the list: the controls' Recordings "
+            "tab) and press Compare."))
+        # Empty: NaN on a fixed y scale draws nothing (zeros drew a flat line that read as data).
+        for attr, spec in (("chart", OVERLAY_CHART), ("ref_chart", REFERENCE_CHART)):
+            empty = (np.array([0.0, 1.0]), np.full(2, np.nan), np.full(2, np.nan))
+            handle = add_chart(gui, spec, empty)
+            handle.scales = ranged_scales(spec, empty)
+            setattr(self, attr, handle)
+        self.scrub = gui.add_slider(
+            "Replay at (s)", min=0.0, max=1.0, step=0.1, initial_value=1.0,
+            hint=f"the overlay's last {REPLAY_WINDOW_S:g} s up to this time; the end shows the "
+            "whole run")
+        self.scrub.on_update(lambda _e: self.replay(float(self.scrub.value)))
+
+    def show_names(self, rows: list[SummaryRow]) -> None:
+        """The pickers offer the files listed (B: the newest when A and B are the same)."""
+        names = tuple(r.name for r in rows) or (_NONE,)
+        for pick in (self.pick_a, self.pick_b):
+            if pick is not None and tuple(pick.options) != names:
+                pick.options = names
+        if self.pick_b is not None and len(rows) >= 2 and self.pick_b.value == rows[0].name:
+            self.pick_b.value = rows[-1].name
+
+    def compare(self, name_a: str, name_b: str) -> str:
+        """Overlay B on A; returns (and shows, in this browser) the comparison's HTML, or why
+        not. Only recordings the list shows are opened: any other name (a path, `../`, a file
+        not listed) gets `NOT_LISTED`, whether or not such a file exists."""
+        if _NONE in (name_a, name_b):
+            return self._say("Pick two recordings.")
+        path_a, path_b = self.panel.listed_path(name_a), self.panel.listed_path(name_b)
+        if path_a is None or path_b is None:
+            return self._say(NOT_LISTED)
+        try:
+            rec_a, rec_b = read_recordings((path_a, path_b))
+            al = align_runs(*_columns(rec_a), *_columns(rec_b))
+        except (OSError, ValueError) as exc:
+            return self._say(f"Cannot compare: {exc}")
+        row_a = summary_row(name_a, rec_a.configs, metrics(rec_a))
+        row_b = summary_row(name_b, rec_b.configs, metrics(rec_b))
+        html = compare_html(row_a, row_b, al.lag_s, al.correlation)
+        self._aligned = al
+        if self.scrub is not None:
+            end = float(al.t_s[-1]) if len(al.t_s) else 1.0
+            self.scrub.max = round(max(end, 0.1), 1)
+            self.scrub.value = self.scrub.max  # the whole run
+        self.replay(math.inf)
+        return self._say(html, raw=True)
+
+    def replay(self, t_s: float) -> tuple[np.ndarray, ...] | None:
+        """The overlay up to `t_s` in a REPLAY_WINDOW_S window (inf, or the end: all of it);
+        returns the error chart's data (None: nothing compared yet). The reference chart
+        shows the same window."""
+        al = self._aligned
+        if al is None or len(al.t_s) == 0:
+            return None
+        t, ea, eb, ra, rb = al.t_s, al.error_a_deg, al.error_b_deg, al.ref_a_deg, al.ref_b_deg
+        if t_s < float(t[-1]) - 1e-9:
+            keep = (t >= t_s - REPLAY_WINDOW_S) & (t <= t_s)
+            if np.count_nonzero(keep) >= 2:
+                t, ea, eb, ra, rb = t[keep], ea[keep], eb[keep], ra[keep], rb[keep]
+        x, (da, db) = minmax_decimate(t, [ea, eb], _MAX_POINTS)
+        data = (x, da, db)
+        xr, (dra, drb) = minmax_decimate(t, [ra, rb], _MAX_POINTS)
+        for handle, spec, d in ((self.chart, OVERLAY_CHART, data),
+                                (self.ref_chart, REFERENCE_CHART, (xr, dra, drb))):
+            if handle is not None:
+                scales = ranged_scales(spec, d)
+                if scales != handle.scales:  # a new scale re-creates the chart
+                    handle.scales = scales
+                handle.data = d
+        return data
 
     def _say(self, text: str, raw: bool = False) -> str:
         html = text if raw else box("dt-compare", NEUTRAL, esc(text))
