@@ -126,9 +126,9 @@ def test_suggest_puts_the_best_accepted_setting_into_the_candidate_never_applies
         t.revert(say=False)
         assert t.wait_idle(5.0)
         base = t.candidate()
-        t.request_suggest()
-        assert t.wait_suggest_idle(120.0)
-        res = t.last_suggestion
+        t.suggest.request()
+        assert t.suggest.wait_idle(120.0)
+        res = t.suggest.last
         assert res is not None and len(res.curve) >= 10
         # The best, found again from the curve: the lowest score among accepted points, and
         # only if it beats the DOB off.

@@ -4,10 +4,13 @@ controller's reply (`StepState`: what the guided path shows of it)."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import viser
 
+from controller.core.config import LoopConfig
+from controller.core.verdict import Verdict
 from server.escape import esc
 from server.panels.tuning_html import apply_why_html
 from server.panels.widgets import ACCEPT, CAUTION, NEUTRAL, REJECT, box, set_html
@@ -122,3 +125,34 @@ class ApplyBox:
     def show_error(self, text: str) -> None:
         self.state = StepState("failed", None, f"error: {text}")
         self.result.content = box("dt-apply", REJECT, f"<b>Error</b>: {esc(text)}")
+
+    def checked(self, cand: LoopConfig, active: LoopConfig, stale: bool, stale_by_reset: bool,
+                base_version: int | None, judge: Callable[[LoopConfig], Verdict]
+                ) -> Verdict | None:
+        """The dashboard's own checks before it sends `cand` (whatever the browser's button
+        showed): the gate's verdict on it (accept or caution), or None when it is not sent
+        (said in the box and the state): made against a version since reset (the controller
+        would take it: its version number matches), the active configuration itself (a new
+        version of it changes nothing on the rig), rejected by the gate."""
+        if stale_by_reset:
+            self.not_sent(
+                "dt-apply dt-apply-rejected", REJECT,
+                f"<b>Not sent</b>: made against v{base_version} as it was before the "
+                "controller's state was reset; Revert first.",
+                "not sent: made against a version since reset")
+            return None
+        if cand == active and not stale:
+            self.not_sent(
+                "dt-apply dt-apply-same", NEUTRAL,
+                "<b>Not sent</b>: the candidate is the active configuration.",
+                "not sent: the candidate is the active configuration")
+            return None
+        verdict = judge(cand)
+        if verdict.verdict == "reject":
+            self.not_sent(
+                "dt-apply dt-apply-rejected", REJECT,
+                "<b>Not sent</b>: the gate rejects this candidate"
+                f"{_reason_list(verdict.reasons, 'dt-reject-reason')}",
+                "not sent: the gate rejects it: " + "; ".join(verdict.reasons[:1]))
+            return None
+        return verdict

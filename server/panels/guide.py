@@ -179,7 +179,7 @@ class GuidePanel:
         elif what == "Use fit" and self.identify is not None:
             self.identify.use_as_nominal(browser)
         elif what == "Suggest":
-            self.tuning.request_suggest()
+            self.tuning.suggest.request()
         elif what == "Apply":
             why = self.tuning.apply_blocked()
             if why:
@@ -253,12 +253,12 @@ class GuidePanel:
             + ("in your candidate" if used else "not in your candidate: press Use fit"))
 
     def _suggest(self) -> StepState:
-        s = self.tuning.suggest_state
+        s = self.tuning.suggest.state
         if s.state == "todo":
             return StepState("todo", None, "press Suggest: the best Q type and cut-off on the "
                              "simulated rig, put into your candidate (never applied)")
-        if s.state == "done" and self.tuning.last_suggestion is not None:
-            r = self.tuning.last_suggestion
+        if s.state == "done" and self.tuning.suggest.last is not None:
+            r = self.tuning.suggest.last
             best = r.best
             what = (f"suggested {best.q_type.upper()} at {best.q_cutoff_hz:.3g} Hz"
                     if r.dob_helps and best is not None else "suggested: DOB off")

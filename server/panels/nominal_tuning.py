@@ -44,9 +44,9 @@ class NominalTuningPanel(TuningPanel):
     def restore_nominal(self, nominal: NominalModel | None) -> None:
         self.nominal_override = nominal
 
-    def _cutoff_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
-                     error: str = "") -> str:
-        html = super()._cutoff_html(cutoff_hz, rec, known, error)
+    def cutoff_line_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
+                         error: str = "") -> str:
+        html = super().cutoff_line_html(cutoff_hz, rec, known, error)
         n = self.nominal_override
         if n is None:
             return html

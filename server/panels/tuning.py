@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -24,29 +23,25 @@ import viser
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
-from controller.tune.autotune import TuneResult
 from server.candidate_apply import CandidateApply
 from server.candidate_store import KeptCandidate
-from server.engine import Evaluation, PreviewResult, TuningEngine, candidate_from_values
+from server.engine import Evaluation, TuningEngine, candidate_from_values
 from server.escape import esc
 from server.panels.apply_box import ApplyBox, StepState
 from server.panels.bode import BodeTab
+from server.panels.candidate_analysis import CandidateAnalysis
 from server.panels.controls import CandidateControls, cutoff_marks, kept_problem
 from server.panels.suggest_step import SuggestStep
 from server.panels.tuning_html import (
     active_html,
-    computing_html,
     config_diff_html,
     cutoff_html,
-    diff_html,
     format_gate_html,
     kept_problem_html,
-    preview_html,
     stale_html,
 )
 from server.panels.widgets import NEUTRAL, REJECT, box, confirm, set_html
 from server.panels.widgets import reason_list as _reason_list
-from server.workers import LatestWins
 
 __all__ = ["StepState", "TuningPanel", "config_diff_html", "cutoff_marks", "format_gate_html",
            "kept_problem"]
@@ -81,7 +76,6 @@ class TuningPanel:
         self.base_version: int | None = None
         """The active version this candidate was made against (None: not known yet)."""
         self.trajectory = Trajectory()
-        self._gen_lock = threading.Lock()
         self._controls_lock = threading.RLock()
         """Held while a control's change is read and judged, while the controls are set as a
         whole (`load`, `restore`) and while `set_active` decides whether the first known
@@ -89,22 +83,11 @@ class TuningPanel:
         self.controls = CandidateControls(gui, self._controls_lock, self.request_update)
         self.box = ApplyBox()
         self.suggest = SuggestStep(self)
-        self._submitted_gen = self._done_gen = 0
+        self.analysis = CandidateAnalysis(self)
         self._on_change = on_change
         self._started = False
-        self._invalid = self._same_as_active = False
-        self._verdict_color = "gray"
-        self.verdict: viser.GuiHtmlHandle | None = None
-        self.last_update_s = 0.0
-        self.last_evaluation: Evaluation | None = None
-        self.last_preview: PreviewResult | None = None
-        self.update_count = 0
         self.bode: BodeTab | None = None
         self._charts: dict[str, Any] = {}
-        self._worker = LatestWins(self._update, name="tuning-update")
-        self._preview_worker = LatestWins(
-            self._run_preview, name="tuning-preview", debounce_s=0.08
-        )
         self._restored = False
         self._restored_against: LoopConfig | None = None
         """Restored (`restore`) and not loaded or re-based since: the controller's
@@ -116,15 +99,16 @@ class TuningPanel:
 
     def build_controls(self) -> None:
         gui = self.gui
-        self.controls.build(self.active, self._cutoff_html(self.active.q_cutoff_hz, None))
+        self.controls.build(self.active, self.cutoff_line_html(self.active.q_cutoff_hz, None))
         for name, handle in self.controls.handles().items():
             setattr(self, name, handle)  # (t.cv_kp, t.cutoff_log, ...: scripts and tests)
         self.cutoff_text = self.controls.cutoff_text
-        self.computing = gui.add_html(computing_html(True))
-        self.verdict = gui.add_html('<div class="dt-verdict">evaluating...</div>')
+        self.analysis.build_verdict(gui)
+        self.computing, self.verdict = self.analysis.computing, self.analysis.verdict
         self.stale_text = gui.add_html('<div class="dt-stale"></div>')
         self.kept_problem = gui.add_html(kept_problem_html(""))
-        self.diff_text = gui.add_html('<div class="dt-diff"></div>')
+        self.analysis.build_diff(gui)
+        self.diff_text = self.analysis.diff_text
         self.box.build_button(gui)
         self.apply_button, self.apply_why = self.box.button, self.box.why
         self.revert_button = gui.add_button("Revert to active", color="gray")
@@ -146,31 +130,13 @@ class TuningPanel:
 
     def start(self) -> None:
         self._started = True
-        self._worker.start()
-        self._preview_worker.start()
+        self.analysis.start()
         self.suggest.start()
         self.request_update()
 
     def stop(self) -> None:
-        self._worker.stop()
-        self._preview_worker.stop()
+        self.analysis.stop()
         self.suggest.stop()
-
-    # -- Suggest (server/panels/suggest_step.py) ----------------------------------------------
-
-    def request_suggest(self) -> None:
-        self.suggest.request()
-
-    def wait_suggest_idle(self, timeout_s: float = 60.0) -> bool:
-        return self.suggest.wait_idle(timeout_s)
-
-    @property
-    def suggest_state(self) -> StepState:
-        return self.suggest.state
-
-    @property
-    def last_suggestion(self) -> TuneResult | None:
-        return self.suggest.last
 
     # -- the candidate -----------------------------------------------------------------------
 
@@ -245,51 +211,33 @@ class TuningPanel:
     # -- the verdict -------------------------------------------------------------------------
 
     def request_update(self) -> None:
-        if self._on_change is not None and self._started and self.verdict is not None:
+        """The candidate may have changed: kept (`on_change`) and judged again."""
+        if self._on_change is not None and self._started and self.analysis.built:
             self._on_change(self)
-        with self._gen_lock:
-            self._submitted_gen += 1
-            gen = self._submitted_gen
-        if self.verdict is not None:
-            set_html(self.computing, computing_html(True))
-            self._refresh_apply()
-        self._worker.submit(gen)
+        self.analysis.request()
+
+    # (what scripts and tests read of the analysis: `CandidateAnalysis`)
+
+    @property
+    def last_evaluation(self) -> Evaluation | None:
+        return self.analysis.last_evaluation
+
+    @property
+    def update_count(self) -> int:
+        return self.analysis.update_count
 
     @property
     def computing_verdict(self) -> bool:
-        """A change is not evaluated yet: the verdict shown is of an earlier candidate."""
-        with self._gen_lock:
-            return self._done_gen < self._submitted_gen
+        return self.analysis.computing_verdict
 
     def apply_blocked(self) -> str:
-        """Why Apply is disabled ("" : it is enabled): only a current (evaluated), valid,
-        non-stale candidate that differs from the active configuration may be sent."""
-        return ("computing the verdict" if self.computing_verdict
-                else "invalid candidate" if self._invalid
-                else "made against a version the controller has since reset (Revert first)"
-                if self.stale_by_reset
-                else "based on an older version (Revert first)" if self.stale
-                else "the candidate is the active configuration: nothing to send"
-                if self._same_as_active else "")
-
-    def _refresh_apply(self) -> None:
-        self.box.refresh(self.apply_blocked(), self._verdict_color)
-
-    def _evaluated(self, gen: int, invalid: bool) -> None:
-        """`_update` for submission `gen` is done (`invalid`: the controls give no config)."""
-        with self._gen_lock:
-            self._done_gen = max(self._done_gen, gen)
-            current = self._done_gen >= self._submitted_gen
-        self._invalid = invalid
-        if current:
-            set_html(self.computing, computing_html(False))
-        self._refresh_apply()
+        return self.analysis.apply_blocked()
 
     def wait_idle(self, timeout_s: float = 5.0) -> bool:
-        return self._worker.wait_idle(timeout_s)
+        return self.analysis.wait_idle(timeout_s)
 
     def wait_preview_idle(self, timeout_s: float = 10.0) -> bool:
-        return self._worker.wait_idle(timeout_s) and self._preview_worker.wait_idle(timeout_s)
+        return self.analysis.wait_preview_idle(timeout_s)
 
     # -- the active configuration ------------------------------------------------------------
 
@@ -337,33 +285,12 @@ class TuningPanel:
                               f"not sent: {exc}")
             return
         self.sent = cand
-        if self.stale_by_reset:
-            # The controller would take it (its version number matches): refused here.
-            self.box.not_sent(
-                "dt-apply dt-apply-rejected", REJECT,
-                f"<b>Not sent</b>: made against v{self.base_version} as it was before the "
-                "controller's state was reset; Revert first.",
-                "not sent: made against a version since reset")
+        verdict = self.box.checked(cand, self.active, self.stale, self.stale_by_reset,
+                                   self.base_version, lambda c: self.engine.evaluate(c).verdict)
+        if verdict is None:
             return
-        if cand == self.active and not self.stale:
-            # Checked here too, whatever the browser's button showed: a new version of the
-            # same configuration changes nothing on the rig.
-            self.box.not_sent(
-                "dt-apply dt-apply-same", NEUTRAL,
-                "<b>Not sent</b>: the candidate is the active configuration.",
-                "not sent: the candidate is the active configuration")
-            return
-        ev = self.engine.evaluate(cand)
-        if ev.verdict.verdict == "reject":
-            # Checked here, on the server, whatever the browser's button showed.
-            self.box.not_sent(
-                "dt-apply dt-apply-rejected", REJECT,
-                "<b>Not sent</b>: the gate rejects this candidate"
-                f"{_reason_list(ev.verdict.reasons, 'dt-reject-reason')}",
-                "not sent: the gate rejects it: " + "; ".join(ev.verdict.reasons[:1]))
-            return
-        if ev.verdict.verdict == "caution":
-            self._confirm_caution(cand, ev.verdict.reasons, browser)
+        if verdict.verdict == "caution":
+            self._confirm_caution(cand, verdict.reasons, browser)
             return
         self.box.sending(confirmed=False)
         self.applier.submit(self, cand, False, browser)
@@ -408,58 +335,11 @@ class TuningPanel:
                 self.box.say(say_text)
             self.request_update()
 
-    # -- the workers -------------------------------------------------------------------------
-
-    def _update(self, gen: int) -> None:
-        t0 = time.perf_counter()
-        try:
-            cand = self.candidate()
-        except ConfigError as exc:
-            set_html(self.verdict, format_gate_html(None, str(exc)))
-            set_html(self.cutoff_text, self._cutoff_html(self.cutoff_hz, None, True,
-                                                         error=self.controls.cutoff_error))
-            set_html(self.diff_text, "<div class='dt-diff'></div>")
-            self._verdict_color = "red"
-            self._same_as_active = False
-            self._evaluated(gen, invalid=True)
-            return
-        cmp = self.engine.compare(cand, self.active)
-        if self.bode is not None:
-            self.bode.show(cmp)
-        ev = cmp.candidate
-        set_html(self.verdict, format_gate_html(ev))
-        set_html(self.diff_text, diff_html(cand, self.active, self.active_version))
-        known, rec = self.engine.cached_recommendation(cand)
-        set_html(self.cutoff_text, self._cutoff_html(cand.q_cutoff_hz, rec, known))
-        if known:
-            self.controls.update_marks(rec)
-        self._verdict_color = {"accept": "green", "caution": "orange"}.get(
-            ev.verdict.verdict, "red")
-        self._same_as_active = cand == self.active
-        self.last_evaluation = ev
-        self.last_update_s = time.perf_counter() - t0
-        self.update_count += 1
-        self._evaluated(gen, invalid=False)
-        self._preview_worker.submit((cand, self.active, self.trajectory))
-
-    def _run_preview(self, item: tuple[LoopConfig, LoopConfig, Trajectory]) -> None:
-        cand, active, traj = item
-        known, _ = self.engine.cached_recommendation(cand)
-        if not known:
-            rec = self.engine.recommended_max_cutoff_hz(cand)
-            set_html(self.cutoff_text, self._cutoff_html(cand.q_cutoff_hz, rec, True))
-            self.controls.update_marks(rec)
-        p = self.engine.compare_preview(cand, active, traj)
-        if self.bode is not None:
-            self.bode.steps_chart.data = self.engine.steps_data(cand, active)
-            self.bode.preview_chart.data = p.chart_data
-            set_html(self.bode.preview_text, preview_html(traj, p))
-        self.last_preview = p.candidate
-
     # -- text --------------------------------------------------------------------------------
 
-    def _cutoff_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
-                     error: str = "") -> str:
+    def cutoff_line_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
+                         error: str = "") -> str:
+        """The cut-off line under the slider (`tuning_html.cutoff_html`)."""
         return cutoff_html(cutoff_hz, rec, known, error, self.engine.position_spread())
 
     def show_kept_problem(self, text: str) -> None:

@@ -110,7 +110,7 @@ def test_each_browser_edits_its_own_candidate(
         other.get_by_role("button", name="Suggest Q cut-off").click()
         other.wait_for_selector(".dt-suggest-done", timeout=120_000)
         assert b_panel.wait_idle(10.0)
-        res = b_panel.last_suggestion
+        res = b_panel.suggest.last
         assert res is not None
         want = "DOB off" if not res.dob_helps else f"{res.best.q_cutoff_hz:.3g} Hz"
         assert want in other.locator(".dt-suggest").first.inner_text()

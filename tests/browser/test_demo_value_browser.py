@@ -83,7 +83,7 @@ def test_preview_shows_dob_off_beside_and_suggest_beats_it(
 
     page.get_by_role("button", name="Suggest Q cut-off").click()
     page.wait_for_selector(".dt-suggest-done", timeout=240_000)
-    res = panel.last_suggestion
+    res = panel.suggest.last
     assert res is not None
     assert res.dob_helps, res.summary()  # the demo's point: some DOB setting beats DOB off
     best = res.best

@@ -269,7 +269,7 @@ def test_the_guided_path_suggests_and_checks(
     _wait_step(page, "suggest", "running|done|failed", 60.0)
     state, text = _wait_step(page, "suggest", "done|failed", 240.0)
     assert state == "done", text
-    res = only_panel(dashboard).last_suggestion
+    res = only_panel(dashboard).suggest.last
     assert res is not None
     want = (f"{res.best.q_type.upper()} at {res.best.q_cutoff_hz:.3g} Hz"
             if res.dob_helps and res.best is not None else "DOB off")

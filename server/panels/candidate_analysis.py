@@ -1,0 +1,186 @@
+"""A candidate's analysis: every change wakes one worker that evaluates only the newest
+candidate (latest wins: the verdict, the charts, the difference from the active configuration,
+the cut-off line); a second, debounced worker runs the preview and the recommended cut-off.
+Apply is on only when the verdict shown is the present candidate's."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Protocol
+
+import viser
+
+from controller.core.config import LoopConfig
+from controller.core.errors import ConfigError
+from controller.core.trajectory import Trajectory
+from server.engine import Evaluation, PreviewResult, TuningEngine
+from server.panels.apply_box import ApplyBox
+from server.panels.bode import BodeTab
+from server.panels.controls import CandidateControls
+from server.panels.tuning_html import computing_html, diff_html, format_gate_html, preview_html
+from server.panels.widgets import set_html
+from server.workers import LatestWins
+
+__all__ = ["AnalysedCandidate", "CandidateAnalysis"]
+
+
+class AnalysedCandidate(Protocol):
+    """What the analysis needs of its candidate panel."""
+
+    engine: TuningEngine
+    active: LoopConfig
+    active_version: int | None
+    trajectory: Trajectory
+    controls: CandidateControls
+    bode: BodeTab | None
+    box: ApplyBox
+
+    @property
+    def stale(self) -> bool: ...
+
+    @property
+    def stale_by_reset(self) -> bool: ...
+
+    def candidate(self) -> LoopConfig: ...
+
+    def cutoff_line_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
+                         error: str = "") -> str: ...
+
+
+class CandidateAnalysis:
+    """The verdict box, the difference line and the workers of one candidate panel."""
+
+    computing: viser.GuiHtmlHandle
+    verdict: viser.GuiHtmlHandle
+    diff_text: viser.GuiHtmlHandle
+
+    def __init__(self, panel: AnalysedCandidate) -> None:
+        self.panel = panel
+        self._gen_lock = threading.Lock()
+        self._submitted_gen = self._done_gen = 0
+        self._invalid = self._same_as_active = False
+        self._verdict_color = "gray"
+        self.built = False
+        self.last_update_s = 0.0
+        self.last_evaluation: Evaluation | None = None
+        self.last_preview: PreviewResult | None = None
+        self.update_count = 0
+        self._worker = LatestWins(self._update, name="tuning-update")
+        self._preview_worker = LatestWins(
+            self._run_preview, name="tuning-preview", debounce_s=0.08
+        )
+
+    def build_verdict(self, gui: viser.GuiApi) -> None:
+        self.computing = gui.add_html(computing_html(True))
+        self.verdict = gui.add_html('<div class="dt-verdict">evaluating...</div>')
+
+    def build_diff(self, gui: viser.GuiApi) -> None:
+        self.diff_text = gui.add_html('<div class="dt-diff"></div>')
+        self.built = True
+
+    def start(self) -> None:
+        self._worker.start()
+        self._preview_worker.start()
+
+    def stop(self) -> None:
+        self._worker.stop()
+        self._preview_worker.stop()
+
+    def request(self) -> None:
+        """The candidate may have changed: evaluate it (the newest only), Apply off meanwhile."""
+        with self._gen_lock:
+            self._submitted_gen += 1
+            gen = self._submitted_gen
+        if self.built:
+            set_html(self.computing, computing_html(True))
+            self.refresh_apply()
+        self._worker.submit(gen)
+
+    @property
+    def computing_verdict(self) -> bool:
+        """A change is not evaluated yet: the verdict shown is of an earlier candidate."""
+        with self._gen_lock:
+            return self._done_gen < self._submitted_gen
+
+    def apply_blocked(self) -> str:
+        """Why Apply is disabled ("" : it is enabled): only a current (evaluated), valid,
+        non-stale candidate that differs from the active configuration may be sent."""
+        p = self.panel
+        return ("computing the verdict" if self.computing_verdict
+                else "invalid candidate" if self._invalid
+                else "made against a version the controller has since reset (Revert first)"
+                if p.stale_by_reset
+                else "based on an older version (Revert first)" if p.stale
+                else "the candidate is the active configuration: nothing to send"
+                if self._same_as_active else "")
+
+    def refresh_apply(self) -> None:
+        self.panel.box.refresh(self.apply_blocked(), self._verdict_color)
+
+    def _evaluated(self, gen: int, invalid: bool) -> None:
+        """`_update` for submission `gen` is done (`invalid`: the controls give no config)."""
+        with self._gen_lock:
+            self._done_gen = max(self._done_gen, gen)
+            current = self._done_gen >= self._submitted_gen
+        self._invalid = invalid
+        if current:
+            set_html(self.computing, computing_html(False))
+        self.refresh_apply()
+
+    def wait_idle(self, timeout_s: float = 5.0) -> bool:
+        return self._worker.wait_idle(timeout_s)
+
+    def wait_preview_idle(self, timeout_s: float = 10.0) -> bool:
+        return self._worker.wait_idle(timeout_s) and self._preview_worker.wait_idle(timeout_s)
+
+    # -- the workers -------------------------------------------------------------------------
+
+    def _update(self, gen: int) -> None:
+        p, engine = self.panel, self.panel.engine
+        t0 = time.perf_counter()
+        try:
+            cand = p.candidate()
+        except ConfigError as exc:
+            set_html(self.verdict, format_gate_html(None, str(exc)))
+            set_html(p.controls.cutoff_text, p.cutoff_line_html(
+                p.controls.cutoff_hz, None, True, error=p.controls.cutoff_error))
+            set_html(self.diff_text, "<div class='dt-diff'></div>")
+            self._verdict_color = "red"
+            self._same_as_active = False
+            self._evaluated(gen, invalid=True)
+            return
+        active = p.active
+        cmp = engine.compare(cand, active)
+        if p.bode is not None:
+            p.bode.show(cmp)
+        ev = cmp.candidate
+        set_html(self.verdict, format_gate_html(ev))
+        set_html(self.diff_text, diff_html(cand, active, p.active_version))
+        known, rec = engine.cached_recommendation(cand)
+        set_html(p.controls.cutoff_text, p.cutoff_line_html(cand.q_cutoff_hz, rec, known))
+        if known:
+            p.controls.update_marks(rec)
+        self._verdict_color = {"accept": "green", "caution": "orange"}.get(
+            ev.verdict.verdict, "red")
+        self._same_as_active = cand == active
+        self.last_evaluation = ev
+        self.last_update_s = time.perf_counter() - t0
+        self.update_count += 1
+        self._evaluated(gen, invalid=False)
+        self._preview_worker.submit((cand, active, p.trajectory))
+
+    def _run_preview(self, item: tuple[LoopConfig, LoopConfig, Trajectory]) -> None:
+        p, engine = self.panel, self.panel.engine
+        cand, active, traj = item
+        known, _ = engine.cached_recommendation(cand)
+        if not known:
+            rec = engine.recommended_max_cutoff_hz(cand)
+            set_html(p.controls.cutoff_text, p.cutoff_line_html(cand.q_cutoff_hz, rec, True))
+            p.controls.update_marks(rec)
+        preview = engine.compare_preview(cand, active, traj)
+        if p.bode is not None:
+            p.bode.steps_chart.data = engine.steps_data(cand, active)
+            p.bode.preview_chart.data = preview.chart_data
+            set_html(p.bode.preview_text, preview_html(traj, preview))
+        self.last_preview = preview.candidate
