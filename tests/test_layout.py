@@ -321,6 +321,25 @@ def test_server_never_imports_the_cli_but_its_entry_point() -> None:
     assert not bad, bad
 
 
+#: The dashboard's composition: the modules that build and wire the panels (and start it).
+#: Everything else in `server/` is a helper the panels use.
+SERVER_COMPOSITION = ("server.app", "server.candidates", "server.fleet", "server.commands",
+                      "server.demo", "server.__main__")
+
+
+def test_the_panels_point_one_way() -> None:
+    """helpers (server/*.py but the composition) <- panels (server/panels/) <- composition:
+    a panel never imports the composition, a helper never imports a panel."""
+    bad = bad_imports(
+        lambda mod: mod.startswith("server.panels"),
+        lambda _mod, name: within(project_target(name) or name, SERVER_COMPOSITION))
+    bad += bad_imports(
+        lambda mod: mod.startswith("server.") and not mod.startswith("server.panels")
+        and mod not in SERVER_COMPOSITION,
+        lambda _mod, name: within(project_target(name) or name, ("server.panels",)))
+    assert not bad, bad
+
+
 def test_the_docs_show_the_rules_the_tests_enforce() -> None:
     doc = (ROOT / "docs" / "architecture.md").read_text()
     for row in RULES:
@@ -346,6 +365,8 @@ RULES = (
     "`dobtune dashboard`) |",
     "| each package imports exactly what its row of the packages table says it may import "
     "(nothing else, and nothing listed goes unused) |",
+    "| `server/panels/` imports the dashboard's helpers (`server/*.py`), never its composition "
+    "(`app`, `candidates`, `commands`, `fleet`, `demo`, `__main__`); no helper imports a panel |",
     "| no import cycles between modules (every import counted: lazy ones, package `__init__`) |",
     "| no private name (`_x`) imported from or accessed on another module |",
 )
