@@ -24,7 +24,7 @@ from typing import Any
 
 from controller.core.errors import ConfigError
 from controller.core.heap import freeze_startup_heap
-from controller.sim.rig_disturbances import rig_setup
+from controller.sim.rig_disturbances import DEFAULT_RIG_NAMES, rig_setup
 from server.app import Dashboard, DashboardOptions, PortBusy, check_port_free, stop_requested
 
 __all__ = ["DemoOptions", "controller_command", "controller_process", "run_demo", "stop_process"]
@@ -54,7 +54,7 @@ class DemoOptions:
     candidates_dir: Path | None = None
     #: The simulated rig's named disturbances (`controller.sim.rig_disturbances`), given to
     #: the controller and to the dashboard's previews and Suggest alike.
-    disturbances: tuple[str, ...] = ("article-rig",)
+    disturbances: tuple[str, ...] = DEFAULT_RIG_NAMES
 
 
 def controller_command(

@@ -47,7 +47,13 @@ def test_identify_takes_the_simulated_rigs_disturbances() -> None:
     rig = factory()
     assert rig.params == rig_setup(["belt-tension"]).params  # type: ignore[attr-defined]
     assert rig.params.belt_stiffness_variation > 0  # type: ignore[attr-defined]
-    assert _sim_rig_factory([], None, None) is None
+    default = _sim_rig_factory([], None, None)  # the one default rig: article-rig
+    assert default is not None
+    assert default().params == rig_setup(["article-rig"]).params  # type: ignore[attr-defined]
+    ideal = _sim_rig_factory(["ideal"], None, None)
+    assert ideal is not None
+    assert ideal().params == rig_setup([]).params  # type: ignore[attr-defined]
+    assert _sim_rig_factory([], "tcp/127.0.0.1:1", None) is None
     with pytest.raises(ConfigError, match="only with the offline"):
         _sim_rig_factory(["belt-tension"], "tcp/127.0.0.1:1", None)
     p = argparse.ArgumentParser()

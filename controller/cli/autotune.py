@@ -50,7 +50,7 @@ def autotune_main(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     from controller.core.errors import ConfigError
     from controller.core.trajectory import default_trajectory
     from controller.sim.nonlinear_check import findings
-    from controller.sim.rig_disturbances import rig_setup
+    from controller.sim.rig_disturbances import rig_names, rig_setup
     from controller.tune.autotune import autotune
 
     try:
@@ -58,7 +58,7 @@ def autotune_main(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         plant = load_knowledge(args.knowledge)
         traj = default_trajectory(args.trajectory)
         names = [args.disturbance] if isinstance(args.disturbance, str) else args.disturbance
-        setup = rig_setup(tuple(names or ()))
+        setup = rig_setup(rig_names(names))
         res = autotune(
             base, plant, traj, duration_s=args.duration, setup=setup,
             objective=args.objective, noise_weight=args.noise_weight, points=args.points,
@@ -94,8 +94,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trajectory", choices=("sine", "step", "ramp", "hold"), default="sine")
     p.add_argument("--disturbance", action="append", default=None, metavar="NAME",
                    help="a named disturbance of the simulated rig, repeatable (as for "
-                   "`dobtune experiment`: tooth-meshing, cogging, load-steps, big-step, "
-                   "friction-change, stick-slip, sine-0.05hz, sine-0.5hz, step)")
+                   "`dobtune experiment`; default article-rig, ideal: the reference rig alone)")
     p.add_argument("--objective", choices=("rmse", "peak"), default="rmse")
     p.add_argument("--noise-weight", type=float, default=0.001,
                    help="deg of error a deg/s RMS of command noise (>20 Hz) costs")

@@ -25,7 +25,12 @@ from controller.core.trajectory import default_trajectory
 from controller.ident.paper_fig13 import EXPERIMENTS
 from controller.sim.experiment import ARTICLE_SINE, ExperimentResult, run_experiment
 from controller.sim.paper import FigureResult, Options
-from controller.sim.rig_disturbances import RIG_DISTURBANCES, build_rig, rig_setup
+from controller.sim.rig_disturbances import (
+    DEFAULT_RIG_NAMES,
+    RIG_DISTURBANCES,
+    build_rig,
+    rig_setup,
+)
 
 TRAJECTORY_TESTS = ("sine", "step", "ramp", "hold", "compare")
 TESTS = (*TRAJECTORY_TESTS, *EXPERIMENTS)
@@ -151,7 +156,8 @@ def experiment_main(
         if changes:
             base = base.with_(**changes)
         if disturbance is None:
-            names: tuple[str, ...] = ()
+            # the article's figures keep their own rigs; a time-domain test runs the default
+            names: tuple[str, ...] = () if test in EXPERIMENTS else DEFAULT_RIG_NAMES
         elif isinstance(disturbance, str):
             names = (disturbance,)
         else:
@@ -292,7 +298,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--disturbance", action="append", default=None, metavar="NAME",
-                   help="timing-belt disturbance, repeatable: "
+                   help="timing-belt disturbance, repeatable (default for the time-domain "
+                   f"tests: {'+'.join(DEFAULT_RIG_NAMES)}; ideal: the reference rig alone): "
                    + ", ".join(sorted(RIG_DISTURBANCES)))
     p.add_argument("--quick", action="store_true",
                    help="the article's experiments: shorter runs, fewer points")

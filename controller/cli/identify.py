@@ -318,7 +318,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         )
     p.add_argument("--disturbance", action="append", default=[], metavar="NAME",
                    help="offline simulated rig only: its named disturbances (repeatable; those "
-                   "of dobtune experiment, e.g. belt-tension: the plant varies with position)")
+                   "of dobtune experiment; default article-rig, ideal: the reference rig alone)")
     p.add_argument("--out", type=Path, default=Path("identify-out"), metavar="DIR")
     p.add_argument("--json", action="store_true", help="one JSON object on stdout")
 
@@ -326,15 +326,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _sim_rig_factory(
     names: list[str], connect: str | None, from_file: Path | None
 ) -> Callable[[], RigLike] | None:
-    """The offline simulated rig with the named disturbances (None without names); ConfigError
+    """The offline simulated rig with the named disturbances (the default rig without names;
+    None for a rig that is not simulated offline); ConfigError
     naming --disturbance for an unknown name or a run that is not offline."""
-    if not names:
-        return None
     if connect is not None or from_file is not None:
-        raise ConfigError("disturbance", "only with the offline simulated rig (--plant sim)")
-    from controller.sim.rig_disturbances import build_rig, rig_setup
+        if names:
+            raise ConfigError("disturbance", "only with the offline simulated rig (--plant sim)")
+        return None
+    from controller.sim.rig_disturbances import build_rig, rig_names, rig_setup
 
-    setup = rig_setup(names)
+    setup = rig_setup(rig_names(names))
     return lambda: build_rig(setup, rate_hz=LoopConfig().rate_hz, seed=0,
                              initial_position_deg=0.0)
 

@@ -45,7 +45,7 @@ def tune_main(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     from controller.core.errors import ConfigError
     from controller.core.trajectory import default_trajectory
     from controller.sim.nonlinear_check import findings
-    from controller.sim.rig_disturbances import rig_setup
+    from controller.sim.rig_disturbances import rig_names, rig_setup
     from controller.tune.plant import plant_for
     from controller.tune.whole_loop import Objective, tune_whole_loop
 
@@ -53,7 +53,7 @@ def tune_main(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         base = load_config(args.config)
         knowledge = load_knowledge(args.knowledge)
         names = [args.disturbance] if isinstance(args.disturbance, str) else args.disturbance
-        setup = rig_setup(tuple(names or ()))
+        setup = rig_setup(rig_names(names))
         objective = Objective(default_trajectory(args.trajectory), args.objective,
                               args.duration, args.noise_weight, args.noise_budget,
                               not args.no_ff)
@@ -98,7 +98,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trajectory", choices=("sine", "step", "ramp", "hold"), default="sine")
     p.add_argument("--disturbance", action="append", default=None, metavar="NAME",
                    help="a named disturbance of the simulated plant, repeatable (as for "
-                   "`dobtune experiment`, e.g. article-rig)")
+                   "`dobtune experiment`; default article-rig, ideal: the reference rig alone)")
     p.add_argument("--objective", choices=("rmse", "peak"), default="rmse")
     p.add_argument("--noise-weight", type=float, default=0.001,
                    help="deg of error a deg/s RMS of command noise (>20 Hz) costs")

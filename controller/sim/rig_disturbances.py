@@ -62,12 +62,15 @@ from controller.sim.disturbance import (
 from controller.sim.sim_rig import RigParams, SimRig
 
 __all__ = [
+    "DEFAULT_RIG_NAMES",
+    "NO_EFFECTS",
     "RIG_DISTURBANCES",
     "FrictionChange",
     "RigDisturbance",
     "RigSetup",
     "ScheduledRig",
     "build_rig",
+    "rig_names",
     "rig_setup",
 ]
 
@@ -137,6 +140,7 @@ RIG_DISTURBANCES: dict[str, RigDisturbance] = {
     d.name: d
     for d in (
         RigDisturbance("none", "no disturbance beyond the reference rig"),
+        RigDisturbance("ideal", "the reference rig alone (the same as none): no article effects"),
         RigDisturbance(
             "tooth-meshing",
             "belt tooth meshing: ripple torque 0.5 N m, transmission error 0.03 deg, 30/rev",
@@ -182,6 +186,20 @@ RIG_DISTURBANCES: dict[str, RigDisturbance] = {
 }
 
 
+#: The simulated rig every entry point runs unless told otherwise (`dobtune experiment`'s
+#: time-domain tests, `autotune`, `tune`, `identify --plant sim`, the demo): the article's rig,
+#: its rate disturbances at P's input and the belt varying with position. `--disturbance
+#: ideal` (or `none`) names the reference rig without them.
+DEFAULT_RIG_NAMES: tuple[str, ...] = ("article-rig",)
+#: Names that add nothing (the reference rig alone).
+NO_EFFECTS = ("none", "ideal")
+
+
+def rig_names(names: tuple[str, ...] | list[str] | None) -> tuple[str, ...]:
+    """`names` as given, or `DEFAULT_RIG_NAMES` when none are given."""
+    return tuple(names) if names else DEFAULT_RIG_NAMES
+
+
 @dataclass(frozen=True)
 class RigSetup:
     """What a list of names amounts to: rig parameters, a torque profile, friction changes."""
@@ -205,7 +223,7 @@ def rig_setup(names: tuple[str, ...] | list[str], base: RigParams | None = None)
         if name not in RIG_DISTURBANCES:
             valid = ", ".join(sorted(RIG_DISTURBANCES))
             raise ConfigError("disturbance", f"unknown name {name!r}; valid: {valid}")
-        if name != "none" and name not in [d.name for d in chosen]:
+        if name not in NO_EFFECTS and name not in [d.name for d in chosen]:
             chosen.append(RIG_DISTURBANCES[name])
     overrides: dict[str, float] = {}
     torques: list[Disturbance] = []
