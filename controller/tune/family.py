@@ -199,7 +199,8 @@ class _NeverStop:
         return False
 
 
-def identify(plant: SimPlant, cfg: LoopConfig, positions: int = 3) -> PlantKnowledge:
+def identify(plant: SimPlant, cfg: LoopConfig, positions: int = 3,
+             points_per_decade: int = 10, f_max_hz: float = 20.0) -> PlantKnowledge:
     """Identify `plant` offline as the controller would (`controller.ident.offline`, DOB off)
     and return the knowledge a "Use fit" gives: the measured responses, the fitted model (the
     built-in one if the fit is not usable, as the identification then notes), the
@@ -208,6 +209,7 @@ def identify(plant: SimPlant, cfg: LoopConfig, positions: int = 3) -> PlantKnowl
     reasons = []
     for amplitude in (10.0, 5.0, 2.5):  # a rig that moves too far: excite less, as by hand
         spec = IdentifySpec(positions=positions, f_min_hz=FAMILY_IDENT_F_MIN_HZ,
+                            f_max_hz=f_max_hz, points_per_decade=points_per_decade,
                             amplitude_deg_s=amplitude)
         out = run_offline(spec, run_cfg, _NeverStop(),
                           rig_factory=lambda c, seed: plant.rig(c.rate_hz, 0.0, seed))
@@ -327,6 +329,15 @@ def run_rig(rig: FamilyRig, objective: Objective, base: LoopConfig | None = None
     t1b = time.perf_counter()
     try:
         tr = tune_whole_loop(base, known, sim, objective)
+        if tr.best is None and "measure denser" in " ".join(tr.explanation):
+            # As an engineer would: measure again, twice as dense and further up, and retune.
+            t0 = time.perf_counter()
+            known = identify(plant, base, points_per_decade=20, f_max_hz=40.0)
+            t1 = time.perf_counter()
+            sim = (twin(known, plant) if twin is not None
+                   else plant_for(known, setup, base.rate_hz))
+            t1b = time.perf_counter()
+            tr = tune_whole_loop(base, known, sim, objective)
     except ValueError as exc:  # no placement meets the targets: the outcome says why
         return RigOutcome(rig, None, None, default, brute, t1 - t0,
                           time.perf_counter() - t1b, sim.source, (f"no design: {exc}",))

@@ -416,7 +416,10 @@ def _explained(res: WholeLoopResult, knowledge: PlantKnowledge) -> WholeLoopResu
            f"RMS left)" if d.config.ff_on else ""))
     b = res.best
     if b is None:
-        lines.append("no candidate the gate accepts was found: nothing to propose")
+        reasons = judge(res.designed.config, knowledge, recommendation=False).rejections
+        lines.append("no candidate the gate accepts was found: nothing to propose"
+                     + (f"; the gate on the designed loop: {'; '.join(reasons[:2])}"
+                        if reasons else ""))
         return _with(res, lines)
     dob_runs = [c for c in res.dob_curve if c.verdict == "accept" and math.isfinite(c.score)]
     if b.config.dob_on:
