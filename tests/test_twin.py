@@ -120,3 +120,27 @@ def test_positions_come_from_the_names() -> None:
     assert position_of("pos1_120deg") == 120.0
     assert position_of("true 90 deg") == 90.0
     assert position_of("bench") is None
+
+
+def test_identify_writes_the_knowledge_and_its_twin(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """`dobtune identify --plant sim`: knowledge.json (what autotune --knowledge reads) and
+    twin.json (built from it: its digest matches), the fit per position in the summary and
+    the printed report."""
+    import io
+    import json
+
+    from controller.cli.identify import identify_main
+    from controller.cli.inputs import load_knowledge
+
+    out, err = io.StringIO(), io.StringIO()
+    code = identify_main(plant="sim", connect=None, rig_name=None, out_dir=tmp_path / "id",
+                         as_json=False, out=out, err=err,
+                         spec_fields={"positions": 2, "f_min_hz": 0.3})
+    assert code == 0, err.getvalue()
+    k = load_knowledge(tmp_path / "id" / "knowledge.json")
+    tw = decode((tmp_path / "id" / "twin.json").read_bytes())
+    assert tw.matches(k) and len(tw.positions) == 2
+    summary = json.loads((tmp_path / "id" / "summary.json").read_text())
+    assert [p["name"] for p in summary["twin"]["positions"]] == [m.name for m in k.measured]
+    for p in tw.positions:
+        assert f"{p.name}: {p.rms_db:.2f} dB / {p.rms_deg:.1f} deg rms" in out.getvalue()

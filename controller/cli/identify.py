@@ -20,6 +20,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, TextIO
 
+import msgspec
 import numpy as np
 
 from controller.cli.frd_files import write_frd_csv
@@ -71,8 +72,39 @@ def _write(result: IdentifyResult, out_dir: Path, wall_s: float) -> dict[str, An
         files[p.index] = (csv, raw)
     fitted = _write_config(result.fitted_config, out_dir)
     summary = summary_json(result, files, wall_s, fitted)
+    summary["twin"] = _write_knowledge_and_twin(result, out_dir)
     _write_json(out_dir / "summary.json", summary)
     return summary
+
+
+def _write_knowledge_and_twin(result: IdentifyResult, out_dir: Path) -> dict[str, Any] | None:
+    """knowledge.json (what "Use fit" adopts: the measured responses with their uncertainty,
+    the fitted model, the commissioning bound; `dobtune autotune --knowledge` reads it) and
+    twin.json (the rig's twin built from it); the twin's summary (None: nothing measured)."""
+    from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord, PlantKnowledge
+    from controller.twin.fit import twin_from_knowledge
+    from controller.twin.model import encode
+
+    measured = result.measured_responses()
+    if not measured:
+        return None
+    knowledge = PlantKnowledge(measured=measured, bound=COMMISSIONING_BOUND,
+                               model=result.nominal or result.config.nominal, version=1,
+                               source="identified")
+    (out_dir / KNOWLEDGE_NAME).write_bytes(msgspec.json.encode(KnowledgeRecord.of(knowledge)))
+    twin = twin_from_knowledge(knowledge, rate_hz=result.config.rate_hz)
+    (out_dir / TWIN_NAME).write_bytes(encode(twin))
+    return {
+        "file": TWIN_NAME,
+        "knowledge_file": KNOWLEDGE_NAME,
+        "fitted": dict(twin.fitted),
+        "positions": [msgspec.to_builtins(p) for p in twin.positions],
+        "nonlinear": list(twin.nonlinear.how) if twin.nonlinear is not None else [],
+    }
+
+
+KNOWLEDGE_NAME = "knowledge.json"
+TWIN_NAME = "twin.json"
 
 
 def _write_config(cfg: LoopConfig | None, out_dir: Path) -> str | None:

@@ -259,6 +259,16 @@ def report_text(summary: dict[str, Any], out_dir: Path) -> str:
         verdict = "accept" if g["accepted"] else "REJECT"
         why = f" ({g['reasons'][0]})" if g["reasons"] else ""
         lines.append(f"  gate at {g['q_type'].upper()} {g['cutoff_hz']:.3g} Hz: {verdict}{why}")
+    tw = summary.get("twin")
+    if tw:
+        fac = ", ".join(f"{k} {v:.3g}" for k, v in tw["fitted"].items())
+        lines.append(f"  twin ({tw['file']}, from {tw['knowledge_file']}): {fac}")
+        for p in tw["positions"]:
+            lines.append(
+                f"    {p['name']}: {p['rms_db']:.2f} dB / {p['rms_deg']:.1f} deg rms, worst "
+                f"{p['max_db']:.2f} dB (at {p['max_at_hz']:.3g} Hz) / {p['max_deg']:.1f} deg "
+                f"({p['f_lo_hz']:.3g}-{p['f_hi_hz']:.3g} Hz)")
+        lines += [f"    {h}" for h in tw["nonlinear"]]
     lines += [f"  note: {n}" for n in summary["notes"]]
     if not summary["complete"]:
         lines.append(f"ABORTED: {summary['abort_reason']} (partial data kept)")
