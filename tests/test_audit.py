@@ -70,10 +70,11 @@ def lines_of(path: Path) -> list[bytes]:
 
 
 def cli_verify(
-    path: Path, anchor: str | None = None, as_json: bool = False, accept_torn: bool = False
+    path: Path, anchor: str | None = None, as_json: bool = False, accept_torn: bool = False,
+    accept_lost: bool = False,
 ) -> tuple[int, str]:
     out = io.StringIO()
-    return verify_main(path, anchor, as_json, out, accept_torn), out.getvalue()
+    return verify_main(path, anchor, as_json, out, accept_torn, accept_lost), out.getvalue()
 
 
 def cli_show(path: Path, as_json: bool = False, tail: int | None = None) -> tuple[int, str]:
@@ -419,11 +420,14 @@ def test_a_torn_last_line_is_kept_and_acknowledged_not_chained_over(tmp_path: Pa
 def test_an_erased_last_record_is_not_acknowledged_away_by_a_restart(tmp_path: Path) -> None:
     """Issue 24 item 6: cut the last record (an e-stop) to a torn tail, restart the controller
     (it notes the torn tail), and the log still verified. Now `verify` fails at that line
-    until told to accept torn tails, and then says what it accepted."""
+    until told to accept torn tails, and then says what it accepted. (Here the head file is
+    gone too, as with a log from before it existed: with it, the restart also sees that the
+    log does not reach its head, test_a_log_behind_its_head_file_...)"""
     path = make_log(tmp_path, extra=1)
     lines = lines_of(path)
     assert json.loads(lines[-1])["action"] == "estop"
     path.write_bytes(b"".join(lines[:-1]) + lines[-1][:40])  # the e-stop record erased
+    (tmp_path / audit_mod.HEAD_FILE).unlink()
     with AuditLog(path, rig="bench") as log:  # the controller restarts
         assert log.recovered is not None and "torn" in log.recovered
         log.record("controller.start", "controller", "noted")
@@ -764,3 +768,143 @@ def test_an_estop_flood_through_the_writer_thread_is_o1_records(tmp_path: Path) 
     assert [r["action"] for r in recs] == ["estop", "estop.repeated", "reset"]
     assert recs[1]["count"] == 49_999
     assert cli_verify(tmp_path)[0] == 0
+
+
+# -- a lost log: deleted or replaced while running, missing or cut at restart (issue 31) -----
+
+
+def test_a_log_deleted_while_running_is_noticed_and_continued(tmp_path: Path) -> None:
+    """Before: the controller kept writing to the deleted file (its open descriptor) and
+    nothing said so. Now `check_file` (the writer thread calls it every second) and every
+    record notice it: a new file whose first record continues the chain and says why."""
+    path = make_log(tmp_path)
+    with AuditLog(path, rig="r", clock=clock()) as log:
+        assert log.check_file() == ""
+        old = path.read_bytes()
+        path.unlink()
+        found = log.check_file()
+        assert "deleted while the controller ran" in found
+        assert log.check_file() == ""  # once
+        log.record("command", "op", "accepted")
+    first, second = (json.loads(x) for x in lines_of(path))
+    assert first["action"] == audit_mod.CONTINUED and first["outcome"] == "noted"
+    assert first["seq"] == 6 and first["prev"] == sha(lines_of_bytes(old)[-1])
+    assert first["lost_head"] == f"5:{json.loads(lines_of_bytes(old)[-1])['hash']}"
+    assert second["seq"] == 7
+    # Not intact on its own: the records before it are not in the file ...
+    code, text = cli_verify(tmp_path)
+    assert code == 1 and "line 1:" in text and "audit.continued" in text
+    assert "--accept-lost" in text
+    code, text = cli_verify(tmp_path, accept_lost=True)
+    assert code == 0 and "ACCEPTED lost records" in text
+    # ... and the lost file (had someone kept it) and the continuation are one chain.
+    whole = tmp_path / "whole"
+    whole.mkdir()
+    (whole / AUDIT_FILE).write_bytes(old + path.read_bytes())
+    assert verify(whole / AUDIT_FILE).ok
+
+
+def test_a_log_deleted_while_running_is_noticed_by_the_idle_writer(tmp_path: Path) -> None:
+    """Through the controller's writer thread, with no record coming: a Status note."""
+    from controller.process.access import Access
+
+    path = make_log(tmp_path)
+    notes: list[str] = []
+    access = Access(None, "r", AuditLog(path, rig="r"), lambda t, key=None: notes.append(t))
+    access.start()
+    try:
+        path.unlink()
+        deadline = threading.Event()
+        for _ in range(200):
+            if any("deleted while the controller ran" in n for n in notes):
+                break
+            deadline.wait(0.05)
+        assert any("deleted while the controller ran" in n for n in notes), notes
+        assert json.loads(lines_of(path)[0])["action"] == audit_mod.CONTINUED
+    finally:
+        access.close()
+
+
+def test_a_log_replaced_while_running_is_kept_aside_and_continued(tmp_path: Path) -> None:
+    path = make_log(tmp_path)
+    forged_dir = tmp_path / "forged"
+    forged_dir.mkdir()
+    forged = make_log(forged_dir)  # a valid chain of someone else's
+    with AuditLog(path, rig="r", clock=clock()) as log:
+        os.replace(forged, path)
+        rec = log.record("apply", "op", "accepted")
+        assert rec is not None and rec["seq"] == 7
+        assert log.recovered is not None and "replaced" in log.recovered
+    aside = list(tmp_path.glob("audit.damaged-*.jsonl"))
+    assert len(aside) == 1 and verify(aside[0]).ok  # the replacement, kept
+    assert json.loads(lines_of(path)[0])["moved_to"] == aside[0].name
+    code, text = cli_verify(tmp_path, accept_lost=True)
+    assert code == 1 and "NOT INTACT" in text and aside[0].name in text
+
+
+def lines_of_bytes(data: bytes) -> list[bytes]:
+    return data.splitlines()
+
+
+def test_a_log_deleted_while_stopped_is_not_a_new_intact_chain(tmp_path: Path) -> None:
+    """Before: after a restart the controller started a new chain that `verify` called intact.
+    Now the head file says there was history: the new log continues it and says so."""
+    path = make_log(tmp_path)
+    head = verify(path).head
+    path.unlink()
+    with AuditLog(path, rig="r") as log:
+        assert log.recovered is not None and "missing" in log.recovered
+        log.record("controller.start", "controller", "noted")
+    first = json.loads(lines_of(path)[0])
+    assert first["action"] == audit_mod.CONTINUED and first["lost_head"] == f"5:{head}"
+    code, text = cli_verify(tmp_path)
+    assert code == 1 and "6 record(s) before it are not in this file" in text
+
+
+@pytest.mark.parametrize("cut", [1, 3])
+def test_a_log_behind_its_head_file_is_kept_aside_and_continued(tmp_path: Path, cut: int) -> None:
+    """Records cut off the end while stopped (a shorter chain still verifies on its own)."""
+    path = make_log(tmp_path)
+    path.write_bytes(b"".join(lines_of(path)[:-cut]))
+    assert verify(path).ok
+    with AuditLog(path, rig="r") as log:
+        assert log.recovered is not None
+        assert "does not reach the head file's record" in log.recovered
+    assert len(list(tmp_path.glob("audit.damaged-*.jsonl"))) == 1
+    assert cli_verify(tmp_path)[0] == 1
+
+
+def test_a_head_file_older_than_the_log_is_a_crash_not_a_loss(tmp_path: Path) -> None:
+    """The head file is written after the record: a crash between leaves it one behind."""
+    path = make_log(tmp_path)
+    lines = lines_of(path)
+    rec4 = json.loads(lines[4])
+    (tmp_path / audit_mod.HEAD_FILE).write_text(json.dumps(
+        {"seq": 4, "hash": rec4["hash"], "line_sha256": sha(lines[4].rstrip(b"\n"))}))
+    with AuditLog(path, rig="r") as log:
+        assert log.recovered is None
+        assert log.record("command", "op", "accepted")["seq"] == 6  # type: ignore[index]
+    assert cli_verify(tmp_path)[0] == 0
+    assert json.loads((tmp_path / audit_mod.HEAD_FILE).read_text())["seq"] == 6
+
+
+def test_a_continuation_that_cannot_be_opened_is_retried(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = make_log(tmp_path)
+    real_open = os.open
+    with AuditLog(path, rig="r") as log:
+        path.unlink()
+
+        def refuse(*args: Any, **kwargs: Any) -> int:
+            raise OSError(24, "Too many open files")
+
+        monkeypatch.setattr(os, "open", refuse)
+        with pytest.raises(AuditError, match="cannot open"):
+            log.record("command", "op", "accepted", n=1)
+        monkeypatch.setattr(os, "open", real_open)
+        log.record("command", "op", "accepted", n=2)
+    recs = [json.loads(x) for x in lines_of(path)]
+    assert [(r["action"], r["seq"]) for r in recs] == [(audit_mod.CONTINUED, 6), ("command", 7)]
+    assert recs[1]["n"] == 2
+    assert verify(path, accept_lost=True).ok

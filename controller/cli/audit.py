@@ -110,16 +110,19 @@ def _report_text(path: Path, r: VerifyResult, kept: list[str]) -> str:
         lines = [f"{path}: {r.reason}", f"  {r.records} records verified, head {r.head}"]
     lines += [f"  note: {d}" for d in r.damaged if d not in r.accepted_torn]
     lines += [f"  ACCEPTED torn tail (--accept-torn-tail): {d}" for d in r.accepted_torn]
+    lines += [f"  ACCEPTED lost records (--accept-lost): {d}" for d in r.accepted_lost]
     lines += [f"  NOT INTACT: {name} is a damaged log the controller set aside (inspect it, then "
               "archive it elsewhere)" for name in kept]
     return "\n".join(lines) + "\n"
 
 
 def verify_main(
-    target: Path, anchor: str | None, as_json: bool, out: TextIO, accept_torn_tail: bool = False
+    target: Path, anchor: str | None, as_json: bool, out: TextIO, accept_torn_tail: bool = False,
+    accept_lost: bool = False,
 ) -> int:
     """Check the chain; print the verdict. Returns the exit code. A torn line fails the check
-    unless `accept_torn_tail` (then it is printed as accepted)."""
+    unless `accept_torn_tail`, a log that continues a lost one unless `accept_lost` (then it
+    is printed as accepted)."""
     path = log_file(target)
     if anchor is not None:
         try:
@@ -129,7 +132,8 @@ def verify_main(
     if not path.is_file():
         return _missing(path, out, as_json)
     try:
-        result = verify(path, anchor=anchor, accept_torn_tail=accept_torn_tail)
+        result = verify(path, anchor=anchor, accept_torn_tail=accept_torn_tail,
+                        accept_lost=accept_lost)
     except OSError as exc:
         return _bad_input(f"{path}: cannot read: {exc.strerror or exc}", out, as_json)
     kept = _set_aside(path)
@@ -143,6 +147,7 @@ def verify_main(
             "head": result.head,
             "notes": list(result.damaged),
             "accepted_torn": list(result.accepted_torn),
+            "accepted_lost": list(result.accepted_lost),
             "set_aside": kept,
         }
         out.write(json.dumps(doc) + "\n")
@@ -170,6 +175,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     check.add_argument("--accept-torn-tail", action="store_true",
                        help="accept torn lines (a crash while writing; also what erasing the "
                        "last record leaves): listed as accepted instead of failing the check")
+    check.add_argument("--accept-lost", action="store_true",
+                       help="accept a log that continues a lost one (deleted, truncated or "
+                       "replaced; its first record is audit.continued): listed as accepted")
 
 
 def _positive_int(value: str) -> int:
@@ -185,5 +193,6 @@ def _positive_int(value: str) -> int:
 def run(args: argparse.Namespace) -> int:
     if args.audit_command == "show":
         return show_main(args.dir, args.json, args.tail, sys.stdout)
-    return verify_main(args.dir, args.anchor, args.json, sys.stdout, args.accept_torn_tail)
+    return verify_main(args.dir, args.anchor, args.json, sys.stdout, args.accept_torn_tail,
+                       args.accept_lost)
 

@@ -188,6 +188,8 @@ class Access:
             self._q.put((action, user, outcome, fields))
 
     def start(self) -> None:
+        if self.audit is not None and self.audit.recovered:  # what opening the log found
+            self.warn(f"audit: {self.audit.recovered}", key="audit-file")
         if self.audit is not None and self._writer is None:
             self._writer = threading.Thread(target=self._write, name="audit-writer", daemon=True)
             self._writer.start()
@@ -207,9 +209,11 @@ class Access:
         stopping = False
         while True:
             try:
-                item = self._q.get(timeout=RETRY_S if backlog else None)
+                item = self._q.get(timeout=RETRY_S)
             except queue.Empty:
                 item = None
+                if not backlog:
+                    self._check_file()
             if item is _STOP:
                 stopping = True
             elif item is not None:
@@ -221,6 +225,17 @@ class Access:
                               f"{self._audit_error}")
                 return
 
+    def _check_file(self) -> None:
+        """A log deleted or replaced while idle is noticed within RETRY_S (and reopened as a
+        continuation: `AuditLog.check_file`); the Status notes say so."""
+        assert self.audit is not None
+        try:
+            found = self.audit.check_file()
+        except (AuditError, OSError) as exc:
+            found = f"the audit log cannot be checked or reopened: {exc}"
+        if found:
+            self.warn(f"audit: {found}", key="audit-file")
+
     def _drain(self, backlog: collections.deque[tuple[str, str, str, dict[str, Any]]]) -> None:
         assert self.audit is not None
         while backlog:
@@ -228,10 +243,13 @@ class Access:
             fields = dict(fields)
             vb = fields.pop("version_before", None)
             va = fields.pop("version_after", None)
+            found = self.audit.recovered
             try:
                 self.audit.record(
                     action, user, outcome, version_before=vb, version_after=va, **fields
                 )
+                if self.audit.recovered is not found and self.audit.recovered:
+                    self.warn(f"audit: {self.audit.recovered}", key="audit-file")
             except (AuditError, OSError) as exc:
                 if not self._audit_error:
                     self.warn(f"audit: the log cannot be written ({exc}); records are held in "

@@ -34,6 +34,18 @@ Crash policy, applied when the log is opened (only the end of the file is read):
 Nothing is silently chained over. `AuditLog.recovered` says what was found (for the logs and
 the Status notes).
 
+A lost log (issue 31): the head (seq, hash, SHA-256 of the last line) is kept beside the log in
+`audit.head.json`, rewritten after every record. A log deleted or replaced while the controller
+runs is noticed at the next record or `check_file()` (the process calls it every second): a
+replacement is kept as `audit.damaged-<UTC>.jsonl`, and a new file starts with an
+`audit.continued` record that continues the chain (its seq and `prev` follow the lost head, so
+the lost file and the new one, concatenated, verify) and says why. At start, a log that is
+missing, behind the head file or different from it (truncated, deleted, replaced while the
+controller was stopped) is treated the same way (a log deleted with its head file is not
+told from a new state directory: anchor the log elsewhere, `verify --anchor`). `verify`
+reports a file that begins with `audit.continued` as not intact (records before it are not in
+the file) unless `accept_lost` (`--accept-lost`), which lists it.
+
 Repeated e-stops (issue 31: ten seconds of a viewer's puts on the e-stop key made 155 000
 records, 63 MB, each fsynced, 40 s of backlog in front of real actions): an accepted e-stop
 opens a latch, in the log's view, that an accepted `reset` (or the controller's start or stop)
@@ -69,11 +81,13 @@ import msgspec
 __all__ = [
     "ACTIONS",
     "AUDIT_FILE",
+    "CONTINUED",
     "CORE_KEYS",
     "ESTOP_REPEATED",
     "ESTOP_SENDERS_MAX",
     "ESTOP_SENDER_FIELDS",
     "GENESIS",
+    "HEAD_FILE",
     "OUTCOMES",
     "RECOVERED",
     "AuditError",
@@ -89,6 +103,10 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 AUDIT_FILE = "audit.jsonl"
+#: The head of the chain, kept beside the log (see "A lost log" above).
+HEAD_FILE = "audit.head.json"
+#: The first record of a log that continues a lost one.
+CONTINUED = "audit.continued"
 #: `prev` of the first record of a chain.
 GENESIS = "0" * 64
 #: The record written after damage found on open.
@@ -120,6 +138,8 @@ ACTIONS = frozenset({
     "controller.start",
     "controller.stop",
     "request.budget",    # requests over a user's budget, refused by the edge (a count)
+    ESTOP_REPEATED,      # e-stops repeated while latched (a count)
+    CONTINUED,           # the log continues one that was lost (deleted, truncated, replaced)
     RECOVERED,
 })
 #: accepted / refused: a request's fate; failed: accepted but could not be carried out;
@@ -225,6 +245,8 @@ class VerifyResult:
     damaged: tuple[str, ...] = ()
     #: torn lines accepted (with `accept_torn_tail`), human-readable
     accepted_torn: tuple[str, ...] = ()
+    #: records lost before an `audit.continued` record, accepted (with `accept_lost`)
+    accepted_lost: tuple[str, ...] = ()
 
 
 @dataclass
@@ -275,8 +297,18 @@ def parse_anchor(anchor: str) -> tuple[int | None, str]:
     return seq, digest
 
 
+def _lost(rec: Mapping[str, Any]) -> str:
+    return (f"the log begins with {CONTINUED} at seq {rec['seq']} ({rec['time']}): the "
+            f"{rec['seq']} record(s) before it are not in this file (lost head "
+            f"{rec.get('lost_head') or 'unknown'}: {rec.get('why', '')})")
+
+
 def verify(
-    path: str | os.PathLike[str], anchor: str | None = None, *, accept_torn_tail: bool = False
+    path: str | os.PathLike[str],
+    anchor: str | None = None,
+    *,
+    accept_torn_tail: bool = False,
+    accept_lost: bool = False,
 ) -> VerifyResult:
     """Check the whole chain of the audit log at `path` (a file).
 
@@ -285,18 +317,20 @@ def verify(
     seq must have that hash) or a bare record `hash` (see `parse_anchor`; ValueError if it is
     neither). A torn line (acknowledged by the controller or the
     unterminated last line) is evidence, not intact: it fails the check unless
-    `accept_torn_tail`, and is then listed in `accepted_torn`. OSError if the file cannot be
-    read."""
+    `accept_torn_tail`, and is then listed in `accepted_torn`. A file that begins with
+    `audit.continued` (the records before it lost) fails unless `accept_lost` (then listed in
+    `accepted_lost`). OSError if the file cannot be read."""
     chain = _Chain()
     notes: list[str] = []
     accepted: list[str] = []
     pending: tuple[int, bytes, str, bool] | None = None  # a bad line: acknowledged next?
     anchor_seq, anchor_hash = parse_anchor(anchor) if anchor is not None else (None, "")
     anchor_seen = anchor is None
+    lost: list[str] = []
 
     def bad(line_no: int, why: str) -> VerifyResult:
         return VerifyResult(False, chain.records, line_no, why, chain.head, tuple(notes),
-                            tuple(accepted))
+                            tuple(accepted), tuple(lost))
 
     for n, line, complete in iter_lines(Path(path)):
         rec, why = parse_record(line)
@@ -321,6 +355,11 @@ def verify(
             continue
         elif rec["action"] == RECOVERED and "damaged_after_seq" in rec:
             return bad(n, "acknowledges a damaged line that is not there")
+        if rec["action"] == CONTINUED and n == 1:
+            if not accept_lost:
+                return bad(1, _lost(rec) + "; accept it explicitly (--accept-lost)")
+            lost.append(f"line 1: {_lost(rec)}")
+            chain.prev, chain.seq = rec["prev"], rec["seq"]
         link = chain.link_error(rec)
         if link:
             return bad(n, link)
@@ -344,9 +383,10 @@ def verify(
         return VerifyResult(
             False, chain.records, None,
             f"anchor {anchor} is not in the chain (lines cut off the end, or a rewritten log)",
-            chain.head, tuple(notes), tuple(accepted),
+            chain.head, tuple(notes), tuple(accepted), tuple(lost),
         )
-    return VerifyResult(True, chain.records, None, "", chain.head, tuple(notes), tuple(accepted))
+    return VerifyResult(True, chain.records, None, "", chain.head, tuple(notes), tuple(accepted),
+                        tuple(lost))
 
 
 # -- writing ---------------------------------------------------------------------------------
@@ -426,8 +466,15 @@ class AuditLog:
         #: what the open (or a failed write) found and did; None when the tail was intact
         self.recovered: str | None = None
         self._suspect = False
+        self._head_path = self.path.with_name(HEAD_FILE)
+        self._inode = (0, 0)
+        self._new_segment = False
+        #: a continuation not yet written (why, lost head): retried by the next call
+        self._reopen: tuple[str, tuple[int, str, str] | None] | None = None
         with self._lock:
+            head = self._read_head()  # before the open writes it
             self._open()
+            self._check_head(head)
 
     # -- public ------------------------------------------------------------------------------
 
@@ -467,8 +514,11 @@ class AuditLog:
             if v is not None and (isinstance(v, bool) or not isinstance(v, int)):
                 raise ValueError(f"config versions are ints or None, got {v!r}")
         with self._lock:
+            if self._reopen is not None:
+                self._continue(*self._reopen)
             if self._fd < 0:
                 raise AuditError(f"{self.path}: closed")
+            self._check_file()
             if self._suspect:
                 self._recover_tail()
             body = {
@@ -490,9 +540,23 @@ class AuditLog:
                 return rec
             return self._append(body)
 
+    def check_file(self) -> str:
+        """Whether the log on disk is still the file being written: "" if so; else it was
+        deleted or replaced, and the log is reopened as a continuation (module docstring);
+        returns what was found and done. AuditError if that cannot be written."""
+        with self._lock:
+            if self._reopen is not None:
+                self._continue(*self._reopen)
+                assert self.recovered is not None
+                return self.recovered
+            if self._fd < 0:
+                return ""
+            return self._check_file()
+
     def close(self) -> None:
         """Write the count of repeated e-stops if any (AuditError if it cannot), then close."""
         with self._lock:
+            self._reopen = None
             try:
                 if self._fd >= 0 and self._repeats.count:
                     self._write_repeats()
@@ -508,6 +572,119 @@ class AuditLog:
         self.close()
 
     # -- internals (called with the lock held) -----------------------------------------------
+
+    def _write_head(self) -> None:
+        """Keep the head beside the log (rename, no fsync: after a crash it may be older than
+        the log, never newer). A failure is logged, not raised: the record is written."""
+        data = _encoder.encode(
+            {"seq": self._seq - 1, "hash": self._head, "line_sha256": self._prev}
+        )
+        tmp = self._head_path.with_name(f".{HEAD_FILE}.tmp")
+        try:
+            tmp.write_bytes(data)
+            os.replace(tmp, self._head_path)
+        except OSError as exc:
+            log.warning("audit log: the head file %s cannot be written: %s", self._head_path, exc)
+
+    def _read_head(self) -> tuple[int, str, str] | None:
+        """(seq, hash, line_sha256) of the head file; None if there is none. An unreadable one
+        is logged and taken as none."""
+        try:
+            data = msgspec.json.decode(self._head_path.read_bytes())
+            seq, digest, line_sha = data["seq"], data["hash"], data["line_sha256"]
+            if not (isinstance(seq, int) and isinstance(digest, str)
+                    and isinstance(line_sha, str)):
+                raise ValueError("fields of the wrong type")
+            return seq, digest, line_sha
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("audit log: the head file %s is unreadable (%s): ignored",
+                        self._head_path, exc)
+            return None
+
+    def _check_head(self, head: tuple[int, str, str] | None) -> None:
+        """At open: the log against the head file as it was."""
+        if self._new_segment:
+            return  # damage found: the log was set aside and a new chain starts, saying so
+        last = self._seq - 1
+        if head is None:  # a new state directory, or a log from before the head file
+            self._write_head()
+            return
+        seq, digest, line_sha = head
+        if last > seq or (last == seq and self._head == digest):
+            self._write_head()  # intact (a head older than the log: a crash between the two)
+            return
+        if last < 0:
+            why = (f"the audit log is missing (deleted while the controller was stopped?); "
+                   f"the head file says seq {seq}")
+        else:
+            why = (f"the audit log does not reach the head file's record (seq {seq}); it ends "
+                   f"at seq {last} (truncated, its last record erased, or replaced while the "
+                   f"controller was stopped?)")
+        self._continue(why, lost=(seq, digest, line_sha))
+
+    def _check_file(self) -> str:
+        """The log on disk is the file being written ("") or it was deleted or replaced: then
+        continue in a new file (and say what was done)."""
+        try:
+            st = os.stat(self.path)
+            if (st.st_dev, st.st_ino) == self._inode:
+                return ""
+            why = "the audit log was replaced while the controller ran"
+        except FileNotFoundError:
+            why = "the audit log was deleted while the controller ran"
+        except OSError as exc:
+            raise AuditError(f"{self.path}: cannot stat: {exc}") from exc
+        self._continue(why, lost=(self._seq - 1, self._head, self._prev))
+        assert self.recovered is not None
+        return self.recovered
+
+    def _continue(self, why: str, lost: tuple[int, str, str] | None) -> None:
+        """A new log file whose first record continues the lost head `lost` (seq, hash, last
+        line's SHA-256; None: unknown, the chain restarts at seq 0) and says `why`. A file
+        found at the path is kept aside first."""
+        moved = ""
+        self._reopen = (why, lost)
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+        if self.path.exists():
+            stamp = datetime.fromtimestamp(self._clock(), UTC).strftime("%Y%m%dT%H%M%SZ")
+            aside = self.path.with_name(f"audit.damaged-{stamp}.jsonl")
+            k = 1
+            while aside.exists():
+                k += 1
+                aside = self.path.with_name(f"audit.damaged-{stamp}-{k}.jsonl")
+            try:
+                os.replace(self.path, aside)
+            except OSError as exc:
+                raise AuditError(f"{self.path}: cannot set the log found aside: {exc}") from exc
+            moved = aside.name
+        try:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_EXCL,
+                               0o644)
+            st = os.fstat(self._fd)
+        except OSError as exc:
+            raise AuditError(f"{self.path}: cannot open: {exc}") from exc
+        self._inode = (st.st_dev, st.st_ino)
+        if lost is None:
+            self._prev, self._seq, self._head = GENESIS, 0, GENESIS
+        else:
+            self._prev, self._seq, self._head = lost[2], lost[0] + 1, lost[1]
+        lost_head = "" if lost is None else f"{lost[0]}:{lost[1]}"
+        self.recovered = (f"{why}; the log continues in a new file from "
+                          f"{lost_head or 'an unknown head'}"
+                          + (f", the file found there kept as {moved}" if moved else ""))
+        log.warning("audit log: %s", self.recovered)
+        fields: dict[str, Any] = {"why": why, "lost_head": lost_head}
+        if moved:
+            fields["moved_to"] = moved
+        self._append({
+            **fields, "action": CONTINUED, "user": "controller", "outcome": "noted",
+            "version_before": None, "version_after": None,
+        })
+        self._reopen = None
 
     def _estop(self, body: dict[str, Any], sender: tuple[str, ...]) -> dict[str, Any] | None:
         """An accepted e-stop: written when it latches or is a new sender's (of the first
@@ -551,8 +728,10 @@ class AuditLog:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            st = os.fstat(self._fd)
         except OSError as exc:
             raise AuditError(f"{self.path}: cannot open: {exc}") from exc
+        self._inode = (st.st_dev, st.st_ino)
         self._recover_tail()
 
     def _recover_tail(self) -> None:
@@ -608,6 +787,7 @@ class AuditLog:
         except OSError as exc:
             raise AuditError(f"{self.path}: cannot set the damaged log aside: {exc}") from exc
         self._open()  # a new, empty file: the chain starts at GENESIS
+        self._new_segment = True
         self.recovered = (
             f"{self.path}: the end of the log is not what a crash leaves ({why}); the log is "
             f"kept as {moved.name} and a new chain starts"
@@ -632,6 +812,7 @@ class AuditLog:
         line = _encoder.encode(rec)
         self._write(line + b"\n")
         self._prev, self._seq, self._head = _sha256(line), self._seq + 1, rec["hash"]
+        self._write_head()
         return rec
 
     def _write(self, data: bytes) -> None:
