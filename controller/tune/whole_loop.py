@@ -156,6 +156,17 @@ def reference_lag(cfg: LoopConfig, knowledge: PlantKnowledge, trajectory: Trajec
     return abs(trajectory.slope_deg_s) * abs(e) / (2 * math.pi * f0)
 
 
+def crossovers_hz(cfg: LoopConfig, knowledge: PlantKnowledge) -> tuple[float, float]:
+    """(speed loop, position loop) gain crossovers of `cfg` on the knowledge's model."""
+    rate = cfg.rate_hz
+    f = design_grid(rate, 800)
+    ev = evidence_of(PlantKnowledge(model=knowledge.model), rate, f)
+    lv = pi_response(cfg.cv_kp, cfg.cv_ki_per_s, f, rate) * ev[0].g
+    integ = (1.0 / rate) / (1.0 - np.exp(-2j * math.pi * f / rate))
+    lp = pi_response(cfg.pos_kp_per_s, cfg.pos_ki_per_s, f, rate) * lv / (1.0 + lv) * integ
+    return loop_margins(lv, f).crossover_hz, loop_margins(lp, f).crossover_hz
+
+
 def _r3(v: float) -> float:
     return float(f"{v:.3g}")
 
@@ -400,8 +411,10 @@ def _explained(res: WholeLoopResult, knowledge: PlantKnowledge) -> WholeLoopResu
                      f"down {res.backoff_steps} x 15 %")
     st = res.start
     lag_start = reference_lag(st.config, knowledge, obj.trajectory)
+    sv, sp_hz = crossovers_hz(st.config, knowledge)
     lines.append(
-        f"starting loop ({_describe(st.config)}): {m} {st.error_deg(m):.4g} deg, command noise "
+        f"starting loop ({_describe(st.config)}; speed loop crossing at {sv:.3g} Hz, position "
+        f"loop at {sp_hz:.3g} Hz): {m} {st.error_deg(m):.4g} deg, command noise "
         f"{st.command_noise_deg_s:.3g} deg/s ({st.verdict}); its reference lag alone (linear, "
         f"model): {lag_start:.4g} deg RMS"
         + (f" = {100 * (lag_start / st.rmse_deg) ** 2:.0f} % of its mean-square error"
