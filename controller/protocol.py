@@ -289,6 +289,11 @@ class KnowledgeReply(_Msg, frozen=True, kw_only=True):
     record: KnowledgeRecord  # the plant knowledge after this request
     message: str = ""
     field: str = ""
+    #: The rig's twin of `record`, built by the controller when the knowledge is adopted (off
+    #: the tick): `controller.twin.model.RigTwin` as JSON (`controller.twin.model.decode`);
+    #: "" when nothing was measured or it could not be built (`twin_note` says why).
+    twin: str = ""
+    twin_note: str = ""
 
 
 # -- commands ---------------------------------------------------------------------------------

@@ -4,7 +4,8 @@
 
 Actions: `status`, `config`, `apply key=value ...` (`--expect-version N`, `--confirm`),
 `start`, `stop`, `estop`, `reset`, `lease acquire|renew|release|takeover|show`,
-`identify [key=value ...]` (IdentifySpec fields), `knowledge`. An action that changes the rig
+`identify [key=value ...]` (IdentifySpec fields), `knowledge`, `twin` (the rig's twin the
+controller built from its plant knowledge: its fit per position). An action that changes the rig
 takes the operator lease for its duration when nobody holds it (and releases it after).
 Values are JSON where they parse as JSON (`q_cutoff_hz=1.5`, `dob_on=false`), else strings.
 
@@ -40,6 +41,7 @@ ACTIONS = (
     "lease",
     "identify",
     "knowledge",
+    "twin",
     "rigs",
 )
 CHANGES = ("apply", "start", "stop", "reset", "identify")
@@ -153,6 +155,20 @@ def _run(c: Any, args: argparse.Namespace, out: TextIO, proto: Any) -> int:
             + (f": {r.message}" if r.message else ""),
         )
         return EXIT_OK if r.ok else EXIT_REFUSED
+    if action == "twin":
+        from controller.twin.model import decode
+
+        r = c.knowledge()
+        if not r.twin:
+            _emit(out, args.json, {"twin": None, "note": r.twin_note}, r.twin_note)
+            return EXIT_OK
+        twin = decode(r.twin)
+        lines = [twin.describe(), *(f"  {p.describe()}" for p in twin.positions)]
+        if twin.nonlinear is not None:
+            lines += [f"  {h}" for h in twin.nonlinear.how]
+        lines += [f"  note: {n}" for n in twin.notes]
+        _emit(out, args.json, twin, "\n".join(lines))
+        return EXIT_OK
     if action == "knowledge":
         r = c.knowledge()
         _emit(

@@ -42,6 +42,9 @@ from controller.process.requests import (
     RunProgram,
 )
 from controller.process.runtime import ESTOP, FAULT, Runtime, Ticket
+from controller.twin.fit import twin_from_knowledge
+from controller.twin.model import RigTwin, knowledge_digest
+from controller.twin.model import encode as encode_twin
 
 __all__ = ["ControllerService", "RuntimeEvents", "config_changes"]
 
@@ -94,6 +97,9 @@ class ControllerService:
         #: The plant knowledge every candidate is judged on (the controller owns it; replaced
         #: whole under the apply lock, so an apply and a change of knowledge never interleave).
         self.knowledge = knowledge if knowledge is not None else KnowledgeRecord()
+        #: The rig's twin of the knowledge's content (digest, twin or None, why none).
+        self._twin: tuple[str, RigTwin | None, str] | None = None
+        self._twin_lock = threading.Lock()
         #: The gate's verdict on the running configuration (re-judged on new knowledge).
         self.running_verdict = verdict
         #: The configuration the watchdog would roll back to, its verdict (judged on the
@@ -429,7 +435,36 @@ class ControllerService:
     # -- plant knowledge -------------------------------------------------------------------------
 
     def knowledge_reply(self, ok: bool, message: str = "", field: str = "") -> proto.KnowledgeReply:
-        return proto.KnowledgeReply(ok=ok, record=self.knowledge, message=message, field=field)
+        twin, note = self.twin_of(self.knowledge)
+        return proto.KnowledgeReply(ok=ok, record=self.knowledge, message=message, field=field,
+                                    twin=twin, twin_note=note)
+
+    def twin_of(self, rec: KnowledgeRecord) -> tuple[str, str]:
+        """(the rig's twin of `rec` as JSON, "" or why there is none): built once per content
+        (the last one kept), in the caller's thread: a request's, never the tick's. Adoption
+        builds it before taking the apply lock."""
+        try:
+            knowledge = rec.to_knowledge()
+        except ValueError as exc:
+            return "", f"no twin: {exc}"
+        if not knowledge.measured:
+            return "", "no twin: nothing measured (predictions run on the built-in model)"
+        digest = knowledge_digest(knowledge)
+        with self._twin_lock:
+            got = self._twin if self._twin is not None and self._twin[0] == digest else None
+            if got is None:
+                try:
+                    rate_hz = self.rt.loop.active.config.rate_hz
+                    twin = twin_from_knowledge(knowledge, rate_hz=rate_hz)
+                    got = (digest, twin, "")
+                except ValueError as exc:
+                    got = (digest, None, f"no twin: the fit failed: {exc}")
+                self._twin = got
+        _, built, note = got
+        if built is None:
+            return "", note
+        return encode_twin(msgspec.structs.replace(
+            built, knowledge_version=rec.version, source=rec.source)).decode(), ""
 
     def handle_knowledge(self, req: proto.KnowledgeRequest) -> proto.KnowledgeReply:
         """Return the plant knowledge, or adopt new knowledge (a record, or the measured
@@ -453,6 +488,7 @@ class ControllerService:
             rec.to_knowledge()  # validate: every field, every response
         except ValueError as exc:
             return self.knowledge_reply(False, f"record: {exc}", field="record")
+        self.twin_of(rec)  # the rig's twin, built here: not under the apply lock
         return self.adopt_knowledge(rec, source, req.client)
 
     def adopt_knowledge(

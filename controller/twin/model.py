@@ -149,9 +149,11 @@ class RigTwin(_Rec, frozen=True, kw_only=True):
 
 
 def knowledge_digest(knowledge: PlantKnowledge) -> str:
-    """A digest of the knowledge's content (model, bound, measured responses): a twin built
-    from other data does not match, whatever the version number says."""
-    raw = msgspec.msgpack.encode(KnowledgeRecord.of(knowledge))
+    """A digest of the knowledge's content (model, bound, measured responses; not its version
+    number nor source): a twin built from other data does not match, whatever the version
+    number says."""
+    rec = msgspec.structs.replace(KnowledgeRecord.of(knowledge), version=0, source="")
+    raw = msgspec.msgpack.encode(rec)
     return hashlib.sha256(raw).hexdigest()[:16]
 
 

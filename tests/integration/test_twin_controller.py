@@ -1,0 +1,79 @@
+"""The rig's twin in the controller (issue 35 item 1): a real controller process over Zenoh on
+loopback builds the twin when it adopts plant knowledge (off the tick, before the apply lock)
+and gives it with the knowledge reply; `dobtune ctl twin` prints its fit per position."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+from procs import APPLY_TIMEOUT_S, Client, ControllerProcess
+
+from controller import protocol as proto
+from controller.gate.knowledge import (
+    COMMISSIONING_BOUND,
+    KnowledgeRecord,
+    MeasuredResponse,
+    PlantKnowledge,
+)
+from controller.sim.rig_disturbances import rig_setup
+from controller.sim.sim_rig import RigFaults
+from controller.twin.fit import rig_response
+from controller.twin.model import decode
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
+
+
+def _knowledge(c: Client, req: proto.KnowledgeRequest | None = None) -> proto.KnowledgeReply:
+    payload = proto.encode(req) if req is not None else None
+    timeout_s = APPLY_TIMEOUT_S if req is not None else None
+    return proto.decode(c.query_raw(proto.key_knowledge(c.rig), payload, timeout_s),
+                        proto.KnowledgeReply)
+
+
+def _ctl(proc: ControllerProcess, *action: str) -> tuple[int, str]:
+    from controller.cli.commands import controller_commands
+    from controller.cli.common import build_parser
+    from controller.cli.ctl import ctl_main
+
+    args = build_parser("dobtune", None, controller_commands()).parse_args(
+        ["ctl", "--connect", proc.endpoint, "--rig-name", proc.rig, "--timeout-s", "30",
+         *action])
+    out = io.StringIO()
+    return ctl_main(args, out), out.getvalue()
+
+
+def test_adopted_knowledge_comes_with_its_twin(controller: ControllerProcess,
+                                               client: Client) -> None:
+    before = _knowledge(client)
+    assert before.twin == "" and "nothing measured" in before.twin_note
+    # Responses of a rig with 1.3x the load inertia and 2 ticks of delay (the exact linear
+    # response of the simulated article rig so changed), at three positions.
+    truth = rig_setup(("article-rig",)).params
+    truth = type(truth)(**{**{f: getattr(truth, f) for f in truth.__dataclass_fields__},
+                           "load_inertia_kg_m2": 0.104, "command_delay_ticks": 2})
+    f = np.geomspace(0.2, 20.0, 25)
+    measured = tuple(MeasuredResponse(f"pos{i}_{p:g}deg", f,
+                                      rig_response(truth, RigFaults(), f, p))
+                     for i, p in enumerate((0.0, 120.0, 240.0)))
+    rec = KnowledgeRecord.of(PlantKnowledge(measured=measured, bound=COMMISSIONING_BOUND,
+                                            source="test"))
+    reply = _knowledge(client, proto.KnowledgeRequest(record=rec))
+    assert reply.ok, reply.message
+    twin = decode(reply.twin)
+    assert twin.knowledge_version == reply.record.version
+    assert twin.matches(reply.record.to_knowledge())
+    assert [p.position_deg for p in twin.positions] == [0.0, 120.0, 240.0]
+    assert all(p.rms_db < 0.1 and p.rms_deg < 1.0 for p in twin.positions), twin.describe()
+    assert twin.fitted["delay_ticks"] == 2.0
+    assert twin.fitted["inertia_factor"] == pytest.approx(1.3, rel=0.1)
+    # A plain query gives the same twin (kept, not rebuilt differently).
+    assert decode(_knowledge(client).twin) == twin
+    code, text = _ctl(controller, "twin")
+    assert code == 0, text
+    for p in twin.positions:
+        assert p.describe() in text
+    code, text = _ctl(controller, "--json", "twin")
+    assert code == 0 and json.loads(text)["knowledge_version"] == reply.record.version
