@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import queue
+import signal
 import threading
 import time
 from collections.abc import Callable
@@ -41,9 +42,9 @@ from controller.client.session import SessionOptions, connect
 from controller.process.budget import RequestBudget
 from controller.process.history import history_reply
 from controller.process.persistence import StateStore
-from controller.process.worker_start import worker_init
+from controller.process.worker_start import lower_priority, worker_init
 
-__all__ = ["FORWARDED", "KINDS", "EdgeSnapshot", "EdgeSpec", "edge_main"]
+__all__ = ["CONNECT", "FORWARDED", "KINDS", "EdgeSnapshot", "EdgeSpec", "edge_main"]
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +67,9 @@ _REPLY_TYPES: dict[str, type[proto.Message]] = {
     "lease": proto.LeaseReply,
     "history": proto.HistoryReply,
 }
-#: How often the edge tries to connect until the loop process's session listens.
+#: Sent by the loop process once its session is open: the edge connects from then on.
+CONNECT = "connect"
+#: How often the edge tries to connect until it succeeds.
 CONNECT_RETRY_S = 0.1
 #: How often the budget's refusals are reported to the loop process (audit, status).
 REPORT_S = 1.0
@@ -121,6 +124,8 @@ class _Edge:
         self.changes = _ChangeLogReader(spec.state_dir)
         self.shed = 0
         self.stop = threading.Event()
+        #: The loop process's session is open (CONNECT): connect.
+        self.go = threading.Event()
         self._control_lock = threading.Lock()
 
     # -- Zenoh callbacks: budget, then hand over ---------------------------------------------
@@ -239,6 +244,8 @@ class _Edge:
                 return
             if isinstance(msg, EdgeSnapshot):
                 self.take(msg)
+            elif msg == CONNECT:
+                self.go.set()
 
     def send_control(self, msg: Any) -> None:
         with self._control_lock:
@@ -257,10 +264,13 @@ class _Edge:
     # -- the process -----------------------------------------------------------------------------
 
     def open_session(self) -> Any:
-        """The edge's session, tried again every CONNECT_RETRY_S until the loop process's
-        session listens (the edge starts first); None if told to stop meanwhile."""
+        """The edge's session, once the loop process says its own is open (CONNECT: the
+        edge starts first), tried again every CONNECT_RETRY_S until it opens; None if told
+        to stop meanwhile."""
         import zenoh
 
+        while not (self.go.is_set() or self.stop.is_set()):
+            self.stop.wait(CONNECT_RETRY_S)
         while not self.stop.is_set():
             try:
                 return connect(self.spec.session)
@@ -291,6 +301,9 @@ class _Edge:
                 for kind, key in KINDS.items()
             ]
             self.send_control(("ready",))
+            # Loaded and serving: from now on the loop's process wins the CPU over this one
+            # (not before: the controller's start waits for it).
+            lower_priority()
             self.stop.wait()
             for e in entities:
                 with contextlib.suppress(Exception):
@@ -301,6 +314,8 @@ class _Edge:
 
 def edge_main(spec: EdgeSpec, conns: dict[str, Connection], control: Connection) -> None:
     """The edge process's body (multiprocessing target)."""
-    worker_init(spec.parent_pid, True)  # Ctrl-C ignored, ends with its parent, niced
+    # Forked from the controller: its SIGTERM handler (stop the loop) is not this process's.
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    worker_init(spec.parent_pid, True, nice=False)  # Ctrl-C ignored, ends with its parent
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s edge: %(message)s")
     _Edge(spec, conns, control).run()

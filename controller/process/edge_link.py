@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing
+import queue
 import socket
 import threading
 import time
@@ -25,7 +26,7 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from controller import protocol as proto
-from controller.process.edge import FORWARDED, EdgeSnapshot, EdgeSpec, edge_main
+from controller.process.edge import CONNECT, FORWARDED, EdgeSnapshot, EdgeSpec, edge_main
 
 __all__ = ["EdgeLink", "Oversized", "free_loopback_port"]
 
@@ -35,6 +36,8 @@ log = logging.getLogger(__name__)
 CLOSE_S = 5.0
 #: The shortest time between two starts of the edge process.
 RESTART_S = 1.0
+#: How long `push` waits for its snapshot to be sent.
+PUSH_WAIT_S = 0.05
 
 
 def free_loopback_port() -> int:
@@ -74,9 +77,9 @@ class EdgeLink:
         self._snap: EdgeSnapshot | None = None
         self._pushed = -1
         self._control: Connection | None = None
-        self._outbox: EdgeSnapshot | None = None
-        self._wake = threading.Event()
-        threading.Thread(target=self._pusher, name="edge-push", daemon=True).start()
+        self._outq: queue.SimpleQueue[tuple[Any, threading.Event]] = queue.SimpleQueue()
+        self._connect = False
+        self._pushing: threading.Thread | None = None
         self._proc: Any = None
         self._conns: dict[str, Connection] = {}
         self._closing = threading.Event()
@@ -106,23 +109,38 @@ class EdgeLink:
 
     def push(self, *, always: bool = False) -> None:
         """Hand the snapshot to the pusher thread if it changed since the last push (never
-        blocks: an edge process that does not read its pipe holds up no caller)."""
+        blocks long: an edge process that does not read its pipe holds up no caller)."""
         snap = self.snapshot()
         if always or snap.generation != self._pushed:
-            self._outbox = snap
             self._pushed = snap.generation
-            self._wake.set()
+            sent = self._send(snap)
+            # Normally sent at once, before the status that shows the change (a client that
+            # reads the configuration on seeing it gets the new one); never waited on long.
+            sent.wait(PUSH_WAIT_S)
+
+    def connect_now(self) -> None:
+        """The loop process's session is open: the edge process may connect (before, each
+        of its attempts would have cost the start CPU)."""
+        self._connect = True
+        self._send(CONNECT)
+
+    def _send(self, msg: Any) -> threading.Event:
+        """Queue `msg` for the edge's control pipe; the event is set once it is sent."""
+        sent = threading.Event()
+        self._outq.put((msg, sent))
+        return sent
 
     def _pusher(self) -> None:
-        """Sends the newest snapshot handed over (older ones are skipped)."""
-        while not self._closing.is_set():
-            self._wake.wait()
-            self._wake.clear()
-            snap, self._outbox = self._outbox, None
+        """Sends what is queued for the control pipe, in order."""
+        while True:
+            msg, sent = self._outq.get()
+            if msg is None:
+                return
             control = self._control
-            if snap is not None and control is not None:
+            if control is not None:
                 with contextlib.suppress(OSError, ValueError):
-                    control.send(snap)
+                    control.send(msg)
+            sent.set()
 
     # -- the process ---------------------------------------------------------------------------
 
@@ -130,7 +148,11 @@ class EdgeLink:
         """Start the edge process (and, once attached, the threads that serve it)."""
         if self._closing.is_set():
             return
-        ctx = multiprocessing.get_context("spawn")
+        # The first start forks (the controller's start, before any Zenoh session or thread
+        # of its own: the child has every module loaded and costs the start nothing); a
+        # start again spawns a fresh interpreter (a fork now would copy a running Zenoh).
+        first = self._proc is None and "fork" in multiprocessing.get_all_start_methods()
+        ctx = multiprocessing.get_context("fork" if first else "spawn")
         ours: dict[str, Connection] = {}
         theirs: dict[str, Connection] = {}
         for kind in FORWARDED:
@@ -147,6 +169,11 @@ class EdgeLink:
         self._conns = ours
         threading.Thread(target=self._read_control, args=(control, proc), name="edge-control",
                          daemon=True).start()
+        if self._pushing is None:  # after the fork: no thread of ours in it
+            self._pushing = threading.Thread(target=self._pusher, name="edge-push", daemon=True)
+            self._pushing.start()
+        if self._connect:  # started again: the session is open
+            self._send(CONNECT)
         if self.node is not None:
             self._serve_threads()
 
@@ -173,7 +200,7 @@ class EdgeLink:
     def close(self) -> None:
         """End the edge process (SIGTERM: nothing of it needs saving; SIGKILL if it lingers)."""
         self._closing.set()
-        self._wake.set()
+        self._outq.put((None, threading.Event()))
         proc = self._proc
         if proc is not None:
             proc.terminate()

@@ -549,7 +549,7 @@ def _run(
                 if runtime.mode != ESTOP:
                     runtime.mode = FAULT
                 log.warning("fault at start: %s", rig_faults[0])
-            access = _open_access(opts, lambda text: log.warning("%s", text))
+            access = _open_access(opts, lambda text, key=None: log.warning("%s", text))
             service = ControllerService(
                 opts, runtime, store, runner, verdict, notes, knowledge, access
             )
@@ -576,6 +576,8 @@ def _run(
                 private_dir = Path(closing.enter_context(
                     tempfile.TemporaryDirectory(prefix="dobtune-edge-")))
                 session = closing.enter_context(_session(opts, edge_login, private_dir))
+                if edge is not None:
+                    edge.connect_now()
                 node = ZenohNode(service)
                 try:
                     node.declare(session, queryables=edge is None)

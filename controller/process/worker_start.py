@@ -14,7 +14,7 @@ import signal
 
 from controller.process.parent_watch import watch_parent
 
-__all__ = ["worker_init"]
+__all__ = ["lower_priority", "worker_init"]
 
 PR_SET_PDEATHSIG = 1
 
@@ -47,10 +47,19 @@ def _set_death_signal() -> None:
             "its parent-pid watch sees the controller gone", why)
 
 
-def worker_init(parent_pid: int, death_signal: bool) -> None:
+def worker_init(parent_pid: int, death_signal: bool, nice: bool = True) -> None:
+    """Ignore Ctrl-C, end with the parent, and (`nice`) yield the CPU to it (`lower_priority`;
+    the edge process does that itself once it serves, so the controller's start, which waits
+    for it, is not slowed by its loading)."""
     # Ctrl-C in a terminal reaches the whole process group: the parent decides, not us.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _end_with_parent(parent_pid, death_signal)
+    if nice:
+        lower_priority()
+
+
+def lower_priority() -> None:
+    """os.nice(10): the loop's process wins the CPU over this one."""
     # The loop's process wins the CPU over an analysis on a busy machine (also over this
     # worker's loading: at normal priority it slowed the controller's own start by ~15 % at
     # load 20-25, bench_startup).
@@ -58,4 +67,4 @@ def worker_init(parent_pid: int, death_signal: bool) -> None:
         os.nice(10)
     except OSError as exc:
         logging.getLogger(__name__).warning(
-            "analysis worker: runs at the controller's priority (os.nice: %s)", exc)
+            "worker process: runs at the controller's priority (os.nice: %s)", exc)

@@ -27,7 +27,7 @@ from typing import Any
 
 import pytest
 from helpers import children, gone
-from procs import ControllerProcess, start_controller, wait_until
+from procs import Client, ControllerProcess, start_controller, wait_until
 
 from controller import protocol as proto
 from controller.auth import init_auth_dir, new_users
@@ -227,7 +227,7 @@ def _edge_pid(proc: ControllerProcess) -> int:
         found[:] = [int(p) for p in re.findall(r"edge process (\d+) serving", proc.log())]
         return bool(found)
 
-    assert wait_until(logged, 30.0), proc.log()[-2000:]
+    assert wait_until(logged, 180.0), proc.log()[-2000:]  # a start at load 20+: a minute
     return found[-1]
 
 
@@ -251,6 +251,8 @@ def test_a_killed_edge_process_is_started_again_and_the_loop_runs_on(
 def test_the_edge_process_ends_with_the_controller(tmp_path: Path) -> None:
     proc = start_controller(tmp_path / "state", rig="edge-orphan")
     try:
+        with Client(proc.endpoint, proc.rig) as c:
+            c.wait_ready(proc, 180.0)
         edge = _edge_pid(proc)
         assert edge in children(proc.proc.pid)
         proc.proc.send_signal(signal.SIGKILL)
