@@ -152,7 +152,7 @@ class EdgeLink:
         # of its own: the child has every module loaded and costs the start nothing); a
         # start again spawns a fresh interpreter (a fork now would copy a running Zenoh).
         first = self._proc is None and "fork" in multiprocessing.get_all_start_methods()
-        ctx = multiprocessing.get_context("fork" if first else "spawn")
+        ctx: Any = multiprocessing.get_context("fork" if first else "spawn")
         ours: dict[str, Connection] = {}
         theirs: dict[str, Connection] = {}
         for kind in FORWARDED:

@@ -121,7 +121,12 @@ def _check_options(opts: ControllerOptions) -> None:
         raise StartupError("--user: only with --auth and --connect (a router to log in to)")
 
 
-def _open_access(opts: ControllerOptions, warn: Callable[[str], None]) -> Access:
+def _warn_log(text: str, key: str | None = None) -> None:
+    """Access's warnings before the service takes them over: the log."""
+    log.warning("%s", text)
+
+
+def _open_access(opts: ControllerOptions, warn: Callable[..., None]) -> Access:
     """Users (with --auth) and the audit log of the state directory."""
     users = None
     if opts.auth_dir is not None:
@@ -549,7 +554,7 @@ def _run(
                 if runtime.mode != ESTOP:
                     runtime.mode = FAULT
                 log.warning("fault at start: %s", rig_faults[0])
-            access = _open_access(opts, lambda text, key=None: log.warning("%s", text))
+            access = _open_access(opts, _warn_log)
             service = ControllerService(
                 opts, runtime, store, runner, verdict, notes, knowledge, access
             )
