@@ -7,9 +7,11 @@ One controller with authentication (`--auth`, users op1 operator, view viewer, w
 `--realtime-priority` as on a rig. Each run lasts `--seconds`: `none` (no flood), `viewer` (a
 viewer floods what it may ask: config, history of 1000, knowledge, lease, identify, and a
 candidate it may not apply) and `operator` (the lease holder floods applies of two accepted
-candidates, alternating). The flood comes from another process at nice 19 (it stands for
-another machine) with 4 threads, each sending its next request as soon as the previous one is
-answered or refused: the fastest a client can send and still learn the outcome.
+candidates, alternating); `estop` (a viewer puts e-stops as fast as it can: no request,
+no budget: each reaches the loop's process). The flood comes from another process at nice
+19 (it stands for another machine) with 4 threads, each sending its next request as soon as
+the previous one is answered or refused: the fastest a client can send and still learn the
+outcome.
 
 Meanwhile an e-stop is put (by `watch`, on its own scope) every 0.3 s. The loop stays latched
 in e-stop; each e-stop is a new one (`estop_seq`, the tick that saw it), so its latency is the
@@ -87,6 +89,11 @@ def flood(role: str, endpoint: str, auth: Path, seconds: float) -> dict[str, int
             while time.monotonic() < stop_at[0]:
                 i += 1
                 try:
+                    if role == "estop":  # puts: no reply to wait for
+                        c.put_estop()
+                        with lock:
+                            counts["answered"] += 1
+                        continue
                     if role == "operator":
                         r: Any = c.apply(a if i % 2 else b)
                     else:
