@@ -13,7 +13,8 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+
+import viser
 
 from controller.client import ControllerClient
 from controller.core.config import LoopConfig
@@ -37,8 +38,8 @@ class CandidatePlace:
     guided path) in the Tune tab, its charts in the Bode tab; the identification panel its
     guide reads."""
 
-    tune_tab: Any
-    bode_tab: Any
+    tune_tab: viser.GuiTabHandle
+    bode_tab: viser.GuiTabHandle
     identify: IdentifyPanel | None
 
 
@@ -48,7 +49,8 @@ class Candidates:
     start from."""
 
     def __init__(self, engine: TuningEngine, sessions: BrowserSessions, requests: Requests,
-                 client: ControllerClient, who: Callable[[Any], tuple[str, str]],
+                 client: ControllerClient,
+                 who: Callable[[viser.ClientHandle | None], tuple[str, str]],
                  directory: Path | None = None, rig: str = "") -> None:
         """`sessions`, `requests`: how a candidate's Apply reaches the controller (its
         `CandidateApply`); `client`: the controller client the guides read; `who(browser)`:
@@ -75,7 +77,8 @@ class Candidates:
                                    on_problem=self._show_problem)
         """Each browser tab's candidate, kept for a reload of that tab (and a restart)."""
 
-    def panel_in(self, gui: Any, place: CandidatePlace, browser: Any = None
+    def panel_in(self, gui: viser.GuiApi, place: CandidatePlace,
+                 browser: viser.ClientHandle | None = None
                  ) -> NominalTuningPanel:
         """A candidate panel of its own in `gui` (a browser's `client.gui`; or the shared GUI
         without a browser), built at `place`: controls in the Tune tab, charts in the Bode
@@ -112,7 +115,7 @@ class Candidates:
         guide.start()
         return t
 
-    def panel_of(self, browser: Any) -> NominalTuningPanel | None:
+    def panel_of(self, browser: viser.ClientHandle | None) -> NominalTuningPanel | None:
         """The candidate panel of `browser` (None: the one built without a browser)."""
         with self._lock:
             return self.panels.get(getattr(browser, "client_id", -1))

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Any
+
+import viser
 
 from controller import protocol as proto
 from controller.client import ControllerClient, ControllerUnavailable
@@ -37,7 +38,8 @@ class CommandRouter:
 
     # -- commands ------------------------------------------------------------------------------
 
-    def command_async(self, body: proto.CommandBody, browser: Any = None) -> None:
+    def command_async(self, body: proto.CommandBody,
+                      browser: viser.ClientHandle | None = None) -> None:
         if isinstance(body, proto.EStop):
             # The put goes out at once from the callback; the reply is shown when it comes.
             try:
@@ -60,7 +62,7 @@ class CommandRouter:
         log.warning("E-STOP from the page's E-STOP link (%s)", user or "dashboard")
         return "E-STOP sent"
 
-    def command(self, body: proto.CommandBody, browser: Any = None,
+    def command(self, body: proto.CommandBody, browser: viser.ClientHandle | None = None,
                 via: ControllerClient | None = None) -> None:
         """Send `body` for `browser` (or through `via`) and show the reply."""
         name = type(body).__name__

@@ -3,9 +3,13 @@ model" fills)."""
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+
+import viser
 
 from controller.core.config import LoopConfig, NominalModel
+from server.candidate_apply import CandidateApply
+from server.engine import TuningEngine
 from server.panels.tuning import TuningPanel
 
 __all__ = ["NominalTuningPanel"]
@@ -19,8 +23,10 @@ class NominalTuningPanel(TuningPanel):
     Revert clears it.
     """
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
+    def __init__(self, gui: viser.GuiApi, engine: TuningEngine, applier: CandidateApply,
+                 initial: LoopConfig | None = None,
+                 on_change: Callable[[TuningPanel], None] | None = None) -> None:
+        super().__init__(gui, engine, applier, initial, on_change)
         self.nominal_override: NominalModel | None = None
 
     def candidate(self) -> LoopConfig:

@@ -300,7 +300,7 @@ class TuningPanel:
         """A dialog (in the browser that asked) listing the reasons; only "Apply anyway"
         sends (with confirm)."""
 
-        def go(who: Any) -> None:
+        def go(who: viser.ClientHandle | None) -> None:
             self.box.sending(confirmed=True)
             self.applier.submit(self, cand, True, who)
 
