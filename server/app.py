@@ -318,6 +318,10 @@ class Dashboard:
             self.fleet = FleetPanel(gui, self._fleet_monitor, self.open_view)
             with tabs.add_tab("Fleet"):
                 self.fleet.build()
+            # Every role may E-STOP any rig (the rig picked, then the button) and open a
+            # rig's full view (as its own user).
+            for handle in (self.fleet.pick, self.fleet.estop_button, self.fleet.open_button):
+                self.messages.open_to_all(handle)
         with tabs.add_tab("History"):
             self.history.build()
         with tabs.add_tab("Recordings"):

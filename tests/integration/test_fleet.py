@@ -195,9 +195,19 @@ def test_a_fleet_behind_an_authenticating_router(tmp_path: Path) -> None:
 
             ok = wait_until(running, 40.0)
             assert ok, (mon.rows(), dash.client.status, "".join(p.log() for p in procs))
-            assert dash.fleet.estop("rig_b")
-            assert wait_until(lambda: {r.rig: r.mode for r in mon.rows()}["rig_b"] == "estop",
-                              10.0)
+            # The viewer's browser picks rig_b and presses its E-STOP (raw websocket: what
+            # its page sends; the message gate lets every role do both).
+            from viser_raw import connected
+
+            from server.viser_adapter import control_uuid
+
+            with connected(dash, dash.url_for("view")) as viewer:
+                assert wait_until(lambda: "rig_b" in dash.fleet.pick.options, 10.0)
+                viewer.update(control_uuid(dash.fleet.pick), {"value": "rig_b"})
+                assert wait_until(lambda: dash.fleet.pick.value == "rig_b", 10.0)
+                viewer.update(control_uuid(dash.fleet.estop_button), {"value": True})
+                assert wait_until(
+                    lambda: {r.rig: r.mode for r in mon.rows()}["rig_b"] == "estop", 10.0)
         copts = ClientOptions(connect=(ep,), rig_name="rig_a", auth=auth, user="op1",
                               client_name="op1", connect_timeout_s=10.0)
         with ControllerClient(copts) as op:
