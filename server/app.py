@@ -553,7 +553,8 @@ def check_port_free(host: str, port: int, what: str = "--port") -> None:
 
 
 def run_dashboard(opts: DashboardOptions) -> int:
-    """Run until SIGINT/SIGTERM; returns the exit code (2: the port is busy)."""
+    """Run until SIGINT/SIGTERM; returns the exit code (2: the port is busy, the users file is
+    bad, or the access gate is not in front of every route: nothing is served)."""
     try:
         check_port_free(opts.host, opts.port)
     except PortBusy as exc:
