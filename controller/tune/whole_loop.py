@@ -192,7 +192,9 @@ def meets_targets(cfg: LoopConfig, knowledge: PlantKnowledge, targets: DesignTar
                     and m.phase_margin_deg >= targets.phase_margin_deg):
                 return (f"{which} loop on {e.name}: GM {m.gain_margin_db:.1f} dB, PM "
                         f"{m.phase_margin_deg:.1f} deg")
-        peak = float(np.max(e.allowance * np.abs(t)))
+        lw = lv * (1.0 + cp * integ)
+        peak = max(float(np.max(e.allowance * np.abs(t))),
+                   float(np.max(e.allowance * np.abs(lw / (1.0 + lw)))))
         if peak > targets.robust_peak_max:
             return f"robust figure {peak:.2f} on {e.name}"
     return None
