@@ -8,6 +8,7 @@ dashboard's Recordings tab are front ends over `Recorder`.
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from dataclasses import dataclass
@@ -86,6 +87,43 @@ class _IdentifyWatch:
         identify_event(rec, st)
 
 
+class _TwinWatch:
+    """Records a `twin` event (the rig's twin the controller built from its plant knowledge,
+    `controller.twin.model.RigTwin` as plain data, or why there is none) for the knowledge the
+    controller holds when the recording starts and after each change of it."""
+
+    def __init__(self, recorded: list[int]) -> None:
+        self.version: int | None = None
+        self.failed = False
+        self.recorded = recorded
+        """The knowledge versions whose twin event was written."""
+
+    def poll(self, session: Any, key: str, rec: Any, version: int | None) -> None:
+        if version is None or version == self.version:
+            return
+        try:
+            replies = list(session.get(key, timeout=2.0))
+            ok = [r.ok for r in replies if r.ok is not None]
+            if not ok:
+                raise ValueError("no reply")
+            got = proto.decode(ok[0].payload.to_bytes(), proto.KnowledgeReply)
+        except Exception as exc:  # said once in the recording, the recording goes on
+            if not self.failed:
+                self.failed = True
+                rec.event("note", f"plant knowledge unavailable (no twin recorded): {exc}")
+            return
+        if not got.twin and got.twin_note.startswith("no twin yet"):
+            return  # being built: asked again at the next poll
+        self.version = version
+        v = got.record.version
+        if got.twin:
+            rec.event("twin", f"the rig's twin of plant knowledge v{v}", knowledge_version=v,
+                      twin=json.loads(got.twin))
+        else:
+            rec.event("twin", got.twin_note, knowledge_version=v, twin=None)
+        self.recorded.append(v)
+
+
 def identify_event(rec: Any, st: Any) -> None:
     """Record the `identify` event of an IdentifyStatus `st` (which carries `run`) into the
     MCAP writer `rec`: what `dobtune identify --from` reads."""
@@ -114,6 +152,8 @@ class Recorder:
         if not Path(opts.out).parent.is_dir():
             raise ValueError(f"--out: directory {Path(opts.out).parent} does not exist")
         self.opts = opts
+        #: The plant knowledge versions whose twin the recording holds (a `twin` event each).
+        self.twins_recorded: list[int] = []
 
     def run(self, stop: threading.Event | None = None) -> RecordResult:
         """Record; ControllerUnavailable when there is no connection or no state arrived within
@@ -140,6 +180,11 @@ class Recorder:
         if o.auth is not None:
             identify_key = proto.user_key(identify_key, o.user)
         identify = _IdentifyWatch()
+        twin = _TwinWatch(self.twins_recorded)
+        twin_key = proto.key_knowledge(o.rig_name)
+        if o.auth is not None:
+            twin_key = proto.user_key(twin_key, o.user)
+        knowledge_version: int | None = None
         next_poll = t0
         with session, McapWriter(Path(o.out), rig=o.rig_name) as rec:
             state = session.declare_subscriber(proto.key_state(o.rig_name),
@@ -169,6 +214,7 @@ class Recorder:
                             rec.event("note", f"undecodable status message: {exc}")
                             continue
                         rec.status(st, time.time())
+                        knowledge_version = st.knowledge_version
                         text = f"{st.mode}|{st.watchdog}|{';'.join(st.faults)}"
                         if text != last_status and last_status:
                             rec.event("status", f"mode {st.mode}; faults: "
@@ -178,6 +224,7 @@ class Recorder:
                     if time.monotonic() >= next_poll:
                         next_poll = time.monotonic() + IDENTIFY_POLL_S
                         identify.poll(session, identify_key, rec)
+                        twin.poll(session, twin_key, rec, knowledge_version)
                     if not got:
                         stop.wait(0.01)
                 identify.poll(session, identify_key, rec)  # a run that ended in the last poll

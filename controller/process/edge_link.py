@@ -94,9 +94,10 @@ class EdgeLink:
 
     def snapshot(self) -> EdgeSnapshot:
         """The replies to a configuration GET and a knowledge GET now (encoded again only when
-        what they show changed: the active coefficients, the verdict, the knowledge)."""
+        what they show changed: the active coefficients, the verdict, the knowledge, its
+        twin once built)."""
         svc = self.service
-        key = (svc.rt.loop.active, svc.running_verdict, svc.knowledge)
+        key = (svc.rt.loop.active, svc.running_verdict, svc.knowledge, svc.twin_built)
         with self._snap_lock:
             snap = self._snap
             if snap is None or any(a is not b for a, b in zip(key, self._snap_key, strict=True)):

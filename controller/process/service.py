@@ -42,7 +42,7 @@ from controller.process.requests import (
     RunProgram,
 )
 from controller.process.runtime import ESTOP, FAULT, Runtime, Ticket
-from controller.twin.fit import twin_from_knowledge
+from controller.twin.fit import build_twin
 from controller.twin.model import RigTwin, knowledge_digest
 from controller.twin.model import encode as encode_twin
 
@@ -66,6 +66,12 @@ def config_changes(old: LoopConfig, new: LoopConfig) -> str:
     a, b = msgspec.structs.asdict(old), msgspec.structs.asdict(new)
     diff = [f"{k} {a[k]} -> {b[k]}" for k in a if a[k] != b[k]]
     return ", ".join(diff) or "no change"
+
+
+
+#: The rig's twin gets this long in the analysis worker (a fit of 5 delays; seconds at most
+#: on a loaded machine).
+TWIN_TIMEOUT_S = 120.0
 
 
 class ControllerService:
@@ -100,6 +106,7 @@ class ControllerService:
         #: The rig's twin of the knowledge's content (digest, twin or None, why none).
         self._twin: tuple[str, RigTwin | None, str] | None = None
         self._twin_lock = threading.Lock()
+        self._twin_building: str | None = None
         #: The gate's verdict on the running configuration (re-judged on new knowledge).
         self.running_verdict = verdict
         #: The configuration the watchdog would roll back to, its verdict (judged on the
@@ -440,9 +447,9 @@ class ControllerService:
                                     twin=twin, twin_note=note)
 
     def twin_of(self, rec: KnowledgeRecord) -> tuple[str, str]:
-        """(the rig's twin of `rec` as JSON, "" or why there is none): built once per content
-        (the last one kept), in the caller's thread: a request's, never the tick's. Adoption
-        builds it before taking the apply lock."""
+        """(the rig's twin of `rec` as JSON, "" or why there is none). Built once per content
+        (the last one kept) in the analysis worker, by a thread of its own that this starts:
+        never on the tick nor in a request's time; until it is done the note says so."""
         try:
             knowledge = rec.to_knowledge()
         except ValueError as exc:
@@ -453,18 +460,34 @@ class ControllerService:
         with self._twin_lock:
             got = self._twin if self._twin is not None and self._twin[0] == digest else None
             if got is None:
-                try:
-                    rate_hz = self.rt.loop.active.config.rate_hz
-                    twin = twin_from_knowledge(knowledge, rate_hz=rate_hz)
-                    got = (digest, twin, "")
-                except ValueError as exc:
-                    got = (digest, None, f"no twin: the fit failed: {exc}")
-                self._twin = got
+                if self._twin_building != digest:
+                    self._twin_building = digest
+                    threading.Thread(target=self._build_twin, args=(digest, rec),
+                                     name="twin-build", daemon=True).start()
+                return "", f"no twin yet: being built for plant knowledge v{rec.version}"
         _, built, note = got
         if built is None:
             return "", note
         return encode_twin(msgspec.structs.replace(
             built, knowledge_version=rec.version, source=rec.source)).decode(), ""
+
+    @property
+    def twin_built(self) -> object:
+        """The last twin built (a new object after each build: what the edge's snapshot
+        compares)."""
+        return self._twin
+
+    def _build_twin(self, digest: str, rec: KnowledgeRecord) -> None:
+        try:
+            rate_hz = self.rt.loop.active.config.rate_hz
+            twin, note = self.worker.call(build_twin, rec, rate_hz, timeout_s=TWIN_TIMEOUT_S)
+        except Exception as exc:  # a dead or late worker: said in every knowledge reply
+            twin, note = None, f"no twin: the analysis worker failed: {type(exc).__name__}: {exc}"
+            log.warning("twin of plant knowledge v%d: %s", rec.version, note)
+        with self._twin_lock:
+            self._twin = (digest, twin, note)
+            if self._twin_building == digest:
+                self._twin_building = None
 
     def handle_knowledge(self, req: proto.KnowledgeRequest) -> proto.KnowledgeReply:
         """Return the plant knowledge, or adopt new knowledge (a record, or the measured
@@ -488,7 +511,6 @@ class ControllerService:
             rec.to_knowledge()  # validate: every field, every response
         except ValueError as exc:
             return self.knowledge_reply(False, f"record: {exc}", field="record")
-        self.twin_of(rec)  # the rig's twin, built here: not under the apply lock
         return self.adopt_knowledge(rec, source, req.client)
 
     def adopt_knowledge(

@@ -28,7 +28,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from controller.core.arrays import ComplexArray, FloatArray
-from controller.gate.knowledge import MeasuredResponse, PlantKnowledge
+from controller.gate.knowledge import KnowledgeRecord, MeasuredResponse, PlantKnowledge
 from controller.gate.loop_model import discrete_equivalent
 from controller.sim.sim_rig import RigFaults, RigParams
 from controller.twin.model import (
@@ -41,6 +41,7 @@ from controller.twin.model import (
 
 __all__ = [
     "MAX_DELAY_TICKS",
+    "build_twin",
     "disturbance_estimate",
     "position_fit",
     "position_of",
@@ -171,6 +172,23 @@ def _apply(base: RigParams, x: FloatArray, delay: int) -> tuple[RigParams, RigFa
                      drive_droop_rpm_per_n_m=float(max(0.0, 1000.0 * x[6])),
                      command_delay_ticks=delay)
     return params, RigFaults(plant_gain=min(99.0, g))
+
+
+def build_twin(record: KnowledgeRecord, rate_hz: float) -> tuple[RigTwin | None, str]:
+    """The twin of the knowledge `record` for the controller's analysis worker: (the twin, "")
+    or (None, why not): nothing measured, a record that does not convert, or a fit that fails
+    are said, not raised (a raise would cost the worker process)."""
+    try:
+        knowledge = record.to_knowledge()
+    except ValueError as exc:
+        return None, f"no twin: {exc}"
+    if not knowledge.measured:
+        return None, "no twin: nothing measured (predictions run on the built-in model)"
+    try:
+        twin = twin_from_knowledge(knowledge, rate_hz=rate_hz)
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        return None, f"no twin: the fit failed: {type(exc).__name__}: {exc}"
+    return twin, ""
 
 
 def twin_from_knowledge(

@@ -21,7 +21,7 @@ from controller.sim.disturbance import Disturbance
 from controller.sim.sim_rig import RigFaults, RigParams, SimRig
 
 __all__ = ["TWIN_FORMAT", "DisturbanceEstimate", "NonlinearEstimate", "PositionFit",
-           "ReplayFit", "RigTwin", "decode", "encode", "knowledge_digest"]
+           "ReplayFit", "RigTwin", "decode", "encode", "from_builtins", "knowledge_digest"]
 
 #: The twin record's format (bumped when a field changes meaning).
 TWIN_FORMAT = 1
@@ -160,6 +160,14 @@ def knowledge_digest(knowledge: PlantKnowledge) -> str:
 def encode(twin: RigTwin) -> bytes:
     """The twin as JSON (recordings, files)."""
     return msgspec.json.encode(twin)
+
+
+def from_builtins(obj: object) -> RigTwin:
+    """A twin from plain data (a recording's `twin` event); ValueError naming the field."""
+    try:
+        return msgspec.convert(obj, type=RigTwin)
+    except msgspec.ValidationError as exc:
+        raise ValueError(f"twin: {exc}") from None
 
 
 def decode(data: bytes | str) -> RigTwin:

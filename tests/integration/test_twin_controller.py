@@ -6,22 +6,27 @@ from __future__ import annotations
 
 import io
 import json
+import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import wait_until
 from procs import APPLY_TIMEOUT_S, Client, ControllerProcess
 
 from controller import protocol as proto
+from controller.client.recorder import Recorder, RecordOptions
 from controller.gate.knowledge import (
     COMMISSIONING_BOUND,
     KnowledgeRecord,
     MeasuredResponse,
     PlantKnowledge,
 )
+from controller.recording.mcap_io import read_recording
 from controller.sim.rig_disturbances import rig_setup
 from controller.sim.sim_rig import RigFaults
 from controller.twin.fit import rig_response
-from controller.twin.model import decode
+from controller.twin.model import decode, from_builtins
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 
@@ -62,6 +67,12 @@ def test_adopted_knowledge_comes_with_its_twin(controller: ControllerProcess,
                                             source="test"))
     reply = _knowledge(client, proto.KnowledgeRequest(record=rec))
     assert reply.ok, reply.message
+    # built in the analysis worker after the adoption: the reply says so until it is done
+    assert reply.twin or "being built" in reply.twin_note, reply.twin_note
+    assert wait_until(lambda: _knowledge(client).twin or "being built" not in
+                      _knowledge(client).twin_note, timeout_s=180.0)
+    reply = _knowledge(client)
+    assert reply.twin, reply.twin_note
     twin = decode(reply.twin)
     assert twin.knowledge_version == reply.record.version
     assert twin.matches(reply.record.to_knowledge())
@@ -77,3 +88,39 @@ def test_adopted_knowledge_comes_with_its_twin(controller: ControllerProcess,
         assert p.describe() in text
     code, text = _ctl(controller, "--json", "twin")
     assert code == 0 and json.loads(text)["knowledge_version"] == reply.record.version
+
+
+def test_a_recording_carries_the_twin(controller: ControllerProcess, client: Client,
+                                      tmp_path: Path) -> None:
+    """`dobtune record`: a `twin` event for the knowledge held when it starts (none: said so)
+    and after each adoption, with the twin as plain data (`from_builtins` reads it back)."""
+    f = np.geomspace(0.2, 20.0, 20)
+    params = rig_setup(()).params
+    measured = tuple(MeasuredResponse(f"pos{i}_{p:g}deg", f,
+                                      rig_response(params, RigFaults(), f, p))
+                     for i, p in enumerate((0.0, 180.0)))
+    rec_k = KnowledgeRecord.of(PlantKnowledge(measured=measured, bound=COMMISSIONING_BOUND))
+    stop = threading.Event()
+    out = tmp_path / "run.mcap"
+    recorder = Recorder(RecordOptions(connect=(controller.endpoint,), out=out,
+                                      rig_name=controller.rig, timeout_s=60.0))
+    th = threading.Thread(target=recorder.run, args=(stop,))
+    th.start()
+    try:
+        assert wait_until(lambda: recorder.twins_recorded, timeout_s=120.0)
+        first = recorder.twins_recorded[0]
+        reply = _knowledge(client, proto.KnowledgeRequest(record=rec_k))
+        assert reply.ok
+        adopted = reply.record.version
+        assert adopted > first
+        assert wait_until(lambda: adopted in recorder.twins_recorded, timeout_s=120.0)
+    finally:
+        stop.set()
+        th.join(timeout=60.0)
+    got = read_recording(out)
+    twins = [e for e in got.events if e["kind"] == "twin"]
+    assert [e["knowledge_version"] for e in twins] == [first, adopted]
+    assert twins[0]["twin"] is None and "nothing measured" in twins[0]["text"]
+    tw = from_builtins(twins[1]["twin"])
+    assert tw.knowledge_version == adopted and tw.matches(reply.record.to_knowledge())
+    assert tw == decode(_knowledge(client).twin)
