@@ -144,3 +144,22 @@ def test_identify_writes_the_knowledge_and_its_twin(tmp_path) -> None:  # type: 
     assert [p["name"] for p in summary["twin"]["positions"]] == [m.name for m in k.measured]
     for p in tw.positions:
         assert f"{p.name}: {p.rms_db:.2f} dB / {p.rms_deg:.1f} deg rms" in out.getvalue()
+
+
+def test_a_recorded_run_replayed_on_the_twin(twin: RigTwin) -> None:
+    """The default loop with Q20 at 3.85 Hz (the demo's autotune pick) on the true rig (the
+    "recording": its position error per tick), replayed on the twin: RMSE within 10 %, peak
+    within 20 %."""
+    from controller.twin.replay import replay
+
+    cfg = CFG.with_(dob_on=True, q_type="q20", q_cutoff_hz=3.85)
+    traj = Trajectory(kind="sine", amplitude_deg=5.0, omega_rad_s=0.5)
+    true = run_experiment(cfg, traj, 20.0, rig=SimRig(SETUP.params, disturbance=SETUP.torque))
+    fit = replay(twin, cfg, traj, true.error_deg, label="q20 3.85 Hz sine",
+                 disturbance=SETUP.torque)
+    assert fit.duration_s == pytest.approx(20.0)
+    assert fit.measured_rmse_deg == pytest.approx(true.rmse_deg, rel=1e-9)
+    assert fit.predicted_rmse_deg == pytest.approx(fit.measured_rmse_deg, rel=0.10)
+    assert fit.predicted_peak_deg == pytest.approx(fit.measured_peak_deg, rel=0.20)
+    with pytest.raises(ValueError, match="measured_error_deg"):
+        replay(twin, cfg, traj, np.array([0.0, np.nan]))
