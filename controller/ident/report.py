@@ -13,7 +13,7 @@ import numpy as np
 from controller.core.config import NominalModel, config_to_builtins
 from controller.gate.knowledge import DIVERGENCE_FRACTION, UNCERTAINTY_SIGMAS, PositionSpread
 from controller.gate.search import SPREAD_MARGIN
-from controller.ident.result import IdentifyResult, PositionRecord
+from controller.ident.result import IdentifyResult, PositionRecord, relative_uncertainty_of
 
 __all__ = [
     "FITTED_CONFIG_NAME",
@@ -75,6 +75,13 @@ def summary_json(
             "raw": files.get(p.index, (None, ""))[1],
             "min_coherence": None if est is None else float(np.min(est.coherence)),
         }
+        if est is not None:
+            # what the non-excited lines next to each excited one hold (nonlinear distortion
+            # and noise), relative to the response there: stated beside it, not fitted
+            u = relative_uncertainty_of(est)
+            j = int(np.argmax(u))
+            entry["distortion_db"] = float(20.0 * np.log10(max(float(u[j]), 1e-12)))
+            entry["distortion_at_hz"] = float(est.freq_hz[j])
         if unc is not None and p.complete and i < unc.delta.shape[0]:
             k = int(np.argmax(np.abs(unc.delta[i])))
             entry["delta_peak"] = float(np.abs(unc.delta[i][k]))
@@ -183,13 +190,16 @@ def report_text(summary: dict[str, Any], out_dir: Path) -> str:
         f"{summary['f_min_hz']:g}-{summary['f_max_hz']:g} Hz ({summary['n_frequencies']} "
         f"frequencies), {len(summary['positions'])} position(s); "
         f"{summary['simulated_s']:.0f} s simulated in {summary['wall_s']:.1f} s",
-        f"  {'position':<16}{'points':>8}{'min coh.':>10}{'max |Delta|':>13}  at",
+        f"  {'position':<16}{'points':>8}{'min coh.':>10}{'max |Delta|':>13}  at"
+        f"{'distortion+noise':>22}",
     ]
     for p in summary["positions"]:
         lines.append(
             f"  {p['center_deg']:>8g} deg     {p['points_done']:>3}/{p['points_total']:<3}"
             f"{_fmt(p['min_coherence'], '.4f'):>10}{_fmt(p.get('delta_peak'), '.3g'):>13}"
-            f"  {_fmt(p.get('delta_peak_hz'), '.3g', ' Hz')}"
+            f"  {_fmt(p.get('delta_peak_hz'), '.3g', ' Hz'):<8}"
+            + (f"{p['distortion_db']:>8.1f} dB at {p['distortion_at_hz']:.3g} Hz"
+               if p.get("distortion_db") is not None else "")
             + ("" if p["complete"] else "  INCOMPLETE")
         )
     fit = summary["fit"]
@@ -272,6 +282,9 @@ def report_text(summary: dict[str, Any], out_dir: Path) -> str:
     lines += [f"  note: {n}" for n in summary["notes"]]
     if not summary["complete"]:
         lines.append(f"ABORTED: {summary['abort_reason']} (partial data kept)")
+    if any(p.get("distortion_db") is not None for p in summary["positions"]):
+        lines.append("  distortion+noise: the non-excited lines beside the excited ones, worst "
+                     "point, relative to the response (0 dB: as large as the response)")
     lines.append(
         f"  files in {out_dir}"
         + (
