@@ -585,6 +585,15 @@
 
   const selectedIn = (tabs) => (tabs || []).find((t) => t.getAttribute("aria-selected") === "true");
 
+  function activate(tab) {
+    if (tab.closest("[data-dock-strip]")) {
+      // What a keyboard user does: Enter on the dock's tab activates it (the dock's tabs act
+      // on pointer events: a click() does nothing).
+      tab.dispatchEvent(new KeyboardEvent("keydown", { key: "Enter", bubbles: true,
+                                                       cancelable: true }));
+    } else tab.click();
+  }
+
   function restore() {
     const g = groups();
     let done = true;
@@ -607,11 +616,7 @@
       }
       if (tab.getAttribute("aria-selected") !== "true") {
         done = false;
-        if (tab.closest("[data-dock-strip]")) {
-          // What a keyboard user does: Enter on the dock's tab activates it.
-          tab.dispatchEvent(new KeyboardEvent("keydown", { key: "Enter", bubbles: true,
-                                                           cancelable: true }));
-        } else tab.click();
+        activate(tab);
       }
     }
     if (done) want = {};
@@ -622,13 +627,22 @@
     }
   }
 
+  // A deferred tab is activated as restore() does (its strip is the dock's: the click this
+  // used before did nothing, and the Bode tab opened on Decide), and forgotten only once seen
+  // selected, or DEFERRED_TRY_MS after its strip was first drawn.
+  const DEFERRED_TRY_MS = 10000;
+  const deferredSeen = {};
   function restoreDeferred() {
     const g = groups();
     for (const [key, label] of Object.entries(deferred)) {
       const tab = (g[key] || []).find((t) => tabLabel(t) === label);
       if (!tab) continue;
-      delete deferred[key];
-      if (tab.getAttribute("aria-selected") !== "true") tab.click();
+      if (!(key in deferredSeen)) deferredSeen[key] = Date.now();
+      if (tab.getAttribute("aria-selected") === "true" ||
+          Date.now() - deferredSeen[key] > DEFERRED_TRY_MS) {
+        delete deferred[key];
+        delete deferredSeen[key];
+      } else activate(tab);
     }
   }
 

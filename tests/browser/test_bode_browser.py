@@ -436,3 +436,30 @@ def test_the_url_keeps_the_bode_sub_tab_over_a_reload(dashboard: Dashboard, page
     page.get_by_role("tab", name="Bode", exact=True).click(timeout=SLOW_S * 1000)
     page.wait_for_function(NYQUIST_SHOWN_JS, timeout=SLOW_S * 1000)
     assert "bode=Nyquist" in page.url, page.url
+
+
+def test_a_bode_sub_tab_from_the_url_drawn_after_the_rest_is_restored(
+        dashboard: Dashboard, page: Any) -> None:
+    """The CI failure at load 5-7 made certain: a page opened on
+    #tab=Live&plot=Live+traces&bode=Nyquist whose candidate charts (the Bode sub-tabs) come
+    only after the Live traces tab is shown (the dashboard builds them when the page connects,
+    held back here) still opens the Bode tab on Nyquist when Bode is clicked. (The page
+    script's restore finds the sub-tabs only once drawn; it then activated them with a click
+    the dock's tabs ignore: Decide stayed.)"""
+    page.evaluate("() => history.replaceState(null, '', location.pathname + location.search"
+                  " + '#tab=Live&plot=Live+traces&bode=Nyquist')")
+    before = set(dashboard.server.get_clients())
+    with dashboard.candidates._build_lock:  # the page's candidate charts wait
+        page.reload(wait_until="domcontentloaded", timeout=SLOW_S * 2000)
+        wait_for(lambda: set(dashboard.server.get_clients()) - before, SLOW_S * 2,
+                 "the reloaded page never connected")
+        page.wait_for_function(LIVE_TRACES_SHOWN_JS, timeout=SLOW_S * 2000)
+        assert page.evaluate(BODE_SUBTAB_JS) is None  # not drawn yet
+    new = set(dashboard.server.get_clients()) - before
+    wait_for(lambda: any(dashboard.panel_of(dashboard.server.get_clients()[c]) is not None
+                         for c in new if c in dashboard.server.get_clients()),
+             SLOW_S * 2, "the reloaded page's candidate panel was never built")
+    page.get_by_role("tab", name="Bode", exact=True).click(timeout=SLOW_S * 1000)
+    page.wait_for_function(f"() => ({BODE_SUBTAB_JS})() === 'Nyquist'", timeout=SLOW_S * 1000)
+    page.wait_for_function(NYQUIST_SHOWN_JS, timeout=SLOW_S * 1000)
+    assert "bode=Nyquist" in page.url, page.url
