@@ -13,12 +13,16 @@ __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8080)
-    p.add_argument("--zenoh-port", type=int, default=7447)
-    p.add_argument("--rig-name", default="demo")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="the dashboard's address (default: %(default)s)")
+    p.add_argument("--port", type=int, default=8080,
+                   help="the dashboard's port (default: %(default)s)")
+    p.add_argument("--zenoh-port", type=int, default=7447,
+                   help="the controller's Zenoh port on 127.0.0.1 (default: %(default)s)")
+    p.add_argument("--rig-name", default="demo", help="the rig's name (default: %(default)s)")
     p.add_argument("--rigs", type=int, default=1,
-                   help="more than 1: a router on --zenoh-port and this many simulated rigs")
+                   help="more than 1: a router on --zenoh-port and this many simulated rigs "
+                   "(default: %(default)s)")
     p.add_argument("--disturbance", action="append", default=None, metavar="NAME",
                    help="the simulated rig's named disturbances (repeatable; default: "
                    "article-rig, the rate disturbances at P's input and the belt varying with "
