@@ -104,6 +104,8 @@ class IdentifyView:
     fit: FitView | None = None
     agreement_hz: float | None = None
     agreement_tol: tuple[float, float] = (1.0, 10.0)
+    agreement_text: str = ""
+    """The agreement as the identification states it (`Agreement.describe`)."""
     recommended_cutoff_hz: dict[str, float | None] = dataclasses.field(default_factory=dict)
     checks: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
@@ -148,6 +150,7 @@ def view_from_result(result: IdentifyResult, n_positions: int) -> IdentifyView:
         fit=fit,
         agreement_hz=None if a is None else a.agree_below_hz,
         agreement_tol=(result.spec.agreement_tol_db, result.spec.agreement_tol_deg),
+        agreement_text="" if a is None else a.describe(),
         recommended_cutoff_hz=dict(result.recommended_cutoff_hz) if result.complete else {},
         checks=tuple(checks),
         notes=tuple(result.notes),
@@ -233,6 +236,7 @@ def view_from_status(
         fit=fit,
         agreement_hz=st.agreement_freq_hz,
         agreement_tol=(float(agree.get("tol_db", 1.0)), float(agree.get("tol_deg", 10.0))),
+        agreement_text=str(agree.get("text", "")),
         recommended_cutoff_hz=dict(st.recommended_cutoff_hz) if complete else {},
         checks=tuple(checks),
         notes=tuple(str(x) for x in summary.get("notes") or ()),
@@ -268,7 +272,10 @@ def format_result_html(view: IdentifyView | None) -> str:
             f"{fit.f_lo_hz:.3g}-{fit.f_hi_hz:.3g} Hz ({fit.n_points} points)</div>"
         )
     if view.complete:
-        if view.agreement_hz is not None:
+        if view.agreement_text:
+            said = view.agreement_text
+            rows.append(f"<div class='dt-id-agree'>{esc(said[:1].upper() + said[1:])}</div>")
+        elif view.agreement_hz is not None:
             tol_db, tol_deg = view.agreement_tol
             rows.append(
                 f"<div class='dt-id-agree'>Positions agree (within {tol_db:g} dB / "
