@@ -206,14 +206,15 @@ class MessageGate:
             transfer = self._uploads.get(client_id, {}).get(uuid)
             if transfer is None:
                 return "upload part of a transfer not started here"
-            if not count:  # counted at the server's dispatch, which judges it first
-                return None
             announced, received = transfer[0], transfer[1] + len(message.content)
             if received <= announced:
-                transfer[1] = received
+                if count:
+                    transfer[1] = received
                 return None
-            del self._uploads[client_id][uuid]
-        self._drop_upload(client_id, uuid)
+            if count:
+                del self._uploads[client_id][uuid]
+        if count:
+            self._drop_upload(client_id, uuid)
         return (f"upload: {received} bytes or more where {announced} were announced: the "
                 "upload is dropped")
 
