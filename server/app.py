@@ -388,18 +388,16 @@ class Dashboard:
             if user is None:
                 log.error("browser %s: no user for its connection: it may only watch",
                           client.client_id)
-                if self.knowledge is not None:
-                    self.knowledge.offer_to(client, False)
             else:
                 self.sessions.signed_in(client.client_id, user)
                 role = self.users[user].role
-                if self.knowledge is not None:
-                    self.knowledge.offer_to(client, role == "operator")
                 note = " (watch and E-STOP only)" if role == "viewer" else ""
                 client.gui.add_html(
                     f"<div class='dt-whoami' style='font-size:12px'>Signed in as "
                     f"<b>{esc(user)}</b>, {esc(role)}{note}</div>")
         self.panel_in(client.gui, client)
+        if self.knowledge is not None:
+            self.knowledge.offer_to(client, self._role_of(client.client_id) == "operator")
         if self.recordings is not None:
             self.recordings.compare_in(client.gui, client)
         client.camera.position = (0.75, -0.85, 0.75)
@@ -490,6 +488,8 @@ class Dashboard:
         self.candidates.drop(client.client_id)
         if self.recordings is not None:
             self.recordings.drop(client.client_id)
+        if self.knowledge is not None:
+            self.knowledge.drop(client.client_id)
         with self._hidden_3d_lock:
             self._hidden_3d.discard(client.client_id)
         # Forget the pages gone (a page that reported before its websocket was up reports

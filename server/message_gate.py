@@ -206,15 +206,14 @@ class MessageGate:
             transfer = self._uploads.get(client_id, {}).get(uuid)
             if transfer is None:
                 return "upload part of a transfer not started here"
+            if not count:  # counted at the server's dispatch, which judges it first
+                return None
             announced, received = transfer[0], transfer[1] + len(message.content)
             if received <= announced:
-                if count:
-                    transfer[1] = received
+                transfer[1] = received
                 return None
-            if count:
-                del self._uploads[client_id][uuid]
-        if count:
-            self._drop_upload(client_id, uuid)
+            del self._uploads[client_id][uuid]
+        self._drop_upload(client_id, uuid)
         return (f"upload: {received} bytes or more where {announced} were announced: the "
                 "upload is dropped")
 

@@ -28,7 +28,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 __all__ = ["IncomingJudge", "connection_of", "control_uuid", "disable_share_url", "drop_upload",
-           "filter_incoming", "gated_serve", "hide_in", "input_handle", "live_connections",
+           "filter_incoming", "gated_serve", "input_handle", "live_connections",
            "messages", "resend_value", "send_prop_to", "set_slider_marks", "set_width_in"]
 
 #: judge(client_id, message, report) -> whether viser may handle the message; `report`: the
@@ -152,16 +152,6 @@ def send_prop_to(handle: Any, prop: str, value: Any, browsers: Any) -> None:
     message = GuiUpdateMessage(handle._impl.uuid, {prop: value})
     for browser in browsers:
         browser.gui._websock_interface.queue_message(message)
-
-
-def hide_in(handle: Any, browser: Any) -> None:
-    """A shared control hidden in `browser`'s page alone, its state here unchanged (other
-    browsers still show it): a `GuiUpdateMessage` of `visible` on the browser GUI's
-    `_websock_interface`, as `resend_value`."""
-    from viser._messages import GuiUpdateMessage
-
-    browser.gui._websock_interface.queue_message(
-        GuiUpdateMessage(handle._impl.uuid, {"visible": False}))
 
 
 def resend_value(handle: Any, browser: Any) -> None:

@@ -5,6 +5,7 @@ adoption (a CSV uploaded in the Tune tab, or Identify's "Use as nominal model").
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -17,7 +18,6 @@ from server.escape import esc
 from server.http_access import Refused
 from server.measured import MAX_BYTES, read_measured
 from server.session import BrowserSessions
-from server.viser_adapter import hide_in
 from server.workers import Refetch, Requests
 
 __all__ = ["ORDER_LAST", "KnowledgePanel"]
@@ -34,7 +34,7 @@ def _measured_html(text: str, error: bool = False) -> str:
 
 
 class KnowledgePanel:
-    """The upload button and the knowledge line at the foot of the Tune tab."""
+    """The knowledge line and the operators' upload buttons at the foot of the Tune tab."""
 
     def __init__(self, gui: Any, client: ControllerClient, engine: TuningEngine,
                  sessions: BrowserSessions, requests: Requests,
@@ -46,26 +46,51 @@ class KnowledgePanel:
         self.sessions = sessions
         self._requests = requests
         self._on_changed = on_changed
+        self._lock = threading.Lock()
+        self._build_lock = threading.Lock()
+        self._uploads: dict[int, Any] = {}
+        """Each operator's upload button by browser (viser client id)."""
         self.follow = Refetch(requests, self.fetch)
         """`follow.note(version)`: the controller's knowledge version (from a status);
         fetched again when it moves."""
 
     def build(self) -> None:
-        """Below each browser's own candidate controls (built when it connects)."""
-        self.upload = upload = self.gui.add_upload_button(
-            "Upload measured responses (CSV)", mime_type="text/csv,.csv", color="gray",
-            order=ORDER_LAST, hint="an operator's: the controller adopts them into its plant "
-            f"knowledge (at most {MAX_BYTES // 1_000_000} MB)")
-        self.text = self.gui.add_html(
-            "<div class='dt-measured' style='font-size:12px;color:#555'>No measured "
-            "responses: 1/|Delta| is the stated bound.</div>", order=ORDER_LAST + 1)
-        upload.on_upload(self._on_upload)
+        """The Plant knowledge box below each browser's own candidate controls (built when it
+        connects): the knowledge line (every browser's) and, in an operator's page only, its
+        own upload button (`offer_to`)."""
+        self.box = self.gui.add_folder("Plant knowledge", order=ORDER_LAST,
+                                       expand_by_default=True)
+        with self.box:
+            self.text = self.gui.add_html(
+                "<div class='dt-measured' style='font-size:12px;color:#555'>No measured "
+                "responses: 1/|Delta| is the stated bound.</div>", order=1.0)
 
     def offer_to(self, browser: Any, may_upload: bool) -> None:
-        """The upload button in `browser`'s page only when its user may use it (operators):
-        a viewer's page does not show it (and the message gate refuses a viewer's upload)."""
-        if not may_upload:
-            hide_in(self.upload, browser)
+        """The upload button, built in `browser`'s own GUI, only when its user may use it
+        (operators, or anyone with one identity): a viewer's page has none (and the message
+        gate refuses an upload to another page's or a shared button). Built in the browser's
+        GUI, not hidden there: a shared button hidden per page came back when viser's shared
+        messages reached the page after the page's own."""
+        if not may_upload or browser is None:
+            return
+        with self._build_lock, self.box:  # a container takes one `with` at a time
+            upload = browser.gui.add_upload_button(
+                "Upload measured responses (CSV)", mime_type="text/csv,.csv", color="gray",
+                order=0.0, hint="the controller adopts them into its plant knowledge (at "
+                f"most {MAX_BYTES // 1_000_000} MB)")
+        upload.on_upload(self._on_upload)
+        with self._lock:
+            self._uploads[browser.client_id] = upload
+
+    def upload_of(self, browser: Any) -> Any:
+        """`browser`'s upload button (None: it has none)."""
+        with self._lock:
+            return self._uploads.get(getattr(browser, "client_id", -1))
+
+    def drop(self, browser_id: int) -> None:
+        """The browser left (its GUI went with it)."""
+        with self._lock:
+            self._uploads.pop(browser_id, None)
 
     def fetch(self) -> None:
         """The controller's plant knowledge: the dashboard judges on nothing else."""

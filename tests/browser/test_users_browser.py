@@ -205,3 +205,19 @@ def test_the_viewer_can_estop(env: dict[str, Any], pages: dict[str, Any]) -> Non
     pages["view"].get_by_role("button", name="E-STOP").click()
     wait_for(lambda: probe.status is not None and probe.status.mode == "estop", 10.0,
           "the viewer's E-STOP did not stop the rig")
+
+
+def test_the_upload_is_offered_to_the_operator_only(pages: dict[str, Any]) -> None:
+    """Issue 31 item 6: the Tune tab's Upload measured responses button is in the operator's
+    page, not in the viewer's (built in each operator's own GUI: server/panels/knowledge.py)."""
+    for user, shown in (("op1", True), ("view", False)):
+        page = pages[user]
+        page.get_by_role("tab", name="Tune", exact=True).click()
+        button = page.get_by_role("button", name="Upload measured responses (CSV)")
+        if shown:
+            button.wait_for(state="visible", timeout=30_000)
+        else:
+            # The Tune tab has drawn (the viewer's own candidate controls), the button not.
+            page.get_by_role("button", name="Apply candidate").wait_for(state="visible",
+                                                                        timeout=30_000)
+            assert not button.is_visible(), "the viewer's page shows the upload button"

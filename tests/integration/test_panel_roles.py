@@ -144,22 +144,23 @@ def test_without_users_any_browser_may(tmp_path: Path) -> None:
         assert d.live.acknowledge_alarms(None) is True and not d.live.alarm_board.alarms
 
 
-def _hidden_in(raw: RawViser, uuid: str) -> bool:
-    return any(m.get("type") == "GuiUpdateMessage" and m.get("uuid") == uuid
-               and m.get("updates") == {"visible": False} for m in raw.messages)
+def _upload_buttons(raw: RawViser) -> list[str]:
+    return [m["uuid"] for m in raw.messages if m.get("type") == "GuiUploadButtonMessage"]
 
 
 def test_the_upload_is_offered_to_operators_only(
         dash: Dashboard, browsers: dict[str, tuple[RawViser, Any]]) -> None:
-    """The viewer's page hides the Upload measured responses button (the operator's shows
-    it); the viewer's upload, sent anyway, is refused at its start and nothing is buffered."""
-    assert dash.knowledge is not None and dash.messages is not None and dash.server is not None
-    uuid = control_uuid(dash.knowledge.upload)
-    view_raw, _viewer = browsers["view"]
-    op_raw, _operator = browsers["op1"]
-    view_raw.pump_until(lambda: _hidden_in(view_raw, uuid), 20.0,
-                        "the viewer's page was not told to hide the upload button")
-    assert dash.knowledge.upload.visible  # hidden there only: the state here is unchanged
+    """The operator's page gets an Upload measured responses button of its own, the viewer's
+    none; the viewer's upload, sent anyway to the operator's button, is refused at its start
+    and nothing is buffered."""
+    assert dash.knowledge is not None and dash.messages is not None
+    view_raw, viewer = browsers["view"]
+    op_raw, operator = browsers["op1"]
+    mine = dash.knowledge.upload_of(operator)
+    assert mine is not None and dash.knowledge.upload_of(viewer) is None
+    uuid = control_uuid(mine)
+    op_raw.pump_until(lambda: uuid in _upload_buttons(op_raw), 20.0,
+                      "the operator's page got no upload button")
     refused = dash.messages.refused
     view_raw.send({"type": "FileTransferStartUpload", "source_component_uuid": uuid,
                    "transfer_uuid": "viewer-upload", "filename": "x.csv",
@@ -168,8 +169,6 @@ def test_the_upload_is_offered_to_operators_only(
                    "transfer_uuid": "viewer-upload", "part_index": 0, "content": b"0123456789"})
     wait_for(lambda: dash.messages is not None and dash.messages.refused >= refused + 2, 20.0,
              "the viewer's upload was not refused")
-    assert "viewer-upload" not in dash.server.gui._current_file_upload_states
-    # The operator's page (everything it was sent by now) has no such message.
-    op_raw.pump_until(lambda: any(m.get("type") == "GuiUploadButtonMessage"
-                                  for m in op_raw.messages), 20.0, "no upload button")
-    assert not _hidden_in(op_raw, uuid)
+    assert "viewer-upload" not in operator.gui._current_file_upload_states
+    assert "viewer-upload" not in viewer.gui._current_file_upload_states
+    assert _upload_buttons(view_raw) == []  # (what it was sent by now)
