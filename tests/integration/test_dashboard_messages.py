@@ -97,24 +97,3 @@ def test_a_viewer_changes_no_shared_control_and_breaks_none(dash: Dashboard) -> 
     with _as(dash, "op1") as op:
         op.update(control_uuid(live.window_s), {"value": 31.0})
         wait_for(lambda: live.window_s.value == 31.0, 30.0, "the operator's change was lost")
-
-
-def test_a_viewer_uploads_nothing(dash: Dashboard) -> None:
-    """The measured-responses upload is an operator's: the viewer's start is refused, so are
-    its parts (viser never buffers them)."""
-    assert dash.messages is not None
-    with _as(dash, "view") as viewer:
-        viewer.pump_until(lambda: any(m["type"] == "GuiUploadButtonMessage"
-                                      for m in viewer.messages), 30.0, "no upload button")
-        button = next(m["uuid"] for m in viewer.messages
-                      if m["type"] == "GuiUploadButtonMessage")
-        refused = dash.messages.refused
-        viewer.send({"type": "FileTransferStartUpload", "source_component_uuid": button,
-                     "transfer_uuid": "v", "filename": "m.csv", "mime_type": "text/csv",
-                     "part_count": 2, "size_bytes": 2_000_000})
-        for k in range(2):
-            viewer.send({"type": "FileTransferPart", "source_component_uuid": button,
-                         "transfer_uuid": "v", "part_index": k, "content": b"x" * 1_000_000})
-        _sync(dash, viewer)
-        assert dash.messages.refused == refused + 3
-        assert not any(m["type"] == "FileTransferPartAck" for m in viewer.messages)
