@@ -146,6 +146,62 @@ def test_margins_agree_with_python_control(cfg: LoopConfig) -> None:
     assert m.peak_sensitivity_hz == pytest.approx(wms / (2 * np.pi), rel=1e-2)
 
 
+@pytest.mark.parametrize("cfg", CONFIGS, ids=_ids)
+def test_gain_margins_up_and_down_agree_with_python_control(cfg: LoopConfig) -> None:
+    """Both gain margins, positive and named (issue 33 item 2): up = the least -20 log10 |L|
+    over the phase crossovers where |L| < 1, down (the gain-reduction margin of a conditionally
+    stable loop) = the least 20 log10 |L| where |L| > 1; python-control's every crossing
+    (`stability_margins(returnall=True)`) gives both, to 0.1 dB and 0.1 % in frequency."""
+    ref = Ref(cfg)
+    w = np.geomspace(2 * np.pi * 0.005, np.pi / ref.ts * 0.9998, 6000)
+    gms, _pm, _sm, wpcs, _wgc, _wms = ct.stability_margins(
+        ct.frd(ref.loop(np.exp(1j * w * ref.ts)), w), returnall=True)
+    db = 20 * np.log10(np.asarray(gms, dtype=float))
+    f = np.asarray(wpcs, dtype=float) / (2 * np.pi)
+    m = analyse(cfg).margins
+    up, down = db >= 0, db < 0
+    if up.any():
+        i = int(np.argmin(np.where(up, db, np.inf)))
+        assert m.gain_margin_up_db == pytest.approx(db[i], abs=0.1)
+        assert m.gain_margin_up_hz == pytest.approx(f[i], rel=1e-3)
+    else:
+        assert m.gain_margin_up_db == math.inf
+    if down.any():
+        i = int(np.argmax(np.where(down, db, -np.inf)))
+        assert m.conditionally_stable
+        assert m.gain_reduction_margin_db == pytest.approx(-db[i], abs=0.1)
+        assert m.gain_reduction_margin_hz == pytest.approx(f[i], rel=1e-3)
+    else:
+        assert not m.conditionally_stable and m.gain_reduction_margin_db == math.inf
+    # python-control's own pick (closest to 0 dB) is the smaller of the two, signed.
+    assert abs(m.gain_margin_db) == pytest.approx(
+        min(m.gain_margin_up_db, m.gain_reduction_margin_db), abs=1e-9)
+
+
+def test_the_default_loop_reads_both_gain_margins_positive() -> None:
+    """The demo's default loop is conditionally stable (the DOB's integral action): its
+    verdict and `dobtune check` say "gain margin X dB up, gain-reduction margin Y dB down",
+    both positive (python-control: 26.0 dB up at 36.3 Hz, 25.8 dB down at 0.183 Hz), never
+    the signed "-25.8 dB"."""
+    import re
+
+    from controller.gate.verdict import judge
+
+    ref = Ref(LoopConfig())
+    w = np.geomspace(2 * np.pi * 0.005, np.pi / ref.ts * 0.9998, 6000)
+    gms, *_ = ct.stability_margins(ct.frd(ref.loop(np.exp(1j * w * ref.ts)), w),
+                                   returnall=True)
+    db = 20 * np.log10(np.asarray(gms, dtype=float))
+    want_up, want_down = float(db[db >= 0].min()), float(-db[db < 0].max())
+    text = judge(LoopConfig(), PlantKnowledge(), recommendation=False).margins \
+        .gain_margins_text()
+    got = re.fullmatch(r"gain margin ([0-9.]+) dB up, gain-reduction margin ([0-9.]+) dB down",
+                       text)
+    assert got is not None, text
+    assert float(got[1]) == pytest.approx(want_up, abs=0.1)
+    assert float(got[2]) == pytest.approx(want_down, abs=0.1)
+
+
 def test_article_controller_margins_match_control_md() -> None:
     # control.md: Cv = 0.5 (1 + 55/s): crossover 4.5 Hz, PM 58 deg, GM 22 dB (DOB off).
     m = analyse(OLD_LOOP.with_(dob_on=False)).margins

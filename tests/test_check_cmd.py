@@ -21,6 +21,8 @@ KEYS = {
     "verdict",
     "reasons",
     "gain_margin_db",
+    "gain_margin_up_db",
+    "gain_reduction_margin_db",
     "phase_margin_deg",
     "peak_sensitivity_db",
     "small_gain_peak",
@@ -48,6 +50,31 @@ def test_default_config_is_accepted_with_a_table() -> None:
     assert code == 0
     assert "verdict: ACCEPT" in text
     assert "phase margin" in text and "recommended max cut-off (q31)" in text
+
+
+def test_the_default_loop_states_both_gain_margins_positive() -> None:
+    """Issue 33 item 2: the demo's default loop is conditionally stable; `dobtune check` names
+    the gain margin up and the gain-reduction margin down, both positive, each at its
+    crossing, and its JSON carries both beside python-control's signed pick (kept for the
+    scripts that read it). The numbers are the analysis' (python-control's, see
+    tests/test_analysis.py::test_gain_margins_up_and_down_agree_with_python_control)."""
+    from controller.gate.analysis import analyse
+
+    m = analyse(LoopConfig()).margins
+    assert m.gain_margin_db < 0 < m.gain_reduction_margin_db < m.gain_margin_up_db
+    code, text = _run()
+    assert code == 0
+    head = (f"speed loop: gain margin {m.gain_margin_up_db:.1f} dB up, gain-reduction margin "
+            f"{m.gain_reduction_margin_db:.1f} dB down")
+    assert head in text, text
+    assert f"{m.gain_margin_db:.1f} dB" not in text, text  # no signed "-25.8 dB" left
+    assert f"{m.gain_reduction_margin_hz:.3g} Hz" in text
+    assert f"{m.gain_margin_up_hz:.3g} Hz" in text
+    code, out = _run(True)
+    data = json.loads(out)
+    assert data["gain_margin_up_db"] == pytest.approx(m.gain_margin_up_db)
+    assert data["gain_reduction_margin_db"] == pytest.approx(m.gain_reduction_margin_db)
+    assert data["gain_margin_db"] == pytest.approx(m.gain_margin_db)
 
 
 def test_json_output_has_the_keys_and_the_effective_config(tmp_path: Path) -> None:

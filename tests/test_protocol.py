@@ -70,7 +70,8 @@ def test_rejections_name_the_field(payload: bytes, kind: type, field: str) -> No
 
 MARGINS = VerdictMargins(gain_margin_db=math.inf, phase_margin_deg=48.5, peak_sensitivity_db=3.2,
                          small_gain_peak=0.41, max_pole_radius=0.998,
-                         noise_to_command_peak_db=17.0)
+                         noise_to_command_peak_db=17.0, gain_margin_up_db=math.inf,
+                         gain_reduction_margin_db=math.inf)
 VERDICT = Verdict(verdict="caution", rejections=(), cautions=("phase margin 28 deg < 30",),
                   margins=MARGINS, recommended_max_cutoff_hz=1.7,
                   knowledge="plant knowledge v4 (identification run 2: ...)", knowledge_version=4)

@@ -23,7 +23,7 @@ from controller.cli.frd_files import load_measured
 from controller.cli.inputs import BadInput, load_config, load_knowledge
 from controller.core.config import config_to_builtins
 from controller.core.errors import ConfigError
-from controller.core.verdict import Verdict
+from controller.core.verdict import Verdict, gain_margins_text
 from controller.gate.analysis import Analysis, analyse
 from controller.gate.knowledge import PlantKnowledge
 from controller.gate.margins import Margins
@@ -44,6 +44,10 @@ def _margins_json(m: Margins) -> dict[str, float | None]:
     return {
         "gain_margin_db": _finite(m.gain_margin_db),
         "phase_crossover_hz": _finite(m.phase_crossover_hz),
+        "gain_margin_up_db": _finite(m.gain_margin_up_db),
+        "gain_margin_up_hz": _finite(m.gain_margin_up_hz),
+        "gain_reduction_margin_db": _finite(m.gain_reduction_margin_db),
+        "gain_reduction_margin_hz": _finite(m.gain_reduction_margin_hz),
         "phase_margin_deg": _finite(m.phase_margin_deg),
         "gain_crossover_hz": _finite(m.gain_crossover_hz),
         "delay_margin_s": _finite(m.delay_margin_s),
@@ -117,6 +121,12 @@ def _fmt(v: float, unit: str, spec: str = ".1f") -> str:
     return f"{v:{spec}} {unit}" if math.isfinite(v) else "none"
 
 
+def _gain_text(m: Margins) -> str:
+    """The speed loop's gain margins in one line, both positive and named
+    (`gain_margins_text`)."""
+    return gain_margins_text(m.gain_margin_up_db, m.gain_reduction_margin_db)
+
+
 def report_text(a: Analysis, j: Verdict, rec: Recommendation | None = None) -> str:
     """The readable table printed by `dobtune check` (`j`: the verdict from analysis `a`)."""
     recommended_hz = j.recommended_max_cutoff_hz
@@ -131,7 +141,11 @@ def report_text(a: Analysis, j: Verdict, rec: Recommendation | None = None) -> s
         f"dobtune check: DOB {dob}, Cv {c.cv_kp:g} (1 + {c.cv_ki_per_s:g}/s), "
         f"Cp {c.pos_kp_per_s:g} (1 + {c.pos_ki_per_s:g}/s), {c.rate_hz:g} Hz loop",
         f"  judged on {a.knowledge}",
-        row("gain margin", _fmt(m.gain_margin_db, "dB"), m.phase_crossover_hz),
+        f"  speed loop: {_gain_text(m)}",
+        row("gain margin (up)", _fmt(m.gain_margin_up_db, "dB"),
+            m.gain_margin_up_hz if math.isfinite(m.gain_margin_up_db) else None),
+        row("gain-reduction margin (down)", _fmt(m.gain_reduction_margin_db, "dB"),
+            m.gain_reduction_margin_hz if m.conditionally_stable else None),
         row("phase margin", _fmt(m.phase_margin_deg, "deg"), m.gain_crossover_hz),
         row("delay margin", _fmt(m.delay_margin_s * 1e3, "ms")),
         row("peak sensitivity", _fmt(m.peak_sensitivity_db, "dB"), m.peak_sensitivity_hz),
@@ -155,8 +169,10 @@ def report_text(a: Analysis, j: Verdict, rec: Recommendation | None = None) -> s
             f"  response {s.name!r}{band}: |a T| {_fmt(s.small_gain_peak, '', '.3g').strip()} at "
             f"{_fmt(s.small_gain_freq_hz, 'Hz', '.3g')}, whole servo "
             f"{_fmt(s.small_gain_full_peak, '', '.3g').strip()}; PM "
-            f"{_fmt(sm.phase_margin_deg, 'deg')} / {_fmt(sf.phase_margin_deg, 'deg')}, GM "
-            f"{_fmt(sm.gain_margin_db, 'dB')} / {_fmt(sf.gain_margin_db, 'dB')} (speed / whole)"
+            f"{_fmt(sm.phase_margin_deg, 'deg')} / {_fmt(sf.phase_margin_deg, 'deg')}, GM up "
+            f"{_fmt(sm.gain_margin_up_db, 'dB')} / {_fmt(sf.gain_margin_up_db, 'dB')}, "
+            f"gain-reduction margin down {_fmt(sm.gain_reduction_margin_db, 'dB')} / "
+            f"{_fmt(sf.gain_reduction_margin_db, 'dB')} (speed / whole)"
             + ("" if s.base_loop_stable else "; NOT proven stable")
         )
     rec_text = (

@@ -34,6 +34,20 @@ class Margins:
     peak_sensitivity_db: float
     """max |1/(1 + L)| in dB (-20 log10 of python-control's stability margin sm)."""
     peak_sensitivity_hz: float
+    gain_margin_up_db: float = math.inf
+    """How far the loop gain may rise before instability: the least -20 log10 |L| over the
+    phase crossovers where |L| < 1 (>= 0; inf: none). The number an engineer reads as "the"
+    gain margin; `gain_margin_db` is python-control's pick of the two."""
+    gain_margin_up_hz: float = math.nan
+    gain_reduction_margin_db: float = math.inf
+    """How far the loop gain may fall before instability (a conditionally stable loop): the
+    least 20 log10 |L| over the phase crossovers where |L| > 1 (> 0; inf: none)."""
+    gain_reduction_margin_hz: float = math.nan
+
+    @property
+    def conditionally_stable(self) -> bool:
+        """A phase crossover with |L| > 1: a gain reduction destabilises the loop."""
+        return math.isfinite(self.gain_reduction_margin_db)
 
 
 
@@ -269,7 +283,8 @@ def loop_tasks_rows(x: FloatArray, loops: ComplexArray, keys: list[str]) -> list
 def margins_of(t: LoopTasks) -> Margins:
     """python-control's choice: the PM of smallest |PM|, the GM closest to 0 dB."""
     pm_deg, gm_db = math.inf, math.inf
-    wgc, wpc = math.nan, math.nan
+    up_db, down_db = math.inf, math.inf
+    wgc, wpc, w_up, w_down = math.nan, math.nan, math.nan, math.nan
     delay = math.inf
     for g in t.gain:
         pm = (math.degrees(np.angle(g.out)) % 360.0) - 180.0
@@ -281,6 +296,10 @@ def margins_of(t: LoopTasks) -> Margins:
             gm = -20.0 * math.log10(abs(p.out))
             if abs(gm) < abs(gm_db):
                 gm_db, wpc = gm, p.freq_hz
+            if gm >= 0.0 and gm < up_db:
+                up_db, w_up = gm, p.freq_hz
+            elif gm < 0.0 and -gm < down_db:
+                down_db, w_down = -gm, p.freq_hz
     sm = t.ms.value
     return Margins(
         gain_margin_db=gm_db,
@@ -290,6 +309,10 @@ def margins_of(t: LoopTasks) -> Margins:
         delay_margin_s=delay,
         peak_sensitivity_db=-20.0 * math.log10(sm) if sm > 0 else math.inf,
         peak_sensitivity_hz=t.ms.freq_hz,
+        gain_margin_up_db=up_db,
+        gain_margin_up_hz=w_up,
+        gain_reduction_margin_db=down_db,
+        gain_reduction_margin_hz=w_down,
     )
 
 

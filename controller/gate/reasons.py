@@ -39,18 +39,21 @@ def margin_reasons(m: Margins, limits: GateLimits, where: str, out: list[str]) -
             f"phase margin {m.phase_margin_deg:.1f} deg < {limits.phase_margin_min_deg:g} deg"
             f" (at {fmt_hz(m.gain_crossover_hz)}; {where})"
         )
-    if not abs(m.gain_margin_db) >= limits.gain_margin_min_db:
-        if m.gain_margin_db < 0:
-            out.append(
-                f"conditionally stable: a gain reduction of {-m.gain_margin_db:.1f} dB "
-                f"(< {limits.gain_margin_min_db:g} dB, as a saturating command gives) "
-                f"destabilises it (at {fmt_hz(m.phase_crossover_hz)}; {where})"
-            )
-        else:
-            out.append(
-                f"gain margin {m.gain_margin_db:.1f} dB < {limits.gain_margin_min_db:g} dB"
-                f" (at {fmt_hz(m.phase_crossover_hz)}; {where})"
-            )
+    # Both gain margins, each positive: up (|L| < 1 at a phase crossover) and, in a
+    # conditionally stable loop, the gain reduction (|L| > 1). (Both >= the limit exactly
+    # when python-control's pick, the one closest to 0 dB, is >= it in magnitude.)
+    if not m.gain_margin_up_db >= limits.gain_margin_min_db:
+        out.append(
+            f"gain margin {m.gain_margin_up_db:.1f} dB up < {limits.gain_margin_min_db:g} dB"
+            f" (at {fmt_hz(m.gain_margin_up_hz)}; {where})"
+        )
+    if not m.gain_reduction_margin_db >= limits.gain_margin_min_db:
+        out.append(
+            f"conditionally stable: a gain reduction of {m.gain_reduction_margin_db:.1f} dB "
+            f"(< {limits.gain_margin_min_db:g} dB, as a saturating command gives) "
+            f"destabilises it (gain-reduction margin {m.gain_reduction_margin_db:.1f} dB down"
+            f" at {fmt_hz(m.gain_reduction_margin_hz)}; {where})"
+        )
     if not m.peak_sensitivity_db <= limits.peak_sensitivity_max_db:
         out.append(
             f"peak sensitivity {m.peak_sensitivity_db:.1f} dB > "

@@ -8,6 +8,7 @@ knowledge.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from typing import Protocol
 
@@ -65,22 +66,30 @@ def recommended_cutoff_hz(
 
 def conditional_stability(a: Analysis, limits: GateLimits) -> tuple[str, ...]:
     """The loops (plant model) that are conditionally stable, each with its gain-reduction
-    margin: a negative gain margin means the loop goes unstable when its gain falls by that
-    much (a saturating command, a weaker drive). Margins within `gain_margin_min_db` are
+    margin: a phase crossover with |L| > 1 means the loop goes unstable when its gain falls by
+    that much (a saturating command, a weaker drive). Margins within `gain_margin_min_db` are
     already cautions of the analysis and are not repeated."""
     out = []
     loops: tuple[tuple[str, Margins | None], ...] = (
         ("speed loop", a.margins), ("whole servo", a.margins_full))
     for which, m in loops:
-        if m is None or not m.gain_margin_db < 0 or -m.gain_margin_db < limits.gain_margin_min_db:
+        if (m is None or not m.conditionally_stable
+                or m.gain_reduction_margin_db < limits.gain_margin_min_db):
             continue
         out.append(
-            f"conditionally stable: a gain reduction of {-m.gain_margin_db:.1f} dB destabilises"
-            f" the {which} (gain margin {m.gain_margin_db:.1f} dB at"
-            f" {m.phase_crossover_hz:.3g} Hz, plant model): a saturating command or a weaker"
-            f" drive lowers the loop gain that far"
+            f"conditionally stable: a gain reduction of {m.gain_reduction_margin_db:.1f} dB"
+            f" destabilises the {which} (gain-reduction margin"
+            f" {m.gain_reduction_margin_db:.1f} dB down at"
+            f" {m.gain_reduction_margin_hz:.3g} Hz, {_up_text(m)}, plant model): a saturating"
+            f" command or a weaker drive lowers the loop gain that far"
         )
     return tuple(out)
+
+
+def _up_text(m: Margins) -> str:
+    if m.gain_margin_up_db == math.inf:
+        return "gain margin unlimited up"
+    return f"gain margin {m.gain_margin_up_db:.1f} dB up at {m.gain_margin_up_hz:.3g} Hz"
 
 
 def margins_of_analysis(a: Analysis) -> VerdictMargins:
@@ -92,6 +101,8 @@ def margins_of_analysis(a: Analysis) -> VerdictMargins:
         small_gain_peak=float(a.small_gain_peak),
         max_pole_radius=float(a.max_pole_radius),
         noise_to_command_peak_db=float(a.noise_to_command_peak_db),
+        gain_margin_up_db=float(a.margins.gain_margin_up_db),
+        gain_reduction_margin_db=float(a.margins.gain_reduction_margin_db),
     )
 
 

@@ -15,13 +15,15 @@ import math
 from typing import Any
 
 from controller.core.arrays import FloatArray
+from controller.core.verdict import VerdictMargins
 from server import charts
 from server.engine import Comparison, Evaluation
 from server.escape import esc
 from server.panels.widgets import ACCEPT, CAUTION, REJECT, add_chart, box, reason_list, set_html
 from server.suggest import SUGGEST_CHART, suggest_data
 
-__all__ = ["BODE_TABS", "DECIDE", "MARGIN_LABELS", "BodeTab", "decide_html", "fmt_value"]
+__all__ = ["BODE_TABS", "DECIDE", "MARGIN_LABELS", "BodeTab", "decide_html", "fmt_value",
+           "gain_margin_items", "margin_items"]
 
 #: The sub-tab with what one cut-off decision needs.
 DECIDE = "Decide"
@@ -31,9 +33,9 @@ BODE_TABS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Responses", ("closed_loop", "disturbance", "noise", "small_gain", "plant")),
 )
 
-#: (Verdict.margins field, label, unit, digits) of the margins the verdict shows.
+#: (Verdict.margins field, label, unit, digits) of the margins the verdict shows after the
+#: gain margins (`gain_margin_items`).
 MARGIN_LABELS = (
-    ("gain_margin_db", "gain margin", "dB", 1),
     ("phase_margin_deg", "phase margin", "deg", 1),
     ("peak_sensitivity_db", "peak |S|", "dB", 2),
     ("small_gain_peak", "small-gain peak", "", 3),
@@ -55,14 +57,39 @@ def fmt_value(v: float, digits: int) -> str:
     return f"{v:.{digits}f}"
 
 
+def gain_margin_items(m: VerdictMargins) -> list[tuple[str, str, str]]:
+    """(label, value, unit) of the gain margins as an engineer reads them, both positive and
+    named: the gain margin up and, in a conditionally stable loop, the gain-reduction margin
+    down (`VerdictMargins.gain_margins_text`). A verdict recorded before both were kept
+    shows python-control's pick, a negative one as the gain-reduction margin it is."""
+    up, down = m.gain_margin_up_db, m.gain_reduction_margin_db
+    if math.isnan(up) and math.isnan(down):
+        g = m.gain_margin_db
+        if g < 0:
+            return [("gain-reduction margin", fmt_value(-g, 1), "dB down")]
+        return [("gain margin", fmt_value(g, 1), "dB")]
+    if not math.isfinite(down):
+        return [("gain margin", "none" if up == math.inf else fmt_value(up, 1),
+                 "" if up == math.inf else "dB")]
+    return [("gain margin", "unlimited" if up == math.inf else fmt_value(up, 1),
+             "up" if up == math.inf else "dB up"),
+            ("gain-reduction margin", fmt_value(down, 1), "dB down")]
+
+
+def margin_items(m: VerdictMargins) -> list[tuple[str, str, str]]:
+    """(label, value, unit) of every margin the verdict shows, the gain margins first."""
+    return gain_margin_items(m) + [
+        (label, fmt_value(getattr(m, key), d), unit) for key, label, unit, d in MARGIN_LABELS]
+
+
 def decide_html(ev: Evaluation) -> str:
     """The verdict in the wide Decide view: the word, every margin side by side, every
     reason."""
     g = ev.verdict
     chips = "".join(
         f"<span style='white-space:nowrap;margin-right:14px'>{label} "
-        f"<b>{fmt_value(getattr(g.margins, key), d)}</b> {unit}</span> "
-        for key, label, unit, d in MARGIN_LABELS)
+        f"<b>{value}</b> {unit}</span> "
+        for label, value, unit in margin_items(g.margins))
     judged = (f" <span style='color:#555'>judged on {esc(g.knowledge)}</span>"
               if g.knowledge else "")
     word, colors = {"accept": ("accept", ACCEPT), "caution": ("CAUTION", CAUTION)}.get(

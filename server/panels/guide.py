@@ -278,7 +278,7 @@ class GuidePanel:
             return StepState("todo", None, "waiting for the first verdict")
         g = ev.verdict
         m = g.margins
-        nums = f"GM {m.gain_margin_db:.1f} dB, PM {m.phase_margin_deg:.1f} deg"
+        nums = f"{m.gain_margins_text()}, PM {m.phase_margin_deg:.1f} deg"
         c = ev.config
         cand = (f"{c.q_type.upper()} {c.q_cutoff_hz:.3g} Hz" if c.dob_on else "DOB off")
         if g.verdict == "reject":

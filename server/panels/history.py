@@ -13,7 +13,7 @@ from controller.client import ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig
 from controller.core.verdict import kind_of
 from server.escape import esc
-from server.panels.bode import fmt_value
+from server.panels.bode import fmt_value, gain_margin_items
 from server.panels.nominal_tuning import NominalTuningPanel
 from server.panels.tuning import config_diff_html
 from server.session import tell
@@ -67,7 +67,8 @@ class HistoryPanel:
         for e in reversed(reply.entries):
             v = e.verdict
             pm = fmt_value(v.margins.phase_margin_deg, 1) if v is not None else "-"
-            gm = fmt_value(v.margins.gain_margin_db, 1) if v is not None else "-"
+            gm = (" / ".join(f"{val} {unit}".strip() for _, val, unit in
+                             gain_margin_items(v.margins)) if v is not None else "-")
             why = f" title='{esc('; '.join(v.reasons))}'" if v is not None and v.reasons else ""
             when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(e.time_s))
             rows.append(f"<tr><td>v{e.version}</td><td>{esc(when)}</td><td>{esc(e.client)}</td>"
@@ -77,7 +78,8 @@ class HistoryPanel:
                 if reply.message else "")
         self.table.content = (
             "<div class='dt-history' style='font-size:12px'>" + note + "<table><tr><th>ver"
-            "</th><th>when</th><th>who</th><th>verdict</th><th>PM</th><th>GM</th><th>Q</th></tr>"
+            "</th><th>when</th><th>who</th><th>verdict</th><th>PM</th><th>gain margins</th>"
+            "<th>Q</th></tr>"
             + "".join(rows) + "</table></div>")
         options = tuple(f"v{v}" for v in sorted(self.versions, reverse=True)) or ("-",)
         self.pick.options = options

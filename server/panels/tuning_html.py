@@ -9,8 +9,7 @@ from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PositionSpread
 from server.engine import Evaluation, PreviewComparison, PreviewResult
 from server.escape import esc
-from server.panels.bode import MARGIN_LABELS as _MARGIN_LABELS
-from server.panels.bode import fmt_value as _fmt
+from server.panels.bode import margin_items as _margin_items
 from server.panels.widgets import ACCEPT, CAUTION, REJECT, box
 from server.panels.widgets import reason_list as _reason_list
 
@@ -37,9 +36,8 @@ def format_gate_html(ev: Evaluation | None, error: str | None = None) -> str:
     assert ev is not None
     g = ev.verdict
     rows = "".join(
-        f"<tr><td>{label}</td><td style='text-align:right'>"
-        f"{_fmt(getattr(g.margins, key), d)} {unit}</td></tr>"
-        for key, label, unit, d in _MARGIN_LABELS
+        f"<tr><td>{label}</td><td style='text-align:right'>{value} {unit}</td></tr>"
+        for label, value, unit in _margin_items(g.margins)
     )
     table = f"<table style='width:100%;font-size:12px'>{rows}</table>"
     judged = (f"<div class='dt-knowledge' style='font-size:11px;color:#555'>judged on "
