@@ -49,6 +49,8 @@ key_knowledge = _rig_key("knowledge")  # queryable: KnowledgeRequest -> Knowledg
 key_alive = _rig_key("alive")  # liveliness token of a running controller (`dobtune ctl rigs`)
 key_history = _rig_key("history")  # queryable: HistoryRequest (or empty) -> HistoryReply
 key_lease = _rig_key("lease")  # queryable: LeaseRequest -> LeaseReply
+key_drift = _rig_key("drift")  # publisher (the watch), each window: DriftState
+key_drift_alarm = _rig_key("drift/alarm")  # publisher (the watch): DriftAlarm, as they happen
 
 
 #: With authentication (`dobtune controller --auth`), requests go to per-user scopes:
@@ -352,6 +354,19 @@ class SimFault(
     resonance_mass_fraction: float = 0.2
 
 
+class SimDrift(
+    msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="sim_drift"
+):
+    """Simulated rig only, for tests and the demo: the plant drifts from the next tick on,
+    each factor on the rig's parameters as it started (all 1: back to them), its state kept
+    (`SimRig.set_params`). Drive gain and a resonance are `SimFault`'s. Refused on a CAN
+    rig; an operator's command (the lease), as every command but the e-stop."""
+
+    belt_stiffness_factor: float = 1.0
+    load_inertia_factor: float = 1.0
+    motor_friction_factor: float = 1.0
+
+
 class IdentifyAbort(
     msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True, tag="identify_abort"
 ):
@@ -360,6 +375,7 @@ class IdentifyAbort(
 
 CommandBody = (
     SetTrajectory | Start | Stop | EStop | ResetFault | IdentifyStart | IdentifyAbort | SimFault
+    | SimDrift
 )
 
 
@@ -435,6 +451,74 @@ class IdentifyStatus(_Msg, frozen=True, kw_only=True):
     recommended_cutoff_hz: dict[str, float | None] = {}
     summary_json: str = ""  # the summary.json `dobtune identify` writes (done/aborted)
     run: IdentifyRun | None = None  # what the run executes (None: idle, older senders)
+
+
+# -- drift (the watch: controller/process/watch.py) ----------------------------------------------
+
+
+class DriftPart(msgspec.Struct, frozen=True, kw_only=True):
+    """One part of the plant as the latest window estimates it: `value` a factor on the
+    twin's (unit "x"; the motor friction in "N m" when the twin has none) +- `std`; whether
+    the window tells it; its allowed range (from the knowledge's bound); `state`: ok, note,
+    outside, alarm or not told; `since_epoch_s` when it first left its range."""
+
+    name: str
+    value: float
+    std: float
+    unit: str = "x"
+    told: bool
+    state: str
+    low: float
+    high: float
+    since_epoch_s: float | None = None
+
+
+class DriftState(_Msg, frozen=True, kw_only=True):
+    """The watch's state after each window: the parts, the delay, the plant's residual
+    (measured rate against the twin's answer to the same commands: with the twin as it is and
+    with the fitted parts, rms deg/s), the loop's residual (measured error against the one
+    the twin predicts for the configuration, rms deg), what it is judged on, the parts in
+    alarm, and what each part's line says."""
+
+    rig: str
+    epoch_s: float  # UNIX time of the window's end
+    window_s: float
+    config_version: int
+    model: str  # what the watch compares with (the twin of knowledge vN, or the sim's model)
+    parts: list[DriftPart]
+    delay_ticks: int
+    twin_delay_ticks: int
+    plant_residual_rms_deg_s: float
+    fitted_residual_rms_deg_s: float
+    loop_measured_rms_deg: float
+    loop_predicted_rms_deg: float
+    loop_residual_rms_deg: float
+    alarms: list[str] = []
+    lines: list[str] = []
+    fit_s: float = 0.0  # the window's fit took this long (the watch's own process)
+    windows: int = 0  # windows judged since the watch started
+
+
+class DriftAlarm(_Msg, frozen=True, kw_only=True):
+    """A part of the plant left its allowed range (`cleared`: it came back): which, by how
+    much, since when, what to do, and the gate's verdict on the active configuration with the
+    drifted estimate as the plant's evidence."""
+
+    rig: str
+    seq: int  # alarms of this watch, counted from 1
+    epoch_s: float
+    part: str
+    value: float
+    std: float
+    unit: str = "x"
+    low: float
+    high: float
+    since_epoch_s: float
+    text: str
+    action: str
+    gate_verdict: str = ""  # accept | caution | reject ("" not judged)
+    gate_reasons: list[str] = []
+    cleared: bool = False
 
 
 # -- encoding ---------------------------------------------------------------------------------

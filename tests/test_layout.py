@@ -17,7 +17,7 @@ PACKAGES = ("controller", "server")
 #: Pure packages: math and plain data, no I/O frameworks, no threads, no processes.
 PURE = (
     "controller.core", "controller.gate", "controller.sim", "controller.ident", "controller.tune",
-    "controller.twin",
+    "controller.twin", "controller.watch",
 )
 #: What a pure package may not import (top-level module names).
 IMPURE_LIBS = {
@@ -33,6 +33,7 @@ PURE_MAY_IMPORT = {
     "controller.tune": ("controller.core", "controller.gate", "controller.sim", "controller.ident",
                         "controller.twin"),
     "controller.twin": ("controller.core", "controller.gate", "controller.sim", "controller.ident"),
+    "controller.watch": ("controller.core", "controller.gate", "controller.sim", "controller.twin"),
 }
 #: The wire contract imports only plain data types.
 PROTOCOL_MAY_IMPORT = ("controller.core", "controller.ident.spec", "controller.gate.knowledge")
@@ -348,11 +349,12 @@ def test_the_docs_show_the_rules_the_tests_enforce() -> None:
 
 #: The rules table of docs/architecture.md, row by row (each enforced by a test above).
 RULES = (
-    "| pure packages (`core`, `gate`, `sim`, `ident`, `tune`, `twin`) import no zenoh, can, viser, "
+    "| pure packages (`core`, `gate`, `sim`, `ident`, `tune`, `twin`, `watch`) import no zenoh, can, viser, "
     "threading, multiprocessing, subprocess, socket, asyncio, concurrent, signal, logging |",
     "| pure packages do no file I/O |",
     "| `gate` imports `core`; `sim` imports `core`; `ident` imports `core`, `gate`, `sim`; "
-    "`twin` imports `core`, `gate`, `sim`, `ident`; `tune` imports those and `twin` |",
+    "`twin` imports `core`, `gate`, `sim`, `ident`; `tune` imports those and `twin`; `watch` "
+    "imports `core`, `gate`, `sim`, `twin` |",
     "| `controller/protocol.py` imports only `core`, `ident.spec`, `gate.knowledge` |",
     "| `controller` never imports `server` or `viser`, but `controller/cli/dashboard.py` and "
     "`demo.py` (`dobtune dashboard`, `dobtune demo`) load `server` when they run (inside a "

@@ -22,6 +22,8 @@ _COMMANDS = (
     ("auth", "auth", "users for Zenoh authentication and access control", False),
     ("ctl", "ctl", "every controller action from the command line", False),
     ("record", "record", "record a running controller into an MCAP file", False),
+    ("watch", "watch", "the twin beside a running controller: drift state, alarms, trends",
+     True),
     ("report", "report", "HTML report (and CSV) of one or two recordings", False),
     ("router", "router", "a Zenoh router for many rigs and sites", True),
     ("autotune", "autotune", "search the Q type and cut-off on the simulated rig", False),

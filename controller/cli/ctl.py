@@ -5,7 +5,9 @@
 Actions: `status`, `config`, `apply key=value ...` (`--expect-version N`, `--confirm`),
 `start`, `stop`, `estop`, `reset`, `lease acquire|renew|release|takeover|show`,
 `identify [key=value ...]` (IdentifySpec fields), `knowledge`, `twin` (the rig's twin the
-controller built from its plant knowledge: its fit per position). An action that changes the rig
+controller built from its plant knowledge: its fit per position), `drift` (the watch's latest
+drift state: `dobtune watch`), `wait-alarm` (wait up to `--wait-s`, 0 for ever, for the watch's
+next drift alarm: exit 0 one came (printed), 5 none came). An action that changes the rig
 takes the operator lease for its duration when nobody holds it (and releases it after).
 Values are JSON where they parse as JSON (`q_cutoff_hz=1.5`, `dob_on=false`), else strings.
 
@@ -30,6 +32,7 @@ from controller.core.verdict import kind_of
 __all__ = ["ACTIONS", "ctl_main"]
 
 EXIT_OK, EXIT_REFUSED, EXIT_BAD_INPUT, EXIT_CAUTION, EXIT_UNREACHABLE = 0, 1, 2, 3, 4
+EXIT_NO_ALARM = 5
 ACTIONS = (
     "status",
     "config",
@@ -43,6 +46,8 @@ ACTIONS = (
     "knowledge",
     "twin",
     "rigs",
+    "drift",
+    "wait-alarm",
 )
 CHANGES = ("apply", "start", "stop", "reset", "identify")
 
@@ -91,6 +96,8 @@ def ctl_main(args: argparse.Namespace, out: TextIO) -> int:
             query_timeout_s=args.timeout_s,
             connect_timeout_s=args.timeout_s,
         )
+        if args.action in ("drift", "wait-alarm"):
+            return _drift(opts, args, out, proto)
         with ControllerClient(opts) as c:
             c.lease_token = args.lease
             return _run(c, args, out, proto)
@@ -299,6 +306,49 @@ def _wait_status_until(c: Any, pred: Any, timeout_s: float = 3.0) -> Any:
     return st
 
 
+def _drift(opts: Any, args: argparse.Namespace, out: TextIO, proto: Any) -> int:
+    """`drift`: the watch's latest state; `wait-alarm`: its next alarm (or none in time)."""
+    import dataclasses
+    import queue
+
+    from controller.client import ControllerClient, ControllerUnavailable
+    from controller.process.watch import describe_state
+
+    opts = dataclasses.replace(opts, subscribe=False)
+    with ControllerClient(opts) as c:
+        if args.action == "drift":
+            for reply in c.session.get(proto.key_drift(args.rig_name), timeout=args.timeout_s):
+                if reply.ok is not None:
+                    st = proto.decode(reply.ok.payload.to_bytes(), proto.DriftState)
+                    _emit(out, args.json, st, describe_state(st))
+                    return EXIT_OK
+            raise ControllerUnavailable(
+                f"no drift state for rig {args.rig_name!r}: is `dobtune watch` running and past "
+                "its first window?")
+        got: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        sub = c.session.declare_subscriber(proto.key_drift_alarm(args.rig_name),
+                                           lambda s: got.put(s.payload.to_bytes()))
+        try:
+            while True:
+                try:
+                    data = got.get(timeout=args.wait_s if args.wait_s > 0 else None)
+                except queue.Empty:
+                    text = f"no drift alarm within {args.wait_s:g} s"
+                    out.write(json.dumps({"alarm": None, "text": text}) + "\n" if args.json
+                              else text + "\n")
+                    return EXIT_NO_ALARM
+                try:
+                    alarm = proto.decode(data, proto.DriftAlarm)
+                except proto.ProtocolError:
+                    continue  # not an alarm this version reads: wait on
+                text = (f"{'cleared' if alarm.cleared else 'ALARM'} {alarm.part}: {alarm.text}"
+                        + (f"\n  {alarm.action}" if alarm.action else ""))
+                _emit(out, args.json, alarm, text)
+                return EXIT_OK
+        finally:
+            sub.undeclare()
+
+
 def _wait_status(c: Any, timeout_s: float = 3.0) -> Any:
     import time
 
@@ -342,6 +392,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timeout-s", type=float, default=5.0, help="reply / connection timeout")
     p.add_argument("--listen-s", type=float, default=1.0,
                    help="rigs: how long to listen to the rigs' status and state")
+    p.add_argument("--wait-s", type=float, default=0.0,
+                   help="wait-alarm: give up after this long (exit 5; default 0: wait for ever)")
     p.add_argument("action", help=" | ".join(ACTIONS))
     p.add_argument("args", nargs="*", help="key=value pairs (apply, identify) or a lease action")
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import queue
 import threading
 from collections.abc import Callable, Sequence
@@ -127,6 +128,11 @@ def to_request(body: proto.CommandBody, client: str) -> rq.RequestBody:
 
         # Raises ConfigError naming the field (the caller names it body.<field>).
         return rq.InjectFault(RigFaults(**msgspec.structs.asdict(body)))
+    if isinstance(body, proto.SimDrift):
+        for name, value in msgspec.structs.asdict(body).items():
+            if not (math.isfinite(value) and 0.05 <= value <= 20.0):
+                raise ConfigError(name, f"must be a factor in [0.05, 20], got {value!r}")
+        return rq.DriftRig(**msgspec.structs.asdict(body))
     raise TypeError(f"no runtime request for {type(body).__name__}")
 
 

@@ -17,6 +17,7 @@ from controller.ident.program import ExcitationProgram
 __all__ = [
     "AbortProgram",
     "ApplyCoefficients",
+    "DriftRig",
     "DropFallback",
     "EStop",
     "InjectFault",
@@ -106,6 +107,16 @@ class InjectFault:
 
 
 @dataclass(frozen=True, slots=True)
+class DriftRig:
+    """Simulated rig only (tests, the demo): factors on the rig's starting stiffness, inertia
+    and motor friction (`controller.protocol.SimDrift`)."""
+
+    belt_stiffness_factor: float = 1.0
+    load_inertia_factor: float = 1.0
+    motor_friction_factor: float = 1.0
+
+
+@dataclass(frozen=True, slots=True)
 class AbortProgram:
     """Abort the running program; the loop holds the present position."""
 
@@ -123,4 +134,5 @@ RequestBody = (
     | RunProgram
     | AbortProgram
     | InjectFault
+    | DriftRig
 )

@@ -31,8 +31,8 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
-from typing import Protocol
+from dataclasses import dataclass, replace
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -46,6 +46,7 @@ from controller.ident.program import ExcitationProgram
 from controller.process.requests import (
     AbortProgram,
     ApplyCoefficients,
+    DriftRig,
     DropFallback,
     EStop,
     InjectFault,
@@ -268,6 +269,8 @@ class Runtime:
         self._blk_mode = ""
         self.last_pos_deg = 0.0
         self.program: ExcitationProgram | None = None
+        self._rig_params0: Any = None
+        """The simulated rig's parameters before its first `DriftRig` (None: none yet)."""
         # The watchdog and the configuration it rolls back to.
         self.watchdog = Watchdog(
             opts.watchdog,
@@ -734,6 +737,8 @@ class Runtime:
             else:
                 set_faults(b.faults)  # between ticks, in the tick's own thread: no race
                 t.ok = True
+        elif isinstance(b, DriftRig):
+            self._drift_rig(t, b)
         elif isinstance(b, RunProgram):
             if self.program is not None:
                 t.ok, t.message = False, "an identification is already running"
@@ -791,6 +796,22 @@ class Runtime:
             self._reset(t, b.estop_seq, pos)
         else:
             t.ok, t.message = False, f"unknown request {type(b).__name__}"
+
+    def _drift_rig(self, t: Ticket, b: DriftRig) -> None:
+        """The simulated plant drifts (`SimRig.set_params`, between ticks in the tick's own
+        thread): factors on the parameters it started with."""
+        set_params = getattr(self.rig, "set_params", None)
+        if set_params is None:
+            t.ok, t.message = False, "sim_drift: only the simulated rig drifts on request"
+            return
+        if self._rig_params0 is None:
+            self._rig_params0 = self.rig.params  # type: ignore[attr-defined]
+        p0 = self._rig_params0
+        set_params(replace(
+            p0, belt_stiffness_n_m_rad=p0.belt_stiffness_n_m_rad * b.belt_stiffness_factor,
+            load_inertia_kg_m2=p0.load_inertia_kg_m2 * b.load_inertia_factor,
+            motor_coulomb_n_m=p0.motor_coulomb_n_m * b.motor_friction_factor))
+        t.ok = True
 
     def _reset(self, t: Ticket, seen: int, pos: float) -> None:
         if t.arrival < self._estop_arrival:

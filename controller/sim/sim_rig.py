@@ -395,6 +395,13 @@ def _take_faults(x: np.ndarray, p: np.ndarray) -> None:
 
 
 @numba.njit(cache=True)
+def _run_commands(x: np.ndarray, p: np.ndarray, u: np.ndarray, noise: np.ndarray,
+                  pos: np.ndarray, rate: np.ndarray) -> None:
+    for i in range(u.size):
+        pos[i], rate[i] = advance_tick(x, p, u[i], 0.0, noise[i])
+
+
+@numba.njit(cache=True)
 def _reset_kernel(x: np.ndarray, p: np.ndarray, position_deg: float, noise_deg: float) -> float:
     x[:] = 0.0
     x[_X_THL] = position_deg * _DEG
@@ -747,6 +754,46 @@ class SimRig:
 
     def clear_faults(self) -> None:
         self.set_faults(_NO_FAULTS)
+
+    # -- the plant drifting while it runs (wear, a load added; tests and the demo only) -------
+
+    def set_params(self, params: RigParams) -> None:
+        """Change the rig's physical parameters from the next step on, its state kept (a belt
+        that loses stiffness, a load added, friction that rises). Call between steps from the
+        stepping thread. Refused (ConfigError naming the field) where the state's layout would
+        change: the command delay and the drive's speed window. The faults in effect are
+        staged again on the new parameters; `set_friction`'s change is replaced by the
+        params'."""
+        if not isinstance(params, RigParams):
+            raise ConfigError("params", f"must be RigParams, got {type(params).__name__}")
+        old = self._p
+        a, nwin = _param_array(params, float(old[_P_RATE]), int(old[_P_NSUB]))
+        if params.command_delay_ticks != self._params.command_delay_ticks:
+            raise ConfigError("command_delay_ticks", "cannot change while the rig runs")
+        if nwin != int(old[_P_NWIN]):
+            raise ConfigError("drive_speed_window_s", "cannot change while the rig runs")
+        keep = set(_FAULT_SLOTS) | set(range(_P_NEW, _P_PENDING + 1))
+        for i in range(_P_LEN):
+            if i not in keep:
+                old[i] = a[i]
+        self._params = params
+        self.set_faults(self._faults)
+
+    def run_commands(self, command_deg_s: npt.NDArray[np.float64]
+                     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Step once per command (no load torque profile, this rig's encoder noise): the
+        readings after each step, (position deg, rate deg/s), in one compiled call."""
+        u = np.ascontiguousarray(command_deg_s, dtype=np.float64)
+        if u.ndim != 1 or not np.all(np.isfinite(u)):
+            raise ConfigError("command_deg_s", "one finite command per step")
+        n = u.size
+        noise = self.take_noise(n)
+        pos = np.empty(n)
+        rate = np.empty(n)
+        _run_commands(self._x, self._p, u, noise, pos, rate)
+        if n:
+            self.advanced(n, float(pos[-1]), float(rate[-1]))
+        return pos, rate
 
     # -- friction changes (a disturbance: wear, temperature, lubrication) ---------------------
 

@@ -1,0 +1,78 @@
+"""`dobtune watch`: the twin beside a running controller (command body).
+
+    dobtune watch --connect EP --rig-name R [--window-s 10] [--trend-dir DIR]
+                  [--disturbance NAME ...] [--auth DIR --user NAME]
+
+Reads the loop's state stream (nothing added to the tick), fits the twin's parts to each
+window, publishes the drift state and alarms (`dobtune ctl drift`, `dobtune ctl wait-alarm`),
+and keeps the rig's trend in DIR (MCAP, one file per hour). Runs niced: the controller's
+process wins the CPU. Exit codes: 0 stopped (Ctrl-C / SIGTERM), 2 bad input, 4 the
+controller is not reachable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from controller.cli.common import add_parent_pid, end_with_parent
+
+__all__: list[str] = []
+
+
+def run(args: argparse.Namespace) -> int:
+    from controller.client import ClientOptions, ControllerUnavailable
+    from controller.logs import setup_logging
+    from controller.process.watch import WatchOptions, run_watch
+
+    def say(text: str) -> None:
+        print(f"dobtune watch: {text}", file=sys.stderr, flush=True)
+
+    end_with_parent(args.parent_pid, say)
+    setup_logging(args.log_level, args.rig_name)
+    if not (1.5 <= args.window_s <= 600.0):
+        say(f"--window-s: {args.window_s!r} out of range [1.5, 600]")
+        return 2
+    try:
+        os.nice(10)
+    except OSError as exc:
+        say(f"runs at the controller's priority (os.nice: {exc})")
+    opts = WatchOptions(
+        client=ClientOptions(connect=tuple(args.connect), rig_name=args.rig_name,
+                             client_name="watch", auth=args.auth, user=args.user or ""),
+        window_s=args.window_s, disturbances=tuple(args.disturbance or ("article-rig",)),
+        trend_dir=args.trend_dir)
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT,
+                                                                      signal.SIGTERM)}
+    try:
+        say(f"watching rig {args.rig_name!r}, windows of {args.window_s:g} s")
+        return run_watch(opts, stop)
+    except ControllerUnavailable as exc:
+        say(str(exc))
+        return 4
+    except ValueError as exc:
+        say(str(exc))
+        return 2
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--connect", action="append", required=True, metavar="ENDPOINT")
+    p.add_argument("--rig-name", default="demo")
+    p.add_argument("--auth", type=Path, default=None, metavar="DIR")
+    p.add_argument("--user", default=None)
+    p.add_argument("--window-s", type=float, default=10.0,
+                   help="seconds of samples per fit (default: 10)")
+    p.add_argument("--trend-dir", type=Path, default=None, metavar="DIR",
+                   help="keep the rig's trend here (MCAP, one file per hour)")
+    p.add_argument("--disturbance", action="append", default=[], metavar="NAME",
+                   help="without a twin: the simulated rig the controller runs (as its "
+                   "--disturbance; default article-rig)")
+    add_parent_pid(p, "watch")

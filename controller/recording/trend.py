@@ -1,0 +1,134 @@
+"""A rig's drift trend: the watch's windows kept over days as MCAP channels, queryable by time.
+
+Why MCAP: the project's recordings are MCAP already (Foxglove and PlotJuggler open them, so do
+the field's tools), the `mcap` library is a dependency, and a trend is a few numbers per
+window: no time-series server a user would have to run. One file per rig and UTC hour,
+`<dir>/<rig>/<YYYYmmdd-HH>.mcap`, closed at the hour's end (a process killed mid-hour loses at
+most that hour's open chunk; the files before are whole); a time range reads only the hours it
+covers.
+
+Channels (JSON, schemas embedded, zstd chunks), log time = the window's end:
+- `/drift/residual`: plant_residual_rms_deg_s, fitted_residual_rms_deg_s, loop_measured_rms_deg,
+  loop_predicted_rms_deg, loop_residual_rms_deg, delay_ticks;
+- `/drift/parts`: per part value, std, state (a flat object: `<part>`, `<part>_std`,
+  `<part>_state`);
+- `/drift/health`: the loop's timing (compute p99 us, skipped ticks), config version, alarms;
+- `/drift/alarm`: each alarm as published (controller.protocol.DriftAlarm's fields).
+"""
+
+from __future__ import annotations
+
+import calendar
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import msgspec
+
+__all__ = ["TOPICS", "TrendPoint", "TrendWriter", "read_trend"]
+
+TOPICS: tuple[str, ...] = ("/drift/residual", "/drift/parts", "/drift/health", "/drift/alarm")
+_HOUR_S = 3600
+
+
+def _hour_name(epoch_s: float) -> str:
+    return time.strftime("%Y%m%d-%H", time.gmtime(epoch_s)) + ".mcap"
+
+
+class TrendWriter:
+    """Appends windows to the rig's hourly files (one writer thread)."""
+
+    def __init__(self, root: Path, rig: str) -> None:
+        self.dir = Path(root) / rig
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.rig = rig
+        self._hour = -1
+        self._f: IO[bytes] | None = None
+        self._w: Any = None
+        self._chan: dict[str, int] = {}
+        self.messages = 0
+
+    def _open(self, epoch_s: float) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        hour = int(epoch_s // _HOUR_S)
+        if hour == self._hour and self._w is not None:
+            return
+        self.close()
+        path = self.dir / _hour_name(epoch_s)
+        if path.exists():  # a restart within the hour: a file of its own beside it
+            path = path.with_name(f"{path.stem}.{int(epoch_s)}.mcap")
+        self._f = open(path, "wb")  # noqa: SIM115 (closed by close())
+        self._w = Writer(self._f, compression=CompressionType.ZSTD, chunk_size=64 * 1024)
+        self._w.start(profile="", library="dobtune")
+        self._chan = {}
+        for topic in TOPICS:
+            sid = self._w.register_schema(
+                name="dobtune." + topic.strip("/").replace("/", "."), encoding="jsonschema",
+                data=json.dumps({"type": "object"}).encode())
+            self._chan[topic] = self._w.register_channel(
+                topic=topic, message_encoding="json", schema_id=sid, metadata={"rig": self.rig})
+        self._hour = hour
+
+    def write(self, topic: str, epoch_s: float, data: dict[str, Any]) -> None:
+        self._open(epoch_s)
+        t_ns = max(0, round(epoch_s * 1e9))
+        self._w.add_message(channel_id=self._chan[topic], log_time=t_ns, publish_time=t_ns,
+                            data=msgspec.json.encode(data), sequence=self.messages)
+        self.messages += 1
+
+    def close(self) -> None:
+        if self._w is not None:
+            self._w.finish()
+            self._w = None
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+        self._hour = -1
+
+    def __enter__(self) -> TrendWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@dataclass
+class TrendPoint:
+    epoch_s: float
+    data: dict[str, Any] = field(default_factory=dict)
+
+
+def read_trend(root: Path, rig: str, t0_epoch_s: float, t1_epoch_s: float,
+               topic: str = "/drift/parts") -> list[TrendPoint]:
+    """The `topic`'s messages of `rig` from t0 to t1 (UNIX seconds), oldest first; only the
+    hours in the range are opened. A file cut short (a process killed mid-hour) gives what
+    its whole chunks hold."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    d = Path(root) / rig
+    if topic not in TOPICS:
+        raise ValueError(f"topic: one of {', '.join(TOPICS)}")
+    lo = int(t0_epoch_s // _HOUR_S)
+    hi = int(t1_epoch_s // _HOUR_S)
+    out: list[TrendPoint] = []
+    for path in sorted(d.glob("*.mcap")):
+        try:
+            hour = calendar.timegm(time.strptime(path.name[:11], "%Y%m%d-%H")) // _HOUR_S
+        except ValueError:
+            continue
+        if not lo <= hour <= hi:
+            continue
+        with open(path, "rb") as f:
+            try:
+                for _s, _c, m in make_reader(f).iter_messages(
+                        topics=[topic], start_time=round(t0_epoch_s * 1e9),
+                        end_time=round(t1_epoch_s * 1e9) + 1):
+                    out.append(TrendPoint(m.log_time / 1e9, json.loads(m.data)))
+            except (McapError, EOFError, ValueError):
+                pass  # the cut-off end of a file; what came before is kept
+    out.sort(key=lambda p: p.epoch_s)
+    return out
