@@ -60,10 +60,17 @@ def test_a_plant_change_trips_the_watchdog_rollback_then_fault(
     # starts to oscillate.
     t_inject = time.monotonic()
     assert client.command(proto.SimFault(plant_gain=5.0)).ok
-    # The Status's rollback count comes from the loop at the tick, its text from the service a
-    # moment later (after the version is in): a Status between the two has the count without
-    # the text (seen once in a clean-clone run). Wait for the report, count and text.
-    st = _status_until(client, lambda s: s.rollbacks >= 1 and "rolled back" in s.watchdog, 20.0)
+    # Every Status on the way carries a rollback count only with the text that reports it
+    # (issue 33: the count was the loop's, which moves at the trip, before the service had
+    # the text; now the count the service has reported, set after its text).
+    seen: list[tuple[int, str]] = []
+
+    def reported(s: proto.Status) -> bool:
+        seen.append((s.rollbacks, s.watchdog))
+        assert s.rollbacks == 0 or "rolled back" in s.watchdog, seen
+        return s.rollbacks >= 1
+
+    st = _status_until(client, reported, 20.0)
     took_s = time.monotonic() - t_inject
     print(f"\n  fault injection -> rollback reported: {took_s:.2f} s; {st.watchdog}")
     assert st.mode == "running" and "rolled back" in st.watchdog
