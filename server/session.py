@@ -1,5 +1,5 @@
 """Who is at each browser, and the controller client that acts for them (the per-browser
-session: user and lease; the candidate is in `server.candidates`).
+session: user and lease; the candidate is in `server.dashboard.candidates`).
 
 Without authentication, or with `--auth` and one `--user`, every browser acts as the
 dashboard's one identity (the streams' client). With several users, each browser came through

@@ -60,11 +60,12 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
 
 @pytest.fixture(scope="module")
 def dash() -> Iterator[Any]:
-    """A dashboard (`server.app.Dashboard`) with no controller to reach (its endpoint is a free
-    port) and one candidate panel built without a browser, its first preview done."""
+    """A dashboard (`server.dashboard.app.Dashboard`) with no controller to reach (its
+    endpoint is a free port) and one candidate panel built without a browser, its first
+    preview done."""
     from helpers import free_port
 
-    from server.app import Dashboard, DashboardOptions
+    from server.dashboard.app import Dashboard, DashboardOptions
 
     opts = DashboardOptions(
         port=free_port(), connect=(f"tcp/127.0.0.1:{free_port()}",), verbose=False

@@ -322,22 +322,26 @@ def test_server_never_imports_the_cli_but_its_entry_point() -> None:
     assert not bad, bad
 
 
-#: The dashboard's composition: the modules that build and wire the panels (and start it).
-#: Everything else in `server/` is a helper the panels use.
-SERVER_COMPOSITION = ("server.app", "server.candidates", "server.fleet", "server.commands",
-                      "server.demo", "server.__main__")
+#: The dashboard's folders in layers, top first: each imports only its own and those after it.
+#: `server/dashboard/` is the composition (the `Dashboard`, each browser's candidate panels, the
+#: demo), `server/panels/` the views, `server/*.py` the helpers the views use.
+SERVER_LAYERS = ("server.dashboard", "server.panels", "server")
 
 
-def test_the_panels_point_one_way() -> None:
-    """helpers (server/*.py but the composition) <- panels (server/panels/) <- composition:
-    a panel never imports the composition, a helper never imports a panel."""
-    bad = bad_imports(
-        lambda mod: mod.startswith("server.panels"),
-        lambda _mod, name: within(project_target(name) or name, SERVER_COMPOSITION))
-    bad += bad_imports(
-        lambda mod: mod.startswith("server.") and not mod.startswith("server.panels")
-        and mod not in SERVER_COMPOSITION,
-        lambda _mod, name: within(project_target(name) or name, ("server.panels",)))
+def server_layer(mod: str) -> int:
+    """The layer of a dashboard module (its folder's place in SERVER_LAYERS)."""
+    folder = mod if MODULES[mod].name == "__init__.py" else mod.rsplit(".", 1)[0]
+    return SERVER_LAYERS.index(folder)
+
+
+def test_the_dashboards_folders_point_one_way() -> None:
+    """composition (server/dashboard/) -> panels (server/panels/) -> helpers (server/*.py):
+    no import from a lower folder to a higher one, so no two folders import each other."""
+    bad = [f"{mod} line {line}: {name}"
+           for mod in MODULES if mod.startswith("server.")
+           for name, line, _ in imports(mod)
+           if (t := project_target(name)) is not None and t.startswith("server.")
+           and server_layer(t) < server_layer(mod)]
     assert not bad, bad
 
 
@@ -367,8 +371,9 @@ RULES = (
     "`dobtune dashboard`) |",
     "| each package imports exactly what its row of the packages table says it may import "
     "(nothing else, and nothing listed goes unused) |",
-    "| `server/panels/` imports the dashboard's helpers (`server/*.py`), never its composition "
-    "(`app`, `candidates`, `commands`, `fleet`, `demo`, `__main__`); no helper imports a panel |",
+    "| `server/` in layers, one direction: `server/dashboard/` (the composition: `app`, "
+    "`candidates`, `demo`) imports `server/panels/` (the views), which import `server/*.py` (the "
+    "helpers); a helper never imports a panel or the composition, a panel never the composition |",
     "| no import cycles between modules (every import counted: lazy ones, package `__init__`) |",
     "| no private name (`_x`) imported from or accessed on another module |",
 )

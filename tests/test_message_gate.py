@@ -17,7 +17,7 @@ import pytest
 from helpers import free_port, wait_for
 from viser_raw import RawViser, connected
 
-from server.app import Dashboard, DashboardOptions
+from server.dashboard.app import Dashboard, DashboardOptions
 from server.message_gate import LOG_EVERY_S
 from server.viser_adapter import control_uuid
 

@@ -18,7 +18,7 @@ from sine_recordings import write_sine_recording
 from viser_raw import RawViser
 
 from controller.core.config import LoopConfig
-from server.app import Dashboard, DashboardOptions
+from server.dashboard.app import Dashboard, DashboardOptions
 from server.panels.recordings import NOT_LISTED, CompareView
 from server.viser_adapter import control_uuid
 

@@ -18,8 +18,8 @@ from helpers import Output, free_port, port_is_free, spawn, wait_for
 from controller.cli.frd_files import write_frd_csv
 from controller.core.config import NominalModel
 from controller.gate.loop_model import nominal_continuous_response
-from server.app import Dashboard, DashboardOptions
-from server.demo import controller_process, stop_process
+from server.dashboard.app import Dashboard, DashboardOptions
+from server.dashboard.demo import controller_process, stop_process
 
 #: The controller process's start (interpreter, imports, numba-compiled plant) on a cold machine.
 CONTROLLER_START_S = 60.0
@@ -99,7 +99,7 @@ def test_the_demo_waits_for_its_controller_however_long_and_says_so(
     its first status comes; no deadline. A controller that exits ends the wait (False)."""
     import threading
 
-    from server.demo import controller_command, wait_for_controller
+    from server.dashboard.demo import controller_command, wait_for_controller
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     opts = DashboardOptions(connect=(endpoint,), rig_name="demowait", port=free_port(),
@@ -253,7 +253,7 @@ def test_record_from_the_dashboard_then_replay(tmp_path: Path) -> None:
 def test_recordings_go_to_a_data_directory_outside_the_working_tree(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from server.app import DashboardOptions
+    from server.dashboard.app import DashboardOptions
 
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
     assert DashboardOptions().recordings_dir == tmp_path / "data" / "dobtune" / "recordings"

@@ -16,7 +16,7 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from server import viser_adapter
-from server.app import Dashboard, DashboardOptions
+from server.dashboard.app import Dashboard, DashboardOptions
 from server.http_access import (
     ESTOP_PATH,
     LEGACY_COOKIE,
@@ -142,7 +142,7 @@ def test_the_share_tunnel_is_never_opened(dash: Dashboard) -> None:
 
 
 def test_a_busy_http_port_is_an_error_not_another_port(capsys: pytest.CaptureFixture) -> None:
-    from server.app import PortBusy, run_dashboard
+    from server.dashboard.app import PortBusy, run_dashboard
 
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -160,7 +160,7 @@ def test_a_port_whose_last_dashboard_just_stopped_is_free() -> None:
     """A dashboard stopped while browsers were connected leaves its side of their connections
     in TIME_WAIT for a minute: a restart on the same port must not count it as busy (found by
     tests/browser/test_restart_browser.py); a listener still does."""
-    from server.app import PortBusy, check_port_free
+    from server.dashboard.app import PortBusy, check_port_free
 
     with socket.socket() as listener:
         listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -279,7 +279,7 @@ def _no_gate(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
 def test_a_dashboard_whose_gate_is_not_in_front_refuses_to_start(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
 ) -> None:
-    from server.app import run_dashboard
+    from server.dashboard.app import run_dashboard
 
     port = free_port()
     opts = DashboardOptions(connect=(f"tcp/127.0.0.1:{free_port()}",), rig_name="open",

@@ -24,8 +24,8 @@ from controller import protocol as proto
 from controller.core.config import LoopConfig
 from controller.ident.spec import IdentifySpec
 from server import charts
-from server.app import Dashboard, DashboardOptions
-from server.demo import controller_command, stop_process
+from server.dashboard.app import Dashboard, DashboardOptions
+from server.dashboard.demo import controller_command, stop_process
 from server.panels.identify import (
     ABORTED,
     DASHBOARD_FIELDS,

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from controller.core.config import LoopConfig
-from server.app import Dashboard
+from server.dashboard.app import Dashboard
 from server.engine import TuningEngine
 from server.panels.tuning import format_gate_html
 

@@ -15,7 +15,7 @@ import pytest
 from helpers import free_port, wait_for
 from viser_raw import RawViser
 
-from server.app import Dashboard, DashboardOptions
+from server.dashboard.app import Dashboard, DashboardOptions
 from server.message_gate import MAX_TRANSFERS, MAX_UPLOAD_BYTES, MAX_UPLOAD_PARTS
 from server.viser_adapter import control_uuid
 

@@ -64,8 +64,8 @@ class RawViser:
 
 @contextlib.contextmanager
 def connected(dash: Any, url: str | None = None) -> Iterator[RawViser]:
-    """A raw client of the dashboard `dash` (a `server.app.Dashboard`) through `url` (default:
-    its printed URL, with its token), once viser counts it as connected."""
+    """A raw client of the dashboard `dash` (a `server.dashboard.app.Dashboard`) through `url`
+    (default: its printed URL, with its token), once viser counts it as connected."""
     from helpers import wait_for
 
     url = url or dash.url

@@ -52,7 +52,7 @@ def candidates_dir(args: argparse.Namespace) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     from controller.logs import setup_logging
-    from server.app import DashboardOptions, run_dashboard
+    from server.dashboard.app import DashboardOptions, run_dashboard
 
     setup_logging(args.log_level, args.rig_name)
     connect = args.connect if args.connect is not None else ["tcp/127.0.0.1:7447"]

@@ -32,7 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from controller.logs import setup_logging
-    from server.demo import DemoOptions, run_demo
+    from server.dashboard.demo import DemoOptions, run_demo
 
     setup_logging(args.log_level, args.rig_name)
     return run_demo(

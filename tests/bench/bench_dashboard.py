@@ -32,8 +32,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from server.app import Dashboard, DashboardOptions  # noqa: E402
-from server.demo import controller_process, stop_process  # noqa: E402
+from server.dashboard.app import Dashboard, DashboardOptions  # noqa: E402
+from server.dashboard.demo import controller_process, stop_process  # noqa: E402
 
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", "--no-first-run"]

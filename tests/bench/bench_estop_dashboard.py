@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
 from bench_estop import estop_tick_wall_s, start_running
 from procs import Client, free_port, start_controller
 
-from server.app import Dashboard, DashboardOptions
+from server.dashboard.app import Dashboard, DashboardOptions
 
 
 def main() -> None:

@@ -31,7 +31,7 @@ import zenoh
 from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
 from controller.client.session import zenoh_config
-from server.demo import DemoOptions, fleet_processes
+from server.dashboard.demo import DemoOptions, fleet_processes
 
 
 def free_base_port(n: int) -> int:
@@ -142,7 +142,7 @@ def rtt_ms(ep: str, rig: str, n: int = 200) -> tuple[float, float, int]:
 
 
 def dashboard_cpu(router_ep: str, window_s: float, fleet: bool) -> float:
-    from server.app import Dashboard, DashboardOptions
+    from server.dashboard.app import Dashboard, DashboardOptions
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -24,8 +24,8 @@ sys.path.insert(0, str(ROOT))
 
 from controller.client import ClientOptions, ControllerClient  # noqa: E402
 from controller.client.recorder import Recorder, RecordOptions  # noqa: E402
-from server.app import Dashboard, DashboardOptions  # noqa: E402
-from server.demo import controller_process  # noqa: E402
+from server.dashboard.app import Dashboard, DashboardOptions  # noqa: E402
+from server.dashboard.demo import controller_process  # noqa: E402
 
 #: The length of each recorded run (the demo's trajectory repeats every 10 s).
 RUN_S = 14.0

@@ -24,8 +24,8 @@ import pytest
 from helpers import free_port, wait_for
 
 from controller.client import ClientOptions, ControllerClient
-from server.app import Dashboard, DashboardOptions
-from server.demo import controller_process
+from server.dashboard.app import Dashboard, DashboardOptions
+from server.dashboard.demo import controller_process
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [

@@ -20,7 +20,7 @@ from conftest import open_when_ready
 from helpers import wait_for
 
 from server import charts
-from server.app import Dashboard
+from server.dashboard.app import Dashboard
 
 pytestmark = pytest.mark.browser
 

@@ -24,7 +24,7 @@ from conftest import (
 from helpers import wait_for
 
 from controller.client import ControllerClient
-from server.app import Dashboard
+from server.dashboard.app import Dashboard
 
 pytestmark = pytest.mark.browser
 

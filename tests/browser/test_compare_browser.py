@@ -25,7 +25,7 @@ from sine_recordings import write_sine_recording
 from controller.client import ControllerClient
 from controller.core.config import LoopConfig
 from controller.recording.mcap_io import read_recording
-from server.app import PLOTS_WIDTH_PX, Dashboard, DashboardOptions
+from server.dashboard.app import PLOTS_WIDTH_PX, Dashboard, DashboardOptions
 from server.panels.recordings import COMPARE_TAB, OVERLAY_CHART, REFERENCE_CHART
 
 pytestmark = pytest.mark.browser

@@ -15,7 +15,7 @@ from conftest import FINITE_JS, set_number, slider_row, wait_shown_text
 from helpers import wait_for
 
 from controller.client import ControllerClient
-from server.app import Dashboard
+from server.dashboard.app import Dashboard
 
 pytestmark = pytest.mark.browser
 

@@ -21,8 +21,8 @@ from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.sim.rig_disturbances import rig_setup
 from controller.tune.autotune import command_noise_deg_s, run_point
-from server.app import Dashboard, DashboardOptions
-from server.demo import DemoOptions, controller_command, stop_process
+from server.dashboard.app import Dashboard, DashboardOptions
+from server.dashboard.demo import DemoOptions, controller_command, stop_process
 
 RIG = "demovalue"
 DISTURBANCES = DemoOptions.disturbances

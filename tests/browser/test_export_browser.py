@@ -28,8 +28,8 @@ import zstandard
 from conftest import FIRST_LOAD_S
 
 from controller.client import ControllerClient
-from server.app import Dashboard
 from server.charts import BODE_CHARTS, LIVE_CHARTS
+from server.dashboard.app import Dashboard
 from server.export import export_filename
 from server.panels.widgets import EXPORT_LABEL
 

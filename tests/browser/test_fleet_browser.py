@@ -18,8 +18,8 @@ import pytest
 from conftest import CONTROLLER_START_S, FIRST_LOAD_S, VIEWPORT, free_port
 from helpers import wait_for
 
-from server.app import Dashboard, DashboardOptions
-from server.demo import DemoOptions, fleet_processes
+from server.dashboard.app import Dashboard, DashboardOptions
+from server.dashboard.demo import DemoOptions, fleet_processes
 
 pytestmark = pytest.mark.browser
 

@@ -18,7 +18,7 @@ from conftest import FIRST_LOAD_S, cutoff_box, only_panel, set_number
 from helpers import wait_for
 
 from controller.client import ControllerClient
-from server.app import Dashboard
+from server.dashboard.app import Dashboard
 
 pytestmark = pytest.mark.browser
 

@@ -32,8 +32,8 @@ from controller.client import ClientOptions, ControllerClient
 from controller.client.session import zenoh_config
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import KnowledgeRecord
-from server.app import Dashboard, DashboardOptions
-from server.demo import DemoOptions, fleet_processes
+from server.dashboard.app import Dashboard, DashboardOptions
+from server.dashboard.demo import DemoOptions, fleet_processes
 
 pytestmark = pytest.mark.browser
 

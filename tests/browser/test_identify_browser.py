@@ -13,7 +13,7 @@ import pytest
 from conftest import FINITE_JS, only_panel
 
 from controller.client import ControllerClient
-from server.app import Dashboard
+from server.dashboard.app import Dashboard
 
 pytestmark = pytest.mark.browser
 

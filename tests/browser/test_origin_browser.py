@@ -19,7 +19,7 @@ import pytest
 from conftest import FIRST_LOAD_S, VIEWPORT
 from helpers import free_port, wait_for
 
-from server.app import Dashboard, DashboardOptions
+from server.dashboard.app import Dashboard, DashboardOptions
 from server.http_access import ESTOP_PATH, VIEW_PATH
 
 pytestmark = pytest.mark.browser

@@ -32,7 +32,7 @@ pytestmark = pytest.mark.browser
 _DASHBOARD = """
 import sys
 from pathlib import Path
-from server.app import DashboardOptions, run_dashboard
+from server.dashboard.app import DashboardOptions, run_dashboard
 endpoint, rig, port, token, kept = sys.argv[1:]
 sys.exit(run_dashboard(DashboardOptions(connect=(endpoint,), rig_name=rig, port=int(port),
                                         token=token, candidates_dir=Path(kept))))

@@ -25,8 +25,8 @@ from helpers import wait_for
 from controller import protocol as proto
 from controller.client import ControllerClient
 from controller.core.verdict import kind_of
-from server.app import Dashboard
 from server.charts import LIVE_WINDOW_S
+from server.dashboard.app import Dashboard
 from server.panels.bode import fmt_value
 
 pytestmark = pytest.mark.browser

@@ -34,8 +34,8 @@ from helpers import answers, spawn, wait_for
 
 from controller.auth import init_auth_dir, new_users
 from controller.client import ClientOptions, ControllerClient
-from server.app import Dashboard, DashboardOptions
-from server.demo import controller_command, stop_process
+from server.dashboard.app import Dashboard, DashboardOptions
+from server.dashboard.demo import controller_command, stop_process
 
 pytestmark = pytest.mark.browser
 RIG = "usertest"

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from helpers import spawn
 from procs import start_controller
-from server.demo import router_command
+from server.dashboard.demo import router_command
 
 
 def test_starts_processes_then_waits(tmp_path):
@@ -68,7 +68,7 @@ def test_a_killed_test_run_leaves_no_process_behind(tmp_path: Path) -> None:
 #: as `--parent-pid`, prints the router's pid, then waits to be killed.
 LAUNCHER = '''
 import os, subprocess, sys, threading
-from server.demo import router_command
+from server.dashboard.demo import router_command
 
 with open(sys.argv[2], "wb") as log:
     r = subprocess.Popen(router_command("tcp/127.0.0.1:" + sys.argv[1], "info",

@@ -19,7 +19,7 @@ from viser_raw import RawViser
 
 from controller.auth import init_auth_dir, new_users
 from controller.client import ClientOptions, ControllerClient
-from server.app import Dashboard, DashboardOptions
+from server.dashboard.app import Dashboard, DashboardOptions
 from server.viser_adapter import control_uuid
 
 RIG = "msggate"

@@ -108,7 +108,7 @@ def test_the_dashboards_fleet_overview(
     import urllib.request
 
     from controller.client import ClientOptions, ControllerClient
-    from server.app import Dashboard, DashboardOptions
+    from server.dashboard.app import Dashboard, DashboardOptions
 
     ep, _restart = router
     a = start_controller_factory(rig="rig_a", extra_args=("--connect", ep))
@@ -166,7 +166,7 @@ def test_a_fleet_behind_an_authenticating_router(tmp_path: Path) -> None:
     from controller import protocol as proto
     from controller.auth import init_auth_dir, new_users
     from controller.client import ClientOptions, ControllerClient
-    from server.app import Dashboard, DashboardOptions
+    from server.dashboard.app import Dashboard, DashboardOptions
 
     auth = tmp_path / "auth"
     init_auth_dir(auth, new_users([("op1", "operator"), ("view", "viewer"), ("ctl", "controller")]))

@@ -39,7 +39,7 @@ from controller.client.session import (
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import KnowledgeRecord
-from server.demo import router_command
+from server.dashboard.demo import router_command
 
 RIG = "hostile"
 ENC = msgspec.msgpack.encode

@@ -25,7 +25,7 @@ from viser_raw import RawViser
 
 from controller.auth import init_auth_dir, new_users
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
-from server.app import Dashboard, DashboardOptions
+from server.dashboard.app import Dashboard, DashboardOptions
 from server.panels.identify import IDLE, RUNNING, IdentifySettings
 from server.viser_adapter import control_uuid
 

@@ -117,7 +117,7 @@ def test_this_client_refuses_an_older_controller_clearly(old_controller: OldCont
     from controller.cli.commands import controller_commands
     from controller.cli.common import build_parser
     from controller.cli.ctl import ctl_main
-    from server.fleet import fleet_table_html
+    from server.panels.fleet import fleet_table_html
     from server.panels.live import banner_html
 
     ep = old_controller.endpoint

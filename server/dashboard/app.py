@@ -2,10 +2,10 @@
 
 - `server.options`: what it is started with, and the users who each get a URL;
 - `server.session` (`BrowserSessions`): who is at each browser, the client acting for them,
-  their lease; `server.candidates` (`Candidates`): each browser's own tuning candidate;
+  their lease; `server.dashboard.candidates` (`Candidates`): each browser's own tuning candidate;
 - `server.commands` (`CommandRouter`): a browser's apply and commands to the controller;
 - the shared views, one module each in `server/panels/`: live (banner, E-STOP, traces),
-  identify, knowledge (measured responses), history, recordings, and `server.fleet`.
+  identify, knowledge (measured responses), history, recordings, and `server.panels.fleet`.
 
 Built once at start: the shared views (every browser sees the same); the tuning candidate (its
 controls, verdict and charts) is per browser, built into that browser's `client.gui` when it
@@ -35,14 +35,14 @@ from controller.client.recorder import RecordOptions
 from controller.core.config import LoopConfig
 from controller.core.heap import freeze_startup_heap
 from server.assets import web_asset
-from server.candidates import CandidatePlace, Candidates
 from server.commands import CommandRouter
+from server.dashboard.candidates import CandidatePlace, Candidates
 from server.engine import TuningEngine
 from server.escape import esc
-from server.fleet import FleetMonitor, FleetPanel
 from server.http_access import GateOpen, HttpAccess, title_html
 from server.message_gate import MessageGate
 from server.options import DashboardOptions, dashboard_users
+from server.panels.fleet import FleetMonitor, FleetPanel
 from server.panels.history import HistoryPanel
 from server.panels.identify import IdentifyPanel
 from server.panels.knowledge import KnowledgePanel

@@ -25,7 +25,13 @@ from typing import Any
 from controller.core.errors import ConfigError
 from controller.core.heap import freeze_startup_heap
 from controller.sim.rig_disturbances import DEFAULT_RIG_NAMES, rig_setup
-from server.app import Dashboard, DashboardOptions, PortBusy, check_port_free, stop_requested
+from server.dashboard.app import (
+    Dashboard,
+    DashboardOptions,
+    PortBusy,
+    check_port_free,
+    stop_requested,
+)
 
 __all__ = ["DemoOptions", "controller_command", "controller_process", "run_demo", "stop_process"]
 
