@@ -286,6 +286,38 @@ def _offline(
         progress.done()
 
 
+#: How long `_no_controller` waits for a Zenoh peer at the endpoint, then for the rig's token.
+_PEER_WAIT_S = 2.0
+_TOKEN_WAIT_S = 3.0
+
+
+def _no_controller(session: Any, endpoint: str, rig_name: str) -> str | None:
+    """Why no run can start at `endpoint` (None: the rig's controller is alive there): nothing
+    answers there at all (no Zenoh peer or router within `_PEER_WAIT_S`), or something does
+    but no controller of `rig_name` (its liveliness token, `dobtune ctl rigs`) within
+    `_TOKEN_WAIT_S`. Instead of the requests' own timeouts (10 s before). Without credentials
+    only: with them, opening the session already fails when nothing is reached, and the
+    access rules may hide other rigs' tokens."""
+    from controller import protocol as proto
+
+    start = time.monotonic()
+    while not (list(session.info.peers_zid()) or list(session.info.routers_zid())):
+        if time.monotonic() - start >= _PEER_WAIT_S:
+            return (f"--connect: nothing answers at {endpoint} within {_PEER_WAIT_S:g} s (no "
+                    f"Zenoh peer or router there): is the controller running, on that port?")
+        time.sleep(0.05)
+    start = time.monotonic()
+    while not list(session.liveliness().get(proto.key_alive(rig_name), timeout=1.0)):
+        if time.monotonic() - start >= _TOKEN_WAIT_S:
+            alive = sorted({str(r.ok.key_expr).split("/")[1] for r in session.liveliness().get(
+                proto.key_alive("*"), timeout=1.0) if r.ok is not None})
+            there = ", ".join(repr(a) for a in alive) if alive else "none"
+            return (f"--connect: no controller of rig {rig_name!r} at {endpoint} (a Zenoh "
+                    f"session answers there; rigs alive: {there}): check --rig-name")
+        time.sleep(0.1)
+    return None
+
+
 def _remote(
     endpoint: str, rig_name: str, spec: IdentifySpec, progress: _Progress, poll_s: float = 0.2,
     auth: Path | None = None, user: str = "",
@@ -300,6 +332,9 @@ def _remote(
     status: proto.IdentifyStatus | None = None
     try:
         with ControllerClient(opts) as c:
+            absent = None if auth is not None else _no_controller(c.session, endpoint, rig_name)
+            if absent is not None:
+                return absent
             reply = None
             deadline = time.monotonic() + 10.0
             while reply is None:  # the session may still connect
