@@ -77,6 +77,18 @@ VIEW_PATH = "/__dobtune_view"
 PAGE_SCRIPT_FILE = web_asset("dashboard.js")
 
 
+class _ViewReportAnswered(logging.Filter):
+    """Drops websockets' "connection rejected (204 No Content)": the answer to a view report
+    (only it is answered 204 here); every real refusal (401, 403, 400, 503) stays logged."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.getMessage() != "connection rejected (204 No Content)"
+
+
+#: One filter, added once per logger (`Filterer.addFilter` skips one already there).
+_VIEW_REPORT_ANSWERED = _ViewReportAnswered()
+
+
 def estop_link_html(token: str) -> str:
     """The page's E-STOP (put into the page itself, outside viser's panels, which unmount what
     they collapse): fixed to the window above everything, whatever is collapsed or scrolled; a
@@ -254,6 +266,9 @@ class HttpAccess:
                     f"<!doctype html><meta charset=utf-8><title>E-STOP</title>"
                     f"<p>{esc(text)}</p>").encode())
             if route == VIEW_PATH:
+                # websockets logs every answer but a websocket's as "connection rejected":
+                # the page's report, answered 204 every 10 s per tab, is no rejection.
+                connection.logger.logger.addFilter(_VIEW_REPORT_ANSWERED)
                 return self._view(request.path)
             if upgrade:
                 self._by_connection[connection] = user
