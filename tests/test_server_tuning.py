@@ -371,3 +371,44 @@ def test_a_drag_raced_against_the_verdict_leaves_the_last_drags_verdict(
     finally:
         t.revert()
         assert t.wait_idle(10.0)
+
+
+@pytest.mark.parametrize("typed", ["-1", "5", "abc", "", "nan"])
+def test_a_gain_typed_out_of_range_or_not_a_number_is_refused_by_name(
+    dash: Dashboard, typed: str
+) -> None:
+    """The gains' text fields as the cut-off's (issue 33: the number box clamped "-1" to 0.05
+    and "5" to 3, and kept the old gain for "abc"): refused naming the field and its range,
+    left as typed; the slider keeps the gain in force and drives the field again."""
+    t = dash.panel_of(None)
+    assert t is not None
+    kp = t.candidate().cv_kp
+    t.cv_kp_input.value = typed
+    assert t.wait_idle(2.0)
+    assert t.cv_kp_input.value == typed
+    assert "Invalid candidate" in t.verdict.content and "cv_kp" in t.verdict.content
+    assert html.escape(f"Cv Kp: {typed!r} is not a number from 0.05 to 3") in \
+        t.controls.gain_text.content
+    assert t.cv_kp.value == kp  # the slider: the gain in force, not clamped
+    t.cv_kp.value = 1.1  # a drag: the field follows, the refusal goes
+    assert t.wait_idle(2.0)
+    assert (t.cv_kp_input.value, t.candidate().cv_kp) == ("1.1", 1.1)
+    assert "Invalid candidate" not in t.verdict.content and "Rejected" not in \
+        t.controls.gain_text.content
+    t.revert()
+    assert t.wait_idle(2.0)
+    assert float(t.cv_kp_input.value) == pytest.approx(t.active.cv_kp)
+
+
+@pytest.mark.parametrize("typed, value", [("1e1", 10.0), ("2.5E1", 25.0), (" 7 ", 7.0)])
+def test_a_gain_typed_with_an_exponent_is_read_as_typed(
+    dash: Dashboard, typed: str, value: float
+) -> None:
+    t = dash.panel_of(None)
+    assert t is not None
+    t.cv_ki_input.value = typed
+    assert t.wait_idle(2.0)
+    assert t.candidate().cv_ki_per_s == value and t.cv_ki.value == value
+    assert t.cv_ki_input.value == typed  # never rewritten while typed
+    t.revert()
+    assert t.wait_idle(2.0)

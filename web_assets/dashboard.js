@@ -62,6 +62,12 @@
   })();
   (function nameSlot() {
     const p = new URLSearchParams(location.search);
+    // viser writes the websocket's URL into the page's own unescaped (its dt_slot, dt_page and
+    // token then read as parameters of the page): gone before the new one is set, else each
+    // reload added one more dt_page (and token) to the address bar.
+    const token = p.get("token");
+    for (const k of ["dt_slot", "dt_page", "token"]) p.delete(k);
+    if (token) p.set("token", token);
     const scheme = location.protocol === "https:" ? "wss://" : "ws://";
     p.set("websocket", scheme + location.host + location.pathname.replace(/\/$/, "") +
       "/?dt_slot=" + slotId() + "&dt_page=" + PAGE_ID + TOKEN_PARAM);
@@ -74,7 +80,6 @@
   // for a group inside a tab: [its group's key, that tab's label]].
   const GROUPS = [["tab", "Tune"], ["plot", "Bode"], ["bode", "Decide", ["plot", "Bode"]]];
   const PARENT = Object.fromEntries(GROUPS.filter((g) => g[2]).map((g) => [g[0], g[2]]));
-  const RESTORE_FOR_MS = 60000;
   // Print resolution of the PNG exports: 3 pixels per CSS pixel, at least 1800 pixels wide.
   const PRINT_K = 3;
   const PRINT_MIN_PX = 1800;
@@ -456,20 +461,76 @@
       if (x < left || x > left + width) return; // zoomed out of view
       ctx.save();
       ctx.font = `bold ${Math.round(11 * k)}px sans-serif`;
-      ctx.fillStyle = typeof s.stroke === "function" ? s.stroke(u, si) : s.stroke;
       ctx.textBaseline = "middle";
       const w = ctx.measureText(text).width;
-      const right = x + 6 * k + w <= left + width;
-      ctx.textAlign = right ? "left" : "right";
-      const tx = right ? x + 6 * k : x - 6 * k;
+      // Where the label covers no curve (the GM label over |L| hid it from 0.2 to 1.3 Hz): beside
+      // the marker, right or left, at the marker's height or above or below it, the place whose
+      // box holds the fewest curve points (and no label drawn before) wins; the nearest first.
+      const { top, height } = u.bbox;
+      let best = null;
+      for (const dy of [0, -16, 16, -32, 32, -48, 48, -64, 64]) {
+        for (const right of [true, false]) {
+          const tx = right ? x + 6 * k : x - 6 * k;
+          const box = { l: right ? tx - 2 * k : tx - w - 2 * k, r: right ? tx + w + 2 * k : tx + 2 * k,
+                        t: y + dy * k - 8 * k, b: y + dy * k + 8 * k };
+          if (box.l < left || box.r > left + width || box.t < top || box.b > top + height) continue;
+          const hits = curvePoints(u, box) +
+            1000 * drawn.filter((d) => d.box.l < box.r && box.l < d.box.r &&
+                                       d.box.t < box.b && box.t < d.box.b).length;
+          if (!best || hits < best.hits) best = { hits, right, tx, ty: y + dy * k, box };
+          if (hits === 0) break;
+        }
+        if (best && best.hits === 0) break;
+      }
+      if (!best) {
+        ctx.restore();
+        return;
+      }
+      ctx.textAlign = best.right ? "left" : "right";
       ctx.fillStyle = "rgba(255,255,255,0.8)";
-      ctx.fillRect(right ? tx - 2 * k : tx - w - 2 * k, y - 8 * k, w + 4 * k, 16 * k);
+      ctx.fillRect(best.box.l, best.box.t, best.box.r - best.box.l, best.box.b - best.box.t);
       ctx.fillStyle = typeof s.stroke === "function" ? s.stroke(u, si) : s.stroke;
-      ctx.fillText(text, tx, y);
+      ctx.fillText(text, best.tx, best.ty);
       ctx.restore();
-      drawn.push({ text, x: x / k, y: y / k });
+      drawn.push({ text, x: x / k, y: best.ty / k, covers: best.hits % 1000,
+                   box: best.box, css: { l: best.box.l / k, r: best.box.r / k,
+                                         t: best.box.t / k, b: best.box.b / k } });
     });
-    u.root.dataset.marginLabels = JSON.stringify(drawn);
+    u.root.dataset.marginLabels = JSON.stringify(drawn.map(({ box, ...d }) => d));
+  }
+
+  // How many points of the chart's curves (margin markers included) lie in `box` (canvas
+  // pixels), the points of a curve taken every half pixel along x (interpolated between its
+  // data points, so a steep segment through the box counts too).
+  function curvePoints(u, box) {
+    const xs = u.data[0];
+    let hits = 0;
+    u.series.forEach((s, si) => {
+      if (si === 0 || !s.show) return;
+      const col = u.data[si];
+      let px0 = null;
+      let py0 = null;
+      for (let j = 0; j < xs.length; j++) {
+        const v = col[j];
+        if (v == null || !isFinite(v)) {
+          px0 = null;
+          continue;
+        }
+        const px = u.valToPos(xs[j], "x", true);
+        const py = u.valToPos(v, s.scale, true);
+        if (px0 !== null && Math.max(px0, px) >= box.l && Math.min(px0, px) <= box.r) {
+          const n = Math.max(1, Math.ceil(Math.hypot(px - px0, py - py0) * 2));
+          for (let i = 1; i <= n; i++) {
+            const qx = px0 + (px - px0) * i / n;
+            const qy = py0 + (py - py0) * i / n;
+            if (qx >= box.l && qx <= box.r && qy >= box.t && qy <= box.b) hits++;
+          }
+        }
+        px0 = px;
+        py0 = py;
+      }
+    });
+    return hits;
   }
 
   function addHook(u, name, fn) {
@@ -576,14 +637,26 @@
     return out;
   }
 
+  // What the URL asks for (fragment key -> tab label), until each is seen selected. No
+  // wall-clock window: under load a group's strip came a minute or more after the page's first
+  // one, and a window from the page's load (or from its first strip) forgot the URL's tab
+  // (the Bode tab then opened on Decide). An entry waits, with no clock running, while its
+  // strip is not on screen or while it sits in a tab that is not shown (Nyquist of the Bode
+  // tab while Live traces is shown); once its tab is on screen it is activated until seen
+  // selected, given up only after TRY_N activations and TRY_MS (both: a loaded page runs few
+  // ticks). A strip comes before all its tabs (under load "Live traces" came seconds after
+  // "Bode"): a tab not there yet is waited for, never given up. A user's own pick in a group
+  // ends that group's entry (the page never takes a tab back from the user). Entries never
+  // drawn (a group this page does not have, a label no group has) cost nothing: the URL keeps
+  // them until the user picks a tab there.
   let want = parseView(location.hash); // read now: viser rewrites the URL when it starts
-  let restoreUntil = Date.now() + RESTORE_FOR_MS;
-  // Tabs of a group inside a tab that was not shown when the rest was restored, selected as
-  // soon as that group is drawn: under load the group's strip came after the rest and the
-  // Bode tab then opened on Decide in place of the URL's Nyquist.
-  let deferred = {};
+  const TRY_MS = 30000;
+  const TRY_N = 60;
+  let tries = {}; // fragment key -> { since, n }: since its tab was first seen, activations
 
   const selectedIn = (tabs) => (tabs || []).find((t) => t.getAttribute("aria-selected") === "true");
+  const onScreen = (tabs) => !!tabs && tabs.some((t) => t.getClientRects().length > 0 &&
+                                                      t.getBoundingClientRect().width > 0);
 
   function activate(tab) {
     if (tab.closest("[data-dock-strip]")) {
@@ -594,57 +667,58 @@
     } else tab.click();
   }
 
+  // The tab shown in a group: the URL's while it is still to be selected, else the selected
+  // one (undefined: not drawn).
+  function shownIn(key, g) {
+    if (key in want) return want[key];
+    const sel = selectedIn(g[key]);
+    return sel ? tabLabel(sel) : undefined;
+  }
+
   function restore() {
     const g = groups();
-    let done = true;
     for (const [key, label] of Object.entries(want)) {
-      const tab = (g[key] || []).find((t) => tabLabel(t) === label);
       const parent = PARENT[key];
-      if (!tab && parent) {
-        // A group inside a tab that is neither asked for nor shown, not drawn yet: nothing to
-        // select (the fragment keeps it for when that tab is shown).
-        const open = selectedIn(g[parent[0]]);
-        const shown = parent[0] in want ? want[parent[0]] : open && tabLabel(open);
-        if (shown && shown !== parent[1]) {
-          deferred[key] = label;
-          continue;
-        }
+      if (parent) {
+        const shown = shownIn(parent[0], g);
+        if (shown !== undefined && shown !== parent[1]) continue; // its tab is not shown
       }
-      if (!tab) {
-        done = false;
-        continue;
-      }
-      if (tab.getAttribute("aria-selected") !== "true") {
-        done = false;
+      const tabs = g[key];
+      if (!onScreen(tabs)) continue; // not drawn or hidden: no clock runs
+      const tab = tabs.find((x) => tabLabel(x) === label);
+      if (!tab) continue; // not drawn yet: no clock runs
+      const t = tries[key] || (tries[key] = { since: Date.now(), n: 0 });
+      let done = false;
+      if (tab.getAttribute("aria-selected") === "true") done = true;
+      else if (t.n >= TRY_N && Date.now() - t.since > TRY_MS) {
+        console.warn("dobtune: the tab from the URL was not selected:", key, label);
+        done = true;
+      } else {
+        t.n++;
         activate(tab);
       }
-    }
-    if (done) want = {};
-    else if (Date.now() > restoreUntil) {
-      deferred = {};
-      console.warn("dobtune: tabs from the URL not found:", JSON.stringify(want));
-      want = {};
+      if (done) {
+        delete want[key];
+        delete tries[key];
+      }
     }
   }
 
-  // A deferred tab is activated as restore() does (its strip is the dock's: the click this
-  // used before did nothing, and the Bode tab opened on Decide), and forgotten only once seen
-  // selected, or DEFERRED_TRY_MS after its strip was first drawn.
-  const DEFERRED_TRY_MS = 10000;
-  const deferredSeen = {};
-  function restoreDeferred() {
-    const g = groups();
-    for (const [key, label] of Object.entries(deferred)) {
-      const tab = (g[key] || []).find((t) => tabLabel(t) === label);
-      if (!tab) continue;
-      if (!(key in deferredSeen)) deferredSeen[key] = Date.now();
-      if (tab.getAttribute("aria-selected") === "true" ||
-          Date.now() - deferredSeen[key] > DEFERRED_TRY_MS) {
-        delete deferred[key];
-        delete deferredSeen[key];
-      } else activate(tab);
+  // A tab the user picks (a real pointer or key event, not the page's own Enter): the URL's
+  // entry for that group is done with.
+  function userPicked(e) {
+    if (!e.isTrusted || !Object.keys(want).length) return;
+    const tab = e.target && e.target.closest && e.target.closest("[role=tab]");
+    if (!tab) return;
+    for (const [key, tabs] of Object.entries(groups())) {
+      if (tabs.includes(tab) && key in want) {
+        delete want[key];
+        delete tries[key];
+      }
     }
   }
+  document.addEventListener("pointerdown", userPicked, true);
+  document.addEventListener("keydown", userPicked, true);
 
   function viewHash() {
     const g = groups();
@@ -652,18 +726,17 @@
     const p = new URLSearchParams();
     for (const [key] of GROUPS) {
       const sel = selectedIn(g[key]);
-      if (sel) p.set(key, tabLabel(sel));
-      else if (PARENT[key] && now.get(key)) p.set(key, now.get(key)); // its tab is hidden
+      // A tab from the URL still to be selected: the URL keeps asking for it (the strip shows
+      // its default tab for a moment first).
+      if (key in want) p.set(key, want[key]);
+      else if (sel) p.set(key, tabLabel(sel));
+      else if (now.get(key)) p.set(key, now.get(key)); // its tab is hidden, or not drawn yet
     }
     return p.toString();
   }
 
   function syncUrl() {
-    // While tabs from the URL are still to be selected, the URL keeps asking for them.
-    const p = new URLSearchParams();
-    const h = Object.keys(want).length
-      ? (Object.entries(want).forEach(([k, v]) => p.set(k, v)), p.toString())
-      : viewHash();
+    const h = viewHash();
     if (!h || location.hash.replace(/^#/, "") === h) return;
     history.replaceState(history.state, "", location.pathname + location.search + "#" + h);
   }
@@ -672,20 +745,24 @@
     const w = parseView(location.hash);
     if (Object.keys(w).length) {
       want = w;
-      deferred = {};
-      restoreUntil = Date.now() + RESTORE_FOR_MS;
+      tries = {};
     }
     schedule();
   });
 
-  // ---- the log slider's number box ----------------------------------------------------------
+  // ---- the sliders' number boxes --------------------------------------------------------------
   // The cut-off slider moves on a log scale: its own number box would show log10 of the
-  // frequency, where a user thinks in Hz. The Hz field under it is the value: the box goes.
+  // frequency, where a user thinks in Hz. The gains' sliders ("Cv Kp, drag", ...): their number
+  // boxes clamped "-1" to the minimum, dropped the "e" of "1e1" and kept the old value for
+  // "abc", all silently. The text field under each (server/panels/controls.py) is the value:
+  // the box goes.
 
   const LOG_SLIDER_LABEL = "Q cut-off, log scale";
+  const GAIN_SLIDER_END = ", drag"; // server/panels/controls.py SLIDER_SUFFIX
   function hideLogBoxes() {
     for (const lab of document.querySelectorAll("label")) {
-      if (!lab.textContent || !lab.textContent.startsWith(LOG_SLIDER_LABEL)) continue;
+      const text = (lab.textContent || "").trim();
+      if (!text.startsWith(LOG_SLIDER_LABEL) && !text.endsWith(GAIN_SLIDER_END)) continue;
       const slider = lab.htmlFor ? document.getElementById(lab.htmlFor) : null;
       const row = slider && slider.parentElement;
       if (!row) continue;
@@ -694,6 +771,24 @@
       if (!box) continue;
       const wrap = box.closest(".mantine-NumberInput-root") || box;
       if (wrap.style.display !== "none") wrap.style.display = "none";
+    }
+  }
+
+  // ---- labels that name their field ------------------------------------------------------------
+  // viser's label says for=<the control's id>, but its text field does not carry that id (its
+  // slider and number field do; Mantine gives the text field an id of its own): the label named
+  // nothing (screen readers, get_by_label). The label of such a row names its one input.
+
+  function linkLabels() {
+    for (const lab of document.querySelectorAll("label[for]")) {
+      const id = lab.htmlFor;
+      if (!id || document.getElementById(id)) continue;
+      const row = lab.closest(".mantine-Flex-root");
+      const inputs = row ? [...row.querySelectorAll("input, textarea")].filter(
+        (i) => i.type !== "hidden") : [];
+      if (inputs.length !== 1) continue;
+      if (inputs[0].id) lab.htmlFor = inputs[0].id;
+      else inputs[0].id = id;
     }
   }
 
@@ -743,8 +838,8 @@
       repairLogX();
       repairAxes();
       hideLogBoxes();
+      linkLabels();
       if (Object.keys(want).length) restore();
-      else if (Object.keys(deferred).length) restoreDeferred();
       syncUrl();
       reportView();
     } catch (err) {

@@ -20,10 +20,13 @@ from controller.core.config import LoopConfig
 from controller.core.errors import ConfigError
 from server.candidate_store import KeptCandidate
 from server.engine import CUTOFF_MAX_HZ, CUTOFF_MIN_HZ
+from server.escape import esc
 from server.gui import ValueHandle, set_value
+from server.panels.widgets import parse_number, set_html
 from server.viser_adapter import set_slider_marks
 
-__all__ = ["KEPT_CONTROLS", "CandidateControls", "cutoff_marks", "kept_problem"]
+__all__ = ["KEPT_CONTROLS", "SLIDER_SUFFIX", "CandidateControls", "cutoff_marks",
+           "gain_errors_html", "kept_problem"]
 
 _Q_LABELS = {"Q31 (3rd order, rel. deg 2)": "q31", "Q20 (2nd order)": "q20"}
 _BASE_MARKS: tuple[tuple[float, str], ...] = ((-1.0, "0.1 Hz"), (0.0, "1 Hz"), (1.0, "10 Hz"))
@@ -45,6 +48,20 @@ def cutoff_marks(rec_hz: float | None) -> tuple[tuple[float, str], ...]:
 
 def _clamp(v: float, lo: float, hi: float) -> float:
     return min(max(v, lo), hi)
+
+
+def gain_errors_html(errors: dict[str, str]) -> str:
+    """The gains' typed values that are none (label -> why), in red, under the gains."""
+    if not errors:
+        return "<div class='dt-gain-error'></div>"
+    lines = "".join(f"<div><b>Rejected</b>: {esc(why)}.</div>" for why in errors.values())
+    return ("<div class='dt-gain-error dt-gain-invalid' style='font-size:13px;color:#d62728'>"
+            f"{lines}Apply is disabled until each is a number in range.</div>")
+
+
+def _fmt_gain(v: float) -> str:
+    """A gain as its text field shows it (up to 6 significant digits)."""
+    return f"{v:.6g}"
 
 
 def _fmt_hz_value(hz: float) -> str:
@@ -79,6 +96,16 @@ class _Gain:
     def position(self, cfg: LoopConfig) -> float:
         return _clamp(float(getattr(cfg, self.field)), self.lo, self.hi)
 
+    @property
+    def slider_label(self) -> str:
+        """The slider's label (its own number box is hidden by the page script: it clamped
+        and misread what was typed; the text field under it is the value)."""
+        return f"{self.label}{SLIDER_SUFFIX}"
+
+    def parse(self, text: str) -> tuple[float | None, str]:
+        """The gain typed as `text` (exponents too: "1e-1") or why it is none."""
+        return parse_number(text, self.label, self.lo, self.hi)
+
 
 _GAINS = (
     _Gain("cv_kp", "cv_kp", "Cv Kp", 0.05, 3.0, 0.01, "speed loop Cv = Kp (1 + Ki/s)"),
@@ -87,6 +114,8 @@ _GAINS = (
           "position loop Cp = Kp (1 + Ki/s)"),
     _Gain("pos_ki", "pos_ki_per_s", "Pos Ki (1/s)", 0.0, 20.0, 0.1),
 )
+#: The end of a gain slider's label (the page script hides the number box of such sliders).
+SLIDER_SUFFIX = ", drag"
 #: (control name = LoopConfig field, label) of the switches.
 _SWITCHES = (("dob_on", "DOB on"), ("ff_on", "Velocity feedforward"))
 #: The controls a kept candidate holds (their names; `kept`, `restore`).
@@ -140,6 +169,12 @@ class CandidateControls:
         self._marks: tuple[tuple[float, str], ...] = ()
         self.switches: dict[str, viser.GuiCheckboxHandle] = {}
         self.gains: dict[str, viser.GuiSliderHandle[float]] = {}
+        self.gain_inputs: dict[str, viser.GuiTextHandle] = {}
+        """Each gain's text field (the value; typed, never written back by the server while
+        typed), by the gain's control name + "_input"."""
+        self.gain_errors: dict[str, str] = {}
+        """A gain's label -> why its text field's text is no value of it."""
+        self.gain_text: viser.GuiHtmlHandle | None = None
 
     def build(self, a: LoopConfig, cutoff_text: str) -> None:
         """Every control, at `a`; `cutoff_text`: the cut-off line's first HTML."""
@@ -170,18 +205,27 @@ class CandidateControls:
         for attr, label in _SWITCHES:
             self.switches[attr] = gui.add_checkbox(label, bool(getattr(a, attr)))
         for g in _GAINS:
-            self.gains[g.attr] = gui.add_slider(g.label, g.lo, g.hi, g.step, g.position(a),
-                                                hint=g.hint)
+            self.gains[g.attr] = gui.add_slider(g.slider_label, g.lo, g.hi, g.step,
+                                                g.position(a), hint=g.hint)
+            # A text field as the cut-off's (a number box clamped "-1" to the minimum, dropped
+            # the "e" of "1e1" and kept the old value for "abc", all silently).
+            self.gain_inputs[g.attr + "_input"] = gui.add_text(
+                g.label, initial_value=_fmt_gain(g.position(a)),
+                hint=f"type {g.label} ({g.lo:g} to {g.hi:g}); the slider follows")
+        self.gain_errors = {}
+        self.gain_text = gui.add_html(gain_errors_html({}))
         self.q_type.on_update(self._on_control)
         for c in self.switches.values():
             c.on_update(self._on_control)
-        for s in self.gains.values():
-            s.on_update(self._on_control)
+        for g in _GAINS:
+            self.gains[g.attr].on_update(self._gain_slider_cb(g))
+            self.gain_inputs[g.attr + "_input"].on_update(self._gain_typed_cb(g))
 
     def handles(self) -> dict[str, ValueHandle]:
         """Every value control by name (the names of `KEPT_CONTROLS`, and `cutoff_log`)."""
         return {"q_type": self.q_type, "cutoff_log": self.cutoff_log,
-                "cutoff_hz_input": self.cutoff_hz_input, **self.switches, **self.gains}
+                "cutoff_hz_input": self.cutoff_hz_input, **self.switches, **self.gains,
+                **self.gain_inputs}
 
     # -- the candidate's own settings: their callbacks are echoes -----------------------------
 
@@ -227,6 +271,46 @@ class CandidateControls:
         if not self._echo():
             self._changed()
 
+    def _gain_slider_cb(self, g: _Gain) -> Callable[[object], None]:
+        def dragged(_event: object) -> None:
+            """A drag: the gain's text field follows (its error, if any, goes)."""
+            if self._echo():
+                return
+            with self._lock:
+                self.gain_errors.pop(g.label, None)
+                with self.setting():
+                    set_value(self.gain_inputs[g.attr + "_input"],
+                              _fmt_gain(float(self.gains[g.attr].value)))
+                self._show_gain_errors()
+                self._changed()
+        return dragged
+
+    def _gain_typed_cb(self, g: _Gain) -> Callable[[object], None]:
+        def typed(_event: object) -> None:
+            """The text field is the value (never written back while typed); the slider
+            follows."""
+            if self._echo():
+                return
+            with self._lock:
+                self._read_gain_text(g)
+                self._show_gain_errors()
+                self._changed()
+        return typed
+
+    def _read_gain_text(self, g: _Gain) -> None:
+        text = str(self.gain_inputs[g.attr + "_input"].value).strip()
+        v, why = g.parse(text)
+        if v is None:
+            self.gain_errors[g.label] = why
+            return
+        self.gain_errors.pop(g.label, None)
+        with self.setting():
+            set_value(self.gains[g.attr], v)
+
+    def _show_gain_errors(self) -> None:
+        if self.gain_text is not None:
+            set_html(self.gain_text, gain_errors_html(self.gain_errors))
+
     # -- reading and setting ---------------------------------------------------------------------
 
     def read_cutoff_text(self) -> None:
@@ -250,6 +334,9 @@ class CandidateControls:
         """The LoopConfig fields the controls set; raises ConfigError (the cut-off's text)."""
         if self.cutoff_error:
             raise ConfigError("q_cutoff_hz", self.cutoff_error)
+        for g in _GAINS:
+            if g.label in self.gain_errors:
+                raise ConfigError(g.field, self.gain_errors[g.label])
         values: dict[str, object] = {
             "q_type": _Q_LABELS.get(self.q_type.value, "q31"),
             "q_cutoff_hz": self.cutoff_hz,
@@ -272,6 +359,15 @@ class CandidateControls:
                 set_value(h, bool(getattr(a, attr)))
             for g in _GAINS:
                 set_value(self.gains[g.attr], g.position(a))
+            self._gains_from_sliders()
+
+    def _gains_from_sliders(self) -> None:
+        """Each gain's text field at its slider (errors gone); under `setting`."""
+        for g in _GAINS:
+            set_value(self.gain_inputs[g.attr + "_input"],
+                      _fmt_gain(float(self.gains[g.attr].value)))
+        self.gain_errors = {}
+        self._show_gain_errors()
 
     def kept(self) -> tuple[tuple[str, object], ...]:
         """The controls' values as a kept candidate holds them."""
@@ -285,6 +381,7 @@ class CandidateControls:
             for name, value in controls:
                 set_value(handles[name], value)
             self.read_cutoff_text()
+            self._gains_from_sliders()
 
     def update_marks(self, rec: float | None) -> None:
         """The slider's 'max' mark at the gate's recommendation."""

@@ -62,7 +62,7 @@ from server.identify_view import (
     view_from_status,
 )
 from server.panels.nominal_tuning import NominalTuningPanel
-from server.panels.widgets import add_chart, confirm
+from server.panels.widgets import add_chart, confirm, parse_number
 from server.session import tell
 
 __all__ = [
@@ -106,6 +106,19 @@ class IdentifySettings:
             return IdentifySpec(**self.values)
         except TypeError as exc:  # not a spec field
             raise ConfigError("settings", str(exc)) from exc
+
+
+PACE_LABEL = "Pace (x real time, 0 = fastest)"
+PACE_MAX = 1000.0
+
+
+def _field_errors_html(errors: list[str] | tuple[str, ...]) -> str:
+    if not errors:
+        return "<div class='dt-identify-field-error'></div>"
+    lines = "".join(f"<div>{esc(e)}</div>" for e in errors)
+    return ("<div class='dt-identify-field-error dt-identify-field-invalid' "
+            f"style='font-size:12px;color:#d62728'><b>Not a value:</b>{lines}"
+            "Start refuses until each is one.</div>")
 
 
 def _query_identify(client: ControllerClient) -> proto.IdentifyStatus:
@@ -208,11 +221,13 @@ class IdentifyPanel:
                 self.fields[f.name] = gui.add_dropdown(
                     f.title, f.param.choices, initial_value=f.default, hint=f.param.help)
             else:
-                lo, hi, step = f.limits
-                self.fields[f.name] = gui.add_number(
-                    f.title, f.default, min=lo, max=hi, step=step, hint=f.param.help)
-        self.pace = gui.add_number("Pace (x real time, 0 = fastest)", d.pace, min=0.0,
-                                   max=1000.0, step=0.5, hint="offline only")
+                # A text field read here (a number box clamped, and dropped the "e" of
+                # "1e9": 19 deg/s was then offered); a wrong value is refused naming the field.
+                self.fields[f.name] = gui.add_text(f.title, f"{f.default:g}", hint=f.param.help)
+        self.pace = gui.add_text(PACE_LABEL, f"{d.pace:g}", hint="offline only")
+        self.field_errors = gui.add_html(_field_errors_html(()))
+        for h in (*self.fields.values(), self.pace):
+            h.on_update(lambda _e: self._show_field_errors())
         self.start_button = gui.add_button("Start identification", color="green")
         self.abort_button = gui.add_button("Abort", color="red", disabled=True)
         self.progress_bar = gui.add_progress_bar(0.0)
@@ -257,14 +272,38 @@ class IdentifyPanel:
 
     # -- reading the controls ----------------------------------------------------------------
 
-    def settings(self) -> IdentifySettings:
+    def _field_values(self) -> tuple[dict[str, Any], float, list[str]]:
+        """The fields' values, the pace, and why a field's text is none of its values."""
         values: dict[str, Any] = {}
+        errors: list[str] = []
         for f in DASHBOARD_FIELDS:
             v = self.fields[f.name].value
-            values[f.name] = round(float(v)) if f.type is int else f.type(v)
+            if f.param.choices:
+                values[f.name] = f.type(v)
+                continue
+            lo, hi, _step = f.limits
+            num, why = parse_number(str(v), f.title, lo, hi, integer=f.type is int)
+            if num is None:
+                errors.append(why)
+            else:
+                values[f.name] = round(num) if f.type is int else num
+        pace, why = parse_number(str(self.pace.value), PACE_LABEL, 0.0, PACE_MAX)
+        if pace is None:
+            errors.append(why)
+        return values, pace or 0.0, errors
+
+    def _show_field_errors(self) -> None:
+        self.field_errors.content = _field_errors_html(self._field_values()[2])
+
+    def settings(self) -> IdentifySettings:
+        """What the controls ask for; raises ConfigError naming a field whose text is none of
+        its values."""
+        values, pace, errors = self._field_values()
+        if errors:
+            raise ConfigError("settings", "; ".join(errors))
         return IdentifySettings(
             values=values,
-            pace=max(0.0, float(self.pace.value)),
+            pace=pace,
             where=str(self.where.value) if self.client is not None else WHERE_OFFLINE,
         )
 
@@ -272,7 +311,11 @@ class IdentifyPanel:
 
     def ask_start(self, browser: Any) -> None:
         """On the controller the rig moves: asked first, in the browser that pressed Start."""
-        s = self.settings()
+        try:
+            s = self.settings()
+        except ConfigError as exc:
+            self._tell(browser, f"not started: {exc}")
+            return
         if s.where != WHERE_CONTROLLER or self.client is None:
             self.start(s, browser)
             return
@@ -287,8 +330,8 @@ class IdentifyPanel:
 
     def start(self, settings: IdentifySettings | None = None, browser: Any = None) -> bool:
         """Start a run unless one is running; False (and a message) if not started."""
-        s = settings or self.settings()
         try:
+            s = settings or self.settings()
             if self._authorize is not None:
                 self._authorize(browser, "identification")
             spec = s.spec()

@@ -4,6 +4,7 @@ that is only sent when it changes, and the bordered status boxes (accept / rejec
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -14,7 +15,7 @@ from server.escape import esc
 from server.export import chart_csv, export_filename
 
 __all__ = ["ACCEPT", "EXPORT_LABEL", "NEUTRAL", "REJECT", "add_chart", "add_export_row", "box",
-           "confirm", "reason_list", "send_data", "set_html"]
+           "confirm", "parse_number", "reason_list", "send_data", "set_html"]
 
 log = logging.getLogger(__name__)
 
@@ -127,3 +128,18 @@ def confirm(gui: Any, browser: Any, title: str, body_html: str, ok_label: str,
         @cancel.on_click
         def _cancel(_e: Any) -> None:
             modal.close()
+
+
+def parse_number(text: str, label: str, lo: float, hi: float,
+                 integer: bool = False) -> tuple[float | None, str]:
+    """A field's text as a number from `lo` to `hi` (exponents too: "1e1" is 10), or why it
+    is none, naming the field."""
+    text = text.strip()
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if math.isfinite(v) and lo <= v <= hi and (not integer or v == round(v)):
+        return v, ""
+    kind = "a whole number" if integer else "a number"
+    return None, f"{label}: {text!r} is not {kind} from {lo:g} to {hi:g}"

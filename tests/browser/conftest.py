@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -237,13 +238,18 @@ def cutoff_box(page: Any) -> Any:
         "input").last
 
 
-def set_number(page: Any, label: str, value: float) -> None:
-    """Type into the number box beside a slider, or into a text field (what a user does for
-    an exact value)."""
-    if label == "Q cut-off (Hz)":
-        box = cutoff_box(page)
-    else:
-        box = slider_row(page, label).locator("xpath=..").locator("input").last
+def field_box(page: Any, label: str) -> Any:
+    """The input of the control labelled exactly `label` (a text field, a number field, or
+    the number box beside a slider: the last input of its row)."""
+    lab = page.locator("label").filter(has_text=re.compile("^" + re.escape(label) + "$")).first
+    return lab.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
+        "input").last
+
+
+def set_number(page: Any, label: str, value: float | str) -> None:
+    """Type into the control labelled `label` (the gains' and the cut-off's text fields, a
+    number field, a slider's number box): what a user does for an exact value."""
+    box = field_box(page, label)
     box.fill(str(value))
     box.press("Enter")
     box.blur()

@@ -293,6 +293,8 @@ def test_margin_markers_are_labelled_with_their_values_and_frequencies(
             # The text is drawn in the marker's colour beside the marker.
             box = [d["x"] - 220, d["y"] - 7, 440, 14]
             assert page.evaluate(INK_JS, [label, box, _rgb(color)]) >= 30
+            # Placed where it covers no curve (the GM label covered |L| from 0.2 to 1.3 Hz).
+            assert d["covers"] == 0, d
             value = f"{m.value:.1f} {unit} at {float(f'{m.freq_hz:.3g}'):g} Hz"
             assert value in margins_text, (value, margins_text)
 

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import FINITE_JS, only_panel
+from conftest import FINITE_JS, only_panel, set_number
 
 from controller.client import ControllerClient
 from server.dashboard.app import Dashboard
@@ -24,9 +24,7 @@ def _input(page: Any, label: str) -> Any:
 
 
 def _set_number(page: Any, label: str, value: float) -> None:
-    box = _input(page, label)
-    box.fill(str(value))
-    box.press("Enter")
+    set_number(page, label, value)  # a text field since issue 33 (the number box misread)
 
 
 def _choose(page: Any, label: str, option: str) -> None:
