@@ -131,17 +131,24 @@ def health_html(st: proto.Status, j: HealthJudgement, rate_hz: float, stream: st
         state = ("<b class='dt-health-state'>timing OUTSIDE its normal range</b>: "
                  + esc(", ".join(o.split(" (")[0] for o in j.outside)))
     jit = "n/a" if math.isnan(j.jitter_us) else f"{j.jitter_us:.0f} us"
+    # Which window each figure covers, said beside it: "lost ticks 22.1 %" (recent) beside
+    # "76159 lost of 2458638" (since start, 3 %) read as a contradiction.
+    recent = ("over the last " + (f"{j.span_s:.0f} s" if math.isfinite(j.span_s) else "statuses")
+              + ": ")
+    due = tm.ticks + tm.skipped_ticks
+    start_pct = (f" ({100.0 * tm.skipped_ticks / due:.1f} % lost)" if due > 0 else "")
     style = "color:#d62728" if bad else ""
     cls = "dt-health dt-health-bad" if bad else "dt-health dt-health-ok"
     return (
         f"<div class='{cls}' style='font-size:12px;{style}'>"
         f"mode <b>{esc(st.mode)}</b>, plant {esc(st.plant)}, trajectory "
         f"{esc(st.trajectory.kind)}<br>{state}<br>"
-        f"late ticks {_pct(j.late_pct)} (normal &le; {normal.late_pct:g} %), lost ticks "
+        f"{recent}late ticks {_pct(j.late_pct)} (normal &le; {normal.late_pct:g} %), lost ticks "
         f"{_pct(j.lost_pct)} (&le; {normal.lost_pct:g} %), jitter p99&minus;p50 {jit} "
         f"(&le; {jitter_max:.0f} us)<br>"
         f"<span style='color:#777'>period p50 {tm.period_p50_us:.0f} us, p99 "
         f"{tm.period_p99_us:.0f} us, max {tm.period_max_us:.0f} us; compute p99 "
-        f"{tm.compute_p99_us:.0f} us; since start: {tm.overruns} late, {tm.skipped_ticks} lost "
-        f"of {tm.ticks} ticks</span><br>faults: {faults}<br>{stream}</div>"
+        f"{tm.compute_p99_us:.0f} us; since the loop started: {tm.overruns} late of {tm.ticks} "
+        f"ticks run, {tm.skipped_ticks} lost of {due} due{start_pct}</span><br>"
+        f"faults: {faults}<br>{stream}</div>"
     )

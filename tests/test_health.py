@@ -88,3 +88,17 @@ def test_too_few_statuses_and_a_restarted_controller() -> None:
     h.add(status(1.5, 1010, 1, 0))
     j = judge_timing(h, 1000.0)
     assert j.normal and math.isclose(j.late_pct, 0.1)
+
+
+def test_each_figure_says_which_window_it_covers() -> None:
+    """Issue 33: "lost ticks 22.1 %" beside "76159 lost of 2458638" (3 %) read as a
+    contradiction: one is the last seconds, the other since start. Each now says so; the
+    since-start share is computed (by hand: 76159 / (2382479 + 76159) = 3.10 %)."""
+    h = TimingHistory(window_s=5.0)
+    feed(h, [(0, 221, 1010.0)] * 6)
+    j = judge_timing(h, 1000.0)
+    assert math.isclose(j.lost_pct, 22.1)
+    html = health_html(status(6.0, 2382479, 10, 76159), j, 1000.0, "stream")
+    assert "over the last 5 s: late ticks 0.0 %" in html and "lost ticks 22.1 %" in html
+    assert "since the loop started: 10 late of 2382479 ticks run, 76159 lost of 2458638 due " \
+        "(3.1 % lost)" in html

@@ -38,6 +38,17 @@ def window_metrics(error_deg: np.ndarray) -> tuple[float, float]:
     return float(np.max(np.abs(error_deg))), float(np.sqrt(np.mean(error_deg**2)))
 
 
+def metrics_window(chart_window_s: float, period_s: float | None) -> tuple[float, str]:
+    """The live metrics' window (s) and its name: for a periodic trajectory a whole number of
+    its periods (as many as fit the charts' window, at least one), else the charts' window. A
+    10 s window over the sine's 12.6 s period cut the sine in a different place each second:
+    the RMSE of a steady loop wandered 0.0272-0.0315 deg."""
+    if period_s is None or not (math.isfinite(period_s) and period_s > 0):
+        return chart_window_s, f"last {chart_window_s:.0f} s"
+    n = max(1, int(chart_window_s / period_s + 1e-9))
+    return n * period_s, f"last {n} period{'s' if n > 1 else ''} ({n * period_s:.1f} s)"
+
+
 def banner_html(client: ControllerClient) -> str:
     """The connection / mode banner: red when the controller is gone or e-stopped."""
     st = client.status
@@ -323,17 +334,17 @@ class LivePanel:
 
     def _metrics_html(self, cols: dict[str, np.ndarray], window: float,
                       st: proto.Status | None) -> str:
-        err = cols["error_deg"]
-        peak, rmse = window_metrics(err)
-        rows = [f"<tr><td>window {window:.0f} s</td><td>{_num(peak)}</td><td>{_num(rmse)}</td>"
-                "</tr>"]
-        period = st.trajectory.period_s if st is not None else None
-        if period is not None and len(cols["t_s"]) and cols["t_s"][-1] - cols["t_s"][0] >= period:
-            t = cols["t_s"]
-            sel = t >= t[-1] - period
-            p_peak, p_rmse = window_metrics(err[sel])
-            rows.append(f"<tr><td>last period {period:.1f} s</td><td>{_num(p_peak)}</td>"
-                        f"<td>{_num(p_rmse)}</td></tr>")
+        span, name = metrics_window(window, st.trajectory.period_s if st is not None else None)
+        if span > window:
+            cols, _ = self.client.ring.window(span)
+        t = cols["t_s"]
+        sel = t >= t[-1] - span if len(t) else np.zeros(0, dtype=bool)
+        peak, rmse = window_metrics(cols["error_deg"][sel])
+        have = float(t[-1] - t[0]) if len(t) else 0.0
+        if have < span - 0.05:
+            name += f", {have:.1f} s so far"
+        rows = [f"<tr><td class='dt-metrics-window'>{name}</td><td>{_num(peak)}</td>"
+                f"<td>{_num(rmse)}</td></tr>"]
         marks = self.client.counters.version_marks
         changes = ""
         if marks and len(cols["t_s"]):
