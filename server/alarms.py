@@ -84,16 +84,24 @@ def _clock(at_s: float) -> str:
 
 
 def alarms_html(board: AlarmBoard) -> str:
-    """The unacknowledged alarms, newest first (an empty block when there are none)."""
+    """The unacknowledged alarms, one box per kind (newest kind first): the newest of that
+    kind, and how many since the last acknowledgement with the first one's time. Three e-stops
+    were three boxes that pushed the controls down the page."""
     if not board.alarms:
         return "<div class='dt-alarms'></div>"
-    rows = []
+    kinds: dict[str, list[Alarm]] = {}
     for a in reversed(board.alarms):
+        kinds.setdefault(a.kind, []).append(a)
+    rows = []
+    for kind, same in kinds.items():
+        a = same[0]  # the newest
         border, bg, ink = _LEVEL_COLORS[a.level]
+        count = (f" <span class='dt-alarm-count'>&times;{len(same)} (first at "
+                 f"{_clock(same[-1].at_s)})</span>" if len(same) > 1 else "")
         rows.append(
-            f"<div class='dt-alarm dt-alarm-{a.kind} dt-alarm-{a.level}' style='border:2px "
+            f"<div class='dt-alarm dt-alarm-{kind} dt-alarm-{a.level}' style='border:2px "
             f"solid {border};background:{bg};color:{ink};padding:5px 7px;border-radius:4px;"
             f"margin:3px 0;font-size:13px'><b>&#9888; {esc(a.title)}</b> "
-            f"<span class='dt-alarm-time'>at {_clock(a.at_s)}</span><br>"
+            f"<span class='dt-alarm-time'>at {_clock(a.at_s)}</span>{count}<br>"
             f"<span class='dt-alarm-reason'>{esc(a.reason)}</span></div>")
     return "<div class='dt-alarms'>" + "".join(rows) + "</div>"

@@ -55,3 +55,19 @@ def test_a_fault_is_red_once_per_fault_set() -> None:
         ("fault", "watchdog: no config left"), ("fault", "drive: lost")]
     b.observe(status(), 4.0)
     assert b.observe(status(mode="fault", faults=["drive: lost"]), 5.0)  # again after a clear
+
+
+def test_alarms_of_one_kind_are_one_box_with_their_count() -> None:
+    """Issue 33: three e-stops were three boxes pushing the controls down. Now one box per
+    kind: the newest, "x3 (first at ...)"; a rollback beside them is its own box."""
+    b = AlarmBoard()
+    b.observe(status(mode="running", rollbacks=0), 0.0)
+    for k in range(3):
+        assert b.observe(status(mode="estop", estop_seq=10 + k), 10.0 + 10 * k)
+        b.observe(status(mode="running"), 11.0 + 10 * k)
+    assert b.observe(status(mode="running", rollbacks=1, config_version=4, watchdog="why"), 40.0)
+    html = alarms_html(b)
+    assert html.count("class='dt-alarm ") == 2
+    assert html.index("dt-alarm-rollback") < html.index("dt-alarm-estop")  # newest kind first
+    assert html.count("dt-alarm-count") == 1 and "&times;3 (first at" in html
+    assert b.acknowledge() == 4
