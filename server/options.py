@@ -5,7 +5,10 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from controller.auth import User
 
 __all__ = ["DashboardOptions", "dashboard_users", "default_candidates_dir",
            "default_recordings_dir"]
@@ -64,7 +67,7 @@ class DashboardOptions:
     demo's: the same as its controller's simulated rig)."""
 
 
-def dashboard_users(opts: DashboardOptions) -> dict[str, Any]:
+def dashboard_users(opts: DashboardOptions) -> dict[str, User]:
     """The users who each get their own URL ({} : one identity for every browser)."""
     if opts.auth is None or opts.user:
         return {}

@@ -14,8 +14,11 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
-from typing import Any, NoReturn, TypeVar
+from typing import Literal, NoReturn, TypeVar
 
+import viser
+
+from controller.auth import User
 from controller.client import ClientOptions, ControllerClient
 from server.http_access import Refused
 from server.options import DashboardOptions
@@ -51,7 +54,7 @@ def leased(client: ControllerClient, act: Callable[[], R]) -> R:
 class BrowserSessions:
     """The users behind the browsers and their acting clients (opened once per user)."""
 
-    def __init__(self, opts: DashboardOptions, users: dict[str, Any], client: ControllerClient,
+    def __init__(self, opts: DashboardOptions, users: dict[str, User], client: ControllerClient,
                  requests: Requests) -> None:
         """`users`: `dashboard_users(opts)` ({}: one identity); `client`: the streams' client
         (acts for every browser with one identity); `requests`: where logins run."""
@@ -82,14 +85,14 @@ class BrowserSessions:
     def left(self, browser_id: int) -> None:
         self._browser_users.pop(browser_id, None)
 
-    def user_of(self, browser: Any) -> str | None:
+    def user_of(self, browser: viser.ClientHandle | None) -> str | None:
         """The user behind a browser (viser client handle); "" with one identity; None:
         unknown (with several users, a browser must have come through its user's token)."""
         if not self.users:
             return ""
         return self._browser_users.get(getattr(browser, "client_id", -1))
 
-    def signed_in_user(self, browser: Any, action: str) -> str:
+    def signed_in_user(self, browser: viser.ClientHandle | None, action: str) -> str:
         """The user behind `browser`; `Refused` (told to it) if it is not signed in."""
         user = self.user_of(browser)
         if user is None:
@@ -98,7 +101,7 @@ class BrowserSessions:
 
     # -- who may act -----------------------------------------------------------------------------
 
-    def client_for(self, browser: Any, action: str) -> ControllerClient:
+    def client_for(self, browser: viser.ClientHandle | None, action: str) -> ControllerClient:
         """The controller client that does `action` for this browser; `Refused` here (a
         viewer's change, an unknown browser), with the reason shown to that browser too."""
         if not self.users:
@@ -111,13 +114,14 @@ class BrowserSessions:
             c = self._acting.get(user)
         return c if c is not None else self.open_acting(user)
 
-    def act(self, browser: Any, action: str, do: Callable[[ControllerClient], R]) -> R:
+    def act(self, browser: viser.ClientHandle | None, action: str,
+            do: Callable[[ControllerClient], R]) -> R:
         """`do(client)` for `browser`, through its acting client, under its lease; raises
         `Refused` (told to that browser), `ControllerUnavailable`, `ProtocolError`."""
         c = self.client_for(browser, action)
         return leased(c, lambda: do(c))
 
-    def check_may_change(self, browser: Any, action: str) -> None:
+    def check_may_change(self, browser: viser.ClientHandle | None, action: str) -> None:
         """`Refused` (told to that browser alone) unless the user at `browser` may change the
         rig: an operator, or anyone without users (one identity for every browser)."""
         if not self.users:
@@ -153,7 +157,7 @@ class BrowserSessions:
                 self._acting[user] = c
         return c
 
-    def refuse(self, browser: Any, why: str) -> NoReturn:
+    def refuse(self, browser: viser.ClientHandle | None, why: str) -> NoReturn:
         """Count, log and tell `browser` (alone) why; raises `Refused`."""
         self.refusals += 1
         log.warning("refused in the dashboard: %s", why)
@@ -161,7 +165,11 @@ class BrowserSessions:
         raise Refused(why)
 
 
-def tell(browser: Any, title: str, body: str, color: str) -> None:
+#: The colours a notification is told in (viser's names).
+NoticeColor = Literal["red", "orange", "blue"]
+
+
+def tell(browser: viser.ClientHandle | None, title: str, body: str, color: NoticeColor) -> None:
     """A notification in the browser that asked (nothing without one)."""
     if browser is not None:
         run_logged(lambda: browser.add_notification(title, body, color=color,

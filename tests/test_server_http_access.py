@@ -228,34 +228,34 @@ def test_a_page_says_whether_it_shows_the_live_traces(dash: Dashboard) -> None:
                  "the websocket's page id is not known")
         with pytest.raises(urllib.error.HTTPError) as err:
             urllib.request.urlopen(f"{url}?dt_page={page}&live=0", timeout=5)
-        assert err.value.code == 401 and page not in dash._live_hidden
+        assert err.value.code == 401 and page not in dash.pages.live_hidden()
         for bad in ({**ok, "Host": f"evil:{dash.access.port}"}, {"Sec-Fetch-Site": "same-site"},
                     {"Cookie": f"{LEGACY_COOKIE}={dash.access.token}"}):
             with pytest.raises(urllib.error.HTTPError):
                 urllib.request.urlopen(urllib.request.Request(
                     f"{url}?dt_page={page}&live=0" + ("" if "Cookie" in bad else tk),
                     headers=bad), timeout=5)
-        assert page not in dash._live_hidden
+        assert page not in dash.pages.live_hidden()
         for query, field in (("dt_page=x&live=0", "dt_page"), (f"dt_page={page}&live=2", "live"),
                              (f"dt_page={page}", "live")):
             with pytest.raises(urllib.error.HTTPError) as err:
                 urllib.request.urlopen(urllib.request.Request(f"{url}?{query}{tk}", headers=ok),
                                        timeout=5)
             assert err.value.code == 400 and err.value.read().decode().startswith(field)
-        assert page not in dash._live_hidden
+        assert page not in dash.pages.live_hidden()
         for live, hidden in (("0", True), ("1", False), ("0", True)):
             with urllib.request.urlopen(
                     urllib.request.Request(f"{url}?dt_page={page}&live={live}{tk}", headers=ok),
                     timeout=5) as r:
                 assert r.status == 204 and r.headers["Cache-Control"] == "no-store"
-            assert (page in dash._live_hidden) is hidden, f"live={live}"
+            assert (page in dash.pages.live_hidden()) is hidden, f"live={live}"
         # A hostile client's made-up ids (no page of theirs is connected) are not kept.
         for k in range(200):
             with urllib.request.urlopen(urllib.request.Request(
                     f"{url}?dt_page={k:024d}&live=0{tk}", headers=ok), timeout=5) as r:
                 assert r.status == 204
         made_up = {f"{k:024d}" for k in range(200)}
-        assert page in dash._live_hidden and not made_up & dash._live_hidden
+        assert page in dash.pages.live_hidden() and not made_up & dash.pages.live_hidden()
 
 
 # -- fail closed: the gate proves itself before anything is served ---------------------------

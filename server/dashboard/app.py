@@ -29,16 +29,20 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import viser
+
 from controller import protocol as proto
+from controller.auth import User
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
 from controller.client.recorder import RecordOptions
 from controller.core.config import LoopConfig
 from controller.core.heap import freeze_startup_heap
 from server.assets import web_asset
 from server.commands import CommandRouter
+from server.dashboard.browsers import Browsers
 from server.dashboard.candidates import CandidatePlace, Candidates
+from server.dashboard.page_views import PLOTS_WIDTH_PX, PageViews
 from server.engine import TuningEngine
-from server.escape import esc
 from server.http_access import GateOpen, HttpAccess, title_html
 from server.message_gate import MessageGate
 from server.options import DashboardOptions, dashboard_users
@@ -51,18 +55,15 @@ from server.panels.nominal_tuning import NominalTuningPanel
 from server.panels.recordings import RecordingsPanel
 from server.panels.widgets import EXPORT_LABEL
 from server.scene3d import TurntableScene
-from server.session import BrowserSessions, leased, tell
+from server.session import BrowserSessions, leased
 from server.viser_adapter import (
-    connection_of,
     disable_share_url,
     filter_incoming,
-    live_connections,
-    resend_value,
-    set_width_in,
 )
 from server.workers import Requests, run_logged
 
 __all__ = [
+    "PLOTS_WIDTH_PX",
     "Dashboard",
     "DashboardOptions",
     "PortBusy",
@@ -72,14 +73,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-#: The plots panel's width: the Bode tab's Decide view (the verdict, the loop's Bode,
-#: sensitivity, rejection) fits 1920 x 1080 beside the controls; the 3-D view keeps the rest.
-PLOTS_WIDTH_PX = 900
-#: The plots panel's width with the 3-D view hidden (beyond any screen: viser keeps a 120 px
-#: sliver of the 3-D view).
-PLOTS_WIDE_PX = 4000
-
 
 def _asset(name: str, default: str = "") -> str:
     try:
@@ -105,30 +98,39 @@ def stop_requested() -> Iterator[threading.Event]:
             signal.signal(s, h)
 
 
+def streams_client(opts: DashboardOptions, users: dict[str, User]) -> ControllerClient:
+    """The client the streams come through: a viewer's when the users are several."""
+    viewers = [n for n, u in users.items() if u.role == "viewer"]
+    monitor = opts.user or (viewers or sorted(users) or [""])[0]
+    return ControllerClient(ClientOptions(
+        connect=tuple(opts.connect), rig_name=opts.rig_name,
+        query_timeout_s=opts.query_timeout_s, client_name=opts.client_name, auth=opts.auth,
+        user=monitor))
+
+
+def access_gate(opts: DashboardOptions, users: dict[str, User]) -> HttpAccess:
+    """Who may open the dashboard: a token per user, or the one token (given, or made)."""
+    if users:
+        return HttpAccess(opts.host, users={n: secrets.token_urlsafe(24) for n in users})
+    return HttpAccess(opts.host) if opts.token is None else HttpAccess(opts.host, opts.token)
+
+
+def record_options(opts: DashboardOptions, client: ControllerClient) -> RecordOptions:
+    """The recorder's way to the dashboard's rig (its `out` is set per recording); with
+    credentials, the streams' user (every role may record)."""
+    user = client.opts.user if opts.auth is not None else ""
+    return RecordOptions(connect=tuple(opts.connect), out=Path(opts.recordings_dir),
+                         rig_name=opts.rig_name, auth=opts.auth, user=user)
+
+
 class Dashboard:
     """Client + viser server + the parts above, wired together (context manager)."""
 
     def __init__(self, opts: DashboardOptions) -> None:
         self.opts = opts
         users = dashboard_users(opts)
-        # The streams come through one session: a viewer's when the users are several.
-        viewers = [n for n, u in users.items() if u.role == "viewer"]
-        monitor = opts.user or (viewers or sorted(users) or [""])[0]
-        self.client = ControllerClient(
-            ClientOptions(
-                connect=tuple(opts.connect),
-                rig_name=opts.rig_name,
-                query_timeout_s=opts.query_timeout_s,
-                client_name=opts.client_name,
-                auth=opts.auth,
-                user=monitor,
-            )
-        )
-        if users:
-            self.access = HttpAccess(opts.host, users={n: secrets.token_urlsafe(24) for n in users})
-        else:
-            self.access = (HttpAccess(opts.host) if opts.token is None
-                           else HttpAccess(opts.host, opts.token))
+        self.client = streams_client(opts, users)
+        self.access = access_gate(opts, users)
         self._requests = Requests(max_workers=2, name="ctl-request")
         self.sessions = BrowserSessions(opts, users, self.client, self._requests)
         self.engine = TuningEngine(sim_disturbances=opts.sim_disturbances)
@@ -152,19 +154,14 @@ class Dashboard:
         self._fleet_monitor: FleetMonitor | None = None
         self._views: dict[str, Dashboard] = {}
         self._views_lock = threading.Lock()
-        self.plots: Any = None
-        self._hidden_3d: set[int] = set()
-        """The browsers (client ids) whose 3-D view is hidden."""
-        self._hidden_3d_lock = threading.Lock()
-        self._live_hidden: set[str] = set()
-        """The pages (their page script's id) whose Live traces tab is not shown: the live
-        charts' data does not go to them (25 pushes/s of ~60 kB, which a page that has
-        nothing to draw them on still received and decoded)."""
-        self._live_hidden_lock = threading.Lock()
-        self.access.on_view = self._on_view
+        self.plots: viser.PanelHandle | None = None
+        self.browsers: Browsers | None = None
+        """The browsers of the server (built with it)."""
+        self.pages: PageViews | None = None
+        """What each page shows (built with the server)."""
 
     @property
-    def users(self) -> dict[str, Any]:
+    def users(self) -> dict[str, User]:
         return self.sessions.users
 
     @property
@@ -181,8 +178,6 @@ class Dashboard:
                 f"?token={self.access.token_of(user)}")
 
     def __enter__(self) -> Dashboard:
-        import viser
-
         check_port_free(self.opts.host, self.opts.port)
         with contextlib.ExitStack() as undo:
             self.client.__enter__()
@@ -195,13 +190,16 @@ class Dashboard:
             self.access.port = server.get_port()
             disable_share_url(server)  # never a public share tunnel from this app
             self.server = server
-            self.messages = MessageGate(role_of=self._role_of, shared_gui=server.gui,
-                                        gui_of=self._gui_of, tell=self._tell,
-                                        name_of=self._name_of, restore=self._restore,
+            browsers = self.browsers = Browsers(server, self.access, self.sessions)
+            self.pages = PageViews(browsers)
+            self.access.on_view = self._on_view
+            self.messages = MessageGate(role_of=browsers.role_of, shared_gui=server.gui,
+                                        gui_of=browsers.gui_of, tell=browsers.tell,
+                                        name_of=browsers.name_of, restore=browsers.restore,
                                         open_if=_is_export_row)
             filter_incoming(server, self.messages)
             self.access.prove(self.opts.host)  # GateOpen: nothing is served
-            self._build(server)
+            self._build(server, self.pages)
             undo.pop_all()
         return self
 
@@ -272,7 +270,7 @@ class Dashboard:
 
     # -- building ------------------------------------------------------------------------------
 
-    def _build(self, server: Any) -> None:
+    def _build(self, server: viser.ViserServer, pages: PageViews) -> None:
         gui = server.gui
         gui.configure_theme(control_width="large", show_share_button=False,
                             brand_color=(31, 119, 180))
@@ -288,7 +286,7 @@ class Dashboard:
         live = LivePanel(
             gui, self.client, self.commands.command_async, on_status=self._on_status,
             on_frame=self._on_frame, rate_hz=self.opts.live_rate_hz,
-            max_points=self.opts.live_max_points, audience=self._live_audience,
+            max_points=self.opts.live_max_points, audience=pages.live_audience,
             authorize=self.sessions.check_may_change,
         )
         self.live = live
@@ -326,7 +324,7 @@ class Dashboard:
             self.history.build()
         with tabs.add_tab("Recordings"):
             recordings = RecordingsPanel(gui, self.opts.recordings_dir,
-                                         record=self._record_options(),
+                                         record=record_options(self.opts, self.client),
                                          rig_name=self.opts.rig_name,
                                          authorize=self.sessions.check_may_change)
             self.recordings = recordings
@@ -355,131 +353,41 @@ class Dashboard:
             self.fleet.start()
         self._requests.submit(self._fetch_active)
 
-    def _toggle_3d(self, browser: Any) -> None:
-        """Hide or show the 3-D view in `browser` (the plots panel widens over it)."""
-        if browser is None or self.plots is None:
-            return
-        with self._hidden_3d_lock:
-            hidden = browser.client_id not in self._hidden_3d
-            (self._hidden_3d.add if hidden else self._hidden_3d.discard)(browser.client_id)
-        set_width_in(browser, self.plots, PLOTS_WIDE_PX if hidden else PLOTS_WIDTH_PX)
-
-    def _record_options(self) -> RecordOptions:
-        """The recorder's way to this dashboard's rig (its `out` is set per recording)."""
-        o = self.opts
-        # With credentials: the streams' user (every role may record).
-        user = self.client.opts.user if o.auth is not None else ""
-        return RecordOptions(connect=tuple(o.connect), out=Path(o.recordings_dir),
-                             rig_name=o.rig_name, auth=o.auth, user=user)
-
     # -- wiring ------------------------------------------------------------------------------
 
     def _show_command(self, html: str) -> None:
         if self.live is not None:
             self.live.command_result.content = html
 
-    def _on_client_connect(self, client: Any) -> None:
+    def _on_client_connect(self, client: viser.ClientHandle) -> None:
         """Note who is at the new browser (with several users), build its own candidate and
         point its camera at the turntable."""
-        if self.users:
-            # viser keeps each client's websocket; the gate noted whose token opened it.
-            conn = connection_of(self.server, client.client_id)
-            user = self.access.user_of_connection(conn) if conn is not None else None
-            if user is None:
-                log.error("browser %s: no user for its connection: it may only watch",
-                          client.client_id)
-            else:
-                self.sessions.signed_in(client.client_id, user)
-                role = self.users[user].role
-                note = " (watch and E-STOP only)" if role == "viewer" else ""
-                client.gui.add_html(
-                    f"<div class='dt-whoami' style='font-size:12px'>Signed in as "
-                    f"<b>{esc(user)}</b>, {esc(role)}{note}</div>")
+        assert self.browsers is not None
+        self.browsers.sign_in(client)
         self.panel_in(client.gui, client)
         if self.knowledge is not None:
-            self.knowledge.offer_to(client, self._role_of(client.client_id) == "operator")
+            self.knowledge.offer_to(client, self.browsers.role_of(client.client_id) == "operator")
         if self.recordings is not None:
             self.recordings.compare_in(client.gui, client)
         client.camera.position = (0.75, -0.85, 0.75)
         client.camera.look_at = (0.15, 0.0, 0.05)
 
-    def _connection_of(self, browser: Any) -> Any:
-        """viser's websocket connection of `browser` (None: none, or gone)."""
-        if browser is None or self.server is None:
-            return None
-        return connection_of(self.server, browser.client_id)
+    def _toggle_3d(self, browser: viser.ClientHandle | None) -> None:
+        if self.pages is not None and self.plots is not None:
+            self.pages.toggle_3d(browser, self.plots)
 
-    def _who(self, browser: Any) -> tuple[str, str]:
+    def _who(self, browser: viser.ClientHandle | None) -> tuple[str, str]:
         """(user, candidate slot) of a browser: whose candidate it edits, and which."""
-        return self.sessions.user_of(browser) or "", self._slot_of(browser)
-
-    def _slot_of(self, browser: Any) -> str:
-        """The candidate slot the browser's page named ("" : none: a page without the page
-        script, or no browser)."""
-        conn = self._connection_of(browser)
-        return self.access.slot_of_connection(conn) if conn is not None else ""
-
-    def _page_of(self, browser: Any) -> str:
-        """The id the browser's page named ("": a page without the page script, or no
-        browser)."""
-        conn = self._connection_of(browser)
-        return self.access.page_of_connection(conn) if conn is not None else ""
+        slot = self.browsers.slot_of(browser) if self.browsers is not None else ""
+        return self.sessions.user_of(browser) or "", slot
 
     def _on_view(self, page: str, live_shown: bool) -> None:
-        """A page says whether it shows the live traces (its page script, on each change and
-        every few seconds); one that shows them again gets their present data at once. Only
-        the pages connected now are kept: ids made up by a client do not pile up (a page that
-        reported before its websocket was up gets the data until its next report)."""
-        if self.server is None:
+        """A page says whether it shows the live traces; one that shows them again gets
+        their present data at once (`PageViews.note_view`)."""
+        if self.pages is None or self.live is None:
             return
-        connected = any(self.access.page_of_connection(c) == page
-                        for c in live_connections(self.server).values())
-        with self._live_hidden_lock:
-            was_hidden = page in self._live_hidden
-            if live_shown:
-                self._live_hidden.discard(page)
-            elif connected:
-                self._live_hidden.add(page)
-        if live_shown and was_hidden and self.live is not None:
-            for browser in self.server.get_clients().values():
-                if self._page_of(browser) == page:
-                    self.live.show_in(browser)
-
-    def _live_audience(self) -> list[Any]:
-        """The browsers the live charts' data goes to: every one but the pages that said
-        their Live traces tab is not shown (a page without the page script gets it all)."""
-        if self.server is None:
-            return []
-        with self._live_hidden_lock:
-            hidden = set(self._live_hidden)
-        return [b for b in self.server.get_clients().values()
-                if not hidden or self._page_of(b) not in hidden]
-
-    def _role_of(self, client_id: int) -> str | None:
-        """The role of the user at browser `client_id` ("operator" with one identity: every
-        browser may change the rig; None: not signed in)."""
-        if not self.users:
-            return "operator"
-        user = self.sessions.user_of(self._browser(client_id))
-        return None if user is None else str(self.users[user].role)
-
-    def _name_of(self, client_id: int) -> str:
-        return self.sessions.user_of(self._browser(client_id)) or ""
-
-    def _browser(self, client_id: int) -> Any:
-        return None if self.server is None else self.server.get_clients().get(client_id)
-
-    def _gui_of(self, client_id: int) -> Any:
-        browser = self._browser(client_id)
-        return None if browser is None else browser.gui
-
-    def _restore(self, client_id: int, handle: Any) -> None:
-        browser = self._browser(client_id)
-        if browser is not None:
-            resend_value(handle, browser)
-
-    def _tell(self, client_id: int, why: str) -> None:
-        tell(self._browser(client_id), "Refused", why, "red")
+        for browser in self.pages.note_view(page, live_shown):
+            self.live.show_in(browser)
 
     def _on_client_disconnect(self, client: Any) -> None:
         self.sessions.left(client.client_id)
@@ -490,14 +398,8 @@ class Dashboard:
             self.recordings.drop(client.client_id)
         if self.knowledge is not None:
             self.knowledge.drop(client.client_id)
-        with self._hidden_3d_lock:
-            self._hidden_3d.discard(client.client_id)
-        # Forget the pages gone (a page that reported before its websocket was up reports
-        # again within seconds).
-        if self.server is not None:
-            pages = {self._page_of(b) for b in self.server.get_clients().values()}
-            with self._live_hidden_lock:
-                self._live_hidden &= pages
+        if self.pages is not None:
+            self.pages.forget(client.client_id)
 
     def _fetch_active(self) -> None:
         try:
@@ -522,8 +424,6 @@ class Dashboard:
 def _is_export_row(handle: Any) -> bool:
     """A chart's Export row (server/panels/widgets.py): its CSV goes to the browser that
     pressed it alone, so any role may press it."""
-    import viser
-
     return (isinstance(handle, viser.GuiButtonGroupHandle) and handle.label == EXPORT_LABEL
             and tuple(handle.options) == ("CSV",))
 

@@ -522,7 +522,7 @@ def test_live_data_goes_only_to_the_pages_that_show_it(page: Any, dashboard: Das
     page.get_by_role("tab", name="Bode").click()
     hidden_id = page.evaluate(PAGE_ID_JS)
     assert hidden_id, page.url
-    wait_for(lambda: hidden_id in dashboard._live_hidden, 60.0,
+    wait_for(lambda: hidden_id in dashboard.pages.live_hidden(), 60.0,
              "the page never said its live traces are hidden")
     ctx = page.context.browser.new_context(viewport=VIEWPORT)
     try:
