@@ -4,9 +4,12 @@ and Apply notes. Every text from elsewhere is escaped (`server.escape.esc`)."""
 
 from __future__ import annotations
 
-from controller.core.config import LoopConfig
+import numpy as np
+
+from controller.core.config import LoopConfig, NominalModel
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PositionSpread
+from controller.tune.autotune import SIGNIFICANT_REL, differs
 from server.engine import Evaluation, PreviewComparison, PreviewResult
 from server.escape import esc
 from server.panels.bode import margin_items as _margin_items
@@ -60,14 +63,48 @@ def diff_html(cand: LoopConfig, active: LoopConfig, version: int | None) -> str:
     return config_diff_html(active, cand, against, "Candidate")
 
 
+def _value_text(v: object) -> str:
+    """A configuration value as read: numbers to 4 significant digits, nested ones by name."""
+    if isinstance(v, bool) or v is None:
+        return str(v)
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, (list, tuple)):
+        return "(" + ", ".join(_value_text(x) for x in v) + ")"
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_value_text(x)}" for k, x in v.items())
+    return str(v)
+
+
+def nominal_summary(n: NominalModel) -> str:
+    """The nominal model Mn Pn = pn_num / (mn_den pn_den) in an engineer's terms: its gain at
+    1 Hz and its poles' frequencies (a raw 'mn_den: (1.013e-05, ...)' told nobody anything)."""
+    num = np.asarray(n.pn_num, dtype=float)
+    den = np.polymul(np.asarray(n.mn_den, dtype=float), np.asarray(n.pn_den, dtype=float))
+    s = 2j * np.pi
+    gain_db = 20 * np.log10(abs(np.polyval(num, s) / np.polyval(den, s)))
+    poles = np.roots(np.trim_zeros(den, "f"))
+    hz = sorted(float(abs(p)) / (2 * np.pi) for p in poles)
+    where = ", ".join("0 (integrator)" if f < 1e-12 else f"{f:.3g}" for f in hz)
+    return f"gain {round(gain_db, 1) + 0.0:.1f} dB at 1 Hz, poles at {where} Hz"
+
+
 def config_diff_html(old: LoopConfig, new: LoopConfig, old_label: str, new_label: str,
                      cls: str = "dt-diff") -> str:
     """The fields in which `new` differs from `old`, one per line (old &rarr; new)."""
     from controller.core.config import config_to_builtins
 
     a, c = config_to_builtins(old), config_to_builtins(new)
-    rows = [f"<li>{esc(k)}: {esc(str(a.get(k)))} &rarr; <b>{esc(str(c[k]))}</b></li>"
-            for k in c if c[k] != a.get(k)]
+    rows = []
+    for k in c:
+        if c[k] == a.get(k):
+            continue
+        if k == "nominal":  # a model, as an engineer reads one (not its raw coefficients)
+            rows.append(f"<li>nominal model Mn Pn: {esc(nominal_summary(old.nominal))} &rarr; "
+                        f"<b>{esc(nominal_summary(new.nominal))}</b></li>")
+        else:
+            rows.append(f"<li>{esc(k)}: {esc(_value_text(a.get(k)))} &rarr; "
+                        f"<b>{esc(_value_text(c[k]))}</b></li>")
     if not rows:
         return (f"<div class='{cls}' style='font-size:12px;color:#555'>{esc(new_label)}: same "
                 f"as {esc(old_label)}.</div>")
@@ -93,9 +130,13 @@ def preview_html(traj: Trajectory, p: PreviewComparison) -> str:
     rows.append(run("active", pa, "dt-preview-active"))
     verdict = ""
     if pn is not None and c.dob_on:
-        better = pc.rmse_deg < pn.rmse_deg
-        verdict = (f"<div class='dt-preview-verdict'>DOB {'beats' if better else 'does not beat'}"
-                   f" DOB off here: RMSE {pc.rmse_deg / pn.rmse_deg - 1.0:+.1%}, peak "
+        # A difference inside the prediction's own accuracy is none (`SIGNIFICANT_REL`).
+        said = {-1: "DOB beats DOB off here",
+                0: (f"No significant difference from DOB off here (RMSE within "
+                    f"&plusmn;{SIGNIFICANT_REL:.0%}, what the prediction is good to)"),
+                1: "DOB does not beat DOB off here"}[differs(pc.rmse_deg, pn.rmse_deg)]
+        verdict = (f"<div class='dt-preview-verdict'>{said}"
+                   f": RMSE {pc.rmse_deg / pn.rmse_deg - 1.0:+.1%}, peak "
                    f"{pc.peak_error_deg / pn.peak_error_deg - 1.0:+.1%}, command noise "
                    f"x{pc.command_noise_deg_s / max(pn.command_noise_deg_s, 1e-12):.2g}</div>")
     return (
