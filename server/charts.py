@@ -48,6 +48,7 @@ from server.charts_base import (
     measured_points,
     ranged_scales,
     rgba_of,
+    settled_scales,
     spread_band_db,
 )
 from server.charts_identify import (
@@ -74,6 +75,7 @@ from server.charts_time import (
     LIVE_EMPTY_T,
     LIVE_WINDOW_S,
     PREVIEW_CHART,
+    PREVIEW_SETTLE_FRAC,
     STEP_CHART,
     T_AXIS,
     live_data,
@@ -113,6 +115,8 @@ __all__ = [
     "PM_COLOR",
     "POSITION_COLORS",
     "PREVIEW_CHART",
+    "PREVIEW_SETTLE_FRAC",
+    "SMALL_DB_AXIS",
     "SPREAD_FLOOR",
     "STEP_CHART",
     "T_AXIS",
@@ -151,6 +155,7 @@ __all__ = [
     "preview_data",
     "ranged_scales",
     "rgba_of",
+    "settled_scales",
     "spread_band_db",
 ]
 
@@ -329,21 +334,33 @@ PLANT_CHART = bode_spec(
     ),
 )
 
+#: The dB axis of a short chart: ticks every 5 or 10 dB as long as they are 10 px apart
+#: (uPlot's default 30 px left |S| with ticks at 0 and -100 only, the rejection at 0 and 50).
+SMALL_DB_AXIS = {"label": "dB", "scale": "y", "space": 10, "incrs": (5, 10, 20, 50, 100)}
+
 BODE_CHARTS: tuple[ChartSpec, ...] = (
     LOOP_MAG_CHART,
     LOOP_PHASE_CHART,
-    dob_spec("closed_loop", "Closed loop r -> w (15) vs (18)", "closed_dob_db",
-              "closed_nodob_db", ("with DOB", "without DOB", "active")),
-    dob_spec("disturbance", "Disturbance d -> w: (16) with DOB vs (18) without", "dist_dob_db",
-              "dist_nodob_db", ("(16) with DOB", "(18) without DOB", "(16) active")),
-    dob_spec("noise", "Noise zeta -> w (17)", "noise_dob_db", "noise_nodob_db",
-              ("(17) with DOB", "(18) without DOB", "(17) active")),
+    # Titles say what each curve is; the article's equation numbers come after, named as such
+    # ("(15) vs (18)" alone read as a riddle).
+    dob_spec("closed_loop", "Closed loop, reference r -> speed w: candidate with and without "
+             "the DOB, active (article eqs. 15, 18)", "closed_dob_db",
+             "closed_nodob_db", ("with DOB", "without DOB", "active")),
+    dob_spec("disturbance", "Disturbance d -> speed w: candidate with and without the DOB, "
+             "active (article eqs. 16, 18)", "dist_dob_db",
+             "dist_nodob_db", ("with DOB", "without DOB", "active")),
+    dob_spec("noise", "Sensor noise zeta -> speed w: candidate with and without the DOB, active "
+             "(article eqs. 17, 18)", "noise_dob_db", "noise_nodob_db",
+             ("with DOB", "without DOB", "active")),
     bode_spec(
         "rejection",
-        "DOB rejection gain |E_without / E_with| (23): > 0 dB where the DOB helps",
+        "DOB rejection gain: |tracking error without DOB / with DOB| (article eq. 23), > 0 dB "
+        "where the DOB helps, < 0 dB where it costs (waterbed)",
         (line_series("candidate", CANDIDATE), "cand.rejection_db"),
         (line_series("active", ACTIVE, dash=DASH_ACTIVE), "act.rejection_db"),
         height=110,
+        axes=(HZ_AXIS, SMALL_DB_AXIS),
+        extra={"y_step": 5.0, "y_clip": (-20.0, 20.0)},  # the waterbed (-2 dB) legible
     ),
     bode_spec(
         "sensitivity",
@@ -354,6 +371,8 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         (line_series("|T| whole servo", NO_DOB, dash=DASH_NO_DOB, width=1.0), "cand.t_full_db"),
         (line_series("|S| active", ACTIVE, dash=DASH_ACTIVE), "act.s_db"),
         height=120,
+        axes=(HZ_AXIS, SMALL_DB_AXIS),
+        extra={"y_step": 5.0, "y_clip": (-20.0, 20.0)},  # the peak (~3 dB) legible
     ),
     bode_spec(
         "small_gain",

@@ -27,6 +27,7 @@ __all__ = [
     "LIVE_EMPTY_T",
     "LIVE_WINDOW_S",
     "PREVIEW_CHART",
+    "PREVIEW_SETTLE_FRAC",
     "STEP_CHART",
     "T_AXIS",
     "live_data",
@@ -87,8 +88,11 @@ PREVIEW_CHART = ChartSpec(
         line_series("candidate, DOB off", NO_DOB, dash=DASH_NO_DOB),
     ),
     scales=_LIN_X,
-    axes=(T_AXIS, {"label": "deg", "scale": "y"}),
+    axes=(T_AXIS, {"label": "deg", "scale": "y", "space": 14}),
 )
+#: The preview's y scale is of its settled part: from this fraction of its time span on
+#: (`charts.settled_scales`; the start-up before it is said when it runs off the scale).
+PREVIEW_SETTLE_FRAC = 0.15
 
 
 STEP_CHART = ChartSpec(
@@ -149,7 +153,9 @@ def _live_spec(key: str, title: str, unit: str, *series: tuple[dict[str, Any], s
         scales=live_scales(LIVE_WINDOW_S),
         axes=(
             T_AXIS,
-            {"label": unit, "scale": "y"},
+            # Ticks 14 px apart at least (uPlot's 30 px left the position error's 60 px with
+            # one tick, "0").
+            {"label": unit, "scale": "y", "space": 14},
             {"label": "config v", "scale": "ver", "side": 1, "grid": {"show": False},
              "incrs": VERSION_INCRS},
         ),

@@ -176,9 +176,15 @@ def test_no_bode_column_holds_a_made_up_value() -> None:
                 continue
             lo, hi = scales[name]["range"]
             assert scales[name]["auto"] is False
-            assert lo % charts.Y_STEPS[name] == 0 and hi % charts.Y_STEPS[name] == 0
+            step = spec.extra.get("y_step", charts.Y_STEPS[name]) if name == "y" else \
+                charts.Y_STEPS[name]
+            assert lo % step == 0 and hi % step == 0
             fin = col[np.isfinite(col)]
-            assert fin.size == 0 or (lo <= fin.min() and fin.max() <= hi), (key, i)
+            # A chart held within a range (|S|, the rejection: `y_clip`) lets the rest run off.
+            clo, chi = spec.extra.get("y_clip", (-np.inf, np.inf)) if name == "y" else \
+                (-np.inf, np.inf)
+            assert fin.size == 0 or (lo <= max(fin.min(), clo) and min(fin.max(), chi) <= hi), \
+                (key, i)
 
 
 def test_nyquist_is_the_open_loop_inside_the_window() -> None:
@@ -342,3 +348,38 @@ def test_crossover_marks_follow_their_definition_at_every_crossing() -> None:
         np.testing.assert_array_equal(charts.crossing_marks(c), want)
         crossings += int(np.count_nonzero(want == 0.0))
     assert crossings > 1000  # the sequences did cross
+
+
+def test_the_small_db_charts_show_what_they_are_read_for() -> None:
+    """Issue 33: |S| had ticks at 0 and -100 only (its ~3 dB peak unreadable) and the DOB
+    rejection chart spanned 0-50 dB (its -2 dB waterbed hidden). Their ranges now hold the peak
+    and the waterbed on 5 dB steps within -20..20 dB, with 5 dB ticks 10 px apart."""
+    curves = curves_from_analysis(analyse(LoopConfig()), MODEL_ONLY)
+    for key, column in (("sensitivity", "cand.s_db"), ("rejection", "cand.rejection_db")):
+        spec = next(s for s in charts.BODE_CHARTS if s.key == key)
+        assert spec.axes[1]["space"] == 10 and spec.axes[1]["incrs"][0] == 5
+        data = charts.bode_data(key, curves, curves)
+        lo, hi = charts.ranged_scales(spec, data, charts.Y_STEPS)["y"]["range"]
+        y = np.asarray(data[1 + spec.columns.index(column)])
+        assert -20.0 <= lo < 0.0 < hi <= 20.0 and lo % 5 == 0 and hi % 5 == 0, (key, lo, hi)
+        if key == "sensitivity":
+            assert 0.0 < np.nanmax(y) < hi  # the peak |S| inside the range
+        else:
+            assert lo < np.nanmin(y) < 0.0  # the waterbed inside the range
+
+
+def test_the_preview_scale_is_that_of_the_settled_run() -> None:
+    """A start-up transient of 0.23 deg over a 0.05 deg steady error: the scale is the steady
+    error's (5 % margin), and the start-up's end and peak are said."""
+    t = np.linspace(0.0, 12.0, 1201)
+    e = 0.05 * np.sin(t) + 0.23 * np.exp(-t / 0.2)
+    data = charts.preview_data(t, e, 0.5 * e)
+    scales, t_end, peak = charts.settled_scales(charts.PREVIEW_CHART, data, 0.15)
+    lo, hi = scales["y"]["range"]
+    assert t_end == pytest.approx(1.8)
+    steady = e[t >= 1.8]
+    assert lo == pytest.approx(steady.min() - 0.05 * (steady.max() - steady.min()))
+    assert peak == pytest.approx(0.23 + 0.0, abs=0.01) and hi < 0.1
+    # Nothing runs off: no note.
+    calm = charts.preview_data(t, 0.05 * np.sin(t), 0.05 * np.sin(t))
+    assert np.isnan(charts.settled_scales(charts.PREVIEW_CHART, calm, 0.15)[2])

@@ -100,6 +100,12 @@ def decide_html(ev: Evaluation) -> str:
                f"{reasons}")
 
 
+#: The Suggest sub-tab before Suggest has run.
+SUGGEST_NOTE = ("<div class='dt-suggest-note' style='font-size:13px;color:#555;margin:8px 0'>"
+                "Nothing suggested yet: press <b>Suggest</b> (Tune tab, Guided tuning) to chart "
+                "the tracking error against the Q cut-off on the simulated rig here.</div>")
+
+
 class BodeTab:
     """The charts of one candidate, built into the current GUI container (the plots panel's
     Bode tab); `show` draws a comparison."""
@@ -131,9 +137,12 @@ class BodeTab:
         with tabs.add_tab("Nyquist"):
             self.nyquist = gui.add_html("<div class='dt-nyquist-box'></div>")
         with tabs.add_tab("Suggest"):
+            # Until Suggest has run: a note, not an empty 0..1 chart.
+            self.suggest_note = gui.add_html(SUGGEST_NOTE)
             empty = suggest_data(None)
             self.suggest_chart = add_chart(gui, SUGGEST_CHART, empty)
             self.suggest_chart.scales = charts.ranged_scales(SUGGEST_CHART, empty)
+            self.suggest_chart.visible = False
         self.tabs = tabs
 
     def show(self, cmp: Comparison) -> None:

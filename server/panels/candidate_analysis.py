@@ -5,6 +5,7 @@ Apply is on only when the verdict shown is the present candidate's."""
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from typing import Protocol
@@ -14,7 +15,9 @@ import viser
 from controller.core.config import LoopConfig
 from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
+from server import charts
 from server.engine import Evaluation, PreviewResult, TuningEngine
+from server.gui import set_scales
 from server.panels.apply_box import ApplyBox
 from server.panels.bode import BodeTab
 from server.panels.controls import CandidateControls
@@ -181,6 +184,14 @@ class CandidateAnalysis:
         preview = engine.compare_preview(cand, active, traj)
         if p.bode is not None:
             p.bode.steps_chart.data = engine.steps_data(cand, active)
+            scales, t_end, early_peak = charts.settled_scales(
+                charts.PREVIEW_CHART, preview.chart_data, charts.PREVIEW_SETTLE_FRAC)
+            if scales != p.bode.preview_chart.scales:
+                set_scales(p.bode.preview_chart, scales)
             p.bode.preview_chart.data = preview.chart_data
-            set_html(p.bode.preview_text, preview_html(traj, preview))
+            note = ("" if math.isnan(early_peak) else
+                    f"<div class='dt-preview-startup' style='font-size:12px;color:#555'>The "
+                    f"chart's scale is that of the settled run: the start-up before "
+                    f"{t_end:.1f} s (up to {early_peak:.3g} deg) runs off it.</div>")
+            set_html(p.bode.preview_text, preview_html(traj, preview) + note)
         self.last_preview = preview.candidate
