@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
 from controller.core.config import LoopConfig
-from controller.tune.autotune import Point, TuneResult
+from controller.tune.autotune import SIGNIFICANT_REL, Point, TuneResult
 from server.charts import ranged_scales
 from server.suggest import SUGGEST_CHART, suggest_data, suggested_config
 
@@ -24,12 +25,15 @@ def test_columns_follow_the_points_and_start_finite() -> None:
     res = TuneResult(best=curve[1], baseline=_p("q31", 0.5, "accept", 0.025), curve=curve)
     data = suggest_data(res)
     assert len(data) == len(SUGGEST_CHART.series)
-    x, q31, q20, off, mark = data
+    x, q31, q20, caution, off, bar, mark = data
     np.testing.assert_array_equal(x, [0.1, 1.0, 5.0])
     # q31 at 0.1 Hz was rejected: not drawn (NaN: the y scale is fixed, no stand-in value).
     assert math.isnan(q31[0]) and q31[1] == 0.02 and math.isnan(q31[2])
-    assert q20[0] == 0.03 and math.isnan(q20[1]) and q20[2] == 0.01
+    # q20 at 5 Hz is the gate's caution: not counted, so drawn apart (hollow), not on its line.
+    assert q20[0] == 0.03 and math.isnan(q20[1]) and math.isnan(q20[2])
+    assert caution[2] == 0.01 and np.isnan(caution[:2]).all()
     np.testing.assert_array_equal(off, [0.025] * 3)
+    np.testing.assert_allclose(bar, [0.025 * (1 - SIGNIFICANT_REL)] * 3)
     # The suggested dot only at the suggested cut-off (a stand-in at 0.1 Hz drew a second one).
     assert mark[1] == 0.02 and math.isnan(mark[0]) and math.isnan(mark[2])
     lo, hi = ranged_scales(SUGGEST_CHART, data)["y"]["range"]
@@ -57,3 +61,40 @@ def test_no_result_draws_nothing_but_has_a_finite_scale() -> None:
     scale = ranged_scales(SUGGEST_CHART, data)["y"]
     assert scale["auto"] is False and scale["range"] == pytest.approx((-0.05, 1.05))
     assert x[0] == pytest.approx(0.1)
+
+
+def test_the_text_names_what_the_chart_shows_beating_the_dob_off() -> None:
+    """Issue 33: the chart showed Q20 at 20 Hz far below the DOB off while the text said no DOB
+    setting beats it (a caution: drawn, not counted, not said). Now the text names it, why it
+    is not counted, and that it is hollow on the chart."""
+    off = _p("q31", 0.5, "accept", 0.037)
+    worse = _p("q31", 1.0, "accept", 0.05)
+    caution = dataclasses.replace(_p("q20", 20.0, "caution", 0.014),
+                                  why="noise to command 23 dB > 20 dB")
+    res = TuneResult(best=worse, baseline=off, curve=(worse, caution))
+    assert not res.dob_helps and res.not_counted == (caution,)
+    text = res.summary()
+    assert "no accepted DOB setting beats the DOB off" in text, text
+    assert ("q20 at 20 Hz would score lower (0.014 deg, RMSE 0.014 deg) but is not counted: "
+            "the gate's caution: noise to command 23 dB > 20 dB (hollow on the chart)") in text
+    x, _q31, q20, hollow, *_ = suggest_data(res)
+    assert hollow[list(x).index(20.0)] == 0.014 and np.isnan(q20).all()
+    assert suggested_config(LoopConfig(), res) == LoopConfig().with_(dob_on=False)
+
+
+def test_a_difference_inside_the_band_is_no_win() -> None:
+    """Issue 33: Suggest offered Q31 at 0.1 Hz for a 0.16 % lower error. Inside
+    SIGNIFICANT_REL (1 %: the prediction's own accuracy) it is "no significant difference":
+    the DOB stays off, no suggested dot; just outside the band it is a win."""
+    off = _p("q31", 0.5, "accept", 0.02888)
+    tiny = _p("q31", 0.1, "accept", 0.02888 * (1 - 0.0016))
+    res = TuneResult(best=tiny, baseline=off, curve=(tiny,))
+    assert not res.dob_helps
+    assert res.summary().startswith("no significant difference: the best accepted DOB "
+                                    "setting, q31 at 0.1 Hz, scores -0.2% against the DOB off")
+    assert suggested_config(LoopConfig(), res) == LoopConfig().with_(dob_on=False)
+    assert np.isnan(suggest_data(res)[-1]).all()
+    win = _p("q31", 0.1, "accept", 0.02888 * (1 - 1.5 * SIGNIFICANT_REL))
+    res = TuneResult(best=win, baseline=off, curve=(win,))
+    assert res.dob_helps and "beyond the +-1% band" in res.summary()
+    assert suggest_data(res)[-1][0] == pytest.approx(win.score)

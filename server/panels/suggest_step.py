@@ -59,11 +59,11 @@ class SuggestStep:
         self.panel = panel
         self.chart: viser.GuiUplotHandle | None = None
         """The Bode tab's Suggest chart (None: no charts built)."""
-        self.note: viser.GuiHtmlHandle | None = None
-        """The note the Bode tab shows in its place until Suggest has run."""
         self.state = StepState("todo")
         self.last: TuneResult | None = None
         """The last Suggest's result (None: not run)."""
+        self._put: LoopConfig | None = None
+        """What the last Suggest put into the candidate, while the candidate still is it."""
         self._worker = LatestWins(self._run, name="tuning-suggest")
 
     def build_controls(self, gui: viser.GuiApi) -> None:
@@ -80,6 +80,20 @@ class SuggestStep:
 
     def stop(self) -> None:
         self._worker.stop()
+
+    def candidate_changed(self) -> None:
+        """The candidate may have changed: once it is no longer what Suggest put into it, the
+        text stops saying that it is (the result stays, said as Suggest's)."""
+        put, result = self._put, self.last
+        if put is None or result is None:
+            return
+        try:
+            same = self.panel.candidate() == put
+        except ConfigError:
+            same = False
+        if not same:
+            self._put = None
+            set_html(self.text, suggest_html(result, self.panel.trajectory, None))
 
     def request(self) -> None:
         """Run Suggest on the present candidate (in its own worker thread)."""
@@ -127,8 +141,7 @@ class SuggestStep:
             data = suggest_data(result)
             set_scales(self.chart, charts.ranged_scales(SUGGEST_CHART, data))
             self.chart.data = data
-            self.chart.visible = True
-            if self.note is not None:
-                set_html(self.note, "<div class='dt-suggest-note'></div>")
-        panel.load(suggested_config(base, result), panel.base_version)
+        put = suggested_config(base, result)
+        self._put = put  # (before the load, which asks `candidate_changed`)
+        panel.load(put, panel.base_version)
         set_html(self.text, suggest_html(result, traj, time.perf_counter() - t0))

@@ -127,7 +127,6 @@ class TuningPanel:
         self.bode = view
         self._charts = view.charts
         self.suggest.chart = view.suggest_chart
-        self.suggest.note = view.suggest_note
 
     def start(self) -> None:
         self._started = True
@@ -212,9 +211,11 @@ class TuningPanel:
     # -- the verdict -------------------------------------------------------------------------
 
     def request_update(self) -> None:
-        """The candidate may have changed: kept (`on_change`) and judged again."""
+        """The candidate may have changed: kept (`on_change`), judged again, and Suggest's
+        text no longer says the candidate has its setting once it has not."""
         if self._on_change is not None and self._started and self.analysis.built:
             self._on_change(self)
+        self.suggest.candidate_changed()
         self.analysis.request()
 
     # (what scripts and tests read of the analysis: `CandidateAnalysis`)

@@ -9,6 +9,7 @@ import numpy as np
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PositionSpread
+from controller.tune.autotune import SIGNIFICANT_REL, differs
 from server.engine import Evaluation, PreviewComparison, PreviewResult
 from server.escape import esc
 from server.panels.bode import margin_items as _margin_items
@@ -129,9 +130,13 @@ def preview_html(traj: Trajectory, p: PreviewComparison) -> str:
     rows.append(run("active", pa, "dt-preview-active"))
     verdict = ""
     if pn is not None and c.dob_on:
-        better = pc.rmse_deg < pn.rmse_deg
-        verdict = (f"<div class='dt-preview-verdict'>DOB {'beats' if better else 'does not beat'}"
-                   f" DOB off here: RMSE {pc.rmse_deg / pn.rmse_deg - 1.0:+.1%}, peak "
+        # A difference inside the prediction's own accuracy is none (`SIGNIFICANT_REL`).
+        said = {-1: "DOB beats DOB off here",
+                0: (f"No significant difference from DOB off here (RMSE within "
+                    f"&plusmn;{SIGNIFICANT_REL:.0%}, what the prediction is good to)"),
+                1: "DOB does not beat DOB off here"}[differs(pc.rmse_deg, pn.rmse_deg)]
+        verdict = (f"<div class='dt-preview-verdict'>{said}"
+                   f": RMSE {pc.rmse_deg / pn.rmse_deg - 1.0:+.1%}, peak "
                    f"{pc.peak_error_deg / pn.peak_error_deg - 1.0:+.1%}, command noise "
                    f"x{pc.command_noise_deg_s / max(pn.command_noise_deg_s, 1e-12):.2g}</div>")
     return (
