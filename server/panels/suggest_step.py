@@ -59,6 +59,8 @@ class SuggestStep:
         self.panel = panel
         self.chart: viser.GuiUplotHandle | None = None
         """The Bode tab's Suggest chart (None: no charts built)."""
+        self.note: viser.GuiHtmlHandle | None = None
+        """The note the Bode tab shows in its place until Suggest has run."""
         self.state = StepState("todo")
         self.last: TuneResult | None = None
         """The last Suggest's result (None: not run)."""
@@ -141,6 +143,9 @@ class SuggestStep:
             data = suggest_data(result)
             set_scales(self.chart, charts.ranged_scales(SUGGEST_CHART, data))
             self.chart.data = data
+            self.chart.visible = True
+            if self.note is not None:
+                set_html(self.note, "<div class='dt-suggest-note'></div>")
         put = suggested_config(base, result)
         self._put = put  # (before the load, which asks `candidate_changed`)
         panel.load(put, panel.base_version)

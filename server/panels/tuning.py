@@ -127,6 +127,7 @@ class TuningPanel:
         self.bode = view
         self._charts = view.charts
         self.suggest.chart = view.suggest_chart
+        self.suggest.note = view.suggest_note
 
     def start(self) -> None:
         self._started = True
