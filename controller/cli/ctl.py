@@ -7,7 +7,8 @@ Actions: `status`, `config`, `apply key=value ...` (`--expect-version N`, `--con
 `identify [key=value ...]` (IdentifySpec fields), `knowledge`, `twin` (the rig's twin the
 controller built from its plant knowledge: its fit per position), `drift` (the watch's latest
 drift state: `dobtune watch`), `wait-alarm` (wait up to `--wait-s`, 0 for ever, for the watch's
-next drift alarm: exit 0 one came (printed), 5 none came). An action that changes the rig
+next drift alarm, or one raised since `--since EPOCH_S`: exit 0 one came (printed), 5 none
+came). An action that changes the rig
 takes the operator lease for its duration when nobody holds it (and releases it after).
 Values are JSON where they parse as JSON (`q_cutoff_hz=1.5`, `dob_on=false`), else strings.
 
@@ -328,6 +329,12 @@ def _drift(opts: Any, args: argparse.Namespace, out: TextIO, proto: Any) -> int:
         got: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         sub = c.session.declare_subscriber(proto.key_drift_alarm(args.rig_name),
                                            lambda s: got.put(s.payload.to_bytes()))
+        if args.since is not None:
+            # Subscribed first, then asked: an alarm since then is in one or the other.
+            for reply in c.session.get(proto.key_drift_alarm(args.rig_name),
+                                       timeout=args.timeout_s):
+                if reply.ok is not None:
+                    got.put(reply.ok.payload.to_bytes())
         try:
             while True:
                 try:
@@ -341,6 +348,8 @@ def _drift(opts: Any, args: argparse.Namespace, out: TextIO, proto: Any) -> int:
                     alarm = proto.decode(data, proto.DriftAlarm)
                 except proto.ProtocolError:
                     continue  # not an alarm this version reads: wait on
+                if args.since is not None and alarm.epoch_s < args.since:
+                    continue
                 text = (f"{'cleared' if alarm.cleared else 'ALARM'} {alarm.part}: {alarm.text}"
                         + (f"\n  {alarm.action}" if alarm.action else ""))
                 _emit(out, args.json, alarm, text)
@@ -394,6 +403,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="rigs: how long to listen to the rigs' status and state")
     p.add_argument("--wait-s", type=float, default=0.0,
                    help="wait-alarm: give up after this long (exit 5; default 0: wait for ever)")
+    p.add_argument("--since", type=float, default=None, metavar="EPOCH_S",
+                   help="wait-alarm: an alarm the watch raised at or after this UNIX time "
+                   "counts too (none missed between a change and the wait)")
     p.add_argument("action", help=" | ".join(ACTIONS))
     p.add_argument("args", nargs="*", help="key=value pairs (apply, identify) or a lease action")
 

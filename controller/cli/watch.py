@@ -43,7 +43,9 @@ def run(args: argparse.Namespace) -> int:
         say(f"runs at the controller's priority (os.nice: {exc})")
     opts = WatchOptions(
         client=ClientOptions(connect=tuple(args.connect), rig_name=args.rig_name,
-                             client_name="watch", auth=args.auth, user=args.user or ""),
+                             client_name="watch", auth=args.auth, user=args.user or "",
+                             query_timeout_s=args.timeout_s, connect_timeout_s=args.timeout_s,
+                             mode="client"),
         window_s=args.window_s, disturbances=tuple(args.disturbance or ("article-rig",)),
         trend_dir=args.trend_dir)
     stop = threading.Event()
@@ -75,4 +77,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--disturbance", action="append", default=[], metavar="NAME",
                    help="without a twin: the simulated rig the controller runs (as its "
                    "--disturbance; default article-rig)")
+    p.add_argument("--timeout-s", type=float, default=30.0,
+                   help="a query's reply timeout (the controller may be busy; default: 30)")
     add_parent_pid(p, "watch")

@@ -138,6 +138,10 @@ class ClientOptions:
     #: False: requests only (no state and status subscriptions), e.g. one client per user
     #: behind a dashboard that already receives the streams.
     subscribe: bool = True
+    #: The session's Zenoh mode (None: peer without auth, client with it). "client": what this
+    #: session publishes or answers reaches the controller's other peers through it (a peer
+    #: routes for its clients, never between two peers): the watch's drift states and alarms.
+    mode: str | None = None
 
 
 @dataclass
@@ -430,7 +434,8 @@ def open_client_session(o: ClientOptions) -> Any:
     from controller.auth import AuthError
 
     so = SessionOptions(connect=tuple(o.connect), listen=tuple(o.listen), auth=o.auth,
-                        user=o.user, fail_after_s=o.connect_timeout_s if o.auth else None)
+                        user=o.user, fail_after_s=o.connect_timeout_s if o.auth else None,
+                        mode=o.mode)
     if o.auth is None:
         try:
             return connect(so)

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from controller import protocol as proto
-from controller.client import ClientOptions, ControllerClient
+from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import PlantKnowledge
 from controller.recording.trend import TrendWriter
@@ -74,7 +74,8 @@ class WatchState:
     start: Any = None
     windows: int = 0
     alarms: int = 0
-    last_seq_total: int = 0
+    gaps: int = 0
+    """Samples the state stream had lost at the previous window (the ring's count)."""
     notes: list[str] = field(default_factory=list)
 
 
@@ -100,16 +101,19 @@ def _model(c: ControllerClient, opts: WatchOptions) -> WatchState:
 
 
 def _window(c: ControllerClient, window_s: float, rate_hz: float) -> tuple[Window, int] | None:
-    """The newest `window_s` of samples if the loop ran all of them under one configuration
-    with no sample lost, else None."""
-    cols, versions = c.ring.window(window_s)
-    n = cols["t_s"].size
-    if n < round(0.95 * window_s * rate_hz):
+    """The newest `window_s` of samples if the loop ran all of them under one configuration,
+    else None. (A tick the loop skipped when late leaves a gap in t_s, not in the plant's
+    samples: the simulated plant advances with each executed tick, a drive's speed loop holds
+    the command; samples lost on the way are the caller's check, by sequence number.)"""
+    # By samples, not by time: a loaded loop skips ticks (the sim stays in lockstep).
+    n = round(window_s * rate_hz)
+    cols, versions = c.ring.window(3.0 * window_s)
+    if cols["t_s"].size < n:
         return None
+    cols = {k: v[-n:] for k, v in cols.items()}
+    versions = versions[-n:]
     t = cols["t_s"]
-    if versions.size == 0 or np.any(versions != versions[-1]):
-        return None
-    if np.max(np.diff(t)) > 1.5 / rate_hz:  # samples lost on the way: not one run
+    if np.any(versions != versions[-1]):
         return None
     win = Window(t0_s=float(t[0]), rate_hz=rate_hz, pos_deg=cols["pos_deg"],
                  speed_deg_s=cols["speed_deg_s"], command_deg_s=cols["command_deg_s"],
@@ -205,11 +209,28 @@ def run_watch(opts: WatchOptions, stop: threading.Event,
                     query.reply(query.key_expr, latest[-1],
                                 encoding=proto.encoding(proto.DriftState))
 
+        sent: list[bytes] = []
+
+        def on_alarm_query(query: Any) -> None:
+            # `dobtune ctl wait-alarm --since`: the alarms so far (the newest 100), one reply each.
+            for raw in list(sent):
+                with contextlib.suppress(Exception):
+                    query.reply(query.key_expr, raw, encoding=proto.encoding(proto.DriftAlarm))
+
         import zenoh
 
         queryable = session.declare_queryable(
             proto.key_drift(rig), zenoh.handlers.Callback(on_query, indirect=False))
-        st = _model(c, opts)
+        alarm_queryable = session.declare_queryable(
+            proto.key_drift_alarm(rig), zenoh.handlers.Callback(on_alarm_query, indirect=False))
+        st = None
+        while st is None:
+            try:
+                st = _model(c, opts)
+            except ControllerUnavailable as exc:  # starting, or busy: ask again
+                log.info("watch: %s; asking again", exc)
+                if stop.wait(1.0):
+                    return 0
         log.info("watch: rig %s against %s", rig, st.model)
         trend = TrendWriter(opts.trend_dir, rig) if opts.trend_dir is not None else None
         cfg_version, cfg = -1, None
@@ -227,11 +248,17 @@ def run_watch(opts: WatchOptions, stop: threading.Event,
                     continue
                 got = _window(c, opts.window_s, rate)
                 next_at = c.ring.total + round(opts.window_s * rate)
-                if got is None:
+                gaps, st_gaps = c.ring.gaps, st.gaps
+                st.gaps = gaps
+                if got is None or gaps != st_gaps:  # samples lost: not one run
                     continue
                 win, version = got
                 if version != cfg_version:
-                    cfg = c.get_config().config
+                    try:
+                        cfg = c.get_config().config
+                    except ControllerUnavailable as exc:
+                        log.info("watch: %s; the window is skipped", exc)
+                        continue
                     cfg_version = version
                 assert cfg is not None
                 t_fit = time.perf_counter()
@@ -244,10 +271,11 @@ def run_watch(opts: WatchOptions, stop: threading.Event,
                 epoch0 = time.time() - float(c.ring.latest()["t_s"])  # type: ignore[index]
                 verdict = st.judge.update(fit, epoch0 + win.t0_s)
                 epoch_s = epoch0 + win.t0_s + win.duration_s
-                for name in verdict.new_alarms:
-                    _publish_alarm(pub_alarm, st, rig, name, cfg, fit, epoch_s, cleared=False)
-                for name in verdict.cleared:
-                    _publish_alarm(pub_alarm, st, rig, name, cfg, fit, epoch_s, cleared=True)
+                for name, cleared in ([(n, False) for n in verdict.new_alarms]
+                                      + [(n, True) for n in verdict.cleared]):
+                    alarm = _publish_alarm(pub_alarm, st, rig, name, cfg, fit, epoch_s, cleared)
+                    sent.append(proto.encode(alarm))
+                    del sent[:-100]
                 msg = _state_msg(rig, st, fit, lr, epoch_s, win.duration_s, version,
                                  verdict.lines, fit_s)
                 raw = proto.encode(msg)
@@ -260,7 +288,7 @@ def run_watch(opts: WatchOptions, stop: threading.Event,
         finally:
             if trend is not None:
                 trend.close()
-            for e in (queryable, pub_state, pub_alarm):
+            for e in (queryable, alarm_queryable, pub_state, pub_alarm):
                 with contextlib.suppress(Exception):
                     e.undeclare()
     return 0

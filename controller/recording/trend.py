@@ -125,8 +125,8 @@ def read_trend(root: Path, rig: str, t0_epoch_s: float, t1_epoch_s: float,
         with open(path, "rb") as f:
             try:
                 for _s, _c, m in make_reader(f).iter_messages(
-                        topics=[topic], start_time=round(t0_epoch_s * 1e9),
-                        end_time=round(t1_epoch_s * 1e9) + 1):
+                        topics=[topic], starting_at=round(t0_epoch_s * 1e9),
+                        ending_at=round(t1_epoch_s * 1e9)):
                     out.append(TrendPoint(m.log_time / 1e9, json.loads(m.data)))
             except (McapError, EOFError, ValueError):
                 pass  # the cut-off end of a file; what came before is kept

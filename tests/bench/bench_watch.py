@@ -1,0 +1,243 @@
+"""Benchmark: the watch (issue 34) beside a simulated controller (article rig). Prints figures;
+not a test.
+
+    .venv/bin/python tests/bench/bench_watch.py [--seconds 60] [--window-s 10]
+        [--only timing,normal,changes] [--trajectories sine,step,ramp,hold]
+
+- timing: the loop's tick compute p99 (each Status's, ~2 Hz) without the watch, with it, and
+  without again, in the same controller run (`--seconds` each), and the watch's CPU share.
+- normal: `--seconds` of normal running per demo trajectory with the watch on: alarms raised
+  (false alarms), the parts' estimates and how many windows told each.
+- changes: each plant change of the issue on the running rig (belt stiffness -40 %, inertia
+  +50 %, motor friction x3, drive gain -30 %), from a fresh watch each: the time from the
+  change to the alarm, the part named, its estimate against the truth; then the plant is put
+  back and the watch stopped.
+The controller runs with --realtime-priority as on a rig; report `uptime` beside the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: helpers, for procs
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
+
+from procs import Client, start_controller
+
+from controller import protocol as proto
+from controller.core.trajectory import default_trajectory
+
+RIG = "watchbench"
+REPO = Path(__file__).resolve().parents[2]
+#: (name, command, the part that must be named, its true factor).
+CHANGES = (
+    ("belt stiffness -40 %", proto.SimDrift(belt_stiffness_factor=0.6), "stiffness", 0.6),
+    ("inertia +50 %", proto.SimDrift(load_inertia_factor=1.5), "inertia", 1.5),
+    ("motor friction x3", proto.SimDrift(motor_friction_factor=3.0), "motor_friction", 3.0),
+    ("drive gain -30 %", proto.SimFault(plant_gain=0.7), "gain", 0.7),
+)
+BACK = (proto.SimDrift(), proto.SimFault())
+
+
+class Watch:
+    """`dobtune watch` as a subprocess, and a subscriber to its states and alarms."""
+
+    def __init__(self, endpoint: str, window_s: float, trend: Path | None, log: Path) -> None:
+        cmd = [str(Path(sys.executable).parent / "dobtune"), "watch", "--connect", endpoint,
+               "--rig-name", RIG, "--window-s", str(window_s), "--disturbance", "article-rig",
+               "--parent-pid", str(os.getpid())]
+        if trend is not None:
+            cmd += ["--trend-dir", str(trend)]
+        self._log = open(log, "ab")  # noqa: SIM115
+        self.proc = subprocess.Popen(cmd, cwd=REPO, stdout=self._log, stderr=subprocess.STDOUT)
+
+    def cpu_s(self) -> float:
+        with open(f"/proc/{self.proc.pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self._log.close()
+
+
+class Heard:
+    """Drift states, alarms and statuses received. The callbacks keep the raw bytes; they are
+    decoded in the bench's thread (msgspec segfaulted here when two Zenoh threads built the
+    first decoder of one type at the same time)."""
+
+    def __init__(self, c: Client) -> None:
+        self._raw: dict[str, list[tuple[float, bytes]]] = {"state": [], "alarm": [], "status": []}
+        self._done: dict[str, list[tuple[float, object]]] = {k: [] for k in self._raw}
+        self._lock = threading.Lock()
+        s = c.session
+        self._subs = [
+            s.declare_subscriber(proto.key_drift(RIG), self._keep("state")),
+            s.declare_subscriber(proto.key_drift_alarm(RIG), self._keep("alarm")),
+            s.declare_subscriber(proto.key_status(RIG), self._keep("status")),
+        ]
+
+    def _keep(self, kind: str) -> object:
+        def on(sample: object) -> None:
+            data = sample.payload.to_bytes()  # type: ignore[attr-defined]
+            with self._lock:
+                self._raw[kind].append((time.monotonic(), data))
+        return on
+
+    def _get(self, kind: str, typ: type) -> list:  # type: ignore[type-arg]
+        with self._lock:
+            new = self._raw[kind][len(self._done[kind]):]
+        for t, data in new:
+            self._done[kind].append((t, proto.decode(data, typ)))
+        return list(self._done[kind])
+
+    @property
+    def states(self) -> list[tuple[float, proto.DriftState]]:
+        return self._get("state", proto.DriftState)
+
+    @property
+    def alarms(self) -> list[tuple[float, proto.DriftAlarm]]:
+        return self._get("alarm", proto.DriftAlarm)
+
+    @property
+    def statuses(self) -> list[proto.Status]:
+        return [s for _, s in self._get("status", proto.Status)]
+
+    def p99s(self, since: int) -> list[float]:
+        return [s.timing.compute_p99_us for s in self.statuses[since:] if s.mode == "running"]
+
+
+def _uptime() -> str:
+    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+
+
+def _timing(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tmp: Path
+            ) -> None:
+    rows = []
+    watch = None
+    for phase in ("without", "with", "without"):
+        if phase == "with":
+            watch = Watch(endpoint, args.window_s, None, tmp / "watch-timing.log")
+            cpu0, t0 = None, 0.0
+            while cpu0 is None:
+                try:
+                    cpu0, t0 = watch.cpu_s(), time.monotonic()
+                except OSError:
+                    time.sleep(0.1)
+        i0 = len(heard.statuses)
+        time.sleep(args.seconds)
+        p = heard.p99s(i0)
+        rows.append((phase, p))
+        if watch is not None:
+            cpu = (watch.cpu_s() - cpu0) / (time.monotonic() - t0)
+            windows = len(heard.states)
+            watch.stop()
+            watch = None
+            print(f"watch CPU: {100 * cpu:.1f} % of one core over {args.seconds:g} s "
+                  f"({windows} windows fitted)")
+    for phase, p in rows:
+        a = np.asarray(p)
+        print(f"tick compute p99 {phase:8s} the watch: median over {a.size} status intervals "
+              f"{np.median(a):.1f} us (each interval's p99; spread {np.min(a):.1f}-"
+              f"{np.max(a):.1f} us)")
+    print(f"load: {_uptime()}")
+
+
+def _normal(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tmp: Path
+            ) -> None:
+    for kind in args.trajectories.split(","):
+        assert c.command(proto.SetTrajectory(trajectory=default_trajectory(kind))).ok
+        watch = Watch(endpoint, args.window_s, tmp / "trend", tmp / f"watch-{kind}.log")
+        a0, s0 = len(heard.alarms), len(heard.states)
+        time.sleep(args.seconds)
+        watch.stop()
+        alarms = [a for _, a in heard.alarms[a0:] if not a.cleared]
+        states = [s for _, s in heard.states[s0:]]
+        told = {p.name: 0 for p in states[0].parts} if states else {}
+        for s in states:
+            for p in s.parts:
+                told[p.name] += p.told
+        last = states[-1] if states else None
+        est = ", ".join(f"{p.name} {p.value:.3f}+-{p.std:.2g}" for p in last.parts) if last else ""
+        print(f"normal {kind:5s}: {args.seconds:g} s, {len(states)} windows, "
+              f"{len(alarms)} alarms {[a.part for a in alarms]}; told in windows {told}; "
+              f"last {est}; load {os.getloadavg()[0]:.1f}")
+
+
+def _changes(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tmp: Path
+             ) -> None:
+    assert c.command(proto.SetTrajectory(trajectory=default_trajectory("sine"))).ok
+    for name, cmd, part, truth in CHANGES:
+        watch = Watch(endpoint, args.window_s, None, tmp / f"watch-{part}.log")
+        s0 = len(heard.states)
+        deadline = time.monotonic() + 120.0
+        while len(heard.states) < s0 + 2 and time.monotonic() < deadline:
+            time.sleep(0.2)  # two windows of normal running first
+        a0 = len(heard.alarms)
+        t_change = time.monotonic()
+        assert c.command(cmd).ok
+        got = None
+        while time.monotonic() < t_change + args.detect_timeout_s:
+            new = [(t, a) for t, a in heard.alarms[a0:] if not a.cleared]
+            if new:
+                got = new[0]
+                break
+            time.sleep(0.2)
+        if got is None:
+            last = heard.states[-1][1] if heard.states else None
+            print(f"{name:22s}: NO alarm within {args.detect_timeout_s:g} s; last state "
+                  f"{[(p.name, round(p.value, 3), p.state) for p in last.parts] if last else '-'}")
+        else:
+            t, a = got
+            err = (a.value - truth) / truth
+            print(f"{name:22s}: alarm after {t - t_change:5.1f} s, part {a.part} "
+                  f"({'right' if a.part == part else 'WRONG, expected ' + part}), estimate "
+                  f"x{a.value:.3f} +-{a.std:.2g} vs x{truth:g} ({100 * err:+.1f} %); gate on "
+                  f"the drifted estimate: {a.gate_verdict or '-'}; load "
+                  f"{os.getloadavg()[0]:.1f}")
+        watch.stop()
+        for back in BACK:
+            assert c.command(back).ok
+        time.sleep(2.0)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--window-s", type=float, default=10.0)
+    ap.add_argument("--detect-timeout-s", type=float, default=120.0)
+    ap.add_argument("--only", default="timing,normal,changes")
+    ap.add_argument("--trajectories", default="sine,step,ramp,hold")
+    args = ap.parse_args()
+    print(f"start: {_uptime()}")
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        proc = start_controller(tmp / "state", rig=RIG, extra_args=(
+            "--realtime-priority", "--disturbance", "article-rig"))
+        try:
+            with Client(proc.endpoint, RIG, timeout_s=30.0) as c:
+                c.wait_ready(proc)
+                heard = Heard(c)
+                for what in args.only.split(","):
+                    {"timing": _timing, "normal": _normal, "changes": _changes}[what](
+                        c, heard, proc.endpoint, args, tmp)
+        finally:
+            proc.stop()
+
+
+if __name__ == "__main__":
+    main()
