@@ -406,8 +406,13 @@ def _program(n_move: int = 50, n_exc: int = 200, **kw: object) -> ExcitationProg
     )
 
 
-def test_program_runs_in_the_tick_records_every_tick_then_holds() -> None:
+def test_program_runs_in_the_tick_records_every_tick_then_the_rig_runs_as_before() -> None:
+    """Issue 33: after a completed identification the rig goes back onto the trajectory it ran
+    before (it stayed on a hold while the dashboard still showed the sine), from where the
+    program ended, with the bounded approach Start uses (no jump)."""
     rt, rig = fake_runtime()
+    before = rt.run_trajectory
+    assert before.kind == "sine" and rt.mode == RUNNING
     prog = _program()
     ticket = rt.submit(RunProgram(prog))
     rt.run(max_ticks=300)
@@ -417,7 +422,17 @@ def test_program_runs_in_the_tick_records_every_tick_then_holds() -> None:
     for k in range(50, 250):
         assert rig.commands[start + k] == pytest.approx(1.0 + prog.b[k])
         assert prog.rec_u[k] == rig.commands[start + k]
-    assert rt.program is None and rt.mode == RUNNING and rt.trajectory.kind == "hold"
+    assert rt.program is None and rt.mode == RUNNING
+    assert rt.trajectory == before == rt.run_trajectory
+    assert rt._ramp.active  # the bounded approach from where the program ended
+    # A program started while stopped ends stopped (holding): Start resumes the trajectory.
+    rt.submit(Stop())
+    more(rt, 1)
+    prog = _program()
+    rt.submit(RunProgram(prog))
+    more(rt, 300)
+    assert prog.state == "done" and rt.mode == STOPPED and rt.trajectory.kind == "hold"
+    assert rt.run_trajectory == before
 
 
 def test_program_window_hit_aborts_to_a_hold_of_the_present_position() -> None:
@@ -427,7 +442,8 @@ def test_program_window_hit_aborts_to_a_hold_of_the_present_position() -> None:
     rt.run(max_ticks=1500)
     assert ticket.ok and prog.state == "aborted" and prog.limit == "window"
     assert "position window" in prog.reason and 50 < prog.n_done < 1000
-    assert rt.program is None and rt.mode == RUNNING
+    # Stopped (holding where it was): the mode says what the rig does; Start resumes.
+    assert rt.program is None and rt.mode == STOPPED
     assert rt.trajectory.kind == "hold" and abs(rt.trajectory.offset_deg) > 0.5
 
 
@@ -472,7 +488,7 @@ def test_program_abort_request_holds_and_stop_stops() -> None:
     t = rt.submit(AbortProgram("test abort"))
     more(rt, 1)
     assert t.ok and prog.state == "aborted" and prog.reason == "test abort"
-    assert rt.program is None and rt.mode == RUNNING and rt.trajectory.kind == "hold"
+    assert rt.program is None and rt.mode == STOPPED and rt.trajectory.kind == "hold"
     assert rt.trajectory.offset_deg == pytest.approx(rig.pos, abs=0.01)
     # nothing to abort: ok, says so
     t = rt.submit(AbortProgram())

@@ -269,6 +269,8 @@ class Runtime:
         self._blk_mode = ""
         self.last_pos_deg = 0.0
         self.program: ExcitationProgram | None = None
+        self._program_from = RUNNING
+        """The mode a program started from: a completed one returns to it (`_end_program`)."""
         self._rig_params0: Any = None
         """The simulated rig's parameters before its first `DriftRig` (None: none yet)."""
         # The watchdog and the configuration it rolls back to.
@@ -531,12 +533,12 @@ class Runtime:
             if mode == RUNNING:
                 u = prog.step(t_s, pos, w, loop)
                 if prog.state == "aborted":
-                    self._end_program(pos)
+                    self._end_program(pos, done=False)
                     u = loop.tick(pos, 0.0, pos, w)
                 else:
                     ref = prog.ref
                     if prog.state == "done":
-                        self._end_program(pos)
+                        self._end_program(pos, done=True)
             else:  # e-stop or fault (engaged at the start of this tick): command 0
                 self._abort_program(f"{mode} ({self.fault or self.estop_source})", mode)
                 loop.tick(pos, 0.0, pos, w)
@@ -650,12 +652,20 @@ class Runtime:
             why = "again after a rollback"
         self._enter_fault(f"watchdog: {trip.reason} ({why})")
 
-    def _end_program(self, pos: float) -> None:
-        """The program is over (done or aborted): the position loop holds `pos` (running)."""
+    def _end_program(self, pos: float, done: bool) -> None:
+        """The program is over. Done, started while running: back onto the trajectory the rig
+        ran before (`run_trajectory`, from `pos` with the bounded approach, as Start does): an
+        identification leaves the rig doing what it did. Aborted (a limit, a request), or
+        started while stopped: stopped, holding `pos` (Start resumes `run_trajectory`), so the
+        mode says what the rig does."""
         self.program = None
         self.loop.reset()
         self.watchdog.reset()
-        self._set_trajectory(Trajectory(kind="hold", offset_deg=pos))
+        if done and self._program_from == RUNNING:
+            self._ramp.begin(pos)
+            self._set_trajectory(self.run_trajectory)
+        else:
+            self._enter_stopped(pos)
 
     def _abort_program(self, reason: str, limit: str) -> None:
         prog = self.program
@@ -745,6 +755,7 @@ class Runtime:
             elif self.mode not in (RUNNING, STOPPED):
                 t.ok, t.message = False, f"mode is {self.mode}: send reset and start first"
             else:
+                self._program_from = self.mode
                 self.mode = RUNNING
                 self._ramp.cancel()
                 b.program.start_seq = next_seq
@@ -755,7 +766,7 @@ class Runtime:
                 t.ok, t.message = True, "no identification running"
             else:
                 self._abort_program(b.reason, "request")
-                self._end_program(pos)
+                self._end_program(pos, done=False)
                 t.ok = True
         elif isinstance(b, EStop):
             t.ok = self.mode == ESTOP

@@ -133,9 +133,11 @@ def test_remote_identification_matches_mp_and_shows_partial_results_while_runnin
     np.testing.assert_allclose(frd.freq_hz, f, rtol=1e-6)
     np.testing.assert_allclose(frd.mag_db, pos.mag_db, atol=1e-4)
     assert (out_dir / "summary.json").exists() and (out_dir / "config_fitted.json").exists()
-    # afterwards the loop holds where the run ended
+    # Afterwards the rig runs the trajectory it ran before (issue 33: it stayed on a hold while
+    # the dashboard's dropdown still said sine, and Suggest then tuned for the hold).
     status = client.fresh_status()
-    assert status.mode == "running" and status.trajectory.kind == "hold"
+    assert status.mode == "running" and status.trajectory.kind == "sine"
+    assert status.trajectory == status.run_trajectory
 
 
 def _start(client: Client, spec: IdentifySpec) -> proto.CommandReply:
@@ -162,15 +164,17 @@ def test_window_hit_aborts_back_to_hold_with_partial_data(
         assert len(pos.freq_hz) == pos.points_done
         summary = json.loads(st.summary_json)
         assert summary["complete"] is False and "position window" in summary["abort_reason"]
-        # back to hold: running, holding, speed ~0 in the state stream
+        # Stopped, holding (the mode says so; Start resumes the trajectory): speed ~0 in the
+        # state stream.
         status = client.fresh_status()
-        assert status.mode == "running" and status.trajectory.kind == "hold"
+        assert status.mode == "stopped" and status.trajectory.kind == "hold"
+        assert status.run_trajectory.kind == "sine"
         first = col.last_seq()
         assert col.wait_for_seq(first + 1500, 10.0)
         tail = [b for _, b in col.batches() if b.seq0 > first + 500]
         speeds = np.concatenate([b.speed_deg_s for b in tail])
         assert abs(float(np.mean(speeds))) < 0.2 and np.max(np.abs(speeds)) < 5.0
-        assert all(b.mode == "running" for b in tail)
+        assert all(b.mode == "stopped" for b in tail)
 
 
 def test_estop_during_identification_aborts_and_zeroes_the_command(
