@@ -4,11 +4,12 @@ browsers, but its handles' `value` reads as a read-only property to a type check
 
 from __future__ import annotations
 
-from typing import TypeVar
+from collections.abc import Callable
+from typing import Protocol, TypeVar
 
 import viser
 
-__all__ = ["ValueHandle", "set_scales", "set_value"]
+__all__ = ["NumberShown", "ValueHandle", "on_press", "set_scales", "set_value"]
 
 T = TypeVar("T")
 
@@ -17,7 +18,15 @@ ValueHandle = (viser.GuiDropdownHandle[str] | viser.GuiTextHandle | viser.GuiChe
                | viser.GuiSliderHandle[float])
 
 
-def set_value(handle: ValueHandle, value: object) -> None:
+class NumberShown(Protocol):
+    """A handle that shows a number (a progress bar: viser does not export its class)."""
+
+    @property
+    def value(self) -> float: ...
+
+
+
+def set_value(handle: ValueHandle | NumberShown, value: object) -> None:
     """`handle.value = value` (viser runs the handle's callbacks at once in this thread and
     sends the value to the browsers)."""
     setattr(handle, "value", value)  # noqa: B010 (the setter, typed here once)
@@ -27,3 +36,14 @@ def set_scales(chart: viser.GuiUplotHandle, scales: dict[str, dict[str, object]]
     """A uPlot chart's scales as the charts build them (plain dicts: `server.charts`), which
     viser types as its own `Scale` TypedDict."""
     setattr(chart, "scales", scales)  # noqa: B010 (typed here once)
+
+
+def on_press(button: viser.GuiButtonHandle,
+             act: Callable[[viser.ClientHandle | None], object]) -> None:
+    """`act(browser)` when `button` is pressed, in the browser that pressed it (what `act`
+    returns is dropped: viser's button callbacks return nothing)."""
+
+    def pressed(event: viser.GuiEvent[viser.GuiButtonHandle]) -> None:
+        act(event.client)
+
+    button.on_click(pressed)

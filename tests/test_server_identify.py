@@ -67,7 +67,7 @@ def test_short_identification_fills_charts_and_shows_fit_and_cutoffs(
     r = p.result
     assert r is not None and r.complete and r.fit is not None and r.nominal is not None
     # charts: 1 position -> |G|, +std, -std, fit; phase + fit; coherence
-    mag = p.charts["identify_mag"].data
+    mag = p.responses.charts["identify_mag"].data
     assert len(mag) == 1 + 3 + 1
     n_meas = r.positions[0].estimate.freq_hz.size  # type: ignore[union-attr]
     assert n_meas >= 4
@@ -76,7 +76,7 @@ def test_short_identification_fills_charts_and_shows_fit_and_cutoffs(
                                                  >= mag[1][np.isfinite(mag[2])])
     assert _finite(mag[4]) >= 50  # the fit on a dense grid
     assert np.all(np.diff(mag[0]) > 0)
-    coh = p.charts["identify_coherence"].data
+    coh = p.responses.charts["identify_coherence"].data
     assert _finite(coh[1]) == n_meas and np.nanmin(coh[1]) > 0.9
     # the simulated rig's M(s)P(s): about 7.1 Hz, zeta about 0.73
     assert 6.4 < r.fit.natural_freq_hz < 7.8
@@ -88,7 +88,7 @@ def test_short_identification_fills_charts_and_shows_fit_and_cutoffs(
     assert "two positions" in html  # agreement needs >= 2
     assert float(p.progress_bar.value) == 100.0
     assert "dt-id-done" in p.status.content and "offline on the simulated rig" in p.status.content
-    assert not p.use_button.disabled and not p.start_button.disabled and p.abort_button.disabled
+    assert not p.use.button.disabled and not p.start_button.disabled and p.abort_button.disabled
 
 
 def test_use_as_nominal_changes_candidate_and_reevaluates_without_apply(
@@ -114,7 +114,7 @@ def test_use_as_nominal_changes_candidate_and_reevaluates_without_apply(
     # No controller here: its plant knowledge (the only one judged on) cannot take the
     # responses, and the dashboard says so instead of judging on knowledge of its own.
     assert not dash.engine.measured
-    assert "Apply" in short_run.use_result.content
+    assert "Apply" in short_run.use.result.content
     assert "dt-nominal-fitted" in t.cutoff_text.content  # the Tune tab says so
     wait_for(lambda: "not adopted by the controller" in dash.knowledge.text.content, 15.0)
     # Revert drops it
@@ -133,21 +133,21 @@ def test_abort_mid_run_keeps_partial_data_marked_incomplete(dash: Dashboard) -> 
     assert p.start(slow)
     assert not p.start(slow)  # a second start while running is refused (server-side check)
     assert "already" in p.status.content
-    wait_for(lambda: len(p.curves) >= 1, 30.0)  # the first position is on the chart
-    assert _finite(p.charts["identify_mag"].data[1]) > 0
+    wait_for(lambda: len(p.responses.curves) >= 1, 30.0)  # the first position is on the chart
+    assert _finite(p.responses.charts["identify_mag"].data[1]) > 0
     assert p.abort()
     assert p.wait_done(10.0)
     assert p.state == ABORTED
     r = p.result
     assert r is not None and not r.complete and r.fit is None
     assert 1 <= sum(1 for q in r.positions if q.complete) < 3
-    mag = p.charts["identify_mag"].data
+    mag = p.responses.charts["identify_mag"].data
     assert len(mag) == 1 + 3 * 3 + 1
     assert _finite(mag[1]) > 0  # position 1 still drawn
     assert _finite(mag[-1]) == 0  # no fit
     assert "INCOMPLETE" in p.result_html.content and "INCOMPLETE" in p.status.content
-    assert "dt-id-aborted" in p.status.content and "INCOMPLETE" in p.chart_note.content
-    assert p.use_button.disabled and not p.use_as_nominal()
+    assert "dt-id-aborted" in p.status.content and "INCOMPLETE" in p.responses.note.content
+    assert p.use.button.disabled and not p.use_as_nominal()
     assert not p.abort()  # nothing running any more
 
 
@@ -176,7 +176,7 @@ def test_the_panels_fields_are_generated_from_the_spec(dash: Dashboard) -> None:
     assert p is not None
     assert p.settings().spec() == IdentifySpec()  # the panel starts at the spec's defaults
     for f in DASHBOARD_FIELDS:
-        assert p.fields[f.name].hint == f.param.help, f.name  # the spec's help text
+        assert p.form.fields[f.name].hint == f.param.help, f.name  # the spec's help text
 
 
 def test_identify_chart_data_pure() -> None:
@@ -198,7 +198,7 @@ def test_identify_chart_data_pure() -> None:
 def test_partial_controller_status_is_drawn_with_its_band(dash: Dashboard) -> None:
     p = dash.identify
     assert p is not None and p.state != "running"
-    n = p._chart_n
+    n = p.responses.n
     pos = proto.PositionResponse(
         index=0, center_deg=0.0, complete=False, points_done=2, points_total=5,
         freq_hz=[0.5, 1.0], mag_db=[-1.0, -3.0], phase_deg=[-20.0, -45.0],
@@ -207,20 +207,20 @@ def test_partial_controller_status_is_drawn_with_its_band(dash: Dashboard) -> No
     st = proto.IdentifyStatus(rig="r", state="running", run_id=1, progress=0.3,
                               positions=[pos])
     st = proto.decode(proto.encode(st), proto.IdentifyStatus)  # as it comes over the wire
-    before = p.chart_updates
+    before = p.responses.updates
     drawn = p.show_partial(st, n, LoopConfig().nominal)
-    assert drawn == (2,) and p.chart_updates == before + 1
-    mag = p.charts["identify_mag"].data
+    assert drawn == (2,) and p.responses.updates == before + 1
+    mag = p.responses.charts["identify_mag"].data
     x = list(mag[0])
     assert x == [0.5, 1.0]
     np.testing.assert_allclose(mag[1], [-1.0, -3.0])  # the curve
     np.testing.assert_allclose(mag[2], [-0.8, -2.6])  # band: + std
     np.testing.assert_allclose(mag[3], [-1.2, -3.4])  # band: - std
     assert charts.identify_chart_specs(n)[0].extra["bands"]  # drawn as a band
-    np.testing.assert_allclose(p.charts["identify_coherence"].data[1], [0.99, 0.98])
+    np.testing.assert_allclose(p.responses.charts["identify_coherence"].data[1], [0.99, 0.98])
     # the same status again: nothing redrawn
     assert p.show_partial(st, n, LoopConfig().nominal, drawn) == drawn
-    assert p.chart_updates == before + 1
+    assert p.responses.updates == before + 1
 
 
 # -- on the controller ----------------------------------------------------------------------------
@@ -268,7 +268,7 @@ def test_short_identification_on_the_controller(
     assert v is not None and v.complete and v.fit is not None and v.nominal is not None
     assert 6.4 < v.fit.natural_freq_hz < 7.8
     assert v.recommended_cutoff_hz.get("q31") is not None
-    mag = p.charts["identify_mag"].data
+    mag = p.responses.charts["identify_mag"].data
     assert _finite(mag[1]) >= 4 and _finite(mag[-1]) >= 50
     html = p.result_html.content
     assert "Fit Mn Pn" in html and "Q31" in html and "Q20" in html
@@ -295,7 +295,7 @@ def test_abort_on_the_controller_keeps_partial_data(remote_dash: Dashboard) -> N
     v = p.view
     assert v is not None and not v.complete and v.fit is None and v.nominal is None
     assert v.positions_done == 1
-    assert _finite(p.charts["identify_mag"].data[1]) >= 4  # position 1 still drawn
+    assert _finite(p.responses.charts["identify_mag"].data[1]) >= 4  # position 1 still drawn
     assert "INCOMPLETE" in p.result_html.content and "INCOMPLETE" in p.status.content
     assert not p.use_as_nominal()
     st = remote_dash.client.status
