@@ -193,7 +193,7 @@ LOOP_MAG_CHART = bode_spec(
     (_margin_line("gain margin", GM_COLOR), "mark.gm1"),
     (_margin_line("gain margin, 2nd -180 deg crossing", GM_COLOR), "mark.gm2"),
     axes=(HZ_AXIS, {"label": "dB", "scale": "y", "space": 20, "incrs": _DB_INCRS}),
-    height=150,
+    height=135,  # (with 125 below: Decide fits 1080 px over the E-STOP's strip)
     extra={"cursor": LOOP_CURSOR},
 )
 LOOP_PHASE_CHART = bode_spec(
@@ -205,7 +205,7 @@ LOOP_PHASE_CHART = bode_spec(
     (_margin_line("phase margin", PM_COLOR, scale="deg"), "mark.pm"),
     scales={"x": LOG_X["x"], "deg": {"auto": True}},
     axes=(HZ_AXIS, {"label": "deg", "scale": "deg", "space": 20, "incrs": _DEG_INCRS}),
-    height=140,
+    height=125,
     extra={"cursor": LOOP_CURSOR},
 )
 _LOOP_KEYS = (LOOP_MAG_CHART.key, LOOP_PHASE_CHART.key)
@@ -358,7 +358,7 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         "where the DOB helps, < 0 dB where it costs (waterbed)",
         (line_series("candidate", CANDIDATE), "cand.rejection_db"),
         (line_series("active", ACTIVE, dash=DASH_ACTIVE), "act.rejection_db"),
-        height=110,
+        height=105,
         axes=(HZ_AXIS, SMALL_DB_AXIS),
         extra={"y_step": 5.0, "y_clip": (-20.0, 20.0)},  # the waterbed (-2 dB) legible
     ),
@@ -370,7 +370,7 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         (line_series("|S| whole servo", CANDIDATE, dash=DASH_NO_DOB, width=1.0), "cand.s_full_db"),
         (line_series("|T| whole servo", NO_DOB, dash=DASH_NO_DOB, width=1.0), "cand.t_full_db"),
         (line_series("|S| active", ACTIVE, dash=DASH_ACTIVE), "act.s_db"),
-        height=120,
+        height=110,
         axes=(HZ_AXIS, SMALL_DB_AXIS),
         extra={"y_step": 5.0, "y_clip": (-20.0, 20.0)},  # the peak (~3 dB) legible
     ),

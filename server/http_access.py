@@ -89,18 +89,25 @@ class _ViewReportAnswered(logging.Filter):
 _VIEW_REPORT_ANSWERED = _ViewReportAnswered()
 
 
+#: The strip at the bottom of the window that holds the E-STOP: viser's app ends above it (the
+#: E-STOP floated over the plots and covered the bottom chart's axis and title).
+ESTOP_STRIP_PX = 52
+
+
 def estop_link_html(token: str) -> str:
     """The page's E-STOP (put into the page itself, outside viser's panels, which unmount what
-    they collapse): fixed to the window above everything, whatever is collapsed or scrolled; a
-    link with the token of the page's user into a hidden frame, so it needs neither script nor
-    websocket."""
+    they collapse): fixed to the window above everything, whatever is collapsed or scrolled, in
+    a strip of its own under viser's app (`ESTOP_STRIP_PX`: it covers nothing); a link with the
+    token of the page's user into a hidden frame, so it needs neither script nor websocket."""
     return (
+        f"<style>#root{{height:calc(100% - {ESTOP_STRIP_PX}px) !important}}</style>"
         f"<a class='dt-estop-fixed' href='{ESTOP_PATH}?token={esc(quote(token))}' "
         "target='dt-estop-frame' title='E-STOP: "
-        "speed command 0 and drive disabled' style='position:fixed;left:50%;bottom:18px;"
+        "speed command 0 and drive disabled' style='position:fixed;left:50%;bottom:4px;"
         "transform:translateX(-50%);z-index:2147483647;background:#d62728;color:#fff;"
-        "font:bold 22px sans-serif;letter-spacing:1px;padding:14px 34px;border-radius:8px;"
-        "border:3px solid #7f0000;box-shadow:0 2px 10px rgba(0,0,0,.35);text-decoration:none'>"
+        "font:bold 20px sans-serif;letter-spacing:1px;padding:8px 34px;border-radius:8px;"
+        "border:3px solid #7f0000;box-shadow:0 1px 4px rgba(0,0,0,.35);text-decoration:none;"
+        "line-height:22px'>"
         "E-STOP</a><iframe name='dt-estop-frame' title='e-stop answer' style='display:none'>"
         "</iframe>"
     )
