@@ -643,8 +643,8 @@
   // (the Bode tab then opened on Decide). An entry waits, with no clock running, while its
   // strip is not on screen or while it sits in a tab that is not shown (Nyquist of the Bode
   // tab while Live traces is shown); once its tab is on screen it is activated until seen
-  // selected, given up only after TRY_N activations and TRY_MS (both: a loaded page runs few
-  // ticks). A strip comes before all its tabs (under load "Live traces" came seconds after
+  // selected (and held so, below), given up only after TRY_N activations and TRY_MS (both: a
+  // loaded page runs few ticks). A strip comes before all its tabs (under load "Live traces" came seconds after
   // "Bode"): a tab not there yet is waited for, never given up. A user's own pick in a group
   // ends that group's entry (the page never takes a tab back from the user). Entries never
   // drawn (a group this page does not have, a label no group has) cost nothing: the URL keeps
@@ -652,7 +652,14 @@
   let want = parseView(location.hash); // read now: viser rewrites the URL when it starts
   const TRY_MS = 30000;
   const TRY_N = 60;
-  let tries = {}; // fragment key -> { since, n }: since its tab was first seen, activations
+  // Seen selected is not done at once: under load the dock went back to its first tab after
+  // the URL's had been selected (plot=Bode, with the URL asking for Live traces). An entry is
+  // held, and its tab selected again, until seen selected over HOLD_MS and HOLD_TICKS.
+  const HOLD_MS = 60000;
+  const HOLD_TICKS = 20;
+  // fragment key -> { since, n, held, heldTicks }: since its tab was first seen, activations,
+  // since when it has been seen selected (0: it is not) and in how many ticks.
+  let tries = {};
 
   const selectedIn = (tabs) => (tabs || []).find((t) => t.getAttribute("aria-selected") === "true");
   const onScreen = (tabs) => !!tabs && tabs.some((t) => t.getClientRects().length > 0 &&
@@ -687,13 +694,18 @@
       if (!onScreen(tabs)) continue; // not drawn or hidden: no clock runs
       const tab = tabs.find((x) => tabLabel(x) === label);
       if (!tab) continue; // not drawn yet: no clock runs
-      const t = tries[key] || (tries[key] = { since: Date.now(), n: 0 });
+      const t = tries[key] || (tries[key] = { since: Date.now(), n: 0, held: 0, heldTicks: 0 });
       let done = false;
-      if (tab.getAttribute("aria-selected") === "true") done = true;
-      else if (t.n >= TRY_N && Date.now() - t.since > TRY_MS) {
+      if (tab.getAttribute("aria-selected") === "true") {
+        if (!t.held) t.held = Date.now();
+        t.heldTicks++;
+        done = Date.now() - t.held > HOLD_MS && t.heldTicks >= HOLD_TICKS;
+      } else if (t.n >= TRY_N && Date.now() - t.since > TRY_MS) {
         console.warn("dobtune: the tab from the URL was not selected:", key, label);
         done = true;
       } else {
+        t.held = 0;
+        t.heldTicks = 0;
         t.n++;
         activate(tab);
       }
