@@ -299,4 +299,4 @@ def test_abort_on_the_controller_keeps_partial_data(remote_dash: Dashboard) -> N
     assert "INCOMPLETE" in p.result_html.content and "INCOMPLETE" in p.status.content
     assert not p.use_as_nominal()
     st = remote_dash.client.status
-    assert st is not None and st.mode == "running"  # the controller holds; no fault
+    assert st is not None and st.mode == "stopped"  # the controller holds (stopped); no fault

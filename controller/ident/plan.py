@@ -71,11 +71,13 @@ __all__ = [
     "Segment",
     "check_duration",
     "check_rate",
+    "excitation_text",
     "move_label",
     "move_profile",
     "move_ticks",
     "plan_program",
     "plan_segments",
+    "plan_text",
     "planned_ticks",
     "segment_label",
     "segments_done",
@@ -453,8 +455,37 @@ def segment_label(exc: Excitation, seg: Segment, i: int, n_pos: int, n_seg: int)
         f = exc.points[seg.point].freq_hz
         what = f"{f:.3g} Hz ({seg.point + 1}/{n_seg})"
     else:
-        what = f"multisine {exc.freq_hz[0]:.3g}-{exc.freq_hz[-1]:.3g} Hz"
+        what = excitation_text(exc)
     return f"position {i + 1}/{n_pos}: {what}, {seg.amplitude:.2g} deg/s"
+
+
+def excitation_text(exc: Excitation) -> str:
+    """The excitation's band as the progress text names it (`segment_label`)."""
+    if isinstance(exc, SteppedSine):
+        f = [pt.freq_hz for pt in exc.points]
+        return f"stepped sine {min(f):.3g}-{max(f):.3g} Hz ({len(f)} frequencies)"
+    return f"multisine {exc.freq_hz[0]:.3g}-{exc.freq_hz[-1]:.3g} Hz"
+
+
+def plan_text(spec: IdentifySpec, cfg: LoopConfig, start_deg: float) -> str:
+    """What a run will do, in the words and numbers its progress text will use: the band,
+    the amplitude planned (lower than the spec's when each segment must stay within the
+    position window: then both), the positions and the planned duration from `start_deg`.
+    ConfigError (naming the spec field) if it cannot be planned."""
+    plan = plan_program(spec, cfg, start_deg)
+    _, segments = plan_segments(spec, cfg)
+    amps = [seg.amplitude for seg in segments]
+    lo, hi = f"{min(amps):.2g}", f"{max(amps):.2g}"
+    amp = f"{lo} deg/s" if lo == hi else f"{lo}-{hi} deg/s"
+    if max(amps) < spec.amplitude_deg_s * (1.0 - 1e-9):
+        pitch = (f" and keeps the {spec.periodic_pitch_deg:g} deg tooth pitch"
+                 if spec.periodic_pitch_deg else "")
+        amp += (f" ({spec.amplitude_deg_s:g} deg/s asked: lowered so that each segment's "
+                f"travel stays within the {spec.window_deg:g} deg position window{pitch})")
+    n_pos = len(spec.centers_deg)
+    duration_s = plan.seg_end[-1] / cfg.rate_hz
+    return (f"{excitation_text(plan.excitation)}, {amp}, at {n_pos} position(s), about "
+            f"{duration_s:.0f} s (moves included, from {start_deg:.3g} deg)")
 
 
 def move_label(i: int, n_pos: int, center_deg: float, first: bool) -> str:

@@ -44,7 +44,7 @@ from controller.core.errors import ConfigError
 from controller.gate.knowledge import MeasuredResponse
 from controller.ident.engine import RigLike
 from controller.ident.offline import run_offline, sim_rig
-from controller.ident.plan import check_rate
+from controller.ident.plan import check_rate, plan_text
 from controller.ident.result import IdentifyResult
 from controller.ident.spec import IdentifySpec
 from server.escape import esc
@@ -223,13 +223,19 @@ class IdentifyPanel:
         if s.where != WHERE_CONTROLLER or self.client is None:
             self.start(s, browser)
             return
-        v = s.values
+        # The run as planned, in the progress text's words (the amplitude the plan allows,
+        # not the one asked; the band; the duration from where the load is now).
+        try:
+            spec = s.spec()
+            last = self.client.ring.latest()
+            start_deg = last["pos_deg"] if last is not None else spec.centers_deg[0]
+            what = plan_text(spec, self._config_fn(), start_deg)
+        except ConfigError as exc:
+            self._tell(browser, f"not started: {exc}")
+            return
         confirm(self.gui, browser, "Start the identification?",
-                f"<b>The rig moves</b> (rig {esc(self.client.opts.rig_name)}): "
-                f"{esc(str(v.get('signal', '')))} excitation of "
-                f"{esc(str(v.get('amplitude_deg_s', '')))} deg/s at "
-                f"{esc(str(v.get('positions', '')))} position(s), within the position window "
-                "and the duration limit; E-STOP aborts.",
+                f"<b>The rig moves</b> (rig {esc(self.client.opts.rig_name)}): {esc(what)}; "
+                "within the position window and the duration limit; E-STOP aborts.",
                 "Start identification", lambda who: self.start(s, who), ok_color="green")
 
     def start(self, settings: IdentifySettings | None = None, browser: Browser = None) -> bool:

@@ -6,6 +6,7 @@ re-evaluates; nothing is applied). Screenshots go to test-artifacts/identify_*.p
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -57,10 +58,18 @@ def test_identify_short_run_in_the_browser(
     before = probe.get_config()
     page.get_by_role("button", name="Start identification").click()
     page.wait_for_selector("text=Start the identification?", timeout=10_000)  # the rig moves
-    assert "The rig moves" in page.locator(".dt-confirm").last.inner_text()
+    asked = page.locator(".dt-confirm").last.inner_text()
+    assert "The rig moves" in asked
+    # The run as the progress text will name it (issue 33: the confirmation said the asked
+    # 10 deg/s while the run moved at 3), and its planned duration.
+    said = re.search(r"(multisine [0-9.]+-[0-9.]+ Hz, [0-9.]+ deg/s)", asked)
+    assert said is not None and re.search(r"about \d+ s", asked), asked
     assert probe.get_config().version == before.version and ident.state != "running"
     page.get_by_role("button", name="Start identification").last.click()
     page.wait_for_selector(".dt-identify-status.dt-id-running", timeout=15_000)
+    page.wait_for_function(
+        "(t) => document.querySelector('.dt-identify-status').innerText.includes(t)",
+        arg=said[1], timeout=30_000)  # the progress names the same band and amplitude
     page.wait_for_function(
         "() => /\\d+ %/.test(document.querySelector('.dt-identify-status').innerText)",
         timeout=10_000)  # progress from the controller's status
