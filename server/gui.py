@@ -9,7 +9,9 @@ from typing import Protocol, TypeVar
 
 import viser
 
-__all__ = ["NumberShown", "ValueHandle", "on_press", "set_scales", "set_value"]
+from controller.core.arrays import FloatArray
+
+__all__ = ["NumberShown", "ValueHandle", "add_uplot", "on_press", "set_scales", "set_value"]
 
 T = TypeVar("T")
 
@@ -47,3 +49,15 @@ def on_press(button: viser.GuiButtonHandle,
         act(event.client)
 
     button.on_click(pressed)
+
+
+def add_uplot(gui: viser.GuiApi, *, data: tuple[FloatArray, ...],
+              series: tuple[dict[str, object], ...], scales: dict[str, dict[str, object]],
+              axes: tuple[dict[str, object], ...], title: str | None, height: float | None,
+              aspect: float, bands: object, cursor: object,
+              padding: tuple[int, int, int, int]) -> viser.GuiUplotHandle:
+    """`gui.add_uplot(...)` with a chart's series, scales, axes, bands and cursor as the charts
+    build them (plain dicts: `server.charts`), which viser types as its own TypedDicts."""
+    add: Callable[..., viser.GuiUplotHandle] = gui.add_uplot  # (the TypedDicts: typed here once)
+    return add(data=data, series=series, scales=scales, axes=axes, title=title, height=height,
+               aspect=aspect, bands=bands, cursor=cursor, padding=padding)

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
 
 import numpy as np
+import viser
 
 __all__ = ["TurntableScene", "belt_path"]
 
@@ -47,7 +47,8 @@ def belt_path(n: int = 200) -> tuple[np.ndarray, float]:
     return pts, float(seg.sum())
 
 
-def _add_pulley(scene: Any, wheel: str, mark: str, radius: float, mark_width: float) -> None:
+def _add_pulley(scene: viser.SceneApi, wheel: str, mark: str, radius: float,
+                mark_width: float) -> None:
     """A pulley at belt height in its parent frame, with a radial mark to see it turn."""
     scene.add_cylinder(wheel, radius=radius, height=0.025, color=(180, 140, 60),
                        position=(0.0, 0.0, BELT_Z))
@@ -59,7 +60,7 @@ class TurntableScene:
     """Scene handles; `update(load_deg, ref_deg)` only moves existing nodes (at most
     SCENE_RATE_HZ times a second)."""
 
-    def __init__(self, scene: Any) -> None:
+    def __init__(self, scene: viser.SceneApi) -> None:
         self.scene = scene
         self._path, self._length = belt_path()
         seg = np.linalg.norm(np.diff(self._path, axis=0), axis=1)

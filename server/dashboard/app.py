@@ -25,9 +25,9 @@ import logging
 import secrets
 import signal
 import threading
+import types
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import viser
 
@@ -87,7 +87,7 @@ def stop_requested() -> Iterator[threading.Event]:
     """An event set by SIGINT or SIGTERM while the block runs (the old handlers come back)."""
     stop = threading.Event()
 
-    def _handler(signum: int, _frame: Any) -> None:
+    def _handler(signum: int, _frame: types.FrameType | None) -> None:
         stop.set()  # nothing else here: a signal handler must not take locks (logging does)
 
     old = {s: signal.signal(s, _handler) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -141,7 +141,7 @@ class Dashboard:
         """Where each browser's candidate is built (the shared GUI's tabs, once built)."""
         self.access.on_estop = self.commands.estop_from_link
         self.access.page_extra = title_html(opts.rig_name)
-        self.server: Any = None
+        self.server: viser.ViserServer | None = None
         self.messages: MessageGate | None = None
         """The judge of every message a browser sends (built with the server)."""
         self.identify: IdentifyPanel | None = None
@@ -229,7 +229,7 @@ class Dashboard:
         self.sessions.close()
         self.client.__exit__(None, None, None)
 
-    def open_view(self, rig: str, browser: Any = None) -> str:
+    def open_view(self, rig: str, browser: viser.ClientHandle | None = None) -> str:
         """The full view of `rig` (another dashboard in this process, on a free port of the
         same host, with the same endpoints and credentials); its URL for `browser`'s user
         (with several users, each their own token: a viewer never gets an operator's)."""
@@ -254,12 +254,13 @@ class Dashboard:
 
     # -- a browser's candidate (the public way in for scripts and tests) -------------------------
 
-    def panel_in(self, gui: Any, browser: Any = None) -> NominalTuningPanel:
+    def panel_in(self, gui: viser.GuiApi,
+                 browser: viser.ClientHandle | None = None) -> NominalTuningPanel:
         """A candidate panel of its own in `gui` (`Candidates.panel_in`)."""
         assert self._place is not None, "the dashboard's GUI is not built yet"
         return self.candidates.panel_in(gui, self._place, browser)
 
-    def panel_of(self, browser: Any) -> NominalTuningPanel | None:
+    def panel_of(self, browser: viser.ClientHandle | None) -> NominalTuningPanel | None:
         """The candidate panel of `browser` (None: the one built without a browser)."""
         return self.candidates.panel_of(browser)
 
@@ -389,7 +390,7 @@ class Dashboard:
         for browser in self.pages.note_view(page, live_shown):
             self.live.show_in(browser)
 
-    def _on_client_disconnect(self, client: Any) -> None:
+    def _on_client_disconnect(self, client: viser.ClientHandle) -> None:
         self.sessions.left(client.client_id)
         if self.messages is not None:
             self.messages.forget(client.client_id)
@@ -421,7 +422,7 @@ class Dashboard:
             self.scene.update(latest["pos_deg"], latest["ref_deg"])
 
 
-def _is_export_row(handle: Any) -> bool:
+def _is_export_row(handle: object) -> bool:
     """A chart's Export row (server/panels/widgets.py): its CSV goes to the browser that
     pressed it alone, so any role may press it."""
     return (isinstance(handle, viser.GuiButtonGroupHandle) and handle.label == EXPORT_LABEL

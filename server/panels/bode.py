@@ -19,6 +19,7 @@ from controller.core.verdict import VerdictMargins
 from server import charts
 from server.engine import Comparison, Evaluation
 from server.escape import esc
+from server.gui import set_scales
 from server.panels.widgets import ACCEPT, CAUTION, REJECT, add_chart, box, reason_list, set_html
 from server.suggest import SUGGEST_CHART, suggest_data
 
@@ -141,7 +142,7 @@ class BodeTab:
             self.suggest_note = gui.add_html(SUGGEST_NOTE)
             empty = suggest_data(None)
             self.suggest_chart = add_chart(gui, SUGGEST_CHART, empty)
-            self.suggest_chart.scales = charts.ranged_scales(SUGGEST_CHART, empty)
+            set_scales(self.suggest_chart, charts.ranged_scales(SUGGEST_CHART, empty))
             self.suggest_chart.visible = False
         self.tabs = tabs
 

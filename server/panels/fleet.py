@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Any
+
+import viser
 
 from controller.client.fleet import FleetMonitor, RigRow
 from server.escape import esc, href
+from server.gui import on_press, set_value
 from server.panels.widgets import set_html
 from server.workers import Periodic
 
@@ -70,8 +72,9 @@ def fleet_table_html(rows: list[RigRow]) -> str:
 class FleetPanel:
     """The Fleet tab: the table, an E-STOP for any rig, a full view of any rig."""
 
-    def __init__(self, gui: Any, monitor: FleetMonitor,
-                 open_view: Callable[[str, Any], str], rate_hz: float = 2.0) -> None:
+    def __init__(self, gui: viser.GuiApi, monitor: FleetMonitor,
+                 open_view: Callable[[str, viser.ClientHandle | None], str],
+                 rate_hz: float = 2.0) -> None:
         """`open_view(rig, browser)`: the URL of `rig`'s full view for that browser's user."""
         self.gui = gui
         self.monitor = monitor
@@ -86,8 +89,8 @@ class FleetPanel:
         self.estop_button = gui.add_button("E-STOP this rig", color="red")
         self.open_button = gui.add_button("Open its full view", color="gray")
         self.result = gui.add_html("<div class='dt-fleet-result'></div>")
-        self.estop_button.on_click(lambda _e: self.estop(str(self.pick.value)))
-        self.open_button.on_click(lambda e: self.open(str(self.pick.value), e.client))
+        on_press(self.estop_button, lambda _browser: self.estop(str(self.pick.value)))
+        on_press(self.open_button, lambda browser: self.open(str(self.pick.value), browser))
 
     def start(self) -> None:
         self._updater.start()
@@ -102,7 +105,7 @@ class FleetPanel:
         if tuple(self.pick.options) != options:
             keep = self.pick.value if self.pick.value in options else options[0]
             self.pick.options = options
-            self.pick.value = keep
+            set_value(self.pick, keep)
         self.refreshes += 1
 
     def estop(self, rig: str) -> bool:
@@ -116,7 +119,7 @@ class FleetPanel:
                                f"to {esc(rig)}.</div>")
         return True
 
-    def open(self, rig: str, browser: Any = None) -> str:
+    def open(self, rig: str, browser: viser.ClientHandle | None = None) -> str:
         """Open (or find) the full view of `rig`; its address is shown as a link."""
         if rig not in self.monitor.rigs():
             self.result.content = ("<div class='dt-fleet-result' style='color:#d62728'>No such "

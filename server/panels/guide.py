@@ -25,9 +25,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
+import viser
 
 from controller import protocol as proto
 from controller.client import ControllerClient
@@ -36,7 +36,8 @@ from server.escape import esc
 from server.panels.identify import ABORTED, DONE, FAILED, RUNNING, IdentifyPanel
 from server.panels.tuning import StepState, TuningPanel
 from server.panels.widgets import set_html
-from server.workers import Periodic, run_logged
+from server.session import tell
+from server.workers import Periodic
 
 __all__ = ["GUIDE_STEPS", "GuidePanel", "Watch", "guide_html"]
 
@@ -138,7 +139,7 @@ def guide_html(steps: list[tuple[str, str, StepState]]) -> str:
 class GuidePanel:
     """The guided path of one browser (built into the current GUI container)."""
 
-    def __init__(self, gui: Any, tuning: TuningPanel, identify: IdentifyPanel | None,
+    def __init__(self, gui: viser.GuiApi, tuning: TuningPanel, identify: IdentifyPanel | None,
                  client: ControllerClient, period_s: float = 0.25) -> None:
         self.gui = gui
         self.tuning = tuning
@@ -172,7 +173,7 @@ class GuidePanel:
 
     # -- the buttons: the existing pieces' own actions ---------------------------------------------
 
-    def _on_click(self, event: Any) -> None:
+    def _on_click(self, event: viser.GuiEvent[viser.GuiButtonGroupHandle]) -> None:
         what, browser = event.target.value, event.client
         if what == "Measure" and self.identify is not None:
             self.identify.ask_start(browser)
@@ -189,11 +190,8 @@ class GuidePanel:
         self.refresh()
 
     @staticmethod
-    def _tell(browser: Any, text: str) -> None:
-        if browser is not None:
-            run_logged(lambda: browser.add_notification("Guided tuning", text, color="orange",
-                                                        auto_close_seconds=8.0),
-                       what="telling a browser")
+    def _tell(browser: viser.ClientHandle | None, text: str) -> None:
+        tell(browser, "Guided tuning", text, "orange")
 
     # -- the states -----------------------------------------------------------------------------
 

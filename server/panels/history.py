@@ -6,13 +6,15 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from typing import Any
+
+import viser
 
 from controller import protocol as proto
 from controller.client import ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig
 from controller.core.verdict import kind_of
 from server.escape import esc
+from server.gui import set_value
 from server.panels.bode import fmt_value, gain_margin_items
 from server.panels.nominal_tuning import NominalTuningPanel
 from server.panels.tuning import config_diff_html
@@ -27,8 +29,9 @@ log = logging.getLogger(__name__)
 class HistoryPanel:
     """Fetched again whenever the controller's configuration version moves (`follow`)."""
 
-    def __init__(self, gui: Any, client: ControllerClient, requests: Requests,
-                 panel_of: Callable[[Any], NominalTuningPanel | None]) -> None:
+    def __init__(self, gui: viser.GuiApi, client: ControllerClient, requests: Requests,
+                 panel_of: Callable[[viser.ClientHandle | None], NominalTuningPanel | None],
+                 ) -> None:
         """`panel_of(browser)`: that browser's candidate panel."""
         self.gui = gui
         self.client = client
@@ -83,9 +86,9 @@ class HistoryPanel:
             + "".join(rows) + "</table></div>")
         options = tuple(f"v{v}" for v in sorted(self.versions, reverse=True)) or ("-",)
         self.pick.options = options
-        self.pick.value = options[0]
+        set_value(self.pick, options[0])
         self.other.options = options
-        self.other.value = options[min(1, len(options) - 1)]
+        set_value(self.other, options[min(1, len(options) - 1)])
         self.show_diff()
 
     def _chosen(self, value: str) -> LoopConfig | None:
@@ -100,7 +103,7 @@ class HistoryPanel:
             return
         self.diff.content = config_diff_html(old, new, a, b, cls="dt-version-diff")
 
-    def use_version(self, browser: Any = None) -> None:
+    def use_version(self, browser: viser.ClientHandle | None = None) -> None:
         """Load the chosen version into the candidate of the browser that asked."""
         t = self._panel_of(browser)
         value = str(self.pick.value)

@@ -39,6 +39,7 @@ from controller.recording.mcap_io import Recording, read_recording, read_recordi
 from controller.recording.report import REVERSAL_WINDOW_S, metrics
 from server.charts import CANDIDATE, NO_DOB, ChartSpec, minmax_decimate, ranged_scales
 from server.escape import esc
+from server.gui import set_scales
 from server.http_access import Refused
 from server.panels.widgets import NEUTRAL, add_chart, box, set_html
 
@@ -390,7 +391,7 @@ class CompareView:
         for attr, spec in (("chart", OVERLAY_CHART), ("ref_chart", REFERENCE_CHART)):
             empty = (np.array([0.0, 1.0]), np.full(2, np.nan), np.full(2, np.nan))
             handle = add_chart(gui, spec, empty)
-            handle.scales = ranged_scales(spec, empty)
+            set_scales(handle, ranged_scales(spec, empty))
             setattr(self, attr, handle)
         self.scrub = gui.add_slider(
             "Replay at (s)", min=0.0, max=1.0, step=0.1, initial_value=1.0,

@@ -5,19 +5,25 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Iterable
+from typing import Literal
+
+import viser
 
 from controller.core.arrays import FloatArray
 from server import viser_adapter
 from server.charts import ChartSpec
 from server.escape import esc
 from server.export import chart_csv, export_filename
+from server.gui import add_uplot
 
 __all__ = ["ACCEPT", "EXPORT_LABEL", "NEUTRAL", "REJECT", "add_chart", "add_export_row", "box",
            "confirm", "parse_number", "reason_list", "send_data", "set_html"]
 
 log = logging.getLogger(__name__)
+
+#: The colours a dialog's OK button is drawn in (viser's names).
+ButtonColor = Literal["orange", "green", "red", "blue"]
 
 #: (border, background) of a status box.
 ACCEPT = ("#2ca02c", "#eaf7ea")
@@ -37,29 +43,29 @@ PADDING = (12, 24, 0, 0)
 
 
 def add_chart(
-    gui: Any, spec: ChartSpec, data: tuple[FloatArray, ...], *, aspect: float = 2.0,
-    **options: Any,
-) -> Any:
+    gui: viser.GuiApi, spec: ChartSpec, data: tuple[FloatArray, ...], *, aspect: float = 2.0,
+    cursor: dict[str, object] | None = None,
+) -> viser.GuiUplotHandle:
     """A uPlot handle built from `spec` (its bands too, if any), with its Export row under it;
     afterwards assign `.data`. `gui`: the shared `server.gui` or one browser's `client.gui`;
     either way a CSV goes only to the browser whose button was pressed."""
-    options.setdefault("cursor", spec.extra.get("cursor"))
-    options.setdefault("padding", PADDING)
-    chart = gui.add_uplot(
-        data=data, series=spec.series, scales=spec.scales, axes=spec.axes, title=spec.title,
-        height=spec.height, aspect=aspect, bands=spec.extra.get("bands"), **options,
+    chart = add_uplot(
+        gui, data=data, series=spec.series, scales=spec.scales, axes=spec.axes,
+        title=spec.title, height=spec.height, aspect=aspect, bands=spec.extra.get("bands"),
+        cursor=cursor if cursor is not None else spec.extra.get("cursor"), padding=PADDING,
     )
     add_export_row(gui, spec, chart)
     return chart
 
 
-def add_export_row(gui: Any, spec: ChartSpec, chart: Any) -> Any:
+def add_export_row(gui: viser.GuiApi, spec: ChartSpec,
+                   chart: viser.GuiUplotHandle) -> viser.GuiButtonGroupHandle:
     """The compact row under `chart`: "CSV" (made here from the chart's present data and sent
     to the browser that pressed it); the page's script adds "PNG" beside it (drawn in the
     browser from the chart's canvas). `chart.remove()` removes the row too."""
     row = gui.add_button_group(EXPORT_LABEL, ("CSV",), hint=EXPORT_HINT)
 
-    def send_csv(event: Any) -> None:
+    def send_csv(event: viser.GuiEvent[viser.GuiButtonGroupHandle]) -> None:
         # Nothing of the message is used (its value is whatever the sender wrote): a press is
         # a request for this chart's data, for the browser that pressed.
         browser = event.client
@@ -77,18 +83,20 @@ def add_export_row(gui: Any, spec: ChartSpec, chart: Any) -> Any:
         row.remove()
         remove_chart()
 
-    chart.remove = remove  # the row goes with its chart (panels re-create charts)
+    # the row goes with its chart (panels re-create charts)
+    setattr(chart, "remove", remove)  # noqa: B010 (a method replaced: typed here once)
     return row
 
 
-def send_data(chart: Any, data: Any, browsers: Any) -> None:
+def send_data(chart: viser.GuiUplotHandle, data: tuple[FloatArray, ...],
+              browsers: Iterable[viser.ClientHandle]) -> None:
     """A uPlot handle's `data` set here (its CSV reads it) and sent to `browsers` only, where
     an assignment to `chart.data` goes to every browser (and stays in viser's buffer for the
     browsers that connect later: a browser that gets none of these shows the data it had)."""
     viser_adapter.send_prop_to(chart, "data", data, browsers)
 
 
-def set_html(handle: Any, content: str) -> None:
+def set_html(handle: viser.GuiHtmlHandle, content: str) -> None:
     """Assign an HTML handle's content only when it differs (each assignment is a message to
     every browser)."""
     if handle.content != content:
@@ -109,8 +117,9 @@ def box(cls: str, colors: tuple[str, str], content: str, font_px: int | None = 1
             f"padding:6px;border-radius:4px{size}'>{content}</div>")
 
 
-def confirm(gui: Any, browser: Any, title: str, body_html: str, ok_label: str,
-            on_ok: Callable[[Any], object], ok_color: str = "orange") -> None:
+def confirm(gui: viser.GuiApi, browser: viser.ClientHandle | None, title: str, body_html: str,
+            ok_label: str, on_ok: Callable[[viser.ClientHandle | None], object],
+            ok_color: ButtonColor = "orange") -> None:
     """A dialog in the browser that asked (`browser`: its viser client; None: every browser,
     on `gui`): `body_html` (already escaped), then `ok_label` calls `on_ok(browser)`, Cancel
     only closes it."""
@@ -121,12 +130,12 @@ def confirm(gui: Any, browser: Any, title: str, body_html: str, ok_label: str,
         cancel = g.add_button("Cancel")
 
         @go.on_click
-        def _go(e: Any) -> None:
+        def _go(e: viser.GuiEvent[viser.GuiButtonHandle]) -> None:
             modal.close()
             on_ok(e.client)
 
         @cancel.on_click
-        def _cancel(_e: Any) -> None:
+        def _cancel(_e: viser.GuiEvent[viser.GuiButtonHandle]) -> None:
             modal.close()
 
 
