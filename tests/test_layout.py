@@ -239,6 +239,44 @@ def test_no_import_cycles() -> None:
     assert not cycles, cycles
 
 
+def any_in_signatures(path: Path) -> int:
+    """Parameters and returns annotated with `Any` (alone or inside), of every function."""
+    count = 0
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            a = node.args
+            anns = [x.annotation for x in (*a.posonlyargs, *a.args, *a.kwonlyargs,
+                                           *([a.vararg] if a.vararg else []),
+                                           *([a.kwarg] if a.kwarg else []))]
+            anns.append(node.returns)
+            count += sum(1 for t in anns if t is not None and "Any" in {
+                n.id for n in ast.walk(t) if isinstance(n, ast.Name)} | {
+                n.attr for n in ast.walk(t) if isinstance(n, ast.Attribute)})
+    return count
+
+
+#: The dashboard's modules whose signatures still name `Any`, and how many (issue 32: 185 at
+#: the start). A ceiling: lower it as they are typed; every module not listed has none.
+SERVER_ANY_CEILING = {
+    "server.charts": 1, "server.charts_base": 12, "server.charts_identify": 2,
+    "server.charts_time": 2, "server.dashboard.demo": 5, "server.engine": 1,
+    "server.http_access": 13, "server.identify_view": 9, "server.message_gate": 10,
+    "server.panels.bode": 1, "server.panels.knowledge": 8, "server.panels.live": 9,
+    "server.panels.recordings": 8, "server.suggest": 1, "server.viser_adapter": 27,
+    "server.workers": 8,
+}
+
+
+def test_any_does_not_return_to_the_dashboards_signatures() -> None:
+    """Viser's handles have types (`viser.GuiApi`, `ClientHandle`, `Gui*Handle`; the few
+    assignments its hints miss are typed once in server/gui.py): a signature of `server/`
+    that names `Any` where its module had none, or more than its ceiling, fails."""
+    over = [f"{m}: {n} (at most {SERVER_ANY_CEILING.get(m, 0)})"
+            for m, path in MODULES.items() if m == "server" or m.startswith("server.")
+            if (n := any_in_signatures(path)) > SERVER_ANY_CEILING.get(m, 0)]
+    assert not over, f"Any in server/ signatures: {over}"
+
+
 def test_no_private_names_across_modules() -> None:
     bad = []
     for mod in MODULES:

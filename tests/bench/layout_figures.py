@@ -30,7 +30,13 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests"))
 
-from test_layout import PACKAGES, import_cycles, module_graph, modules  # noqa: E402
+from test_layout import (  # noqa: E402
+    PACKAGES,
+    any_in_signatures,
+    import_cycles,
+    module_graph,
+    modules,
+)
 
 DOC = REPO / "docs" / "architecture.md"
 BEGIN, END = "<!-- layout-figures: begin -->", "<!-- layout-figures: end -->"
@@ -54,22 +60,6 @@ def classes(path: Path) -> list[tuple[int, int, str]]:
             methods = sum(isinstance(b, ast.FunctionDef | ast.AsyncFunctionDef) for b in node.body)
             out.append((n, methods, node.name))
     return out
-
-
-def any_in_signatures(path: Path) -> int:
-    """Parameters and returns annotated with `Any` (alone or inside), of every function."""
-    count = 0
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-            a = node.args
-            anns = [x.annotation for x in (*a.posonlyargs, *a.args, *a.kwonlyargs,
-                                           *([a.vararg] if a.vararg else []),
-                                           *([a.kwarg] if a.kwarg else []))]
-            anns.append(node.returns)
-            count += sum(1 for t in anns if t is not None and "Any" in {
-                n.id for n in ast.walk(t) if isinstance(n, ast.Name)} | {
-                n.attr for n in ast.walk(t) if isinstance(n, ast.Attribute)})
-    return count
 
 
 def private_reaches(path: Path) -> int:
