@@ -287,11 +287,19 @@ def loop_margins_html(c: BodeCurves) -> str:
     """One line over the loop's Bode: every margin the markers show, with its frequency."""
     gm, pm = margin_marks(c)
     parts = []
-    for k, m in enumerate(gm):
-        what = "gain margin" if k == 0 else "2nd crossing"
-        note = " (a gain <i>reduction</i> by this much destabilises)" if m.value < 0 else ""
-        parts.append(f"<span class='dt-gm' style='color:{GM_COLOR}'><b>{what}</b> "
-                     f"{m.value:.1f} dB at {fmt_hz(m.freq_hz)}</span>{note}")
+    both = any(m.value < 0 for m in gm) and any(m.value >= 0 for m in gm)
+    named: set[str] = set()
+    for m in gm:
+        # Both positive and named (issue 33): up where |L| < 1, down (a conditionally stable
+        # loop: a gain reduction destabilises) where |L| > 1.
+        down = m.value < 0
+        what = "gain-reduction margin" if down else "gain margin"
+        value = (f"{-m.value:.1f} dB down" if down else
+                 f"{m.value:.1f} dB up" if both else f"{m.value:.1f} dB")
+        label = what if what not in named else "another -180 deg crossing"
+        named.add(what)
+        parts.append(f"<span class='dt-gm' style='color:{GM_COLOR}'><b>{label}</b> "
+                     f"{value} at {fmt_hz(m.freq_hz)}</span>")
     if not gm:
         parts.append(f"<span class='dt-gm' style='color:{GM_COLOR}'><b>gain margin</b> none "
                      "(the phase never crosses -180 deg)</span>")

@@ -4,6 +4,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import numpy.typing as npt
 
@@ -125,7 +127,9 @@ def _nyquist_panel(cand: NyquistLoop | None, active: NyquistLoop | None, title: 
                 if what == "PM":
                     value = f"PM {np.degrees(np.angle(z)) % 360.0 - 180.0:.1f} deg"
                 else:
-                    value = f"GM {-20.0 * np.log10(abs(z)):.1f} dB"
+                    g = -20.0 * np.log10(abs(z))
+                    value = (f"gain-reduction margin {-g:.1f} dB down" if g < 0
+                             else f"GM {g:.1f} dB up")
                 cx, cy = xy(complex(z))
                 parts.append(f"<circle class='{css}' cx='{cx}' cy='{cy}' r='6' fill='{color}'>"
                              f"<title>{value} read here ({f:.3g} Hz)</title></circle>")
@@ -139,8 +143,13 @@ def _nyquist_panel(cand: NyquistLoop | None, active: NyquistLoop | None, title: 
         # The reported GM's point may lie outside the window (a gain-reduction margin).
         outside = bool(np.isfinite(cand.gain_margin_db) and gms.size and abs(
             cand.phase_crossings[int(np.argmin(np.abs(gms - cand.gain_margin_db)))]) > radius)
-        summary = (f"PM {fmt_margin(cand.phase_margin_deg, 'deg')}, "
-                   f"GM {fmt_margin(cand.gain_margin_db, 'dB')}"
+        # Both gain margins positive and named (issue 33): up where |L| < 1 at a crossing,
+        # the gain-reduction margin down where |L| > 1 (a conditionally stable loop).
+        ups, downs = gms[gms >= 0], -gms[gms < 0]
+        gm_text = (f"GM {fmt_margin(float(ups.min()) if ups.size else math.inf, 'dB')}"
+                   + (f" up, gain-reduction margin {float(downs.min()):.1f} dB down"
+                      if downs.size else ""))
+        summary = (f"PM {fmt_margin(cand.phase_margin_deg, 'deg')}, {gm_text}"
                    + (" (read outside the view)" if outside else ""))
     # Sized for a panel drawn at about half its viewBox width (two side by side in the
     # dashboard's plot column): the title on two lines and the formula above the plot, the

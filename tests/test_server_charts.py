@@ -150,7 +150,11 @@ def test_margin_markers_are_the_margins_python_control_finds() -> None:
         np.testing.assert_allclose(at_phase, phase[1][np.searchsorted(x, f_pm)], atol=0.5)
         assert np.all(phase[3] == -180.0)  # the -180 deg line: one constant
         html = charts.loop_margins_html(c)
-        assert f"{20 * np.log10(gm):.1f} dB at {wpc / (2 * np.pi):.3g} Hz" in html, html
+        g_db = 20 * np.log10(gm)  # python-control's pick, signed: shown positive, named
+        said = (f"gain-reduction margin</b> {-g_db:.1f} dB down" if g_db < 0
+                else f"gain margin</b> {g_db:.1f} dB")
+        assert f"{said}" in html and f"at {wpc / (2 * np.pi):.3g} Hz" in html, html
+        assert f"{g_db:.1f} dB" not in html or g_db >= 0, html
         assert f"{pm:.1f} deg at {wgc / (2 * np.pi):.3g} Hz" in html, html
         checked += 1
     assert checked == 4
@@ -283,6 +287,11 @@ def test_nyquist_shows_the_loop_with_and_without_the_dob(dob_on: bool) -> None:
         assert loop is not None
         text = "".join(panel.find(".//*[@class='dt-nyq-title']").itertext())  # type: ignore[union-attr]
         assert text.startswith(f"{title}: PM {loop.phase_margin_deg:.1f} deg")
+        if dob_on and title == "with DOB":  # the gate's own loop: its margins, both positive
+            m = analyse(LoopConfig(q_cutoff_hz=2.0)).margins
+            assert f"GM {m.gain_margin_up_db:.1f} dB" in text, text
+            assert m.conditionally_stable and (
+                f"gain-reduction margin {m.gain_reduction_margin_db:.1f} dB down" in text), text
         assert len(panel.findall(".//*[@class='dt-nyq-critical']")) == 1
         cand_lines = panel.findall(".//*[@class='dt-nyq-cand']")
         assert len(cand_lines) == len(charts.nyquist_segments(loop.response)) >= 1

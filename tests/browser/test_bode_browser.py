@@ -296,8 +296,13 @@ def test_margin_markers_are_labelled_with_their_values_and_frequencies(
             assert page.evaluate(INK_JS, [label, box, _rgb(color)]) >= 30
             # Placed where it covers no curve (the GM label covered |L| from 0.2 to 1.3 Hz).
             assert d["covers"] == 0, d
-            value = f"{m.value:.1f} {unit} at {float(f'{m.freq_hz:.3g}'):g} Hz"
-            assert value in margins_text, (value, margins_text)
+            # The line above: each gain margin positive and named (issue 33: "gain-reduction
+            # margin 25.8 dB down", never "-25.8 dB").
+            at = f"at {float(f'{m.freq_hz:.3g}'):g} Hz"
+            value = (f"{-m.value:.1f} dB down {at}" if unit == "dB" and m.value < 0
+                     else f"{m.value:.1f} {unit}")
+            assert value in margins_text and at in margins_text, (value, margins_text)
+    assert "-" + f"{abs(min(m.value for m in gm)):.1f}" not in margins_text, margins_text
 
 
 def test_the_decision_views_fit_a_1920_by_1080_screen(
