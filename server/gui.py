@@ -11,9 +11,13 @@ import viser
 
 from controller.core.arrays import FloatArray
 
-__all__ = ["NumberShown", "ValueHandle", "add_uplot", "on_press", "set_scales", "set_value"]
+__all__ = ["Browser", "NumberShown", "ValueHandle", "add_uplot", "on_press", "set_scales",
+           "set_value"]
 
 T = TypeVar("T")
+
+#: The browser that pressed a control or asked (None: no browser: a script, a test, the API).
+Browser = viser.ClientHandle | None
 
 #: The value controls the dashboard builds.
 ValueHandle = (viser.GuiDropdownHandle[str] | viser.GuiTextHandle | viser.GuiCheckboxHandle

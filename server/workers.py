@@ -15,22 +15,25 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Generic, TypeVar
 
 __all__ = ["LatestWins", "Periodic", "Refetch", "Requests"]
 
 log = logging.getLogger(__name__)
 
+T = TypeVar("T")
+R = TypeVar("R")
+
 
 @dataclass
-class LatestWins:
+class LatestWins(Generic[T]):
     """A worker thread that runs `fn(item)` for the newest submitted item only."""
 
-    fn: Callable[[Any], None]
+    fn: Callable[[T], None]
     name: str = "latest-wins"
     #: Wait this long for a newer item before running (keeps slow work off a moving slider).
     debounce_s: float = 0.0
-    _item: Any = None
+    _item: T | None = None
     _has: bool = False
     _cond: threading.Condition = field(default_factory=threading.Condition)
     _stop: bool = False
@@ -41,7 +44,7 @@ class LatestWins:
         self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
         self._thread.start()
 
-    def submit(self, item: Any) -> None:
+    def submit(self, item: T) -> None:
         with self._cond:
             self._item = item
             self._has = True
@@ -66,7 +69,7 @@ class LatestWins:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
 
-    def _next(self) -> tuple[bool, Any]:
+    def _next(self) -> tuple[bool, T | None]:
         """Wait for the newest item (after the debounce); (False, None) when stopped."""
         with self._cond:
             while not self._has and not self._stop:
@@ -137,7 +140,7 @@ class Requests:
     def __init__(self, max_workers: int = 2, name: str = "ctl-request") -> None:
         self._pool = ThreadPoolExecutor(max_workers=max_workers, thread_name_prefix=name)
 
-    def submit(self, fn: Callable[..., Any], *args: Any) -> Future[Any]:
+    def submit(self, fn: Callable[..., R], *args: object) -> Future[R | None]:
         return self._pool.submit(run_logged, fn, *args, what=getattr(fn, "__name__", "request"))
 
     def shutdown(self) -> None:
@@ -163,7 +166,7 @@ class Refetch:
         self.version = -1
 
 
-def run_logged(fn: Callable[..., Any], *args: Any, what: str) -> Any:
+def run_logged(fn: Callable[..., R], *args: object, what: str) -> R | None:
     """`fn(*args)`; an exception is logged with its traceback instead of raised."""
     try:
         return fn(*args)

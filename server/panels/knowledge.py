@@ -7,7 +7,8 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
-from typing import Any
+
+import viser
 
 from controller import protocol as proto
 from controller.client import ControllerClient, ControllerUnavailable
@@ -15,6 +16,7 @@ from controller.gate.frd import measured_from_frd
 from controller.gate.knowledge import MeasuredResponse
 from server.engine import TuningEngine
 from server.escape import esc
+from server.gui import Browser
 from server.http_access import Refused
 from server.measured import MAX_BYTES, read_measured
 from server.session import BrowserSessions
@@ -36,7 +38,7 @@ def _measured_html(text: str, error: bool = False) -> str:
 class KnowledgePanel:
     """The knowledge line and the operators' upload buttons at the foot of the Tune tab."""
 
-    def __init__(self, gui: Any, client: ControllerClient, engine: TuningEngine,
+    def __init__(self, gui: viser.GuiApi, client: ControllerClient, engine: TuningEngine,
                  sessions: BrowserSessions, requests: Requests,
                  on_changed: Callable[[], None]) -> None:
         """`on_changed()`: the knowledge the engine judges on changed (re-evaluate)."""
@@ -48,7 +50,7 @@ class KnowledgePanel:
         self._on_changed = on_changed
         self._lock = threading.Lock()
         self._build_lock = threading.Lock()
-        self._uploads: dict[int, Any] = {}
+        self._uploads: dict[int, viser.GuiUploadButtonHandle] = {}
         """Each operator's upload button by browser (viser client id)."""
         self.follow = Refetch(requests, self.fetch)
         """`follow.note(version)`: the controller's knowledge version (from a status);
@@ -65,7 +67,7 @@ class KnowledgePanel:
                 "<div class='dt-measured' style='font-size:12px;color:#555'>No measured "
                 "responses: 1/|Delta| is the stated bound.</div>", order=1.0)
 
-    def offer_to(self, browser: Any, may_upload: bool) -> None:
+    def offer_to(self, browser: Browser, may_upload: bool) -> None:
         """The upload button, built in `browser`'s own GUI, only when its user may use it
         (operators, or anyone with one identity): a viewer's page has none (and the message
         gate refuses an upload to another page's or a shared button). Built in the browser's
@@ -82,7 +84,8 @@ class KnowledgePanel:
         with self._lock:
             self._uploads[browser.client_id] = upload
 
-    def upload_of(self, browser: Any) -> Any:
+    def upload_of(self, browser: Browser,
+                  ) -> viser.GuiUploadButtonHandle | None:
         """`browser`'s upload button (None: it has none)."""
         with self._lock:
             return self._uploads.get(getattr(browser, "client_id", -1))
@@ -104,11 +107,11 @@ class KnowledgePanel:
         log.info("plant knowledge v%d fetched (%s)", reply.record.version, reply.record.source)
         self._on_changed()
 
-    def _on_upload(self, event: Any) -> None:
+    def _on_upload(self, event: viser.GuiEvent[viser.GuiUploadButtonHandle]) -> None:
         f = event.target.value
         self._requests.submit(self.load_csv, f.name, f.content, event.client)
 
-    def load_csv(self, name: str, content: bytes, browser: Any = None) -> None:
+    def load_csv(self, name: str, content: bytes, browser: Browser = None) -> None:
         try:
             measured = measured_from_frd(read_measured(name, content), name)
         except ValueError as exc:
@@ -118,10 +121,10 @@ class KnowledgePanel:
         self.adopt(measured, "CSV", browser)
         self._on_changed()
 
-    def add_identified(self, m: MeasuredResponse, browser: Any = None) -> None:
+    def add_identified(self, m: MeasuredResponse, browser: Browser = None) -> None:
         self.adopt(m, "Identify", browser)
 
-    def adopt(self, m: MeasuredResponse, source: str, browser: Any = None) -> None:
+    def adopt(self, m: MeasuredResponse, source: str, browser: Browser = None) -> None:
         """Send the response to the controller for adoption into its plant knowledge: the
         verdicts (the controller's and this dashboard's) use it once the controller has it."""
         try:
