@@ -2,7 +2,7 @@
 not a test.
 
     .venv/bin/python tests/bench/bench_watch.py [--seconds 60] [--window-s 10]
-        [--only timing,normal,changes] [--trajectories sine,step,ramp,hold]
+        [--only timing,normal,changes,trendweek] [--trajectories sine,step,ramp,hold]
 
 - timing: the loop's tick compute p99 (each Status's, ~2 Hz) without the watch, with it, and
   without again, in the same controller run (`--seconds` each), and the watch's CPU share.
@@ -12,6 +12,8 @@ not a test.
   +50 %, motor friction x3, drive gain -30 %), from a fresh watch each: the time from the
   change to the alarm, the part named, its estimate against the truth; then the plant is put
   back and the watch stopped.
+- trendweek: a week of windows written to the hourly MCAP trend and read back (storage per rig
+  per day, the time to read a week for a plot).
 The controller runs with --realtime-priority as on a rig; report `uptime` beside the figures.
 """
 
@@ -132,22 +134,21 @@ def _timing(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tm
     for phase in ("without", "with", "without"):
         if phase == "with":
             watch = Watch(endpoint, args.window_s, None, tmp / "watch-timing.log")
-            cpu0, t0 = None, 0.0
-            while cpu0 is None:
-                try:
-                    cpu0, t0 = watch.cpu_s(), time.monotonic()
-                except OSError:
-                    time.sleep(0.1)
+            s0 = len(heard.states)
+            deadline = time.monotonic() + 180.0
+            while len(heard.states) <= s0 and time.monotonic() < deadline:
+                time.sleep(0.2)  # measured from its first window on: loaded and fitting
+            cpu0, t0, w0 = watch.cpu_s(), time.monotonic(), len(heard.states)
         i0 = len(heard.statuses)
-        time.sleep(args.seconds)
+        time.sleep(args.timing_s)
         p = heard.p99s(i0)
         rows.append((phase, p))
         if watch is not None:
             cpu = (watch.cpu_s() - cpu0) / (time.monotonic() - t0)
-            windows = len(heard.states)
+            windows = len(heard.states) - w0
             watch.stop()
             watch = None
-            print(f"watch CPU: {100 * cpu:.1f} % of one core over {args.seconds:g} s "
+            print(f"watch CPU: {100 * cpu:.1f} % of one core over {args.timing_s:g} s "
                   f"({windows} windows fitted)")
     for phase, p in rows:
         a = np.asarray(p)
@@ -176,6 +177,46 @@ def _normal(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tm
         print(f"normal {kind:5s}: {args.seconds:g} s, {len(states)} windows, "
               f"{len(alarms)} alarms {[a.part for a in alarms]}; told in windows {told}; "
               f"last {est}; load {os.getloadavg()[0]:.1f}")
+
+
+def _trend_week(args: argparse.Namespace, tmp: Path) -> None:
+    """A week of windows (one per `--window-s`) written as the watch writes them, then read
+    back by time range: bytes per rig per day, and the time to read a week for a plot."""
+    from controller.recording.trend import TrendWriter, read_trend
+
+    root = tmp / "week"
+    t0 = time.time() - 7 * 86400
+    t0 -= t0 % 3600
+    n = int(7 * 86400 / args.window_s)
+    rng = np.random.default_rng(0)
+    t_w = time.perf_counter()
+    with TrendWriter(root, RIG) as tw:
+        for i in range(n):
+            e = t0 + i * args.window_s
+            v = 1.0 + 0.001 * rng.standard_normal(4)
+            tw.write("/drift/residual", e, {
+                "plant_residual_rms_deg_s": 0.004, "fitted_residual_rms_deg_s": 0.004,
+                "loop_measured_rms_deg": 0.03, "loop_predicted_rms_deg": 0.03,
+                "loop_residual_rms_deg": 0.003, "delay_ticks": 0})
+            tw.write("/drift/parts", e, {
+                **{k: float(x) for k, x in zip(("gain", "stiffness", "inertia",
+                                                 "motor_friction"), v, strict=True)},
+                **{k + "_std": 0.001 for k in ("gain", "stiffness", "inertia",
+                                               "motor_friction")},
+                **{k + "_state": "ok" for k in ("gain", "stiffness", "inertia",
+                                                "motor_friction")}})
+            tw.write("/drift/health", e, {"config_version": 1, "alarms": [],
+                                          "compute_p99_us": 40.0, "skipped_ticks": 0,
+                                          "mode": "running"})
+    write_s = time.perf_counter() - t_w
+    size = sum(f.stat().st_size for f in (root / RIG).glob("*.mcap"))
+    t_r = time.perf_counter()
+    pts = read_trend(root, RIG, t0, t0 + 7 * 86400, "/drift/parts")
+    read_s = time.perf_counter() - t_r
+    print(f"trend: a week of {args.window_s:g} s windows = {n} windows x 3 channels in "
+          f"{len(list((root / RIG).glob('*.mcap')))} hourly files, {size / 7 / 1e6:.2f} MB per "
+          f"rig per day; written in {write_s:.1f} s; a week's /drift/parts read back "
+          f"({len(pts)} points) in {read_s:.1f} s; load {os.getloadavg()[0]:.1f}")
 
 
 def _changes(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tmp: Path
@@ -218,6 +259,8 @@ def _changes(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, t
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--timing-s", type=float, default=40.0,
+                    help="timing: seconds without, with and without the watch")
     ap.add_argument("--window-s", type=float, default=10.0)
     ap.add_argument("--detect-timeout-s", type=float, default=120.0)
     ap.add_argument("--only", default="timing,normal,changes")
@@ -226,6 +269,9 @@ def main() -> None:
     print(f"start: {_uptime()}")
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
+        if args.only == "trendweek":  # no controller needed
+            _trend_week(args, tmp)
+            return
         proc = start_controller(tmp / "state", rig=RIG, extra_args=(
             "--realtime-priority", "--disturbance", "article-rig"))
         try:
@@ -233,6 +279,9 @@ def main() -> None:
                 c.wait_ready(proc)
                 heard = Heard(c)
                 for what in args.only.split(","):
+                    if what == "trendweek":
+                        _trend_week(args, tmp)
+                        continue
                     {"timing": _timing, "normal": _normal, "changes": _changes}[what](
                         c, heard, proc.endpoint, args, tmp)
         finally:
