@@ -11,8 +11,8 @@ import viser
 
 from controller.core.arrays import FloatArray
 
-__all__ = ["Browser", "NumberShown", "ValueHandle", "add_uplot", "on_press", "set_scales",
-           "set_value"]
+__all__ = ["Browser", "NumberShown", "ValueHandle", "add_uplot", "on_press", "on_press_group",
+           "set_scales", "set_value"]
 
 T = TypeVar("T")
 
@@ -53,6 +53,16 @@ def on_press(button: viser.GuiButtonHandle,
         act(event.client)
 
     button.on_click(pressed)
+
+
+def on_press_group(group: viser.GuiButtonGroupHandle,
+                   act: Callable[[str, viser.ClientHandle | None], object]) -> None:
+    """`act(option, browser)` when an option of the button group `group` is pressed."""
+
+    def pressed(event: viser.GuiEvent[viser.GuiButtonGroupHandle]) -> None:
+        act(str(event.target.value), event.client)
+
+    group.on_click(pressed)
 
 
 def add_uplot(gui: viser.GuiApi, *, data: tuple[FloatArray, ...],

@@ -16,11 +16,11 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from controller.core.errors import ConfigError
 from controller.core.heap import freeze_startup_heap
@@ -95,10 +95,10 @@ def _with_us() -> tuple[str, ...]:
 
 
 @contextlib.contextmanager
-def fleet_processes(opts: DemoOptions, state_root: Path) -> Iterator[list[subprocess.Popen[Any]]]:
+def fleet_processes(opts: DemoOptions, state_root: Path) -> Iterator[list[subprocess.Popen[bytes]]]:
     """A router on zenoh_port and opts.rigs controllers behind it; stopped on exit."""
     router_ep = f"tcp/127.0.0.1:{opts.zenoh_port}"
-    procs: list[subprocess.Popen[Any]] = []
+    procs: list[subprocess.Popen[bytes]] = []
     try:
         procs.append(subprocess.Popen(router_command(router_ep, opts.log_level, _with_us())))
         for i in range(1, opts.rigs + 1):
@@ -114,7 +114,7 @@ def fleet_processes(opts: DemoOptions, state_root: Path) -> Iterator[list[subpro
             stop_process(p)
 
 
-def stop_process(proc: subprocess.Popen[Any], timeout_s: float = 5.0) -> int:
+def stop_process(proc: subprocess.Popen[bytes], timeout_s: float = 5.0) -> int:
     """SIGINT, then SIGTERM, then SIGKILL; returns the exit code."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         if proc.poll() is not None:
@@ -136,7 +136,7 @@ def stop_process(proc: subprocess.Popen[Any], timeout_s: float = 5.0) -> int:
 def controller_process(
     endpoint: str, rig_name: str, state_dir: Path | None = None, log_level: str = "info",
     disturbances: tuple[str, ...] = (),
-) -> Iterator[subprocess.Popen[Any]]:
+) -> Iterator[subprocess.Popen[bytes]]:
     """The simulated controller as a child process (with the simulated rig's named
     `disturbances`), stopped on exit."""
     with contextlib.ExitStack() as stack:
@@ -196,7 +196,8 @@ def run_demo(opts: DemoOptions) -> int:
 
 
 def wait_for_controller(
-    dash: Dashboard, proc: subprocess.Popen[Any], stop: Any, progress_every_s: float
+    dash: Dashboard, proc: subprocess.Popen[bytes], stop: threading.Event,
+    progress_every_s: float
 ) -> bool:
     """Wait for the controller's first status however long its start takes (a busy machine
     can make it tens of seconds), saying so every `progress_every_s`; False when its process

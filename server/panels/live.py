@@ -15,14 +15,16 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import viser
 
 from controller import protocol as proto
 from controller.client import ControllerClient
-from controller.core.trajectory import TRAJECTORY_KINDS, default_trajectory
+from controller.core.trajectory import TRAJECTORY_KINDS, Trajectory, default_trajectory
 from controller.core.verdict import kind_of
 from server import charts
 from server.alarms import AlarmBoard, alarms_html
 from server.escape import esc
+from server.gui import Browser, on_press
 from server.health import HealthJudgement, TimingHistory, health_html, judge_timing
 from server.http_access import Refused
 from server.panels.widgets import add_chart, confirm, send_data, set_html
@@ -133,15 +135,15 @@ class LivePanel:
 
     def __init__(
         self,
-        gui: Any,
+        gui: viser.GuiApi,
         client: ControllerClient,
-        send_command: Callable[[proto.CommandBody, Any], None],
+        send_command: Callable[[proto.CommandBody, Browser], None],
         on_status: Callable[[proto.Status], None] | None = None,
         on_frame: Callable[[dict[str, float] | None], None] | None = None,
         rate_hz: float = 25.0,
         max_points: int = 1000,
-        audience: Callable[[], list[Any]] | None = None,
-        authorize: Callable[[Any, str], object] | None = None,
+        audience: Callable[[], list[viser.ClientHandle]] | None = None,
+        authorize: Callable[[Browser, str], object] | None = None,
     ) -> None:
         """`authorize(browser, action)`: raises `Refused` (told to that browser) unless the
         user at `browser` may change the rig (operators): acknowledging the alarms clears
@@ -182,9 +184,9 @@ class LivePanel:
         self.ack_button = self.gui.add_button(
             "Acknowledge alarms", color="yellow", visible=False,
             hint="the alarms above are seen: clear them (History keeps every change)")
-        self.ack_button.on_click(lambda e: self.acknowledge_alarms(e.client))
+        on_press(self.ack_button, self.acknowledge_alarms)
 
-    def acknowledge_alarms(self, browser: Any = None) -> bool:
+    def acknowledge_alarms(self, browser: Browser = None) -> bool:
         """Clear the alarms for every browser: an operator's press (a viewer's is refused,
         told to that browser: the alarms stay for everyone). False: refused."""
         if self._authorize is not None:
@@ -228,7 +230,7 @@ class LivePanel:
         self.metrics = gui.add_html("<div class='dt-metrics'>metrics: waiting for data</div>")
         self.health = gui.add_html("<div class='dt-health'>loop health: waiting</div>")
 
-    def _on_run(self, event: Any) -> None:
+    def _on_run(self, event: viser.GuiEvent[viser.GuiButtonGroupHandle]) -> None:
         v = event.target.value
         if v == "Start":  # the axis moves: asked first, in the browser that pressed it
             # The trajectory Start runs (while stopped the loop follows a hold).
@@ -246,7 +248,7 @@ class LivePanel:
         )
         self._send(body, event.client)
 
-    def _confirm_trajectory(self, browser: Any) -> None:
+    def _confirm_trajectory(self, browser: Browser) -> None:
         kind = str(self.trajectory.value)
         body = proto.SetTrajectory(trajectory=default_trajectory(kind))
         st = self.client.status
@@ -264,7 +266,7 @@ class LivePanel:
                 cursor={"show": True, "drag": {"x": False, "y": False}},
             )
 
-    def show_in(self, browser: Any) -> None:
+    def show_in(self, browser: viser.ClientHandle) -> None:
         """The charts' present data to `browser` (its page shows them from now on)."""
         for handle in self._charts.values():
             send_data(handle, handle.data, [browser])
@@ -373,7 +375,7 @@ class LivePanel:
         return health_html(st, j, st.config.rate_hz, stream)
 
 
-def _run_trajectory(st: proto.Status | None) -> Any:
+def _run_trajectory(st: proto.Status | None) -> Trajectory | None:
     """The trajectory Start runs (a controller without `run_trajectory`: the present one)."""
     if st is None:
         return None

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import viser
 
 from controller.client import ControllerUnavailable
 from controller.client.recorder import Recorder, RecordOptions
@@ -39,7 +40,7 @@ from controller.recording.mcap_io import Recording, read_recording, read_recordi
 from controller.recording.report import REVERSAL_WINDOW_S, metrics
 from server.charts import CANDIDATE, NO_DOB, ChartSpec, minmax_decimate, ranged_scales
 from server.escape import esc
-from server.gui import set_scales
+from server.gui import Browser, on_press, on_press_group, set_scales
 from server.http_access import Refused
 from server.panels.widgets import NEUTRAL, add_chart, box, set_html
 
@@ -157,9 +158,9 @@ class RecordingsPanel:
     """`build()` inside the controls' tab, `build_compare()` inside the plots panel's; `refresh()`
     rereads the directory (also the Refresh button)."""
 
-    def __init__(self, gui: Any, directory: str | Path,
+    def __init__(self, gui: viser.GuiApi, directory: str | Path,
                  record: RecordOptions | None = None, rig_name: str = "rig",
-                 authorize: Callable[[Any, str], object] | None = None) -> None:
+                 authorize: Callable[[Browser, str], object] | None = None) -> None:
         """`record`: how the recorder reaches the rig (endpoints, rig name, credentials; its
         `out` is replaced by a new file of the directory); None: no Record button.
         `authorize(browser, action)`: raises `Refused` (told to that browser) unless the user
@@ -195,10 +196,10 @@ class RecordingsPanel:
             rec = gui.add_button_group("Record", ("Record", "Stop recording"),
                                        hint="record this rig (every tick, status, versions, "
                                        "events) into a new .mcap file in the directory")
-            rec.on_click(lambda e: self.press(str(e.target.value), e.client))
+            on_press_group(rec, lambda pressed, browser: self.press(pressed, browser))
             self.record_box = gui.add_html("<div class='dt-record'></div>")
         refresh = gui.add_button("Refresh", color="gray", hint="read the directory again")
-        refresh.on_click(lambda _e: self.refresh())
+        on_press(refresh, lambda _browser: self.refresh())
         self.list_box = gui.add_html("")
         gui.add_html(f"<div class='dt-compare-where' style='font-size:12px;color:#555'>Two runs "
                      f"overlaid, their numbers and configuration difference: the plots "
@@ -209,12 +210,12 @@ class RecordingsPanel:
         else:
             self.refresh()
 
-    def build_compare(self, plots: Any) -> None:
+    def build_compare(self, plots: viser.PanelHandle) -> None:
         """The plots panel's Compare runs tab; each browser's comparison is built in it when
         the browser connects (`compare_in`)."""
         self.compare_tab = plots.add_tab(COMPARE_TAB)
 
-    def compare_in(self, gui: Any, browser: Any = None) -> CompareView:
+    def compare_in(self, gui: viser.GuiApi, browser: Browser = None) -> CompareView:
         """A comparison of `browser`'s own, in its `gui` (in the Compare runs tab when
         `build_compare` made one; else where `gui` builds now), offering the files listed."""
         view = CompareView(gui, self)
@@ -236,7 +237,7 @@ class RecordingsPanel:
         with self._lock:
             self._views.pop(browser_id, None)
 
-    def view_of(self, browser: Any) -> CompareView | None:
+    def view_of(self, browser: Browser) -> CompareView | None:
         """`browser`'s comparison (None: none; no browser: the one built without one)."""
         with self._lock:
             return self._views.get(getattr(browser, "client_id", -1))
@@ -288,7 +289,7 @@ class RecordingsPanel:
 
     # -- recording -----------------------------------------------------------------------------
 
-    def press(self, button: str, browser: Any = None) -> Path | bool | None:
+    def press(self, button: str, browser: Browser = None) -> Path | bool | None:
         """Record or Stop recording pressed in `browser`: refused here, in the server, for a
         user who may not change the rig (a viewer's websocket message reaches this too)."""
         action = "start a recording" if button == "Record" else "stop the recording"
@@ -363,7 +364,7 @@ class CompareView:
     """One browser's comparison in the Compare runs tab: its pickers (the files listed), the
     two runs' names and numbers, the overlay charts, the replay scrubber."""
 
-    def __init__(self, gui: Any, panel: RecordingsPanel) -> None:
+    def __init__(self, gui: viser.GuiApi, panel: RecordingsPanel) -> None:
         self.gui = gui
         self.panel = panel
         self._aligned: Any = None
