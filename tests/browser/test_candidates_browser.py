@@ -117,7 +117,7 @@ def test_each_browser_edits_its_own_candidate(
         # The search's chart is drawn in the Bode tab's Suggest sub-tab, mounted while shown.
         other.get_by_role("tab", name="Bode", exact=True).click()
         other.get_by_role("tab", name="Suggest", exact=True).click()
-        other.wait_for_function(f"() => ({FINITE_JS})('Q31 RMSE (deg)') >= 4", timeout=60_000)
+        other.wait_for_function(f"() => ({FINITE_JS})('Q31 score (deg)') >= 4", timeout=60_000)
         assert b_panel.candidate().dob_on == res.dob_helps
         assert a_panel.candidate() == a_before
         assert probe.get_config().version == v2.version
