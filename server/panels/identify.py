@@ -124,6 +124,19 @@ def end_text(state: str, view: IdentifyView | None, reason: str | None, n: int) 
     return text
 
 
+def run_as_planned(spec: IdentifySpec, cfg: LoopConfig, latest: dict[str, float] | None) -> str:
+    """The run as planned, in the progress text's words (the amplitude the plan allows, not
+    the one asked; the band; the duration from where the load is now: `latest`'s position)."""
+    start_deg = latest["pos_deg"] if latest is not None else spec.centers_deg[0]
+    return plan_text(spec, cfg, start_deg)
+
+
+def _as_is(client: ControllerClient | None) -> ControllerClient:
+    """The client that acts for every browser (one identity)."""
+    assert client is not None
+    return client
+
+
 # -- the panel ----------------------------------------------------------------------------------
 
 
@@ -158,7 +171,7 @@ class IdentifyPanel:
         self._rig_factory = rig_factory or sim_rig
         self._add_measured = add_measured
         self.client = client
-        self._client_for = client_for or self._as_is
+        self._client_for = client_for or (lambda _browser, _action: _as_is(client))
         self._leased = leased or (lambda _client, act: act())
         self._run_client: ControllerClient | None = None
         self.where_note = OFFLINE_NOTE
@@ -176,10 +189,6 @@ class IdentifyPanel:
         self._last_publish = 0.0
         self.responses = IdentifyCharts(gui)
         """The measured responses' charts (built by `build_charts`)."""
-
-    def _as_is(self, _browser: Browser, _action: str) -> ControllerClient:
-        assert self.client is not None
-        return self.client
 
     # -- building --------------------------------------------------------------------------
 
@@ -223,13 +232,8 @@ class IdentifyPanel:
         if s.where != WHERE_CONTROLLER or self.client is None:
             self.start(s, browser)
             return
-        # The run as planned, in the progress text's words (the amplitude the plan allows,
-        # not the one asked; the band; the duration from where the load is now).
         try:
-            spec = s.spec()
-            last = self.client.ring.latest()
-            start_deg = last["pos_deg"] if last is not None else spec.centers_deg[0]
-            what = plan_text(spec, self._config_fn(), start_deg)
+            what = run_as_planned(s.spec(), self._config_fn(), self.client.ring.latest())
         except ConfigError as exc:
             self._tell(browser, f"not started: {exc}")
             return
