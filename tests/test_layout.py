@@ -275,6 +275,19 @@ def test_any_does_not_return_to_the_dashboards_signatures() -> None:
     assert not over, f"Any in server/ signatures: {over}"
 
 
+#: The most lines a class of the dashboard may have (issue 32: a class that holds widgets,
+#: threads, state and HTML is split along its seams before it grows past this).
+SERVER_CLASS_MAX_LINES = 300
+
+
+def test_no_class_in_server_over_300_lines() -> None:
+    big = [f"{m}.{node.name}: {n} lines"
+           for m, path in MODULES.items() if m == "server" or m.startswith("server.")
+           for node in ast.walk(ast.parse(path.read_text())) if isinstance(node, ast.ClassDef)
+           if (n := (node.end_lineno or node.lineno) - node.lineno + 1) > SERVER_CLASS_MAX_LINES]
+    assert not big, big
+
+
 def test_no_private_names_across_modules() -> None:
     bad = []
     for mod in MODULES:
