@@ -403,7 +403,8 @@ def test_the_docs_show_the_rules_the_tests_enforce() -> None:
 #: The rules table of docs/architecture.md, row by row (each enforced by a test above).
 RULES = (
     "| pure packages (`core`, `gate`, `sim`, `ident`, `tune`, `twin`, `watch`) import no zenoh, "
-    "can, viser, threading, multiprocessing, subprocess, socket, asyncio, concurrent, signal, logging |",
+    "can, viser, threading, multiprocessing, subprocess, socket, asyncio, concurrent, signal, "
+    "logging |",
     "| pure packages do no file I/O |",
     "| `gate` imports `core`; `sim` imports `core`; `ident` imports `core`, `gate`, `sim`; "
     "`twin` imports `core`, `gate`, `sim`, `ident`; `tune` imports those and `twin`; `watch` "
