@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from controller.core.config import LoopConfig
+from controller.tune.autotune import SIGNIFICANT_REL
 from server.dashboard.app import Dashboard
 from server.engine import TuningEngine
 from server.panels.tuning import format_gate_html
@@ -131,26 +132,29 @@ def test_suggest_puts_the_best_accepted_setting_into_the_candidate_never_applies
         res = t.suggest.last
         assert res is not None and len(res.curve) >= 10
         # The best, found again from the curve: the lowest score among accepted points, and
-        # only if it beats the DOB off.
+        # only if it beats the DOB off by more than SIGNIFICANT_REL.
         accepted = [p for p in res.curve if p.verdict == "accept"]
         best = min(accepted, key=lambda p: p.score) if accepted else None
-        if best is not None and best.score < res.baseline.score:
+        if best is not None and best.score < res.baseline.score * (1 - SIGNIFICANT_REL):
             want = base.with_(dob_on=True, q_type=best.q_type, q_cutoff_hz=best.q_cutoff_hz)
         else:
             want = base.with_(dob_on=False)
         assert t.wait_idle(5.0)
         assert t.candidate() == want
         assert "dt-suggest-done" in t.suggest_text.content
-        # The chart: every point run, at its cut-off, in its Q type's column.
-        x, q31, q20, off, _mark = t.suggest.chart.data  # type: ignore[union-attr]
+        # The chart: every point run, at its cut-off, its score (what the search ranks) in its
+        # Q type's column when it counts, in the caution column when it does not.
+        x, q31, q20, caution, off, _bar, _mark = t.suggest.chart.data  # type: ignore[union-attr]
         for p in res.curve:
             col = q31 if p.q_type == "q31" else q20
             i = int(np.flatnonzero(x == p.q_cutoff_hz)[0])  # refined points may be close
             if p.verdict == "reject":
                 assert not np.isfinite(col[i]) or i == 0
+            elif p.verdict == "accept":
+                assert col[i] == pytest.approx(p.score, rel=1e-12)
             else:
-                assert col[i] == pytest.approx(p.rmse_deg, rel=1e-12)
-        assert np.all(off == res.baseline.rmse_deg)
+                assert caution[i] <= p.score
+        assert np.all(off == res.baseline.score)
         assert np.isfinite(q31[0]) and np.isfinite(q20[0])  # uPlot's scale needs them
         assert not sent  # a suggestion is never applied
     finally:
