@@ -322,7 +322,9 @@ class ZenohNode:
     def _black_box(self) -> None:
         """Write the black box on entering estop or fault, and on a watchdog rollback."""
         rt = self.rt
-        mode, rollbacks = rt.mode, rt.rollbacks
+        # The rollbacks the service has reported, each with its text (the loop's count moves
+        # first: its black box was written with no text or the previous rollback's).
+        mode, rollbacks = rt.mode, self.service.rollbacks_reported
         if mode != self._bb_mode and mode in (ESTOP, FAULT):
             why = rt.estop_source if mode == ESTOP else (rt.fault or "fault")
             self.blackbox.trigger(mode, f"{mode}: {why} (seq {rt.seq})")

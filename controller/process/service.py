@@ -319,6 +319,12 @@ class ControllerService:
         finally:
             self._rollback_lock.release()
 
+    @property
+    def rollbacks_reported(self) -> int:
+        """The rollbacks reported with their `watchdog_text` (the count Status publishes; the
+        loop's own count moves first, at the trip)."""
+        return self._rollbacks_seen
+
     def _rolled_back(self, count: int) -> None:
         rt = self.rt
         seen = rt.rollbacks

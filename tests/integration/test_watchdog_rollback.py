@@ -20,6 +20,7 @@ from procs import APPLY_TIMEOUT_S, Client, ControllerProcess, wait_until
 from controller import protocol as proto
 from controller.cli.inputs import load_config
 from controller.core.verdict import kind_of
+from controller.recording.mcap_io import read_recording
 
 #: The faults below were worked out on the earlier default loop, Cv = 0.5 (1 + 55/s): its
 #: margins decide which drive gains and modes make it oscillate. The controller starts on it.
@@ -71,6 +72,11 @@ def test_a_plant_change_trips_the_watchdog_rollback_then_fault(
         return s.rollbacks >= 1
 
     st = _status_until(client, reported, 20.0)
+    # The black box of the rollback says which one (the service's text, not a placeholder).
+    box = controller.state_dir / "blackbox"
+    assert wait_until(lambda: any(box.glob("*rollback*.mcap")), 10.0)
+    events = read_recording(next(box.glob("*rollback*.mcap"))).events
+    assert events[0]["kind"] == "rollback" and events[0]["text"] == st.watchdog, events
     took_s = time.monotonic() - t_inject
     print(f"\n  fault injection -> rollback reported: {took_s:.2f} s; {st.watchdog}")
     assert st.mode == "running" and "rolled back" in st.watchdog
