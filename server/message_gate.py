@@ -56,14 +56,14 @@ MAX_UPLOAD_BYTES = MAX_BYTES
 MAX_UPLOAD_PARTS = 64
 
 
-def _is_button(handle: Any) -> bool:
+def _is_button(handle: object) -> bool:
     """A button's value is a press, not a state to show again."""
     import viser
 
     return isinstance(handle, (viser.GuiButtonHandle, viser.GuiButtonGroupHandle))
 
 
-def _number(v: Any) -> bool:
+def _number(v: object) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
@@ -93,12 +93,12 @@ class MessageGate:
     _last_log: dict[tuple[int, str], tuple[float, int]] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def open_to_all(self, handle: Any) -> None:
+    def open_to_all(self, handle: object) -> None:
         """Any signed-in browser may press this shared control (the E-STOP, a browser's own
         view)."""
         self._open.add(viser_adapter.control_uuid(handle))
 
-    def __call__(self, client_id: int, message: Any, report: bool) -> bool:
+    def __call__(self, client_id: int, message: object, report: bool) -> bool:
         why = self.why_refused(client_id, message, count=report)
         if why is None:
             return True
@@ -115,7 +115,7 @@ class MessageGate:
 
     # -- the rules ---------------------------------------------------------------------------
 
-    def why_refused(self, client_id: int, message: Any, count: bool = True) -> str | None:
+    def why_refused(self, client_id: int, message: object, count: bool = True) -> str | None:
         """None: viser may handle it; else why not. `count`: an upload's part counts against
         its transfer (each message is judged at both dispatches, counted once)."""
         m = viser_adapter.messages()
@@ -226,7 +226,7 @@ class MessageGate:
 
     # -- refusing ----------------------------------------------------------------------------
 
-    def _restore(self, client_id: int, message: Any) -> None:
+    def _restore(self, client_id: int, message: object) -> None:
         """A refused value change: the page is sent the value kept here (it shows the value
         it sent until told otherwise)."""
         m = viser_adapter.messages()
