@@ -224,3 +224,60 @@ def test_the_trend_is_kept_per_hour_and_read_by_time_range(tmp_path: object) -> 
     assert [p.data["gain"] for p in got] == pytest.approx([1.02, 1.03, 1.04, 1.05])
     with pytest.raises(ValueError, match="topic"):
         read_trend(root, "rigA", t0, t0 + 10, topic="/nope")
+
+
+# -- the test-only hook: SimDrift through the node and the runtime -------------------------------
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def clock(self) -> float:
+        self.now += 1e-6
+        return self.now
+
+    def sleep(self, s: float) -> None:
+        self.now += s
+
+
+def test_sim_drift_reaches_the_simulated_rig_only_and_bad_factors_are_named() -> None:
+    import math
+
+    from controller import protocol as proto
+    from controller.process.node import to_request
+    from controller.process.requests import DriftRig
+    from controller.process.runtime import Runtime
+
+    req = to_request(proto.SimDrift(belt_stiffness_factor=0.6, motor_friction_factor=3.0), "t")
+    assert req == DriftRig(belt_stiffness_factor=0.6, motor_friction_factor=3.0)
+    for bad in (math.nan, 0.0, 100.0):
+        with pytest.raises(ConfigError) as e:
+            to_request(proto.SimDrift(load_inertia_factor=bad), "t")
+        assert e.value.field == "load_inertia_factor"
+    c = _Clock()
+    rig = SimRig(ARTICLE)
+    rt = Runtime(ServoLoop(LoopCoefficients.build(CFG)), rig, clock=c.clock, sleep=c.sleep)
+    t = rt.submit(req)
+    rt.run(max_ticks=2)
+    assert t.ok, t.message
+    assert rig.params.belt_stiffness_n_m_rad == pytest.approx(0.6 * 186.2)
+    assert rig.params.motor_coulomb_n_m == pytest.approx(3 * 0.004)
+    # Factors are on the starting parameters, not compounded; all 1: back to them.
+    for body, k in ((DriftRig(belt_stiffness_factor=0.6), 0.6), (DriftRig(), 1.0)):
+        t = rt.submit(body)
+        rt.run(max_ticks=2)
+        assert t.ok and rig.params.belt_stiffness_n_m_rad == pytest.approx(k * 186.2)
+
+    class Plain:
+        def read(self) -> tuple[float, float]:
+            return 0.0, 0.0
+
+        def step(self, command_deg_s: float) -> None:
+            pass
+
+    plain = Runtime(ServoLoop(LoopCoefficients.build(CFG)), Plain(), clock=c.clock,
+                    sleep=c.sleep)
+    t = plain.submit(req)
+    plain.run(max_ticks=2)
+    assert not t.ok and "only the simulated rig" in t.message
