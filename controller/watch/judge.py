@@ -54,8 +54,9 @@ FRICTION_RANGE = (0.5, 2.0)
 MEASURE_HINT = ("measure again (dobtune identify, then adopt the knowledge: the twin and the "
                 "gate follow it)")
 #: The short low-amplitude measurement offered when a part is not told.
-SHORT_MEASUREMENT = ("a short low-amplitude measurement tells it: dobtune identify "
-                     "--positions 1 --amplitude 0.5 (about a minute at one position)")
+SHORT_MEASUREMENT = ("a short low-amplitude measurement in the loop tells it: dobtune identify "
+                     "--connect EP --rig-name R --positions 1 --amplitude 0.5 (one position; "
+                     "the watch fits the excitation's window as any other)")
 
 
 def _band(rate_hz: float) -> FloatArray:
