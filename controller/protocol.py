@@ -8,6 +8,7 @@ a `type` field. Units are in the field names. See docs/protocol.md for the full 
 from __future__ import annotations
 
 import re
+import threading
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
 
@@ -551,6 +552,10 @@ class _Versioned(msgspec.Struct):
 
 _version_decoder = msgspec.msgpack.Decoder(_Versioned)
 _decoders: dict[type, msgspec.msgpack.Decoder[Any]] = {}
+# Decoders are built once per type, under a lock: two Zenoh callback threads building the first
+# decoder of one type at once crashed msgspec (a segfault seen in test_flood_isolation and in
+# bench_watch; drift34).
+_decoders_lock = threading.Lock()
 
 
 def encoding(kind: type[msgspec.Struct] | str) -> str:
@@ -585,7 +590,10 @@ def decode(data: bytes | bytearray | memoryview, kind: type[M]) -> M:
         )
     dec = _decoders.get(kind)
     if dec is None:
-        dec = _decoders[kind] = msgspec.msgpack.Decoder(kind)
+        with _decoders_lock:
+            dec = _decoders.get(kind)
+            if dec is None:
+                dec = _decoders[kind] = msgspec.msgpack.Decoder(kind)
     try:
         return dec.decode(raw)  # type: ignore[no-any-return]
     except msgspec.ValidationError as exc:
