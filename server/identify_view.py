@@ -8,12 +8,14 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from controller import protocol as proto
-from controller.core.arrays import FloatArray
+from controller.core.arrays import ComplexArray, FloatArray
 from controller.core.config import NominalModel
 from controller.core.errors import ConfigError
 from controller.gate.knowledge import MeasuredResponse
@@ -35,14 +37,14 @@ __all__ = [
 def _curve(
     index: int,
     center_deg: float,
-    freq_hz: Any,
-    mag_db: Any,
-    phase_deg: Any,
-    mag_std_db: Any,
-    coherence: Any,
+    freq_hz: npt.ArrayLike,
+    mag_db: npt.ArrayLike,
+    phase_deg: npt.ArrayLike,
+    mag_std_db: npt.ArrayLike,
+    coherence: npt.ArrayLike,
     complete: bool,
 ) -> charts.MeasuredCurve:
-    def arr(v: Any) -> FloatArray:
+    def arr(v: npt.ArrayLike) -> FloatArray:
         return np.asarray(v, dtype=np.float64)
 
     return charts.MeasuredCurve(
@@ -87,7 +89,7 @@ class FitView:
     f_hi_hz: float
     n_points: int
 
-    def response(self, freq_hz: FloatArray) -> Any:
+    def response(self, freq_hz: FloatArray) -> ComplexArray:
         s = 2j * np.pi * np.asarray(freq_hz, dtype=np.float64)
         return 1.0 / (self.a2 * s * s + self.a1 * s + 1.0)
 
@@ -115,7 +117,8 @@ class IdentifyView:
 
 
 def _check_text(
-    q_type: str, cutoff_hz: float, accepted: bool, peak: float | None, reasons: Any
+    q_type: str, cutoff_hz: float, accepted: bool, peak: float | None,
+    reasons: Sequence[str] | None,
 ) -> str:
     why = "" if accepted or not reasons else f": {reasons[0]}"
     return (
@@ -160,7 +163,7 @@ def view_from_result(result: IdentifyResult, n_positions: int) -> IdentifyView:
     )
 
 
-def _fit_from_summary(fo: Any) -> FitView | None:
+def _fit_from_summary(fo: object) -> FitView | None:
     """The summary's ``fit`` object as a FitView (None if it is not one)."""
     if not isinstance(fo, dict):
         return None
