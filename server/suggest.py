@@ -9,8 +9,8 @@ present trajectory; here are the settings, the chart and the text.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -45,7 +45,8 @@ class SuggestSettings:
 
 def suggest(base: LoopConfig, plant: PlantKnowledge, trajectory: Trajectory,
             settings: SuggestSettings = SuggestSettings(),
-            progress: Any = None, setup: RigSetup | None = None) -> TuneResult:
+            progress: Callable[[float], None] | None = None,
+            setup: RigSetup | None = None) -> TuneResult:
     """The autotune of `base`'s Q type and cut-off (its gains kept) on `trajectory`, on the
     simulated rig with `setup`'s named disturbances (the preview's)."""
     from controller.sim.nonlinear_check import findings

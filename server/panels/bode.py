@@ -12,7 +12,8 @@ rounded out to whole steps), so NaN draws nothing and no column needs a stand-in
 from __future__ import annotations
 
 import math
-from typing import Any
+
+import viser
 
 from controller.core.arrays import FloatArray
 from controller.core.verdict import VerdictMargins
@@ -111,10 +112,10 @@ class BodeTab:
     """The charts of one candidate, built into the current GUI container (the plots panel's
     Bode tab); `show` draws a comparison."""
 
-    def __init__(self, gui: Any, freq_hz: FloatArray) -> None:
+    def __init__(self, gui: viser.GuiApi, freq_hz: FloatArray) -> None:
         self.gui = gui
         self.freq_hz = freq_hz
-        self.charts: dict[str, Any] = {}
+        self.charts: dict[str, viser.GuiUplotHandle] = {}
         self._specs = {s.key: s for s in charts.BODE_CHARTS}
 
     def build(self) -> None:
@@ -154,7 +155,7 @@ class BodeTab:
             data = cmp.chart_data[key]
             scales = charts.ranged_scales(self._specs[key], data, charts.Y_STEPS)
             if scales != handle.scales:
-                handle.scales = scales
+                set_scales(handle, scales)
             handle.data = data
         cand = cmp.candidate.curves
         set_html(self.margins, charts.loop_margins_html(cand))
