@@ -469,16 +469,20 @@ EMPTY_CHARTS_JS = """(titles) => {
 
 
 def test_empty_charts_draw_no_fake_data(page: Any) -> None:
-    """Before any Suggest or comparison: no red 'suggested' dot at (0.1 Hz, 0) and no flat
-    overlay line; the empty charts still have a finite y axis (they draw their grid)."""
+    """Before any Suggest or comparison: the Suggest sub-tab says nothing is suggested yet and
+    draws no chart (it was an empty 0..1 chart, issue 33); no flat overlay line in Compare
+    runs, whose empty chart still has a finite y axis (it draws its grid)."""
     from server.panels.recordings import COMPARE_TAB
 
-    got: list[dict[str, Any]] = []
     # The Suggest chart sits in the plots panel's Bode tab, sub-tab Suggest (an earlier test of
-    # this module may have left that panel on Live traces), the overlay in its Compare runs
-    # tab: one at a time (a tab's charts are drawn only while it is shown).
-    for tabs, title in ((("Bode", "Suggest"), "Suggest:"),
-                        ((COMPARE_TAB,), "Position error, before (A)")):
+    # this module may have left that panel on Live traces).
+    for tab in ("Bode", "Suggest"):
+        page.get_by_role("tab", name=tab, exact=True).click()
+    wait_shown_text(page, ".dt-suggest-note", "Nothing suggested yet", 90_000)
+    assert page.evaluate(EMPTY_CHARTS_JS, ["Suggest:"]) == []  # no chart drawn
+    got: list[dict[str, Any]] = []
+    # The overlay in the Compare runs tab (a tab's charts are drawn only while it is shown).
+    for tabs, title in (((COMPARE_TAB,), "Position error, before (A)"),):
         for tab in tabs:
             page.get_by_role("tab", name=tab, exact=True).click()
         shown: list[dict[str, Any]] = []
