@@ -432,7 +432,8 @@ def test_png_of_a_long_titled_chart_has_the_whole_title_in_its_name(
     with page.expect_download(timeout=15_000) as got:
         button.click()
     name = got.value.suggested_filename
-    assert name == "dobtune-dob-rejection-gain-e-without-e-with-23-0-db-where-the-dob-helps.png"
+    assert name == ("dobtune-dob-rejection-gain-tracking-error-without-dob-with-dob-article-eq-23-"
+                    "0-db-where-the-dob-helps-0-db-where-it-costs-waterbed.png")
     assert name == export_filename(spec, "png")  # the CSV's stem
 
 
