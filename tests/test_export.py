@@ -101,7 +101,8 @@ def test_file_names_follow_the_title() -> None:
     long = next(s for s in BODE_CHARTS if s.key == "rejection")
     name = export_filename(long, "png")
     # The whole title (a cut at 48 characters left out "where the DOB helps").
-    assert name == "dobtune-dob-rejection-gain-e-without-e-with-23-0-db-where-the-dob-helps.png"
+    assert name == ("dobtune-dob-rejection-gain-tracking-error-without-dob-with-dob-article-eq-23-"
+                    "0-db-where-the-dob-helps-0-db-where-it-costs-waterbed.png")
     assert export_filename(ChartSpec("k", "!!!", ({"label": "x"},), {}, ()), "csv") == (
         "dobtune-chart.csv")
 
