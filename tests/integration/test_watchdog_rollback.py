@@ -117,7 +117,7 @@ def test_a_plant_change_trips_the_watchdog_rollback_then_fault(
     # rolled back to, never on the one the watchdog rolled back, and latched in the fault.
     controller.stop(signal.SIGKILL)
     again = start_controller_factory(controller.state_dir, extra_args=("--realtime-priority",))
-    with Client(again.endpoint, again.rig) as c:
+    with Client(again.endpoint, again.rig, timeout_s=30.0) as c:
         c.wait_ready(again, timeout_s=120.0)
         back = c.get_config()
         assert back.config == first.config and back.version == reply.version + 1
@@ -158,7 +158,7 @@ def test_a_rollback_that_cannot_be_saved_is_never_undone_by_a_restart(
         assert _saved_version(controller) == (bad_v, 1.0)  # not saved: the directory refuses
         controller.stop(signal.SIGKILL)
         again = start_controller_factory(controller.state_dir, extra_args=("--realtime-priority",))
-        with Client(again.endpoint, again.rig) as c:
+        with Client(again.endpoint, again.rig, timeout_s=30.0) as c:
             c.wait_ready(again, timeout_s=120.0)
             back = c.get_config()
             assert back.config == first.config and back.version == good_v
@@ -170,7 +170,7 @@ def test_a_rollback_that_cannot_be_saved_is_never_undone_by_a_restart(
     # The directory takes files again: the rollback is saved (retried), a reset runs it.
     assert wait_until(lambda: _saved_version(again) == (good_v, first.config.cv_kp), 30.0), (
         _saved_version(again))
-    with Client(again.endpoint, again.rig) as c:
+    with Client(again.endpoint, again.rig, timeout_s=30.0) as c:
         assert c.reset().ok
         st = _status_until(c, lambda s: s.mode in ("stopped", "running"), 10.0)
         assert st.config_version == good_v and st.config == first.config
