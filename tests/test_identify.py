@@ -171,7 +171,7 @@ def test_cli_connect_without_a_controller_is_a_clear_error(tmp_path: Path) -> No
     )
     assert code == EXIT_BAD_INPUT
     error = json.loads(text)["error"]
-    assert error.startswith("--connect:") and "no reply" in error
+    assert error.startswith("--connect:") and "nothing answers at" in error
 
 
 def test_identify_subcommand_is_registered() -> None:

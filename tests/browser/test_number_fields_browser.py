@@ -80,7 +80,7 @@ def test_an_identify_field_is_read_as_typed_or_refused_by_name(
         page: Any, dashboard: Dashboard) -> None:
     """Identify's Amplitude "1e9" (became 19, and the confirmation offered 19.0 deg/s) is
     refused naming the field and its range, and Start starts nothing; "2e1" is 20 (the
-    confirmation says 20.0 deg/s); Positions "2.5" is no whole number."""
+    confirmation says "20 deg/s asked"); Positions "2.5" is no whole number."""
     page.wait_for_selector("text=E-STOP", timeout=SLOW_S * 1000)
     tabs = page.get_by_role("tab", name="Identify")
     tabs.nth(0).click(timeout=SLOW_S * 1000)
@@ -106,7 +106,7 @@ def test_an_identify_field_is_read_as_typed_or_refused_by_name(
     wait_for(lambda: ident.settings().values["amplitude_deg_s"] == 20.0, SLOW_S,
              "Amplitude 2e1 was not read as 20")
     page.get_by_role("button", name="Start identification").click(timeout=SLOW_S * 1000)
-    wait_shown_text(page, ".dt-confirm", "excitation of 20.0 deg/s", SLOW_S * 1000)
+    wait_shown_text(page, ".dt-confirm", "20 deg/s asked", SLOW_S * 1000)
     page.get_by_role("button", name="Cancel").click(timeout=SLOW_S * 1000)
     assert ident.state != "running"
     page.get_by_role("tab", name="Tune").click(timeout=SLOW_S * 1000)
