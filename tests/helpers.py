@@ -176,3 +176,20 @@ def no_new_files(directory: Path) -> Iterator[None]:
         yield
     finally:
         subprocess.run(["chattr", "-i", str(directory)], check=True, capture_output=True)
+
+
+class FakeClock:
+    """Time advances only through sleep(), rig work, and 1 us per clock read (so spins end)."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+        self.sleeps: list[float] = []
+
+    def clock(self) -> float:
+        self.now += 1e-6
+        return self.now
+
+    def sleep(self, s: float) -> None:
+        assert s >= 0.0
+        self.sleeps.append(s)
+        self.now += s

@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import pytest
+from helpers import FakeClock
 
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
@@ -39,23 +40,6 @@ from controller.process.runtime import (
 from controller.sim.sim_rig import SimRig
 
 CMD = COLUMNS.index("command_deg_s")
-
-
-class FakeClock:
-    """Time advances only through sleep(), rig work, and 1 us per clock read (so spins end)."""
-
-    def __init__(self) -> None:
-        self.now = 100.0
-        self.sleeps: list[float] = []
-
-    def clock(self) -> float:
-        self.now += 1e-6
-        return self.now
-
-    def sleep(self, s: float) -> None:
-        assert s >= 0.0
-        self.sleeps.append(s)
-        self.now += s
 
 
 class FakeRig:

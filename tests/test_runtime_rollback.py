@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from helpers import no_new_files, wait_until
+from helpers import FakeClock, no_new_files, wait_until
 from old_loop import OLD_LOOP
 
 from controller.core.config import LoopConfig, NominalModel
@@ -38,18 +38,6 @@ BAD = OLD_LOOP.with_(q_cutoff_hz=10.0)
 HOLD = Trajectory(kind="hold", offset_deg=10.0)
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def clock(self) -> float:
-        self.now += 1e-6
-        return self.now
-
-    def sleep(self, s: float) -> None:
-        self.now += s
-
-
 class Recorded(SimRig):
     """The simulated rig, recording the commands it receives."""
 
@@ -65,7 +53,7 @@ class Recorded(SimRig):
 def _runtime(
     first: LoopConfig = GOOD, trajectory: Trajectory = HOLD, **opts: float
 ) -> tuple[Runtime, Recorded]:
-    c = Clock()
+    c = FakeClock()
     rig = Recorded()
     rt = Runtime(
         ServoLoop(LoopCoefficients.build(first, 1)), rig, trajectory=trajectory,
@@ -150,7 +138,7 @@ def test_fault_injection_reaches_only_the_simulated_rig() -> None:
         def step(self, command_deg_s: float) -> None:
             pass
 
-    c = Clock()
+    c = FakeClock()
     plain = Runtime(ServoLoop(LoopCoefficients.build(GOOD)), Plain(), clock=c.clock,
                     sleep=c.sleep)
     t = plain.submit(InjectFault(RigFaults()))
@@ -351,7 +339,7 @@ def test_no_version_beyond_the_limit_is_made_by_an_apply_or_its_rollback(tmp_pat
     active (unsaveable). The apply is refused now, naming `version`: the rollback target's
     version must fit too."""
     top = MAX_VERSION - 1  # 2**53 - 2
-    c = Clock()
+    c = FakeClock()
     rt = Runtime(ServoLoop(LoopCoefficients.build(GOOD, top)), Recorded(), trajectory=HOLD,
                  clock=c.clock, sleep=c.sleep)
     svc, access = _service(rt, tmp_path, version=top)

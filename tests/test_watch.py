@@ -12,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from helpers import FakeClock
 
 from controller.core.config import LoopConfig
 from controller.core.errors import ConfigError
@@ -229,18 +230,6 @@ def test_the_trend_is_kept_per_hour_and_read_by_time_range(tmp_path: object) -> 
 # -- the test-only hook: SimDrift through the node and the runtime -------------------------------
 
 
-class _Clock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def clock(self) -> float:
-        self.now += 1e-6
-        return self.now
-
-    def sleep(self, s: float) -> None:
-        self.now += s
-
-
 def test_sim_drift_reaches_the_simulated_rig_only_and_bad_factors_are_named() -> None:
     import math
 
@@ -255,7 +244,7 @@ def test_sim_drift_reaches_the_simulated_rig_only_and_bad_factors_are_named() ->
         with pytest.raises(ConfigError) as e:
             to_request(proto.SimDrift(load_inertia_factor=bad), "t")
         assert e.value.field == "load_inertia_factor"
-    c = _Clock()
+    c = FakeClock()
     rig = SimRig(ARTICLE)
     rt = Runtime(ServoLoop(LoopCoefficients.build(CFG)), rig, clock=c.clock, sleep=c.sleep)
     t = rt.submit(req)
