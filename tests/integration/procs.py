@@ -292,3 +292,18 @@ class Client:
                 last = str(exc)
         log = proc.log() if proc is not None else ""
         raise ClientError(f"controller not ready within {timeout_s} s ({last})\n{log}")
+
+
+def run_ctl(proc: ControllerProcess, *action: str, timeout_s: float = 30.0) -> tuple[int, str]:
+    """`dobtune ctl <action>` against `proc`, in this process: (exit code, what it printed)."""
+    import io
+
+    from controller.cli.commands import controller_commands
+    from controller.cli.common import build_parser
+    from controller.cli.ctl import ctl_main
+
+    args = build_parser("dobtune", None, controller_commands()).parse_args(
+        ["ctl", "--connect", proc.endpoint, "--rig-name", proc.rig, "--timeout-s",
+         str(timeout_s), *action])
+    out = io.StringIO()
+    return ctl_main(args, out), out.getvalue()

@@ -8,7 +8,6 @@ keeps. Waits on conditions only; the time to detect is the bench's (tests/bench/
 
 from __future__ import annotations
 
-import io
 import os
 import subprocess
 import sys
@@ -18,7 +17,7 @@ from pathlib import Path
 import msgspec
 import pytest
 from helpers import wait_until
-from procs import Client, ControllerProcess
+from procs import Client, ControllerProcess, run_ctl
 
 from controller import protocol as proto
 from controller.recording.trend import read_trend
@@ -27,17 +26,6 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(600)]
 
 WINDOW_S = 8.0
 
-
-def _ctl(proc: ControllerProcess, *action: str) -> tuple[int, str]:
-    from controller.cli.commands import controller_commands
-    from controller.cli.common import build_parser
-    from controller.cli.ctl import ctl_main
-
-    args = build_parser("dobtune", None, controller_commands()).parse_args(
-        ["ctl", "--connect", proc.endpoint, "--rig-name", proc.rig, "--timeout-s", "30",
-         *action])
-    out = io.StringIO()
-    return ctl_main(args, out), out.getvalue()
 
 
 @pytest.fixture
@@ -69,15 +57,15 @@ def test_the_watch_names_a_drifting_belt(article_controller: ControllerProcess,
             for st in normal:
                 assert st.alarms == [], st
                 assert all(abs(p.value - 1.0) < 0.1 for p in st.parts if p.told), st.parts
-            rc, text = _ctl(proc, "drift")
+            rc, text = run_ctl(proc, "drift")
             assert rc == 0 and "stiffness" in text and "alarms: none" in text, text
             # Nobody waits for ever: no alarm in a short wait is exit 5.
-            rc, text = _ctl(proc, "wait-alarm", "--wait-s", "0.5")
+            rc, text = run_ctl(proc, "wait-alarm", "--wait-s", "0.5")
             assert rc == 5 and "no drift alarm" in text, text
             # The belt loses 40 % of its stiffness during the run.
             t_change = time.time()
             assert client.command(proto.SimDrift(belt_stiffness_factor=0.6)).ok
-            rc, text = _ctl(proc, "wait-alarm", "--since", str(t_change), "--wait-s", "400",
+            rc, text = run_ctl(proc, "wait-alarm", "--since", str(t_change), "--wait-s", "400",
                             "--json")
             assert rc == 0, text
             alarm = msgspec.json.decode(text, type=proto.DriftAlarm)
@@ -87,7 +75,7 @@ def test_the_watch_names_a_drifting_belt(article_controller: ControllerProcess,
             assert alarm.value < alarm.low  # below its range, which the text states
             assert "measure again" in alarm.action and alarm.gate_verdict in (
                 "accept", "caution", "reject")
-            rc, text = _ctl(proc, "drift")
+            rc, text = run_ctl(proc, "drift")
             assert rc == 0 and "alarms: stiffness" in text, text
         finally:
             watch.terminate()

@@ -6,13 +6,12 @@ restart (SIGKILL included) until a reset.
 
 from __future__ import annotations
 
-import io
 import signal
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from procs import Client, ControllerProcess, wait_until
+from procs import Client, ControllerProcess, run_ctl, wait_until
 from reset_race import run_trials
 
 from controller import protocol as proto
@@ -22,17 +21,6 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
 
 PAIRS = 1000
 
-
-def _ctl(proc: ControllerProcess, *action: str) -> tuple[int, str]:
-    from controller.cli.commands import controller_commands
-    from controller.cli.common import build_parser
-    from controller.cli.ctl import ctl_main
-
-    args = build_parser("dobtune", None, controller_commands()).parse_args(
-        ["ctl", "--connect", proc.endpoint, "--rig-name", proc.rig, "--timeout-s", "10",
-         *action])
-    out = io.StringIO()
-    return ctl_main(args, out), out.getvalue()
 
 
 def _command(body: proto.CommandBody) -> bytes:
@@ -116,7 +104,7 @@ def test_a_latched_estop_survives_a_restart_until_reset(
         assert not refused.ok and refused.mode == "estop"
         # `dobtune ctl reset` names the latest e-stop its status shows (here none since the
         # restart: -1) and clears the latch.
-        code, text = _ctl(second, "reset")
+        code, text = run_ctl(second, "reset", timeout_s=10.0)
         assert code == 0 and "reset: ok (mode stopped)" in text, text
         assert wait_until(lambda: not latch.exists(), 10.0), "latch not cleared by the reset"
         assert c.command(proto.Start()).ok

@@ -4,7 +4,6 @@ and gives it with the knowledge reply; `dobtune ctl twin` prints its fit per pos
 
 from __future__ import annotations
 
-import io
 import json
 import threading
 from pathlib import Path
@@ -12,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import wait_until
-from procs import APPLY_TIMEOUT_S, Client, ControllerProcess
+from procs import APPLY_TIMEOUT_S, Client, ControllerProcess, run_ctl
 
 from controller import protocol as proto
 from controller.client.recorder import Recorder, RecordOptions
@@ -37,17 +36,6 @@ def _knowledge(c: Client, req: proto.KnowledgeRequest | None = None) -> proto.Kn
     return proto.decode(c.query_raw(proto.key_knowledge(c.rig), payload, timeout_s),
                         proto.KnowledgeReply)
 
-
-def _ctl(proc: ControllerProcess, *action: str) -> tuple[int, str]:
-    from controller.cli.commands import controller_commands
-    from controller.cli.common import build_parser
-    from controller.cli.ctl import ctl_main
-
-    args = build_parser("dobtune", None, controller_commands()).parse_args(
-        ["ctl", "--connect", proc.endpoint, "--rig-name", proc.rig, "--timeout-s", "30",
-         *action])
-    out = io.StringIO()
-    return ctl_main(args, out), out.getvalue()
 
 
 def test_adopted_knowledge_comes_with_its_twin(controller: ControllerProcess,
@@ -82,11 +70,11 @@ def test_adopted_knowledge_comes_with_its_twin(controller: ControllerProcess,
     assert twin.fitted["inertia_factor"] == pytest.approx(1.3, rel=0.1)
     # A plain query gives the same twin (kept, not rebuilt differently).
     assert decode(_knowledge(client).twin) == twin
-    code, text = _ctl(controller, "twin")
+    code, text = run_ctl(controller, "twin")
     assert code == 0, text
     for p in twin.positions:
         assert p.describe() in text
-    code, text = _ctl(controller, "--json", "twin")
+    code, text = run_ctl(controller, "--json", "twin")
     assert code == 0 and json.loads(text)["knowledge_version"] == reply.record.version
 
 
