@@ -454,7 +454,13 @@
       if (i < 0) return;
       const f = u.data[0][i];
       const value = col[i + 1] - col[i];
-      const text = `${mark[0]} ${value.toFixed(1)} ${mark[1]} at ${fmtHz(f)}`;
+      // A gain margin named as the verdict names it, positive (issue 33): where |L| > 1 at the
+      // -180 deg crossing, the gain may fall that much ("down"); where |L| < 1, rise ("up").
+      const text = mark[1] !== "dB"
+        ? `${mark[0]} ${value.toFixed(1)} ${mark[1]} at ${fmtHz(f)}`
+        : value < 0
+          ? `gain-reduction margin ${(-value).toFixed(1)} dB down at ${fmtHz(f)}`
+          : `gain margin ${value.toFixed(1)} dB up at ${fmtHz(f)}`;
       const x = u.valToPos(f, "x", true);
       const y = u.valToPos((col[i] + col[i + 1]) / 2, s.scale, true);
       const { left, width } = u.bbox;

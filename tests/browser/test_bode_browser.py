@@ -271,7 +271,8 @@ def _rgb(hex_color: str) -> list[int]:
 
 def test_margin_markers_are_labelled_with_their_values_and_frequencies(
         page: Any, dashboard: Dashboard) -> None:
-    """Each margin marker carries its label on the chart ("GM 26.0 dB at 36.3 Hz", "PM 74.8
+    """Each margin marker carries its label on the chart ("gain margin 26.0 dB up at 36.3 Hz",
+    "gain-reduction margin 25.8 dB down at 0.183 Hz", "PM 74.8
     deg at 6.86 Hz": the margins of the verdict, from the gate's refined crossings), drawn in
     the marker's colour at the marker's frequency; the line above the charts says the same."""
     panel = _panel(page, dashboard)
@@ -283,8 +284,10 @@ def test_margin_markers_are_labelled_with_their_values_and_frequencies(
                                       (PHASE, (pm,), "deg", charts.PM_COLOR)):
         c = _chart(page, label)
         drawn = json.loads(c["labels"])
-        want = [f"{'GM' if unit == 'dB' else 'PM'} {m.value:.1f} {unit} at "
-                f"{float(f'{m.freq_hz:.3g}'):g} Hz" for m in marks]
+        want = [(f"PM {m.value:.1f} deg" if unit == "deg"
+                 else f"gain-reduction margin {-m.value:.1f} dB down" if m.value < 0
+                 else f"gain margin {m.value:.1f} dB up")
+                + f" at {float(f'{m.freq_hz:.3g}'):g} Hz" for m in marks]
         assert [d["text"] for d in drawn] == want
         lo, hi = (math.log10(v) for v in c["x"])
         for d, m in zip(drawn, marks, strict=True):
