@@ -41,8 +41,13 @@ class LatestWins(Generic[T]):
     _thread: threading.Thread | None = None
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
-        self._thread.start()
+        # Under the lock, so that a stop() from another thread (the dashboard closing while a
+        # browser's panel is being built) never joins a thread that is not started yet.
+        with self._cond:
+            if self._stop:
+                return
+            self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+            self._thread.start()
 
     def submit(self, item: T) -> None:
         with self._cond:
@@ -66,8 +71,9 @@ class LatestWins(Generic[T]):
         with self._cond:
             self._stop = True
             self._cond.notify()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+            thread = self._thread
+        if thread is not None:
+            thread.join(timeout=5.0)
 
     def _next(self) -> tuple[bool, T | None]:
         """Wait for the newest item (after the debounce); (False, None) when stopped."""
@@ -108,16 +114,24 @@ class Periodic:
         self.period_s = period_s
         self.name = name
         self._stop = threading.Event()
+        self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
-        self._thread.start()
+        # Under the lock, so that a stop() from another thread (the dashboard closing while a
+        # browser's panel is being built) never joins a thread that is not started yet.
+        with self._lock:
+            if self._stop.is_set():
+                return
+            self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+            self._thread.start()
 
     def stop(self) -> None:
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        with self._lock:
+            thread = self._thread
+        if thread is not None:
+            thread.join(timeout=5.0)
 
     def _run(self) -> None:
         period = self.period_s

@@ -81,3 +81,42 @@ def test_requests_log_what_a_future_would_keep(caplog: pytest.LogCaptureFixture)
         r.submit(_boom, None).result(5.0)
     r.shutdown()
     assert any("_boom failed" in rec.getMessage() and rec.exc_info for rec in caplog.records)
+
+
+def test_a_stop_racing_the_start_never_joins_an_unstarted_thread() -> None:
+    """The dashboard closing while a browser's panel is being built (seen in a test teardown:
+    "RuntimeError: cannot join thread before it is started" from LatestWins.stop)."""
+    errors: list[BaseException] = []
+    for _ in range(200):
+        w: LatestWins[int] = LatestWins(fn=lambda _i: None, name="race")
+        go = threading.Barrier(2)
+
+        def stopper(worker: LatestWins[int] = w, barrier: threading.Barrier = go) -> None:
+            barrier.wait()
+            try:
+                worker.stop()
+            except BaseException as exc:  # collected and asserted below
+                errors.append(exc)
+
+        t = threading.Thread(target=stopper)
+        t.start()
+        go.wait()
+        w.start()
+        t.join()
+        w.stop()
+        assert w._thread is None or not w._thread.is_alive()
+    assert errors == []
+
+
+def test_a_worker_stopped_before_it_starts_starts_no_thread() -> None:
+    w: LatestWins[int] = LatestWins(fn=lambda _i: None)
+    w.stop()
+    w.start()
+    assert w._thread is None
+
+
+def test_a_periodic_stopped_before_it_starts_starts_no_thread() -> None:
+    p = Periodic(lambda _k: None, 0.01, name="t-never")
+    p.stop()
+    p.start()
+    assert p._thread is None

@@ -364,6 +364,27 @@ class Dashboard:
         """Note who is at the new browser (with several users), build its own candidate and
         point its camera at the turntable."""
         assert self.browsers is not None
+        try:
+            self._build_for(client)
+        except KeyError:
+            # viser removes a browser's containers when it leaves: a browser that closes while
+            # its panels are being built makes the next add_* raise KeyError. Any other
+            # KeyError is a fault and propagates.
+            if self._present(client):
+                raise
+        if not self._present(client):
+            # It left before or during the build: its disconnect callback may have run first,
+            # so what was built for it is dropped here (else its panel would live on, unseen).
+            log.info("browser %d left while its panels were built", client.client_id)
+            self._on_client_disconnect(client)
+
+    def _present(self, client: viser.ClientHandle) -> bool:
+        return self.server is not None and client.client_id in self.server.get_clients()
+
+    def _build_for(self, client: viser.ClientHandle) -> None:
+        """The new browser's own panels (candidate, knowledge offer, recordings comparison)
+        and its camera."""
+        assert self.browsers is not None
         self.browsers.sign_in(client)
         self.panel_in(client.gui, client)
         if self.knowledge is not None:
