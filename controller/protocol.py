@@ -52,6 +52,9 @@ key_history = _rig_key("history")  # queryable: HistoryRequest (or empty) -> His
 key_lease = _rig_key("lease")  # queryable: LeaseRequest -> LeaseReply
 key_drift = _rig_key("drift")  # publisher (the watch), each window: DriftState
 key_drift_alarm = _rig_key("drift/alarm")  # publisher (the watch): DriftAlarm, as they happen
+# Publisher (the watch): PredictionCheck after each Apply (predicted, then measured); queryable:
+# every version's check (`dobtune ctl prediction`).
+key_prediction = _rig_key("prediction")
 
 
 #: With authentication (`dobtune controller --auth`), requests go to per-user scopes:
@@ -520,6 +523,38 @@ class DriftAlarm(_Msg, frozen=True, kw_only=True):
     gate_verdict: str = ""  # accept | caution | reject ("" not judged)
     gate_reasons: list[str] = []
     cleared: bool = False
+
+
+class PredictionFigure(msgspec.Struct, frozen=True, kw_only=True):
+    """One figure of a prediction check: the twin's value and the rig's (None: not measured
+    yet), the relative tolerance it is judged with (0: shown, not judged)."""
+
+    name: str  # rmse_deg | peak_error_deg | command_noise_deg_s | error_rms_deg <lo>-<hi> Hz
+    predicted: float
+    measured: float | None = None
+    tolerance_rel: float = 0.0
+
+
+class PredictionCheck(_Msg, frozen=True, kw_only=True):
+    """Predicted, then measured, for one applied configuration: what the twin predicted for
+    the running trajectory, what the rig did over the window that followed, and whether the
+    prediction held. `state`: "predicted" (the rig's window is not complete yet), "held",
+    "failed", "failed badly" (the rollback to `rollback_to`, the last version whose prediction
+    held, is offered), or "not judged" (`meaning` says why: the run was interrupted...)."""
+
+    rig: str
+    config_version: int
+    epoch_s: float  # UNIX time of the prediction, then of the verdict
+    trajectory: Trajectory
+    model: str  # what predicted: the rig's twin of knowledge vN, or the built-in model
+    window_s: float  # the rig's window (whole periods of a periodic trajectory)
+    settle_s: float  # left out after the configuration became active
+    state: str
+    figures: list[PredictionFigure] = []
+    bands: list[PredictionFigure] = []  # the error's spectrum: RMS per band
+    meaning: str = ""
+    rollback_to: int | None = None
+    measured_from_epoch_s: float | None = None  # the rig's window, UNIX time of its start
 
 
 # -- encoding ---------------------------------------------------------------------------------

@@ -8,7 +8,10 @@ Actions: `status`, `config`, `apply key=value ...` (`--expect-version N`, `--con
 controller built from its plant knowledge: its fit per position), `drift` (the watch's latest
 drift state: `dobtune watch`), `wait-alarm` (wait up to `--wait-s`, 0 for ever, for the watch's
 next drift alarm, or one raised since `--since EPOCH_S`: exit 0 one came (printed), 5 none
-came). An action that changes the rig
+came), `prediction [--all] [--wait-s S]` (the watch's check of the twin's prediction after
+the latest Apply: exit 0 held, 6 failed, 5 no verdict yet) and `rollback VERSION` (apply the
+configuration the history keeps for VERSION, through the gate): see
+`controller.cli.ctl_prediction`. An action that changes the rig
 takes the operator lease for its duration when nobody holds it (and releases it after).
 Values are JSON where they parse as JSON (`q_cutoff_hz=1.5`, `dob_on=false`), else strings.
 
@@ -49,8 +52,10 @@ ACTIONS = (
     "rigs",
     "drift",
     "wait-alarm",
+    "prediction",
+    "rollback",
 )
-CHANGES = ("apply", "start", "stop", "reset", "identify")
+CHANGES = ("apply", "start", "stop", "reset", "identify", "rollback")
 
 
 class _BadInput(Exception):
@@ -177,6 +182,10 @@ def _run(c: Any, args: argparse.Namespace, out: TextIO, proto: Any) -> int:
         lines += [f"  note: {n}" for n in twin.notes]
         _emit(out, args.json, twin, "\n".join(lines))
         return EXIT_OK
+    if action == "prediction":
+        from controller.cli.ctl_prediction import prediction
+
+        return prediction(c, args, out, (c.status or _wait_status(c)).config_version)
     if action == "knowledge":
         r = c.knowledge()
         _emit(
@@ -212,14 +221,22 @@ def _change(
     from controller.core.config import config_from_builtins, config_to_builtins
     from controller.core.errors import ConfigError
 
-    if action == "apply":
-        changes = parse_assignments(rest)
-        if not changes:
-            raise _BadInput("apply: give key=value pairs (LoopConfig fields)")
-        try:
-            cand = config_from_builtins({**config_to_builtins(cfg.config), **changes})
-        except ConfigError as exc:
-            raise _BadInput(str(exc)) from exc
+    if action in ("apply", "rollback"):
+        if action == "rollback":
+            from controller.cli.ctl_prediction import rollback_candidate
+
+            try:
+                _, cand = rollback_candidate(c, rest)
+            except ValueError as exc:
+                raise _BadInput(str(exc)) from exc
+        else:
+            changes = parse_assignments(rest)
+            if not changes:
+                raise _BadInput("apply: give key=value pairs (LoopConfig fields)")
+            try:
+                cand = config_from_builtins({**config_to_builtins(cfg.config), **changes})
+            except ConfigError as exc:
+                raise _BadInput(str(exc)) from exc
         expect = args.expect_version
         r = c.apply(cand, confirm=args.confirm, expect_version=expect)
         reasons = "".join(f"\n  - {x}" for x in r.reasons)
@@ -331,8 +348,13 @@ def _drift(opts: Any, args: argparse.Namespace, out: TextIO, proto: Any) -> int:
                                            lambda s: got.put(s.payload.to_bytes()))
         if args.since is not None:
             # Subscribed first, then asked: an alarm since then is in one or the other.
+            import zenoh
+
+            # One reply per alarm on the same key: NONE keeps them all (the default
+            # consolidation kept only the newest, so an alarm followed by its clearing was lost).
             for reply in c.session.get(proto.key_drift_alarm(args.rig_name),
-                                       timeout=args.timeout_s):
+                                       timeout=args.timeout_s,
+                                       consolidation=zenoh.ConsolidationMode.NONE):
                 if reply.ok is not None:
                     got.put(reply.ok.payload.to_bytes())
         try:
@@ -402,12 +424,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--listen-s", type=float, default=1.0,
                    help="rigs: how long to listen to the rigs' status and state")
     p.add_argument("--wait-s", type=float, default=0.0,
-                   help="wait-alarm: give up after this long (exit 5; default 0: wait for ever)")
+                   help="wait-alarm: give up after this long (exit 5; default 0: wait for "
+                   "ever); prediction: wait up to this long for the verdict (default 0: none)")
+    p.add_argument("--all", action="store_true",
+                   help="prediction: every version's check the watch kept")
     p.add_argument("--since", type=float, default=None, metavar="EPOCH_S",
                    help="wait-alarm: an alarm the watch raised at or after this UNIX time "
                    "counts too (none missed between a change and the wait)")
     p.add_argument("action", help=" | ".join(ACTIONS))
-    p.add_argument("args", nargs="*", help="key=value pairs (apply, identify) or a lease action")
+    p.add_argument("args", nargs="*",
+                   help="key=value pairs (apply, identify), a lease action or a version "
+                   "(rollback)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,12 +1,14 @@
 """`dobtune watch`: the twin beside a running controller (command body).
 
     dobtune watch --connect EP --rig-name R [--window-s 10] [--trend-dir DIR]
+                  [--prediction-window-s 10] [--prediction-log FILE]
                   [--disturbance NAME ...] [--auth DIR --user NAME]
 
 Reads the loop's state stream (nothing added to the tick), fits the twin's parts to each
 window, publishes the drift state and alarms (`dobtune ctl drift`, `dobtune ctl wait-alarm`),
-and keeps the rig's trend in DIR (MCAP, one file per hour). Runs niced: the controller's
-process wins the CPU. Exit codes: 0 stopped (Ctrl-C / SIGTERM), 2 bad input, 4 the
+and keeps the rig's trend in DIR (MCAP, one file per hour). After each Apply it checks the
+twin's prediction against what the rig then did (`dobtune ctl prediction`). Runs niced:
+the controller's process wins the CPU. Exit codes: 0 stopped (Ctrl-C / SIGTERM), 2 bad input, 4 the
 controller is not reachable.
 """
 
@@ -37,6 +39,11 @@ def run(args: argparse.Namespace) -> int:
     if not (1.5 <= args.window_s <= 600.0):
         say(f"--window-s: {args.window_s!r} out of range [1.5, 600]")
         return 2
+    if not (1.0 <= args.prediction_window_s <= 600.0):
+        say(f"--prediction-window-s: {args.prediction_window_s!r} out of range [1, 600]")
+        return 2
+    prediction_log = args.prediction_log or (
+        args.trend_dir / f"{args.rig_name}-predictions.jsonl" if args.trend_dir else None)
     try:
         os.nice(10)
     except OSError as exc:
@@ -47,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
                              query_timeout_s=args.timeout_s, connect_timeout_s=args.timeout_s,
                              mode="client"),
         window_s=args.window_s, disturbances=tuple(args.disturbance or ("article-rig",)),
-        trend_dir=args.trend_dir)
+        trend_dir=args.trend_dir, prediction_window_s=args.prediction_window_s,
+        prediction_log=prediction_log)
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT,
                                                                       signal.SIGTERM)}
@@ -72,6 +80,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--user", default=None)
     p.add_argument("--window-s", type=float, default=10.0,
                    help="seconds of samples per fit (default: 10)")
+    p.add_argument("--prediction-window-s", type=float, default=10.0,
+                   help="after each Apply: the rig's figures over at least this long (whole "
+                   "periods of a sine; default 10), against the twin's prediction")
+    p.add_argument("--prediction-log", type=Path, default=None, metavar="FILE",
+                   help="every version's prediction check, one JSON line each (default: "
+                   "<trend-dir>/<rig>-predictions.jsonl with --trend-dir, else kept in memory)")
     p.add_argument("--trend-dir", type=Path, default=None, metavar="DIR",
                    help="keep the rig's trend here (MCAP, one file per hour)")
     p.add_argument("--disturbance", action="append", default=[], metavar="NAME",

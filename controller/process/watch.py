@@ -38,9 +38,11 @@ from controller import protocol as proto
 from controller.client import ClientOptions, ControllerClient, ControllerUnavailable
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import PlantKnowledge
+from controller.process.prediction_check import PredictionTracker
 from controller.recording.trend import TrendWriter
 from controller.sim.rig_disturbances import rig_setup
 from controller.sim.sim_rig import RigFaults, RigParams
+from controller.tune.plant import SimPlant, plant_for
 from controller.twin.model import decode as decode_twin
 from controller.watch.estimate import DriftFit, LoopResidual, Window, fit_window, loop_residual
 from controller.watch.judge import MEASURE_HINT, DriftJudge, gate_on_drift, part_ranges
@@ -60,6 +62,11 @@ class WatchOptions:
     --disturbance`), as the model to compare with."""
     trend_dir: Path | None = None
     """Where the rig's trend is kept (None: not kept)."""
+    prediction_window_s: float = 10.0
+    """After each Apply: the shortest window the rig's figures are taken over (whole periods
+    of a periodic trajectory), against the twin's prediction."""
+    prediction_log: Path | None = None
+    """Where every version's prediction check is kept (JSON lines; None: in memory only)."""
 
 
 @dataclass
@@ -192,6 +199,28 @@ def _trend(tw: TrendWriter, msg: proto.DriftState, status: proto.Status | None) 
     tw.write("/drift/health", e, health)
 
 
+def _tracker(rig: str, st: WatchState, opts: WatchOptions, pub: Any) -> PredictionTracker:
+    """The prediction check after each Apply, on the plant Suggest and the preview use (the
+    rig's twin with the named disturbances; the built-in model when nothing was measured)."""
+    made: list[tuple[SimPlant, str]] = []
+
+    def plant() -> tuple[SimPlant, str]:
+        if not made:
+            p = plant_for(st.knowledge, rig_setup(list(opts.disturbances)))
+            made.append((p, p.source))
+        return made[0]
+
+    def moved() -> str:
+        return ", ".join(f"{n} {p.state}" for n, p in st.judge.parts.items()
+                         if p.state in ("outside", "alarm"))
+
+    def publish(check: proto.PredictionCheck) -> None:
+        pub.put(proto.encode(check), encoding=proto.encoding(proto.PredictionCheck))
+
+    return PredictionTracker(rig, plant, publish, moved, min_window_s=opts.prediction_window_s,
+                             log_path=opts.prediction_log)
+
+
 def run_watch(opts: WatchOptions, stop: threading.Event,
               on_state: Callable[[proto.DriftState], None] | None = None) -> int:
     """Watch until `stop` is set; 0. `on_state(DriftState)` after each window (tests)."""
@@ -223,6 +252,7 @@ def run_watch(opts: WatchOptions, stop: threading.Event,
             proto.key_drift(rig), zenoh.handlers.Callback(on_query, indirect=False))
         alarm_queryable = session.declare_queryable(
             proto.key_drift_alarm(rig), zenoh.handlers.Callback(on_alarm_query, indirect=False))
+        entities: list[Any] = []
         st = None
         while st is None:
             try:
@@ -232,11 +262,26 @@ def run_watch(opts: WatchOptions, stop: threading.Event,
                 if stop.wait(1.0):
                     return 0
         log.info("watch: rig %s against %s", rig, st.model)
+        pub_pred = session.declare_publisher(proto.key_prediction(rig))
+        entities.append(pub_pred)
+        tracker = _tracker(rig, st, opts, pub_pred)
+
+        def on_prediction_query(query: Any) -> None:
+            # `dobtune ctl prediction`: every version's check kept, oldest first.
+            for check in tracker.all():
+                with contextlib.suppress(Exception):
+                    query.reply(query.key_expr, proto.encode(check),
+                                encoding=proto.encoding(proto.PredictionCheck))
+
+        entities.append(session.declare_queryable(
+            proto.key_prediction(rig),
+            zenoh.handlers.Callback(on_prediction_query, indirect=False)))
         trend = TrendWriter(opts.trend_dir, rig) if opts.trend_dir is not None else None
         cfg_version, cfg = -1, None
         next_at = 0
         try:
             while not stop.is_set():
+                tracker.step(c)
                 status = c.status
                 if status is None or status.mode != "running":
                     stop.wait(0.2)
@@ -288,7 +333,7 @@ def run_watch(opts: WatchOptions, stop: threading.Event,
         finally:
             if trend is not None:
                 trend.close()
-            for e in (queryable, alarm_queryable, pub_state, pub_alarm):
+            for e in (queryable, alarm_queryable, pub_state, pub_alarm, *entities):
                 with contextlib.suppress(Exception):
                     e.undeclare()
     return 0

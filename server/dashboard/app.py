@@ -26,7 +26,7 @@ import secrets
 import signal
 import threading
 import types
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import viser
@@ -121,6 +121,27 @@ def record_options(opts: DashboardOptions, client: ControllerClient) -> RecordOp
     user = client.opts.user if opts.auth is not None else ""
     return RecordOptions(connect=tuple(opts.connect), out=Path(opts.recordings_dir),
                          rig_name=opts.rig_name, auth=opts.auth, user=user)
+
+
+def build_or_depart(server: viser.ViserServer | None, client: viser.ClientHandle,
+                    build: Callable[[], None], depart: Callable[[], None]) -> None:
+    """`build()` the new browser's own panels; if it left before or during the build, what
+    was built for it is dropped (`depart()`: its disconnect callback may have run first, and
+    its panel would live on unseen). viser removes a browser's containers when it leaves, so
+    a build racing the departure raises KeyError: taken as the departure; any other KeyError
+    (the browser still here) is a fault and propagates."""
+
+    def present() -> bool:
+        return server is not None and client.client_id in server.get_clients()
+
+    try:
+        build()
+    except KeyError:
+        if present():
+            raise
+    if not present():
+        log.info("browser %d left while its panels were built", client.client_id)
+        depart()
 
 
 class Dashboard:
@@ -361,29 +382,11 @@ class Dashboard:
             self.live.command_result.content = html
 
     def _on_client_connect(self, client: viser.ClientHandle) -> None:
-        """Note who is at the new browser (with several users), build its own candidate and
-        point its camera at the turntable."""
-        assert self.browsers is not None
-        try:
-            self._build_for(client)
-        except KeyError:
-            # viser removes a browser's containers when it leaves: a browser that closes while
-            # its panels are being built makes the next add_* raise KeyError. Any other
-            # KeyError is a fault and propagates.
-            if self._present(client):
-                raise
-        if not self._present(client):
-            # It left before or during the build: its disconnect callback may have run first,
-            # so what was built for it is dropped here (else its panel would live on, unseen).
-            log.info("browser %d left while its panels were built", client.client_id)
-            self._on_client_disconnect(client)
-
-    def _present(self, client: viser.ClientHandle) -> bool:
-        return self.server is not None and client.client_id in self.server.get_clients()
+        build_or_depart(self.server, client, lambda: self._build_for(client),
+                        lambda: self._on_client_disconnect(client))
 
     def _build_for(self, client: viser.ClientHandle) -> None:
-        """The new browser's own panels (candidate, knowledge offer, recordings comparison)
-        and its camera."""
+        """Who is at the new browser; its own candidate; its camera on the turntable."""
         assert self.browsers is not None
         self.browsers.sign_in(client)
         self.panel_in(client.gui, client)

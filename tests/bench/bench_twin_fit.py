@@ -16,7 +16,7 @@ from controller.gate.knowledge import COMMISSIONING_BOUND, PlantKnowledge
 from controller.ident.offline import run_offline
 from controller.ident.spec import IdentifySpec
 from controller.sim.experiment import run_experiment
-from controller.sim.rig_disturbances import rig_setup
+from controller.sim.rig_disturbances import RigSetup, rig_setup
 from controller.sim.sim_rig import RigFaults, SimRig
 from controller.twin.fit import position_fit, rig_response, twin_from_knowledge
 from controller.twin.replay import replay
@@ -30,16 +30,22 @@ class Never:
         return False
 
 
-def main() -> None:
-    setup = rig_setup(("article-rig",))
-    cfg = LoopConfig()
+def demo_knowledge(setup: RigSetup, cfg: LoopConfig) -> PlantKnowledge:
+    """The demo rig `setup` identified offline at 3 positions (as `dobtune identify --plant
+    sim --positions 3`), as plant knowledge (also tests/bench/bench_prediction.py's)."""
     out = run_offline(IdentifySpec(positions=3), cfg.with_(dob_on=False), Never(),
                       rig_factory=lambda c, seed: SimRig(setup.params, rate_hz=c.rate_hz,
                                                          seed=seed, disturbance=setup.torque))
     res = out.result
     assert res is not None and out.complete, out.reason
-    k = PlantKnowledge(measured=res.measured_responses(), bound=COMMISSIONING_BOUND,
-                       model=res.nominal or cfg.nominal, version=1, source="identified")
+    return PlantKnowledge(measured=res.measured_responses(), bound=COMMISSIONING_BOUND,
+                          model=res.nominal or cfg.nominal, version=1, source="identified")
+
+
+def main() -> None:
+    setup = rig_setup(("article-rig",))
+    cfg = LoopConfig()
+    k = demo_knowledge(setup, cfg)
     tw = twin_from_knowledge(k, rate_hz=cfg.rate_hz)
     print(tw.describe())
     for p in tw.positions:

@@ -307,3 +307,21 @@ def run_ctl(proc: ControllerProcess, *action: str, timeout_s: float = 30.0) -> t
          str(timeout_s), *action])
     out = io.StringIO()
     return ctl_main(args, out), out.getvalue()
+
+
+@contextlib.contextmanager
+def watching(proc: ControllerProcess, log_path: Path,
+             *extra: str) -> Iterator[subprocess.Popen[bytes]]:
+    """`dobtune watch` beside `proc` (the article rig), its output in `log_path`; stopped
+    (SIGTERM, then waited for) when the block ends."""
+    with open(log_path, "ab") as log:
+        watch = subprocess.Popen(
+            [str(Path(sys.executable).parent / "dobtune"), "watch", "--connect", proc.endpoint,
+             "--rig-name", proc.rig, "--disturbance", "article-rig",
+             "--parent-pid", str(os.getpid()), *extra],
+            stdout=log, stderr=subprocess.STDOUT)
+        try:
+            yield watch
+        finally:
+            watch.terminate()
+            watch.wait(30)

@@ -8,16 +8,13 @@ keeps. Waits on conditions only; the time to detect is the bench's (tests/bench/
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import msgspec
 import pytest
 from helpers import wait_until
-from procs import Client, ControllerProcess, run_ctl
+from procs import Client, ControllerProcess, run_ctl, watching
 
 from controller import protocol as proto
 from controller.recording.trend import read_trend
@@ -43,44 +40,37 @@ def test_the_watch_names_a_drifting_belt(article_controller: ControllerProcess,
         states: list[bytes] = []
         sub = client.session.declare_subscriber(proto.key_drift(proc.rig),
                                                 lambda s: states.append(s.payload.to_bytes()))
-        log = open(tmp_path / "watch.log", "ab")  # noqa: SIM115
-        watch = subprocess.Popen(
-            [str(Path(sys.executable).parent / "dobtune"), "watch", "--connect", proc.endpoint,
-             "--rig-name", proc.rig, "--window-s", str(WINDOW_S), "--trend-dir", str(trend),
-             "--disturbance", "article-rig", "--parent-pid", str(os.getpid())],
-            stdout=log, stderr=subprocess.STDOUT)
         try:
-            # Normal running: three windows judged, no part in alarm, each part told.
-            assert wait_until(lambda: len(states) >= 3, timeout_s=300.0), \
-                (tmp_path / "watch.log").read_text()
-            normal = [proto.decode(s, proto.DriftState) for s in states[:3]]
-            for st in normal:
-                assert st.alarms == [], st
-                assert all(abs(p.value - 1.0) < 0.1 for p in st.parts if p.told), st.parts
-            rc, text = run_ctl(proc, "drift")
-            assert rc == 0 and "stiffness" in text and "alarms: none" in text, text
-            # Nobody waits for ever: no alarm in a short wait is exit 5.
-            rc, text = run_ctl(proc, "wait-alarm", "--wait-s", "0.5")
-            assert rc == 5 and "no drift alarm" in text, text
-            # The belt loses 40 % of its stiffness during the run.
-            t_change = time.time()
-            assert client.command(proto.SimDrift(belt_stiffness_factor=0.6)).ok
-            rc, text = run_ctl(proc, "wait-alarm", "--since", str(t_change), "--wait-s", "400",
-                            "--json")
-            assert rc == 0, text
-            alarm = msgspec.json.decode(text, type=proto.DriftAlarm)
-            assert alarm.part == "stiffness" and not alarm.cleared, alarm
-            assert alarm.epoch_s >= t_change
-            assert alarm.value == pytest.approx(0.6, rel=0.10), alarm
-            assert alarm.value < alarm.low  # below its range, which the text states
-            assert "measure again" in alarm.action and alarm.gate_verdict in (
-                "accept", "caution", "reject")
-            rc, text = run_ctl(proc, "drift")
-            assert rc == 0 and "alarms: stiffness" in text, text
+            with watching(proc, tmp_path / "watch.log", "--window-s", str(WINDOW_S),
+                          "--trend-dir", str(trend)):
+                # Normal running: three windows judged, no part in alarm, each part told.
+                assert wait_until(lambda: len(states) >= 3, timeout_s=300.0), \
+                    (tmp_path / "watch.log").read_text()
+                normal = [proto.decode(s, proto.DriftState) for s in states[:3]]
+                for st in normal:
+                    assert st.alarms == [], st
+                    assert all(abs(p.value - 1.0) < 0.1 for p in st.parts if p.told), st.parts
+                rc, text = run_ctl(proc, "drift")
+                assert rc == 0 and "stiffness" in text and "alarms: none" in text, text
+                # Nobody waits for ever: no alarm in a short wait is exit 5.
+                rc, text = run_ctl(proc, "wait-alarm", "--wait-s", "0.5")
+                assert rc == 5 and "no drift alarm" in text, text
+                # The belt loses 40 % of its stiffness during the run.
+                t_change = time.time()
+                assert client.command(proto.SimDrift(belt_stiffness_factor=0.6)).ok
+                rc, text = run_ctl(proc, "wait-alarm", "--since", str(t_change), "--wait-s", "400",
+                                "--json")
+                assert rc == 0, text
+                alarm = msgspec.json.decode(text, type=proto.DriftAlarm)
+                assert alarm.part == "stiffness" and not alarm.cleared, alarm
+                assert alarm.epoch_s >= t_change
+                assert alarm.value == pytest.approx(0.6, rel=0.10), alarm
+                assert alarm.value < alarm.low  # below its range, which the text states
+                assert "measure again" in alarm.action and alarm.gate_verdict in (
+                    "accept", "caution", "reject")
+                rc, text = run_ctl(proc, "drift")
+                assert rc == 0 and "alarms: stiffness" in text, text
         finally:
-            watch.terminate()
-            watch.wait(30)
-            log.close()
             sub.undeclare()
     points = read_trend(trend, proc.rig, time.time() - 3600, time.time() + 60)
     assert len(points) >= 4 and all("stiffness" in p.data for p in points)
