@@ -70,6 +70,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="allow a non-loopback --listen or --connect without --auth (anyone who reaches "
         "it may act)",
     )
+    p.add_argument(
+        "--no-watch",
+        action="store_true",
+        help="do not start the watch beside the loop (`dobtune watch`: the plant's drift, and "
+        "the twin's prediction checked after each Apply). By default it starts once the loop "
+        "runs, niced, in its own process, and stops with the controller; not with --auth "
+        "(start it by hand with an account of its own)",
+    )
     add_parent_pid(p, "controller")
     p.add_argument(
         "--sim-drive-node",
@@ -120,11 +128,29 @@ def _run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
         insecure=args.insecure,
         request_budget_per_s=args.request_budget,
     )
+    watch = None
+    if not args.no_watch and args.auth is None and listen:
+        from controller.cli.watch_child import WatchChild, loopback_endpoint
+
+        watch = WatchChild(loopback_endpoint(listen[0]), args.rig_name, opts.state_path,
+                           tuple(args.disturbance), args.log_level)
+
+    def ready(text: str) -> None:
+        say(text)
+        if watch is not None:
+            watch.start()
+            say(f"the watch runs beside the loop (pid {watch.proc.pid if watch.proc else '-'}"
+                f"; trend and prediction checks in {opts.state_path / 'trend'}; --no-watch: "
+                "not started)")
+
     try:
-        code = run_controller(opts, ready=say)
+        code = run_controller(opts, ready=ready)
     except StartupError as exc:
         say(str(exc))
         return 2
+    finally:
+        if watch is not None:
+            watch.stop()
     say("stopped")
     return code
 

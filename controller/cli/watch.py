@@ -53,7 +53,9 @@ def run(args: argparse.Namespace) -> int:
                              client_name="watch", auth=args.auth, user=args.user or "",
                              query_timeout_s=args.timeout_s, connect_timeout_s=args.timeout_s,
                              mode="client"),
-        window_s=args.window_s, disturbances=tuple(args.disturbance or ("article-rig",)),
+        window_s=args.window_s,
+        disturbances=(tuple(d for d in args.disturbance if d != "none") if args.disturbance
+                      else ("article-rig",)),
         trend_dir=args.trend_dir, prediction_window_s=args.prediction_window_s,
         prediction_log=prediction_log)
     stop = threading.Event()
@@ -90,7 +92,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="keep the rig's trend here (MCAP, one file per hour)")
     p.add_argument("--disturbance", action="append", default=[], metavar="NAME",
                    help="without a twin: the simulated rig the controller runs (as its "
-                   "--disturbance; default article-rig)")
+                   "--disturbance; default article-rig; 'none': the plain rig)")
     p.add_argument("--timeout-s", type=float, default=30.0,
                    help="a query's reply timeout (the controller may be busy; default: 30)")
     add_parent_pid(p, "watch")

@@ -136,15 +136,18 @@ def stop_process(proc: subprocess.Popen[bytes], timeout_s: float = 5.0) -> int:
 def controller_process(
     endpoint: str, rig_name: str, state_dir: Path | None = None, log_level: str = "info",
     disturbances: tuple[str, ...] = (),
+    watch: bool = False,
 ) -> Iterator[subprocess.Popen[bytes]]:
     """The simulated controller as a child process (with the simulated rig's named
-    `disturbances`), stopped on exit."""
+    `disturbances`; `watch`: with the watch beside it, as `dobtune demo` runs it), stopped
+    on exit."""
     with contextlib.ExitStack() as stack:
         if state_dir is None:
             state_dir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="dobtune-")))
         proc = subprocess.Popen(controller_command(
             endpoint, rig_name, state_dir, log_level,
-            (*_disturbance_args(disturbances), *_with_us())))
+            (*_disturbance_args(disturbances), *_with_us(),
+             *(() if watch else ("--no-watch",)))))
         try:
             yield proc
         finally:
@@ -172,7 +175,7 @@ def run_demo(opts: DemoOptions) -> int:
     if opts.rigs > 1:
         return _run_fleet(opts, endpoint)
     with stop_requested() as stop, controller_process(
-        endpoint, opts.rig_name, opts.state_dir, opts.log_level, opts.disturbances
+        endpoint, opts.rig_name, opts.state_dir, opts.log_level, opts.disturbances, watch=True
     ) as proc, Dashboard(
         DashboardOptions(
             connect=(endpoint,), rig_name=opts.rig_name, host=opts.host, port=opts.port,

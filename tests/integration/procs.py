@@ -80,11 +80,13 @@ def start_controller(
     python_code: str | None = None,
     listen: bool = True,
     tree: Path | None = None,
+    watch: bool = False,
 ) -> ControllerProcess:
     """Start a controller on 127.0.0.1:<free port> (`listen` False: none, for a controller
     behind an authenticating router). `python_code` replaces `-m controller` (for options the
     command line does not expose); it gets the same arguments in argv. `tree`: run the code of
-    that source tree (an older commit's, for benchmarks) instead of this repository's."""
+    that source tree (an older commit's, for benchmarks) instead of this repository's. `watch`:
+    with the watch the controller starts beside its loop (default: `--no-watch`)."""
     port = free_port() if port is None else port
     args = [
         *(("--listen", f"tcp/127.0.0.1:{port}") if listen else ()),
@@ -93,6 +95,9 @@ def start_controller(
         "--state-dir",
         str(state_dir),
         *extra_args,
+        # the watch beside the loop (`dobtune controller` starts it) only where a test asks:
+        # (an older tree's controller has no such option)
+        *(() if watch or tree is not None or python_code is not None else ("--no-watch",)),
     ]
     cmd = [sys.executable, "-m", "controller", *args]
     if python_code is not None:

@@ -27,8 +27,10 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(900)]
 
 @pytest.fixture
 def article_controller(start_controller_factory: object) -> ControllerProcess:
+    # a rig name of its own: no other test's watch (same machine, same default name) can
+    # answer for it
     return start_controller_factory(  # type: ignore[operator,no-any-return]
-        extra_args=("--realtime-priority", "--disturbance", "article-rig"))
+        rig="predict", extra_args=("--realtime-priority", "--disturbance", "article-rig"))
 
 
 def _verdict(proc: ControllerProcess, version: int) -> proto.PredictionCheck:
@@ -126,3 +128,46 @@ def test_rollback_names_a_version_the_history_does_not_have(
     assert rc == 2 and "version 999 is not in the history" in text, text
     rc, text = run_ctl(article_controller, "rollback", "latest")
     assert rc == 2 and "give the version" in text, text
+
+
+def test_the_controller_starts_the_watch_and_takes_it_down(
+        start_controller_factory: object) -> None:
+    """`dobtune controller` starts the watch beside its loop (no --no-watch): the first
+    prediction check is published without anyone starting it, and the watch ends with the
+    controller."""
+    import os
+    import re
+
+    from helpers import wait_until
+
+    proc: ControllerProcess = start_controller_factory(  # type: ignore[operator]
+        rig="predictstart", extra_args=("--disturbance", "article-rig"), watch=True)
+    with Client(proc.endpoint, proc.rig, timeout_s=30.0) as client:
+        client.wait_ready(proc)
+        assert wait_until(lambda: "the watch runs beside the loop" in proc.log(), 60.0), \
+            proc.log()
+        m = re.search(r"the watch runs beside the loop \(pid (\d+)", proc.log())
+        assert m is not None
+        pid = int(m.group(1))
+        got: list[proto.PredictionCheck] = []
+
+        def ask() -> bool:
+            for reply in client.session.get(proto.key_prediction(proc.rig), timeout=5.0):
+                if reply.ok is not None:
+                    got.append(proto.decode(reply.ok.payload.to_bytes(),
+                                            proto.PredictionCheck))
+            return bool(got)
+
+        assert wait_until(ask, 180.0, poll_s=1.0), proc.log()
+        assert got[0].config_version == client.fresh_status().config_version
+        assert (proc.state_dir / "trend").is_dir()
+    proc.stop()
+
+    def gone() -> bool:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        return False
+
+    assert wait_until(gone, 30.0), f"the watch (pid {pid}) outlived its controller"
