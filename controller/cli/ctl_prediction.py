@@ -45,22 +45,11 @@ def prediction(c: Any, args: argparse.Namespace, out: TextIO, version: int) -> i
     sub = c.session.declare_subscriber(proto.key_prediction(rig),
                                        lambda s: got.put(s.payload.to_bytes()))
     try:
-        checks: dict[int, proto.PredictionCheck] = {}
-        answered = False
-        import zenoh
-
-        # Every check is a reply on the same key: NONE keeps them all (the default
-        # consolidation keeps the latest reply per key, one check).
-        for reply in c.session.get(proto.key_prediction(rig), timeout=args.timeout_s,
-                                   consolidation=zenoh.ConsolidationMode.NONE):
-            if reply.ok is not None:
-                answered = True
-                kept = proto.decode(reply.ok.payload.to_bytes(), proto.PredictionCheck)
-                checks[kept.config_version] = kept
-        if not answered:
+        checks = {k.config_version: k for k in c.prediction_checks(args.timeout_s)}
+        if not checks:
             raise ControllerUnavailable(
-                f"no prediction check for rig {rig!r}: is `dobtune watch` running (it checks "
-                "each Apply) and has the loop run since it started?")
+                f"no prediction check for rig {rig!r}: is `dobtune watch` running (the "
+                "controller starts it unless --no-watch) and has the loop run since?")
         if args.all:
             ordered = [checks[v] for v in sorted(checks)]
             if args.json:

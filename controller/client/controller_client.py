@@ -349,6 +349,23 @@ class ControllerClient:
         req = proto.HistoryRequest(last=last)
         return self.query(proto.key_history(self.opts.rig_name), req, proto.HistoryReply)
 
+    def prediction_checks(self, timeout_s: float | None = None) -> list[proto.PredictionCheck]:
+        """Every version's prediction check the watch keeps (`dobtune watch`, started by the
+        controller), oldest version first; [] when no watch answers."""
+        import zenoh
+
+        checks: dict[int, proto.PredictionCheck] = {}
+        # One reply per version on the same key: NONE keeps them all (the default
+        # consolidation keeps the latest reply per key).
+        for reply in self.session.get(
+                proto.key_prediction(self.opts.rig_name),
+                timeout=self.opts.query_timeout_s if timeout_s is None else timeout_s,
+                consolidation=zenoh.ConsolidationMode.NONE):
+            if reply.ok is not None:
+                k = proto.decode(reply.ok.payload.to_bytes(), proto.PredictionCheck)
+                checks[k.config_version] = k
+        return [checks[v] for v in sorted(checks)]
+
     def identify_status(self) -> proto.IdentifyStatus:
         """The controller's latest identification run."""
         raw = self._query(self.key(proto.key_identify(self.opts.rig_name)), b"")

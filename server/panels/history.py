@@ -18,6 +18,7 @@ from server.gui import set_value
 from server.panels.bode import fmt_value, gain_margin_items
 from server.panels.nominal_tuning import NominalTuningPanel
 from server.panels.tuning import config_diff_html
+from server.prediction_view import prediction_html, state_of
 from server.session import tell
 from server.workers import Refetch, Requests
 
@@ -40,10 +41,17 @@ class HistoryPanel:
         """`follow.note(version)`: the controller's configuration version (from a status);
         fetched again when it moves."""
         self.versions: dict[int, LoopConfig] = {}
+        self.checks: list[proto.PredictionCheck] = []
+        self._requests = requests
 
     def build(self) -> None:
         gui = self.gui
+        self.prediction = gui.add_html(prediction_html([], None))
         self.table = gui.add_html("<div class='dt-history'>No history yet.</div>")
+        # Each check the watch publishes (a prediction, then its verdict) refreshes the box.
+        self.client.session.declare_subscriber(
+            proto.key_prediction(self.client.opts.rig_name),
+            lambda _s: self._requests.submit(self.fetch))
         self.pick = gui.add_dropdown("Version", ("-",), initial_value="-")
         self.other = gui.add_dropdown("Compare with", ("-",), initial_value="-",
                                       hint="the fields in which Version differs from this one")
@@ -66,6 +74,14 @@ class HistoryPanel:
             self.table.content = f"<div class='dt-history'>{esc(reply.message)}</div>"
             return
         self.versions = {e.version: e.config for e in reply.entries}
+        try:
+            checks = self.client.prediction_checks(2.0)
+        except proto.ProtocolError as exc:  # a watch of another version: said, not guessed
+            log.warning("prediction checks not read: %s", exc)
+            checks = []
+        self.checks = checks
+        running = reply.entries[-1].version if reply.entries else None
+        self.prediction.content = prediction_html(checks, running)
         rows = []
         for e in reversed(reply.entries):
             v = e.verdict
@@ -76,19 +92,25 @@ class HistoryPanel:
             when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(e.time_s))
             rows.append(f"<tr><td>v{e.version}</td><td>{esc(when)}</td><td>{esc(e.client)}</td>"
                         f"<td{why}>{esc(kind_of(v))}</td><td>{pm}</td><td>{gm}</td>"
-                        f"<td>{esc(e.config.q_type)} {e.config.q_cutoff_hz:g} Hz</td></tr>")
+                        f"<td>{esc(e.config.q_type)} {e.config.q_cutoff_hz:g} Hz</td>"
+                        f"<td>{esc(state_of(checks, e.version) or '-')}</td></tr>")
         note = (f"<div class='dt-history-note'>{esc(reply.message)}</div>"
                 if reply.message else "")
         self.table.content = (
             "<div class='dt-history' style='font-size:12px'>" + note + "<table><tr><th>ver"
             "</th><th>when</th><th>who</th><th>verdict</th><th>PM</th><th>gain margins</th>"
-            "<th>Q</th></tr>"
+            "<th>Q</th><th>prediction</th></tr>"
             + "".join(rows) + "</table></div>")
         options = tuple(f"v{v}" for v in sorted(self.versions, reverse=True)) or ("-",)
         self.pick.options = options
-        set_value(self.pick, options[0])
+        k = next((c for c in checks if c.config_version == running), None)
+        offered = k.rollback_to if k is not None and k.state == "failed badly" else None
+        # a failed-badly prediction's rollback offer, ready for Use as candidate
+        set_value(self.pick, f"v{offered}" if offered in self.versions else options[0])
         self.other.options = options
-        set_value(self.other, options[min(1, len(options) - 1)])
+        # compared with the running version when a rollback is offered
+        set_value(self.other, options[0 if offered in self.versions else
+                                      min(1, len(options) - 1)])
         self.show_diff()
 
     def _chosen(self, value: str) -> LoopConfig | None:
