@@ -44,6 +44,7 @@ from controller.gate.search import cached_recommendation, knowledge_spread
 from controller.gate.verdict import recommended_cutoff_hz, verdict_of
 from controller.sim.nonlinear_check import findings
 from controller.sim.rig_disturbances import RigSetup, rig_setup
+from controller.tune.plant import SimPlant
 from server import charts
 from server.charts import BodeCurves, NyquistLoop, PlantCurves
 
@@ -107,6 +108,9 @@ class PreviewResult:
     what the DOB costs in the drive."""
     disturbances: str = "none"
     """The simulated rig's named disturbances in the run."""
+    plant_source: str = ""
+    """What the run simulated: the rig's twin (from the measured responses) or the built-in
+    model when nothing was measured (`controller.tune.plant.SimPlant.source`)."""
 
 
 @dataclass(frozen=True)
@@ -390,7 +394,9 @@ class TuningEngine:
         #: when the DOB is on (G Cv: the gains and the plant), and the plant chart's curves.
         self._loops_without_dob: _Cache[tuple[int, LoopConfig], NyquistLoop] = _Cache(64)
         self._plant_charts: _Cache[tuple[int, float], PlantCurves] = _Cache(4)
-        self._previews: _Cache[tuple[LoopConfig, Trajectory], PreviewResult] = _Cache(16)
+        self._previews: _Cache[tuple[int, LoopConfig, Trajectory], PreviewResult] = _Cache(16)
+        #: What the previews run on, per plant generation (the twin's fit takes a while).
+        self._sim_plants: _Cache[int, SimPlant] = _Cache(2)
         self._steps: _Cache[tuple[LoopConfig, Any], tuple[FloatArray, FloatArray, FloatArray]] = (
             _Cache(32))
 
@@ -473,8 +479,24 @@ class TuningEngine:
         return Comparison(cand, act, data)
 
     def preview(self, cfg: LoopConfig, trajectory: Trajectory) -> PreviewResult:
-        """The offline experiment over one sine period (12.6 s) or `preview_duration_s`."""
-        return self._previews.get((cfg, trajectory), lambda: self._preview(cfg, trajectory))
+        """The offline experiment over one sine period (12.6 s) or `preview_duration_s`, on
+        the plant `sim_plant` names."""
+        gen, plant = self._current()
+        return self._previews.get((gen, cfg, trajectory),
+                                  lambda: self._preview(cfg, trajectory, gen, plant))
+
+    def sim_plant(self) -> SimPlant:
+        """What predictions run on, as Suggest and `dobtune autotune` do (`plant_for`): the
+        rig's twin fitted to the knowledge's measured responses with the demo's named
+        disturbances on top; the built-in model when nothing was measured (its `source` says
+        so). ValueError when the twin cannot be fitted (said, never a silent fall back)."""
+        gen, plant = self._current()
+        return self._sim_plants.get(gen, lambda: self._plant_for(plant))
+
+    def _plant_for(self, plant: PlantKnowledge) -> SimPlant:
+        from controller.tune.plant import plant_for
+
+        return plant_for(plant, self.sim_setup or rig_setup(()))
 
     def preview_run_s(self, trajectory: Trajectory) -> float:
         """How long a preview runs: one period of a periodic trajectory, else
@@ -482,11 +504,13 @@ class TuningEngine:
         preview's)."""
         return min(trajectory.period_s or self.preview_duration_s, 30.0)
 
-    def _preview(self, cfg: LoopConfig, trajectory: Trajectory) -> PreviewResult:
+    def _preview(self, cfg: LoopConfig, trajectory: Trajectory, gen: int,
+                 plant: PlantKnowledge) -> PreviewResult:
         from controller.tune.autotune import command_noise_deg_s, run_point
 
         t0 = time.perf_counter()
-        res = run_point(cfg, trajectory, self.preview_run_s(trajectory), setup=self.sim_setup)
+        sim = self._sim_plants.get(gen, lambda: self._plant_for(plant))
+        res = run_point(cfg, trajectory, self.preview_run_s(trajectory), plant=sim)
         return PreviewResult(
             config=cfg,
             trajectory=trajectory,
@@ -497,6 +521,7 @@ class TuningEngine:
             elapsed_s=time.perf_counter() - t0,
             command_noise_deg_s=command_noise_deg_s(res.command_deg_s, cfg.rate_hz),
             disturbances="none" if self.sim_setup is None else self.sim_setup.label,
+            plant_source=sim.source,
         )
 
     def steps(self, cfg: LoopConfig) -> tuple[FloatArray, FloatArray, FloatArray]:

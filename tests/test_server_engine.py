@@ -507,3 +507,32 @@ def test_plant_chart_shows_each_position_their_spread_and_where_they_diverge() -
     assert sp is not None and sp.divergence_hz is not None and 1.0 < sp.divergence_hz < 3.0
     marks = np.flatnonzero(np.isfinite(d["divergence_marks"]))
     assert marks.size == 2 and d["f"][marks[0]] <= sp.divergence_hz <= d["f"][marks[1]]
+
+
+def test_the_preview_runs_on_the_twin_of_what_was_measured() -> None:
+    """Issue 35 item 2: with measured responses (here of a rig with twice the drive gain) the
+    preview and its DOB-off run are the twin's (`plant_for`, as Suggest's), not the built-in
+    model's; with nothing measured the preview says it ran on the built-in model."""
+    from controller.gate.knowledge import KnowledgeRecord
+    from controller.sim.rig_disturbances import rig_setup
+    from controller.sim.sim_rig import RigFaults, RigParams
+    from controller.tune.autotune import run_point
+    from controller.tune.family import true_knowledge
+    from controller.tune.plant import BUILT_IN, plant_for
+
+    cfg = LoopConfig()
+    traj = Trajectory(kind="sine", omega_rad_s=2.0)
+    e = TuningEngine(sim_disturbances=("article-rig",))
+    before = e.compare_preview(cfg, cfg, traj)
+    assert before.candidate.plant_source == BUILT_IN
+    measured = true_knowledge(RigParams(), RigFaults(plant_gain=2.0))
+    e.set_knowledge(KnowledgeRecord.of(measured))
+    after = e.compare_preview(cfg, cfg, traj)
+    assert after.candidate.plant_source.startswith("rig's twin")
+    twin = plant_for(measured, rig_setup(("article-rig",)))
+    run = run_point(cfg, traj, e.preview_run_s(traj), plant=twin)
+    assert after.candidate.rmse_deg == pytest.approx(run.rmse_deg, rel=1e-12)
+    off = run_point(cfg.with_(dob_on=False), traj, e.preview_run_s(traj), plant=twin)
+    assert after.no_dob is not None
+    assert after.no_dob.rmse_deg == pytest.approx(off.rmse_deg, rel=1e-12)
+    assert after.candidate.rmse_deg != pytest.approx(before.candidate.rmse_deg, rel=0.01)

@@ -144,6 +144,8 @@ def preview_html(traj: Trajectory, p: PreviewComparison) -> str:
         f"<b>Preview</b> ({esc(traj.kind)}, {pc.t_s[-1] + pc.t_s[1]:.1f} s simulated, "
         f"disturbances: {esc(pc.disturbances)}) "
         f"<span style='color:#888'>({pc.elapsed_s * 1e3:.0f} ms)</span>"
+        + (f"<div class='dt-preview-plant' style='color:#555'>on the "
+           f"{esc(pc.plant_source)}</div>" if pc.plant_source else "") +
         f"<ul style='margin:2px 0 0 16px;padding:0'>{''.join(rows)}</ul>{verdict}</div>"
     )
 

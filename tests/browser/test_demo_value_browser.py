@@ -80,6 +80,9 @@ def test_preview_shows_dob_off_beside_and_suggest_beats_it(
     page.wait_for_selector(f".dt-preview >> text=disturbances: {'+'.join(DISTURBANCES)}",
                            timeout=30_000)
     page.wait_for_function(f"() => ({FINITE_JS})('candidate, DOB off') > 100", timeout=30_000)
+    # nothing measured yet: the page says the preview ran on the built-in model (issue 35)
+    plant = page.locator(".dt-preview-plant").first.inner_text()
+    assert "built-in model (nothing measured" in plant, plant
 
     page.get_by_role("button", name="Suggest Q cut-off").click()
     page.wait_for_selector(".dt-suggest-done", timeout=240_000)
