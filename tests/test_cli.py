@@ -36,14 +36,14 @@ def test_unknown_options_are_still_refused() -> None:
 
 PROBE = """
 import sys
-from server.__main__ import dobtune_main
+from controller.cli.main import dobtune_main
 for name in {names!r}:
     try:
         dobtune_main([name, "--help"])
     except SystemExit:
         pass
 print(sorted({{m.split(".")[0] for m in sys.modules}} & {{"viser", "zenoh"}}),
-      sorted(m for m in sys.modules if m.startswith("server.") and m != "server.__main__"))
+      sorted(m for m in sys.modules if m == "server" or m.startswith("server.")))
 """
 
 
@@ -57,7 +57,7 @@ def test_the_entry_point_loads_no_dashboard_for_controller_commands() -> None:
 
 LOADED = """
 import sys
-from server.__main__ import dobtune_main
+from controller.cli.main import dobtune_main
 try:
     code = dobtune_main({argv!r})
 except SystemExit as exc:

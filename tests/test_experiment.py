@@ -136,7 +136,7 @@ def test_compare_cli_prints_article_figures() -> None:
         [
             sys.executable,
             "-c",
-            "import sys; from server.__main__ import dobtune_main;"
+            "import sys; from controller.cli.main import dobtune_main;"
             "sys.exit(dobtune_main(sys.argv[1:]))",
             "experiment",
             "compare",

@@ -24,7 +24,7 @@ def test_dobtune_check_runs_its_kernels_without_scipy_linalg() -> None:
     0.2-0.3 CPU s of every start."""
     last = _run(
         "import io, sys, contextlib\n"
-        "from server.__main__ import dobtune_main\n"
+        "from controller.cli.main import dobtune_main\n"
         "with contextlib.redirect_stdout(io.StringIO()):\n"
         "    rc = dobtune_main(['check'])\n"
         "print(rc, *(m in sys.modules for m in ('numba.np.arraymath', 'scipy.linalg', "

@@ -13,9 +13,9 @@ import pytest
 from matplotlib import image
 from scipy import optimize
 
+from controller.cli.main import dobtune_main
 from controller.cli.paper import figure_file, paper_main
 from controller.core.config import LoopConfig
-from server.__main__ import dobtune_main
 
 SECTIONS = ("Fig. 8", "Fig. 9", "Fig. 10", "Fig. 11", "Fig. 13", "Fig. 14", "Fig. 15",
             "Fig. 16", "Fig. 17", "Eqs. 28-29", "Disturbances")

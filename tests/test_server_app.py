@@ -272,7 +272,7 @@ def test_the_dashboard_prints_only_the_url_with_the_token(tmp_path: Path) -> Non
     port = free_port()
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "XDG_DATA_HOME": str(tmp_path)}
     proc = spawn(
-        [sys.executable, "-m", "server", "--port", str(port),
+        [sys.executable, "-m", "controller.cli.main", "dashboard", "--port", str(port),
          "--connect", f"tcp/127.0.0.1:{free_port()}"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     out = Output(proc)
@@ -293,7 +293,7 @@ def test_kept_candidates_go_to_the_data_directory_unless_told(
 ) -> None:
     import argparse
 
-    from server.__main__ import candidates_dir
+    from controller.cli.dashboard import candidates_dir
 
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
     told = argparse.Namespace(candidates=tmp_path / "mine")

@@ -13,3 +13,9 @@ def dobtune_main(argv: list[str] | None = None) -> int:
     cmds = all_commands()
     args = build_parser("dobtune", __doc__, cmds).parse_args(argv)
     return cmds[args.command].run(args)
+
+
+if __name__ == "__main__":  # `python -m controller.cli.main <command>`
+    import sys
+
+    sys.exit(dobtune_main())

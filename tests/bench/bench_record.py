@@ -60,7 +60,7 @@ def synthetic(seconds: float = 60.0) -> None:
 
 
 def _recorder_cmd(endpoint: str, rig: str, out: Path, seconds: float) -> list[str]:
-    return [sys.executable, "-c", "from server.__main__ import dobtune_main; "
+    return [sys.executable, "-c", "from controller.cli.main import dobtune_main; "
             "import sys; sys.exit(dobtune_main(sys.argv[1:]))", "record",
             "--connect", endpoint, "--rig-name", rig, "--out", str(out),
             "--duration", str(seconds)]

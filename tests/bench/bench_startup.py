@@ -109,7 +109,8 @@ def start_once(tree: Path, state: Path, timeout_s: float = 300.0) -> dict[str, f
 def check_once(tree: Path) -> tuple[float, float]:
     """`dobtune check`'s wall and CPU (user + sys) seconds."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
-    code = "import sys; from server.__main__ import dobtune_main; sys.exit(dobtune_main(['check']))"
+    code = ("import sys; from controller.cli.main import dobtune_main; "
+            "sys.exit(dobtune_main(['check']))")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.monotonic()
     r = subprocess.run([sys.executable, "-c", code], cwd=tree, env=env, capture_output=True)

@@ -102,7 +102,7 @@ def test_a_router_stops_itself_when_its_launcher_is_killed(tmp_path: Path) -> No
 @pytest.mark.parametrize("command", ["router", "controller"])
 def test_a_bad_parent_pid_is_refused_naming_it(command: str, capsys: pytest.CaptureFixture[str]
                                                ) -> None:
-    from server.__main__ import dobtune_main
+    from controller.cli.main import dobtune_main
 
     for bad in ("0", "-3", "x"):
         with pytest.raises(SystemExit) as exc:

@@ -18,7 +18,7 @@ pytestmark = pytest.mark.integration
 
 
 def _demo(http_port: int, zenoh_port: int) -> list[str]:
-    code = ("import sys; from server.__main__ import dobtune_main; "
+    code = ("import sys; from controller.cli.main import dobtune_main; "
             "sys.exit(dobtune_main(sys.argv[1:]))")
     return [sys.executable, "-c", code, "demo", "--port", str(http_port),
             "--zenoh-port", str(zenoh_port)]

@@ -21,7 +21,7 @@ from procs import REPO, ControllerProcess, free_port, port_is_free, wait_until
 from controller.cli.commands import controller_commands
 from controller.cli.common import build_parser
 
-ROUTER_CODE = ("import sys; from server.__main__ import dobtune_main; "
+ROUTER_CODE = ("import sys; from controller.cli.main import dobtune_main; "
                "sys.exit(dobtune_main(['router', *sys.argv[1:]]))")
 
 

@@ -449,7 +449,7 @@ EXPOSED = ("tcp/0.0.0.0:{p}", "tcp/192.0.2.1:{p}", "tcp/127.example.com:{p}")
 
 
 def _dobtune(args: list[str], timeout_s: float = 120.0) -> subprocess.CompletedProcess[str]:
-    code = ("import sys; from server.__main__ import dobtune_main; "
+    code = ("import sys; from controller.cli.main import dobtune_main; "
             "sys.exit(dobtune_main(sys.argv[1:]))")
     return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
                           timeout=timeout_s, cwd=REPO)
