@@ -12,7 +12,6 @@ everything is importable from here.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -34,6 +33,7 @@ from server.charts_base import (
     SPREAD_FLOOR,
     VERSION_INCRS,
     BodeCurves,
+    ChartDict,
     ChartSpec,
     NyquistLoop,
     PlantCurves,
@@ -165,7 +165,7 @@ __all__ = [
 #: The two charts of the loop's Bode share one cursor (uPlot's cursor sync: hovering one shows
 #: the same frequency on the other; web_assets/dashboard.js reads both there and labels the
 #: margin markers) and one x grid (`loop_bode_data`), so one frequency axis.
-LOOP_CURSOR: dict[str, Any] = {"sync": {"key": "dt-loop-bode"}}
+LOOP_CURSOR: ChartDict = {"sync": {"key": "dt-loop-bode"}}
 #: The magnitude chart marks at most this many phase crossovers (a conditionally stable loop
 #: has a lower one, where a gain reduction destabilises, and an upper one).
 GM_MARKS = 2
@@ -178,7 +178,7 @@ _DB_INCRS = (10, 20, 40, 60, 100, 200)
 _DEG_INCRS = (15, 30, 45, 90, 180, 360)
 
 
-def _margin_line(label: str, color: str, scale: str = "y") -> dict[str, Any]:
+def _margin_line(label: str, color: str, scale: str = "y") -> ChartDict:
     """A margin marker: one vertical segment (two points at one frequency) from the reference
     (0 dB or -180 deg) to the curve, NaN elsewhere."""
     return {"label": label, "stroke": color, "width": 3.0, "scale": scale}
@@ -194,7 +194,7 @@ LOOP_MAG_CHART = bode_spec(
     (_margin_line("gain margin, 2nd -180 deg crossing", GM_COLOR), "mark.gm2"),
     axes=(HZ_AXIS, {"label": "dB", "scale": "y", "space": 20, "incrs": _DB_INCRS}),
     height=135,  # (with 125 below: Decide fits 1080 px over the E-STOP's strip)
-    extra={"cursor": LOOP_CURSOR},
+    cursor=LOOP_CURSOR,
 )
 LOOP_PHASE_CHART = bode_spec(
     "loop_phase",
@@ -206,7 +206,7 @@ LOOP_PHASE_CHART = bode_spec(
     scales={"x": LOG_X["x"], "deg": {"auto": True}},
     axes=(HZ_AXIS, {"label": "deg", "scale": "deg", "space": 20, "incrs": _DEG_INCRS}),
     height=125,
-    extra={"cursor": LOOP_CURSOR},
+    cursor=LOOP_CURSOR,
 )
 _LOOP_KEYS = (LOOP_MAG_CHART.key, LOOP_PHASE_CHART.key)
 
@@ -368,7 +368,7 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         (line_series("active", ACTIVE, dash=DASH_ACTIVE), "act.rejection_db"),
         height=105,
         axes=(HZ_AXIS, SMALL_DB_AXIS),
-        extra={"y_step": 5.0, "y_clip": (-20.0, 20.0)},  # the waterbed (-2 dB) legible
+        y_step=5.0, y_clip=(-20.0, 20.0),  # the waterbed (-2 dB) legible
     ),
     bode_spec(
         "sensitivity",
@@ -380,7 +380,7 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         (line_series("|S| active", ACTIVE, dash=DASH_ACTIVE), "act.s_db"),
         height=110,
         axes=(HZ_AXIS, SMALL_DB_AXIS),
-        extra={"y_step": 5.0, "y_clip": (-20.0, 20.0)},  # the peak (~3 dB) legible
+        y_step=5.0, y_clip=(-20.0, 20.0),  # the peak (~3 dB) legible
     ),
     bode_spec(
         "small_gain",
@@ -407,7 +407,7 @@ def bode_data(key: str, cand: BodeCurves, active: BodeCurves | None) -> tuple[Fl
     act = active if active is not None and active.freq_hz.shape == cand.freq_hz.shape else cand
     spec = _BODE_BY_KEY[key]
     x = cand.freq_hz
-    sources: dict[str, Any] = {"cand": cand, "act": act}
+    sources: ChartDict = {"cand": cand, "act": act}
     if any(c.startswith("plant.") for c in spec.columns):
         if cand.plant is None:
             raise ValueError(f"chart {key!r}: BodeCurves.plant is None (no plant curves)")

@@ -7,13 +7,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import TypeAlias
 
 import numpy as np
 import numpy.typing as npt
 
 from controller.core.arrays import ComplexArray, FloatArray
+
+#: What a chart's options are made of (uPlot's JSON: series, scales, axes; sent to the page as
+#: JSON, never read back here): `object`, as server/gui.py's `add_uplot` takes them.
+JsonValue: TypeAlias = object
+ChartDict: TypeAlias = dict[str, JsonValue]
 
 __all__ = [
     "ACTIVE",
@@ -229,7 +234,7 @@ MARK_SCALE = "mark"
 
 
 def ranged_scales(spec: ChartSpec, data: Sequence[npt.ArrayLike],
-                  steps: dict[str, float] | None = None) -> dict[str, dict[str, Any]]:
+                  steps: dict[str, float] | None = None) -> dict[str, ChartDict]:
     """`spec.scales` with every y scale fixed (auto off) to the finite range of its series in
     `data` (5 % margin, or rounded out to whole `steps[scale]`; 0..1 with no finite value): on
     a fixed scale uPlot draws a NaN as nothing, where an auto scale takes a series' first
@@ -246,7 +251,7 @@ def ranged_scales(spec: ChartSpec, data: Sequence[npt.ArrayLike],
         vals = np.concatenate(cols) if cols else np.empty(0)
         vals = vals[np.isfinite(vals)]
         lo, hi = (float(vals.min()), float(vals.max())) if vals.size else (0.0, 1.0)
-        step = spec.extra.get("y_step") if name == "y" else None
+        step = spec.y_step if name == "y" else None
         step = step or (steps or {}).get(name)
         if step and vals.size:
             lo, hi = step * math.floor(lo / step), step * math.ceil(hi / step)
@@ -255,7 +260,7 @@ def ranged_scales(spec: ChartSpec, data: Sequence[npt.ArrayLike],
         else:
             pad = 0.05 * (hi - lo) if hi > lo else max(abs(lo), 1.0) * 0.05
             lo, hi = lo - pad, hi + pad
-        clip = spec.extra.get("y_clip") if name == "y" else None
+        clip = spec.y_clip if name == "y" else None
         if clip is not None and vals.size:
             # What the chart is read for stays legible (|S|'s 3 dB peak, the rejection's -2 dB
             # waterbed): the range held within `clip`, the rest runs off the chart.
@@ -267,7 +272,7 @@ def ranged_scales(spec: ChartSpec, data: Sequence[npt.ArrayLike],
 
 
 def settled_scales(spec: ChartSpec, data: Sequence[npt.ArrayLike],
-                   settle_frac: float) -> tuple[dict[str, dict[str, Any]], float, float]:
+                   settle_frac: float) -> tuple[dict[str, ChartDict], float, float]:
     """`ranged_scales` of the settled part of a time chart: from `settle_frac` of its time span
     on (a start-up transient set the preview's scale: 0.23 deg over a 0.05 deg error), with
     how the part before it is left out: (scales, the time it ends, its peak |y| when that
@@ -279,14 +284,16 @@ def settled_scales(spec: ChartSpec, data: Sequence[npt.ArrayLike],
     keep = x >= t_end
     scales = ranged_scales(spec, [x[keep], *(np.asarray(c, dtype=np.float64)[keep]
                                             for c in data[1:])])
-    lo, hi = scales["y"]["range"]
+    rng = scales["y"]["range"]
+    assert isinstance(rng, tuple)  # ranged_scales sets every y range as (lo, hi)
+    lo, hi = rng
     early = np.concatenate([np.asarray(c, dtype=np.float64)[~keep] for c in data[1:]])
     early = early[np.isfinite(early)]
     off = early.size and (early.min() < lo or early.max() > hi)
     return scales, t_end, float(np.abs(early).max()) if off else math.nan
 
 
-def marker_series(label: str, color: str) -> dict[str, Any]:
+def marker_series(label: str, color: str) -> ChartDict:
     return {"label": label, "stroke": color, "width": 2, "scale": MARK_SCALE, "dash": (3, 3)}
 
 
@@ -296,11 +303,18 @@ class ChartSpec:
 
     key: str
     title: str
-    series: tuple[dict[str, Any], ...]
-    scales: dict[str, dict[str, Any]]
-    axes: tuple[dict[str, Any], ...]
+    series: tuple[ChartDict, ...]
+    scales: dict[str, ChartDict]
+    axes: tuple[ChartDict, ...]
     height: int = 220
-    extra: dict[str, Any] = field(default_factory=dict)
+    y_step: float | None = None
+    """The y scale rounded out to whole steps of this (dB)."""
+    y_clip: tuple[float, float] | None = None
+    """The y range held within this: what the chart is read for stays legible."""
+    cursor: JsonValue = None
+    """uPlot's cursor options (a shared key syncs the cursors of charts read together)."""
+    bands: JsonValue = None
+    """uPlot's bands (filled between two series)."""
     #: What each series after x draws, in series order: for a Bode chart "cand.<field>" or
     #: "act.<field>" of BodeCurves; for a live chart the ring column.
     columns: tuple[str, ...] = ()
@@ -312,28 +326,30 @@ class ChartSpec:
 
 
 def line_series(label: str, stroke: str, *, dash: Sequence[float] = (), width: float = 1.5,
-          scale: str = "y") -> dict[str, Any]:
-    s: dict[str, Any] = {"label": label, "stroke": stroke, "width": width, "scale": scale}
+          scale: str = "y") -> ChartDict:
+    s: ChartDict = {"label": label, "stroke": stroke, "width": width, "scale": scale}
     if dash:
         s["dash"] = tuple(dash)
     return s
 
 
-LOG_X: dict[str, dict[str, Any]] = {
+LOG_X: dict[str, ChartDict] = {
     "x": {"time": False, "distr": 3, "log": 10},
     "y": {"auto": True},
 }
 #: The frequency axis, compact (the tick values and "Hz" in 44 px, uPlot's default 80: the
 #: Bode tab's Decide view fits a 1080 px screen).
-HZ_AXIS = {"label": "Hz", "scale": "x", "size": 28, "labelSize": 16, "labelGap": 0}
+HZ_AXIS: ChartDict = {"label": "Hz", "scale": "x", "size": 28, "labelSize": 16, "labelGap": 0}
 DASH_ACTIVE = (6, 4)
 DASH_NO_DOB = (4, 3)
 
 
-def freq_chart(key: str, title: str, series: Sequence[dict[str, Any]], *, y_label: str = "dB",
-                scales: dict[str, dict[str, Any]] | None = None,
-                axes: tuple[dict[str, Any], ...] | None = None, height: int = 220,
-                extra: dict[str, Any] | None = None, columns: tuple[str, ...] = ()) -> ChartSpec:
+def freq_chart(key: str, title: str, series: Sequence[ChartDict], *, y_label: str = "dB",
+                scales: dict[str, ChartDict] | None = None,
+                axes: tuple[ChartDict, ...] | None = None, height: int = 220,
+                y_step: float | None = None, y_clip: tuple[float, float] | None = None,
+                cursor: JsonValue = None, bands: JsonValue = None,
+                columns: tuple[str, ...] = ()) -> ChartSpec:
     """A chart over a log frequency axis."""
     return ChartSpec(
         key=key,
@@ -342,16 +358,23 @@ def freq_chart(key: str, title: str, series: Sequence[dict[str, Any]], *, y_labe
         scales=scales or dict(LOG_X),
         axes=axes or (HZ_AXIS, {"label": y_label, "scale": "y"}),
         height=height,
-        extra=extra or {},
+        y_step=y_step,
+        y_clip=y_clip,
+        cursor=cursor,
+        bands=bands,
         columns=columns,
     )
 
 
-def bode_spec(key: str, title: str, *series: tuple[dict[str, Any], str],
-               **options: Any) -> ChartSpec:
+def bode_spec(key: str, title: str, *series: tuple[ChartDict, str], y_label: str = "dB",
+              scales: dict[str, ChartDict] | None = None,
+              axes: tuple[ChartDict, ...] | None = None, height: int = 220,
+              y_step: float | None = None, y_clip: tuple[float, float] | None = None,
+              cursor: JsonValue = None) -> ChartSpec:
     """A Bode chart; each series comes with the BodeCurves column it draws."""
-    return freq_chart(key, title, [s for s, _ in series], columns=tuple(c for _, c in series),
-                       **options)
+    return freq_chart(key, title, [s for s, _ in series], y_label=y_label, scales=scales,
+                      axes=axes, height=height, y_step=y_step, y_clip=y_clip, cursor=cursor,
+                      columns=tuple(c for _, c in series))
 
 
 def dob_spec(key: str, title: str, dob: str, no_dob: str, labels: tuple[str, str, str],
@@ -367,7 +390,7 @@ def dob_spec(key: str, title: str, dob: str, no_dob: str, labels: tuple[str, str
     )
 
 
-def measured_points(label: str, stroke: str, scale: str = "y") -> dict[str, Any]:
+def measured_points(label: str, stroke: str, scale: str = "y") -> ChartDict:
     """Measured points joined across the grid points between them (spanGaps). uPlot's own
     rule shows the points once they are sparse on screen (zoomed in)."""
     s = line_series(label, stroke, width=2.0, scale=scale)
@@ -375,7 +398,7 @@ def measured_points(label: str, stroke: str, scale: str = "y") -> dict[str, Any]
     return s
 
 
-def band_edge(label: str) -> dict[str, Any]:
+def band_edge(label: str) -> ChartDict:
     """One edge of a measured band, as a dashed line. Not a filled uPlot band: the data
     reach uPlot as Float64Array, where a gap is NaN, not null, and uPlot closes a band's fill
     at the last non-null x, so the fill of a band that ends before the chart does runs on

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -15,7 +14,9 @@ from controller.core.arrays import FloatArray
 from server.charts_base import (
     DASH_ACTIVE,
     LOG_X,
+    ChartDict,
     ChartSpec,
+    JsonValue,
     db,
     freq_chart,
     line_series,
@@ -52,7 +53,7 @@ class MeasuredCurve:
     complete: bool = True
 
 
-def points_series(label: str, stroke: str, **extra: Any) -> dict[str, Any]:
+def points_series(label: str, stroke: str, **extra: JsonValue) -> ChartDict:
     s = line_series(label, stroke)
     s.update({"points": {"show": True, "size": 6}, "spanGaps": True, **extra})
     return s
@@ -68,8 +69,8 @@ def identify_chart_specs(n_positions: int) -> tuple[ChartSpec, ...]:
     """
     n = max(1, int(n_positions))
     colors = [POSITION_COLORS[k % len(POSITION_COLORS)] for k in range(n)]
-    mag: list[dict[str, Any]] = []
-    bands: list[dict[str, Any]] = []
+    mag: list[ChartDict] = []
+    bands: list[ChartDict] = []
     for k, c in enumerate(colors):
         i = 1 + 3 * k
         mag.append(points_series(f"pos {k + 1} |G|", c))
@@ -82,7 +83,7 @@ def identify_chart_specs(n_positions: int) -> tuple[ChartSpec, ...]:
     coh = [points_series(f"pos {k + 1} coherence", c) for k, c in enumerate(colors)]
     return (
         freq_chart("identify_mag", "Measured |G| = |w/u| with +-1 std band, and the fit",
-                    (*mag, fit), height=240, extra={"bands": tuple(bands)}),
+                    (*mag, fit), height=240, bands=tuple(bands)),
         freq_chart("identify_phase", "Measured phase of w/u, and the fit",
                     (*phase, dict(fit, label="fit phase")), y_label="deg", height=200),
         freq_chart("identify_coherence", "Coherence", coh, y_label="", height=150,

@@ -5,7 +5,6 @@ decimation (`server.charts`).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 
@@ -17,6 +16,7 @@ from server.charts_base import (
     DASH_NO_DOB,
     NO_DOB,
     VERSION_INCRS,
+    ChartDict,
     ChartSpec,
     line_series,
 )
@@ -75,8 +75,8 @@ def minmax_decimate(
     return x_out, out
 
 
-T_AXIS = {"label": "s", "scale": "x"}
-_LIN_X: dict[str, dict[str, Any]] = {"x": {"time": False, "auto": True}, "y": {"auto": True}}
+T_AXIS: ChartDict = {"label": "s", "scale": "x"}
+_LIN_X: dict[str, ChartDict] = {"x": {"time": False, "auto": True}, "y": {"auto": True}}
 
 PREVIEW_CHART = ChartSpec(
     key="preview",
@@ -130,7 +130,7 @@ LIVE_EMPTY_T = (-1.0, 0.0)
 LIVE_WINDOW_S = 10.0
 
 
-def live_scales(window_s: float) -> dict[str, dict[str, Any]]:
+def live_scales(window_s: float) -> dict[str, ChartDict]:
     """The scales of a live chart showing the last `window_s` seconds: x fixed at
     [-window_s, 0] (the newest sample at 0), y and the config version auto-ranged.
 
@@ -142,7 +142,7 @@ def live_scales(window_s: float) -> dict[str, dict[str, Any]]:
             "y": {"auto": True}, "ver": {"auto": True}}
 
 
-def _live_spec(key: str, title: str, unit: str, *series: tuple[dict[str, Any], str]
+def _live_spec(key: str, title: str, unit: str, *series: tuple[ChartDict, str]
                ) -> ChartSpec:
     """A live chart; each series comes with its ring column; the config version comes last."""
     version = line_series("config v", "#8e44ad", width=1.0, scale="ver")

@@ -180,12 +180,12 @@ def test_no_bode_column_holds_a_made_up_value() -> None:
                 continue
             lo, hi = scales[name]["range"]
             assert scales[name]["auto"] is False
-            step = spec.extra.get("y_step", charts.Y_STEPS[name]) if name == "y" else \
+            step = (spec.y_step or charts.Y_STEPS[name]) if name == "y" else \
                 charts.Y_STEPS[name]
             assert lo % step == 0 and hi % step == 0
             fin = col[np.isfinite(col)]
             # A chart held within a range (|S|, the rejection: `y_clip`) lets the rest run off.
-            clo, chi = spec.extra.get("y_clip", (-np.inf, np.inf)) if name == "y" else \
+            clo, chi = (spec.y_clip or (-np.inf, np.inf)) if name == "y" else \
                 (-np.inf, np.inf)
             assert fin.size == 0 or (lo <= max(fin.min(), clo) and min(fin.max(), chi) <= hi), \
                 (key, i)

@@ -192,7 +192,7 @@ def test_identify_chart_data_pure() -> None:
     specs = charts.identify_chart_specs(2)
     for s in specs:
         assert len(s.series) == len(d[s.key])
-    assert specs[0].extra["bands"][1]["series"] == (5, 6)
+    assert specs[0].bands[1]["series"]  # type: ignore[index] == (5, 6)
 
 
 def test_partial_controller_status_is_drawn_with_its_band(dash: Dashboard) -> None:
@@ -216,7 +216,7 @@ def test_partial_controller_status_is_drawn_with_its_band(dash: Dashboard) -> No
     np.testing.assert_allclose(mag[1], [-1.0, -3.0])  # the curve
     np.testing.assert_allclose(mag[2], [-0.8, -2.6])  # band: + std
     np.testing.assert_allclose(mag[3], [-1.2, -3.4])  # band: - std
-    assert charts.identify_chart_specs(n)[0].extra["bands"]  # drawn as a band
+    assert charts.identify_chart_specs(n)[0].bands  # drawn as a band
     np.testing.assert_allclose(p.responses.charts["identify_coherence"].data[1], [0.99, 0.98])
     # the same status again: nothing redrawn
     assert p.show_partial(st, n, LoopConfig().nominal, drawn) == drawn

@@ -51,8 +51,8 @@ def add_chart(
     either way a CSV goes only to the browser whose button was pressed."""
     chart = add_uplot(
         gui, data=data, series=spec.series, scales=spec.scales, axes=spec.axes,
-        title=spec.title, height=spec.height, aspect=aspect, bands=spec.extra.get("bands"),
-        cursor=cursor if cursor is not None else spec.extra.get("cursor"), padding=PADDING,
+        title=spec.title, height=spec.height, aspect=aspect, bands=spec.bands,
+        cursor=cursor if cursor is not None else spec.cursor, padding=PADDING,
     )
     add_export_row(gui, spec, chart)
     return chart
