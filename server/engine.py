@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass
-from typing import Any, Generic, TypeVar
+from typing import Generic, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -143,7 +143,7 @@ def freq_grid_hz(rate_hz: float = 1000.0) -> FloatArray:
     return np.asarray(f[chart_index(f.size)], dtype=np.float64)
 
 
-def candidate_from_values(base: LoopConfig, values: dict[str, Any]) -> LoopConfig:
+def candidate_from_values(base: LoopConfig, values: dict[str, object]) -> LoopConfig:
     """A validated candidate: `base` with the control values; raises ConfigError."""
     return base.with_(**values)
 
@@ -397,7 +397,8 @@ class TuningEngine:
         self._previews: _Cache[tuple[int, LoopConfig, Trajectory], PreviewResult] = _Cache(16)
         #: What the previews run on, per plant generation (the twin's fit takes a while).
         self._sim_plants: _Cache[int, SimPlant] = _Cache(2)
-        self._steps: _Cache[tuple[LoopConfig, Any], tuple[FloatArray, FloatArray, FloatArray]] = (
+        self._steps: _Cache[tuple[LoopConfig, NominalModel],
+                            tuple[FloatArray, FloatArray, FloatArray]] = (
             _Cache(32))
 
     @property

@@ -47,15 +47,21 @@ import logging
 import re
 import secrets
 import weakref
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 from urllib.parse import parse_qs, quote, urlsplit
 
 from server import viser_adapter
 from server.assets import web_asset
 from server.escape import esc
+
+if TYPE_CHECKING:
+    from websockets.asyncio.server import ServerConnection
+    from websockets.http11 import Request, Response
+
+    from server.viser_adapter import ProcessRequest
 
 __all__ = ["ESTOP_PATH", "LEGACY_COOKIE", "PAGE_SCRIPT_FILE", "VIEW_PATH", "GateOpen",
            "HttpAccess", "Refused", "estop_link_html", "page_script_html", "title_html"]
@@ -163,11 +169,11 @@ class HttpAccess:
     """Requests refused so far (HTTP and websocket)."""
     users: dict[str, str] = field(default_factory=dict)
     """With several users: user name -> that user's token (``token`` is then not accepted)."""
-    _by_connection: weakref.WeakKeyDictionary[Any, str] = field(
+    _by_connection: weakref.WeakKeyDictionary[ServerConnection, str] = field(
         default_factory=weakref.WeakKeyDictionary, repr=False)
-    _slot_by_connection: weakref.WeakKeyDictionary[Any, str] = field(
+    _slot_by_connection: weakref.WeakKeyDictionary[ServerConnection, str] = field(
         default_factory=weakref.WeakKeyDictionary, repr=False)
-    _page_by_connection: weakref.WeakKeyDictionary[Any, str] = field(
+    _page_by_connection: weakref.WeakKeyDictionary[ServerConnection, str] = field(
         default_factory=weakref.WeakKeyDictionary, repr=False)
     page_extra: str = ""
     """HTML put at the end of the page's body (the index page only), after the E-STOP link."""
@@ -188,17 +194,17 @@ class HttpAccess:
     def token_of(self, user: str = "") -> str:
         return self.users[user] if self.users else self.token
 
-    def user_of_connection(self, connection: Any) -> str | None:
+    def user_of_connection(self, connection: ServerConnection) -> str | None:
         """The user whose token opened this websocket ("" with a single token), None if
         the connection did not pass this check."""
         return self._by_connection.get(connection)
 
-    def slot_of_connection(self, connection: Any) -> str:
+    def slot_of_connection(self, connection: ServerConnection) -> str:
         """The candidate slot the page behind this websocket named ("": none; see
         `slot_of_path`)."""
         return self._slot_by_connection.get(connection, "")
 
-    def page_of_connection(self, connection: Any) -> str:
+    def page_of_connection(self, connection: ServerConnection) -> str:
         """The id of the page behind this websocket (`?dt_page=...`, one per page load; "":
         none, a page without the page script)."""
         return self._page_by_connection.get(connection, "")
@@ -224,7 +230,7 @@ class HttpAccess:
         query = parse_qs(urlsplit(path).query)
         return self._user_by(query["token"][0] if query.get("token") else None)
 
-    def check(self, path: str, headers: Any) -> str:
+    def check(self, path: str, headers: Mapping[str, str]) -> str:
         """"" when the request may go on, else why not (see the module's description)."""
         host = headers.get("Host", "")
         if self.port and host not in self.allowed_hosts():
@@ -240,18 +246,18 @@ class HttpAccess:
             return "no valid token"
         return ""
 
-    def wrap(self, process_request: Callable[..., Any] | None) -> Callable[..., Any]:
+    def wrap(self, process_request: ProcessRequest | None) -> ProcessRequest:
         """viser's `process_request` with this check in front of it."""
         from websockets.datastructures import Headers
         from websockets.http11 import Response
 
-        def answer(status: http.HTTPStatus, body: bytes) -> Any:
+        def answer(status: http.HTTPStatus, body: bytes) -> Response:
             return Response(status.value, status.phrase, Headers(**{
                 "Content-Type": "text/html; charset=utf-8", "Content-Length": str(len(body)),
                 "Cache-Control": "no-store", "Referrer-Policy": "no-referrer",
             }), body)
 
-        def gated(connection: Any, request: Any) -> Any:
+        def gated(connection: ServerConnection, request: Request) -> Response | None:
             why = self.check(request.path, request.headers)
             upgrade = "Upgrade" in request.headers
             if why:
@@ -275,7 +281,9 @@ class HttpAccess:
             if route == VIEW_PATH:
                 # websockets logs every answer but a websocket's as "connection rejected":
                 # the page's report, answered 204 every 10 s per tab, is no rejection.
-                connection.logger.logger.addFilter(_VIEW_REPORT_ANSWERED)
+                adapter = connection.logger
+                (adapter.logger if isinstance(adapter, logging.LoggerAdapter)
+                 else adapter).addFilter(_VIEW_REPORT_ANSWERED)
                 return self._view(request.path)
             if upgrade:
                 self._by_connection[connection] = user
@@ -326,7 +334,7 @@ class HttpAccess:
                 "does not know (run tests/test_viser_adapter.py)")
         self.proven = True
 
-    def _view(self, path: str) -> Any:
+    def _view(self, path: str) -> Response:
         """A page's report of what it shows (VIEW_PATH): 204, or 400 naming the bad field."""
         from websockets.datastructures import Headers
         from websockets.http11 import Response
@@ -406,7 +414,7 @@ def _id_param(path: str, name: str) -> str:
     return values[0] if values and _SLOT_RE.fullmatch(values[0]) else ""
 
 
-def _with_extra(response: Any, extra: str) -> Any:
+def _with_extra(response: Response, extra: str) -> Response:
     """`response` (an HTML page, maybe gzipped) with `extra` before its closing body tag."""
     if response.status_code != 200 or not response.headers.get(
             "Content-Type", "").startswith("text/html"):

@@ -34,9 +34,15 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 from server import viser_adapter
+
+if TYPE_CHECKING:
+    import viser
+    from viser._messages import FileTransferPart, FileTransferStartUpload, GuiUpdateMessage
+
+    from server.viser_adapter import InputHandle
 from server.measured import MAX_BYTES
 
 __all__ = ["LOG_EVERY_S", "MAX_TEXT", "MAX_UPLOAD_BYTES", "MAX_UPLOAD_PARTS", "MessageGate"]
@@ -73,17 +79,17 @@ class MessageGate:
 
     role_of: Callable[[int], str | None]
     """The role of the browser (viser client id): "operator", "viewer"; None: not signed in."""
-    shared_gui: Any
+    shared_gui: viser.GuiApi
     """The server's GUI (the shared controls)."""
-    gui_of: Callable[[int], Any]
+    gui_of: Callable[[int], viser.GuiApi | None]
     """The browser's own GUI (None: gone)."""
     name_of: Callable[[int], str] = lambda _c: ""
     """The name of the user at the browser (for a refusal's text)."""
     tell: Callable[[int, str], None] = lambda _c, _t: None
     """Tells the browser why (a role refusal)."""
-    restore: Callable[[int, Any], None] = lambda _c, _h: None
+    restore: Callable[[int, object], None] = lambda _c, _h: None
     """Sends the control's value as kept here to the browser whose change was refused."""
-    open_if: Callable[[Any], bool] = lambda _h: False
+    open_if: Callable[[object], bool] = lambda _h: False
     """Whether a shared control is open to every role by what it is (a chart's Export row)."""
     refused: int = 0
     """Messages refused so far."""
@@ -132,7 +138,7 @@ class MessageGate:
             return self._upload_part(client_id, message, count)
         return "not a message a page sends"
 
-    def _control(self, client_id: int, uuid: str) -> tuple[Any, bool]:
+    def _control(self, client_id: int, uuid: str) -> tuple[InputHandle | None, bool]:
         """(the control, whether it is shared), (None, False): none."""
         own_gui = self.gui_of(client_id)
         own = viser_adapter.input_handle(own_gui, uuid) if own_gui is not None else None
@@ -141,7 +147,8 @@ class MessageGate:
         shared = viser_adapter.input_handle(self.shared_gui, uuid)
         return shared, shared is not None
 
-    def _update(self, client_id: int, role: str | None, message: Any) -> str | None:
+    def _update(self, client_id: int, role: str | None,
+                message: GuiUpdateMessage) -> str | None:
         import viser
 
         handle, shared = self._control(client_id, message.uuid)
@@ -170,7 +177,7 @@ class MessageGate:
                 f"{label}: not a text of at most {MAX_TEXT} characters")
         return f"{label}: a {type(handle).__name__} takes no value from a page"
 
-    def _upload_start(self, client_id: int, role: str | None, message: Any,
+    def _upload_start(self, client_id: int, role: str | None, message: FileTransferStartUpload,
                       count: bool) -> str | None:
         import viser
 
@@ -200,7 +207,8 @@ class MessageGate:
             self._drop_upload(client_id, uuid)
         return None
 
-    def _upload_part(self, client_id: int, message: Any, count: bool) -> str | None:
+    def _upload_part(self, client_id: int, message: FileTransferPart,
+                     count: bool) -> str | None:
         uuid = message.transfer_uuid
         with self._lock:
             transfer = self._uploads.get(client_id, {}).get(uuid)

@@ -5,6 +5,7 @@ dashboard's `__enter__`); the message gate and the page views ask it."""
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 import viser
 
@@ -14,6 +15,9 @@ from server.session import BrowserSessions, tell
 from server.viser_adapter import connection_of, live_connections, resend_value
 
 __all__ = ["Browsers"]
+
+if TYPE_CHECKING:
+    from websockets.asyncio.server import ServerConnection
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +41,7 @@ class Browsers:
         """Every browser connected now."""
         return list(self._server.get_clients().values())
 
-    def _connection_of(self, browser: viser.ClientHandle | None) -> object | None:
+    def _connection_of(self, browser: viser.ClientHandle | None) -> ServerConnection | None:
         """viser's websocket connection of `browser` (None: none, or gone)."""
         return None if browser is None else connection_of(self._server, browser.client_id)
 
