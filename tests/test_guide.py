@@ -65,10 +65,10 @@ def test_a_rollback_fails_the_watch_with_its_reason() -> None:
 
 def test_the_steps_html_shows_each_state_progress_and_text() -> None:
     states = [StepState("done", 1.0, "3 position(s)"), StepState("failed", None, "no <fit>"),
-              StepState("running", 0.42, "searching"), StepState("todo"),
+              StepState("todo"), StepState("running", 0.42, "searching"), StepState("todo"),
               StepState("todo"), StepState("todo")]
     html = guide_html([(k, t, s) for (k, t), s in zip(GUIDE_STEPS, states, strict=True)])
-    assert html.count("<li") == 6
+    assert html.count("<li") == 7
     assert "dt-step-measure dt-step-done" in html and "[done]" in html
     assert "no &lt;fit&gt;" in html and "dt-step-fit dt-step-failed" in html
-    assert "[running 42 %]" in html and html.count("[not started]") == 3
+    assert "[running 42 %]" in html and html.count("[not started]") == 4

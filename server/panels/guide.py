@@ -34,6 +34,7 @@ from controller.client import ControllerClient
 from controller.core.errors import ConfigError
 from server.escape import esc
 from server.panels.identify import ABORTED, DONE, FAILED, RUNNING, IdentifyPanel
+from server.panels.tune_step import TuneStep
 from server.panels.tuning import StepState, TuningPanel
 from server.panels.widgets import set_html
 from server.session import tell
@@ -42,8 +43,9 @@ from server.workers import Periodic
 __all__ = ["GUIDE_STEPS", "GuidePanel", "Watch", "guide_html"]
 
 #: (key, title) of the steps, in order.
-GUIDE_STEPS = (("measure", "Measure"), ("fit", "Fit"), ("suggest", "Suggest"),
-               ("check", "Check"), ("apply", "Apply"), ("watch", "Watch"))
+GUIDE_STEPS = (("measure", "Measure"), ("fit", "Fit"), ("tune", "Tune the whole loop"),
+               ("suggest", "Suggest"), ("check", "Check"), ("apply", "Apply"),
+               ("watch", "Watch"))
 WATCH_DEFAULT_S = 10.0
 WATCH_MAX_S = 30.0
 
@@ -149,6 +151,7 @@ class GuidePanel:
         self._watched_at = 0.0
         self._updater = Periodic(lambda _k: self.refresh(), period_s, name="guide")
         self.steps: list[tuple[str, str, StepState]] = []
+        self.tune = TuneStep(tuning)
 
     def build(self) -> None:
         gui = self.gui
@@ -158,18 +161,22 @@ class GuidePanel:
             self.html = gui.add_html(guide_html(
                 [(k, title, StepState("todo")) for k, title in GUIDE_STEPS]))
             self.buttons = gui.add_button_group(
-                "Step", ("Measure", "Use fit", "Suggest", "Apply"),
+                "Step", ("Measure", "Use fit", "Tune loop", "Suggest", "Apply"),
                 hint="Measure: the Identify tab's run (its settings; on the controller the rig "
-                "moves, asked first). Use fit: the fitted model into your candidate. Suggest: "
-                "the Q search into your candidate. Apply: your candidate through the gate "
-                "(as the Apply button)")
+                "moves, asked first). Use fit: the fitted model into your candidate. Tune "
+                "loop: speed PI, position PI, feedforward and Q designed together on the "
+                "twin, into your candidate. Suggest: the Q search into your candidate. Apply: "
+                "your candidate through the gate (as the Apply button)")
             self.buttons.on_click(self._on_click)
+            self.tune.build(gui)
 
     def start(self) -> None:
+        self.tune.start()
         self._updater.start()
 
     def stop(self) -> None:
         self._updater.stop()
+        self.tune.stop()
 
     # -- the buttons: the existing pieces' own actions ---------------------------------------------
 
@@ -179,6 +186,8 @@ class GuidePanel:
             self.identify.ask_start(browser)
         elif what == "Use fit" and self.identify is not None:
             self.identify.use_as_nominal(browser)
+        elif what == "Tune loop":
+            self.tune.request()
         elif what == "Suggest":
             self.tuning.suggest.request()
         elif what == "Apply":
@@ -206,7 +215,8 @@ class GuidePanel:
         return next(s for k, _t, s in self.steps if k == key)
 
     def _steps(self) -> list[tuple[str, str, StepState]]:
-        by = {"measure": self._measure(), "fit": self._fit(), "suggest": self._suggest(),
+        by = {"measure": self._measure(), "fit": self._fit(), "tune": self.tune.state,
+              "suggest": self._suggest(),
               "check": self._check(), "apply": self._apply(), "watch": self._watch()}
         return [(k, title, by[k]) for k, title in GUIDE_STEPS]
 

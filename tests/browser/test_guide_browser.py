@@ -262,6 +262,37 @@ def test_the_guided_path_measures_and_fits(
     assert only_panel(dashboard).candidate().nominal == view.nominal
 
 
+def test_the_guided_path_tunes_the_whole_loop(
+        page: Any, dashboard: Dashboard, probe: ControllerClient, artifacts: Path) -> None:
+    """Issue 35 item 3: one step designs the speed PI, position PI, feedforward and Q on the
+    twin and puts them into the candidate (not applied), with the explanation shown."""
+    page.get_by_role("tab", name="Tune").click()
+    active = probe.get_config()
+    _guide_button(page, "Tune loop")
+    _wait_step(page, "tune", "running|done|failed", 60.0)
+    state, text = _wait_step(page, "tune", "done|failed", 300.0)
+    assert state == "done", text
+    guides = dashboard.candidates.guides
+    res = guides[next(iter(guides))].tune.last
+    assert res is not None and res.best is not None
+    cand = only_panel(dashboard).candidate()
+    best = res.best.config
+    assert (cand.cv_kp, cand.pos_kp_per_s, cand.q_cutoff_hz) == pytest.approx(
+        (best.cv_kp, best.pos_kp_per_s, best.q_cutoff_hz))
+    assert (cand.cv_kp, cand.pos_kp_per_s) != pytest.approx(
+        (active.config.cv_kp, active.config.pos_kp_per_s))  # the whole loop, not the Q only
+    shown = _text(page, ".dt-tune")
+    assert "put into your candidate (not applied)" in shown, shown
+    assert f"speed PI Kp {best.cv_kp:.3g}" in shown, shown
+    assert res.explanation and all(line[:40] in shown for line in res.explanation), shown
+    assert probe.get_config().version == active.version  # nothing applied
+    _settled(page)
+    verdict = only_panel(dashboard).last_evaluation
+    assert verdict is not None and verdict.verdict.verdict in ("accept", "caution")
+    page.locator(".dt-tune").scroll_into_view_if_needed()
+    page.screenshot(path=str(artifacts / "guide_1b_tuned.png"))
+
+
 def test_the_guided_path_suggests_and_checks(
         page: Any, dashboard: Dashboard, artifacts: Path) -> None:
     page.get_by_role("tab", name="Tune").click()
