@@ -57,6 +57,7 @@ class Candidates:
         the (user, candidate slot) of a browser; `directory`: where rig `rig`'s candidates are
         kept on disk (None: in memory only)."""
         self.engine = engine
+        self._sessions = sessions
         self.applier = CandidateApply(sessions, requests, self.set_active)
         """Every candidate panel's Apply (the reply's active configuration comes back here)."""
         self.client = client
@@ -87,7 +88,9 @@ class Candidates:
         t = NominalTuningPanel(gui, self.engine, self.applier,
                                on_change=lambda p: self.kept.keep(user, slot, p.kept()))
         kept = self.kept.get(user, slot)
-        guide = GuidePanel(gui, t, place.identify, self.client)
+        guide = GuidePanel(gui, t, place.identify, self.client,
+                           authorize=self._sessions.check_may_change,
+                           may_change=self._may_change(browser))
         with self._build_lock:
             with place.tune_tab:
                 guide.build()
@@ -114,6 +117,15 @@ class Candidates:
         t.start()
         guide.start()
         return t
+
+    def _may_change(self, browser: viser.ClientHandle | None) -> bool:
+        """Whether the user at `browser` may change the rig (an operator; anyone with one
+        identity): a viewer's page gets the operators' guided-path controls disabled."""
+        users = self._sessions.users
+        if not users:
+            return True
+        user = self._sessions.user_of(browser)
+        return user is not None and users[user].role == "operator"
 
     def panel_of(self, browser: viser.ClientHandle | None) -> NominalTuningPanel | None:
         """The candidate panel of `browser` (None: the one built without a browser)."""

@@ -1,4 +1,5 @@
-"""The guided tuning path on the Tune tab: measure -> fit -> suggest -> check -> apply -> watch.
+"""The guided tuning path on the Tune tab: measure -> fit -> tune the whole loop -> suggest ->
+check -> apply -> watch.
 
 Each step shows where it stands (not started / running with its progress / done / failed with
 the reason) and what it produced. The path only orchestrates and shows: its buttons press the
@@ -9,11 +10,14 @@ and Apply, with every check those do), and its states are read from them:
    rig: the Identify tab's "Run on"): positions and frequency points measured, coherence;
 2. fit: the fitted Mn Pn (natural frequency, damping, residual) and whether it is in this
    browser's candidate;
-3. suggest: the search for the Q type and cut-off on the simulated rig (its result is put into
+3. tune the whole loop: the speed PI, position PI, feedforward and Q designed together on the
+   rig's twin for the chosen objective (`server.panels.tune_step`; operators only), put into
+   the candidate, never applied;
+4. suggest: the search for the Q type and cut-off on the rig's twin (its result is put into
    the candidate, never applied);
-4. check: the gate's verdict on the candidate as it is now (computing while it is stale);
-5. apply: the controller's answer (the applied version, or why not);
-6. watch: after an accepted apply, one trajectory period (10 s when it has none, at most 30 s)
+5. check: the gate's verdict on the candidate as it is now (computing while it is stale);
+6. apply: the controller's answer (the applied version, or why not);
+7. watch: after an accepted apply, one trajectory period (10 s when it has none, at most 30 s)
    of the live tracking error under the new version against the same length before it, and
    whether the watchdog rolled it back.
 
@@ -24,6 +28,7 @@ one thread per path, which only assigns changed HTML.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +38,7 @@ from controller import protocol as proto
 from controller.client import ControllerClient
 from controller.core.errors import ConfigError
 from server.escape import esc
+from server.gui import Browser
 from server.panels.identify import ABORTED, DONE, FAILED, RUNNING, IdentifyPanel
 from server.panels.tune_step import TuneStep
 from server.panels.tuning import StepState, TuningPanel
@@ -142,7 +148,12 @@ class GuidePanel:
     """The guided path of one browser (built into the current GUI container)."""
 
     def __init__(self, gui: viser.GuiApi, tuning: TuningPanel, identify: IdentifyPanel | None,
-                 client: ControllerClient, period_s: float = 0.25) -> None:
+                 client: ControllerClient, period_s: float = 0.25,
+                 authorize: Callable[[Browser, str], object] | None = None,
+                 may_change: bool = True) -> None:
+        """`authorize(browser, action)`: raises `Refused` (told to that browser) unless its
+        user may change the rig (None: anyone may); `may_change`: this page's user may (False:
+        the operators' controls, the whole-loop tune's, are built disabled)."""
         self.gui = gui
         self.tuning = tuning
         self.identify = identify
@@ -151,7 +162,7 @@ class GuidePanel:
         self._watched_at = 0.0
         self._updater = Periodic(lambda _k: self.refresh(), period_s, name="guide")
         self.steps: list[tuple[str, str, StepState]] = []
-        self.tune = TuneStep(tuning)
+        self.tune = TuneStep(tuning, authorize, may_change)
 
     def build(self) -> None:
         gui = self.gui
@@ -161,12 +172,11 @@ class GuidePanel:
             self.html = gui.add_html(guide_html(
                 [(k, title, StepState("todo")) for k, title in GUIDE_STEPS]))
             self.buttons = gui.add_button_group(
-                "Step", ("Measure", "Use fit", "Tune loop", "Suggest", "Apply"),
+                "Step", ("Measure", "Use fit", "Suggest", "Apply"),
                 hint="Measure: the Identify tab's run (its settings; on the controller the rig "
-                "moves, asked first). Use fit: the fitted model into your candidate. Tune "
-                "loop: speed PI, position PI, feedforward and Q designed together on the "
-                "twin, into your candidate. Suggest: the Q search into your candidate. Apply: "
-                "your candidate through the gate (as the Apply button)")
+                "moves, asked first). Use fit: the fitted model into your candidate. Suggest: "
+                "the Q search into your candidate. Apply: your candidate through the gate (as "
+                "the Apply button). Tune the whole loop: its own button below")
             self.buttons.on_click(self._on_click)
             self.tune.build(gui)
 
@@ -186,8 +196,6 @@ class GuidePanel:
             self.identify.ask_start(browser)
         elif what == "Use fit" and self.identify is not None:
             self.identify.use_as_nominal(browser)
-        elif what == "Tune loop":
-            self.tune.request()
         elif what == "Suggest":
             self.tuning.suggest.request()
         elif what == "Apply":

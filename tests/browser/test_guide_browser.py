@@ -268,7 +268,7 @@ def test_the_guided_path_tunes_the_whole_loop(
     twin and puts them into the candidate (not applied), with the explanation shown."""
     page.get_by_role("tab", name="Tune").click()
     active = probe.get_config()
-    _guide_button(page, "Tune loop")
+    _guide_button(page, "Tune the whole loop")
     _wait_step(page, "tune", "running|done|failed", 60.0)
     state, text = _wait_step(page, "tune", "done|failed", 300.0)
     assert state == "done", text
@@ -285,10 +285,14 @@ def test_the_guided_path_tunes_the_whole_loop(
     assert "put into your candidate (not applied)" in shown, shown
     assert f"speed PI Kp {best.cv_kp:.3g}" in shown, shown
     assert res.explanation and all(line[:40] in shown for line in res.explanation), shown
+    assert "tuned for the tracking RMSE" in shown and "command-noise budget" in shown, shown
+    assert f"on the {res.plant_source}" in shown, shown  # the plant it ran on, named
     assert probe.get_config().version == active.version  # nothing applied
     _settled(page)
     verdict = only_panel(dashboard).last_evaluation
     assert verdict is not None and verdict.verdict.verdict in ("accept", "caution")
+    assert verdict.config == cand  # the verdict shown is the tuned candidate's
+    assert verdict.verdict.verdict.upper() in _text(page, ".dt-verdict").upper()
     page.locator(".dt-tune").scroll_into_view_if_needed()
     page.screenshot(path=str(artifacts / "guide_1b_tuned.png"))
 
