@@ -363,12 +363,14 @@ class SimDrift(
 ):
     """Simulated rig only, for tests and the demo: the plant drifts from the next tick on,
     each factor on the rig's parameters as it started (all 1: back to them), its state kept
-    (`SimRig.set_params`). Drive gain and a resonance are `SimFault`'s. Refused on a CAN
-    rig; an operator's command (the lease), as every command but the e-stop."""
+    (`SimRig.set_params`). Drive gain and adding a resonance are `SimFault`'s;
+    `resonance_factor` moves the extra mode the rig has (its frequency as at the first drift).
+    Refused on a CAN rig; an operator's command (the lease), as every command but the e-stop."""
 
     belt_stiffness_factor: float = 1.0
     load_inertia_factor: float = 1.0
     motor_friction_factor: float = 1.0
+    resonance_factor: float = 1.0
 
 
 class IdentifyAbort(

@@ -32,8 +32,11 @@ from controller.watch.estimate import (
     plant_residual,
 )
 from controller.watch.judge import CONFIRM, DriftJudge, gate_on_drift, part_ranges
+from controller.watch.offline import run_offline_watch
 
 ARTICLE = rig_setup(("article-rig",)).params
+#: An extra mode (a payload on a spring, `RigFaults.resonance_*`) for the resonance's tests.
+MODE = RigFaults(resonance_hz=30.0, resonance_damping=0.05)
 CFG = LoopConfig()
 TRAJ = default_trajectory("sine")
 
@@ -139,6 +142,14 @@ def test_a_window_that_excites_nothing_tells_nothing() -> None:
                  ref_deg=pos, error_deg=np.zeros_like(pos))
     fit = fit_window(ARTICLE, RigFaults(), win)
     assert [p.told for p in fit.parts] == [False] * 4, fit
+    # A twin with an extra mode: its frequency and damping are not told either (never guessed).
+    fit = fit_window(ARTICLE, MODE, win)
+    assert [p.name for p in fit.parts][4:] == ["resonance", "resonance_damping"]
+    assert [p.told for p in fit.parts] == [False] * 6, fit
+    judge = DriftJudge(part_ranges(ARTICLE, MODE, COMMISSIONING_BOUND, 1000.0))
+    lines = judge.update(fit, 0.0).lines
+    assert any(line.startswith("resonance: not told") and "dobtune identify" in line
+               for line in lines), lines
 
 
 # -- ranges from the knowledge's bound, and the judge --------------------------------------------
@@ -230,6 +241,27 @@ def test_the_trend_is_kept_per_hour_and_read_by_time_range(tmp_path: object) -> 
 # -- the test-only hook: SimDrift through the node and the runtime -------------------------------
 
 
+def test_sim_drift_moves_the_extra_mode_and_refuses_a_rig_without_one() -> None:
+    from controller.process.requests import DriftRig
+    from controller.process.runtime import Runtime
+
+    c = FakeClock()
+    bare = SimRig(ARTICLE)
+    rt = Runtime(ServoLoop(LoopCoefficients.build(CFG)), bare, clock=c.clock, sleep=c.sleep)
+    t = rt.submit(DriftRig(resonance_factor=0.8))
+    rt.run(max_ticks=2)
+    assert not t.ok and t.field == "resonance_factor", t.message
+    rig = SimRig(ARTICLE)
+    rig.set_faults(MODE)
+    rt = Runtime(ServoLoop(LoopCoefficients.build(CFG)), rig, clock=c.clock, sleep=c.sleep)
+    for factor in (0.8, 0.8, 1.0):  # on the mode as it started, not compounded
+        t = rt.submit(DriftRig(resonance_factor=factor))
+        rt.run(max_ticks=2)
+        assert t.ok, t.message
+        assert rig.faults.resonance_hz == pytest.approx(30.0 * factor)
+        assert rig.faults.resonance_damping == 0.05
+
+
 def test_sim_drift_reaches_the_simulated_rig_only_and_bad_factors_are_named() -> None:
     import math
 
@@ -270,3 +302,67 @@ def test_sim_drift_reaches_the_simulated_rig_only_and_bad_factors_are_named() ->
     t = plain.submit(req)
     plain.run(max_ticks=2)
     assert not t.ok and "only the simulated rig" in t.message
+
+
+# -- the watch on the compiled offline loop, faster than real time (issue 34 item 4) -------------
+# The same window code as the watch process (`controller.watch.step.watch_window`), on the
+# article rig with all its disturbances and sensor noise on (the demo's), the load torques of
+# its setup included. Times are simulated seconds.
+
+SETUP = rig_setup(("article-rig",))
+P0 = SETUP.params
+#: Simulated seconds: the change comes at CHANGE_AT_S, inside a window (as it would live).
+CHANGE_AT_S = 25.0
+CHANGE_RUN_S = 60.0
+
+
+def _set(**changes: float) -> object:
+    def change(rig: SimRig) -> None:
+        params = dict(changes)
+        faults = params.pop("faults", None)
+        if faults is not None:
+            rig.set_faults(faults)  # type: ignore[arg-type]
+        if params:
+            rig.set_params(replace(rig.params, **params))
+    return change
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("part", "truth", "tol", "change", "with_mode"), [
+    ("stiffness", 0.6, 0.05, _set(belt_stiffness_n_m_rad=0.6 * P0.belt_stiffness_n_m_rad), False),
+    ("inertia", 1.5, 0.10, _set(load_inertia_kg_m2=1.5 * P0.load_inertia_kg_m2), False),
+    ("motor_friction", 3.0, 0.10, _set(motor_coulomb_n_m=3.0 * P0.motor_coulomb_n_m), False),
+    ("gain", 0.7, 0.05, _set(faults=RigFaults(plant_gain=0.7)), False),  # type: ignore[arg-type]
+    ("resonance", 0.8, 0.05, _set(faults=replace(MODE, resonance_hz=24.0)),  # type: ignore[arg-type]
+     True),
+], ids=["stiffness-40%", "inertia+50%", "motor-friction-x3", "gain-30%", "resonance-20%-down"])
+def test_each_change_is_flagged_naming_its_part_offline(
+        part: str, truth: float, tol: float, change: object, with_mode: bool) -> None:
+    """Each of the issue's five changes, on the running article rig (sine, the demo's default):
+    an alarm naming the right part (and no other) within two windows after the window the
+    change falls in, its size within `tol`."""
+    mode = MODE if with_mode else None
+    run = run_offline_watch(SETUP, TRAJ, CHANGE_RUN_S, bound=COMMISSIONING_BOUND,
+                            rig_faults=mode, twin_faults=mode, change_at_s=CHANGE_AT_S,
+                            change=change)  # type: ignore[arg-type]
+    assert [p for p, _ in run.alarms] == [part], run.alarms
+    t_alarm = run.first_alarm(part)
+    assert t_alarm is not None and t_alarm <= CHANGE_AT_S + 3 * 10.0
+    before = [r for t, r in run.windows if t <= CHANGE_AT_S]
+    assert before and all(not r.verdict.new_alarms for r in before)
+    est = run.windows[-1][1].fit.part(part)
+    assert est.told and est.value == pytest.approx(truth, rel=tol), est
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1500)
+@pytest.mark.parametrize("kind", ["sine", "step", "ramp", "hold"])
+def test_ten_minutes_of_normal_running_raise_no_alarm_offline(kind: str) -> None:
+    """Ten simulated minutes of each demo trajectory on the article rig, every disturbance and
+    the sensor noise on: no alarm, and every part stays inside its range in every window."""
+    run = run_offline_watch(SETUP, default_trajectory(kind), 600.0, bound=COMMISSIONING_BOUND)
+    assert len(run.windows) == 59  # the first window is the loop settling
+    assert run.alarms == [], run.alarms
+    for t, r in run.windows:
+        outside = [line for line in r.verdict.lines if "(outside" in line or "(alarm" in line]
+        assert outside == [], (t, outside)

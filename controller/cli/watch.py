@@ -39,6 +39,10 @@ def run(args: argparse.Namespace) -> int:
     if not (1.5 <= args.window_s <= 600.0):
         say(f"--window-s: {args.window_s!r} out of range [1.5, 600]")
         return 2
+    if not (0.0 <= args.resonance_hz <= 200.0) or not (0.0 < args.resonance_damping <= 1.0):
+        say(f"--resonance-hz/--resonance-damping: {args.resonance_hz!r}/"
+            f"{args.resonance_damping!r} out of range [0, 200] Hz / (0, 1]")
+        return 2
     if not (1.0 <= args.prediction_window_s <= 600.0):
         say(f"--prediction-window-s: {args.prediction_window_s!r} out of range [1, 600]")
         return 2
@@ -56,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
         window_s=args.window_s,
         disturbances=(tuple(d for d in args.disturbance if d != "none") if args.disturbance
                       else ("article-rig",)),
+        resonance=(args.resonance_hz, args.resonance_damping),
         trend_dir=args.trend_dir, prediction_window_s=args.prediction_window_s,
         prediction_log=prediction_log)
     stop = threading.Event()
@@ -90,6 +95,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "<trend-dir>/<rig>-predictions.jsonl with --trend-dir, else kept in memory)")
     p.add_argument("--trend-dir", type=Path, default=None, metavar="DIR",
                    help="keep the rig's trend here (MCAP, one file per hour)")
+    p.add_argument("--resonance-hz", type=float, default=0.0, metavar="HZ",
+                   help="without a twin: the simulated rig's extra mode (as added by a "
+                   "sim_fault), whose frequency and damping are then estimated too (default 0: "
+                   "none)")
+    p.add_argument("--resonance-damping", type=float, default=0.02, metavar="ZETA",
+                   help="that mode's damping ratio (default 0.02, the sim_fault's)")
     p.add_argument("--disturbance", action="append", default=[], metavar="NAME",
                    help="without a twin: the simulated rig the controller runs (as its "
                    "--disturbance; default article-rig; 'none': the plain rig)")

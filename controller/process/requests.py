@@ -109,11 +109,12 @@ class InjectFault:
 @dataclass(frozen=True, slots=True)
 class DriftRig:
     """Simulated rig only (tests, the demo): factors on the rig's starting stiffness, inertia
-    and motor friction (`controller.protocol.SimDrift`)."""
+    and motor friction, and on its extra mode's frequency (`controller.protocol.SimDrift`)."""
 
     belt_stiffness_factor: float = 1.0
     load_inertia_factor: float = 1.0
     motor_friction_factor: float = 1.0
+    resonance_factor: float = 1.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -273,6 +273,8 @@ class Runtime:
         """The mode a program started from: a completed one returns to it (`_end_program`)."""
         self._rig_params0: Any = None
         """The simulated rig's parameters before its first `DriftRig` (None: none yet)."""
+        self._rig_mode0_hz = 0.0
+        """Its extra mode's frequency then (0: none)."""
         # The watchdog and the configuration it rolls back to.
         self.watchdog = Watchdog(
             opts.watchdog,
@@ -817,11 +819,22 @@ class Runtime:
             return
         if self._rig_params0 is None:
             self._rig_params0 = self.rig.params  # type: ignore[attr-defined]
+            self._rig_mode0_hz = float(self.rig.faults.resonance_hz)  # type: ignore[attr-defined]
         p0 = self._rig_params0
+        mode0 = self._rig_mode0_hz
+        if b.resonance_factor != 1.0 and mode0 <= 0.0:
+            t.ok, t.field = False, "resonance_factor"
+            t.message = ("resonance_factor: the simulated rig has no extra mode to move (add one "
+                         "first: sim_fault resonance_hz)")
+            return
         set_params(replace(
             p0, belt_stiffness_n_m_rad=p0.belt_stiffness_n_m_rad * b.belt_stiffness_factor,
             load_inertia_kg_m2=p0.load_inertia_kg_m2 * b.load_inertia_factor,
             motor_coulomb_n_m=p0.motor_coulomb_n_m * b.motor_friction_factor))
+        if mode0 > 0.0:
+            faults = self.rig.faults  # type: ignore[attr-defined]
+            self.rig.set_faults(  # type: ignore[attr-defined]
+                replace(faults, resonance_hz=mode0 * b.resonance_factor))
         t.ok = True
 
     def _reset(self, t: Ticket, seen: int, pos: float) -> None:

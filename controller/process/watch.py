@@ -44,8 +44,9 @@ from controller.sim.rig_disturbances import rig_setup
 from controller.sim.sim_rig import RigFaults, RigParams
 from controller.tune.plant import SimPlant, plant_for
 from controller.twin.model import decode as decode_twin
-from controller.watch.estimate import DriftFit, LoopResidual, Window, fit_window, loop_residual
+from controller.watch.estimate import DriftFit, LoopResidual, Window
 from controller.watch.judge import MEASURE_HINT, DriftJudge, gate_on_drift, part_ranges
+from controller.watch.step import watch_window
 
 __all__ = ["WatchOptions", "WatchState", "describe_state", "run_watch"]
 
@@ -60,6 +61,10 @@ class WatchOptions:
     disturbances: tuple[str, ...] = ("article-rig",)
     """Without a twin: the simulated rig the controller runs (`dobtune controller
     --disturbance`), as the model to compare with."""
+    resonance: tuple[float, float] = (0.0, 0.0)
+    """Without a twin: the simulated rig's extra mode (frequency Hz, damping ratio; 0 Hz:
+    none), as `dobtune ctl sim-fault` / `SimFault` gave it; its frequency and damping are then
+    estimated with the other parts."""
     trend_dir: Path | None = None
     """Where the rig's trend is kept (None: not kept)."""
     prediction_window_s: float = 10.0
@@ -95,9 +100,14 @@ def _model(c: ControllerClient, opts: WatchOptions) -> WatchState:
         model = f"the rig's twin of plant knowledge v{twin.knowledge_version}"
     else:
         params, faults = rig_setup(list(opts.disturbances)).params, RigFaults()
+        hz, zeta = opts.resonance
+        mode = ""
+        if hz > 0.0:
+            faults = RigFaults(resonance_hz=hz, resonance_damping=zeta)
+            mode = f" with an extra mode at {hz:g} Hz, damping {zeta:g}"
         why = reply.twin_note or "no twin"
-        model = (f"the simulated rig {'+'.join(opts.disturbances)} ({why}; plant knowledge "
-                 f"v{knowledge.version})")
+        model = (f"the simulated rig {'+'.join(opts.disturbances)}{mode} ({why}; plant "
+                 f"knowledge v{knowledge.version})")
     rate = c.get_config().config.rate_hz
     ranges = part_ranges(params, faults, knowledge.bound, rate)
     st = WatchState(params, faults, model, knowledge, DriftJudge(ranges))
@@ -306,15 +316,13 @@ def run_watch(opts: WatchOptions, stop: threading.Event,
                         continue
                     cfg_version = version
                 assert cfg is not None
-                t_fit = time.perf_counter()
-                fit = fit_window(st.params, st.faults, win, start=st.start)
-                lr = loop_residual(cfg, st.params, st.faults, win)
-                fit_s = time.perf_counter() - t_fit
-                st.start = np.array(fit.x)
-                st.windows += 1
                 # UNIX time of the loop's t_s = 0: the newest sample arrived about now.
                 epoch0 = time.time() - float(c.ring.latest()["t_s"])  # type: ignore[index]
-                verdict = st.judge.update(fit, epoch0 + win.t0_s)
+                res = watch_window(st.params, st.faults, st.judge, win, cfg, st.start,
+                                   epoch0 + win.t0_s)
+                fit, lr, verdict, fit_s = res.fit, res.loop, res.verdict, res.fit_s
+                st.start = np.array(fit.x)
+                st.windows += 1
                 epoch_s = epoch0 + win.t0_s + win.duration_s
                 for name, cleared in ([(n, False) for n in verdict.new_alarms]
                                       + [(n, True) for n in verdict.cleared]):

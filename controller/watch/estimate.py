@@ -34,6 +34,7 @@ from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.sim.sim_rig import RigFaults, RigParams, SimRig
 
 __all__ = [
+    "MODE_PARTS",
     "PARTS",
     "DriftFit",
     "LoopResidual",
@@ -50,6 +51,12 @@ __all__ = [
 #: on the twin's), the motor's Coulomb friction (N m, motor side; stated as a factor when the
 #: twin has some).
 PARTS: tuple[str, ...] = ("gain", "stiffness", "inertia", "motor_friction")
+#: With an extra mode in the twin (`RigFaults.resonance_hz`, a measured resonance): its
+#: natural frequency and damping ratio, as factors on the twin's, fitted after `PARTS`.
+MODE_PARTS: tuple[str, ...] = ("resonance", "resonance_damping")
+#: The mode's damping is told when its relative deviation is below this (a damping ratio is
+#: known far less closely than a frequency).
+DAMPING_TOLD_REL_STD = 0.25
 #: Seconds at the start of a window that the twin (starting at rest) needs to catch up.
 SETTLE_S = 0.5
 #: Whole ticks of extra command delay tried beside the twin's.
@@ -165,13 +172,18 @@ def friction_scale_n_m(params: RigParams) -> float:
 def drifted(params: RigParams, faults: RigFaults, x: FloatArray, delay_ticks: int
             ) -> tuple[RigParams, RigFaults]:
     """The twin with the fit's values `x` (log gain, log stiffness, log inertia factors, motor
-    friction in units of `friction_scale_n_m`) and `delay_ticks`."""
+    friction in units of `friction_scale_n_m`; then, when `x` has them and the twin has an
+    extra mode, the log factors on its frequency and damping) and `delay_ticks`."""
     scale = friction_scale_n_m(params)
     g, k, j = (math.exp(float(v)) for v in x[:3])
     p = replace(params, belt_stiffness_n_m_rad=params.belt_stiffness_n_m_rad * k,
                 load_inertia_kg_m2=params.load_inertia_kg_m2 * j,
                 motor_coulomb_n_m=max(0.0, float(x[3]) * scale), command_delay_ticks=delay_ticks)
-    return p, replace(faults, plant_gain=min(99.0, faults.plant_gain * g))
+    fl = replace(faults, plant_gain=min(99.0, faults.plant_gain * g))
+    if len(x) > 4 and faults.resonance_hz > 0.0:
+        fl = replace(fl, resonance_hz=faults.resonance_hz * math.exp(float(x[4])),
+                     resonance_damping=min(1.0, faults.resonance_damping * math.exp(float(x[5]))))
+    return p, fl
 
 
 def _rate(params: RigParams, faults: RigFaults, win: Window) -> FloatArray:
@@ -205,7 +217,8 @@ def fit_window(params: RigParams, faults: RigFaults, win: Window,
     twin_delay = params.command_delay_ticks
     f0 = params.motor_coulomb_n_m
     scale_f = friction_scale_n_m(params)
-    x_twin = np.array([0.0, 0.0, 0.0, f0 / scale_f])
+    mode = faults.resonance_hz > 0.0
+    x_twin = np.array([0.0, 0.0, 0.0, f0 / scale_f] + ([0.0, 0.0] if mode else []))
     s = _skip(win)
     band = butter(2, BAND_HZ, fs=win.rate_hz, output="sos")
     meas = sosfiltfilt(band, win.speed_deg_s[1:])[s:]
@@ -224,12 +237,12 @@ def fit_window(params: RigParams, faults: RigFaults, win: Window,
                              max_nfev=MAX_NFEV,
                              loss="soft_l1", f_scale=F_SCALE_DEG_S)
 
-    x0 = x_twin if start is None else np.array(start, dtype=np.float64)
-    lo = np.array([-1.5, -1.5, -1.5, 0.0])
-    hi = np.array([1.5, 1.5, 1.5, 20.0])
+    x0 = x_twin if start is None or len(start) != x_twin.size else np.array(start, dtype=np.float64)
+    lo = np.array([-1.5, -1.5, -1.5, 0.0] + ([-0.7, -2.5] if mode else []))
+    hi = np.array([1.5, 1.5, 1.5, 20.0] + ([0.7, 2.5] if mode else []))
     x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
     r0 = residual(x_twin, twin_delay)
-    xs = np.array([0.05, 0.05, 0.05, 0.25])
+    xs = np.array([0.05, 0.05, 0.05, 0.25] + ([0.05, 0.2] if mode else []))
 
     # The twin's delay first; whole ticks more are tried at its solution (a delay is not a
     # least-squares variable) and fitted again only if one answers better.
@@ -251,11 +264,7 @@ def fit_window(params: RigParams, faults: RigFaults, win: Window,
     # Filtered residuals are correlated over about rate / (2 band) ticks: that many fewer
     # independent samples than ticks.
     s2 *= win.rate_hz / (2.0 * BAND_HZ)
-    try:
-        cov = s2 * np.linalg.inv(jac.T @ jac)
-        std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    except np.linalg.LinAlgError:
-        std = np.full(m, math.inf)
+    std = _std(jac, s2)
     parts = []
     for i, name in enumerate(PARTS[:3]):
         v = math.exp(float(x[i]))
@@ -268,10 +277,36 @@ def fit_window(params: RigParams, faults: RigFaults, win: Window,
     else:
         parts.append(PartEstimate("motor_friction", fc * scale_f, fsd * scale_f, told,
                                   unit="N m"))
+    if mode:
+        for i, (name, rel) in enumerate(zip(MODE_PARTS, (TOLD_REL_STD, DAMPING_TOLD_REL_STD),
+                                            strict=True), start=4):
+            v = math.exp(float(x[i]))
+            sd = v * float(std[i])
+            parts.append(PartEstimate(name, v, sd, bool(sd < rel)))
     return DriftFit(parts=tuple(parts), delay_ticks=delay, twin_delay_ticks=twin_delay,
                     residual_rms_deg_s=float(np.sqrt(np.mean(r0 * r0))),
                     fitted_rms_deg_s=float(np.sqrt(np.mean(r * r))), samples=n,
                     evaluations=evals, x=tuple(float(v) for v in x))
+
+
+def _std(jac: FloatArray, s2: float) -> FloatArray:
+    """Each variable's standard deviation from the fit's Jacobian; a variable the window does
+    not move (a mode the trajectory does not excite: its column is next to nothing) gets an
+    infinite one and the others are taken without it, not from a near-singular inverse."""
+    m = jac.shape[1]
+    norms = np.sqrt(np.sum(jac * jac, axis=0))
+    live = norms > 1e-6 * max(float(np.max(norms)), 1e-300)
+    std = np.full(m, math.inf)
+    if not np.any(live):
+        return std
+    j = jac[:, live]
+    try:
+        cov = s2 * np.linalg.inv(j.T @ j)
+    except np.linalg.LinAlgError:
+        return std
+    d = np.diag(cov)
+    std[live] = np.where(d > 0.0, np.sqrt(np.abs(d)), math.inf)
+    return std
 
 
 def loop_residual(cfg: LoopConfig, params: RigParams, faults: RigFaults, win: Window

@@ -28,7 +28,7 @@ from controller.gate.knowledge import MeasuredResponse, PlantKnowledge, Uncertai
 from controller.gate.verdict import judge
 from controller.sim.sim_rig import RigFaults, RigParams
 from controller.twin.fit import rig_response
-from controller.watch.estimate import PARTS, DriftFit, drifted, friction_scale_n_m
+from controller.watch.estimate import MODE_PARTS, PARTS, DriftFit, drifted, friction_scale_n_m
 
 __all__ = [
     "CONFIRM",
@@ -63,9 +63,18 @@ def _band(rate_hz: float) -> FloatArray:
     return np.geomspace(0.05, 0.4 * rate_hz, 120)
 
 
-def _part_x(name: str, factor: float, params: RigParams) -> FloatArray:
-    x = np.array([0.0, 0.0, 0.0, params.motor_coulomb_n_m / friction_scale_n_m(params)])
-    x[PARTS.index(name)] = math.log(factor)
+def _linear_parts(faults: RigFaults) -> tuple[str, ...]:
+    """The parts that move the linear response: gain, stiffness, inertia, and the extra mode's
+    frequency and damping when the twin has one."""
+    return PARTS[:3] + (MODE_PARTS if faults.resonance_hz > 0.0 else ())
+
+
+def _part_x(name: str, factor: float, params: RigParams, faults: RigFaults | None = None
+            ) -> FloatArray:
+    mode = faults is not None and faults.resonance_hz > 0.0
+    x = np.array([0.0, 0.0, 0.0, params.motor_coulomb_n_m / friction_scale_n_m(params)]
+                 + ([0.0, 0.0] if mode else []))
+    x[(PARTS + MODE_PARTS).index(name)] = math.log(factor)
     return x
 
 
@@ -73,7 +82,8 @@ def _inside(params: RigParams, faults: RigFaults, bound: UncertaintyBound, name:
             factor: float, rate_hz: float) -> bool:
     f = _band(rate_hz)
     g0 = rig_response(params, faults, f, 0.0, rate_hz)
-    p, fl = drifted(params, faults, _part_x(name, factor, params), params.command_delay_ticks)
+    p, fl = drifted(params, faults, _part_x(name, factor, params, faults),
+                    params.command_delay_ticks)
     g1 = rig_response(p, fl, f, 0.0, rate_hz)
     return bool(np.all(np.abs(g1 / g0 - 1.0) <= bound.magnitude(f)))
 
@@ -81,9 +91,10 @@ def _inside(params: RigParams, faults: RigFaults, bound: UncertaintyBound, name:
 def part_ranges(params: RigParams, faults: RigFaults, bound: UncertaintyBound | None,
                 rate_hz: float) -> dict[str, tuple[float, float]]:
     """Each part's factor range inside the bound (None: no bound stated, every linear part
-    allowed +-20 %, said by the caller), and the motor friction's `FRICTION_RANGE`."""
+    allowed +-20 %, said by the caller), and the motor friction's `FRICTION_RANGE`. With an
+    extra mode in the twin, its frequency's and damping's ranges too (the same bisection)."""
     out: dict[str, tuple[float, float]] = {}
-    for name in PARTS[:3]:
+    for name in _linear_parts(faults):
         if bound is None:
             out[name] = (0.8, 1.2)
             continue
@@ -112,11 +123,11 @@ def gate_on_drift(cfg: LoopConfig, knowledge: PlantKnowledge, params: RigParams,
     """The gate's verdict on `cfg` with the drifted estimate as the plant's evidence: the
     knowledge's model and bound, its measured responses replaced by the drifted twin's linear
     response (the fit's told parts; the others as the twin has them)."""
-    x = _part_x("gain", 1.0, params)
-    for i, name in enumerate(PARTS[:3]):
+    x = _part_x("gain", 1.0, params, faults)
+    for name in _linear_parts(faults):
         p = fit.part(name)
         if p.told:
-            x[i] = math.log(p.value)
+            x[(PARTS + MODE_PARTS).index(name)] = math.log(p.value)
     pd, fd = drifted(params, faults, x, fit.delay_ticks)
     f = np.geomspace(0.1, 0.4 * rate_hz, 80)
     resp = MeasuredResponse("drifted estimate", f, rig_response(pd, fd, f, 0.0, rate_hz))
