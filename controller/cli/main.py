@@ -1,4 +1,4 @@
-"""`dobtune` console script (all subcommands) and `python -m server` (the dashboard)."""
+"""`dobtune` console script (all subcommands; also `python -m controller.cli.main`)."""
 
 from __future__ import annotations
 

@@ -10,7 +10,7 @@ bounded (--loads, --verdicts, --phase-timeout per awaited phase, named when it t
 Run: .venv/bin/python tests/bench/bench_dashboard.py [--seconds 15]
      .venv/bin/python tests/bench/bench_dashboard.py --page --skip-live --skip-slider
 The controller is the real one (`python -m controller`, simulated plant); the dashboard runs as
-its own process (`python -m server`) so its CPU time is measured alone.
+its own process (`dobtune dashboard`) so its CPU time is measured alone.
 """
 
 from __future__ import annotations
@@ -111,8 +111,8 @@ def dashboard_and_chromium() -> Iterator[tuple[subprocess.Popen[str], str, Any]]
     port = free_port()
     with controller_process(endpoint, RIG):
         dash = subprocess.Popen(
-            [sys.executable, "-m", "server", "--connect", endpoint, "--rig-name", RIG,
-             "--port", str(port)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+            [sys.executable, "-m", "controller.cli.main", "dashboard", "--connect", endpoint,
+             "--rig-name", RIG, "--port", str(port)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
         try:
             url = _dashboard_url(dash, 60.0)
             # Keep reading its output so the pipe never fills.

@@ -2,7 +2,7 @@
 and after (issue 31 item 6: "an upload that never completes grows the dashboard by 300 MB in
 5 s, kept after disconnect").
 
-A dashboard (`python -m server`, one identity: every browser may upload, as an operator) and a
+A dashboard (`dobtune dashboard`, one identity: every browser may upload, as an operator) and a
 raw websocket client (tests/viser_raw.py) on its URL. The client announces a file of
 `--declared-mb` to the Tune tab's upload button (Upload measured responses), then sends
 `--part-kib` parts as fast as it can for `--seconds`, never the last one; then it closes its
@@ -53,8 +53,9 @@ def main() -> int:
     tree = a.tree or REPO
     with tempfile.TemporaryDirectory() as tmp:
         port = free_port()
-        cmd = [sys.executable, "-m", "server", "--connect", f"tcp/127.0.0.1:{free_port()}",
-               "--rig-name", "upload", "--port", str(port), "--recordings", f"{tmp}/rec",
+        cmd = [sys.executable, "-m", "controller.cli.main", "dashboard",
+               "--connect", f"tcp/127.0.0.1:{free_port()}", "--rig-name", "upload",
+               "--port", str(port), "--recordings", f"{tmp}/rec",
                "--candidates", f"{tmp}/cand"]
         env = {**os.environ, "PYTHONPATH": str(tree), "PYTHONUNBUFFERED": "1"}
         proc = subprocess.Popen(cmd, cwd=tree, env=env, stdout=subprocess.PIPE,
