@@ -41,6 +41,9 @@ def _rig_key(what: str) -> Callable[[str], str]:
 #: The keys of one rig, `dobtune/<rig>/<what>`, a builder each (`key_status(rig)`). The gate
 #: uses the plant knowledge; the history is the applied configurations; the lease the operator's.
 key_state = _rig_key("state")  # publisher: batches of loop samples (StateBatch)
+# queryable (the loop's process): `from=<seq>;to=<seq>` -> StateReplay, the last seconds of
+# the state stream again (a recorder's lost samples; docs/protocol.md)
+key_state_replay = _rig_key("state/replay")
 key_status = _rig_key("status")  # publisher, a few Hz: Status
 key_config = _rig_key("config")  # queryable: ConfigRequest -> ConfigReply
 key_command = _rig_key("cmd")  # queryable: Command -> CommandReply
@@ -165,6 +168,27 @@ def state_batch(
         mode=mode,
         **named,
     )
+
+
+class ReplayMissing(_Msg, frozen=True, kw_only=True):
+    """Samples from_seq..to_seq (inclusive) a replay could not give, and why: `too_old` (older
+    than the window the publisher keeps), `never_published` (the loop dropped them: its ring to
+    the publisher was full), `not_yet` (newer than the last batch published), `refused`."""
+
+    from_seq: int
+    to_seq: int
+    reason: str
+    text: str = ""
+
+
+class StateReplay(_Msg, frozen=True, kw_only=True):
+    """The reply to `key_state_replay`: the batches held within the asked range (cut to it, in
+    seq order) and each part of the range not given, with why."""
+
+    batches: list[StateBatch] = []
+    missing: list[ReplayMissing] = []
+    oldest_seq: int = -1  # the oldest sample the publisher still holds (-1: none)
+    newest_seq: int = -1
 
 
 # -- status -----------------------------------------------------------------------------------
@@ -364,7 +388,7 @@ class SimDrift(
     """Simulated rig only, for tests and the demo: the plant drifts from the next tick on,
     each factor on the rig's parameters as it started (all 1: back to them), its state kept
     (`SimRig.set_params`). Drive gain and adding a resonance are `SimFault`'s;
-    `resonance_factor` moves the extra mode the rig has (its frequency as at the first drift).
+    `resonance_factor` moves the extra mode the last `SimFault` added (its frequency then).
     Refused on a CAN rig; an operator's command (the lease), as every command but the e-stop."""
 
     belt_stiffness_factor: float = 1.0

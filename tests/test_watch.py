@@ -242,7 +242,7 @@ def test_the_trend_is_kept_per_hour_and_read_by_time_range(tmp_path: object) -> 
 
 
 def test_sim_drift_moves_the_extra_mode_and_refuses_a_rig_without_one() -> None:
-    from controller.process.requests import DriftRig
+    from controller.process.requests import DriftRig, InjectFault
     from controller.process.runtime import Runtime
 
     c = FakeClock()
@@ -251,15 +251,15 @@ def test_sim_drift_moves_the_extra_mode_and_refuses_a_rig_without_one() -> None:
     t = rt.submit(DriftRig(resonance_factor=0.8))
     rt.run(max_ticks=2)
     assert not t.ok and t.field == "resonance_factor", t.message
-    rig = SimRig(ARTICLE)
-    rig.set_faults(MODE)
-    rt = Runtime(ServoLoop(LoopCoefficients.build(CFG)), rig, clock=c.clock, sleep=c.sleep)
-    for factor in (0.8, 0.8, 1.0):  # on the mode as it started, not compounded
+    t = rt.submit(InjectFault(MODE))  # the mode added as a sim_fault does
+    rt.run(max_ticks=2)
+    assert t.ok, t.message
+    for factor in (0.8, 0.8, 1.0):  # on the mode as the fault added it, not compounded
         t = rt.submit(DriftRig(resonance_factor=factor))
         rt.run(max_ticks=2)
         assert t.ok, t.message
-        assert rig.faults.resonance_hz == pytest.approx(30.0 * factor)
-        assert rig.faults.resonance_damping == 0.05
+        assert bare.faults.resonance_hz == pytest.approx(30.0 * factor)
+        assert bare.faults.resonance_damping == 0.05
 
 
 def test_sim_drift_reaches_the_simulated_rig_only_and_bad_factors_are_named() -> None:

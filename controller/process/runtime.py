@@ -274,7 +274,8 @@ class Runtime:
         self._rig_params0: Any = None
         """The simulated rig's parameters before its first `DriftRig` (None: none yet)."""
         self._rig_mode0_hz = 0.0
-        """Its extra mode's frequency then (0: none)."""
+        """The simulated rig's extra mode as the last `InjectFault` set it (0: none): what a
+        `DriftRig.resonance_factor` multiplies."""
         # The watchdog and the configuration it rolls back to.
         self.watchdog = Watchdog(
             opts.watchdog,
@@ -748,6 +749,7 @@ class Runtime:
                 t.ok, t.message = False, "sim_fault: only the simulated rig takes injected faults"
             else:
                 set_faults(b.faults)  # between ticks, in the tick's own thread: no race
+                self._rig_mode0_hz = b.faults.resonance_hz  # what resonance_factor moves
                 t.ok = True
         elif isinstance(b, DriftRig):
             self._drift_rig(t, b)
@@ -819,7 +821,6 @@ class Runtime:
             return
         if self._rig_params0 is None:
             self._rig_params0 = self.rig.params  # type: ignore[attr-defined]
-            self._rig_mode0_hz = float(self.rig.faults.resonance_hz)  # type: ignore[attr-defined]
         p0 = self._rig_params0
         mode0 = self._rig_mode0_hz
         if b.resonance_factor != 1.0 and mode0 <= 0.0:

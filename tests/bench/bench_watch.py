@@ -2,16 +2,20 @@
 not a test.
 
     .venv/bin/python tests/bench/bench_watch.py [--seconds 60] [--window-s 10]
-        [--only timing,normal,changes,trendweek] [--trajectories sine,step,ramp,hold]
+        [--only timing,normal,changes,trendweek|offline] [--trajectories sine,step,ramp,hold]
+        [--changes stiffness,inertia,motor_friction,gain,resonance]
 
 - timing: the loop's tick compute p99 (each Status's, ~2 Hz) without the watch, with it, and
   without again, in the same controller run (`--seconds` each), and the watch's CPU share.
 - normal: `--seconds` of normal running per demo trajectory with the watch on: alarms raised
   (false alarms), the parts' estimates and how many windows told each.
 - changes: each plant change of the issue on the running rig (belt stiffness -40 %, inertia
-  +50 %, motor friction x3, drive gain -30 %), from a fresh watch each: the time from the
-  change to the alarm, the part named, its estimate against the truth; then the plant is put
-  back and the watch stopped.
+  +50 %, motor friction x3, drive gain -30 %, a resonance 20 % down: the rig first gets a
+  30 Hz payload mode by a sim_fault, the watch is told of it), from a fresh watch each: the
+  time from the change to the alarm, the part named, its estimate against the truth; then the
+  plant is put back and the watch stopped.
+- offline (alone): `--seconds` simulated per trajectory on the compiled offline loop through
+  the watch's window code (the suite's ten-minute check), timed against real time.
 - trendweek: a week of windows written to the hourly MCAP trend and read back (storage per rig
   per day, the time to read a week for a plot).
 The controller runs with --realtime-priority as on a rig; report `uptime` beside the figures.
@@ -46,17 +50,25 @@ CHANGES = (
     ("inertia +50 %", proto.SimDrift(load_inertia_factor=1.5), "inertia", 1.5),
     ("motor friction x3", proto.SimDrift(motor_friction_factor=3.0), "motor_friction", 3.0),
     ("drive gain -30 %", proto.SimFault(plant_gain=0.7), "gain", 0.7),
+    ("resonance 20 % down", proto.SimDrift(resonance_factor=0.8), "resonance", 0.8),
 )
+#: The extra mode the rig gets (a sim_fault) before the resonance's change, and the watch is
+#: told of (`--resonance-hz`: there is no twin): a payload mode at 30 Hz, damping 0.05.
+MODE = proto.SimFault(resonance_hz=30.0, resonance_damping=0.05)
 BACK = (proto.SimDrift(), proto.SimFault())
 
 
 class Watch:
     """`dobtune watch` as a subprocess, and a subscriber to its states and alarms."""
 
-    def __init__(self, endpoint: str, window_s: float, trend: Path | None, log: Path) -> None:
+    def __init__(self, endpoint: str, window_s: float, trend: Path | None, log: Path,
+                 mode: proto.SimFault | None = None) -> None:
         cmd = [str(Path(sys.executable).parent / "dobtune"), "watch", "--connect", endpoint,
                "--rig-name", RIG, "--window-s", str(window_s), "--disturbance", "article-rig",
                "--parent-pid", str(os.getpid())]
+        if mode is not None:
+            cmd += ["--resonance-hz", str(mode.resonance_hz), "--resonance-damping",
+                    str(mode.resonance_damping)]
         if trend is not None:
             cmd += ["--trend-dir", str(trend)]
         self._log = open(log, "ab")  # noqa: SIM115
@@ -222,8 +234,14 @@ def _trend_week(args: argparse.Namespace, tmp: Path) -> None:
 def _changes(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tmp: Path
              ) -> None:
     assert c.command(proto.SetTrajectory(trajectory=default_trajectory("sine"))).ok
+    wanted = args.changes.split(",") if args.changes else None
     for name, cmd, part, truth in CHANGES:
-        watch = Watch(endpoint, args.window_s, None, tmp / f"watch-{part}.log")
+        if wanted is not None and part not in wanted:
+            continue
+        mode = MODE if part == "resonance" else None
+        if mode is not None:
+            assert c.command(mode).ok
+        watch = Watch(endpoint, args.window_s, None, tmp / f"watch-{part}.log", mode)
         s0 = len(heard.states)
         deadline = time.monotonic() + 120.0
         while len(heard.states) < s0 + 2 and time.monotonic() < deadline:
@@ -256,6 +274,29 @@ def _changes(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, t
         time.sleep(2.0)
 
 
+def _offline(args: argparse.Namespace) -> None:
+    """The suite's check, timed: `--seconds` simulated per trajectory through the watch's own
+    window code on the compiled offline loop (article rig, all disturbances and sensor noise),
+    no change: alarms, windows with a part outside, and how much faster than real time."""
+    from controller.gate.knowledge import COMMISSIONING_BOUND
+    from controller.sim.rig_disturbances import rig_setup
+    from controller.watch.offline import run_offline_watch
+
+    setup = rig_setup(("article-rig",))
+    for kind in args.trajectories.split(","):
+        t = time.perf_counter()
+        run = run_offline_watch(setup, default_trajectory(kind), args.seconds,
+                                bound=COMMISSIONING_BOUND, window_s=args.window_s)
+        wall = time.perf_counter() - t
+        outside = sum(any("(outside" in ln or "(alarm" in ln for ln in r.verdict.lines)
+                      for _, r in run.windows)
+        fit = [r.fit_s for _, r in run.windows]
+        print(f"offline {kind:5s}: {args.seconds:g} simulated s, {len(run.windows)} windows, "
+              f"{len(run.alarms)} alarms, {outside} windows with a part outside; wall "
+              f"{wall:.0f} s ({args.seconds / wall:.1f}x real time), fit per window median "
+              f"{np.median(fit):.2f} s; load {os.getloadavg()[0]:.1f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=60.0)
@@ -265,12 +306,17 @@ def main() -> None:
     ap.add_argument("--detect-timeout-s", type=float, default=120.0)
     ap.add_argument("--only", default="timing,normal,changes")
     ap.add_argument("--trajectories", default="sine,step,ramp,hold")
+    ap.add_argument("--changes", default="",
+                    help="changes: only these parts (e.g. resonance), comma-separated")
     args = ap.parse_args()
     print(f"start: {_uptime()}")
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         if args.only == "trendweek":  # no controller needed
             _trend_week(args, tmp)
+            return
+        if args.only == "offline":
+            _offline(args)
             return
         proc = start_controller(tmp / "state", rig=RIG, extra_args=(
             "--realtime-priority", "--disturbance", "article-rig"))
