@@ -366,3 +366,48 @@ def test_ten_minutes_of_normal_running_raise_no_alarm_offline(kind: str) -> None
     for t, r in run.windows:
         outside = [line for line in r.verdict.lines if "(outside" in line or "(alarm" in line]
         assert outside == [], (t, outside)
+
+
+# -- the fleet view: each rig's drift state beside its loop health --------------------------------
+
+
+def test_the_fleet_row_carries_the_watchs_drift_state() -> None:
+    from controller import protocol as proto
+    from controller.client.fleet import FleetMonitor
+    from server.panels.fleet import fleet_table_html
+
+    class Sample:
+        def __init__(self, key: str, msg: proto.DriftState) -> None:
+            self.key_expr = key
+            self.payload = self
+            self._raw = proto.encode(msg)
+
+        def to_bytes(self) -> bytes:
+            return self._raw
+
+    def state(rig: str, value: float, st: str) -> proto.DriftState:
+        parts = [proto.DriftPart(name="resonance", value=value, std=0.001, unit="x", told=True,
+                                 state=st, low=0.916, high=1.085, since_epoch_s=None),
+                 proto.DriftPart(name="inertia", value=1.0, std=0.5, unit="x", told=False,
+                                 state="not told", low=0.65, high=1.44, since_epoch_s=None)]
+        return proto.DriftState(
+            rig=rig, epoch_s=1.0, window_s=10.0, config_version=1, model="m", parts=parts,
+            delay_ticks=0, twin_delay_ticks=0, plant_residual_rms_deg_s=0.1,
+            fitted_residual_rms_deg_s=0.01, loop_measured_rms_deg=0.03,
+            loop_predicted_rms_deg=0.03, loop_residual_rms_deg=0.001,
+            alarms=["resonance"] if st == "alarm" else [])
+
+    mon = FleetMonitor(session=None)
+    mon._on_drift(Sample(proto.key_drift("rigA"), state("rigA", 0.801, "alarm")))
+    # A state that names another rig than its key is not kept (the key is what access checks).
+    mon._on_drift(Sample(proto.key_drift("rigB"), state("rigA", 1.0, "ok")))
+    rows = mon.rows()
+    assert [r.rig for r in rows] == ["rigA"] and mon.decode_errors == 1
+    assert rows[0].drift_alarm
+    assert rows[0].drift == "ALARM: resonance x0.801 (range 0.916-1.08); not told: inertia"
+    html = fleet_table_html(rows)
+    assert "<th>plant drift (the watch)</th>" in html
+    assert "class='dt-fleet-drift' style='color:#d62728'>ALARM: resonance x0.801" in html
+    mon._on_drift(Sample(proto.key_drift("rigA"), state("rigA", 1.06, "note")))
+    row = mon.rows()[0]
+    assert not row.drift_alarm and row.drift.startswith("moved, inside the bound: resonance x1.06")

@@ -1,8 +1,9 @@
 """The fleet watcher: every rig reachable through one Zenoh session (a router), no GUI.
 
 `FleetMonitor` follows the rigs' liveliness tokens (`dobtune/<rig>/alive`: a rig whose
-controller dies leaves at once) and their status and state streams, and keeps per rig the
-latest status and a short, decimated trace of the position error. The dashboard's Fleet tab
+controller dies leaves at once) and their status, state and drift streams, and keeps per rig
+the latest status, the watch's latest drift state, and a short, decimated trace of the
+position error. The dashboard's Fleet tab
 (`server/fleet.py`) and `dobtune ctl rigs` show it. Zenoh callbacks only decode and store under
 a lock.
 """
@@ -20,9 +21,9 @@ from typing import Any, TypeVar
 from controller import protocol as proto
 from controller.client.controller_client import quietly
 
-__all__ = ["DECIMATE", "TRACE_POINTS", "FleetMonitor", "RigRow"]
+__all__ = ["DECIMATE", "TRACE_POINTS", "FleetMonitor", "RigRow", "drift_summary"]
 
-M = TypeVar("M", proto.Status, proto.StateBatch)
+M = TypeVar("M", proto.Status, proto.StateBatch, proto.DriftState)
 
 #: Error trace kept per rig: every DECIMATE-th sample, TRACE_POINTS of them (3 s at 1 kHz).
 DECIMATE = 10
@@ -44,11 +45,28 @@ class RigRow:
     #: Why its latest status could not be read ("" it could): e.g. a controller of another
     #: protocol version ("v: unsupported protocol version 1; this side speaks 2 ...").
     unread: str = ""
+    #: The watch's drift state in a few words ("" no watch heard: `drift_summary`), and
+    #: whether a part is in alarm.
+    drift: str = ""
+    drift_alarm: bool = False
+
+
+def drift_summary(d: proto.DriftState) -> str:
+    """The watch's latest window in a few words: the parts in alarm (value and range), else
+    the parts moved (notes), else ok; the parts the window did not tell."""
+    alarm = [f"{p.name} x{p.value:.3g} (range {p.low:.3g}-{p.high:.3g})"
+             for p in d.parts if p.state == "alarm"]
+    moved = [f"{p.name} x{p.value:.3g}" for p in d.parts if p.state in ("note", "outside")]
+    untold = [p.name for p in d.parts if p.state == "not told"]
+    head = ("ALARM: " + ", ".join(alarm) if alarm else
+            "moved, inside the bound: " + ", ".join(moved) if moved else "ok")
+    return head + (f"; not told: {', '.join(untold)}" if untold else "")
 
 
 @dataclass
 class _Rig:
     status: proto.Status | None = None
+    drift: proto.DriftState | None = None
     status_at: float = 0.0
     unread: str = ""
     trace: deque[float] | None = None
@@ -57,6 +75,10 @@ class _Rig:
 
 def _keep_status(r: _Rig, st: proto.Status) -> None:
     r.status, r.status_at, r.unread = st, time.monotonic(), ""
+
+
+def _keep_drift(r: _Rig, d: proto.DriftState) -> None:
+    r.drift = d
 
 
 def _keep_state(r: _Rig, b: proto.StateBatch) -> None:
@@ -96,6 +118,8 @@ class FleetMonitor:
                 proto.key_status(every), zenoh.handlers.Callback(self._on_status)))
             self._entities.append(s.declare_subscriber(
                 proto.key_state(every), zenoh.handlers.Callback(self._on_state)))
+            self._entities.append(s.declare_subscriber(
+                proto.key_drift(every), zenoh.handlers.Callback(self._on_drift)))
         except BaseException:
             self.close()
             raise
@@ -152,6 +176,9 @@ class FleetMonitor:
     def _on_state(self, sample: Any) -> None:
         self._take(sample, proto.StateBatch, _keep_state)
 
+    def _on_drift(self, sample: Any) -> None:
+        self._take(sample, proto.DriftState, _keep_drift)
+
     # -- reading -------------------------------------------------------------------------------
 
     def rigs(self) -> list[str]:
@@ -177,7 +204,8 @@ class FleetMonitor:
                     error_rms_deg=rms, faults=tuple(st.faults) if st else (),
                     operator=st.operator if st else "",
                     status_age_s=(now - r.status_at) if st else None, trace=trace,
-                    unread=r.unread))
+                    unread=r.unread, drift=drift_summary(r.drift) if r.drift else "",
+                    drift_alarm=bool(r.drift and r.drift.alarms)))
         return out
 
     def estop(self, rig: str) -> None:

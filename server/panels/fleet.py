@@ -3,9 +3,10 @@
 `FleetMonitor` (no GUI) follows the rigs' liveliness tokens (`dobtune/<rig>/alive`: a rig
 whose controller dies leaves at once) and their status and state streams, and keeps per rig
 the latest status and a short, decimated trace of the position error. `FleetPanel` shows it
-in the dashboard: one row per rig (mode, configuration version, error RMS and a small live
-error trace, faults, lease holder), an E-STOP for any rig, and a full view of any rig (another
-dashboard in this process, on its own port, opened on demand).
+in the dashboard: one row per rig (mode, the watch's drift state beside it, configuration
+version, error RMS and a small live error trace, faults, lease holder), an E-STOP for any
+rig, and a full view of any rig (another dashboard in this process, on its own port, opened
+on demand).
 
 Zenoh callbacks only decode and store under a lock; the panel redraws at a few hertz.
 """
@@ -58,6 +59,8 @@ def fleet_table_html(rows: list[RigRow]) -> str:
             f"<tr class='dt-fleet-row' data-rig='{esc(r.rig)}'><td><b>{esc(r.rig)}</b><br>"
             f"<span style='color:#888'>{esc(r.plant)}</span></td>"
             f"<td style='color:{color}'><b class='dt-fleet-mode'>{esc(state)}</b></td>"
+            f"<td class='dt-fleet-drift' style='color:{'#d62728' if r.drift_alarm else '#333'}'"
+            f">{esc(r.drift) or 'no watch heard'}</td>"
             f"<td>{ver}</td><td>{rms}</td><td>{sparkline_svg(r.trace)}<br>"
             f"<span style='color:#888'>&plusmn;{peak:.3g} deg</span></td>"
             f"<td>{esc(r.operator) or '-'}</td>"
@@ -65,7 +68,8 @@ def fleet_table_html(rows: list[RigRow]) -> str:
             + (f"<br><span class='dt-fleet-unread'>status not read: {esc(r.unread)}</span>"
                if r.unread else "") + "</td></tr>")
     return ("<div class='dt-fleet' style='font-size:12px'><table><tr><th>rig</th><th>state</th>"
-            "<th>config</th><th>error RMS (deg)</th><th>error, last 3 s</th><th>lease</th>"
+            "<th>plant drift (the watch)</th><th>config</th><th>error RMS (deg)</th>"
+            "<th>error, last 3 s</th><th>lease</th>"
             "<th>faults</th></tr>" + "".join(body) + "</table></div>")
 
 
