@@ -361,6 +361,7 @@ def _viewer(rig: str, user: str) -> list[_Grant]:
     reads = (
         proto.key_config(rig), proto.key_identify(rig), proto.key_knowledge(rig),
         proto.key_lease(rig), proto.key_history(rig),
+        proto.key_state_replay(rig),  # the stream's lost samples again: readable as it is
     )
     estop = (proto.key_estop(rig),)
     return [

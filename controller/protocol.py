@@ -44,6 +44,7 @@ key_state = _rig_key("state")  # publisher: batches of loop samples (StateBatch)
 # queryable (the loop's process): `from=<seq>;to=<seq>` -> StateReplay, the last seconds of
 # the state stream again (a recorder's lost samples; docs/protocol.md)
 key_state_replay = _rig_key("state/replay")
+REPLAY_MAX_SAMPLES = 5000  # samples one replay query may ask for (5 s at 1 kHz)
 key_status = _rig_key("status")  # publisher, a few Hz: Status
 key_config = _rig_key("config")  # queryable: ConfigRequest -> ConfigReply
 key_command = _rig_key("cmd")  # queryable: Command -> CommandReply

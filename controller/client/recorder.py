@@ -4,6 +4,12 @@ One message per loop tick on `/state`, every Status on `/status`, each configura
 on `/config`, and events (lost samples, mode changes, watchdog trips, identification runs with
 what they executed, for `dobtune identify --from`) on `/events`. `dobtune record` and the
 dashboard's Recordings tab are front ends over `Recorder`.
+
+Complete under load (issue 33 item 4): a jump in the stream's sequence numbers is asked for
+again from the controller's replay (`dobtune/<rig>/state/replay`, the last 30 s of the
+published stream, `controller.process.replay`) before the batch after it is written, so the
+file stays in seq order; what the replay cannot give is recorded as a `gap` event naming the
+range and why (`too_old`, `never_published`: the loop dropped it, `refused`, `not_received`).
 """
 
 from __future__ import annotations
@@ -11,7 +17,8 @@ from __future__ import annotations
 import json
 import threading
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +31,7 @@ from controller.client.controller_client import (
     open_client_session,
 )
 
-__all__ = ["RecordOptions", "RecordResult", "Recorder", "identify_event"]
+__all__ = ["RecordOptions", "RecordResult", "Recorder", "StateRecovery", "identify_event"]
 
 #: How often the recorder asks the controller for its identification status.
 IDENTIFY_POLL_S = 0.5
@@ -41,6 +48,10 @@ class RecordOptions:
     user: str = ""
     timeout_s: float = 10.0
     """Give up (ControllerUnavailable) when no state arrived within this long."""
+    recover: bool = True
+    """Ask the controller's replay for samples missing from the stream."""
+    drop_batch: Callable[[proto.StateBatch], bool] | None = None
+    """Test hook: a received batch for which it returns True is treated as not received."""
 
 
 @dataclass(frozen=True)
@@ -48,15 +59,73 @@ class RecordResult:
     path: Path
     samples: int
     lost: int
-    """Samples missing by sequence number (recorded as events, not an error)."""
+    """Samples missing by sequence number and not recovered (recorded as `gap` events with
+    their reason, not an error)."""
     undecodable: int
     duration_s: float
     size_bytes: int
+    recovered: int = 0
+    """Samples missing from the stream and had again from the controller's replay."""
+    missing: tuple[tuple[int, int, str], ...] = field(default=())
+    """Each range of samples not had: (from_seq, to_seq, reason)."""
 
     def summary(self) -> str:
         bad = f", {self.undecodable} undecodable" if self.undecodable else ""
-        return (f"recorded {self.samples} samples ({self.lost} lost{bad}) in "
-                f"{self.duration_s:.1f} s to {self.path} ({self.size_bytes / 1e6:.2f} MB)")
+        text = (f"recorded {self.samples} samples ({self.lost} lost{bad}; {self.recovered} "
+                f"recovered from the controller's replay) in {self.duration_s:.1f} s to "
+                f"{self.path} ({self.size_bytes / 1e6:.2f} MB)")
+        if self.missing:
+            shown = [f"{a}-{z} ({why})" for a, z, why in self.missing[:5]]
+            more = f" and {len(self.missing) - 5} more" if len(self.missing) > 5 else ""
+            text += "; missing seq " + ", ".join(shown) + more
+        return text
+
+
+class StateRecovery:
+    """Fills a jump in the state stream from the controller's replay into the MCAP writer."""
+
+    def __init__(self, session: Any, key: str, rig: str, timeout_s: float = 2.0) -> None:
+        self.session = session
+        self.key = key
+        self.rig = rig
+        self.timeout_s = timeout_s
+        self.recovered = 0
+
+    def _ask(self, lo: int, hi: int) -> proto.StateReplay:
+        replies = list(self.session.get(f"{self.key}?from={lo};to={hi}",
+                                        timeout=self.timeout_s))
+        for r in replies:
+            if r.ok is not None:
+                return proto.decode(r.ok.payload.to_bytes(), proto.StateReplay)
+        errs = [r.err.payload.to_bytes().decode(errors="replace") for r in replies
+                if r.err is not None]
+        raise ValueError("; ".join(errs) or f"no reply within {self.timeout_s:g} s")
+
+    def fill(self, rec: Any, lo: int, hi: int, t_s: float) -> None:
+        """Write samples lo..hi to `rec` (an mcap_io.Recorder whose next_seq is lo), each part
+        the replay cannot give as a gap with its reason."""
+        nxt = lo
+        while nxt <= hi:
+            z = min(hi, nxt + proto.REPLAY_MAX_SAMPLES - 1)
+            try:
+                got = self._ask(nxt, z)
+            except Exception as exc:  # recorded with the range: the recording goes on
+                rec.gap(nxt, hi, "refused", t_s, text=f"the replay did not answer: {exc}")
+                return
+            parts: list[tuple[int, Any]] = [(b.seq0, b) for b in got.batches]
+            parts += [(m.from_seq, m) for m in got.missing]
+            for seq0, part in sorted(parts, key=lambda p: p[0]):
+                if rec.next_seq is None or seq0 < rec.next_seq or seq0 > z:
+                    continue  # not asked for (trust no reply)
+                if isinstance(part, proto.ReplayMissing):
+                    rec.gap(seq0, min(part.to_seq, z), part.reason, t_s, text=part.text)
+                elif part.rig == self.rig:
+                    n = min(len(part.t_s), z - seq0 + 1)
+                    rec.state(part)
+                    self.recovered += n
+            if rec.next_seq is not None and rec.next_seq <= z:  # what the reply left out
+                rec.gap(rec.next_seq, z, "refused", t_s, text="the replay left it out")
+            nxt = z + 1
 
 
 class _IdentifyWatch:
@@ -182,8 +251,11 @@ class Recorder:
         identify = _IdentifyWatch()
         twin = _TwinWatch(self.twins_recorded)
         twin_key = proto.key_knowledge(o.rig_name)
+        replay_key = proto.key_state_replay(o.rig_name)
         if o.auth is not None:
             twin_key = proto.user_key(twin_key, o.user)
+            replay_key = proto.user_key(replay_key, o.user)
+        recovery = StateRecovery(session, replay_key, o.rig_name) if o.recover else None
         knowledge_version: int | None = None
         next_poll = t0
         with session, McapWriter(Path(o.out), rig=o.rig_name) as rec:
@@ -201,10 +273,18 @@ class Recorder:
                     for sample in iter(state.try_recv, None):
                         got = True
                         try:
-                            rec.state(proto.decode(sample.payload.to_bytes(), proto.StateBatch))
+                            batch = proto.decode(sample.payload.to_bytes(), proto.StateBatch)
                         except proto.ProtocolError as exc:
                             bad += 1
                             rec.event("note", f"undecodable state message: {exc}")
+                            continue
+                        if o.drop_batch is not None and o.drop_batch(batch):
+                            continue
+                        nxt = rec.next_seq
+                        if recovery is not None and nxt is not None and batch.seq0 > nxt:
+                            t_gap = batch.epoch_s + (batch.t_s[0] if batch.t_s else 0.0)
+                            recovery.fill(rec, nxt, batch.seq0 - 1, t_gap)
+                        rec.state(batch)
                     for sample in iter(status.try_recv, None):
                         got = True
                         try:
@@ -231,11 +311,13 @@ class Recorder:
             finally:
                 state.undeclare()
                 status.undeclare()
-            n, gaps = rec.samples, rec.gaps
+            n, gaps, missing = rec.samples, rec.gaps, tuple(rec.missing)
         if n == 0:
             raise ControllerUnavailable(
                 f"no state from rig {o.rig_name!r} on {', '.join(o.connect)} within "
                 f"{o.timeout_s:g} s (wrong endpoint, rig name or credentials)")
         path = Path(o.out)
         return RecordResult(path=path, samples=n, lost=gaps, undecodable=bad,
-                            duration_s=time.monotonic() - t0, size_bytes=path.stat().st_size)
+                            duration_s=time.monotonic() - t0, size_bytes=path.stat().st_size,
+                            recovered=recovery.recovered if recovery is not None else 0,
+                            missing=missing)

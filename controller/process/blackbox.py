@@ -71,6 +71,10 @@ class BlackBox:
     def add(self, batch: Any) -> None:
         self._batches.append(batch)  # deque append: atomic, bounded
 
+    def held(self) -> list[Any]:
+        """The batches kept, oldest first (the state replay serves from them)."""
+        return list(self._batches)
+
     def trigger(self, reason: str, text: str) -> None:
         """Write the last seconds with the event `reason` (`text` says what happened)."""
         batches = list(self._batches)

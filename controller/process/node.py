@@ -43,6 +43,7 @@ from controller.process import requests as rq
 from controller.process.access import LOCAL, Who
 from controller.process.blackbox import BlackBox
 from controller.process.persistence import Latch, PersistenceError
+from controller.process.replay import ReplayServer
 from controller.process.runtime import ESTOP, FAULT
 from controller.process.service import ControllerService, RuntimeEvents
 
@@ -192,6 +193,10 @@ class ZenohNode:
             proto.key_status(rig), congestion_control=zenoh.CongestionControl.DROP
         )
         self._entities += [self.state_pub, self.status_pub]
+        # The state stream again, from the black box's batches (a recorder's lost samples).
+        replay = ReplayServer(rig, self.blackbox.held, self.service.warn)
+        replay.declare(session, auth=self.access.auth)
+        self._entities.append(replay)
         # Announce the rig (routers carry it to every site): it leaves the list when this
         # session ends or is lost.
         self._entities.append(session.liveliness().declare_token(proto.key_alive(rig)))

@@ -10,7 +10,9 @@ Channels (message encoding "json", schemas embedded as JSON Schema, zstd-compres
   config_version, mode.
 - `/status`: every controller Status received (as its JSON form).
 - `/config`: each configuration version the first time it is seen (version, config).
-- `/events`: what happened: `gap` (samples lost: from_seq, to_seq), `mode` (estop, fault,
+- `/events`: what happened: `gap` (samples missing: from_seq, to_seq, and `reason`: why they
+  could not be had, e.g. `too_old`, `never_published`, `not_received`; a recorder fetches a
+  jump in seq again from the controller's replay before it calls it a gap), `mode` (estop, fault,
   running...), `config` (a new version), `watchdog`, `note`, and whatever a caller adds
   (e-stop, rollback, the black box's reason).
 
@@ -86,6 +88,8 @@ class Recorder:
         """The sample sequence number expected next (gaps are recorded as events)."""
         self.samples = 0
         self.gaps = 0
+        self.missing: list[tuple[int, int, str]] = []
+        """Each gap as (from_seq, to_seq, reason)."""
         self._versions: set[int] = set()
         self._mode = ""
         self._last_ns = 0
@@ -115,11 +119,11 @@ class Recorder:
         if n == 0:
             return
         t0 = batch.epoch_s
-        if self.next_seq is not None and batch.seq0 != self.next_seq:
-            lost = batch.seq0 - self.next_seq
-            self.gaps += max(lost, 0)
-            self.event("gap", f"{lost} sample(s) lost", t0 + batch.t_s[0],
-                       from_seq=self.next_seq, to_seq=batch.seq0 - 1)
+        if self.next_seq is not None and batch.seq0 > self.next_seq:
+            self.gap(self.next_seq, batch.seq0 - 1, "not_received", t0 + batch.t_s[0])
+        elif self.next_seq is not None and batch.seq0 < self.next_seq:
+            self.event("note", f"sequence went back from {self.next_seq} to {batch.seq0} (the "
+                       "controller restarted)", t0 + batch.t_s[0], seq=batch.seq0)
         if batch.mode != self._mode:
             if self._mode:
                 self.event("mode", f"{self._mode} -> {batch.mode}", t0 + batch.t_s[0],
@@ -136,6 +140,17 @@ class Recorder:
             self._put("/state", _ns(t0 + batch.t_s[i]), _enc.encode(rec))
         self.samples += n
         self.next_seq = batch.seq0 + n
+
+    def gap(self, from_seq: int, to_seq: int, reason: str, t_s: float | None = None,
+            text: str = "") -> None:
+        """Samples from_seq..to_seq are missing, for `reason` (recorded as a `gap` event); the
+        next sample expected is then to_seq + 1."""
+        lost = to_seq - from_seq + 1
+        self.gaps += max(lost, 0)
+        self.missing.append((from_seq, to_seq, reason))
+        self.event("gap", f"{lost} sample(s) lost ({reason}{': ' + text if text else ''})",
+                   t_s, from_seq=from_seq, to_seq=to_seq, reason=reason)
+        self.next_seq = to_seq + 1
 
     def status(self, st: Any, t_s: float) -> None:
         """A `Status` (also records its configuration version the first time)."""
