@@ -6,7 +6,9 @@
 Also: the largest class of each package (lines, methods), package cycles (packages that import
 each other), `Any` in the signatures of `server/` (annotations of parameters and returns), and
 the private-attribute reaches: `x._name` where x is not `self`/`cls` (another object's or
-module's private part), counted per package with the modules that make them. `--doc` writes
+module's private part), counted per package with the modules that make them, and beside
+them the reaches by name (`getattr(x, "_name")`, `setattr`) and the imports of another
+library's private module or name (`from viser._messages import ...`). `--doc` writes
 this tree's table into docs/architecture.md between the `layout-figures` markers (the doc's
 numbers are this script's, never typed by hand).
 
@@ -74,6 +76,30 @@ def private_reaches(path: Path) -> int:
     return count
 
 
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def private_reaches_other(path: Path) -> tuple[int, int]:
+    """Reaches the attribute count misses: (by name: `getattr`/`setattr`/`hasattr`/`delattr`
+    with a private name's literal, imports of a private module or name of another library:
+    `from viser._messages import X`, `from viser._gui_handles import _GuiHandle`; type-only
+    imports count too)."""
+    by_name = imported = 0
+    for node in ast.walk(ast.parse(path.read_text())):
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                and node.func.id in ("getattr", "setattr", "hasattr", "delattr")
+                and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant)
+                and isinstance(node.args[1].value, str) and _private(node.args[1].value)):
+            by_name += 1
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module and (
+                node.module.split(".")[0] not in PACKAGES) and (
+                any(_private(part) for part in node.module.split("."))
+                or any(_private(a.name) for a in node.names)):
+            imported += 1
+    return by_name, imported
+
+
 def package_cycles(pkg_graph: dict[str, set[str]]) -> list[tuple[str, str]]:
     """Pairs of packages that import each other (directly)."""
     return sorted((a, b) for a in pkg_graph for b in pkg_graph[a]
@@ -130,6 +156,9 @@ def report(root: Path, title: str) -> None:
     print("package imports (every import counted):")
     for pkg in sorted(sizes):
         print(f"  {pkg} -> {', '.join(sorted(pkg_graph[pkg])) or '-'}")
+    pc = package_cycles(pkg_graph)
+    print(f"package cycles (packages as listed above, each top-level module its own): {len(pc)} "
+          + ", ".join(f"{a} <-> {b}" for a, b in pc))
     print(f"module import cycles: {len(import_cycles(graph))}; "
           f"module import edges: {sum(len(v) for v in graph.values())}")
     def folder(m: str) -> str:
@@ -141,7 +170,8 @@ def report(root: Path, title: str) -> None:
             if folder(m) != folder(t) and t not in PACKAGES:
                 edges[folder(m), folder(t)] += 1
     cyc = sorted((a, b) for a, b in edges if a < b and (b, a) in edges)
-    print(f"folder cycles (folders importing each other, imports each way): {len(cyc)} "
+    print("folder cycles (folders importing each other, imports each way; `controller` is its "
+          f"top-level modules together: __main__, auth, protocol, ...): {len(cyc)} "
           + ", ".join(f"{a} {edges[a, b]} -> {b}, {edges[b, a]} back" for a, b in cyc))
     print("largest class per package (lines, methods):")
     for pkg in sorted(sizes):
@@ -160,6 +190,11 @@ def report(root: Path, title: str) -> None:
           + ", ".join(f"{k} {v}" for k, v in sorted(by_pkg.items()) if v))
     print("  where (server/): " + ", ".join(
         f"{m} {n}" for m, n in sorted(reach.items()) if n and m.startswith("server")))
+    other = {m: private_reaches_other(p) for m, p in mods.items()}
+    print("  besides (by name in getattr/setattr, private modules or names of a library "
+          f"imported): {sum(a for a, _ in other.values())} by name, "
+          f"{sum(b for _, b in other.values())} imports; "
+          + ", ".join(f"{m} {a}+{b}" for m, (a, b) in sorted(other.items()) if a or b))
 
 
 def main() -> int:
