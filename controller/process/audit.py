@@ -420,15 +420,15 @@ class _Repeats:
     last_s: float = 0.0
     by_user: dict[str, int] = field(default_factory=dict)
 
-    def add(self, user: str, now_s: float) -> None:
+    def add(self, user: str, now_s: float, n: int = 1) -> None:
         if not self.count:
             self.first_s = now_s
-        self.count += 1
+        self.count += n
         self.last_s = now_s
         if user in self.by_user or len(self.by_user) < _BY_USER_MAX:
-            self.by_user[user] = self.by_user.get(user, 0) + 1
+            self.by_user[user] = self.by_user.get(user, 0) + n
         else:
-            self.by_user["..."] = self.by_user.get("...", 0) + 1
+            self.by_user["..."] = self.by_user.get("...", 0) + n
 
 
 def _sender(user: str, fields: Mapping[str, Any]) -> tuple[str, ...]:
@@ -688,7 +688,16 @@ class AuditLog:
 
     def _estop(self, body: dict[str, Any], sender: tuple[str, ...]) -> dict[str, Any] | None:
         """An accepted e-stop: written when it latches or is a new sender's (of the first
-        ESTOP_SENDERS_MAX), else counted; the count written when it is repeat_interval_s old."""
+        ESTOP_SENDERS_MAX), else counted; the count written when it is repeat_interval_s old.
+        `repeats` (a field, from the controller's own code): that many more e-stops of the
+        same sender, coalesced before they reached the log, counted as repeats."""
+        repeats = body.pop("repeats", 0)
+        rec = self._estop_one(body, sender)
+        if isinstance(repeats, int) and repeats > 0:
+            self._repeats.add(body["user"], self._clock(), repeats)
+        return rec
+
+    def _estop_one(self, body: dict[str, Any], sender: tuple[str, ...]) -> dict[str, Any] | None:
         if self._latched_seq is None or (
             sender not in self._senders and len(self._senders) < ESTOP_SENDERS_MAX
         ):

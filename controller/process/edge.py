@@ -1,7 +1,7 @@
 """The controller's edge process: every request queryable, apart from the loop's process.
 
-The loop's process (`controller.process.main`) keeps the 1 kHz tick, the e-stop subscriber
-(its own Zenoh session, its own callback), the streams and the service. This child process
+The loop's process (`controller.process.main`) keeps the 1 kHz tick, the streams and the
+service. This child process
 opens a Zenoh session of its own (a client of the loop process's session, or of the router
 the controller logs in to) and declares the request queryables. Per query, in the Zenoh
 callback, before anything is read: the sender's request budget (`controller.process.budget`,
@@ -16,6 +16,16 @@ A worker thread per kind then serves its queue:
   forwarded over the kind's pipe to the loop process, one request at a time per kind, which
   handles it as before (`ZenohNode.handle_*`: lease, gate, audit) and sends the reply back.
   A payload over the size limit is not sent: only its size, for the refusal that names it.
+
+E-stops are received here too (the public key and, with authentication, every user's scope):
+the Zenoh callback writes the arrival stamp, then raises the flag, in a small shared-memory
+array (`ESTOP_FLAG`, `ESTOP_ARRIVAL`) that the loop's tick reads (a plain int; the tick
+clears the flag, then reads the stamp: no e-stop is lost). No Python code of the loop's
+process runs per e-stop: an e-stop flood costs it nothing but the tick's read. Their audit
+lines are coalesced here: each sender's e-stops go to the loop process (the audit) at most
+every ESTOP_REPORT_S, the first at once, with the count of the others (`repeats`). The loop
+process's own e-stop subscriber is armed only while this process is not serving
+(`controller.process.edge_link`).
 
 So whatever clients send, the loop process sees at most one request per kind at a time, each
 within its sender's budget, and no read at all: the interpreter lock the loop needs is not
@@ -44,7 +54,19 @@ from controller.process.history import history_reply
 from controller.process.persistence import StateStore
 from controller.process.worker_start import lower_priority, worker_init
 
-__all__ = ["CONNECT", "FORWARDED", "KINDS", "EdgeSnapshot", "EdgeSpec", "edge_main"]
+__all__ = [
+    "CONNECT",
+    "ESTOP_ARRIVAL",
+    "ESTOP_FLAG",
+    "FORWARDED",
+    "FORWARD_TIMEOUT_S",
+    "KINDS",
+    "EdgeSnapshot",
+    "EdgeSpec",
+    "ForwardTimeout",
+    "edge_main",
+    "estop_flag",
+]
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +96,22 @@ CONNECT_RETRY_S = 0.1
 #: How often the budget's refusals are reported to the loop process (audit, status).
 REPORT_S = 1.0
 INTERNAL_ERROR = b"internal error: the request was not served (see the controller's log)"
+#: The e-stop flag array's slots: 1 while an e-stop waits for the tick; the newest e-stop's
+#: arrival stamp (`time.monotonic_ns`, the clock the loop stamps requests with).
+ESTOP_FLAG = 0
+ESTOP_ARRIVAL = 1
+#: The shortest time between two e-stop reports (audit lines) to the loop process.
+ESTOP_REPORT_S = 0.1
+#: How long a forwarded request may take in the loop process before the client is told so.
+FORWARD_TIMEOUT_S = 30.0
+
+
+def estop_flag() -> Any:
+    """The shared e-stop flag array (int64 [flag, arrival]), inherited by the edge process
+    when forked and passed to it when spawned."""
+    from multiprocessing.sharedctypes import RawArray
+
+    return RawArray("q", 2)
 
 
 @dataclass(frozen=True)
@@ -101,6 +139,10 @@ class EdgeSnapshot:
     knowledge: bytes
 
 
+class ForwardTimeout(Exception):
+    """The loop process did not answer a forwarded request within FORWARD_TIMEOUT_S."""
+
+
 class _ChangeLogReader(StateStore):
     """The state directory's change log, read only (opening a `StateStore` would remove
     temporary files the loop process may be writing)."""
@@ -111,8 +153,13 @@ class _ChangeLogReader(StateStore):
 
 class _Edge:
     def __init__(self, spec: EdgeSpec, conns: dict[str, Connection], control: Connection,
-                 ) -> None:
+                 flag: Any = None) -> None:
         self.spec = spec
+        self.flag = flag if flag is not None else [0, 0]
+        self._estop_lock = threading.Lock()
+        #: E-stops not yet reported to the loop process, by (user, key, claims).
+        self._estops: dict[tuple[str, str, tuple[tuple[str, str], ...]], int] = {}
+        self._estop_event = threading.Event()
         self.conns = conns
         self.control = control
         self.queues: dict[str, queue.SimpleQueue[Any]] = {k: queue.SimpleQueue() for k in KINDS}
@@ -153,6 +200,40 @@ class _Edge:
 
         return put
 
+    def on_estop(self, sample: Any) -> None:
+        """An e-stop (Zenoh callback): the loop's flag first, then its audit line."""
+        arrival = time.monotonic_ns()
+        flag = self.flag
+        with self._estop_lock:
+            if arrival > flag[ESTOP_ARRIVAL]:
+                flag[ESTOP_ARRIVAL] = arrival  # the stamp before the flag (the tick reads
+            flag[ESTOP_FLAG] = 1               # the flag, clears it, then the stamp)
+        from controller.process.access import LOCAL
+        from controller.process.node import PUBLIC, estop_claims
+
+        key = str(sample.key_expr)
+        who = proto.user_of_key(key) or (PUBLIC if self.spec.auth_dir is not None
+                                         else LOCAL.user)
+        claims = tuple(sorted(estop_claims(sample).items()))
+        with self._estop_lock:
+            k = (who, key, claims)
+            self._estops[k] = self._estops.get(k, 0) + 1
+        self._estop_event.set()
+
+    def report_estops(self) -> None:
+        """Each sender's e-stops to the loop process (its audit): the first at once, then at
+        most one report every ESTOP_REPORT_S, with the count."""
+        while not self.stop.is_set():
+            self._estop_event.wait()
+            self._estop_event.clear()
+            with self._estop_lock:
+                pending, self._estops = self._estops, {}
+            if pending:
+                with contextlib.suppress(OSError, ValueError):
+                    self.send_control(("estop", [(who, key, dict(claims), n)
+                                                 for (who, key, claims), n in pending.items()]))
+            self.stop.wait(ESTOP_REPORT_S)
+
     # -- workers -------------------------------------------------------------------------------
 
     def serve(self, kind: str) -> None:
@@ -170,6 +251,9 @@ class _Edge:
                     query.reply_err(INTERNAL_ERROR)
                 else:
                     query.reply(query.key_expr, reply, encoding=encoding)
+            except ForwardTimeout as exc:
+                with contextlib.suppress(Exception):
+                    query.reply_err(str(exc).encode())
             except Exception as exc:  # never let a query end the worker
                 log.warning("edge: %s query: %s: %s", kind, type(exc).__name__, exc)
                 with contextlib.suppress(Exception):
@@ -190,6 +274,17 @@ class _Edge:
         conn = self.conns[kind]
         # Over the limit: only the size goes (the loop process names it in the refusal).
         conn.send((key, arrival, None if too_large else data, len(data)))
+        if not conn.poll(FORWARD_TIMEOUT_S):
+            # The loop process did not answer: this kind's pipe is out of step from now on
+            # (a late reply would answer the next request), so this process ends and is
+            # started again (`edge_link`).
+            log.error("edge: %s: no reply from the loop process within %g s; edge restarts",
+                      kind, FORWARD_TIMEOUT_S)
+            self.stop.set()
+            raise ForwardTimeout(
+                f"edge forward timeout: the loop process did not answer this {kind} request "
+                f"within {FORWARD_TIMEOUT_S:g} s (it may still take effect: read the state "
+                f"before sending it again)")
         reply, snap = conn.recv()
         if snap is not None:
             self.take(snap)
@@ -285,7 +380,8 @@ class _Edge:
         rig = self.spec.rig
         scoped = proto.any_user_key if self.spec.auth_dir is not None else (lambda k: k)
         threads = [threading.Thread(target=self.read_control, name="control", daemon=True),
-                   threading.Thread(target=self.report, name="report", daemon=True)]
+                   threading.Thread(target=self.report, name="report", daemon=True),
+                   threading.Thread(target=self.report_estops, name="estops", daemon=True)]
         threads += [threading.Thread(target=self.serve, args=(k,), name=f"{k}-worker",
                                      daemon=True) for k in KINDS]
         for t in threads:
@@ -300,6 +396,12 @@ class _Edge:
                     zenoh.handlers.Callback(self.on_query(kind), indirect=False))
                 for kind, key in KINDS.items()
             ]
+            estop_keys = [proto.key_estop(rig)]
+            if self.spec.auth_dir is not None:
+                estop_keys.append(proto.any_user_key(proto.key_estop(rig)))
+            entities += [session.declare_subscriber(
+                key, zenoh.handlers.Callback(self.on_estop, indirect=False))
+                for key in estop_keys]
             self.send_control(("ready",))
             # Loaded and serving: from now on the loop's process wins the CPU over this one
             # (not before: the controller's start waits for it).
@@ -312,10 +414,11 @@ class _Edge:
                 q.put((None, 0))
 
 
-def edge_main(spec: EdgeSpec, conns: dict[str, Connection], control: Connection) -> None:
+def edge_main(spec: EdgeSpec, conns: dict[str, Connection], control: Connection,
+              flag: Any = None) -> None:
     """The edge process's body (multiprocessing target)."""
     # Forked from the controller: its SIGTERM handler (stop the loop) is not this process's.
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     worker_init(spec.parent_pid, True, nice=False)  # Ctrl-C ignored, ends with its parent
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s edge: %(message)s")
-    _Edge(spec, conns, control).run()
+    _Edge(spec, conns, control, flag).run()

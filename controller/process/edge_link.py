@@ -9,7 +9,12 @@ what it forwards, keep it informed, start it again if it dies.
 - The status thread calls `push()`: a snapshot that changed (a watchdog rollback, new plant
   knowledge) goes over the control pipe.
 - The control pipe brings the edge's refusals (request budget, shed queries): one audit record
-  per user and report, and a Status.notes line.
+  per user and report, and a Status.notes line; and the e-stops it received (each sender's,
+  coalesced): their audit lines. The e-stops themselves reach the tick through the shared
+  flag (`edge.estop_flag`), not through this process's Python code.
+- The node's own e-stop subscribers are the fallback (`ZenohNode._estop_fallback`): rings of
+  one sample, read every 10 ms; an e-stop the edge did not relay (dead, not yet serving, or
+  not within 0.5 s) is raised from there.
 """
 
 from __future__ import annotations
@@ -26,7 +31,14 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from controller import protocol as proto
-from controller.process.edge import CONNECT, FORWARDED, EdgeSnapshot, EdgeSpec, edge_main
+from controller.process.edge import (
+    CONNECT,
+    FORWARDED,
+    EdgeSnapshot,
+    EdgeSpec,
+    edge_main,
+    estop_flag,
+)
 
 __all__ = ["EdgeLink", "Oversized", "free_loopback_port"]
 
@@ -89,6 +101,8 @@ class EdgeLink:
         """Requests refused by the budget since the start, by user."""
         self.shed = 0
         self.restarts = 0
+        #: The e-stop flag the edge raises and the tick reads (`controller.process.edge`).
+        self.estop_flag = estop_flag()
 
     # -- snapshots -----------------------------------------------------------------------------
 
@@ -159,7 +173,8 @@ class EdgeLink:
         for kind in FORWARDED:
             ours[kind], theirs[kind] = ctx.Pipe(duplex=True)
         control, their_control = ctx.Pipe(duplex=True)
-        proc = ctx.Process(target=edge_main, args=(self.spec, theirs, their_control),
+        proc = ctx.Process(target=edge_main,
+                           args=(self.spec, theirs, their_control, self.estop_flag),
                            name="dobtune-edge", daemon=True)
         self._started_at = time.monotonic()
         proc.start()
@@ -183,6 +198,7 @@ class EdgeLink:
         self.node = node
         self.service = node.service
         self.rt = node.rt
+        node.rt.estop_flag = self.estop_flag
         self._handlers = {
             "config": node.handle_config,
             "command": node.handle_command,
@@ -255,12 +271,15 @@ class EdgeLink:
             if msg == ("ready",):
                 self.ready.set()
                 log.info("edge process %d serving requests", proc.pid)
+            elif isinstance(msg, tuple) and msg[0] == "estop" and self.service is not None:
+                self._estops(msg[1])
             elif isinstance(msg, tuple) and msg[0] == "refused" and self.service is not None:
                 self._refused(msg[1], msg[2])
         proc.join(CLOSE_S)
         if self._closing.is_set():
             return
-        # The edge process died: requests go unanswered until it is back.
+        # The edge process died: requests go unanswered until it is back; e-stops reach the
+        # node's fallback (`ZenohNode._estop_fallback`).
         self.ready.clear()
         self.restarts += 1
         text = f"edge process ended (exit code {proc.exitcode}); started again"
@@ -272,6 +291,14 @@ class EdgeLink:
         if wait > 0 and self._closing.wait(wait):
             return
         self.start()
+
+    def _estops(self, estops: list[tuple[str, str, dict[str, str], int]]) -> None:
+        """The audit lines of the e-stops the edge received: one per sender and report, the
+        others it coalesced counted (`repeats`)."""
+        access = self.service.access
+        for who, key, claims, n in estops:
+            access.record("estop", who, "accepted", source="estop key", key=key,
+                          relayed="edge", **claims, **({"repeats": n - 1} if n > 1 else {}))
 
     def _refused(self, refused: dict[str, int], shed: int) -> None:
         access = self.service.access

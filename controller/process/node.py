@@ -32,6 +32,7 @@ import logging
 import math
 import queue
 import threading
+import time
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple, TypeVar
 
@@ -42,8 +43,8 @@ from controller.core.errors import ConfigError
 from controller.process import requests as rq
 from controller.process.access import LOCAL, Who
 from controller.process.blackbox import BlackBox
+from controller.process.edge import ESTOP_ARRIVAL
 from controller.process.persistence import Latch, PersistenceError
-from controller.process.replay import ReplayServer
 from controller.process.runtime import ESTOP, FAULT
 from controller.process.service import ControllerService, RuntimeEvents
 
@@ -73,6 +74,12 @@ def _claimed_command(data: bytes) -> tuple[str, int | None]:
     body_type, seen = body.get("type"), body.get("estop_seq")
     return (body_type if isinstance(body_type, str) else ""), (seen if type(seen) is int else None)
 
+
+#: How often the e-stop fallback reads its rings (with the edge process).
+ESTOP_POLL_S = 0.01
+#: How long an e-stop this process received may wait for the edge's relay before the
+#: fallback raises it here.
+ESTOP_GRACE_S = 0.5
 
 SHUTDOWN = object()
 """Put on a worker queue: the worker ends."""
@@ -173,6 +180,8 @@ class ZenohNode:
         self.shed_queries = 0
         #: The edge process's link (`controller.process.edge_link`), when it serves requests.
         self.edge: Any = None
+        self._estop_callback: Callable[[Any], None] | None = None
+        self._estop_rings: list[Any] = []
         #: The latch as last written (the store's view at start).
         self._latch_written: Latch | None = service.store.load_latch_or_none()
 
@@ -193,10 +202,6 @@ class ZenohNode:
             proto.key_status(rig), congestion_control=zenoh.CongestionControl.DROP
         )
         self._entities += [self.state_pub, self.status_pub]
-        # The state stream again, from the black box's batches (a recorder's lost samples).
-        replay = ReplayServer(rig, self.blackbox.held, self.service.warn)
-        replay.declare(session, auth=self.access.auth)
-        self._entities.append(replay)
         # Announce the rig (routers carry it to every site): it leaves the list when this
         # session ends or is lost.
         self._entities.append(session.liveliness().declare_token(proto.key_alive(rig)))
@@ -224,15 +229,53 @@ class ZenohNode:
             access.record("estop", who, "accepted", source="estop key", key=key,
                           **estop_claims(sample))
 
+        self._estop_callback = estop
         # Anyone who reaches the rig stops it: the public key, and (with authentication) every
-        # user's own scope.
+        # user's own scope. Without the edge process, a callback. With it, the edge takes the
+        # e-stops (`controller.process.edge`: a shared flag the tick reads) and these are the
+        # fallback: samples kept in a ring of one, in Zenoh (no Python code runs per sample),
+        # read every ESTOP_POLL_S (`_estop_fallback`).
         estop_keys = [proto.key_estop(rig)]
         if self.access.auth:
             estop_keys.append(proto.any_user_key(proto.key_estop(rig)))
         for key in estop_keys:
-            self._entities.append(
-                session.declare_subscriber(key, zenoh.handlers.Callback(estop, indirect=False))
-            )
+            if queryables:
+                self._entities.append(session.declare_subscriber(
+                    key, zenoh.handlers.Callback(estop, indirect=False)))
+            else:
+                ring = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+                self._entities.append(ring)
+                self._estop_rings.append(ring)
+
+    def _estop_fallback(self) -> None:
+        """The edge process's e-stops checked, every ESTOP_POLL_S: an e-stop sample this
+        process received that the edge did not relay (its flag's stamp not past the poll
+        before: the edge dead, not yet serving, or not relaying within ESTOP_GRACE_S) stops
+        the loop from here. At most one sample per ring and poll: a flood costs nothing."""
+        stop = self.stop_event
+        callback = self._estop_callback
+        assert callback is not None  # declared first
+        since = time.monotonic_ns()
+        while not stop.wait(ESTOP_POLL_S):
+            now = time.monotonic_ns()
+            for ring in self._estop_rings:
+                sample = ring.try_recv()
+                if sample is not None and not self._relayed(since):
+                    callback(sample)
+            since = now
+
+    def _relayed(self, since: int) -> bool:
+        """Whether the edge process relayed an e-stop that arrived after `since` (waits up to
+        ESTOP_GRACE_S while it serves)."""
+        edge = self.edge
+        flag = self.rt.estop_flag
+        deadline = time.monotonic() + ESTOP_GRACE_S
+        while True:
+            if flag[ESTOP_ARRIVAL] > since:
+                return True
+            if (edge is None or not edge.ready.is_set() or time.monotonic() > deadline
+                    or self.stop_event.wait(0.002)):
+                return False
 
     def _enqueue(self, q: queue.SimpleQueue[Any]) -> Callable[[Any], None]:
         limit = self.opts.max_pending_queries
@@ -250,7 +293,7 @@ class ZenohNode:
 
     def start_threads(self, *, workers: bool = True) -> None:
         """The publishers' and the latch's threads, and (`workers`) the request workers."""
-        threads = (
+        threads: tuple[tuple[str, Callable[[], None]], ...] = (
             ("state-publisher", self._publish_state),
             ("status", self._publish_status),
             ("latch", self._persist_latch),
@@ -264,7 +307,9 @@ class ZenohNode:
             ("lease-worker", lambda: self.serve_queue(self.lease_q, self.handle_lease)),
             ("history-worker", lambda: self.serve_queue(self.history_q, self.handle_history)),
         )
-        for name, target in threads if workers else threads[:3]:
+        if self._estop_rings:
+            threads = (*threads, ("estop-fallback", self._estop_fallback))
+        for name, target in threads if workers else (*threads[:3], *threads[9:]):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
             self._threads.append(t)

@@ -241,6 +241,9 @@ class Runtime:
         self._arrival_local = threading.local()
         self._estop_lock = threading.Lock()
         self._estop_arrival = -1
+        #: E-stops relayed by another process (`controller.process.edge`): [flag, arrival]
+        #: in shared memory, set by it, read and cleared by the tick (a plain int read).
+        self.estop_flag: Any = [0, 0]
         self.latch_changed = threading.Event()
         """Set whenever the mode enters or leaves estop/fault (the latch is persisted), and on
         a watchdog rollback (the configuration rolled back to is persisted)."""
@@ -504,6 +507,8 @@ class Runtime:
         self._ring.ready.set()
 
     def _tick(self, t_s: float) -> None:
+        if self.estop_flag[0]:
+            self._take_estop_flag()
         if self._estop_request is not None:
             self._enter_estop(self._estop_request)
         if self._fault_request is not None:
@@ -688,6 +693,13 @@ class Runtime:
             except Exception as exc:
                 self.fault = self.fault or f"drive stop failed: {exc}"
         self.loop.reset()
+
+    def _take_estop_flag(self) -> None:
+        """A relayed e-stop: the flag cleared before the stamp is read (one raised meanwhile
+        is seen by the next tick; none is lost)."""
+        flag = self.estop_flag
+        flag[0] = 0
+        self.estop("estop key", flag[1])
 
     def _enter_estop(self, source: str) -> None:
         self._estop_request = None

@@ -241,10 +241,14 @@ def test_a_killed_edge_process_is_started_again_and_the_loop_runs_on(
         st0 = _status(watch)
         os.kill(edge, signal.SIGKILL)
         assert wait_until(lambda: gone(edge), 10.0)
+        # The edge took the e-stops; with it dead the loop process's own fallback does.
+        first = _estop_applied(watch)
         assert wait_until(lambda: _edge_pid(proc) != edge, 60.0), proc.log()[-2000:]
         assert wait_until(lambda: _answers(auth, proc), 60.0, poll_s=0.5)
+        # And the new edge process's, once it serves.
+        assert _estop_applied(watch) > first
         st1 = _fresh_status(watch)
-        assert st1.mode == st0.mode and st1.timing.ticks > st0.timing.ticks
+        assert st1.mode == "estop" and st1.timing.ticks > st0.timing.ticks
         assert any("edge process ended" in n for n in st1.notes), st1.notes
 
 
