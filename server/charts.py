@@ -93,7 +93,9 @@ __all__ = [
     "DASH_NO_DOB",
     "FIT",
     "GM_COLOR",
+    "GM_DOWN_LABEL",
     "GM_MARKS",
+    "GM_UP_LABEL",
     "HZ_AXIS",
     "LIVE_CHARTS",
     "LIVE_COLUMNS",
@@ -173,9 +175,16 @@ GM_MARKS = 2
 #: moves a curve a little keeps its chart's scales (a new range re-creates the chart).
 Y_STEPS = {"y": 10.0, "deg": 45.0}
 #: Tick steps of the loop's Bode axes (uPlot picks the first whose ticks are `space` px apart):
-#: dB in tens, degrees in multiples of 15 (so -180 is a tick).
+#: dB in tens, degrees in multiples of 15 (so -180 is a tick). The magnitude's ticks 16 px
+#: apart: its ~180 dB over ~80 px had 3 ticks (-60, 0, 60) at 20 px; now 5 (every 40 dB).
 _DB_INCRS = (10, 20, 40, 60, 100, 200)
 _DEG_INCRS = (15, 30, 45, 90, 180, 360)
+
+
+#: The gain-margin markers' legend names, as the verdict's headline names the two figures: up
+#: where |L| < 1 at the -180 deg crossing, down where |L| > 1 (conditionally stable).
+GM_UP_LABEL = "gain margin (up)"
+GM_DOWN_LABEL = "gain-reduction margin (down)"
 
 
 def _margin_line(label: str, color: str, scale: str = "y") -> ChartDict:
@@ -190,9 +199,9 @@ LOOP_MAG_CHART = bode_spec(
     (line_series("|L| candidate", CANDIDATE, width=2.0), "cand.open_loop_db"),
     (line_series("|L| active", ACTIVE, dash=DASH_ACTIVE), "act.open_loop_db"),
     (line_series("0 dB line", "#555555", width=1.0), "ref.0"),
-    (_margin_line("gain margin", GM_COLOR), "mark.gm1"),
-    (_margin_line("gain margin, 2nd -180 deg crossing", GM_COLOR), "mark.gm2"),
-    axes=(HZ_AXIS, {"label": "dB", "scale": "y", "space": 20, "incrs": _DB_INCRS}),
+    (_margin_line(GM_UP_LABEL, GM_COLOR), "mark.gm1"),
+    (_margin_line(GM_DOWN_LABEL, GM_COLOR), "mark.gm2"),
+    axes=(HZ_AXIS, {"label": "dB", "scale": "y", "space": 16, "incrs": _DB_INCRS}),
     height=135,  # (with 125 below: Decide fits 1080 px over the E-STOP's strip)
     cursor=LOOP_CURSOR,
 )
@@ -233,10 +242,16 @@ def margin_marks(c: BodeCurves) -> tuple[tuple[MarginMark, ...], MarginMark | No
     if loop is None:
         return (), None
     gms = -20.0 * np.log10(np.abs(loop.phase_crossings))
-    order = sorted(range(len(gms)), key=lambda i: (
-        not np.isclose(gms[i], loop.gain_margin_db), loop.phase_crossover_hz[i]))
+    finite = [i for i in range(len(gms)) if np.isfinite(gms[i])]
+    # The headline's two figures (issue 33): the gain margin up, the smallest over the
+    # crossings where |L| < 1, then the gain-reduction margin down, the smallest over those
+    # where |L| > 1 (a conditionally stable loop); each drawn in the column named for it.
+    up = [i for i in finite if gms[i] >= 0.0]
+    down = [i for i in finite if gms[i] < 0.0]
+    picks = ([min(up, key=lambda i: gms[i])] if up else []) + \
+        ([max(down, key=lambda i: gms[i])] if down else [])
     gm = tuple(MarginMark(float(loop.phase_crossover_hz[i]), -float(gms[i]), 0.0)
-               for i in order[:GM_MARKS] if np.isfinite(gms[i]))
+               for i in picks)
     pm = None
     if len(loop.gain_crossings):
         pms = np.degrees(np.angle(loop.gain_crossings)) % 360.0 - 180.0
@@ -272,7 +287,9 @@ def loop_bode_data(cand: BodeCurves, active: BodeCurves | None,
             col[i], col[i + 1] = m.start, m.end
         return col
 
-    gm_cols = [mark_column(gm[k] if k < len(gm) else None) for k in range(GM_MARKS)]
+    # Column 1 the gain margin up, column 2 the gain-reduction margin down (their legends).
+    gm_cols = [mark_column(next((m for m in gm if (m.value < 0) == down), None))
+               for down in (False, True)]
     mag = (x, on_x(cand.open_loop_db), on_x(act.open_loop_db), np.zeros(x.size), *gm_cols)
     phase = (x, on_x(cand.open_loop_phase_deg), on_x(act.open_loop_phase_deg),
              np.full(x.size, -180.0), mark_column(pm))
@@ -342,9 +359,12 @@ PLANT_CHART = bode_spec(
     ),
 )
 
-#: The dB axis of a short chart: ticks every 5 or 10 dB as long as they are 10 px apart
-#: (uPlot's default 30 px left |S| with ticks at 0 and -100 only, the rejection at 0 and 50).
-SMALL_DB_AXIS = {"label": "dB", "scale": "y", "space": 10, "incrs": (5, 10, 20, 50, 100)}
+#: The dB axis of a short chart (~50 px of plot): ticks every 10 dB, at least 14 px apart
+#: (uPlot's default 30 px left |S| with ticks at 0 and -100 only, the rejection at 0 and 50;
+#: 5 dB steps at 10 px were crowded), on a range rounded out to 10 dB (SMALL_DB_STEP) so that
+#: it holds 4 ticks or more (the rejection's -5..20 had only 0, 10, 20).
+SMALL_DB_AXIS = {"label": "dB", "scale": "y", "space": 14, "incrs": (10, 20, 50, 100)}
+SMALL_DB_STEP = 10.0
 
 BODE_CHARTS: tuple[ChartSpec, ...] = (
     LOOP_MAG_CHART,
@@ -368,7 +388,7 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         (line_series("active", ACTIVE, dash=DASH_ACTIVE), "act.rejection_db"),
         height=105,
         axes=(HZ_AXIS, SMALL_DB_AXIS),
-        y_step=5.0, y_clip=(-20.0, 20.0),  # the waterbed (-2 dB) legible
+        y_step=SMALL_DB_STEP, y_clip=(-20.0, 20.0),  # the waterbed (-2 dB) legible
     ),
     bode_spec(
         "sensitivity",
@@ -380,7 +400,7 @@ BODE_CHARTS: tuple[ChartSpec, ...] = (
         (line_series("|S| active", ACTIVE, dash=DASH_ACTIVE), "act.s_db"),
         height=110,
         axes=(HZ_AXIS, SMALL_DB_AXIS),
-        y_step=5.0, y_clip=(-20.0, 20.0),  # the peak (~3 dB) legible
+        y_step=SMALL_DB_STEP, y_clip=(-20.0, 20.0),  # the peak (~3 dB) legible
     ),
     bode_spec(
         "small_gain",

@@ -69,8 +69,8 @@ def test_nan_is_an_empty_cell_and_infinities_survive() -> None:
 def test_header_carries_the_units_of_the_axes() -> None:
     loop_mag = next(s for s in BODE_CHARTS if s.key == "loop_mag")
     assert column_header(loop_mag) == [
-        "f (Hz)", "|L| candidate (dB)", "|L| active (dB)", "0 dB line (dB)", "gain margin (dB)",
-        "gain margin, 2nd -180 deg crossing (dB)"]
+        "f (Hz)", "|L| candidate (dB)", "|L| active (dB)", "0 dB line (dB)",
+        "gain margin (up) (dB)", "gain-reduction margin (down) (dB)"]
     loop_phase = next(s for s in BODE_CHARTS if s.key == "loop_phase")
     assert column_header(loop_phase)[3:] == ["-180 deg line (deg)", "phase margin (deg)"]
     plant = next(s for s in BODE_CHARTS if s.key == "plant")

@@ -137,7 +137,9 @@ def test_margin_markers_are_the_margins_python_control_finds() -> None:
             assert len(idx) == 2 and idx[1] == idx[0] + 1 and x[idx[0]] == x[idx[1]]
             return float(x[idx[0]]), float(col[idx[0]]), float(col[idx[1]])
 
-        f_gm, at_curve, at_zero = segment(mag[4])  # the reported GM's mark first
+        # python-control's pick in the column named for it: "gain margin (up)" (4) where
+        # |L| < 1 at the crossing, "gain-reduction margin (down)" (5) where |L| > 1.
+        f_gm, at_curve, at_zero = segment(mag[4] if gm >= 1.0 else mag[5])
         assert at_zero == 0.0
         np.testing.assert_allclose(f_gm, wpc / (2 * np.pi), rtol=0.01)
         np.testing.assert_allclose(at_zero - at_curve, 20 * np.log10(gm), atol=0.2)
@@ -362,15 +364,17 @@ def test_crossover_marks_follow_their_definition_at_every_crossing() -> None:
 def test_the_small_db_charts_show_what_they_are_read_for() -> None:
     """Issue 33: |S| had ticks at 0 and -100 only (its ~3 dB peak unreadable) and the DOB
     rejection chart spanned 0-50 dB (its -2 dB waterbed hidden). Their ranges now hold the peak
-    and the waterbed on 5 dB steps within -20..20 dB, with 5 dB ticks 10 px apart."""
+    and the waterbed on 10 dB steps within -20..20 dB (4 ticks or more, every 10 dB, 14 px
+    apart: 5 dB ticks 10 px apart were crowded)."""
     curves = curves_from_analysis(analyse(LoopConfig()), MODEL_ONLY)
     for key, column in (("sensitivity", "cand.s_db"), ("rejection", "cand.rejection_db")):
         spec = next(s for s in charts.BODE_CHARTS if s.key == key)
-        assert spec.axes[1]["space"] == 10 and spec.axes[1]["incrs"][0] == 5
+        assert spec.axes[1]["space"] == 14 and spec.axes[1]["incrs"][0] == 10
         data = charts.bode_data(key, curves, curves)
         lo, hi = charts.ranged_scales(spec, data, charts.Y_STEPS)["y"]["range"]
         y = np.asarray(data[1 + spec.columns.index(column)])
-        assert -20.0 <= lo < 0.0 < hi <= 20.0 and lo % 5 == 0 and hi % 5 == 0, (key, lo, hi)
+        assert -20.0 <= lo < 0.0 < hi <= 20.0 and lo % 10 == 0 and hi % 10 == 0, (key, lo, hi)
+        assert (hi - lo) / 10 + 1 >= 4, (key, lo, hi)  # 4 ticks or more
         if key == "sensitivity":
             assert 0.0 < np.nanmax(y) < hi  # the peak |S| inside the range
         else:

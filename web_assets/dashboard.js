@@ -64,13 +64,13 @@
     const p = new URLSearchParams(location.search);
     // viser writes the websocket's URL into the page's own unescaped (its dt_slot, dt_page and
     // token then read as parameters of the page): gone before the new one is set, else each
-    // reload added one more dt_page (and token) to the address bar.
-    const token = p.get("token");
-    for (const k of ["dt_slot", "dt_page", "token"]) p.delete(k);
-    if (token) p.set("token", token);
+    // reload added one more dt_page to the address bar. The token is not set again beside it:
+    // the websocket's URL carries it, and unescaped it reads as the page's own (once).
+    for (const k of ["dt_slot", "dt_page", "dt_vw", "token"]) p.delete(k);
     const scheme = location.protocol === "https:" ? "wss://" : "ws://";
     p.set("websocket", scheme + location.host + location.pathname.replace(/\/$/, "") +
-      "/?dt_slot=" + slotId() + "&dt_page=" + PAGE_ID + TOKEN_PARAM);
+      "/?dt_slot=" + slotId() + "&dt_page=" + PAGE_ID + "&dt_vw=" +
+      Math.round(window.innerWidth) + TOKEN_PARAM);
     history.replaceState(history.state, "", location.pathname + "?" + p.toString() +
       location.hash);
   })();
@@ -353,8 +353,8 @@
   const LOOP_PHASE = "phase candidate";
   // Marker series label -> [short name, unit] (server/charts.py LOOP_*_CHART).
   const MARGIN_MARKS = {
-    "gain margin": ["GM", "dB"],
-    "gain margin, 2nd -180 deg crossing": ["GM", "dB"],
+    "gain margin (up)": ["GM", "dB"],
+    "gain-reduction margin (down)": ["GM", "dB"],
     "phase margin": ["PM", "deg"],
   };
 

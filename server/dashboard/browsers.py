@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 from typing import TYPE_CHECKING
+from urllib.parse import parse_qs, urlsplit
 
 import viser
 
@@ -14,7 +15,12 @@ from server.http_access import HttpAccess
 from server.session import BrowserSessions, tell
 from server.viser_adapter import connection_of, live_connections, resend_value
 
-__all__ = ["Browsers"]
+__all__ = ["VIEWPORT_PARAM", "VIEWPORT_PX", "Browsers"]
+
+#: The websocket URL's parameter with the page's window width (web_assets/dashboard.js).
+VIEWPORT_PARAM = "dt_vw"
+#: The window widths taken from it (CSS px); another value is not believed.
+VIEWPORT_PX = (320, 16384)
 
 if TYPE_CHECKING:
     from websockets.asyncio.server import ServerConnection
@@ -56,6 +62,20 @@ class Browsers:
         browser)."""
         conn = self._connection_of(browser)
         return self._access.page_of_connection(conn) if conn is not None else ""
+
+    def viewport_px_of(self, browser: viser.ClientHandle | None) -> int | None:
+        """The width (CSS px) of the window the browser's page said it had when it connected
+        (`?dt_vw=` in its websocket's URL, from the page script; None: not said, or not a
+        width from VIEWPORT_PX)."""
+        conn = self._connection_of(browser)
+        request = None if conn is None else conn.request
+        if request is None:
+            return None
+        values = parse_qs(urlsplit(request.path).query).get(VIEWPORT_PARAM, [])
+        if len(values) != 1 or not values[0].isdigit():
+            return None
+        width = int(values[0])
+        return width if VIEWPORT_PX[0] <= width <= VIEWPORT_PX[1] else None
 
     def connected_pages(self) -> set[str]:
         """The ids the pages behind the websockets open now named (viser's connection table:

@@ -12,14 +12,30 @@ import viser
 from server.dashboard.browsers import Browsers
 from server.viser_adapter import set_width_in
 
-__all__ = ["PLOTS_WIDE_PX", "PLOTS_WIDTH_PX", "PageViews"]
+__all__ = ["PLOTS_WIDE_PX", "PLOTS_WIDTH_PX", "PageViews", "wide_plots_px"]
 
 #: The plots panel's width: the Bode tab's Decide view (the verdict, the loop's Bode,
 #: sensitivity, rejection) fits 1920 x 1080 beside the controls; the 3-D view keeps the rest.
 PLOTS_WIDTH_PX = 900
-#: The plots panel's width with the 3-D view hidden (beyond any screen: viser keeps a 120 px
-#: sliver of the 3-D view).
+#: The plots panel's width with the 3-D view hidden when the page did not say its window's
+#: width (a page without the page script). viser scales both docked panels down in proportion
+#: when they leave less than its MIN_CANVAS_PX of scene: this squeezed the controls to ~110 px.
 PLOTS_WIDE_PX = 4000
+#: The controls' panel width: viser's `control_width="large"` (24 em of 16 px; app.py).
+CONTROLS_PX = 384
+#: The scene viser always keeps between the docked panels (its dock's MIN_CANVAS_PX), and a
+#: few px for the panels' edges.
+MIN_CANVAS_PX = 120
+EDGE_PX = 4
+
+
+def wide_plots_px(viewport_px: int | None) -> float:
+    """The plots panel's width with the 3-D view hidden, in a window `viewport_px` wide: all
+    of it but the controls at their width and viser's minimum scene (the controls keep their
+    width); PLOTS_WIDE_PX when the width is not known."""
+    if viewport_px is None:
+        return PLOTS_WIDE_PX
+    return max(PLOTS_WIDTH_PX, viewport_px - CONTROLS_PX - MIN_CANVAS_PX - EDGE_PX)
 
 
 class PageViews:
@@ -41,7 +57,8 @@ class PageViews:
         with self._hidden_3d_lock:
             hidden = browser.client_id not in self._hidden_3d
             (self._hidden_3d.add if hidden else self._hidden_3d.discard)(browser.client_id)
-        set_width_in(browser, plots, PLOTS_WIDE_PX if hidden else PLOTS_WIDTH_PX)
+        wide = wide_plots_px(self._browsers.viewport_px_of(browser))
+        set_width_in(browser, plots, wide if hidden else PLOTS_WIDTH_PX)
 
     def live_hidden(self) -> frozenset[str]:
         """The pages that said their Live traces tab is not shown."""

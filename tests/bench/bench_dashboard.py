@@ -16,6 +16,7 @@ its own process (`dobtune dashboard`) so its CPU time is measured alone.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import socket
@@ -65,6 +66,61 @@ def cpu_seconds(pid: int) -> float:
     with open(f"/proc/{pid}/stat") as f:
         fields = f.read().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def chromium_cpu_seconds() -> float:
+    """CPU seconds (user + system) of the Chromium processes this bench started (its own
+    descendants named chrom*: the browser, GPU, renderer and utility processes; another
+    engineer's Chromium on the machine is not counted)."""
+    parent: dict[int, int] = {}
+    comm: dict[int, str] = {}
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as f:
+                head, tail = f.read().rsplit(")", 1)
+        except OSError:
+            continue
+        parent[int(d)] = int(tail.split()[1])
+        comm[int(d)] = head.split("(", 1)[1]
+    mine = {os.getpid()}
+    grew = True
+    while grew:
+        more = {p for p, pp in parent.items() if pp in mine and p not in mine}
+        mine |= more
+        grew = bool(more)
+    total = 0.0
+    for p in mine:
+        if comm.get(p, "").startswith("chrom"):
+            with contextlib.suppress(OSError):  # ended between the listing and the read
+                total += cpu_seconds(p)
+    return total
+
+
+def message_types(frame: bytes) -> list[str]:
+    """The viser message types in one websocket frame (8-byte length, msgpack, buffers)."""
+    import msgspec
+
+    try:
+        n = int.from_bytes(frame[:8], "little")
+        obj = msgspec.msgpack.decode(frame[8:8 + n])
+    except (msgspec.DecodeError, ValueError):
+        return ["?"]
+    out: list[str] = []
+
+    def walk(o: Any, depth: int = 0) -> None:
+        if isinstance(o, dict) and "type" in o:
+            out.append(str(o["type"]))
+        elif isinstance(o, list | tuple) and depth < 3:
+            for x in o:
+                walk(x, depth + 1)
+        elif isinstance(o, dict) and depth < 3:
+            for x in o.values():
+                walk(x, depth + 1)
+
+    walk(obj)
+    return out or ["?"]
 
 
 def bench_slider(n: int = 200) -> dict[str, float]:
@@ -128,24 +184,30 @@ def dashboard_and_chromium() -> Iterator[tuple[subprocess.Popen[str], str, Any]]
             stop_process(dash)
 
 
-def bench_live(seconds: float, browsers: int = 1) -> dict[str, float]:
+def bench_live(seconds: float, browsers: int = 1) -> dict[str, Any]:
     """`browsers` headless pages on the Live tab and Live traces: the dashboard process's CPU
     and, per page, how often the error chart's data changed and the browser's frame rate."""
     with dashboard_and_chromium() as (dash, url, b):
         pages = []
-        ws_frames: list[tuple[float, int]] = []
+        ws_frames: list[tuple[float, int, list[str]]] = []
         for k in range(browsers):
             pg = b.new_context(viewport={"width": 1600, "height": 1000}).new_page()
             if k == 0:
                 pg.on("websocket", lambda ws: ws.on(
                     "framereceived",
-                    lambda data: ws_frames.append((time.monotonic(), len(data)))))
+                    lambda data: ws_frames.append(
+                        (time.monotonic(), len(data),
+                         message_types(data) if isinstance(data, bytes) else ["text"]))))
             pg.goto(url)
             pg.wait_for_selector(".dt-banner.dt-ok", timeout=60_000)
             pg.get_by_role("tab", name="Live traces").click()
             pg.get_by_role("tab", name="Live", exact=True).click()
             pages.append(pg)
         pages[-1].wait_for_timeout(2000)
+        cdp = pages[0].context.new_cdp_session(pages[0])
+        cdp.send("Performance.enable")
+        m0 = {m["name"]: m["value"] for m in cdp.send("Performance.getMetrics")["metrics"]}
+        b0 = chromium_cpu_seconds()
         c0, w0 = cpu_seconds(dash.pid), time.monotonic()
         n0 = len(ws_frames)
         # Measured in every page at once: each page starts its own measurement (a
@@ -157,12 +219,29 @@ def bench_live(seconds: float, browsers: int = 1) -> dict[str, float]:
         for i, pg in enumerate(pages):
             results[i] = pg.evaluate("() => window.__dt_bench")
         c1, w1 = cpu_seconds(dash.pid), time.monotonic()
+        b1 = chromium_cpu_seconds()
+        m1 = {m["name"]: m["value"] for m in cdp.send("Performance.getMetrics")["metrics"]}
         got = [f for f in ws_frames[n0:] if f[0] <= w1]
+    types: dict[str, int] = {}
+    for _, _, kinds in got:
+        for k in kinds:
+            types[k] = types.get(k, 0) + 1
+    wall = w1 - w0
+    # The first page's renderer main thread, per second of wall time (CDP Performance
+    # metrics): all its tasks, and of them script, layout and style.
+    renderer = {k: (m1.get(k, 0.0) - m0.get(k, 0.0)) / wall
+                for k in ("TaskDuration", "ScriptDuration", "LayoutDuration",
+                          "RecalcStyleDuration")}
     applied = [float(r[0]) for r in results]
     raf = [float(r[1]) for r in results]
     return {"browsers": browsers,
             "ws_frames_received_hz": len(got) / (w1 - w0),
-            "ws_kbytes_per_s": sum(n for _, n in got) / (w1 - w0) / 1e3,
+            "ws_kbytes_per_s": sum(n for _, n, _ in got) / (w1 - w0) / 1e3,
+            "ws_messages_per_s_by_type": {k: round(v / wall, 2) for k, v in
+                                          sorted(types.items(), key=lambda kv: -kv[1])},
+            "chromium_cores": (b1 - b0) / wall,
+            "renderer_main_thread_cores": renderer,
+            "uptime_at_end": _uptime(),
             "charts_applied_hz_min": min(applied),
             "charts_applied_hz_mean": float(np.mean(applied)),
             "browser_raf_fps_min": min(raf),
@@ -175,6 +254,7 @@ def _stats(xs: list[float], unit: str = "s") -> dict[str, float]:
         return {"n": 0}
     a = np.array(xs)
     return {"n": len(xs), f"p50_{unit}": float(np.percentile(a, 50)),
+            f"p99_{unit}": float(np.percentile(a, 99)),
             f"max_{unit}": float(a.max()), f"min_{unit}": float(a.min())}
 
 

@@ -12,6 +12,7 @@ viser -> the dashboard's callback -> Zenoh put on the e-stop key -> the controll
 from __future__ import annotations
 
 import argparse
+import subprocess
 import sys
 import tempfile
 import time
@@ -26,6 +27,27 @@ from bench_estop import estop_tick_wall_s, start_running
 from procs import Client, free_port, start_controller
 
 from server.dashboard.app import Dashboard, DashboardOptions
+
+#: JS: the page notes when the E-STOP button is pressed (pointerdown, capture) and when its
+#: banner first says "E-STOP ACTIVE" (in the DOM), on its own clock, in window.__dt_estop.
+PAGE_WATCH_JS = """() => {
+  window.__dt_estop = {};
+  document.addEventListener('pointerdown', (e) => {
+    const b = e.target.closest && e.target.closest('button');
+    if (b && b.textContent.trim() === 'E-STOP') window.__dt_estop.click = performance.now();
+  }, true);
+  new MutationObserver(() => {
+    const d = window.__dt_estop;
+    if (d.click !== undefined && d.shown === undefined
+        && document.querySelector('.dt-banner.dt-estop')) d.shown = performance.now();
+  }).observe(document.body, {childList: true, subtree: true, characterData: true});
+}"""
+
+
+def uptime() -> str:
+    """What `uptime` prints (the load averages over 1, 5 and 15 minutes)."""
+    return subprocess.run(["uptime"], capture_output=True, text=True,
+                          check=False).stdout.strip()
 
 
 def main() -> None:
@@ -45,6 +67,8 @@ def main() -> None:
     args = ap.parse_args()
     lat_ms: list[float] = []
     server_ms: list[float] = []
+    shown_ms: list[float] = []
+    load_before = uptime()
     with tempfile.TemporaryDirectory() as tmp:
         proc = start_controller(Path(tmp) / "state", rig="bench-dash")
         try:
@@ -70,18 +94,32 @@ def main() -> None:
                         send(*args)
 
                     live._send = timed
+                    page.evaluate(PAGE_WATCH_JS)
                     with client.state() as col:
                         for i in range(args.n):
                             before = start_running(client, col)
+                            page.wait_for_function(
+                                "() => !document.querySelector('.dt-banner.dt-estop')",
+                                timeout=60_000)
+                            page.evaluate("() => { window.__dt_estop = {}; }")
                             t_click = time.time()
                             button.click()
                             t_tick = estop_tick_wall_s(client, col, before, 10.0, f"trial {i}")
                             lat_ms.append((t_tick - t_click) * 1e3)
                             server_ms.append((t_tick - got_at[-1]) * 1e3)
+                            page.wait_for_function(
+                                "() => window.__dt_estop.shown !== undefined", timeout=60_000)
+                            shown_ms.append(page.evaluate(
+                                "() => window.__dt_estop.shown - window.__dt_estop.click"))
                             col.clear()
                     browser.close()
         finally:
             proc.stop()
+    s = np.asarray(shown_ms)
+    print(f"E-STOP click -> the page shows 'E-STOP ACTIVE' (the page's own clock: pointerdown "
+          f"to the banner in the DOM; {len(s)} trials): p50 {np.percentile(s, 50):.1f} ms, "
+          f"p99 {np.percentile(s, 99):.1f} ms, max {s.max():.1f} ms")
+    print(f"load: before {load_before}; after {uptime()}")
     a = np.asarray(lat_ms)
     print(f"e-stop latency, dashboard button -> first tick with command 0 ({args.n} trials, "
           f"headless Chromium): p50 {np.percentile(a, 50):.1f} ms, p99 "

@@ -308,6 +308,46 @@ def test_margin_markers_are_labelled_with_their_values_and_frequencies(
     assert "-" + f"{abs(min(m.value for m in gm)):.1f}" not in margins_text, margins_text
 
 
+#: JS: the y ticks uPlot drew on the chart whose title starts with `title`: their values and
+#: the CSS px between two neighbours (uPlot's computed splits of the first y axis).
+Y_TICKS_JS = """(title) => {
+  const u = Object.values(window.__viserTestpoints?.uplots || {}).map(e => e.chart)
+    .find(u => document.body.contains(u.root)
+          && (u.root.querySelector('.u-title')?.textContent || '').startsWith(title));
+  if (!u) return null;
+  const ax = u.axes.find(a => a.scale !== 'x' && a.show !== false);
+  const splits = (ax._splits || []).filter(v => v !== null && isFinite(v));
+  const k = u.ctx.canvas.width / u.width;
+  const px = splits.map(v => u.valToPos(v, ax.scale, true) / k);
+  const gaps = px.slice(1).map((p, i) => Math.abs(p - px[i]));
+  return {splits, minGapPx: gaps.length ? Math.min(...gaps) : 0,
+          range: [u.scales[ax.scale].min, u.scales[ax.scale].max]};
+}"""
+
+
+@pytest.mark.parametrize("title", ["Open loop L (speed loop): magnitude", "DOB rejection gain",
+                                   "Sensitivity |S|"])
+def test_the_short_dB_charts_have_readable_y_ticks(page: Any, dashboard: Dashboard,
+                                                   title: str) -> None:
+    """The loop magnitude (was -60, 0, 60 only), the DOB rejection (was 0, 10, 20) and |S|
+    (crowded at 5 dB steps) each have at least 4 y ticks within their range, at least 14 CSS px
+    apart (a 10 px label then stays clear of the next), on whole dB steps."""
+    _panel(page, dashboard)
+    got: dict[str, Any] = {}
+
+    def drawn() -> bool:
+        got.update(page.evaluate(Y_TICKS_JS, title) or {})
+        return bool(got.get("splits"))
+
+    wait_for(drawn, SLOW_S, f"no drawn chart titled {title!r}")
+    splits, lo, hi = got["splits"], *got["range"]
+    print(title, got)
+    inside = [v for v in splits if lo - 1e-9 <= v <= hi + 1e-9]
+    assert len(inside) >= 4, got
+    assert got["minGapPx"] >= 14.0, got
+    assert all(abs(v - round(v)) < 1e-9 for v in splits), got
+
+
 def test_the_decision_views_fit_a_1920_by_1080_screen(
         page: Any, dashboard: Dashboard, artifacts: Path) -> None:
     """On a 1920 x 1080 screen the Bode tab opens on Decide, and the verdict, the margins, the
@@ -362,6 +402,22 @@ PLOTS_BOX_JS = """() => {
 }"""
 
 
+#: JS: the controls' panel (the one holding the "Hide / show the 3-D view" button... or any
+#: of the Tune / Live tabs): [left, width] of its dock column.
+CONTROLS_BOX_JS = """() => {
+  const tab = [...document.querySelectorAll('[role=tab]')]
+    .find(t => t.textContent.trim() === 'Tune');
+  let el = tab;
+  while (el && el.getBoundingClientRect().height < 0.8 * window.innerHeight) el = el.parentElement;
+  const r = (el || tab).getBoundingClientRect();
+  return [r.left, r.width];
+}"""
+
+#: JS: the 3-D view's canvas width (CSS px; 0: none drawn).
+SCENE_WIDTH_JS = """() => Math.max(0, ...[...document.querySelectorAll('canvas')]
+  .filter(c => !c.closest('.uplot')).map(c => c.getBoundingClientRect().width))"""
+
+
 def test_the_3d_view_hides_and_comes_back_in_this_browser_only(
         page: Any, dashboard: Dashboard) -> None:
     """"Hide / show the 3-D view" (Live tab) widens the plots panel over the 3-D view in the
@@ -373,6 +429,7 @@ def test_the_3d_view_hides_and_comes_back_in_this_browser_only(
         fresh = other.new_page()
         open_when_ready(fresh, dashboard, SLOW_S * 2)
         before = page.evaluate(PLOTS_BOX_JS)
+        controls_before = page.evaluate(CONTROLS_BOX_JS)
         other_before = fresh.evaluate(PLOTS_BOX_JS)
         mag_before = _chart(page, MAG)["over"][2]
         page.get_by_role("tab", name="Live", exact=True).click(timeout=SLOW_S * 1000)
@@ -380,6 +437,14 @@ def test_the_3d_view_hides_and_comes_back_in_this_browser_only(
         wait_for(lambda: page.evaluate(PLOTS_BOX_JS)[1] > before[1] + 300, SLOW_S,
                  "the plots panel did not widen over the 3-D view")
         wide = page.evaluate(PLOTS_BOX_JS)
+        # The controls keep their width (they were squeezed to ~110 px) and the 3-D view is
+        # gone but for viser's minimum strip: the plots take the rest of the window.
+        controls = page.evaluate(CONTROLS_BOX_JS)
+        viewport = page.evaluate("() => window.innerWidth")
+        print("controls", controls_before, "->", controls, "plots", before, "->", wide,
+              "scene", page.evaluate(SCENE_WIDTH_JS), "viewport", viewport)
+        assert controls[1] >= 0.95 * controls_before[1] and controls[1] >= 300, controls
+        assert wide[1] + controls[1] >= viewport - 140, (wide, controls, viewport)
         wait_for(lambda: _chart(page, MAG)["over"][2] > mag_before + 300, SLOW_S,
                  "the Decide charts did not widen")
         assert fresh.evaluate(PLOTS_BOX_JS) == other_before  # the other browser: unchanged
