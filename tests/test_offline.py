@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
+from controller.core.command_filter import CommandFilter
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.ramp import Ramp
@@ -115,7 +116,7 @@ def _compiled_run(cfg: LoopConfig) -> tuple[World, np.ndarray]:
 def _loop_state(loop: ServoLoop) -> list[float]:
     return [loop.pos_int, loop.e_pos_prev, loop.cv_int, loop.e_speed_prev, loop.u_prev,
             loop.w_prev, loop.d_hat, loop.speed_ref_deg_s, loop.speed_error_deg_s,
-            *loop._f1s, *loop._f2s]
+            *loop._f1s, *loop._f2s, *loop._cfs]
 
 
 @pytest.mark.parametrize(
@@ -124,8 +125,12 @@ def _loop_state(loop: ServoLoop) -> list[float]:
         LoopConfig(q_type="q31", command_limit_deg_s=LIMIT),
         LoopConfig(q_type="q20", q_cutoff_hz=2.0, command_limit_deg_s=LIMIT),
         LoopConfig(dob_on=False, ff_on=True, command_limit_deg_s=LIMIT),
+        LoopConfig(q_type="q31", command_limit_deg_s=LIMIT,
+                   command_filter=CommandFilter(kind="notch", notch_hz=31.0)),
+        LoopConfig(dob_on=False, command_limit_deg_s=LIMIT,
+                   command_filter=CommandFilter(kind="lowpass", lowpass_hz=80.0)),
     ],
-    ids=["q31", "q20", "dob-off-ff"],
+    ids=["q31", "q20", "dob-off-ff", "q31-notch", "dob-off-lowpass"],
 )
 def test_compiled_loop_is_the_python_tick_bit_for_bit(cfg: LoopConfig) -> None:
     wp, ref, ramp_ticks = _python_run(cfg)

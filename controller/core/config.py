@@ -13,6 +13,7 @@ from typing import Any
 
 import msgspec
 
+from controller.core.command_filter import CommandFilter
 from controller.core.errors import ConfigError
 from controller.core.qfilter import Q_TYPES
 from controller.core.validate import in_range, number, split_msgspec_error
@@ -113,6 +114,9 @@ class LoopConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
     q_type: str = "q31"
     q_cutoff_hz: float = 0.5
     command_limit_deg_s: float = 100.0
+    # The optional notch or low-pass on Cv's output (controller.core.command_filter); off by
+    # default, and off it is no element of the tick.
+    command_filter: CommandFilter = msgspec.field(default_factory=CommandFilter)
 
     def __post_init__(self) -> None:
         rate = in_range(self.rate_hz, "rate_hz", 50.0, 20000.0)
@@ -138,6 +142,9 @@ class LoopConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
         in_range(self.command_limit_deg_s, "command_limit_deg_s", 0.0, 1e4, lo_open=True)
         if not isinstance(self.nominal, NominalModel):
             raise ConfigError("nominal", "expected a NominalModel")
+        if not isinstance(self.command_filter, CommandFilter):
+            raise ConfigError("command_filter", "expected a CommandFilter")
+        self.command_filter.check_rate(rate)
 
     @property
     def period_s(self) -> float:

@@ -5,7 +5,7 @@ Per tick (plain float arithmetic on preallocated state, no allocation, no I/O):
     e_pos = theta_ref - theta
     r     = Cp(e_pos) + ff_gain * dtheta_ref/dt          (feedforward only when ff_on)
     e     = r - w
-    v     = Cv(e)
+    v     = N(Cv(e))                                     N: the command filter, when on
     d_hat = F1(z) w[k] - F2(z) u[k-1]                    (0 when the DOB is off)
     u     = sat(v - d_hat, +-command_limit_deg_s)         the DOB sees this saturated u
 
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from controller.core.command_filter import command_filter_sos
 from controller.core.config import LoopConfig
 from controller.core.discrete import SosCoefficients, SosFilter, SosStates, sos_step
 from controller.core.dob import DobDesign, design_dob
@@ -52,13 +53,19 @@ def speed_law(
     f2c: SosCoefficients,
     f2s: SosStates,
     f2n: int,
+    cfc: SosCoefficients,
+    cfs: SosStates,
+    cfn: int,
 ) -> tuple[float, float, float, float]:
     """Cv and the DOB for one period: (u, d_hat, new cv_int, speed error e). The DOB filters'
     states (f1s, f2s) are updated in place; u is saturated at +-limit, and Cv's integrator
-    does not integrate further into a saturated command."""
+    does not integrate further into a saturated command. Cv's output goes through the
+    command filter's `cfn` sections (cfc, cfs; none when the filter is off)."""
     e = r - w
     cv_int_new = cv_int + cv_half * (e + e_speed_prev)
     v = cv_kp * e + cv_int_new
+    if cfn > 0:
+        v = sos_step(cfc, cfs, cfn, v)
     if dob_on:
         d_hat = sos_step(f1c, f1s, f1n, w) - sos_step(f2c, f2s, f2n, u_prev)
     else:
@@ -98,6 +105,9 @@ def servo_law(
     f2c: SosCoefficients,
     f2s: SosStates,
     f2n: int,
+    cfc: SosCoefficients,
+    cfs: SosStates,
+    cfn: int,
 ) -> tuple[float, float, float, float, float, float, float]:
     """The whole servo for one period (position PI with feedforward, then `speed_law`):
     (u, d_hat, speed reference r, speed error e, new pos_int, new cv_int, position error)."""
@@ -106,7 +116,7 @@ def servo_law(
     r = pos_kp * e_pos + pos_int_new + ff * ref_rate_deg_s
     u, d_hat, cv_int_new, e = speed_law(
         r, speed_deg_s, u_prev, cv_int, e_speed_prev, cv_kp, cv_half, limit, dob_on,
-        f1c, f1s, f1n, f2c, f2s, f2n,
+        f1c, f1s, f1n, f2c, f2s, f2n, cfc, cfs, cfn,
     )
     # Anti-windup: no integration further into a saturated command.
     if (u >= limit and pos_int_new > pos_int) or (u <= -limit and pos_int_new < pos_int):
@@ -152,6 +162,7 @@ class PreparedCoefficients:
     """
 
     __slots__ = (
+        "cf",
         "coefficients",
         "cv_half",
         "cv_kp",
@@ -173,12 +184,18 @@ class PreparedCoefficients:
         self.f1 = SosFilter(coefficients.dob.f1_sos)
         self.f2 = SosFilter(coefficients.dob.f2_sos)
         self.f2_dc_gain = self.f2.dc_gain()
+        # The command filter: no sections when off (the tick then skips it).
+        self.cf = SosFilter(command_filter_sos(c.command_filter, c.rate_hz))
 
 
 class ServoLoop:
     """The controller state; `tick` is the hot path, `request` swaps coefficients (any thread)."""
 
     __slots__ = (
+        "_cf",
+        "_cfc",
+        "_cfn",
+        "_cfs",
         "_cv_half",
         "_cv_kp",
         "_dob_on",
@@ -219,6 +236,7 @@ class ServoLoop:
         self.pos_int = self.cv_int = self.e_pos_prev = self.e_speed_prev = 0.0
         self._f1.set_steady(0.0)
         self._f2.set_steady(0.0)
+        self._cf.set_steady(0.0)
 
     # -- coefficient handling (off the hot path except the swap at the tick boundary) --------
 
@@ -236,6 +254,8 @@ class ServoLoop:
         self._f2 = p.f2
         self._f1c, self._f1s, self._f1n = p.f1.coefficients, p.f1.states, p.f1.n_sections
         self._f2c, self._f2s, self._f2n = p.f2.coefficients, p.f2.states, p.f2.n_sections
+        self._cf = p.cf
+        self._cfc, self._cfs, self._cfn = p.cf.coefficients, p.cf.states, p.cf.n_sections
 
     def request(self, coefficients: LoopCoefficients | PreparedCoefficients) -> None:
         """Ask for `coefficients` to take effect at the next tick boundary (thread-safe).
@@ -252,6 +272,9 @@ class ServoLoop:
         # controller outputs are continuous for the error they last saw.
         self.pos_int += (old_pos_kp - p.pos_kp) * self.e_pos_prev
         self.cv_int += (old_cv_kp - p.cv_kp) * self.e_speed_prev
+        # A new command filter starts in the steady state for Cv's present output (unity DC
+        # gain: the filtered command does not jump).
+        p.cf.set_steady(p.cv_kp * self.e_speed_prev + self.cv_int)
         if p.dob_on:
             # New DOB filters start in the steady state that reproduces the present estimate:
             # F1 as if w had been constant, F2 with the constant input that gives d_hat.
@@ -279,6 +302,7 @@ class ServoLoop:
             self._pos_kp, self._pos_half, self._ff, self.u_prev, self.cv_int,
             self.e_speed_prev, self._cv_kp, self._cv_half, self._limit, self._dob_on,
             self._f1c, self._f1s, self._f1n, self._f2c, self._f2s, self._f2n,
+            self._cfc, self._cfs, self._cfn,
         )
         self.pos_int = pos_int
         self.e_pos_prev = e_pos
@@ -305,6 +329,7 @@ class ServoLoop:
             r, speed_deg_s, self.u_prev, self.cv_int, self.e_speed_prev, self._cv_kp,
             self._cv_half, self._limit, self._dob_on,
             self._f1c, self._f1s, self._f1n, self._f2c, self._f2s, self._f2n,
+            self._cfc, self._cfs, self._cfn,
         )
         self.cv_int = cv_int
         self.e_speed_prev = e

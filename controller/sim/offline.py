@@ -103,8 +103,8 @@ def _make_kernel(digest: str) -> Callable[..., Any]:
     def kernel(
         x: FloatArray, p: FloatArray, noise: FloatArray, torque: FloatArray, tr: FloatArray,
         k0: int, rp: FloatArray, st: FloatArray, co: FloatArray, f1c: FloatArray,
-        f1s: FloatArray, f2c: FloatArray, f2s: FloatArray, rd: FloatArray, out: FloatArray,
-        j0: int, n: int,
+        f1s: FloatArray, f2c: FloatArray, f2s: FloatArray, cfc: FloatArray, cfs: FloatArray,
+        rd: FloatArray, out: FloatArray, j0: int, n: int,
     ) -> None:
         if len(digest) == 0:  # the digest only keys numba's cache
             raise ValueError("no source digest")
@@ -119,6 +119,7 @@ def _make_kernel(digest: str) -> Callable[..., Any]:
         dob_on = co[6] != 0.0
         f1n = len(f1c) // 5
         f2n = len(f2c) // 5
+        cfn = len(cfc) // 5
         pos, w = rd[0], rd[1]
         for i in range(n):
             ref, ref_rate = _trajectory_at(kind, amp, om, off, slope, t_step, (k0 + i) * period)
@@ -129,7 +130,7 @@ def _make_kernel(digest: str) -> Callable[..., Any]:
             u, d_hat, sref, serr, pos_int, cv_int, e_pos_prev = _servo_law(
                 ref, ref_rate, pos, w, pos_int, e_pos_prev, pos_kp, pos_half, ff, u_prev,
                 cv_int, e_speed_prev, cv_kp, cv_half, limit, dob_on, f1c, f1s, f1n, f2c, f2s,
-                f2n)
+                f2n, cfc, cfs, cfn)
             e_speed_prev = serr
             u_prev = u
             w_prev = w
@@ -157,8 +158,8 @@ def _make_speed_kernel(digest: str, period: Callable[..., float]) -> Callable[..
 
     def speed_kernel(
         ref: FloatArray, dist: FloatArray, st: FloatArray, co: FloatArray, f1c: FloatArray,
-        f1s: FloatArray, f2c: FloatArray, f2s: FloatArray, rd: FloatArray, w_out: FloatArray,
-        ts: float, args: Any,
+        f1s: FloatArray, f2c: FloatArray, f2s: FloatArray, cfc: FloatArray, cfs: FloatArray,
+        rd: FloatArray, w_out: FloatArray, ts: float, args: Any,
     ) -> int:
         if len(digest) == 0:  # the digest only keys numba's cache
             raise ValueError("no source digest")
@@ -168,6 +169,7 @@ def _make_speed_kernel(digest: str, period: Callable[..., float]) -> Callable[..
         dob_on = co[6] != 0.0
         f1n = len(f1c) // 5
         f2n = len(f2c) // 5
+        cfn = len(cfc) // 5
         pos, w = rd[0], rd[1]
         done = len(ref)
         for k in range(len(ref)):
@@ -178,7 +180,7 @@ def _make_speed_kernel(digest: str, period: Callable[..., float]) -> Callable[..
             r = ref[k]
             u, d_hat, cv_int, serr = _speed_law(
                 r, w, u_prev, cv_int, e_speed_prev, cv_kp, cv_half, limit, dob_on, f1c, f1s,
-                f1n, f2c, f2s, f2n)
+                f1n, f2c, f2s, f2n, cfc, cfs, cfn)
             e_speed_prev = serr
             u_prev = u
             w_prev = w
@@ -267,19 +269,23 @@ def _take_pending(loop: ServoLoop) -> None:
 
 
 def _loop_arrays(loop: ServoLoop) -> tuple[FloatArray, ...]:
-    """The loop's state, coefficients and DOB filters as the kernels take them."""
+    """The loop's state, coefficients, DOB filters and command filter as the kernels take
+    them (the command filter's arrays are empty when it is off)."""
     st = np.array([getattr(loop, a) for a in _STATE], dtype=np.float64)
     co = np.array([getattr(loop, a) for a in _COEFFS], dtype=np.float64)
     return (st, co, np.array(loop._f1c), np.array(loop._f1s), np.array(loop._f2c),
-            np.array(loop._f2s))
+            np.array(loop._f2s), np.array(loop._cfc, dtype=np.float64),
+            np.array(loop._cfs, dtype=np.float64))
 
 
-def _loop_back(loop: ServoLoop, st: FloatArray, f1s: FloatArray, f2s: FloatArray) -> None:
+def _loop_back(loop: ServoLoop, st: FloatArray, f1s: FloatArray, f2s: FloatArray,
+               cfs: FloatArray) -> None:
     """The kernels' final state back into the loop."""
     for a, v in zip(_STATE, st.tolist(), strict=True):
         setattr(loop, a, v)
     loop._f1s[:] = f1s.tolist()
     loop._f2s[:] = f2s.tolist()
+    loop._cfs[:] = cfs.tolist()
 
 
 def run_speed_ticks(
@@ -300,12 +306,13 @@ def run_speed_ticks(
     if n == 0:
         return w_out
     _take_pending(loop)
-    st, co, f1c, f1s, f2c, f2s = _loop_arrays(loop)
+    st, co, f1c, f1s, f2c, f2s, cfc, cfs = _loop_arrays(loop)
     rd = np.array(rig.read())
     dist = rig.disturbances(n)
-    done = kernel(ref, dist, st, co, f1c, f1s, f2c, f2s, rd, w_out, rig.period_s, rig.args)
+    done = kernel(ref, dist, st, co, f1c, f1s, f2c, f2s, cfc, cfs, rd, w_out, rig.period_s,
+                  rig.args)
     rig.advanced(done, float(rd[0]), float(rd[1]))
-    _loop_back(loop, st, f1s, f2s)
+    _loop_back(loop, st, f1s, f2s, cfs)
     if done < n:
         w_out[done:] = math.nan
     return w_out
@@ -353,7 +360,7 @@ def run_ticks(
                        approach.period_s, approach.speed_max_deg_s, approach.accel_max_deg_s2])
     else:
         rp = np.zeros(6)
-    st, co, f1c, f1s, f2c, f2s = _loop_arrays(loop)
+    st, co, f1c, f1s, f2c, f2s, cfc, cfs = _loop_arrays(loop)
     sim = rig.rig if isinstance(rig, ScheduledRig) else rig
     d = sim.disturbance
     profile = None if d is None else flatten(d)
@@ -374,12 +381,12 @@ def run_ticks(
         noise = base.take_noise(m)
         rd = np.array(base.read())
         _kernel(base._x, base._p, noise, torque, tr, traj_tick + done, rp, st, co, f1c, f1s,
-                f2c, f2s, rd, out.out, at + done, m)
+                f2c, f2s, cfc, cfs, rd, out.out, at + done, m)
         base.advanced(m, float(rd[0]), float(rd[1]))
         if isinstance(rig, ScheduledRig):
             rig.tick += m
         done += m
-    _loop_back(loop, st, f1s, f2s)
+    _loop_back(loop, st, f1s, f2s, cfs)
     if approach is not None:
         approach.active = bool(rp[0] != 0.0)
         approach.pos_deg = float(rp[1])
