@@ -275,10 +275,10 @@ def test_viewer_rules(auth_dir: Path) -> None:
     assert not any(k.endswith("/cmd") or "**" in k for k in everything)
     assert keys_for(rules, "ingress", "query") == {
         "dobtune/a/config", "dobtune/a/identify", "dobtune/a/knowledge", "dobtune/a/lease",
-        "dobtune/a/history",
+        "dobtune/a/history", "dobtune/a/state/replay",
         "dobtune/a/@user/view_a/config", "dobtune/a/@user/view_a/identify",
         "dobtune/a/@user/view_a/knowledge", "dobtune/a/@user/view_a/lease",
-        "dobtune/a/@user/view_a/history",
+        "dobtune/a/@user/view_a/history", "dobtune/a/@user/view_a/state/replay",
     }
     assert keys_for(rules, "ingress", "put") == {"dobtune/a/estop", "dobtune/a/@user/view_a/estop"}
     assert keys_for(rules, "egress", "put") == {"dobtune/a/state", "dobtune/a/status"}
