@@ -42,11 +42,12 @@ FROM_CONTROLLER = b"from-controller"
 
 
 def reads(rig: str) -> tuple[str, ...]:
-    return proto.key_config(rig), proto.key_identify(rig)
+    return proto.key_config(rig), proto.key_identify(rig), proto.key_state_replay(rig)
 
 
 def queryable_keys(rig: str) -> tuple[str, ...]:
-    public = (proto.key_config(rig), proto.key_command(rig), proto.key_identify(rig))
+    public = (proto.key_config(rig), proto.key_command(rig), proto.key_identify(rig),
+              proto.key_state_replay(rig))
     return public + tuple(any_user_key(k) for k in public)
 
 
