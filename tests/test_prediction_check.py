@@ -107,3 +107,25 @@ def test_the_prediction_is_the_plant_run_over_the_last_window() -> None:
     err = np.asarray(res.error_deg)[-n:]
     assert p.rmse_deg == pytest.approx(float(np.sqrt(np.mean(err**2))), rel=1e-9)
     assert p.peak_error_deg == pytest.approx(float(np.max(np.abs(err))), rel=1e-9)
+
+
+def _check(version: int, state: str) -> object:
+    from controller import protocol as proto
+
+    return proto.PredictionCheck(rig="r", config_version=version, epoch_s=0.0,
+                                 trajectory=Trajectory(), model="m", window_s=10.0,
+                                 settle_s=3.0, state=state)
+
+
+def test_the_rollback_is_offered_only_when_failed_badly_on_an_unmoved_plant() -> None:
+    from controller.process.prediction_check import rollback_offer
+
+    checks = {1: _check(1, "held"), 2: _check(2, "held"), 3: _check(3, "failed"),
+              4: _check(4, "failed badly")}
+    assert rollback_offer("failed badly", "", checks, 4)[0] == 2  # the newest that held
+    assert rollback_offer("failed", "", checks, 4) == (None, "")
+    assert rollback_offer("held", "", checks, 4) == (None, "")
+    v, text = rollback_offer("failed badly", "stiffness alarm", checks, 4)
+    assert v is None and "measure it again first" in text  # judged on the old plant
+    v, text = rollback_offer("failed badly", "", {4: _check(4, "failed badly")}, 4)
+    assert v is None and "no earlier version" in text

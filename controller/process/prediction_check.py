@@ -42,7 +42,7 @@ from controller.tune.prediction import (
     predict,
 )
 
-__all__ = ["PredictionTracker", "describe_check"]
+__all__ = ["PredictionTracker", "describe_check", "rollback_offer"]
 
 log = logging.getLogger(__name__)
 
@@ -167,15 +167,9 @@ class PredictionTracker:
         t0 = float(cols["t_s"][-n])
         measured = figures_of(cols["error_deg"][-n:], cols["command_deg_s"][-n:], rate_hz)
         j = judge(p.predicted, measured)
-        rollback = None
-        if j.state == "failed badly":
-            held = [v for v, k in self.checks.items() if k.state == "held" and v != p.version]
-            rollback = max(held) if held else None
-        text = meaning(j, self._plant_moved())
-        if j.state == "failed badly":
-            text += (f"; roll back to v{rollback} (its prediction held): `dobtune ctl rollback "
-                     f"{rollback}`" if rollback is not None
-                     else "; no earlier version's prediction held to roll back to")
+        moved = self._plant_moved()
+        rollback, offer = rollback_offer(j.state, moved, self.checks, p.version)
+        text = meaning(j, moved) + offer
         figures, bands = _figures(p.predicted, measured)
         latest = c.ring.latest()
         epoch0 = time.time() - (float(latest["t_s"]) if latest is not None else 0.0)
@@ -191,7 +185,12 @@ class PredictionTracker:
                                            meaning=why), keep=True)
 
     def _emit(self, check: proto.PredictionCheck, keep: bool) -> None:
-        self.checks[check.config_version] = check
+        kept = self.checks.get(check.config_version)
+        judged = ("held", "failed", "failed badly")
+        if not (kept is not None and kept.state in judged and check.state not in judged):
+            # (a verdict is not overwritten by a later prediction of the same version, or by
+            # its "not judged": after a restart the running version is predicted again)
+            self.checks[check.config_version] = check
         while len(self.checks) > KEPT:
             del self.checks[next(iter(self.checks))]
         if keep and self.log_path is not None:
@@ -204,6 +203,26 @@ class PredictionTracker:
     def all(self) -> list[proto.PredictionCheck]:
         """Every version's check kept, oldest version first (the pending one's prediction)."""
         return [self.checks[v] for v in sorted(self.checks)]
+
+
+def rollback_offer(state: str, moved: str, checks: dict[int, proto.PredictionCheck],
+                   version: int) -> tuple[int | None, str]:
+    """(the version offered, the text) after a check of `version` ended in `state`; `moved`:
+    the plant's parts the watch finds outside their range ("": none). Only a prediction that
+    failed badly offers a rollback, to the newest other version whose prediction held, and
+    only when the plant has not moved: every earlier prediction was made on the plant as it
+    was, and a version that held then can be unsafe on the moved plant (seen: one the
+    watchdog rolled back at once)."""
+    if state != "failed badly":
+        return None, ""
+    if moved:
+        return None, ("; no rollback offered: the versions whose predictions held were judged "
+                      "on the plant before it moved; measure it again first")
+    held = [v for v, k in checks.items() if k.state == "held" and v != version]
+    if not held:
+        return None, "; no earlier version's prediction held to roll back to"
+    v = max(held)
+    return v, f"; roll back to v{v} (its prediction held): `dobtune ctl rollback {v}`"
 
 
 def describe_check(k: proto.PredictionCheck) -> str:

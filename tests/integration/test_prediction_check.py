@@ -102,8 +102,13 @@ def test_the_twin_predicts_then_the_rig_is_measured(article_controller: Controll
             third = _verdict(proc, r.version)
             assert third.state == "failed badly", third
             _consistent(third)
-            assert third.rollback_to == v2, third
-            assert "did not hold" in third.meaning and f"ctl rollback {v2}" in third.meaning
+            assert "did not hold" in third.meaning
+            if "the model is wrong" in third.meaning:
+                # the watch's fit already saw the plant move: the versions that held were
+                # judged on the old plant, no rollback is offered (rollback_offer's unit test)
+                assert third.rollback_to is None and "measure it again" in third.meaning
+            else:
+                assert third.rollback_to == v2 and f"ctl rollback {v2}" in third.meaning
 
             rc, text = run_ctl(proc, "prediction", "--all", "--json")
             assert rc == 0, text
@@ -111,7 +116,7 @@ def test_the_twin_predicts_then_the_rig_is_measured(article_controller: Controll
             assert v1 in kept, text
             assert kept[v1] == "held" and kept[v2] == "held" and kept[r.version] == "failed badly"
 
-            # The offered rollback goes through the gate like any Apply.
+            # A rollback to a version of the history goes through the gate like any Apply.
             rc, text = run_ctl(proc, "rollback", str(v2))
             assert rc == 0, text
             assert client.fresh_status().config.q_cutoff_hz == pytest.approx(1.0)
