@@ -58,6 +58,7 @@ import control as ct
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from controller.core.command_filter import continuous_tf
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.dob import design_dob
 
@@ -311,6 +312,15 @@ def _sos(sos: np.ndarray, ts: float) -> ct.StateSpace:
 def _controller(cfg: LoopConfig) -> _Controller:
     ts = cfg.period_s
     cv = _pi(cfg.cv_kp, cfg.cv_ki_per_s, ts)
+    cf = cfg.command_filter
+    if cf.kind != "off":
+        # The speed-command filter on Cv's output: its continuous prototype, discretised
+        # here by python-control (Tustin prewarped at the filter's frequency).
+        num, den = continuous_tf(cf)
+        n_cont = ct.tf(list(np.trim_zeros(np.asarray(num), "f")), list(den))
+        n_disc = ct.c2d(n_cont, ts, method="tustin",
+                        prewarp_frequency=2.0 * math.pi * cf.frequency_hz)
+        cv = ct.ss(n_disc) * cv
     cp = _pi(cfg.pos_kp_per_s, cfg.pos_ki_per_s, ts)
     if not cfg.dob_on:
         return _Controller(cv=cv, cp=cp, f1=None, dinv=_static(1.0, ts))

@@ -147,3 +147,33 @@ def test_switching_the_filter_on_is_bumpless() -> None:
     u_next = loop.tick(2.0 * math.sin(k / 200), 0.0, 1.9 * math.sin(k / 200), 0.0)
     step = abs(us[-1] - us[-2])
     assert abs(u_next - us[-1]) < 3 * step + 1e-9
+
+
+# -- the gate sees the filter: margins and poles against python-control (tests/fuzz_truth.py,
+# where the filter is discretised by control.c2d, not by this module)
+
+GATE_CASES = [
+    LoopConfig(command_filter=CommandFilter(kind="notch", notch_hz=12.0, notch_depth_db=20.0,
+                                            notch_width=0.5)),
+    LoopConfig(command_filter=CommandFilter(kind="lowpass", lowpass_hz=25.0)),
+    LoopConfig(dob_on=False, command_filter=CommandFilter(kind="lowpass", lowpass_hz=40.0,
+                                                          lowpass_damping=0.5)),
+]
+
+
+@pytest.mark.parametrize("cfg", GATE_CASES, ids=lambda c: c.command_filter.describe())
+def test_gate_margins_and_poles_include_the_filter(cfg: LoopConfig) -> None:
+    from fuzz_truth import TruePlant, truth
+
+    from controller.gate.analysis import analyse
+
+    t = truth(TruePlant(), cfg)
+    a = analyse(cfg)
+    plain = analyse(cfg.with_(command_filter=CommandFilter()))
+    assert t.margins_speed is not None
+    assert a.margins.gain_margin_db == pytest.approx(t.margins_speed.gain_margin_db, abs=0.1)
+    assert a.margins.phase_margin_deg == pytest.approx(t.margins_speed.phase_margin_deg,
+                                                       abs=0.5)
+    assert a.max_pole_radius == pytest.approx(t.radius_full, abs=1e-4)
+    # The filter costs phase at crossover: the gate's margins are not the unfiltered ones.
+    assert a.margins.phase_margin_deg < plain.margins.phase_margin_deg - 1.0

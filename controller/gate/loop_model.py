@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from controller.core.arrays import ComplexArray, FloatArray
+from controller.core.command_filter import command_filter_response, command_filter_sos
 from controller.core.config import LoopConfig, NominalModel
 from controller.core.discrete import SosArray, sos_responses
 from controller.core.dob import cancel_common_roots, design_dob, poly_roots_gain
@@ -246,11 +247,14 @@ GainBlocks = tuple[ComplexArray, ComplexArray, ComplexArray, ComplexArray]
 
 
 def gain_blocks(cfg: LoopConfig, f: FloatArray, plant: NominalModel) -> GainBlocks:
-    """(z^-1, G, Cv, C_tot) at `f`: the blocks that do not depend on the DOB."""
+    """(z^-1, G, Cv, C_tot) at `f`: the blocks that do not depend on the DOB. Cv includes the
+    speed-command filter N (Cv's output goes through it before the DOB): Cv here is N Cv."""
     ts = cfg.period_s
     zinv = np.exp(-1j * TWO_PI * ts * f)
     g = plant_response(discrete_plant(plant, cfg.rate_hz), zinv)
     cv = tustin_pi(cfg.cv_kp, cfg.cv_ki_per_s, ts, zinv)
+    if cfg.command_filter.kind != "off":
+        cv = cv * command_filter_response(cfg.command_filter, f, cfg.rate_hz)
     cp = tustin_pi(cfg.pos_kp_per_s, cfg.pos_ki_per_s, ts, zinv)
     ctot = cv * (1.0 + cp * ts / (1.0 - zinv))
     return zinv, g, cv, ctot
@@ -284,12 +288,16 @@ def closed_loop_matrix(
         n1, n2 = a1.shape[0], a2.shape[0]
     else:
         n1 = n2 = 0
-    # State layout: plant | Cp integrator | Cv integrator | F1 | F2 | u[k-1] (if DOB).
+    # The speed-command filter's states (none when it is off).
+    acf, bcf, ccf, dcf = sos_state_space(command_filter_sos(cfg.command_filter, cfg.rate_hz))
+    ncf = acf.shape[0]
+    # State layout: plant | Cp integrator | Cv integrator | F1 | F2 | u[k-1] (if DOB) | N.
     ip, icp, icv = 0, npl, npl + 1
     i1 = npl + 2
     i2 = i1 + n1
     idu = i2 + n2
-    n = idu + (1 if dob is not None else 0)
+    icf = idu + (1 if dob is not None else 0)
+    n = icf + ncf
     hp = cfg.pos_kp_per_s * cfg.pos_ki_per_s * ts * 0.5
     hv = cfg.cv_kp * cfg.cv_ki_per_s * ts * 0.5
     # Outputs as rows over the state vector (the plant has no feedthrough).
@@ -304,14 +312,15 @@ def closed_loop_matrix(
     e = r - w
     v = (cfg.cv_kp + hv) * e
     v[icv] += 1.0
-    u = v.copy()
+    u = dcf * v
+    u[icf:n] += ccf
     if dob is not None:
         y1 = d1 * w
         y1[i1:i2] += c1
         y2 = np.zeros(n)
         y2[i2:idu] = c2
         y2[idu] += d2
-        u = v - y1 + y2
+        u = u - y1 + y2
     a = np.zeros((n, n))
     a[ip:npl, ip:npl] = pl.a
     a[ip:npl] += np.outer(pl.b, u)
@@ -325,6 +334,9 @@ def closed_loop_matrix(
         a[i2:idu, i2:idu] += a2
         a[i2:idu, idu] += b2
         a[idu] = u
+    if ncf:
+        a[icf:n, icf:n] += acf
+        a[icf:n] += np.outer(bcf, v)
     # Without the position loop theta is fed back nowhere and r = 0; states that are not
     # integrators of the running loop are removed (rows and columns: they feed nothing).
     drop = []
