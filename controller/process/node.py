@@ -81,6 +81,9 @@ ESTOP_POLL_S = 0.01
 #: fallback raises it here.
 ESTOP_GRACE_S = 0.5
 
+#: The shortest time between two passes of the latch writer.
+LATCH_MIN_S = 0.01
+
 SHUTDOWN = object()
 """Put on a worker queue: the worker ends."""
 
@@ -439,6 +442,9 @@ class ZenohNode:
                 self.service.poll_rollback()  # a rollback is saved at once, not at the status
             except Exception as exc:  # never end this thread
                 self.service.warn(f"latch writer: {type(exc).__name__}: {exc}")
+            # At most one pass per LATCH_MIN_S: an e-stop flood moves the latch (estop_seq)
+            # every tick; this process does not wake for each (issue 31).
+            self.stop_event.wait(LATCH_MIN_S)
 
     # -- queries -----------------------------------------------------------------------------
 
