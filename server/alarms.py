@@ -1,8 +1,9 @@
 """Alarms: what the controller did that an operator must see and acknowledge (a watchdog
-rollback, a fault, an e-stop), found in the stream of its status messages.
+rollback, a fault, an e-stop), found in the stream of its status messages, and the plant's
+drift the watch alarms on (`dobtune/<rig>/drift/alarm`).
 
-Pure: `AlarmBoard.observe(status, now)` returns nothing and keeps the alarms not yet
-acknowledged; `alarms_html` draws them. The live panel feeds it and shows the board.
+Pure: `AlarmBoard.observe(status, now)` and `observe_drift(alarm, now)` keep the alarms not
+yet acknowledged; `alarms_html` draws them. The live panel feeds it and shows the board.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ _LEVEL_COLORS = {"amber": ("#b26a00", "#fff4e0", "#6b3f00"),
 
 @dataclass(frozen=True)
 class Alarm:
-    kind: str  # "rollback" | "fault" | "estop"
+    kind: str  # "rollback" | "fault" | "estop" | "drift"
     level: str  # "amber" | "red"
     title: str
     reason: str
@@ -71,6 +72,17 @@ class AlarmBoard:
         self._mode = st.mode
         self._estop_seq = st.estop_seq
         return added
+
+    def observe_drift(self, alarm: proto.DriftAlarm, now_s: float | None = None) -> bool:
+        """A part of the plant left its range (amber: the loop still runs what the gate
+        passed; what it means and what to do are in the reason). Its clearing adds nothing:
+        an acknowledged drift stays in the trend. True if added."""
+        if alarm.cleared:
+            return False
+        now = time.time() if now_s is None else now_s
+        self.alarms.append(Alarm("drift", "amber", f"PLANT DRIFT: {alarm.part}",
+                                 f"{alarm.text}. {alarm.action}".strip(), now))
+        return True
 
     def acknowledge(self) -> int:
         """Clear the alarms shown; returns how many."""

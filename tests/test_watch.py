@@ -411,3 +411,25 @@ def test_the_fleet_row_carries_the_watchs_drift_state() -> None:
     mon._on_drift(Sample(proto.key_drift("rigA"), state("rigA", 1.06, "note")))
     row = mon.rows()[0]
     assert not row.drift_alarm and row.drift.startswith("moved, inside the bound: resonance x1.06")
+
+
+def test_a_drift_alarm_reaches_the_dashboards_alarm_board() -> None:
+    from controller import protocol as proto
+    from server.alarms import AlarmBoard, alarms_html
+
+    def alarm(cleared: bool) -> proto.DriftAlarm:
+        return proto.DriftAlarm(
+            rig="r", seq=1, epoch_s=100.0, part="resonance", value=0.801, std=0.0004,
+            unit="x", low=0.916, high=1.085, since_epoch_s=90.0,
+            text="resonance x0.801 +-0.0004 of the twin's, below its range 0.916-1.09",
+            action="measure again (dobtune identify ...)", gate_verdict="accept",
+            gate_reasons=[], cleared=cleared)
+
+    board = AlarmBoard()
+    assert board.observe_drift(alarm(False), now_s=100.0)
+    assert not board.observe_drift(alarm(True), now_s=110.0)  # its clearing adds no box
+    html = alarms_html(board)
+    assert "dt-alarm-drift dt-alarm-amber" in html
+    assert "PLANT DRIFT: resonance" in html
+    assert "below its range 0.916-1.09. measure again" in html
+    assert board.acknowledge() == 1 and alarms_html(board) == "<div class='dt-alarms'></div>"

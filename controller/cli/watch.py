@@ -64,11 +64,20 @@ def run(args: argparse.Namespace) -> int:
         trend_dir=args.trend_dir, prediction_window_s=args.prediction_window_s,
         prediction_log=prediction_log)
     stop = threading.Event()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT,
-                                                                      signal.SIGTERM)}
+    def on_signal(*_: object) -> None:
+        # Stop now, also in the middle of a window's fit (seconds on a loaded machine, and
+        # whoever stopped the watch waits for it): the exception unwinds run_watch, whose
+        # finally closes the trend file and undeclares what it declared.
+        stop.set()
+        raise _Stopped
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         say(f"watching rig {args.rig_name!r}, windows of {args.window_s:g} s")
         return run_watch(opts, stop)
+    except _Stopped:
+        say("stopped")
+        return 0
     except ControllerUnavailable as exc:
         say(str(exc))
         return 4
@@ -78,6 +87,10 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+
+
+class _Stopped(BaseException):
+    """SIGINT or SIGTERM: the watch ends (exit 0)."""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -7,6 +7,7 @@ that show them) and the slower texts at a few Hz, assigning only changed propert
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -31,6 +32,8 @@ from server.panels.widgets import add_chart, confirm, send_data, set_html
 from server.workers import Periodic
 
 __all__ = ["LivePanel", "LiveStats", "banner_html", "window_metrics"]
+
+log = logging.getLogger(__name__)
 
 
 def window_metrics(error_deg: np.ndarray) -> tuple[float, float]:
@@ -170,6 +173,8 @@ class LivePanel:
         self.timing_judgement: HealthJudgement | None = None
         """The latest judgement of the loop's timing (None: no status yet)."""
         self._alarm_lock = threading.Lock()
+        self._drift_raw: list[bytes] = []
+        """Drift alarms received, not yet on the board (appended by a Zenoh thread)."""
         self._slow_every = max(1, int(rate_hz / 5))
         self._updater = Periodic(self._refresh, 1.0 / rate_hz, name="live-updater")
 
@@ -185,6 +190,11 @@ class LivePanel:
             "Acknowledge alarms", color="yellow", visible=False,
             hint="the alarms above are seen: clear them (History keeps every change)")
         on_press(self.ack_button, self.acknowledge_alarms)
+        # The watch's drift alarms join the board (decoded and shown at the next slow tick:
+        # the Zenoh callback only keeps the bytes).
+        self._drift_sub = self.client.session.declare_subscriber(
+            proto.key_drift_alarm(self.client.opts.rig_name),
+            lambda sample: self._drift_raw.append(sample.payload.to_bytes()))
 
     def acknowledge_alarms(self, browser: Browser = None) -> bool:
         """Clear the alarms for every browser: an operator's press (a viewer's is refused,
@@ -204,6 +214,20 @@ class LivePanel:
         with self._alarm_lock:
             if self.alarm_board.observe(st):
                 self._show_alarms()
+
+    def observe_drift_alarms(self) -> None:
+        """The drift alarms received since the last call onto the board (one that does not
+        decode is logged, not shown as an alarm)."""
+        while self._drift_raw:
+            raw = self._drift_raw.pop(0)
+            try:
+                alarm = proto.decode(raw, proto.DriftAlarm)
+            except proto.ProtocolError as exc:
+                log.warning("a drift alarm not read: %s", exc)
+                continue
+            with self._alarm_lock:
+                if self.alarm_board.observe_drift(alarm):
+                    self._show_alarms()
 
     def _show_alarms(self) -> None:
         set_html(self.alarms, alarms_html(self.alarm_board))
@@ -315,6 +339,7 @@ class LivePanel:
         if not slow:
             return
         set_html(self.banner, banner_html(self.client))
+        self.observe_drift_alarms()
         st = self.client.status
         if st is not None and st is not self._last_status_seen:
             self._last_status_seen = st

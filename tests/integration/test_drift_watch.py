@@ -2,8 +2,10 @@
 the state stream of a simulated controller (the article rig, the demo's) over Zenoh on
 loopback; normal running raises no alarm; the belt losing 40 % of its stiffness during the run
 (`SimDrift`, the operator's command) is an alarm naming the stiffness, sized within 10 %,
-that `dobtune ctl wait-alarm` returns (exit 0), `dobtune ctl drift` shows, and the rig's trend
-keeps. Waits on conditions only; the time to detect is the bench's (tests/bench/bench_watch.py).
+that `dobtune ctl wait-alarm` returns (exit 0), `dobtune ctl drift` shows, the rig's trend
+keeps, and a dashboard on the controller (with its Fleet tab) shows: an amber box on its
+alarm board and the drift state in the rig's fleet row. Waits on conditions only; the time to
+detect is the bench's (tests/bench/bench_watch.py).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from pathlib import Path
 
 import msgspec
 import pytest
-from helpers import wait_until
+from helpers import free_port, wait_until
 from procs import Client, ControllerProcess, run_ctl, watching
 
 from controller import protocol as proto
@@ -40,9 +42,15 @@ def test_the_watch_names_a_drifting_belt(article_controller: ControllerProcess,
         states: list[bytes] = []
         sub = client.session.declare_subscriber(proto.key_drift(proc.rig),
                                                 lambda s: states.append(s.payload.to_bytes()))
+        from server.alarms import alarms_html
+        from server.dashboard.app import Dashboard, DashboardOptions
+
+        dash_opts = DashboardOptions(connect=(proc.endpoint,), rig_name=proc.rig,
+                                     port=free_port(), verbose=False, fleet=True)
         try:
-            with watching(proc, tmp_path / "watch.log", "--window-s", str(WINDOW_S),
-                          "--trend-dir", str(trend)):
+            with Dashboard(dash_opts) as dash, watching(
+                    proc, tmp_path / "watch.log", "--window-s", str(WINDOW_S),
+                    "--trend-dir", str(trend)):
                 # Normal running: three windows judged, no part in alarm, each part told.
                 assert wait_until(lambda: len(states) >= 3, timeout_s=300.0), \
                     (tmp_path / "watch.log").read_text()
@@ -70,6 +78,18 @@ def test_the_watch_names_a_drifting_belt(article_controller: ControllerProcess,
                     "accept", "caution", "reject")
                 rc, text = run_ctl(proc, "drift")
                 assert rc == 0 and "alarms: stiffness" in text, text
+                # The dashboard: the alarm on its board (amber, what and what to do), the
+                # drift state in the fleet row beside the loop's state.
+                live, mon = dash.live, dash._fleet_monitor
+                assert live is not None and mon is not None
+                assert wait_until(lambda: any(a.kind == "drift"
+                                              for a in live.alarm_board.alarms), 60.0)
+                html = alarms_html(live.alarm_board)
+                assert "PLANT DRIFT: stiffness" in html and "measure again" in html, html
+                assert wait_until(lambda: any(r.rig == proc.rig and r.drift_alarm
+                                              for r in mon.rows()), 60.0)
+                row = next(r for r in mon.rows() if r.rig == proc.rig)
+                assert row.drift.startswith("ALARM: stiffness x0.") and row.mode == "running"
         finally:
             sub.undeclare()
     points = read_trend(trend, proc.rig, time.time() - 3600, time.time() + 60)
