@@ -157,6 +157,35 @@ def test_the_viewer_cannot_start_or_stop_a_recording(env: dict[str, Any],
     assert "view is a viewer" not in pages["op1"].content()  # told to the viewer only
 
 
+def test_the_whole_loop_tune_is_for_operators_only(env: dict[str, Any],
+                                                  pages: dict[str, Any]) -> None:
+    """Issue 35 item 3: the guided path's "Tune the whole loop" and its objective are disabled
+    in the viewer's page (the message gate refuses a press on a disabled control: see
+    tests/test_message_gate.py), on in the operator's; a press made on the viewer's behalf is
+    refused by the step itself, told to the viewer alone, and nothing runs."""
+    dash: Dashboard = env["dash"]
+    view, op = pages["view"], pages["op1"]
+    for page in (view, op):
+        page.get_by_role("tab", name="Tune", exact=True).click()
+    name = "Tune the whole loop"
+    view.get_by_role("button", name=name, exact=True).wait_for(timeout=30_000)
+    assert view.get_by_role("button", name=name, exact=True).is_disabled()
+    assert op.get_by_role("button", name=name, exact=True).is_enabled()
+    viewer = _browser_of(dash, "view")
+    guide = dash.candidates.guides[viewer.client_id]
+    assert guide.tune.button is not None and guide.tune.button.disabled
+    assert guide.tune.metric is not None and guide.tune.metric.disabled
+    assert "operators only" in guide.tune.state.text
+    refusals = dash.sessions.refusals
+    assert guide.tune.request(viewer) is False
+    view.wait_for_selector("text=tune the whole loop: view is a viewer", timeout=10_000)
+    assert dash.sessions.refusals == refusals + 1
+    assert guide.tune.state.state == "todo" and guide.tune.last is None
+    assert "view is a viewer" not in op.content()  # told to the viewer only
+    operator = dash.candidates.guides[_browser_of(dash, "op1").client_id]
+    assert operator.tune.button is not None and not operator.tune.button.disabled
+
+
 def test_a_refused_identification_is_told_to_that_browser_alone(
     env: dict[str, Any], pages: dict[str, Any]
 ) -> None:
