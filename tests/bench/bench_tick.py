@@ -15,6 +15,7 @@ import time
 import numpy as np
 from scipy import signal
 
+from controller.core.command_filter import CommandFilter
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
@@ -26,8 +27,8 @@ def _percentiles_us(samples_ns: list[int]) -> tuple[float, float, float]:
     return float(a[len(a) // 2]), float(a[int(len(a) * 0.99)]), float(a[-1])
 
 
-def bench_tick(n: int) -> tuple[float, float, float]:
-    loop = ServoLoop(LoopCoefficients.build(LoopConfig()))
+def bench_tick(n: int, cfg: LoopConfig | None = None) -> tuple[float, float, float]:
+    loop = ServoLoop(LoopCoefficients.build(cfg if cfg is not None else LoopConfig()))
     rng = np.random.default_rng(0)
     pos = rng.standard_normal(n).tolist()
     spd = rng.standard_normal(n).tolist()
@@ -88,6 +89,19 @@ def main() -> None:
         f"tick (pos PI + Cv + DOB): p50 {p50:.2f} us  p99 {p99:.2f} us  max {mx:.1f} us"
         f"  (target p99 <= 15 us)"
     )
+    # The speed-command filter (issue 35): off (the default) and on, alternated in rounds so
+    # that both see the same load.
+    on_cfg = LoopConfig(command_filter=CommandFilter(kind="notch", notch_hz=31.0))
+    rounds = 5
+    res: dict[str, list[tuple[float, float, float]]] = {"off": [], "notch": []}
+    for _ in range(rounds):
+        res["off"].append(bench_tick(args.ticks // rounds))
+        res["notch"].append(bench_tick(args.ticks // rounds, on_cfg))
+    for label, rs in res.items():
+        m50 = float(np.median([r[0] for r in rs]))
+        m99 = float(np.median([r[1] for r in rs]))
+        print(f"tick, command filter {label}: p50 {m50:.2f} us  p99 {m99:.2f} us "
+              f"(median over {rounds} alternated rounds of {args.ticks // rounds} ticks)")
     s50, s99, smx = bench_swap_tick(min(args.ticks, 20_000))
     print(f"tick that swaps coefficients: p50 {s50:.2f} us  p99 {s99:.2f} us  max {smx:.1f} us")
     b50, b99, _ = bench_numpy_baseline(min(args.ticks, 50_000))
