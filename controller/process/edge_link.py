@@ -153,7 +153,8 @@ class EdgeLink:
                 return
             control = self._control
             if control is not None:
-                with contextlib.suppress(OSError, ValueError):
+                # TypeError: the Connection closed by another thread meanwhile (see `close`).
+                with contextlib.suppress(OSError, ValueError, TypeError):
                     control.send(msg)
             sent.set()
 
@@ -225,6 +226,12 @@ class EdgeLink:
             if proc.is_alive():
                 proc.kill()
                 proc.join(CLOSE_S)
+        # The pusher ends (its stop is queued above) before the pipe closes: a send running
+        # while another thread closes the Connection fails inside multiprocessing with a
+        # TypeError (its handle None), the likely "Exception in thread edge-push" once seen.
+        pusher = self._pushing
+        if pusher is not None:
+            pusher.join(CLOSE_S)
         control, self._control = self._control, None
         if control is not None:
             with contextlib.suppress(OSError):
