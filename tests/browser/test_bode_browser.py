@@ -434,7 +434,10 @@ def test_the_3d_view_hides_and_comes_back_in_this_browser_only(
         mag_before = _chart(page, MAG)["over"][2]
         page.get_by_role("tab", name="Live", exact=True).click(timeout=SLOW_S * 1000)
         page.get_by_role("button", name="Hide / show the 3-D view").click(timeout=SLOW_S * 1000)
-        wait_for(lambda: page.evaluate(PLOTS_BOX_JS)[1] > before[1] + 300, SLOW_S,
+        # In 1600 px: controls 384, plots 900, scene 316; hidden, the scene keeps viser's
+        # 120 px minimum, so the plots gain ~190 px (the 4000 px of before gained more by
+        # squeezing the controls to ~110 px).
+        wait_for(lambda: page.evaluate(PLOTS_BOX_JS)[1] > before[1] + 150, SLOW_S,
                  "the plots panel did not widen over the 3-D view")
         wide = page.evaluate(PLOTS_BOX_JS)
         # The controls keep their width (they were squeezed to ~110 px) and the 3-D view is
@@ -445,7 +448,7 @@ def test_the_3d_view_hides_and_comes_back_in_this_browser_only(
               "scene", page.evaluate(SCENE_WIDTH_JS), "viewport", viewport)
         assert controls[1] >= 0.95 * controls_before[1] and controls[1] >= 300, controls
         assert wide[1] + controls[1] >= viewport - 140, (wide, controls, viewport)
-        wait_for(lambda: _chart(page, MAG)["over"][2] > mag_before + 300, SLOW_S,
+        wait_for(lambda: _chart(page, MAG)["over"][2] > mag_before + 150, SLOW_S,
                  "the Decide charts did not widen")
         assert fresh.evaluate(PLOTS_BOX_JS) == other_before  # the other browser: unchanged
         page.get_by_role("button", name="Hide / show the 3-D view").click(timeout=SLOW_S * 1000)
