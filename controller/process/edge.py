@@ -50,6 +50,7 @@ from typing import Any
 from controller import protocol as proto
 from controller.client.session import SessionOptions, connect
 from controller.process.budget import RequestBudget
+from controller.process.estop_keys import ESTOP_ARRIVAL, ESTOP_FLAG, PUBLIC, estop_claims
 from controller.process.history import history_reply
 from controller.process.persistence import StateStore
 from controller.process.worker_start import lower_priority, worker_init
@@ -96,10 +97,6 @@ CONNECT_RETRY_S = 0.1
 #: How often the budget's refusals are reported to the loop process (audit, status).
 REPORT_S = 1.0
 INTERNAL_ERROR = b"internal error: the request was not served (see the controller's log)"
-#: The e-stop flag array's slots: 1 while an e-stop waits for the tick; the newest e-stop's
-#: arrival stamp (`time.monotonic_ns`, the clock the loop stamps requests with).
-ESTOP_FLAG = 0
-ESTOP_ARRIVAL = 1
 #: The shortest time between two e-stop reports (audit lines) to the loop process.
 ESTOP_REPORT_S = 0.1
 #: How long a forwarded request may take in the loop process before the client is told so.
@@ -209,7 +206,6 @@ class _Edge:
                 flag[ESTOP_ARRIVAL] = arrival  # the stamp before the flag (the tick reads
             flag[ESTOP_FLAG] = 1               # the flag, clears it, then the stamp)
         from controller.process.access import LOCAL
-        from controller.process.node import PUBLIC, estop_claims
 
         key = str(sample.key_expr)
         who = proto.user_of_key(key) or (PUBLIC if self.spec.auth_dir is not None

@@ -43,8 +43,9 @@ from controller.core.errors import ConfigError
 from controller.process import requests as rq
 from controller.process.access import LOCAL, Who
 from controller.process.blackbox import BlackBox
-from controller.process.edge import ESTOP_ARRIVAL
+from controller.process.estop_keys import ESTOP_ARRIVAL, PUBLIC, estop_claims
 from controller.process.persistence import Latch, PersistenceError
+from controller.process.replay import ReplayServer
 from controller.process.runtime import ESTOP, FAULT
 from controller.process.service import ControllerService, RuntimeEvents
 
@@ -92,29 +93,6 @@ _PLAIN_COMMANDS: dict[type, Callable[[], rq.RequestBody]] = {
     proto.Stop: rq.Stop,
     proto.EStop: rq.EStop,
 }
-
-
-#: The sender of an e-stop on the public key under authentication: any authenticated user may
-#: put there and Zenoh does not say who did (a user's own scope names the user).
-PUBLIC = "public"
-#: Largest e-stop payload whose claims are read for the audit (the e-stop itself ignores it).
-_CLAIMS_MAX_BYTES = 4096
-
-
-def estop_claims(sample: Any) -> dict[str, str]:
-    """What an e-stop sample claims about its sender, for the audit (claims, not identity):
-    the client name of its Command and the Zenoh session id the sender set (source_info)."""
-    out: dict[str, str] = {}
-    data = sample.payload.to_bytes()
-    if len(data) <= _CLAIMS_MAX_BYTES:
-        try:
-            out["claimed_client"] = proto.decode(data, proto.Command).client
-        except proto.ProtocolError:
-            out["claimed_client"] = f"(not a Command: {len(data)} bytes)"
-    info = sample.source_info
-    if info is not None and info.source_id is not None:
-        out["claimed_session"] = str(info.source_id)
-    return out
 
 
 def to_request(body: proto.CommandBody, client: str) -> rq.RequestBody:
@@ -205,6 +183,10 @@ class ZenohNode:
             proto.key_status(rig), congestion_control=zenoh.CongestionControl.DROP
         )
         self._entities += [self.state_pub, self.status_pub]
+        # The state stream again, from the black box's batches (a recorder's lost samples).
+        replay = ReplayServer(rig, self.blackbox.held, self.service.warn)
+        replay.declare(session, auth=self.access.auth)
+        self._entities.append(replay)
         # Announce the rig (routers carry it to every site): it leaves the list when this
         # session ends or is lost.
         self._entities.append(session.liveliness().declare_token(proto.key_alive(rig)))
