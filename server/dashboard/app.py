@@ -127,16 +127,17 @@ def build_or_depart(server: viser.ViserServer | None, client: viser.ClientHandle
                     build: Callable[[], None], depart: Callable[[], None]) -> None:
     """`build()` the new browser's own panels; if it left before or during the build, what
     was built for it is dropped (`depart()`: its disconnect callback may have run first, and
-    its panel would live on unseen). viser removes a browser's containers when it leaves, so
-    a build racing the departure raises KeyError: taken as the departure; any other KeyError
-    (the browser still here) is a fault and propagates."""
+    its panel would live on unseen). viser removes a browser's containers and handles when
+    it leaves, so a build racing the departure raises KeyError (a removed container) or
+    RuntimeError (an assignment to a removed handle): taken as the departure; either from a
+    browser still here is a fault and propagates."""
 
     def present() -> bool:
         return server is not None and client.client_id in server.get_clients()
 
     try:
         build()
-    except KeyError:
+    except (KeyError, RuntimeError):
         if present():
             raise
     if not present():

@@ -56,3 +56,25 @@ def test_a_browser_gone_before_its_panels_are_built_is_a_departure(
     with connected(dash):
         ids = set(dash.server.get_clients())
         wait_for(lambda: ids & set(dash.candidates.panels), 30.0, "no panel for the next one")
+
+
+def test_a_removed_handle_is_a_departure_only_for_a_browser_gone() -> None:
+    """The other face of the race (seen in a suite run): viser raises RuntimeError "Cannot
+    assign ... on a removed GuiTabGroupHandle" when the browser left mid-build."""
+    from types import SimpleNamespace
+
+    from server.dashboard.app import build_or_depart
+
+    client = SimpleNamespace(client_id=7)
+    departed: list[int] = []
+
+    def build() -> None:
+        raise RuntimeError("Cannot assign to '_tab_icons_html' on a removed GuiTabGroupHandle.")
+
+    gone = SimpleNamespace(get_clients=lambda: {})
+    build_or_depart(gone, client, build, lambda: departed.append(7))  # type: ignore[arg-type]
+    assert departed == [7]
+    here = SimpleNamespace(get_clients=lambda: {7: client})
+    with pytest.raises(RuntimeError, match="removed GuiTabGroupHandle"):
+        build_or_depart(here, client, build, lambda: departed.append(8))  # type: ignore[arg-type]
+    assert departed == [7]
