@@ -37,7 +37,9 @@ class WatchChild:
 
     def start(self) -> None:
         if self.proc is None:
-            self.proc = subprocess.Popen(self.command)
+            # Its own session: a Ctrl-C at the terminal (SIGINT to the foreground group)
+            # reaches the controller, which stops the watch itself, not the watch mid-import.
+            self.proc = subprocess.Popen(self.command, start_new_session=True)
 
     def stop(self, timeout_s: float = 10.0) -> int | None:
         """SIGTERM, then SIGKILL after `timeout_s`; its exit code (None: never started)."""
