@@ -19,19 +19,17 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from typing import Protocol
 
 import viser
 
-from controller.core.config import LoopConfig
 from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
 from controller.tune.whole_loop import Objective, WholeLoopResult, tune_whole_loop
-from server.engine import TuningEngine
 from server.escape import esc
 from server.gui import Browser, on_press
 from server.http_access import Refused
 from server.panels.apply_box import StepState
+from server.panels.suggest_step import SuggestTarget
 from server.panels.widgets import REJECT, box, set_html
 from server.workers import LatestWins
 
@@ -49,16 +47,8 @@ MAX_BUDGET_DEG_S = 1000.0
 AUTO = "twice the designed loop's without the DOB"
 
 
-class TuneTarget(Protocol):
-    """What the tune needs of its candidate panel."""
-
-    engine: TuningEngine
-    trajectory: Trajectory
-    base_version: int | None
-
-    def candidate(self) -> LoopConfig: ...
-
-    def load(self, a: LoopConfig, version: int | None, say_text: str = "") -> None: ...
+#: What the tune needs of its candidate panel: what Suggest needs (the same panel).
+TuneTarget = SuggestTarget
 
 
 def objective_text(o: Objective) -> str:
