@@ -24,6 +24,7 @@ command 0, drive stopped, until reset). Only the tick changes the mode.
 
 from __future__ import annotations
 
+import array
 import contextlib
 import math
 import os
@@ -260,8 +261,11 @@ class Runtime:
         self.finished = threading.Event()
         # Timing history.
         cap = opts.timing_capacity
-        self._period_us = [0.0] * cap
-        self._compute_us = [0.0] * cap
+        # C doubles: the status thread reads numpy views, not 2 x cap floats under the GIL.
+        self._period_us = array.array("d", bytes(8 * cap))
+        self._compute_us = array.array("d", bytes(8 * cap))
+        self._period_np = np.frombuffer(self._period_us, dtype=np.float64)
+        self._compute_np = np.frombuffer(self._compute_us, dtype=np.float64)
         self._ti = 0  # total timing entries written
         self._snap_i = 0
         # Sample ring.
@@ -394,8 +398,8 @@ class Runtime:
             p = c = np.zeros(1)
         else:
             idx = np.arange(start, end) % cap
-            p = np.asarray(self._period_us)[idx]
-            c = np.asarray(self._compute_us)[idx]
+            p = self._period_np[idx]
+            c = self._compute_np[idx]
         pp = np.percentile(p, [50, 99])
         cp = np.percentile(c, [50, 99])
         return LoopTiming(
@@ -418,7 +422,7 @@ class Runtime:
         cap = len(self._period_us)
         start = max(0, end - cap, 1 if end > 1 else 0)
         idx = np.arange(start, end) % cap
-        return np.asarray(self._period_us)[idx], np.asarray(self._compute_us)[idx]
+        return self._period_np[idx], self._compute_np[idx]
 
     # -- publisher side --------------------------------------------------------------------------
 
