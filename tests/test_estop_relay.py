@@ -107,6 +107,7 @@ def test_an_estop_flood_through_the_edge_is_reported_once_per_sender_with_its_co
     flag = estop_flag()
     edge, sent = _edge(flag)
     n = 5000
+    t_first = time.time()
     threads = [threading.Thread(target=lambda: [edge.on_estop(_sample("dobtune/r/@user/view/estop"))
                                                 for _ in range(n)]) for _ in range(2)]
     edge.on_estop(_sample("dobtune/r/@user/op1/estop", client="op"))
@@ -125,15 +126,19 @@ def test_an_estop_flood_through_the_edge_is_reported_once_per_sender_with_its_co
     assert not reporter.is_alive()
     ((what, entries),) = sent
     assert what == "estop"
-    by_user = {who: (key, claims, count) for who, key, claims, count in entries}
+    by_user = {who: (key, claims, count, arrived_s)
+               for who, key, claims, count, arrived_s in entries}
     assert by_user["view"][2] == 2 * n and by_user["op1"][2] == 1
+    # The first arrival's wall time (op1's came before the flood's threads started).
+    assert t_first - 0.01 <= by_user["op1"][3] <= by_user["view"][3] <= time.time()
     assert by_user["view"][1]["claimed_client"] == "flood"
     # The loop process writes them as edge_link does: the audit counts the coalesced ones.
     path = tmp_path / AUDIT_FILE
     with AuditLog(path, rig="r") as log:
-        for who, key, claims, count in entries:
+        for who, key, claims, count, arrived_s in entries:
             log.record("estop", who, "accepted", source="estop key", key=key, relayed="edge",
-                       **claims, **({"repeats": count - 1} if count > 1 else {}))
+                       arrived_s=arrived_s, **claims,
+                       **({"repeats": count - 1} if count > 1 else {}))
         log.record("reset", "op1", "accepted", estop_seq=3)
     recs = [json.loads(x) for x in path.read_bytes().splitlines()]
     assert [r["action"] for r in recs] == ["estop", "estop", "estop.repeated", "reset"]

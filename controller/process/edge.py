@@ -154,8 +154,9 @@ class _Edge:
         self.spec = spec
         self.flag = flag if flag is not None else [0, 0]
         self._estop_lock = threading.Lock()
-        #: E-stops not yet reported to the loop process, by (user, key, claims).
-        self._estops: dict[tuple[str, str, tuple[tuple[str, str], ...]], int] = {}
+        #: E-stops not yet reported to the loop process, by key: [first sample, count,
+        #: its arrival (monotonic ns)].
+        self._estops: dict[str, list[Any]] = {}
         self._estop_event = threading.Event()
         self.conns = conns
         self.control = control
@@ -198,27 +199,39 @@ class _Edge:
         return put
 
     def on_estop(self, sample: Any) -> None:
-        """An e-stop (Zenoh callback): the loop's flag first, then its audit line."""
+        """An e-stop (Zenoh callback): the loop's flag first, then count it for the audit.
+
+        As little as possible runs here, per sample: under a flood this callback's cost is
+        the queue every other e-stop waits in. Who sent it and what it claims are read by
+        `report_estops`, from the first sample of each key in a report period."""
         arrival = time.monotonic_ns()
         flag = self.flag
+        key = str(sample.key_expr)
         with self._estop_lock:
             if arrival > flag[ESTOP_ARRIVAL]:
                 flag[ESTOP_ARRIVAL] = arrival  # the stamp before the flag (the tick reads
             flag[ESTOP_FLAG] = 1               # the flag, clears it, then the stamp)
-        from controller.process.access import LOCAL
-
-        key = str(sample.key_expr)
-        who = proto.user_of_key(key) or (PUBLIC if self.spec.auth_dir is not None
-                                         else LOCAL.user)
-        claims = tuple(sorted(estop_claims(sample).items()))
-        with self._estop_lock:
-            k = (who, key, claims)
-            self._estops[k] = self._estops.get(k, 0) + 1
+            entry = self._estops.get(key)
+            if entry is not None:
+                entry[1] += 1
+                return
+            self._estops[key] = [sample, 1, arrival]
         self._estop_event.set()
 
+    def _estop_report(self, key: str, sample: Any, n: int, arrival_ns: int
+                      ) -> tuple[str, str, dict[str, str], int, float]:
+        """(who, key, claims, count, the first one's arrival as UNIX time)."""
+        from controller.process.access import LOCAL
+
+        who = proto.user_of_key(key) or (PUBLIC if self.spec.auth_dir is not None
+                                         else LOCAL.user)
+        arrived_s = time.time() - (time.monotonic_ns() - arrival_ns) / 1e9
+        return who, key, estop_claims(sample), n, arrived_s
+
     def report_estops(self) -> None:
-        """Each sender's e-stops to the loop process (its audit): the first at once, then at
-        most one report every ESTOP_REPORT_S, with the count."""
+        """Each key's e-stops to the loop process (its audit): the first at once, then at
+        most one report every ESTOP_REPORT_S, with the count (the claims are the first
+        sample's of the period: one sender's key, its repeats counted)."""
         while not self.stop.is_set():
             self._estop_event.wait()
             self._estop_event.clear()
@@ -226,8 +239,8 @@ class _Edge:
                 pending, self._estops = self._estops, {}
             if pending:
                 with contextlib.suppress(OSError, ValueError):
-                    self.send_control(("estop", [(who, key, dict(claims), n)
-                                                 for (who, key, claims), n in pending.items()]))
+                    self.send_control(("estop", [self._estop_report(key, *entry)
+                                                 for key, entry in pending.items()]))
             self.stop.wait(ESTOP_REPORT_S)
 
     # -- workers -------------------------------------------------------------------------------

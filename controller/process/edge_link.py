@@ -299,13 +299,15 @@ class EdgeLink:
             return
         self.start()
 
-    def _estops(self, estops: list[tuple[str, str, dict[str, str], int]]) -> None:
+    def _estops(self, estops: list[tuple[str, str, dict[str, str], int, float]]) -> None:
         """The audit lines of the e-stops the edge received: one per sender and report, the
-        others it coalesced counted (`repeats`)."""
+        others it coalesced counted (`repeats`); `arrived_s`: when the first one reached the
+        edge (UNIX time; the line itself is written up to ESTOP_REPORT_S later)."""
         access = self.service.access
-        for who, key, claims, n in estops:
+        for who, key, claims, n, arrived_s in estops:
             access.record("estop", who, "accepted", source="estop key", key=key,
-                          relayed="edge", **claims, **({"repeats": n - 1} if n > 1 else {}))
+                          relayed="edge", arrived_s=round(arrived_s, 6), **claims,
+                          **({"repeats": n - 1} if n > 1 else {}))
 
     def _refused(self, refused: dict[str, int], shed: int) -> None:
         access = self.service.access
