@@ -13,8 +13,9 @@ from rig_linear import linear_params
 
 from controller.gate.loop_model import discrete_equivalent
 from controller.sim.sim_rig import RigFaults, SimRig
-from controller.tune.family import RANGES, BruteGrid, draw_family, run_rig, true_response
+from controller.tune.family import RANGES, BruteGrid, draw_family, run_rig
 from controller.tune.whole_loop import Objective
+from controller.twin.fit import rig_response
 
 
 def _measured(rig: SimRig, f_hz: float, periods: int = 6) -> tuple[complex, float]:
@@ -43,7 +44,7 @@ def test_true_response_is_the_simulated_rigs(f_hz: float) -> None:
     rig.set_faults(faults)
     h, f = _measured(rig, f_hz)
     # the sampled loop: the held command and the backward-difference rate
-    ref = complex(discrete_equivalent(true_response(params, faults, np.array([f])), [f],
+    ref = complex(discrete_equivalent(rig_response(params, faults, np.array([f])), [f],
                                       1000.0)[0])
     assert 20 * math.log10(abs(h / ref)) == pytest.approx(0.0, abs=0.3)
     assert math.degrees(np.angle(h / ref)) == pytest.approx(0.0, abs=3.0)

@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from controller.core.arrays import ComplexArray, FloatArray
+from controller.core.arrays import FloatArray
 from controller.core.config import LoopConfig, NominalModel
 from controller.gate.knowledge import COMMISSIONING_BOUND, MeasuredResponse, PlantKnowledge
 from controller.ident.model_fit import fit_second_order
@@ -39,9 +39,10 @@ from controller.tune.whole_loop import (
     meets_targets,
     tune_whole_loop,
 )
+from controller.twin.fit import rig_response
 
 __all__ = ["RANGES", "BruteGrid", "FamilyRig", "RigOutcome", "brute_force", "draw_family",
-           "identify", "run_rig", "true_knowledge", "true_response"]
+           "identify", "run_rig", "true_knowledge"]
 
 RANGES: dict[str, tuple[float, float]] = {
     "inertia_factor": (0.3, 3.0),
@@ -106,44 +107,6 @@ def draw_family(seed: int, n: int = 20) -> tuple[FamilyRig, ...]:
     return tuple(out)
 
 
-def true_response(params: RigParams, faults: RigFaults, freq_hz: FloatArray,
-                  position_deg: float = 0.0, rate_hz: float = 1000.0) -> ComplexArray:
-    """u -> w of the simulated rig (continuous, load-side rates) linearised about a one-way
-    motion at `position_deg` (belt loaded, friction constant, no ripple, the backlash taken
-    up): G = gain Ki T H / A e^{-s d Ts} with
-      H = (2 z w s + w^2) / (s^2 + 2 z w s + w^2)  the payload of the extra mode as the
-          encoder reads it (1 without one),
-      T = (k + c s) / (Jh s^2 + Jp H s^2 + (bl + c) s + k)  hub over pulley angle,
-      A = (Jm s^2 + bm s + (k + c s)(1 - T)/N^2)(s + Ki r)/s + (Ki + Kp s) D  the motor with the
-          drive's I-P loop (droop r) and its speed estimate over the window, D = (1 -
-          e^{-s Tw})/(s Tw);
-    k and c at the position (`belt_*_variation` x cos theta), d the command delay in ticks."""
-    p = params
-    s = TWO_PI * 1j * np.asarray(freq_hz, dtype=np.float64)
-    th = math.radians(position_deg)
-    k = p.belt_stiffness_n_m_rad * (1.0 + p.belt_stiffness_variation * math.cos(th))
-    c = p.belt_damping_n_m_s_rad * (1.0 + p.belt_damping_variation * math.cos(th))
-    jl = p.load_inertia_kg_m2
-    h: ComplexArray | float = 1.0
-    jp = 0.0
-    if faults.resonance_hz > 0.0:
-        w = TWO_PI * faults.resonance_hz
-        zw2 = 2.0 * faults.resonance_damping * w
-        h = (zw2 * s + w * w) / (s * s + zw2 * s + w * w)
-        jp = faults.resonance_mass_fraction * jl
-    t = (k + c * s) / ((jl - jp) * s**2 + jp * h * s**2 + (p.load_viscous_n_m_s_rad + c) * s + k)
-    tw = p.drive_speed_window_s
-    d = (1.0 - np.exp(-s * tw)) / (s * tw)
-    n = p.gear_ratio
-    droop = p.drive_droop_rpm_per_n_m * TWO_PI / 60.0
-    ki = p.drive_ki_n_m_rad
-    mech = (p.motor_inertia_kg_m2 * s**2 + p.motor_viscous_n_m_s_rad * s
-            + (k + c * s) * (1 - t) / n**2)
-    a = mech * (s + ki * droop) / s + (ki + p.drive_kp_n_m_s_rad * s) * d
-    delay = np.exp(-s * p.command_delay_ticks / rate_hz)
-    return np.asarray(faults.plant_gain * ki * t * h / a * delay, dtype=np.complex128)
-
-
 def response_grid(faults: RigFaults, rate_hz: float) -> FloatArray:
     """0.1 Hz to 0.45 x the rate, log-spaced, dense around the extra mode (a lightly damped
     mode needs points within its half-power band, or the gate asks to measure denser)."""
@@ -162,7 +125,7 @@ def true_knowledge(params: RigParams, faults: RigFaults, rate_hz: float = 1000.0
     base = base or NominalModel()
     f = response_grid(faults, rate_hz)
     measured = tuple(
-        MeasuredResponse(f"true {pos:g} deg", f, true_response(params, faults, f, pos, rate_hz))
+        MeasuredResponse(f"true {pos:g} deg", f, rig_response(params, faults, f, pos, rate_hz))
         for pos in POSITIONS_DEG)
     return PlantKnowledge(measured=measured, bound=COMMISSIONING_BOUND,
                           model=fitted_model(measured, base), source="true rig")
