@@ -179,6 +179,8 @@ class ControllerClient:
         self._status_listeners: list[Any] = []
         #: The operator lease token this client holds ("" none).
         self.lease_token = ""
+        self._source_id: Any = None
+        self._source_sn = 0
 
     # -- lifecycle -----------------------------------------------------------------------------
 
@@ -320,11 +322,25 @@ class ControllerClient:
 
     # -- queries (blocking: call from worker threads) ------------------------------------------
 
+    def _source_info(self) -> Any:
+        """This session's id on every query: the controller's request budget gives each
+        session its share of the user's (`controller.process.budget`)."""
+        import zenoh
+
+        if self._source_id is None:
+            assert self._session is not None
+            querier = self._session.declare_querier(self.key(proto.key_config(self.opts.rig_name)))
+            self._source_id = querier.id  # an EntityGlobalId has no constructor of its own
+            querier.undeclare()
+        self._source_sn += 1
+        return zenoh.SourceInfo(self._source_id, self._source_sn)
+
     def _query(self, key: str, payload: bytes, timeout_s: float | None = None) -> bytes:
         if self._session is None:
             raise ControllerUnavailable("not connected")
         timeout_s = self.opts.query_timeout_s if timeout_s is None else timeout_s
-        replies = self._session.get(key, payload=payload, timeout=timeout_s)
+        replies = self._session.get(key, payload=payload, timeout=timeout_s,
+                                    source_info=self._source_info())
         for reply in replies:
             if reply.ok is not None:
                 data: bytes = reply.ok.payload.to_bytes()

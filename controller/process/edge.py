@@ -103,6 +103,16 @@ ESTOP_REPORT_S = 0.1
 FORWARD_TIMEOUT_S = 30.0
 
 
+def claimed_session(query: Any) -> str:
+    """The session a query claims to come from (its `source_info`'s Zenoh id, set by the
+    sender: `controller.client` sets it), "" for one that names none: the key of the
+    per-session budget (`controller.process.budget`: a claim only divides its user's budget)."""
+    info = query.source_info
+    if info is None:
+        return ""
+    return str(info.source_id.zid)
+
+
 def estop_flag() -> Any:
     """The shared e-stop flag array (int64 [flag, arrival]), inherited by the edge process
     when forked and passed to it when spawned."""
@@ -186,7 +196,7 @@ class _Edge:
         def put(query: Any) -> None:
             arrival = clock()
             if budget is not None and not budget.allow(
-                    user_of_key(query.key_expr) or "anonymous"):
+                    user_of_key(query.key_expr) or "anonymous", claimed_session(query)):
                 with contextlib.suppress(Exception):
                     query.reply_err(refusal)
                     query.drop()

@@ -5,7 +5,8 @@ loop's process.
 
 While a viewer floods every read it may send (and a candidate it may not apply) from 4
 threads: its excess is refused, each refusal naming the budget, and the controller reports and
-audits the refusals; another user is served meanwhile (budgets are per user); e-stops put
+audits the refusals; another user is served meanwhile (budgets are per user), and so is the
+viewer's own second session (a session gets a share of its user's budget); e-stops put
 during the flood are applied, and a reset followed at once by an e-stop ends in e-stop (the
 order of arrival holds across the two processes); the loop keeps running. The edge process
 ends with the controller, and one that dies is started again while the loop runs on. No
@@ -171,6 +172,10 @@ def test_a_viewers_flood_is_refused_by_budget_and_the_estop_goes_through(
             seqs = [_estop_applied(watch)]
             # Another user is served meanwhile: the viewer's budget is its own.
             assert op1.get_config().version >= 1
+            # And so is another session of the flooding viewer: one session may use only its
+            # share of its user's budget, and the flood's refused requests take none of it.
+            with _client(auth, proc, "view") as view2:
+                assert view2.get_config().version >= 1
             # A reset, then at once an e-stop (not waiting for the reset's reply): the
             # e-stop, sent last, wins, whichever process each reached first.
             reset_msg = proto.Command(body=proto.ResetFault(estop_seq=seqs[-1]),
