@@ -342,13 +342,24 @@ def _declared(keys: Iterable[str]) -> tuple[str, ...]:
     return keys + tuple(any_user_key(k) for k in keys)
 
 
+#: The fleet overview's subscriptions to every rig at once: the loop's streams and the
+#: watch's drift state (its drift column).
+_FLEET_STREAMS = tuple(f"{proto.KEY_PREFIX}/*/{what}" for what in ("state", "status", "drift"))
+
+
+def _watched(rig: str) -> tuple[str, ...]:
+    """What the watch publishes and answers for (its drift state, its alarms, the prediction
+    checks): the rig's viewers read it as they read the loop's streams."""
+    return proto.key_drift(rig), proto.key_drift_alarm(rig), proto.key_prediction(rig)
+
+
 def _fleet(rig: str) -> list[_Grant]:
     """What the fleet overview and `ctl rigs` need: they subscribe to every rig at once
     (`dobtune/*/...`); the router then passes on the samples and liveliness of this rig only
     (the egress rules name it), so a user learns nothing of rigs it may not reach."""
     p = proto.KEY_PREFIX
     return [
-        _Grant(("ingress",), ("declare_subscriber",), (f"{p}/*/state", f"{p}/*/status")),
+        _Grant(("ingress",), ("declare_subscriber",), _FLEET_STREAMS),
         _Grant(("ingress",), ("declare_liveliness_subscriber", "liveliness_query"),
                (f"{p}/*/alive",)),
         _Grant(("egress",), ("liveliness_token",), (proto.key_alive(rig),)),
@@ -356,8 +367,9 @@ def _fleet(rig: str) -> list[_Grant]:
 
 
 def _viewer(rig: str, user: str) -> list[_Grant]:
-    """Receive state and status, read config and identification, put e-stop."""
-    streams = (proto.key_state(rig), proto.key_status(rig))
+    """Receive state and status and the watch's drift, read config and identification, put
+    e-stop."""
+    streams = (proto.key_state(rig), proto.key_status(rig), *_watched(rig))
     reads = (
         proto.key_config(rig), proto.key_identify(rig), proto.key_knowledge(rig),
         proto.key_lease(rig), proto.key_history(rig),
@@ -371,6 +383,9 @@ def _viewer(rig: str, user: str) -> list[_Grant]:
         _Grant(("ingress",), ("query",), _own(reads, user)),
         _Grant(("egress",), ("reply",), _own(reads, user)),
         _Grant(("egress",), ("declare_queryable",), _declared(reads)),
+        # The watch answers on the public keys only (it is no user's request handler).
+        _Grant(("ingress",), ("query",), _watched(rig)),
+        _Grant(("egress",), ("reply", "declare_queryable"), _watched(rig)),
         _Grant(("ingress",), ("put",), _own(estop, user)),
         _Grant(("egress",), ("declare_subscriber",), _declared(estop)),
     ]
@@ -400,9 +415,10 @@ def _controller(rig: str, user: str) -> list[_Grant]:
     p = proto.KEY_PREFIX
     return [
         _Grant(("ingress", "egress"), _ALL_MESSAGES, keys),
-        # The fleet overview's interest in every rig at once reaches the controller, which
-        # then sends its streams and liveliness to the router (that passes them on by rule).
-        _Grant(("egress",), ("declare_subscriber",), (f"{p}/*/state", f"{p}/*/status")),
+        # The fleet overview's interest in every rig at once reaches the controller (and the
+        # watch, which logs in with this account), which then sends its streams and liveliness
+        # to the router (that passes them on by rule).
+        _Grant(("egress",), ("declare_subscriber",), _FLEET_STREAMS),
         _Grant(("egress",), ("declare_liveliness_subscriber", "liveliness_query"),
                (f"{p}/*/alive",)),
     ]

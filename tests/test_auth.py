@@ -268,7 +268,7 @@ def test_viewer_rules(auth_dir: Path) -> None:
     everything = {k for r in rules for k in r["key_exprs"]}
     # rig a only, but for the fleet overview's subscriptions to every rig at once (whose
     # samples and liveliness the egress rules limit to rig a)
-    fleet = {"dobtune/*/state", "dobtune/*/status", "dobtune/*/alive"}
+    fleet = {"dobtune/*/state", "dobtune/*/status", "dobtune/*/drift", "dobtune/*/alive"}
     assert all(k.startswith("dobtune/a/") or k in fleet for k in everything)
     assert fleet <= everything
     assert keys_for(rules, "egress", "liveliness_token") == {"dobtune/a/alive"}
@@ -279,9 +279,13 @@ def test_viewer_rules(auth_dir: Path) -> None:
         "dobtune/a/@user/view_a/config", "dobtune/a/@user/view_a/identify",
         "dobtune/a/@user/view_a/knowledge", "dobtune/a/@user/view_a/lease",
         "dobtune/a/@user/view_a/history", "dobtune/a/@user/view_a/state/replay",
+        # the watch's (public keys only: it serves no user's scope)
+        "dobtune/a/drift", "dobtune/a/drift/alarm", "dobtune/a/prediction",
     }
     assert keys_for(rules, "ingress", "put") == {"dobtune/a/estop", "dobtune/a/@user/view_a/estop"}
-    assert keys_for(rules, "egress", "put") == {"dobtune/a/state", "dobtune/a/status"}
+    assert keys_for(rules, "egress", "put") == {"dobtune/a/state", "dobtune/a/status",
+                                                "dobtune/a/drift", "dobtune/a/drift/alarm",
+                                                "dobtune/a/prediction"}
     assert keys_for(rules, "ingress", "declare_queryable") == set()
 
 
@@ -302,7 +306,8 @@ def test_rules_follow_the_served_rigs(auth_dir: Path) -> None:
     assert {s["id"] for s in only_b["subjects"]} == {"user everywhere", "user ctl"}
     both = acl_config(users, ["a", "b"])
     ctl = {k for r in rules_of(both, "ctl") for k in r["key_exprs"]}
-    fleet = {"dobtune/*/state", "dobtune/*/status", "dobtune/*/alive"}  # interest, egress only
+    fleet = {"dobtune/*/state", "dobtune/*/status", "dobtune/*/drift",  # interest, egress only
+             "dobtune/*/alive"}
     assert ctl == {"dobtune/a/**", "dobtune/a/@user/*/**", "dobtune/b/**", "dobtune/b/@user/*/**",
                    *fleet}
     assert all(r["flows"] == ["egress"] for r in rules_of(both, "ctl")

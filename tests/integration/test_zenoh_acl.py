@@ -78,6 +78,7 @@ class FakeController:
                       for k in estops + [k for rig in RIGS for k in trap_keys(rig)]]
         self.publishers = {k: s.declare_publisher(k) for rig in RIGS
                            for k in (proto.key_state(rig), proto.key_status(rig))}
+        self.extra: list[Any] = []  # what a test declares on the session besides
         self._thread = threading.Thread(target=self._serve, name="fake-controller", daemon=True)
         self._thread.start()
 
@@ -115,6 +116,8 @@ class FakeController:
         self._thread.join(5.0)
         for _, q in self._queryables:
             q.undeclare()
+        for e in self.extra:
+            e.undeclare()
         self._stack.close()
 
 
@@ -379,5 +382,69 @@ def test_through_a_router_the_same_rules_hold(net: Net) -> None:
         assert wait_until(lambda: alive(op) == {proto.key_alive("b")}, WAIT_S)
         for t in tokens:
             t.undeclare()
+    finally:
+        served.close()
+
+
+def test_through_a_router_a_viewer_receives_and_reads_the_watchs_drift(net: Net) -> None:
+    """The watch (a controller account behind the router, as `dobtune watch --auth DIR --user
+    ctl` logs in) publishes each rig's drift state, its drift alarms and the prediction checks,
+    and answers for them. A viewer of rig a receives and reads rig a's (the fleet's drift
+    column, the dashboard's alarm board, `ctl drift`, `ctl wait-alarm`, `ctl prediction`),
+    also through the fleet overview's `dobtune/*/drift`, never rig b's; it cannot publish a
+    drift state or an alarm of its own (only the watch's reach a subscriber)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    net.open(server_config(net.auth_dir, RIGS, listen=[endpoint], mode="router"))
+    served = FakeController(client_config(net.auth_dir, "ctl", [endpoint], mode="client"))
+    try:
+        watched = {r: (proto.key_drift(r), proto.key_drift_alarm(r), proto.key_prediction(r))
+                   for r in RIGS}
+        s = served.session
+
+        def answer(query: Any) -> None:
+            query.reply(query.key_expr, b"from-watch")
+
+        for r in RIGS:
+            for k in watched[r]:
+                served.publishers[k] = s.declare_publisher(k)
+                served.extra.append(s.declare_queryable(k, zenoh.handlers.Callback(answer)))
+        forged = s.declare_subscriber(proto.key_drift_alarm("a"),
+                                      zenoh.handlers.FifoChannel(64))
+        viewer = ready(net.open(client_config(net.auth_dir, "view_a", [endpoint],
+                                              mode="client")), proto.key_config("a"))
+
+        def read_all_of_a() -> bool:
+            got = get_all(viewer, list(watched["a"]))
+            return all(v == ["from-watch"] for v in got.values())
+
+        assert wait_until(read_all_of_a, WAIT_S), get_all(viewer, list(watched["a"]))
+        got = get_all(viewer, [*watched["a"], *watched["b"]])
+        assert {k: got[k] for k in watched["b"]} == {k: [] for k in watched["b"]}
+
+        fleet = "dobtune/*/drift"
+        subs = {k: viewer.declare_subscriber(k, zenoh.handlers.FifoChannel(256))
+                for k in (*watched["a"], *watched["b"], fleet)}
+        seen: dict[str, list[str]] = {k: [] for k in subs}
+
+        def a_arrived() -> bool:
+            for r in ("b", "a"):
+                for k in watched[r]:
+                    served.publish(k)
+            for k, sub in subs.items():
+                seen[k] += received(sub)
+            return all(len(seen[k]) >= 3 for k in (*watched["a"], fleet))
+
+        assert wait_until(a_arrived, WAIT_S), {k: len(v) for k, v in seen.items()}
+        assert {k: seen[k] for k in watched["b"]} == {k: [] for k in watched["b"]}
+        assert set(seen[fleet]) == {proto.key_drift("a")}
+
+        # A viewer's own drift alarm is dropped; its e-stop, put after it, arrives.
+        viewer.put(proto.key_drift_alarm("a"), b"view_a-forged")
+        deliver(Net(net.auth_dir, endpoint, served), viewer, proto.key_estop("a"),
+                "view_a-estop")
+        payloads = []
+        while (sample := forged.try_recv()) is not None:
+            payloads.append(sample.payload.to_bytes())
+        assert payloads and b"view_a-forged" not in payloads  # the watch's own did arrive
     finally:
         served.close()
