@@ -44,6 +44,9 @@ def test_the_candidate_is_accepted_and_beats_the_starting_loop(tuned_no_ff) -> N
     assert res.speed.crossover_hz / res.position.crossover_hz == pytest.approx(4.0, rel=0.05)
     text = "\n".join(res.explanation)
     assert BUILT_IN in text and "reference lag" in text and "limited by" in text
+    # nothing measured, no resonance: the speed-command filter stays off, and it says so
+    assert cfg.command_filter.kind == "off" and res.filter_design is None
+    assert "speed-command filter: off (no measured resonance limits the speed loop)" in text
     # the starting loop's crossovers as the issue measured them (6.9 Hz, 1.27 Hz)
     assert "speed loop crossing at 6.88 Hz, position loop at 1.27 Hz" in text
 

@@ -34,16 +34,19 @@ Procedure (`design_speed`, `design_position`):
 3. Feedforward: k_ff = Re(1 / T_v) at the trajectory's frequency on the model (the gain that
    cancels the reference lag of the velocity path; 1 for a speed loop with integral action at
    low frequency).
+With a speed-command filter N (`command_filter`: a notch or low-pass on Cv's output, as the
+loop runs it), every step works on N G in place of G.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from controller.core.arrays import ComplexArray, FloatArray
+from controller.core.command_filter import CommandFilter, command_filter_response
 from controller.gate.knowledge import MIN_ALLOWANCE, MeasuredResponse, PlantKnowledge
 from controller.gate.loop_model import (
     discrete_equivalent,
@@ -62,8 +65,10 @@ __all__ = [
     "design_speed",
     "evidence_of",
     "feedforward_gain",
+    "filtered",
     "first_resonance_hz",
     "loop_margins",
+    "measured_modes_hz",
     "pi_response",
 ]
 
@@ -179,6 +184,16 @@ def evidence_of(knowledge: PlantKnowledge, rate_hz: float, f: FloatArray) -> lis
     return out
 
 
+def filtered(ev: list[Evidence], cf: CommandFilter | None, f: FloatArray,
+             rate_hz: float) -> list[Evidence]:
+    """The evidence as the speed PI sees it with the speed-command filter N after it: N G on
+    every evidence (the allowance is G's: the filter is known exactly). Off: `ev` itself."""
+    if cf is None or cf.kind == "off":
+        return ev
+    n = command_filter_response(cf, f, rate_hz)
+    return [Evidence(e.name, e.g * n, e.allowance) for e in ev]
+
+
 def continuous_evidence(response: ComplexArray, f: FloatArray, rate_hz: float) -> ComplexArray:
     """A continuous response's sampled equivalent (for a plant given as G_c(jw))."""
     return discrete_equivalent(response, f, rate_hz)
@@ -239,6 +254,11 @@ class SpeedDesign:
     figures: tuple[EvidenceFigures, ...]
     limit: str
     """What stops a higher crossover, in words."""
+    command_filter: CommandFilter = field(default_factory=CommandFilter)
+    """The speed-command filter the PI was designed with (off: none)."""
+    limit_hz: float = math.nan
+    """Where the first missed target was found (the crossing named in `limit`; nan: the
+    grid's top or the robust figure)."""
 
     @property
     def corner_hz(self) -> float:
@@ -289,55 +309,69 @@ def _whole_servo(e: Evidence, cv: ComplexArray, cp: ComplexArray, integ: Complex
 
 def _shortfall(figs: list[EvidenceFigures], targets: DesignTargets, robust: bool) -> str | None:
     """What the first evidence misses of the targets (None: all met)."""
+    miss = _miss(figs, targets, robust)
+    return None if miss is None else miss[0]
+
+
+def _miss(figs: list[EvidenceFigures], targets: DesignTargets, robust: bool,
+          ) -> tuple[str, float] | None:
+    """What the first evidence misses of the targets and where (the gain crossover for the
+    phase margin, the phase crossover for the gain margin, nan for the robust figure)."""
     for fg in figs:
         m = fg.margins
         if not m.phase_margin_deg >= targets.phase_margin_deg:
             return (f"phase margin {m.phase_margin_deg:.1f} deg < {targets.phase_margin_deg:g}"
                     f" deg on {fg.name} (the plant's lag and the loop's delay at "
-                    f"{m.crossover_hz:.3g} Hz)")
+                    f"{m.crossover_hz:.3g} Hz)", m.crossover_hz)
         if not m.gain_margin_db >= targets.gain_margin_db:
             return (f"gain margin {m.gain_margin_db:.1f} dB < {targets.gain_margin_db:g} dB on "
-                    f"{fg.name} (phase crossover at {m.phase_crossover_hz:.3g} Hz)")
+                    f"{fg.name} (phase crossover at {m.phase_crossover_hz:.3g} Hz)",
+                    m.phase_crossover_hz)
         if robust and fg.robust_peak > targets.robust_peak_max:  # nan: not evaluated
             return (f"robust figure max|a T| {fg.robust_peak:.2f} > {targets.robust_peak_max:g}"
-                    f" on {fg.name} (the plant is known there only within the stated bound)")
+                    f" on {fg.name} (the plant is known there only within the stated bound)",
+                    math.nan)
     return None
 
 
 def design_speed(knowledge: PlantKnowledge, rate_hz: float,
                  targets: DesignTargets | None = None, f: FloatArray | None = None,
-                 ) -> SpeedDesign:
-    """Step 1 of the module docstring."""
+                 command_filter: CommandFilter | None = None) -> SpeedDesign:
+    """Step 1 of the module docstring; with `command_filter`, the PI is placed on N G (the
+    filter between Cv and the plant, as the loop runs it)."""
     targets = targets or DesignTargets()
     f = design_grid(rate_hz) if f is None else f
-    ev = evidence_of(knowledge, rate_hz, f)
+    ev = filtered(evidence_of(knowledge, rate_hz, f), command_filter, f, rate_hz)
     best: tuple[float, float, float, list[EvidenceFigures]] | None = None
     limit = f"the grid's top ({rate_hz / 20:g} Hz, a twentieth of the loop rate)"
     integ = (1.0 / rate_hz) / (1.0 - _zinv(f, rate_hz))
 
-    def trial(fc: float) -> tuple[float, float, list[EvidenceFigures], str | None]:
+    limit_hz = math.nan
+    Miss = tuple[str, float] | None
+
+    def trial(fc: float) -> tuple[float, float, list[EvidenceFigures], Miss]:
         ki = TWO_PI * fc / targets.corner_ratio
         c1 = complex(pi_response(1.0, ki, np.array([fc]), rate_hz)[0])
         kp = min(1.0 / abs(c1 * _at(f, e.g, fc)) for e in ev)
         return judged(kp, ki, fc)
 
     def judged(kp: float, ki: float, fc: float,
-               ) -> tuple[float, float, list[EvidenceFigures], str | None]:
+               ) -> tuple[float, float, list[EvidenceFigures], Miss]:
         figs = _speed_figures(ev, kp, ki, f, rate_hz)
-        miss = _shortfall(figs, targets, robust=True)
+        miss = _miss(figs, targets, robust=True)
         if miss is None:  # the whole servo, with the position loop placed by the rule
             plants = [t * integ for t in speed_closed(ev, kp, ki, f, rate_hz)]
             cp = _position_pi(plants, fc / targets.position_ratio, targets, f, rate_hz)
             cv = pi_response(kp, ki, f, rate_hz)
             whole = [_whole_servo(e, cv, cp, integ, f) for e in ev]
-            miss = _shortfall(whole, targets, robust=True)
+            miss = _miss(whole, targets, robust=True)
         return kp, ki, figs, miss
 
     grid = np.geomspace(0.2, rate_hz / 20.0, 40)
     for j, fc in enumerate(grid):
         kp, ki, figs, miss = trial(float(fc))
         if miss is not None:
-            limit = f"at {fc:.3g} Hz: {miss}"
+            limit, limit_hz = f"at {fc:.3g} Hz: {miss[0]}", miss[1]
             if best is not None:  # bisect between the last feasible and this one
                 lo, hi = float(grid[j - 1]), float(fc)
                 for _ in range(6):
@@ -346,7 +380,7 @@ def design_speed(knowledge: PlantKnowledge, rate_hz: float,
                     if miss is None:
                         best, lo = (kp, ki, mid, figs), mid
                     else:
-                        limit, hi = f"at {mid:.3g} Hz: {miss}", mid
+                        limit, limit_hz, hi = f"at {mid:.3g} Hz: {miss[0]}", miss[1], mid
             break
         best = (kp, ki, float(fc), figs)
     if best is None or best[2] < 0.5 * first_mode_hz(ev, f):
@@ -392,7 +426,8 @@ def design_speed(knowledge: PlantKnowledge, rate_hz: float,
         raise ValueError(f"no speed crossover from 0.2 Hz meets the targets ({limit})")
     kp, ki, fc, figs = best
     cross = max(fg.margins.crossover_hz for fg in figs)
-    return SpeedDesign(kp, ki, cross, tuple(figs), limit)
+    return SpeedDesign(kp, ki, cross, tuple(figs), limit, command_filter or CommandFilter(),
+                       limit_hz)
 
 
 def _position_pi(plants: list[ComplexArray], fc: float, targets: DesignTargets, f: FloatArray,
@@ -429,7 +464,7 @@ def design_position(knowledge: PlantKnowledge, rate_hz: float, speed: SpeedDesig
     """Step 2 of the module docstring."""
     targets = targets or DesignTargets()
     f = design_grid(rate_hz) if f is None else f
-    ev = evidence_of(knowledge, rate_hz, f)
+    ev = filtered(evidence_of(knowledge, rate_hz, f), speed.command_filter, f, rate_hz)
     integ = (1.0 / rate_hz) / (1.0 - _zinv(f, rate_hz))
     plants = [t * integ for t in speed_closed(ev, speed.kp, speed.ki_per_s, f, rate_hz)]
     cv = pi_response(speed.kp, speed.ki_per_s, f, rate_hz)
@@ -460,17 +495,19 @@ def feedforward_gain(knowledge: PlantKnowledge, rate_hz: float, speed: SpeedDesi
     """Step 3: Re(1 / T_v) at `freq_hz` on the model, clipped to the loop's [0, 2]."""
     f = np.array([max(freq_hz, 1e-3)])
     pl = discrete_plant(knowledge.model, rate_hz)
-    g = plant_response(pl, _zinv(f, rate_hz))
+    g = plant_response(pl, _zinv(f, rate_hz)) * command_filter_response(
+        speed.command_filter, f, rate_hz)
     c = pi_response(speed.kp, speed.ki_per_s, f, rate_hz)
     t = complex((c * g / (1.0 + c * g))[0])
     return float(min(2.0, max(0.0, (1.0 / t).real)))
 
 
-def first_resonance_hz(knowledge: PlantKnowledge, rate_hz: float) -> float | None:
-    """The lowest frequency above 2 Hz where some measured response peaks by >= 3 dB over the
-    lowest magnitude below it (a resonance the speed loop must stay clear of); None if the
-    measurements show none."""
-    found: list[float] = []
+def measured_modes_hz(knowledge: PlantKnowledge) -> tuple[tuple[float, float], ...]:
+    """Per measured response (one per position) its first resonance: the lowest frequency
+    above 2 Hz where the response peaks by >= 3 dB over the lowest magnitude below it, with
+    the relative uncertainty of that frequency (half the measured grid's step there: the peak
+    lies between the neighbouring points). Responses that show none are left out."""
+    found: list[tuple[float, float]] = []
     for m in knowledge.measured:
         mag = 20.0 * np.log10(np.abs(m.response))
         f = m.freq_hz
@@ -478,6 +515,14 @@ def first_resonance_hz(knowledge: PlantKnowledge, rate_hz: float) -> float | Non
             if f[i] < 2.0 or not (mag[i] >= mag[i - 1] and mag[i] > mag[i + 1]):
                 continue
             if mag[i] - float(np.min(mag[: i + 1])) >= 3.0:
-                found.append(float(f[i]))
+                step = max(f[i + 1] / f[i], f[i] / f[i - 1])
+                found.append((float(f[i]), 0.5 * (float(step) - 1.0)))
                 break
-    return min(found) if found else None
+    return tuple(found)
+
+
+def first_resonance_hz(knowledge: PlantKnowledge, rate_hz: float) -> float | None:
+    """The lowest of `measured_modes_hz` (a resonance the speed loop must stay clear of); None
+    if the measurements show none."""
+    modes = measured_modes_hz(knowledge)
+    return min(f for f, _ in modes) if modes else None

@@ -9,6 +9,11 @@ measured plant"):
    `controller.tune.loop_design` (speed crossover as high as gain margin >= 8 dB, phase
    margin >= 45 deg and the robust figure <= 0.7 allow; position loop 4x below; integral
    corners a quarter of each crossover). Rounded to three significant figures.
+   Where a measured resonance limits the speed loop (the first target the PI alone misses is
+   missed near the mode), a notch at the mode or a low-pass below it on the speed command is
+   designed with the PI (`controller.tune.filter_design`); the loop with it is kept if the
+   gate accepts it (step 3) and it scores better on the plant than the loop without it.
+   Otherwise the filter is off.
 2. Feedforward gain: Re(1 / T_v) at the trajectory's frequency (about 1), if allowed.
 3. The gate judges this loop with the DOB off (`controller.gate.verdict.judge`); should it not
    accept it (the gate's evidence is wider than the design's), both loops' gains step down by
@@ -36,12 +41,20 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from controller.core.command_filter import CommandFilter
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PlantKnowledge
 from controller.gate.verdict import NonlinearCheck, judge
 from controller.sim.experiment import run_experiment
 from controller.tune.autotune import command_noise_deg_s
+from controller.tune.filter_design import (
+    MIN_RAISE,
+    FilterDesign,
+    design_filter,
+    mode_band_hz,
+    mode_limits,
+)
 from controller.tune.loop_design import (
     DesignTargets,
     PositionDesign,
@@ -51,6 +64,7 @@ from controller.tune.loop_design import (
     design_speed,
     evidence_of,
     feedforward_gain,
+    filtered,
     first_resonance_hz,
     loop_margins,
     pi_response,
@@ -144,7 +158,8 @@ def reference_lag(cfg: LoopConfig, knowledge: PlantKnowledge, trajectory: Trajec
         return 0.0
     rate = cfg.rate_hz
     f = np.array([f0])
-    ev = evidence_of(PlantKnowledge(model=knowledge.model), rate, f)
+    ev = filtered(evidence_of(PlantKnowledge(model=knowledge.model), rate, f),
+                  cfg.command_filter, f, rate)
     tv = speed_closed(ev, cfg.cv_kp, cfg.cv_ki_per_s, f, rate)[0]
     zi = np.exp(-2j * math.pi * f / rate)
     integ = (1.0 / rate) / (1.0 - zi)
@@ -160,7 +175,8 @@ def crossovers_hz(cfg: LoopConfig, knowledge: PlantKnowledge) -> tuple[float, fl
     """(speed loop, position loop) gain crossovers of `cfg` on the knowledge's model."""
     rate = cfg.rate_hz
     f = design_grid(rate, 800)
-    ev = evidence_of(PlantKnowledge(model=knowledge.model), rate, f)
+    ev = filtered(evidence_of(PlantKnowledge(model=knowledge.model), rate, f),
+                  cfg.command_filter, f, rate)
     lv = pi_response(cfg.cv_kp, cfg.cv_ki_per_s, f, rate) * ev[0].g
     integ = (1.0 / rate) / (1.0 - np.exp(-2j * math.pi * f / rate))
     lp = pi_response(cfg.pos_kp_per_s, cfg.pos_ki_per_s, f, rate) * lv / (1.0 + lv) * integ
@@ -177,7 +193,7 @@ def meets_targets(cfg: LoopConfig, knowledge: PlantKnowledge, targets: DesignTar
     evidence: None if met, else what is missed."""
     rate = cfg.rate_hz
     f = design_grid(rate, 800)
-    ev = evidence_of(knowledge, rate, f)
+    ev = filtered(evidence_of(knowledge, rate, f), cfg.command_filter, f, rate)
     c = pi_response(cfg.cv_kp, cfg.cv_ki_per_s, f, rate)
     zi = np.exp(-2j * math.pi * f / rate)
     integ = (1.0 / rate) / (1.0 - zi)
@@ -220,6 +236,15 @@ class WholeLoopResult:
     backoff_steps: int = 0
     best_dob_off: Candidate | None = None
     """The candidate's PIs and feedforward with the DOB off (what the DOB adds)."""
+    filter_design: FilterDesign | None = None
+    """The speed-command filter designed for a measured resonance that limits the speed loop
+    (None: no such resonance, or no filter raised the crossover); `kept` says whether the
+    designed loop has it."""
+    filter_tried: bool = True
+    """Whether the tune was to design a filter (`design_command_filter`)."""
+    designed_other: Candidate | None = None
+    """With `filter_design`: the designed loop (steps 1-3, DOB off) the other way (without the
+    filter when it was kept, with it when not)."""
 
 
 def tune_whole_loop(
@@ -234,6 +259,7 @@ def tune_whole_loop(
     lowest_hz: float = 0.1,
     highest_hz: float = 20.0,
     refine_rounds: int = 2,
+    design_command_filter: bool = True,
     nonlinear: NonlinearCheck | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> WholeLoopResult:
@@ -254,36 +280,48 @@ def tune_whole_loop(
             progress(min(0.99, runs[0] / total))
         return evaluate(cfg, plant, objective, knowledge if judged else None)
 
-    # 1-2: the linear design.
-    # A speed loop whose closed response peaks can leave the position loop no placement that
-    # meets the targets: then the speed loop is designed again with 10 deg more phase margin.
-    speed_targets = targets
-    for attempt in range(4):
-        speed = design_speed(knowledge, rate, speed_targets)
-        try:
-            position = design_position(knowledge, rate, speed, targets)
-            break
-        except ValueError:
-            if attempt == 3 or speed_targets.phase_margin_deg + 10.0 >= 90.0:
-                raise
-            speed_targets = replace(speed_targets,
-                                    phase_margin_deg=speed_targets.phase_margin_deg + 10.0)
+    # 1-2: the linear design, without a filter on the speed command; then, where a measured
+    # resonance limits the speed loop, with the filter designed for it (filter_design): the
+    # filtered loop is kept if the gate accepts it and it scores better on the plant.
+    speed, position = _place(knowledge, rate, targets, None)
     traj = objective.trajectory
     f0 = traj.omega_rad_s / (2 * math.pi) if traj.kind == "sine" else 1e-3
-    ff = feedforward_gain(knowledge, rate, speed, f0) if objective.feedforward else 1.0
-    cfg0 = base.with_(cv_kp=_r3(speed.kp), cv_ki_per_s=_r3(speed.ki_per_s),
-                      pos_kp_per_s=_r3(position.kp_per_s), pos_ki_per_s=_r3(position.ki_per_s),
-                      ff_on=objective.feedforward, ff_gain=round(ff, 3), dob_on=False)
-    # 3: the gate on the design, DOB off.
-    backoff = 0
-    designed = run(cfg0)
-    while designed.verdict != "accept" and backoff < 6:
-        backoff += 1
-        s = GAIN_STEP ** -backoff
-        cfg = cfg0.with_(cv_kp=_r3(cfg0.cv_kp * s), cv_ki_per_s=_r3(cfg0.cv_ki_per_s * s),
-                         pos_kp_per_s=_r3(cfg0.pos_kp_per_s * s),
-                         pos_ki_per_s=_r3(cfg0.pos_ki_per_s * s))
-        designed = run(cfg)
+
+    def gated(sp: SpeedDesign, po: PositionDesign) -> tuple[Candidate, int]:
+        """3: the gate on the design, DOB off; both loops' gains down 15 % a step until it
+        accepts (6 steps at most)."""
+        ff = feedforward_gain(knowledge, rate, sp, f0) if objective.feedforward else 1.0
+        cfg0 = base.with_(cv_kp=_r3(sp.kp), cv_ki_per_s=_r3(sp.ki_per_s),
+                          pos_kp_per_s=_r3(po.kp_per_s), pos_ki_per_s=_r3(po.ki_per_s),
+                          ff_on=objective.feedforward, ff_gain=round(ff, 3), dob_on=False,
+                          command_filter=sp.command_filter)
+        steps = 0
+        c = run(cfg0)
+        while c.verdict != "accept" and steps < 6:
+            steps += 1
+            s = GAIN_STEP ** -steps
+            c = run(cfg0.with_(cv_kp=_r3(cfg0.cv_kp * s), cv_ki_per_s=_r3(cfg0.cv_ki_per_s * s),
+                               pos_kp_per_s=_r3(cfg0.pos_kp_per_s * s),
+                               pos_ki_per_s=_r3(cfg0.pos_ki_per_s * s)))
+        return c, steps
+
+    designed, backoff = gated(speed, position)
+    fd = design_filter(knowledge, rate, speed, targets) if design_command_filter else None
+    plain: Candidate | None = None
+    if fd is not None:
+        try:
+            sp_f, po_f = _place(knowledge, rate, targets, fd.command_filter)
+        except ValueError:  # no position loop fits the filtered speed loop
+            sp_f = None
+        if sp_f is not None:
+            with_f, back_f = gated(sp_f, po_f)
+            if with_f.verdict == "accept" and (designed.verdict != "accept"
+                                               or with_f.score < designed.score):
+                plain = designed
+                designed, backoff, speed, position = with_f, back_f, sp_f, po_f
+            else:
+                plain = with_f  # tried, not kept: the explanation says why
+                fd = replace(fd, kept=False)
     start = run(base, judged=True)
     budget = (objective.noise_budget_deg_s if objective.noise_budget_deg_s is not None
               else 2.0 * designed.command_noise_deg_s)
@@ -297,7 +335,7 @@ def tune_whole_loop(
     def key(cfg: LoopConfig) -> tuple[object, ...]:
         return (cfg.cv_kp, cfg.cv_ki_per_s, cfg.pos_kp_per_s, cfg.pos_ki_per_s, cfg.ff_on,
                 cfg.ff_gain, cfg.dob_on, cfg.q_type if cfg.dob_on else "",
-                cfg.q_cutoff_hz if cfg.dob_on else 0.0)
+                cfg.q_cutoff_hz if cfg.dob_on else 0.0, cfg.command_filter)
 
     def cached(cfg: LoopConfig) -> Candidate:
         k = key(cfg)
@@ -353,8 +391,27 @@ def tune_whole_loop(
     if progress is not None:
         progress(1.0)
     res = WholeLoopResult(final, designed, start, speed, position, tuple(curve), (), targets,
-                          objective, plant.source, runs[0], elapsed, backoff, same_off)
+                          objective, plant.source, runs[0], elapsed, backoff, same_off, fd,
+                          design_command_filter, plain)
     return _explained(res, knowledge)
+
+
+def _place(knowledge: PlantKnowledge, rate: float, targets: DesignTargets,
+           cf: CommandFilter | None) -> tuple[SpeedDesign, PositionDesign]:
+    """Steps 1-2 (with the speed-command filter `cf`, None: none). A speed loop whose closed
+    response peaks can leave the position loop no placement that meets the targets: then the
+    speed loop is designed again with 10 deg more phase margin."""
+    speed_targets = targets
+    for attempt in range(4):
+        speed = design_speed(knowledge, rate, speed_targets, command_filter=cf)
+        try:
+            return speed, design_position(knowledge, rate, speed, targets)
+        except ValueError:
+            if attempt == 3 or speed_targets.phase_margin_deg + 10.0 >= 90.0:
+                raise
+            speed_targets = replace(speed_targets,
+                                    phase_margin_deg=speed_targets.phase_margin_deg + 10.0)
+    raise AssertionError("unreachable")
 
 
 def _neighbours(cfg: LoopConfig, ff_allowed: bool) -> list[LoopConfig]:
@@ -401,6 +458,9 @@ def _explained(res: WholeLoopResult, knowledge: PlantKnowledge) -> WholeLoopResu
         + (f"; the first measured resonance is at {res_hz:.3g} Hz (crossover at "
            f"{sp.crossover_hz / res_hz:.2f} of it; the field's rule: about half)"
            if res_hz else "; the measurements show no resonance"))
+    filt = _filter_line(res, m, knowledge)
+    if filt:
+        lines.append(filt)
     pw = min(po.figures, key=lambda fg: fg.margins.phase_margin_deg)
     lines.append(
         f"position loop: crosses over at {po.crossover_hz:.3g} Hz ({po.ratio:.2g}x below the "
@@ -464,8 +524,49 @@ def _explained(res: WholeLoopResult, knowledge: PlantKnowledge) -> WholeLoopResu
 def _describe(c: LoopConfig) -> str:
     dob = f"{c.q_type} {c.q_cutoff_hz:.3g} Hz" if c.dob_on else "DOB off"
     ff = f"FF {c.ff_gain:.3g}" if c.ff_on else "no FF"
-    return (f"Cv {c.cv_kp:.3g} (1 + {c.cv_ki_per_s:.3g}/s), Cp {c.pos_kp_per_s:.3g} (1 + "
+    cf = c.command_filter
+    filt = f", {_filter_words(cf)}" if cf.kind != "off" else ""
+    return (f"Cv {c.cv_kp:.3g} (1 + {c.cv_ki_per_s:.3g}/s){filt}, Cp {c.pos_kp_per_s:.3g} (1 + "
             f"{c.pos_ki_per_s:.3g}/s), {ff}, {dob}")
+
+
+def _filter_words(cf: CommandFilter) -> str:
+    if cf.kind == "notch":
+        return (f"a notch at {cf.notch_hz:.3g} Hz, -{cf.notch_depth_db:.3g} dB, width "
+                f"{cf.notch_width:.3g}")
+    return f"a low-pass at {cf.lowpass_hz:.3g} Hz (damping {cf.lowpass_damping:.3g})"
+
+
+def _filter_line(res: WholeLoopResult, metric: str, knowledge: PlantKnowledge) -> str:
+    """The speed-command filter, in an engineer's terms."""
+    fd = res.filter_design
+    if fd is None:
+        if not res.filter_tried:
+            return "speed-command filter: off (not designed: the tune was asked for none)"
+        found = mode_band_hz(knowledge)
+        if found is None or not mode_limits(res.speed, found[1]):
+            return "speed-command filter: off (no measured resonance limits the speed loop)"
+        return (f"speed-command filter: off; the mode at {min(found[0]):.3g} Hz limits the "
+                f"speed loop, but no notch or low-pass raised its crossover "
+                f"{100 * (MIN_RAISE - 1):.0f} %")
+    modes = sorted(fd.modes_hz)
+    where = (f"{modes[0]:.3g} Hz" if modes[-1] - modes[0] < 0.005 * modes[0]
+             else f"{modes[0]:.3g}-{modes[-1]:.3g} Hz")
+    why = (f"the mode at {where} measured at {len(modes)} position(s) limits the speed loop "
+           f"(without a filter, {fd.plain.limit})")
+    words = _filter_words(fd.command_filter)
+    other = res.designed_other
+    if fd.kept:
+        tail = (f"; designed loop, DOB off: {metric} {res.designed.error_deg(metric):.4g} deg "
+                f"against {other.error_deg(metric):.4g} without it" if other else "")
+        return (f"speed-command filter: {why}: {words} lets the speed loop cross at "
+                f"{res.speed.crossover_hz:.3g} Hz instead of {fd.plain.crossover_hz:.3g} Hz"
+                f"{tail}")
+    tail = (f"{metric} {other.error_deg(metric):.4g} deg ({other.verdict}) against "
+            f"{res.designed.error_deg(metric):.4g} without it" if other else "")
+    return (f"speed-command filter: off; {why}; {words} would let it cross at "
+            f"{fd.speed.crossover_hz:.3g} Hz instead of {fd.plain.crossover_hz:.3g} Hz, but "
+            f"the loop with it did not do better: {tail}")
 
 
 def _with(res: WholeLoopResult, lines: list[str]) -> WholeLoopResult:

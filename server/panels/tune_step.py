@@ -82,6 +82,8 @@ def tune_html(res: WholeLoopResult, elapsed_s: float) -> str:
         head = (f"<b>Tune the whole loop</b>: put into your candidate (not applied): speed PI "
                 f"Kp {c.cv_kp:.3g}, Ki {c.cv_ki_per_s:.3g}/s; position PI Kp "
                 f"{c.pos_kp_per_s:.3g}/s, Ki {c.pos_ki_per_s:.3g}/s; {ff}; "
+                + (f"speed-command filter: {esc(c.command_filter.describe())}; "
+                   if c.command_filter.kind != "off" else "")
                 + (f"DOB {c.q_type.upper()} at {c.q_cutoff_hz:.3g} Hz" if c.dob_on else "DOB off")
                 + f" &mdash; {esc(figures(res))} ({best.verdict}).")
     lines = "".join(f"<li>{esc(line)}</li>" for line in res.explanation)
