@@ -146,3 +146,30 @@ def test_an_estop_flood_through_the_edge_is_reported_once_per_sender_with_its_co
     (rep,) = [r for r in recs if r["action"] == "estop.repeated"]
     assert rep["count"] == 2 * n - 1 and rep["by_user"] == {"view": 2 * n - 1}
     assert verify(path).ok
+
+
+def test_the_edge_serves_its_configuration_snapshot_only_while_the_loop_runs_its_version(
+) -> None:
+    """A watchdog rollback's new snapshot can reach the edge after the status that shows the
+    rollback: until it does, the edge's snapshot is of another version than the one the loop
+    wrote into the shared array, and the loop process answers the GET instead (issue 31)."""
+    from controller.core.config import LoopConfig
+    from controller.core.loop import LoopCoefficients
+    from controller.process.edge import ACTIVE_VERSION, EdgeSnapshot
+    from controller.process.requests import ApplyCoefficients
+
+    flag = estop_flag()
+    rt, _ = fake_runtime()
+    rt.estop_flag = flag
+    rt.run(max_ticks=10)
+    assert flag[ACTIVE_VERSION] == 1  # written by the loop
+    edge, _ = _edge(flag)
+    edge.take(EdgeSnapshot(0, b"config v1", b"knowledge", 1))
+    assert edge.read_locally("config", b"") == b"config v1"
+    ticket = rt.submit(ApplyCoefficients(LoopCoefficients.build(LoopConfig(q_cutoff_hz=2.0), 2)))
+    more(rt, 3)
+    assert ticket.ok and flag[ACTIVE_VERSION] == 2
+    assert edge.read_locally("config", b"") is None  # stale: forwarded, not served
+    assert edge.read_locally("knowledge", b"") == b"knowledge"  # not versioned with it
+    edge.take(EdgeSnapshot(1, b"config v2", b"knowledge", 2))
+    assert edge.read_locally("config", b"") == b"config v2"

@@ -50,7 +50,14 @@ from typing import Any
 from controller import protocol as proto
 from controller.client.session import SessionOptions, connect
 from controller.process.budget import RequestBudget
-from controller.process.estop_keys import ESTOP_ARRIVAL, ESTOP_FLAG, PUBLIC, estop_claims
+from controller.process.estop_keys import (
+    ACTIVE_VERSION,
+    ESTOP_ARRIVAL,
+    ESTOP_FLAG,
+    PUBLIC,
+    SLOTS,
+    estop_claims,
+)
 from controller.process.history import history_reply
 from controller.process.persistence import StateStore
 from controller.process.worker_start import lower_priority, worker_init
@@ -118,7 +125,7 @@ def estop_flag() -> Any:
     when forked and passed to it when spawned."""
     from multiprocessing.sharedctypes import RawArray
 
-    return RawArray("q", 2)
+    return RawArray("q", SLOTS)
 
 
 @dataclass(frozen=True)
@@ -144,6 +151,8 @@ class EdgeSnapshot:
     generation: int
     config: bytes
     knowledge: bytes
+    config_version: int
+    """The version `config` shows (served only while the loop runs that version)."""
 
 
 class ForwardTimeout(Exception):
@@ -162,7 +171,7 @@ class _Edge:
     def __init__(self, spec: EdgeSpec, conns: dict[str, Connection], control: Connection,
                  flag: Any = None) -> None:
         self.spec = spec
-        self.flag = flag if flag is not None else [0, 0]
+        self.flag = flag if flag is not None else [0] * SLOTS
         self._estop_lock = threading.Lock()
         #: E-stops not yet reported to the loop process, by key: [first sample, count,
         #: its arrival (monotonic ns)].
@@ -319,6 +328,8 @@ class _Edge:
             if kind == "config":
                 if data and proto.decode(data, proto.ConfigRequest).candidate is not None:
                     return None
+                if snap.config_version != self.flag[ACTIVE_VERSION]:
+                    return None  # not yet the loop's version: the loop process answers
                 return snap.config
             if data:
                 req = proto.decode(data, proto.KnowledgeRequest)

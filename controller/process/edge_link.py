@@ -118,7 +118,7 @@ class EdgeLink:
                 gen = 0 if snap is None else snap.generation + 1
                 snap = self._snap = EdgeSnapshot(
                     gen, proto.encode(svc.active_config()),
-                    proto.encode(svc.knowledge_reply(True)))
+                    proto.encode(svc.knowledge_reply(True)), key[0].version)
                 self._snap_key = key
             return snap
 

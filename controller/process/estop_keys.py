@@ -9,12 +9,18 @@ from typing import Any
 
 from controller import protocol as proto
 
-__all__ = ["ESTOP_ARRIVAL", "ESTOP_FLAG", "PUBLIC", "estop_claims"]
+__all__ = ["ACTIVE_VERSION", "ESTOP_ARRIVAL", "ESTOP_FLAG", "PUBLIC", "SLOTS", "estop_claims"]
 
 #: The e-stop flag array's slots: 1 while an e-stop waits for the tick; the newest e-stop's
 #: arrival stamp (`time.monotonic_ns`, the clock the loop stamps requests with).
 ESTOP_FLAG = 0
 ESTOP_ARRIVAL = 1
+#: The third slot: the version of the configuration the loop runs (written by the loop when
+#: it starts a sample block, so before any status or stream shows it): the edge serves its
+#: snapshot of the configuration only when it is of that version (a watchdog rollback's
+#: snapshot can reach it after the status that shows the rollback).
+ACTIVE_VERSION = 2
+SLOTS = 3
 
 #: The sender of an e-stop on the public key under authentication: any authenticated user may
 #: put there and Zenoh does not say who did (a user's own scope names the user).

@@ -244,7 +244,7 @@ class Runtime:
         self._estop_arrival = -1
         #: E-stops relayed by another process (`controller.process.edge`): [flag, arrival]
         #: in shared memory, set by it, read and cleared by the tick (a plain int read).
-        self.estop_flag: Any = [0, 0]
+        self.estop_flag: Any = [0, 0, 0]  # estop_keys: flag, arrival, active version
         self.latch_changed = threading.Event()
         """Set whenever the mode enters or leaves estop/fault (the latch is persisted), and on
         a watchdog rollback (the configuration rolled back to is persisted)."""
@@ -596,6 +596,7 @@ class Runtime:
             self._hand_off()
             blk = None
         if blk is None:
+            self.estop_flag[2] = version  # estop_keys.ACTIVE_VERSION, for the edge
             ring = self._ring
             if ring.produced - ring.consumed >= ring.blocks:
                 self.dropped_samples += 1
