@@ -62,6 +62,10 @@ class DashboardOptions:
     fleet: bool = False
     """Also the fleet overview: every rig reachable through `connect` (a router), each with an
     E-STOP and a full view of its own."""
+    trend_dirs: tuple[Path, ...] = ()
+    """Where the Trends tab finds the rigs' trends (`<state-dir>/trend` of their controllers:
+    `<dir>/<rig>/<hour>.mcap`; () : the tab says there is none; `dobtune dashboard` defaults
+    to `var/<rig>/trend`, the controller's default, and `dobtune demo` passes its own)."""
     sim_disturbances: tuple[str, ...] = ()
     """The named disturbances of the simulated rig the previews and Suggest run on (the
     demo's: the same as its controller's simulated rig)."""

@@ -34,6 +34,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the .mcap recordings the Recordings tab lists and compares "
                    "(default $XDG_DATA_HOME/dobtune/recordings, else "
                    "~/.local/share/dobtune/recordings)")
+    p.add_argument("--trend-dir", action="append", type=Path, default=None, metavar="DIR",
+                   help="where the Trends tab finds the rigs' trends: a controller's "
+                   "<state-dir>/trend, DIR/<rig>/<hour>.mcap (repeatable; default "
+                   "var/<rig-name>/trend, the controller's default state directory)")
     add_candidates_argument(p)
 
 
@@ -61,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
             connect=tuple(connect), rig_name=args.rig_name, host=args.host, port=args.port,
             auth=args.auth, user=args.user, fleet=args.fleet,
             candidates_dir=candidates_dir(args),
+            trend_dirs=tuple(args.trend_dir or [Path("var") / args.rig_name / "trend"]),
             **({"recordings_dir": args.recordings} if args.recordings is not None else {}),
         )
     )

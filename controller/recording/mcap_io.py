@@ -35,7 +35,8 @@ import numpy as np
 
 from controller.core.samples import STATE_COLUMNS
 
-__all__ = ["SCHEMAS", "Recorder", "Recording", "read_recording", "read_recordings"]
+__all__ = ["SCHEMAS", "Recorder", "Recording", "file_messages", "read_recording",
+           "read_recordings"]
 
 _NUM = {"type": "number"}
 SCHEMAS: dict[str, dict[str, Any]] = {
@@ -228,6 +229,14 @@ def _messages(path: Path) -> Iterator[tuple[str, str, int, bytes]]:
                 _take_meta(op, data, body, schemas, channels)
 
     yield from records(buf[8:], True)
+
+
+def file_messages(path: Path) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, schema name, log time ns, data) of every message of the MCAP file `path`, in
+    file order (the chunks walked directly, as `read_recording` does; the trend's reader).
+    Raises ValueError for a file that is not MCAP; a record cut short raises ValueError (or
+    zstd's error) where it is met, after the messages before it."""
+    return _messages(path)
 
 
 def _record(data: memoryview, at: int, end: int) -> tuple[int, int, int]:

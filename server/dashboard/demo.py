@@ -157,7 +157,6 @@ def controller_process(
 def run_demo(opts: DemoOptions) -> int:
     """Start both, print the URL, run until Ctrl-C / SIGTERM; returns the exit code."""
     endpoint = f"tcp/127.0.0.1:{opts.zenoh_port}"
-    code = 0
     ports = [("--port", opts.host, opts.port), ("--zenoh-port", "127.0.0.1", opts.zenoh_port)]
     ports += [("--zenoh-port", "127.0.0.1", opts.zenoh_port + i)
               for i in range(1, opts.rigs + 1) if opts.rigs > 1]
@@ -174,13 +173,22 @@ def run_demo(opts: DemoOptions) -> int:
             return 2
     if opts.rigs > 1:
         return _run_fleet(opts, endpoint)
+    with contextlib.ExitStack() as stack:
+        # Made here, so that the dashboard's Trends tab reads the trend its watch writes.
+        state_dir = opts.state_dir or Path(stack.enter_context(
+            tempfile.TemporaryDirectory(prefix="dobtune-")))
+        return _run_one(opts, endpoint, state_dir)
+
+
+def _run_one(opts: DemoOptions, endpoint: str, state_dir: Path) -> int:
+    code = 0
     with stop_requested() as stop, controller_process(
-        endpoint, opts.rig_name, opts.state_dir, opts.log_level, opts.disturbances, watch=True
+        endpoint, opts.rig_name, state_dir, opts.log_level, opts.disturbances, watch=True
     ) as proc, Dashboard(
         DashboardOptions(
             connect=(endpoint,), rig_name=opts.rig_name, host=opts.host, port=opts.port,
             verbose=opts.verbose, sim_disturbances=opts.disturbances,
-            candidates_dir=opts.candidates_dir,
+            candidates_dir=opts.candidates_dir, trend_dirs=(state_dir / "trend",),
         )
     ) as dash:
         freeze_startup_heap()
@@ -231,7 +239,8 @@ def _run_fleet(opts: DemoOptions, router_ep: str) -> int:
         dash = stack.enter_context(Dashboard(DashboardOptions(
             connect=(router_ep,), rig_name="rig1", host=opts.host, port=opts.port,
             verbose=opts.verbose, fleet=True, sim_disturbances=opts.disturbances,
-            candidates_dir=opts.candidates_dir)))
+            candidates_dir=opts.candidates_dir,
+            trend_dirs=tuple(root / f"rig{i}" / "trend" for i in range(1, opts.rigs + 1)))))
         freeze_startup_heap()
         print(f"dobtune demo: {opts.rigs} rigs behind the router {router_ep}; dashboard of rig1 "
               "(its Fleet tab shows them all): "
