@@ -339,3 +339,30 @@ def test_two_dashboard_processes_writing_at_once_lose_nothing(tmp_path: Path) ->
                    for name in ("aaaa", "bbbb") for i in range(n))
     finally:
         store.close()
+
+
+def test_the_speed_command_filters_controls_are_kept_and_checked(tmp_path: Path) -> None:
+    """A candidate kept with the filter's controls (issue 35 item 3) comes back with them; one
+    kept before they existed is still taken; a filter control with a value of another kind is
+    refused naming it."""
+    filt = (("filter_kind", "notch"), ("notch_hz_input", "31.5"),
+            ("notch_depth_db_input", "20.0"), ("notch_width_input", "0.3x"),  # as typed
+            ("lowpass_hz_input", "200.0"), ("lowpass_damping_input", "0.707"))
+    old = _kept("0.8")
+    with_filter = KeptCandidate(old.base, old.base_version, old.controls + filt, None,
+                                old.against)
+    assert kept_problem(old) == "" and kept_problem(with_filter) == ""
+    store = _store(tmp_path)
+    store.keep("alice", "tab-aaaaaaaa", with_filter)
+    _closed(store)
+    again = _store(tmp_path)
+    back = again.get("alice", "tab-aaaaaaaa")
+    again.close()
+    assert back is not None and dict(back.controls)["notch_hz_input"] == "31.5"
+    bad = KeptCandidate(old.base, old.base_version,
+                        (*old.controls, ("filter_kind", "band-stop"), *filt[1:]), None,
+                        old.against)
+    assert kept_problem(bad).startswith("controls.filter_kind:")
+    partial = KeptCandidate(old.base, old.base_version, old.controls + filt[:2], None,
+                            old.against)
+    assert kept_problem(partial).startswith("controls: expected")

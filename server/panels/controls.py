@@ -22,6 +22,11 @@ from server.candidate_store import KeptCandidate
 from server.engine import CUTOFF_MAX_HZ, CUTOFF_MIN_HZ
 from server.escape import esc
 from server.gui import ValueHandle, set_value
+from server.panels.filter_controls import (
+    FILTER_CONTROLS,
+    FilterControls,
+    filter_control_problem,
+)
 from server.panels.widgets import parse_number, set_html
 from server.viser_adapter import set_slider_marks
 
@@ -125,11 +130,18 @@ KEPT_CONTROLS = ("q_type", "cutoff_hz_input", *(a for a, _ in _SWITCHES),
 
 def kept_problem(k: KeptCandidate) -> str:
     """Why `k` (read from a file) cannot be put back into the controls ("" : it can): its
-    controls must be these, each once, with a value of the control's kind."""
+    controls must be these, each once, with a value of the control's kind (the speed-command
+    filter's controls too, or none of them: a candidate kept before they were)."""
     names = [n for n, _ in k.controls]
-    if sorted(names) != sorted(KEPT_CONTROLS):
-        return f"controls: expected {', '.join(KEPT_CONTROLS)}, got {', '.join(names)}"
+    if sorted(names) not in (sorted(KEPT_CONTROLS), sorted(KEPT_CONTROLS + FILTER_CONTROLS)):
+        return (f"controls: expected {', '.join(KEPT_CONTROLS + FILTER_CONTROLS)}, got "
+                f"{', '.join(names)}")
     for name, value in k.controls:
+        if name in FILTER_CONTROLS:
+            problem = filter_control_problem(name, value)
+            if problem:
+                return problem
+            continue
         if name == "q_type":
             ok = value in _Q_LABELS
         elif name == "cutoff_hz_input":
@@ -175,6 +187,8 @@ class CandidateControls:
         self.gain_errors: dict[str, str] = {}
         """A gain's label -> why its text field's text is no value of it."""
         self.gain_text: viser.GuiHtmlHandle | None = None
+        self.filter = FilterControls(gui, self._echo, self._on_filter)
+        """The speed-command filter's controls (after the gains)."""
 
     def build(self, a: LoopConfig, cutoff_text: str) -> None:
         """Every control, at `a`; `cutoff_text`: the cut-off line's first HTML."""
@@ -214,6 +228,7 @@ class CandidateControls:
                 hint=f"type {g.label} ({g.lo:g} to {g.hi:g}); the slider follows")
         self.gain_errors = {}
         self.gain_text = gui.add_html(gain_errors_html({}))
+        self.filter.build(a)
         self.q_type.on_update(self._on_control)
         for c in self.switches.values():
             c.on_update(self._on_control)
@@ -225,7 +240,7 @@ class CandidateControls:
         """Every value control by name (the names of `KEPT_CONTROLS`, and `cutoff_log`)."""
         return {"q_type": self.q_type, "cutoff_log": self.cutoff_log,
                 "cutoff_hz_input": self.cutoff_hz_input, **self.switches, **self.gains,
-                **self.gain_inputs}
+                **self.gain_inputs, **self.filter.handles()}
 
     # -- the candidate's own settings: their callbacks are echoes -----------------------------
 
@@ -269,6 +284,11 @@ class CandidateControls:
 
     def _on_control(self, _event: object) -> None:
         if not self._echo():
+            self._changed()
+
+    def _on_filter(self) -> None:
+        """A user's change of the filter's controls: judged under the candidate's lock."""
+        with self._lock:
             self._changed()
 
     def _gain_slider_cb(self, g: _Gain) -> Callable[[object], None]:
@@ -345,6 +365,7 @@ class CandidateControls:
             values[attr] = bool(h.value)
         for g in _GAINS:
             values[g.field] = float(self.gains[g.attr].value)
+        values.update(self.filter.values())
         return values
 
     def show(self, a: LoopConfig) -> None:
@@ -360,6 +381,7 @@ class CandidateControls:
             for g in _GAINS:
                 set_value(self.gains[g.attr], g.position(a))
             self._gains_from_sliders()
+            self.filter.show(a)
 
     def _gains_from_sliders(self) -> None:
         """Each gain's text field at its slider (errors gone); under `setting`."""
@@ -372,7 +394,7 @@ class CandidateControls:
     def kept(self) -> tuple[tuple[str, object], ...]:
         """The controls' values as a kept candidate holds them."""
         handles = self.handles()
-        return tuple((n, handles[n].value) for n in KEPT_CONTROLS)
+        return tuple((n, handles[n].value) for n in KEPT_CONTROLS + FILTER_CONTROLS)
 
     def restore(self, controls: tuple[tuple[str, object], ...]) -> None:
         """The controls as kept (`kept_problem` found nothing wrong with them)."""
@@ -382,6 +404,7 @@ class CandidateControls:
                 set_value(handles[name], value)
             self.read_cutoff_text()
             self._gains_from_sliders()
+            self.filter.restored()
 
     def update_marks(self, rec: float | None) -> None:
         """The slider's 'max' mark at the gate's recommendation."""

@@ -102,6 +102,9 @@ def config_diff_html(old: LoopConfig, new: LoopConfig, old_label: str, new_label
         if k == "nominal":  # a model, as an engineer reads one (not its raw coefficients)
             rows.append(f"<li>nominal model Mn Pn: {esc(nominal_summary(old.nominal))} &rarr; "
                         f"<b>{esc(nominal_summary(new.nominal))}</b></li>")
+        elif k == "command_filter":  # the filter in words, not its raw fields
+            rows.append(f"<li>speed-command filter: {esc(old.command_filter.describe())} "
+                        f"&rarr; <b>{esc(new.command_filter.describe())}</b></li>")
         else:
             rows.append(f"<li>{esc(k)}: {esc(_value_text(a.get(k)))} &rarr; "
                         f"<b>{esc(_value_text(c[k]))}</b></li>")
@@ -233,5 +236,7 @@ def active_html(a: LoopConfig, version: int | None) -> str:
         f"<div class='dt-active' style='font-size:12px;color:#555'>Active (v{v}): "
         f"{a.q_type.upper()} {a.q_cutoff_hz:.3g} Hz, DOB {'on' if a.dob_on else 'off'}, "
         f"FF {'on' if a.ff_on else 'off'}, Cv {a.cv_kp:g}(1+{a.cv_ki_per_s:g}/s), "
-        f"Cp {a.pos_kp_per_s:g}(1+{a.pos_ki_per_s:g}/s)</div>"
+        f"Cp {a.pos_kp_per_s:g}(1+{a.pos_ki_per_s:g}/s)"
+        + (f", speed-command filter: {esc(a.command_filter.describe())}"
+           if a.command_filter.kind != "off" else "") + "</div>"
     )
