@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from controller.core.arrays import FloatArray
-from controller.recording.trend import HourRead, TrendPoint, read_hour, trend_files, trend_rigs
+from controller.recording.trend import HourRead, read_hour, trend_files, trend_rigs
 
 __all__ = ["RANGES", "TrendAlarm", "TrendReader", "TrendSpan", "find_rigs", "time_decimate"]
 
@@ -83,20 +83,35 @@ def find_rigs(dirs: tuple[Path, ...]) -> dict[str, Path]:
     return out
 
 
-def _columns(points: list[TrendPoint], names: tuple[str, ...] | None = None
-             ) -> dict[str, FloatArray]:
-    """The numeric fields of `points` as float columns (NaN where a window lacks one), "t"
-    first; `names`: only these (else every numeric field seen)."""
+def _columns(times: list[float], datas: list[dict[str, object]],
+             names: tuple[str, ...] | None = None) -> dict[str, FloatArray]:
+    """The numeric fields of `datas` as float columns (NaN where a window lacks one), "t"
+    (`times`) first; `names`: only these (else every numeric field seen, in the order first
+    seen)."""
     if names is None:
-        seen: dict[str, None] = {}
-        for p in points:
-            for k, v in p.data.items():
-                if isinstance(v, int | float) and not isinstance(v, bool):
-                    seen.setdefault(k, None)
-        names = tuple(seen)
-    out = {"t": np.fromiter((p.epoch_s for p in points), np.float64, len(points))}
+        first: dict[str, object] = {}
+        for d in datas[:1]:
+            first.update(d)
+        for k in sorted(set().union(*datas) - first.keys()):  # a field not in the first one
+            first[k] = next(d[k] for d in datas if k in d)
+        names = tuple(k for k, v in first.items()
+                      if isinstance(v, int | float) and not isinstance(v, bool))
+    out = {"t": np.array(times, dtype=np.float64)}
     for k in names:
-        out[k] = np.fromiter((_num(p.data.get(k)) for p in points), np.float64, len(points))
+        col = [d.get(k) for d in datas]
+        try:
+            out[k] = np.array(col, dtype=np.float64)  # None (absent) becomes NaN
+        except (TypeError, ValueError):  # a window with text there: that window's is NaN
+            out[k] = np.array([_num(v) for v in col], dtype=np.float64)
+    return out
+
+
+def _states(datas: list[dict[str, object]], key: str) -> np.ndarray:
+    """A part's state per window as an index into `STATES` (an unknown one: "ok")."""
+    col = np.array([str(d.get(key, "ok")) for d in datas])
+    out = np.zeros(col.size, dtype=np.int8)
+    for i, name in enumerate(STATES[1:], start=1):
+        out[col == name] = i
     return out
 
 
@@ -117,19 +132,18 @@ class _Hour:
 
 
 def _hour_columns(hr: HourRead) -> _Hour:
-    parts_pts = hr.points["/drift/parts"]
-    parts = _columns(parts_pts)
-    states = {k[:-len("_state")]: np.fromiter(
-        (STATES.index(s) if (s := p.data.get(k)) in STATES else 0 for p in parts_pts),
-        np.int8, len(parts_pts))
-        for k in dict.fromkeys(k for p in parts_pts for k in p.data if k.endswith("_state"))}
-    health_pts = hr.points["/drift/health"]
-    health = _columns(health_pts, HEALTH_COLUMNS)
+    datas = hr.data["/drift/parts"]
+    parts = _columns(hr.epoch_s["/drift/parts"], datas)
+    seen = dict.fromkeys(k for d in datas[:1] for k in d)
+    seen.update(dict.fromkeys(sorted(set().union(*datas) - seen.keys())))
+    states = {k[:-len("_state")]: _states(datas, k) for k in seen if k.endswith("_state")}
+    health = _columns(hr.epoch_s["/drift/health"], hr.data["/drift/health"], HEALTH_COLUMNS)
     alarms = [TrendAlarm(p.epoch_s, str(p.data.get("part", "?")),
                          str(p.data.get("text", "")), bool(p.data.get("cleared", False)))
-              for p in hr.points["/drift/alarm"]]
-    return _Hour(_columns(hr.points["/drift/residual"], RESIDUAL_COLUMNS), parts, states,
-                 health, alarms, hr.cut_short)
+              for p in hr.points("/drift/alarm")]
+    residual = _columns(hr.epoch_s["/drift/residual"], hr.data["/drift/residual"],
+                        RESIDUAL_COLUMNS)
+    return _Hour(residual, parts, states, health, alarms, hr.cut_short)
 
 
 def _concat(cols: list[dict[str, FloatArray]]) -> dict[str, FloatArray]:

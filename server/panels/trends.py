@@ -76,6 +76,11 @@ class TrendsPanel:
         """What any role may change (it only chooses what is read and shown)."""
         return (self.range, self.rig)
 
+    @property
+    def charts(self) -> dict[str, viser.GuiUplotHandle]:
+        """The charts drawn now, by key (`server.charts_trend`)."""
+        return dict(self._charts)
+
     def start(self) -> None:
         self._worker.start()
         self._refresher.start()
