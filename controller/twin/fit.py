@@ -38,6 +38,12 @@ from controller.twin.model import (
     RigTwin,
     knowledge_digest,
 )
+from controller.twin.nonlinear import (
+    RunningWindow,
+    friction_fit,
+    noise_estimate,
+    with_friction,
+)
 
 __all__ = [
     "MAX_DELAY_TICKS",
@@ -199,6 +205,7 @@ def twin_from_knowledge(
     d_hat_deg_s: FloatArray | None = None,
     d_hat_period_s: float = 1.0e-3,
     position_noise_deg: float | None = None,
+    running: RunningWindow | None = None,
     source: str = "",
 ) -> RigTwin:
     """The twin of the plant `knowledge` describes (see the module docstring).
@@ -206,9 +213,15 @@ def twin_from_knowledge(
     `base`: the rig whose structure and nonlinear parts the twin starts from (default: the
     built-in rig, `RigParams()`); `d_hat_deg_s`: the DOB's estimate over a recent window
     (`d_hat_period_s` apart), stated and its mean taken as the drive's speed offset;
-    `position_noise_deg`: the encoder noise estimated from recorded running (else the base
-    rig's, said so). Without measured responses the twin is the base rig, unfitted (its notes
-    say so). Raises ValueError if the fit fails (no finite point in the band)."""
+    `position_noise_deg`: the encoder noise estimated elsewhere (else the base rig's, said
+    so); `running`: a recorded window of normal running, from which the load's Coulomb
+    friction, the backlash and the encoder noise are estimated with their deviations
+    (`controller.twin.nonlinear`; not with `position_noise_deg`). Without measured responses
+    the twin is the base rig, unfitted (its notes say so). Raises ValueError if the fit fails
+    (no finite point in the band) or the window tells nothing (no reversal, too few slow
+    samples)."""
+    if running is not None and position_noise_deg is not None:
+        raise ValueError("position_noise_deg: not with a running window (which estimates it)")
     base = base or RigParams()
     notes: list[str] = []
     how: list[str] = []
@@ -229,12 +242,32 @@ def twin_from_knowledge(
     params, faults = base, RigFaults()
     fitted: dict[str, float] = {}
     fits: list[PositionFit] = []
+    viscous_std: float | None = None
     if data:
-        params, faults, fitted = _fit(base, data, rate_hz)
+        params, faults, fitted, log_std = _fit(base, data, rate_hz)
+        if math.isfinite(log_std[2]):
+            viscous_std = params.load_viscous_n_m_s_rad * float(log_std[2])
         fits = [position_fit(name, pos, f, h, rig_response(params, faults, f, pos, rate_hz))
                 for name, pos, f, h, _ in data]
     else:
         notes.append("nothing measured: the twin is the base rig, unfitted")
+    std: dict[str, float | None] = {"coulomb": None, "backlash": None, "noise": None}
+    window = ""
+    if running is not None:
+        nf = noise_estimate(running, params)
+        fr = friction_fit(params, faults, running)
+        params = replace(with_friction(params, fr.coulomb_n_m / params.coulomb_torque_n_m,
+                                       fr.backlash_deg), position_noise_deg=nf.position_noise_deg)
+        std = {"coulomb": fr.coulomb_std_n_m, "backlash": fr.backlash_std_deg,
+               "noise": nf.std_deg}
+        window = f"{running.label}, {running.duration_s:.3g} s"
+        how.append(f"Coulomb friction {fr.coulomb_n_m:.3g} +- {fr.coulomb_std_n_m:.2g} N m "
+                   f"(static {params.static_torque_n_m:.3g}: the base rig's ratio) and backlash "
+                   f"{fr.backlash_deg:.3g} +- {fr.backlash_std_deg:.2g} deg: estimated from "
+                   f"{window} (the plant's residual {fr.residual_rms_deg_s:.3g} -> "
+                   f"{fr.fitted_rms_deg_s:.3g} deg/s rms below 40 Hz)")
+        how.append(f"encoder noise {nf.position_noise_deg:.3g} +- {nf.std_deg:.2g} deg: "
+                   f"estimated from {nf.samples} slow samples of {window}")
     disturbance = None
     if d_hat_deg_s is not None:
         disturbance = disturbance_estimate(d_hat_deg_s, d_hat_period_s)
@@ -242,18 +275,27 @@ def twin_from_knowledge(
         params = replace(params, drive_offset_rpm=params.drive_offset_rpm + offset_rpm)
         how.append(f"drive offset {params.drive_offset_rpm:.3g} rpm: the mean of d_hat over "
                    f"{disturbance.window_s:.3g} s ({disturbance.mean_deg_s:.3g} deg/s)")
-    if position_noise_deg is not None:
-        params = replace(params, position_noise_deg=float(position_noise_deg))
-        how.append(f"encoder noise {position_noise_deg:.3g} deg: estimated from recorded running")
-    else:
-        how.append(f"encoder noise {params.position_noise_deg:.3g} deg: assumed (base rig)")
-    how.append(f"friction {params.coulomb_torque_n_m:g}/{params.static_torque_n_m:g} N m, "
-               f"backlash {params.backlash_deg + params.gearbox_backlash_deg:g} deg: assumed "
-               f"(base rig)")
+    if running is None:
+        if position_noise_deg is not None:
+            params = replace(params, position_noise_deg=float(position_noise_deg))
+            how.append(f"encoder noise {position_noise_deg:.3g} deg: estimated from recorded "
+                       "running")
+        else:
+            how.append(f"encoder noise {params.position_noise_deg:.3g} deg: assumed (base rig)")
+        how.append(f"friction {params.coulomb_torque_n_m:g}/{params.static_torque_n_m:g} N m, "
+                   f"backlash {params.backlash_deg + params.gearbox_backlash_deg:g} deg: "
+                   f"assumed (base rig)")
+    if viscous_std is not None:
+        how.append(f"viscous friction {params.load_viscous_n_m_s_rad:.3g} +- {viscous_std:.2g}"
+                   f" N m s/rad: fitted to the responses")
     nonlinear = NonlinearEstimate(
         coulomb_torque_n_m=params.coulomb_torque_n_m, static_torque_n_m=params.static_torque_n_m,
         backlash_deg=params.backlash_deg + params.gearbox_backlash_deg,
-        position_noise_deg=params.position_noise_deg, how=tuple(how))
+        position_noise_deg=params.position_noise_deg, how=tuple(how),
+        viscous_n_m_s_rad=params.load_viscous_n_m_s_rad, coulomb_std_n_m=std["coulomb"],
+        backlash_std_deg=std["backlash"], position_noise_std_deg=std["noise"],
+        viscous_std_n_m_s_rad=viscous_std,
+        rate_noise_deg_s=math.sqrt(2.0) * params.position_noise_deg * rate_hz, window=window)
     return RigTwin(
         knowledge_version=knowledge.version, knowledge_digest=knowledge_digest(knowledge),
         source=source or knowledge.source, rate_hz=rate_hz, params=params, faults=faults,
@@ -262,8 +304,10 @@ def twin_from_knowledge(
 
 
 def _fit(base: RigParams, data: list[tuple[str, float, FloatArray, ComplexArray, FloatArray]],
-         rate_hz: float) -> tuple[RigParams, RigFaults, dict[str, float]]:
-    """Least squares on ln(H_twin / H_meas) for each delay; the best delay's parameters."""
+         rate_hz: float) -> tuple[RigParams, RigFaults, dict[str, float], FloatArray]:
+    """Least squares on ln(H_twin / H_meas) for each delay; the best delay's parameters and
+    the standard deviations of the variables (the Jacobian at the solution and the residual's
+    variance per degree of freedom; inf for a variable the data do not move)."""
     spread = len({pos for _, pos, *_ in data}) > 1
 
     def residual(x: FloatArray, delay: int) -> FloatArray:
@@ -288,13 +332,19 @@ def _fit(base: RigParams, data: list[tuple[str, float, FloatArray, ComplexArray,
         r = least_squares(residual, x0, args=(delay,), bounds=(lo, hi), loss="soft_l1",
                           f_scale=0.05, x_scale=0.3)
         if best is None or r.cost < best[0]:
-            best = (r.cost, r.x, delay)
+            best = (r.cost, r.x, delay, r.jac, r.fun)
     assert best is not None
-    _, x, delay = best
+    _, x, delay, jac, fun = best
+    dof = max(1, fun.size - x.size)
+    try:
+        cov = float(np.sum(fun * fun)) / dof * np.linalg.pinv(jac.T @ jac)
+        log_std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    except np.linalg.LinAlgError:
+        log_std = np.full(x.size, math.inf)
     params, faults = _apply(base, x, delay)
     fitted = {f"{k}_factor": float(math.exp(v)) for k, v in zip(_FACTORS, x[:4], strict=True)}
     fitted["stiffness_variation"] = params.belt_stiffness_variation
     fitted["damping_variation"] = params.belt_damping_variation
     fitted["droop_rpm_per_n_m"] = params.drive_droop_rpm_per_n_m
     fitted["delay_ticks"] = float(delay)
-    return params, faults, fitted
+    return params, faults, fitted, log_std

@@ -56,13 +56,36 @@ class PositionFit(_Rec, frozen=True, kw_only=True):
 
 class NonlinearEstimate(_Rec, frozen=True, kw_only=True):
     """Friction, backlash and sensor noise of the twin, and where each value came from
-    ("estimated: ...", "assumed: the built-in rig's")."""
+    ("estimated: ...", "assumed: the built-in rig's"). A `*_std` is the estimate's standard
+    deviation (None: not estimated, the value is the base rig's): `controller.twin.nonlinear`
+    for the Coulomb friction, the backlash and the noise (from a recorded window of normal
+    running), the responses' fit for the viscous friction."""
 
     coulomb_torque_n_m: float
     static_torque_n_m: float
     backlash_deg: float
     position_noise_deg: float
     how: tuple[str, ...] = ()
+    viscous_n_m_s_rad: float = 0.0
+    coulomb_std_n_m: float | None = None
+    backlash_std_deg: float | None = None
+    position_noise_std_deg: float | None = None
+    viscous_std_n_m_s_rad: float | None = None
+    rate_noise_deg_s: float = 0.0
+    """The speed sensor's noise the encoder's makes (backward difference: sqrt 2 x the
+    position noise x the loop rate), deg/s."""
+    window: str = ""
+    """What the running estimates came from (label and length), "" if none."""
+
+    def describe(self) -> str:
+        def pm(v: float, sd: float | None, fmt: str) -> str:
+            return (f"{v:{fmt}} +- {sd:{fmt}}" if sd is not None else f"{v:{fmt}} (assumed)")
+        return (f"Coulomb {pm(self.coulomb_torque_n_m, self.coulomb_std_n_m, '.3g')} N m, "
+                f"viscous {pm(self.viscous_n_m_s_rad, self.viscous_std_n_m_s_rad, '.3g')} "
+                f"N m s/rad, backlash {pm(self.backlash_deg, self.backlash_std_deg, '.3g')} "
+                f"deg, encoder noise "
+                f"{pm(self.position_noise_deg, self.position_noise_std_deg, '.2e')} deg "
+                f"(speed {self.rate_noise_deg_s:.3g} deg/s rms)")
 
 
 class DisturbanceEstimate(_Rec, frozen=True, kw_only=True):
