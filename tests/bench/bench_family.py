@@ -27,11 +27,25 @@ import statistics
 import sys
 import time
 
+from controller.core.config import LoopConfig
 from controller.tune.family import draw_family, run_rig
-from controller.tune.whole_loop import Objective
+from controller.tune.whole_loop import Candidate, Objective
 
 
-def main(seed: int, rigs: int, metric: str, ff: bool) -> int:
+def chosen(c: Candidate | None) -> str:
+    """A candidate's loop in one line: the PIs, feedforward, DOB and speed-command filter."""
+    if c is None:
+        return "none"
+    g: LoopConfig = c.config
+    dob = f"{g.q_type} {g.q_cutoff_hz:.3g} Hz" if g.dob_on else "DOB off"
+    ff = f"ff {g.ff_gain:.3g}" if g.ff_on else "ff off"
+    filt = "" if g.command_filter.kind == "off" else f", filter {g.command_filter.kind}"
+    return (f"Cv {g.cv_kp:.3g} (ki {g.cv_ki_per_s:.3g}), Cp {g.pos_kp_per_s:.3g} "
+            f"(ki {g.pos_ki_per_s:.3g}), {ff}, {dob}{filt}: rmse {c.rmse_deg:.4g} peak "
+            f"{c.peak_error_deg:.4g} noise {c.command_noise_deg_s:.3g}")
+
+
+def main(seed: int, rigs: int, metric: str, ff: bool, choices: bool = True) -> int:
     print(f"seed {seed}, {rigs} rigs, objective {metric} on 5 sin(0.5 t) deg, "
           f"feedforward {'allowed' if ff else 'off'}")
     obj = Objective(metric=metric, feedforward=ff)
@@ -53,6 +67,8 @@ def main(seed: int, rigs: int, metric: str, ff: bool) -> int:
               f"{sc(o.predicted)} {o.ident_s:5.1f} {o.tune_s:6.1f}"
               + (f"  (brute's best misses the targets: {o.brute_misses})"
                  if o.brute_misses and o.vs_brute > 1.1 else ""), flush=True)
+        if choices:
+            print(f"     tuned: {chosen(o.tuned)}\n     brute: {chosen(o.brute)}", flush=True)
     n = len(rows)
     acc = sum(o.accepted for o in rows)
     stable = [o for o in rows if o.default_stable]
@@ -77,6 +93,8 @@ if __name__ == "__main__":
     p.add_argument("--rigs", type=int, default=20)
     p.add_argument("--metric", choices=("rmse", "peak"), default="rmse")
     p.add_argument("--no-ff", action="store_true")
+    p.add_argument("--no-choices", action="store_true",
+                   help="leave out each rig's two loops (the tune's and the brute force's)")
     a = p.parse_args()
     s = a.seed if a.seed is not None else int.from_bytes(__import__("os").urandom(4), "little")
-    sys.exit(main(s, a.rigs, a.metric, not a.no_ff))
+    sys.exit(main(s, a.rigs, a.metric, not a.no_ff, not a.no_choices))
