@@ -27,9 +27,9 @@ ALARM_COLOR = "#d62728"
 ALARM_DOTS = 15
 _TIME_X: ChartDict = {"label": "time (this browser's time zone)", "scale": "x", "space": 70}
 _MARK: ChartDict = {"auto": False, "range": (0.0, 1.0)}
-#: Units and names of what the charts draw.
-UNITS = {"plant_residual_rms_deg_s": "deg/s", "fitted_residual_rms_deg_s": "deg/s",
-         "loop_residual_rms_deg": "deg", "compute_p99_us": "us", "skipped_ticks": "ticks"}
+#: The residuals drawn (in milli-units: uPlot labels its ticks with at most 3 decimals, so a
+#: residual of 0.003 deg on ticks 0.0005 apart read "0.003, 0.003, 0.002, 0.002...").
+RESIDUALS = ("plant_residual_rms_deg_s", "fitted_residual_rms_deg_s", "loop_residual_rms_deg")
 
 
 @dataclass(frozen=True)
@@ -42,8 +42,10 @@ class TrendChart:
 
 
 def _points(label: str, color: str, size: float = 6.0) -> ChartDict:
-    return {"label": label, "stroke": color, "fill": color, "width": 0, "scale": "y",
-            "points": {"show": True, "size": size, "fill": color}, "spanGaps": False}
+    """Points only (no line, nothing filled under them)."""
+    return {"label": label, "stroke": color, "width": 0, "scale": "y",
+            "points": {"show": True, "size": size, "fill": color, "stroke": color},
+            "spanGaps": False}
 
 
 def _alarm_series() -> ChartDict:
@@ -59,13 +61,17 @@ def _y_axis(label: str, scale: str = "y", side: int = 3) -> ChartDict:
     return ax
 
 
-def readable_range(vals: FloatArray) -> tuple[float, float]:
+def readable_range(vals: FloatArray, from_zero: bool = False) -> tuple[float, float]:
     """The finite values' range with a 10 % margin; never a single value (a flat trend of
-    1.0 spans 0.95..1.05, of 0 spans -1..1), 0..1 with no value."""
+    1.0 spans 0.95..1.05, of 0 spans -1..1), 0..1 with no value. `from_zero`: a quantity
+    that cannot be negative (an rms, a time, a count) from 0 (a flat 0.003 then reads on
+    ticks 0, 0.001, 0.002, 0.003, not on 0.003 three times)."""
     v = vals[np.isfinite(vals)]
     if v.size == 0:
         return 0.0, 1.0
     lo, hi = float(v.min()), float(v.max())
+    if from_zero and lo >= 0.0:
+        return 0.0, (1.15 * hi if hi > 0.0 else 1.0)
     span = hi - lo
     if span <= 1e-12 * max(abs(lo), abs(hi), 1.0):
         half = 0.05 * abs(lo) if lo != 0.0 else 1.0
@@ -92,7 +98,7 @@ def _merge_alarms(x: FloatArray, ys: list[FloatArray], alarms: list[float]
 def _chart(key: str, title: str, series: list[ChartDict], axes: list[ChartDict],
            t: FloatArray, cols: list[FloatArray], span: TrendSpan, width_px: int,
            alarm_times: list[float], height: int, bands: object = None,
-           extra_scales: tuple[str, ...] = ()) -> TrendChart:
+           extra_scales: tuple[str, ...] = (), from_zero: bool = False) -> TrendChart:
     x, ys = time_decimate(t, cols, span.t0_epoch_s, span.t1_epoch_s, width_px)
     x, ys, mark = _merge_alarms(x, ys, alarm_times)
     scales: dict[str, ChartDict] = {
@@ -100,7 +106,7 @@ def _chart(key: str, title: str, series: list[ChartDict], axes: list[ChartDict],
         MARK_SCALE: _MARK}
     for name in ("y", *extra_scales):
         vals = [y for y, s in zip(ys, series, strict=True) if s.get("scale", "y") == name]
-        lo, hi = readable_range(np.concatenate(vals) if vals else np.empty(0))
+        lo, hi = readable_range(np.concatenate(vals) if vals else np.empty(0), from_zero)
         scales[name] = {"auto": False, "range": (lo, hi)}
     spec = ChartSpec(key=key, title=title, series=({"label": "time"}, *series, _alarm_series()),
                      scales=scales, axes=(_TIME_X, *axes), height=height, bands=bands)
@@ -121,13 +127,12 @@ def trend_charts(span: TrendSpan, width_px: int) -> list[TrendChart]:
     out.append(_chart(
         "trend_residuals", "Residuals: plant (measured rate - twin's answer) and loop "
         "(measured error - twin's predicted error)",
-        [line_series("plant residual (deg/s rms)", CANDIDATE),
-         line_series("plant residual, fitted parts (deg/s rms)", "#17becf", dash=(4, 3)),
-         line_series("loop residual (deg rms)", "#e8871e", scale="deg")],
-        [_y_axis("deg/s"), _y_axis("deg", "deg", 1)], rt,
-        [col(r, "plant_residual_rms_deg_s", rt.size), col(r, "fitted_residual_rms_deg_s", rt.size),
-         col(r, "loop_residual_rms_deg", rt.size)], span, width_px, alarms, 190,
-        extra_scales=("deg",)))
+        [line_series("plant residual (mdeg/s rms)", CANDIDATE),
+         line_series("plant residual, fitted parts (mdeg/s rms)", "#17becf", dash=(4, 3)),
+         line_series("loop residual (mdeg rms)", "#e8871e", scale="mdeg")],
+        [_y_axis("mdeg/s"), _y_axis("mdeg", "mdeg", 1)], rt,
+        [1e3 * col(r, name, rt.size) for name in RESIDUALS], span, width_px, alarms, 250,
+        extra_scales=("mdeg",), from_zero=True))
     p = span.parts
     pt = p.get("t", np.empty(0))
     for name in span.part_names():
@@ -150,7 +155,7 @@ def trend_charts(span: TrendSpan, width_px: int) -> list[TrendChart]:
                  + (", with its allowed range" if has_range else
                     " (this trend carries no range)"))
         out.append(_chart(f"trend_{name}", title, series, [_y_axis("x")], pt, cols, span,
-                          width_px, alarms, 150, bands))
+                          width_px, alarms, 230, bands))
     h = span.health
     ht = h.get("t", np.empty(0))
     out.append(_chart(
@@ -159,7 +164,7 @@ def trend_charts(span: TrendSpan, width_px: int) -> list[TrendChart]:
          line_series("skipped ticks per window", "#9467bd", scale="ticks")],
         [_y_axis("us"), _y_axis("ticks", "ticks", 1)], ht,
         [col(h, "compute_p99_us", ht.size), col(h, "skipped_ticks", ht.size)], span,
-        width_px, alarms, 170, extra_scales=("ticks",)))
+        width_px, alarms, 230, extra_scales=("ticks",), from_zero=True))
     return out
 
 

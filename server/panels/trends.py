@@ -168,7 +168,7 @@ class TrendsPanel:
                         f"{esc(text)}</li>" for when, part, text in rows)
         more = len(span.alarms) - len(rows)
         set_html(self.alarms, f"<div class='dt-trend-alarms' style='color:#d62728'>"
-                 f"{len(span.alarms)} alarms in this range (red dots on the time axis of "
+                 f"{_count(len(span.alarms), 'alarm')} in this range (red dots on the time axis of "
                  f"every chart):<ul style='margin:2px 0 0 16px;padding:0'>{items}</ul>"
                  + (f"and {more} earlier" if more > 0 else "") + "</div>")
 
@@ -194,5 +194,9 @@ class TrendsPanel:
         newest = (time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(float(t[-1]))) + " UTC"
                   if t is not None and t.size else "-")
         return (f"Rig <b>{esc(span.rig)}</b>, {esc(range_name)}: {span.windows} windows in "
-                f"{span.files} hourly files, newest {newest}; {len(span.alarms)} alarms. "
+                f"{span.files} hourly files, newest {newest}; {_count(len(span.alarms), 'alarm')}. "
                 f"Each chart draws at most two points per pixel ({self.width_px} px).")
+
+
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}" + ("" if n == 1 else "s")
