@@ -164,10 +164,10 @@ def read_hour(path: Path) -> HourRead:
     if len(head) == len(_MAGIC):  # shorter: a file just opened, its header still buffered
         n = 0
         try:
-            for topic, _schema, t_ns, data in file_messages(path):
+            for topic, _schema, t_ns, raw in file_messages(path):
                 if topic in raws:
                     times[topic].append(t_ns / 1e9)
-                    raws[topic].append(data)
+                    raws[topic].append(raw)
                     n += 1
         except Exception as exc:  # struct, zstd errors: a chunk cut short or damaged
             cut = f"{path.name}: cut short after {n} messages ({type(exc).__name__}: {exc})"

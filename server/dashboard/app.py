@@ -20,10 +20,12 @@ user, a viewer's changes refused here and an operator's sent as that operator).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import logging
 import secrets
 import signal
+import socket
 import threading
 import types
 from collections.abc import Callable, Iterator
@@ -53,6 +55,7 @@ from server.panels.knowledge import KnowledgePanel
 from server.panels.live import LivePanel
 from server.panels.nominal_tuning import NominalTuningPanel
 from server.panels.recordings import RecordingsPanel
+from server.panels.trends import TrendsPanel
 from server.panels.widgets import EXPORT_LABEL
 from server.scene3d import TurntableScene
 from server.session import BrowserSessions, leased
@@ -123,6 +126,19 @@ def record_options(opts: DashboardOptions, client: ControllerClient) -> RecordOp
                          rig_name=opts.rig_name, auth=opts.auth, user=user)
 
 
+def trends_tab(gui: viser.GuiApi, plots: viser.PanelHandle, opts: DashboardOptions,
+               messages: MessageGate) -> TrendsPanel:
+    """The plots panel's Trends tab (`server.panels.trends`), started; every role may choose
+    its range and rig (what it reads and shows, for every browser)."""
+    panel = TrendsPanel(gui, opts.trend_dirs, opts.rig_name, PLOTS_WIDTH_PX)
+    with plots.add_tab("Trends"):
+        panel.build()
+    for handle in panel.controls:
+        messages.open_to_all(handle)
+    panel.start()
+    return panel
+
+
 def build_or_depart(server: viser.ViserServer | None, client: viser.ClientHandle,
                     build: Callable[[], None], depart: Callable[[], None]) -> None:
     """`build()` the new browser's own panels; if it left before or during the build, what
@@ -173,6 +189,7 @@ class Dashboard:
         self.knowledge: KnowledgePanel | None = None
         self.scene: TurntableScene | None = None
         self.fleet: FleetPanel | None = None
+        self.trends: TrendsPanel | None = None
         self._fleet_monitor: FleetMonitor | None = None
         self._views: dict[str, Dashboard] = {}
         self._views_lock = threading.Lock()
@@ -233,7 +250,7 @@ class Dashboard:
 
     def _close(self) -> None:
         self.candidates.close()
-        for panel in (self.live, self.identify, self.fleet):
+        for panel in (self.live, self.identify, self.fleet, self.trends):
             if panel is not None:
                 panel.stop()
         if self.recordings is not None and self.recordings.recording_to is not None:
@@ -262,9 +279,6 @@ class Dashboard:
         with self._views_lock:
             view = self._views.get(rig)
             if view is None:
-                import dataclasses
-                import socket
-
                 with socket.socket() as s:
                     s.bind((self.opts.host, 0))
                     port = int(s.getsockname()[1])
@@ -363,6 +377,7 @@ class Dashboard:
         with plots.add_tab("Identify"):
             self.identify.build_charts()
         recordings.build_compare(plots)  # each browser's comparison, built when it connects
+        self.trends = trends_tab(gui, plots, self.opts, self.messages)
         plots.dock_right()
         run_logged(lambda: gui.main_panel.dock_left(), what="docking the controls left")
         run_logged(plots.set_width, PLOTS_WIDTH_PX, what="sizing the plots panel")
