@@ -14,6 +14,7 @@ import math
 import time
 from typing import Any
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -416,3 +417,43 @@ def test_a_gain_typed_with_an_exponent_is_read_as_typed(
     assert t.cv_ki_input.value == typed  # never rewritten while typed
     t.revert()
     assert t.wait_idle(2.0)
+
+
+def test_a_loaded_speed_command_filter_is_in_the_controls_and_the_candidate(
+        dash: Dashboard) -> None:
+    """What the tune step does with a result that has a notch (`load`): the filter's controls
+    show it, the candidate is exactly it (its numbers as loaded, not rounded by the fields),
+    the diff names it in words; a low-pass typed is taken as typed; a bad damping is refused
+    naming `command_filter.lowpass_damping`; off is the loaded filter switched off."""
+    from controller.core.command_filter import CommandFilter
+
+    t = dash.panel_of(None)
+    assert t is not None
+    notch = CommandFilter(kind="notch", notch_hz=32.4187, notch_depth_db=10.0,
+                          notch_width=0.6)
+    cfg = t.active.with_(command_filter=notch)
+    t.load(cfg, t.active_version)
+    assert t.wait_idle(5.0)
+    assert t.filter_kind.value == "notch" and t.notch_hz_input.value == "32.4187"
+    assert t.notch_hz_input.visible and not t.lowpass_hz_input.visible
+    assert t.candidate() == cfg
+    assert t.active.command_filter.kind == "off"
+    assert "speed-command filter: off &rarr;" in t.diff_text.content
+    kept = dict(t.controls.kept())
+    assert kept["filter_kind"] == "notch" and kept["notch_width_input"] == "0.6"
+    t.filter_kind.value = "low-pass"
+    t.lowpass_hz_input.value = "1.2e2"
+    assert t.wait_idle(5.0)
+    got = t.candidate().command_filter
+    assert (got.kind, got.lowpass_hz, got.notch_hz) == ("lowpass", 120.0, 32.4187)
+    assert html.escape("low-pass at 120 Hz") in t.diff_text.content
+    t.lowpass_damping_input.value = "5"
+    assert t.wait_idle(5.0)
+    assert "Invalid candidate" in t.verdict.content
+    assert "command_filter.lowpass_damping" in t.verdict.content
+    t.filter_kind.value = "off"
+    assert t.wait_idle(5.0)
+    assert t.candidate() == cfg.with_(command_filter=msgspec.structs.replace(notch, kind="off"))
+    t.revert()
+    assert t.wait_idle(5.0)
+    assert t.candidate().command_filter == t.active.command_filter
