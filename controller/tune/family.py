@@ -41,7 +41,8 @@ from controller.tune.whole_loop import (
 )
 from controller.twin.fit import rig_response
 
-__all__ = ["RANGES", "BruteGrid", "FamilyRig", "RigOutcome", "brute_force", "draw_family",
+__all__ = ["RANGES", "BruteGrid", "FamilyRig", "RigOutcome", "brute_force", "brute_force_both",
+           "draw_family",
            "identify", "run_rig", "true_knowledge"]
 
 RANGES: dict[str, tuple[float, float]] = {
@@ -205,29 +206,49 @@ def brute_force(base: LoopConfig, knowledge: PlantKnowledge, plant: SimPlant,
                 objective: Objective, grid: BruteGrid | None = None,
                 targets: DesignTargets | None = None) -> Candidate | None:
     """The best candidate of `grid` on the true rig (None: none accepted)."""
+    return brute_force_both(base, knowledge, plant, objective, grid, targets)[
+        0 if targets is None else 1]
+
+
+def brute_force_both(base: LoopConfig, knowledge: PlantKnowledge, plant: SimPlant,
+                     objective: Objective, grid: BruteGrid | None = None,
+                     targets: DesignTargets | None = None,
+                     ) -> tuple[Candidate | None, Candidate | None]:
+    """The best candidate of `grid` on the true rig that the gate accepts, and the best whose
+    PIs also meet `targets` (the tune's design margins) on it (None: none; the second is
+    None without `targets`), from one pass over the PIs; the DOB's grid on the best `keep` of
+    each."""
     grid = grid or BruteGrid()
     ff = objective.feedforward
-    pis = []
+    pis: list[tuple[Candidate, bool]] = []
     for sv in grid.speed_scales:
         for sp in grid.position_scales:
             cfg = base.with_(cv_kp=base.cv_kp * sv, cv_ki_per_s=base.cv_ki_per_s * sv,
                              pos_kp_per_s=base.pos_kp_per_s * sp,
                              pos_ki_per_s=base.pos_ki_per_s * sp, ff_on=ff, ff_gain=1.0,
                              dob_on=False)
-            if targets is not None and meets_targets(cfg, knowledge, targets) is not None:
-                continue
-            pis.append(evaluate(cfg, plant, objective, knowledge))
-    ok = sorted((c for c in pis if c.verdict == "accept" and math.isfinite(c.score)),
-                key=lambda c: c.score)
-    found = list(ok)
-    for c in ok[: grid.keep]:
-        for qt in grid.q_types:
-            for fc in grid.cutoffs_hz:
-                d = evaluate(c.config.with_(dob_on=True, q_type=qt, q_cutoff_hz=fc), plant,
-                             objective, knowledge)
-                if d.verdict == "accept" and math.isfinite(d.score):
-                    found.append(d)
-    return min(found, key=lambda c: c.score) if found else None
+            c = evaluate(cfg, plant, objective, knowledge)
+            meets = targets is not None and meets_targets(cfg, knowledge, targets) is None
+            pis.append((c, meets))
+    seen: dict[LoopConfig, Candidate] = {}
+
+    def best_of(pool: list[Candidate]) -> Candidate | None:
+        ok = sorted((c for c in pool if c.verdict == "accept" and math.isfinite(c.score)),
+                    key=lambda c: c.score)
+        found = list(ok)
+        for c in ok[: grid.keep]:
+            for qt in grid.q_types:
+                for fc in grid.cutoffs_hz:
+                    cfg = c.config.with_(dob_on=True, q_type=qt, q_cutoff_hz=fc)
+                    if cfg not in seen:
+                        seen[cfg] = evaluate(cfg, plant, objective, knowledge)
+                    d = seen[cfg]
+                    if d.verdict == "accept" and math.isfinite(d.score):
+                        found.append(d)
+        return min(found, key=lambda c: c.score) if found else None
+
+    in_targets = best_of([c for c, m in pis if m]) if targets is not None else None
+    return best_of([c for c, _ in pis]), in_targets
 
 
 @dataclass(frozen=True)
@@ -247,6 +268,9 @@ class RigOutcome:
     brute_misses: str | None = None
     """What the brute force's best misses of the tune's design targets on the true rig (None:
     it meets them): the gate alone accepts loops the tune's margins exclude."""
+    brute_in_targets: Candidate | None = None
+    """The brute force's best among the PIs that meet the tune's design targets on the true
+    rig (the same feasible set the tune searches)."""
 
     @property
     def accepted(self) -> bool:
@@ -271,6 +295,13 @@ class RigOutcome:
             return math.nan
         return self.tuned.score / self.brute.score
 
+    @property
+    def vs_brute_in_targets(self) -> float:
+        """tuned / the brute force's best within the tune's targets (nan: either missing)."""
+        if self.tuned is None or self.brute_in_targets is None:
+            return math.nan
+        return self.tuned.score / self.brute_in_targets.score
+
 
 def run_rig(rig: FamilyRig, objective: Objective, base: LoopConfig | None = None,
             grid: BruteGrid | None = None, twin: Callable[[PlantKnowledge, SimPlant], SimPlant]
@@ -288,7 +319,7 @@ def run_rig(rig: FamilyRig, objective: Objective, base: LoopConfig | None = None
     sim = twin(known, plant) if twin is not None else plant_for(known, setup, base.rate_hz)
     truth = true_knowledge(rig.params, rig.faults, base.rate_hz, base.nominal)
     default = evaluate(base, plant, objective, truth)
-    brute = brute_force(base, truth, plant, objective, grid)
+    brute, brute_t = brute_force_both(base, truth, plant, objective, grid, DesignTargets())
     t1b = time.perf_counter()
     try:
         tr = tune_whole_loop(base, known, sim, objective)
@@ -303,10 +334,11 @@ def run_rig(rig: FamilyRig, objective: Objective, base: LoopConfig | None = None
             tr = tune_whole_loop(base, known, sim, objective)
     except ValueError as exc:  # no placement meets the targets: the outcome says why
         return RigOutcome(rig, None, None, default, brute, t1 - t0,
-                          time.perf_counter() - t1b, sim.source, (f"no design: {exc}",))
+                          time.perf_counter() - t1b, sim.source, (f"no design: {exc}",),
+                          brute_in_targets=brute_t)
     t2 = time.perf_counter()
     tuned = (evaluate(tr.best.config, plant, objective, truth) if tr.best is not None
              else None)
     misses = (meets_targets(brute.config, truth, tr.targets) if brute is not None else None)
     return RigOutcome(rig, tr.best, tuned, default, brute, t1 - t0, t2 - t1b, sim.source,
-                      tr.explanation, misses)
+                      tr.explanation, misses, brute_t)

@@ -25,9 +25,12 @@ measured plant"):
    Score: the objective's error (RMSE or peak, deg) + `noise_weight` x the command noise
    (RMS above 20 Hz, deg/s); a candidate whose command noise exceeds the budget does not
    count.
-5. A small local refinement by coordinate steps (each loop's gain x/÷ 1.15, the feedforward
-   gain +- 0.03, the cut-off x/÷ 1.3), each step kept only if it meets the design's targets on
-   the evidence, the gate accepts it, and it scores better; two rounds at most.
+5. A small local refinement by coordinate steps (each loop's gain x/÷ 1.15, each loop's
+   integral gain alone x/÷ 1.3 (its corner: the field's quarter of the crossover is a start,
+   not a law; a slow trajectory gains from more integral action where the margins allow it),
+   the feedforward gain +- 0.03, the cut-off x/÷ 1.3), each step kept only if it meets the
+   design's targets on the evidence, the gate accepts it, and it scores better; two rounds at
+   most.
 6. The best is judged once more with the nonlinear check (if given) and the recommended
    cut-off; if that does not accept it, the next best that does is taken.
 """
@@ -78,6 +81,7 @@ __all__ = ["Candidate", "Objective", "WholeLoopResult", "evaluate", "reference_l
 OBJECTIVES = ("rmse", "peak")
 GAIN_STEP = 1.15
 CUTOFF_STEP = 1.3
+CORNER_STEP = 1.3
 FF_STEP = 0.03
 
 
@@ -272,7 +276,7 @@ def tune_whole_loop(
         raise ValueError(f"cut-off range: need 0 < {lowest_hz} < {highest_hz} < Nyquist")
     rate = base.rate_hz
     runs = [0]
-    total = 3 + len(q_types) * (cutoffs + 2) + refine_rounds * 8
+    total = 3 + len(q_types) * (cutoffs + 2) + refine_rounds * 12
 
     def run(cfg: LoopConfig, judged: bool = True) -> Candidate:
         runs[0] += 1
@@ -420,6 +424,9 @@ def _neighbours(cfg: LoopConfig, ff_allowed: bool) -> list[LoopConfig]:
         out.append(cfg.with_(cv_kp=_r3(cfg.cv_kp * s), cv_ki_per_s=_r3(cfg.cv_ki_per_s * s)))
         out.append(cfg.with_(pos_kp_per_s=_r3(cfg.pos_kp_per_s * s),
                              pos_ki_per_s=_r3(cfg.pos_ki_per_s * s)))
+    for s in (CORNER_STEP, 1.0 / CORNER_STEP):
+        out.append(cfg.with_(cv_ki_per_s=_r3(cfg.cv_ki_per_s * s)))
+        out.append(cfg.with_(pos_ki_per_s=_r3(cfg.pos_ki_per_s * s)))
     if ff_allowed and cfg.ff_on:
         for d in (FF_STEP, -FF_STEP):
             out.append(cfg.with_(ff_gain=round(min(2.0, max(0.0, cfg.ff_gain + d)), 3)))
