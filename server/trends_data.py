@@ -238,7 +238,8 @@ def entered_alarm(span: TrendSpan, recorded: list[TrendAlarm]) -> list[TrendAlar
     alarm = STATES.index("alarm")
     for part, st in span.part_states.items():
         now = st == alarm
-        starts = np.flatnonzero(now & ~np.concatenate(([False], now[:-1])))
+        # Entries only: a part already in alarm at the range's first window entered it before.
+        starts = np.flatnonzero(now & ~np.concatenate(([True], now[:-1])))
         for i in starts:
             e = float(t[i])
             if not any(a.part == part and abs(a.epoch_s - e) <= 60.0 for a in recorded):

@@ -101,6 +101,32 @@ def test_a_week_reads_back_with_its_known_values(week: tuple[Path, object]) -> N
     assert not ((t >= g0) & (t < g1)).any()
 
 
+def test_an_alarm_is_marked_where_it_began_not_where_a_range_begins(
+        week: tuple[Path, object], tmp_path: Path) -> None:
+    root, wk = week
+    reader = TrendReader()
+    # The last day: the stiffness in alarm all along, its alarm 2.5 days before: none marked.
+    span = reader.read(root, RIG, wk.t1_epoch_s - DAY_S, wk.t1_epoch_s)  # type: ignore[attr-defined]
+    assert (span.part_states["stiffness"] == STATES.index("alarm")).all()
+    assert span.alarms == []
+    # A trend without alarm records (the watch before it wrote them): the entry found from
+    # the states, at the first window in alarm.
+    bare = tmp_path / "bare"
+    w = write_week(bare, RIG, 1_800_000_000.0, window_s=600.0)
+    for f in (bare / RIG).glob("*.mcap"):
+        hr = read_hour(f)
+        if hr.data["/drift/alarm"]:
+            f.unlink()  # that hour's file had the record: rewritten without it below
+            from controller.recording.trend import TrendWriter
+            with TrendWriter(bare, RIG) as tw:
+                for topic in ("/drift/residual", "/drift/parts", "/drift/health"):
+                    for t, d in zip(hr.epoch_s[topic], hr.data[topic], strict=True):
+                        tw.write(topic, t, d)
+    span = reader.read(bare, RIG, w.t0_epoch_s, w.t1_epoch_s)
+    assert [(a.epoch_s, a.part) for a in span.alarms] == [(w.alarm_at, "stiffness")]
+    assert "no alarm record" in span.alarms[0].text
+
+
 def test_an_hour_is_read_once_until_it_changes(week: tuple[Path, object],
                                                tmp_path: Path) -> None:
     root, wk = week

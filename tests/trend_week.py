@@ -31,6 +31,11 @@ class Week:
     alarm_at: float
     gap: tuple[float, float]
     windows: int
+    times: tuple[float, ...] = ()
+    """Every window's time, as written."""
+
+    def windows_in(self, t0_epoch_s: float, t1_epoch_s: float) -> int:
+        return sum(1 for t in self.times if t0_epoch_s <= t <= t1_epoch_s)
 
     @property
     def t1_epoch_s(self) -> float:
@@ -50,6 +55,7 @@ def write_week(root: Path, rig: str, end_epoch_s: float, window_s: float = 60.0,
     gap = (t0 + 2 * DAY_S, t0 + 2 * DAY_S + 6 * 3600)
     alarm_at = drop_at + 2 * window_s
     n = 0
+    times: list[float] = []
     with TrendWriter(root, rig) as tw:
         i = 0
         while True:
@@ -91,4 +97,5 @@ def write_week(root: Path, rig: str, end_epoch_s: float, window_s: float = 60.0,
                     "since_epoch_s": drop_at, "text": "stiffness x0.6 +-0.001 of the twin's, "
                     "below its range 0.75-1.27", "action": "measure again", "cleared": False})
             n += 1
-    return Week(t0, window_s, drop_at, alarm_at, gap, n)
+            times.append(e)
+    return Week(t0, window_s, drop_at, alarm_at, gap, n, tuple(times))

@@ -156,9 +156,10 @@ def test_a_week_is_plotted_with_its_values_and_its_alarm(
     assert dashboard.trends is not None
     print(f"the panel's load (read + reduce + send): {dashboard.trends.last_load_s:.2f} s")
     status = page.locator(".dt-trend-status").inner_text()
-    assert f"{wk.windows} windows" in status, status
+    x0, x1 = page.evaluate(CHART_JS, ["stiffness", ALARM_LABEL])["x"]
+    assert f"{wk.windows_in(x0, x1)} windows" in status, (status, x0, x1)
 
-    for title in ("Residuals", "gain", "stiffness", "inertia", "motor_friction", "Loop health"):
+    for title in ("Residuals", "gain: ", "stiffness", "inertia", "motor_friction", "Loop health"):
         c = _chart(page, title)
         # The time axis covers the week (the dashboard's now is a little after the writing).
         x0, x1 = c["x"]
@@ -185,7 +186,7 @@ def test_a_week_is_plotted_with_its_values_and_its_alarm(
     assert c["y"][0] < 0.6 and c["y"][1] > 1.27, c["y"]
     assert {"stiffness (x)", "range high", "range low", "in alarm", "not told"} <= set(
         c["labels"]), c["labels"]
-    page.locator(".u-title", has_text="stiffness").first.scroll_into_view_if_needed()
+    page.locator(".u-title", has_text="stiffness: estimated").first.scroll_into_view_if_needed()
     at, beside = page.evaluate(RED_JS, ["stiffness", wk.alarm_at])
     assert at >= ALARM_DOTS and beside == 0, (at, beside)
     # After the drop the cursor reads 0.6; before it 1.
@@ -195,8 +196,8 @@ def test_a_week_is_plotted_with_its_values_and_its_alarm(
 
     # The gain's known value under the cursor: its day's peak 1.02, 6 h into the third day.
     t_peak = wk.t0_epoch_s + 3 * DAY_S + 6 * 3600
-    page.locator(".u-title", has_text="gain").first.scroll_into_view_if_needed()
-    hover = page.evaluate(HOVER_JS, ["gain", t_peak, "gain (x)"])
+    page.locator(".u-title", has_text="gain: estimated").first.scroll_into_view_if_needed()
+    hover = page.evaluate(HOVER_JS, ["gain: ", t_peak, "gain (x)"])
     assert hover is not None and abs(hover["x"] - t_peak) < 1800, hover
     assert float(hover["value"]) == pytest.approx(gain_at(hover["x"], wk), abs=2e-4), hover
     assert float(hover["value"]) == pytest.approx(1.02, abs=1e-3), hover
@@ -208,8 +209,9 @@ def test_a_week_is_plotted_with_its_values_and_its_alarm(
         alarms
     page.locator(".dt-trend-status").scroll_into_view_if_needed()
     page.screenshot(path=str(ARTIFACTS / "trends_week.png"))
-    page.locator(".u-title", has_text="stiffness").first.scroll_into_view_if_needed()
-    page.screenshot(path=str(ARTIFACTS / "trends_week_stiffness.png"))
+    for name in ("stiffness", "Loop health"):
+        chart = page.locator(".uplot", has=page.locator(".u-title", has_text=name)).first
+        chart.screenshot(path=str(ARTIFACTS / f"trends_week_{name.split()[0].lower()}.png"))
 
 
 def test_the_last_hour_and_a_rig_whose_trend_is_unreadable(page: Any) -> None:
@@ -217,10 +219,10 @@ def test_the_last_hour_and_a_rig_whose_trend_is_unreadable(page: Any) -> None:
     _pick(page, "Time range", "last hour")
 
     def hour_shown() -> bool:
-        c = page.evaluate(CHART_JS, ["gain", ALARM_LABEL])
+        c = page.evaluate(CHART_JS, ["gain: ", ALARM_LABEL])
         return bool(c) and abs(c["x"][1] - c["x"][0] - 3600) < 1
     wait_for(hour_shown, SLOW_S, "the last hour was never plotted")
-    c = _chart(page, "gain")
+    c = _chart(page, "gain: ")
     # No alarm in the last hour; the minutes in ticks, several.
     assert c["marks"] == [] and len(c["xTicks"]["values"]) >= 4, c
     assert "No alarm in this range" in page.locator(".dt-trend-alarms").inner_text()
