@@ -97,6 +97,12 @@ class DisturbanceEstimate(_Rec, frozen=True, kw_only=True):
     mean_deg_s: float
     freq_hz: tuple[float, ...] = ()
     amplitude_deg_s: tuple[float, ...] = ()
+    mean_std_deg_s: float | None = None
+    """The mean's standard deviation (from the means of ten blocks of the window: d_hat is
+    low-passed, its samples are not independent); None: not stated."""
+    relative_to: str = ""
+    """"": d_hat itself; else what was taken off it (the twin's own d_hat for the same run:
+    what remains is the disturbance the twin lacks)."""
 
 
 class ReplayFit(_Rec, frozen=True, kw_only=True):

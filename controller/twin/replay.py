@@ -1,9 +1,14 @@
 """A recorded run replayed on the rig's twin (pure): the same configuration and reference run
 on the twin through the compiled offline loop, its position error against the one measured
-(`ReplayFit`: RMSE and peak, measured and predicted)."""
+(`ReplayFit`: RMSE and peak, measured and predicted); and the disturbance the DOB estimated
+on the rig that the twin lacks (`disturbance_lacking`: the recorded d_hat against the twin's
+own for the same run), put into the twin as the drive's speed offset (`with_disturbance`)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+import msgspec
 import numpy as np
 
 from controller.core.arrays import FloatArray
@@ -11,9 +16,13 @@ from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.sim.disturbance import Disturbance
 from controller.sim.experiment import default_settle_s, run_experiment
-from controller.twin.model import ReplayFit, RigTwin
+from controller.twin.fit import disturbance_estimate
+from controller.twin.model import DisturbanceEstimate, ReplayFit, RigTwin
 
-__all__ = ["replay"]
+__all__ = ["disturbance_lacking", "replay", "with_disturbance"]
+
+#: The mean's deviation comes from this many blocks of the window.
+BLOCKS = 10
 
 
 def replay(twin: RigTwin, cfg: LoopConfig, trajectory: Trajectory,
@@ -43,3 +52,48 @@ def replay(twin: RigTwin, cfg: LoopConfig, trajectory: Trajectory,
                      predicted_rmse_deg=float(np.sqrt(np.mean(p * p))),
                      measured_peak_deg=float(np.max(np.abs(e))),
                      predicted_peak_deg=float(np.max(np.abs(p))))
+
+
+def disturbance_lacking(twin: RigTwin, cfg: LoopConfig, trajectory: Trajectory,
+                        d_hat_deg_s: FloatArray, *, disturbance: Disturbance | None = None,
+                        seed: int = 0, settle_s: float | None = None) -> DisturbanceEstimate:
+    """The disturbance the DOB estimated on the rig that the twin lacks: the recorded run's
+    d_hat (one per tick from the trajectory's start, `cfg` with its DOB on) less the d_hat of
+    the same configuration and reference run on the twin, from `settle_s` on (default: the
+    experiments' window): its mean (with the deviation of the mean from ten blocks), level and
+    spectrum. ValueError for a non-finite window, a DOB that is off, or fewer than 10 blocks
+    of 16 samples."""
+    d = np.asarray(d_hat_deg_s, dtype=np.float64)
+    if d.ndim != 1 or not np.all(np.isfinite(d)):
+        raise ValueError("d_hat_deg_s: one finite value per tick")
+    if not cfg.dob_on:
+        raise ValueError("cfg: the DOB is off (d_hat is not estimated)")
+    skip = round((default_settle_s(trajectory) if settle_s is None else settle_s) * cfg.rate_hz)
+    if d.size - skip < 16 * BLOCKS:
+        raise ValueError(f"d_hat_deg_s: {d.size} samples, the window starts at {skip}")
+    rig = twin.sim_rig(seed=seed, disturbance=disturbance,
+                       initial_position_deg=trajectory.at(0.0)[0], rate_hz=cfg.rate_hz)
+    own = run_experiment(cfg, trajectory, d.size / cfg.rate_hz, rig=rig)
+    diff = d[skip:] - np.asarray(own.d_hat_deg_s, dtype=np.float64)[skip: d.size]
+    est = disturbance_estimate(diff, 1.0 / cfg.rate_hz)
+    blocks = np.array([b.mean() for b in np.array_split(diff, BLOCKS)])
+    return msgspec.structs.replace(
+        est, mean_std_deg_s=float(np.std(blocks, ddof=1) / np.sqrt(BLOCKS)),
+        relative_to=f"the twin's own d_hat for the same run ({cfg.q_type} "
+                    f"{cfg.q_cutoff_hz:g} Hz, {trajectory.kind})")
+
+
+def with_disturbance(twin: RigTwin, est: DisturbanceEstimate) -> RigTwin:
+    """`twin` with the disturbance `est` states: its mean, a rate at P's input, added to the
+    drive's speed offset (motor side: x gear ratio, deg/s -> rpm), which the offline loop
+    runs; the estimate kept in the twin (`disturbance`) and said in its notes."""
+    p = twin.params
+    rpm = est.mean_deg_s * p.gear_ratio / 6.0
+    sd = (f" +- {est.mean_std_deg_s * p.gear_ratio / 6.0:.2g}" if est.mean_std_deg_s is not None
+          else "")
+    what = f"d_hat less {est.relative_to}" if est.relative_to else "d_hat"
+    note = (f"drive offset {p.drive_offset_rpm + rpm:.3g} rpm: {p.drive_offset_rpm:.3g} + "
+            f"{rpm:.3g}{sd} rpm, the mean of {what} over {est.window_s:.3g} s")
+    return msgspec.structs.replace(
+        twin, params=replace(p, drive_offset_rpm=p.drive_offset_rpm + rpm), disturbance=est,
+        notes=(*twin.notes, note))
