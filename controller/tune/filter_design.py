@@ -45,7 +45,7 @@ MIN_RAISE = 1.1
 NOTCH_DEPTHS_DB = (10.0, 20.0, 30.0)
 WIDTH_FACTORS = (1.0, 2.0)
 #: Wider notches tried too (a non-collocated mode lags well below its peak).
-WIDE_NOTCHES = (0.3, 0.6)
+WIDE_NOTCHES = (0.3, 0.6, 1.0, 1.5)
 MIN_NOTCH_WIDTH = 0.05
 LOWPASS_FRACTIONS = (0.4, 0.6)
 LOWPASS_DAMPINGS = (0.5, 0.7)
