@@ -197,3 +197,36 @@ def test_a_flat_trend_still_gets_a_readable_range() -> None:
 def test_skipped_ticks_per_window_restart_counts_from_zero() -> None:
     got = per_window(np.array([5.0, 7.0, 7.0, 2.0, 4.0]))
     assert list(got) == [0.0, 2.0, 0.0, 2.0, 2.0]
+
+
+def test_the_watchs_trend_record_gives_the_range_band_and_the_alarm(tmp_path: Path) -> None:
+    """What the watch writes (controller/process/watch.py `_trend`, and each alarm as
+    published) is what the Trends tab reads: the parts' ranges and the alarm's part and text."""
+    import msgspec
+
+    from controller import protocol as proto
+    from controller.process.watch import _trend
+    from controller.recording.trend import TrendWriter
+
+    t0 = 1_800_000_000.0
+    alarm = proto.DriftAlarm(rig=RIG, seq=1, epoch_s=t0 + 20, part="stiffness", value=0.6,
+                             std=0.01, low=0.75, high=1.27, since_epoch_s=t0 + 10,
+                             text="stiffness x0.6 below its range", action="measure again")
+    with TrendWriter(tmp_path, RIG) as tw:
+        for i, (v, state) in enumerate(((1.0, "ok"), (0.6, "outside"), (0.6, "alarm"))):
+            part = proto.DriftPart(name="stiffness", value=v, std=0.01, told=True, state=state,
+                                   low=0.75, high=1.27)
+            msg = proto.DriftState(
+                rig=RIG, epoch_s=t0 + 10 * i, window_s=10.0, config_version=1, model="twin",
+                parts=[part], delay_ticks=0, twin_delay_ticks=0, plant_residual_rms_deg_s=0.004,
+                fitted_residual_rms_deg_s=0.004, loop_measured_rms_deg=0.03,
+                loop_predicted_rms_deg=0.03, loop_residual_rms_deg=0.003)
+            _trend(tw, msg, None)
+        tw.write("/drift/alarm", alarm.epoch_s, msgspec.to_builtins(alarm))
+    span = TrendReader().read(tmp_path, RIG, t0 - 1, t0 + 30)
+    assert list(span.parts["stiffness_low"]) == [0.75] * 3
+    assert list(span.parts["stiffness_high"]) == [1.27] * 3
+    assert [(a.epoch_s, a.part, a.text) for a in span.alarms] == [
+        (t0 + 20, "stiffness", "stiffness x0.6 below its range")]
+    stiff = next(c for c in trend_charts(span, 900) if c.spec.key == "trend_stiffness")
+    assert stiff.spec.bands is not None and "allowed range" in stiff.spec.title

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from controller import protocol as proto
@@ -201,6 +202,8 @@ def _trend(tw: TrendWriter, msg: proto.DriftState, status: proto.Status | None) 
         parts[p.name] = p.value
         parts[p.name + "_std"] = p.std
         parts[p.name + "_state"] = p.state
+        parts[p.name + "_low"] = p.low  # its allowed range: the dashboard's Trends tab draws it
+        parts[p.name + "_high"] = p.high
     tw.write("/drift/parts", e, parts)
     health: dict[str, Any] = {"config_version": msg.config_version, "alarms": msg.alarms}
     if status is not None:
@@ -328,6 +331,8 @@ def run_watch(opts: WatchOptions, stop: threading.Event,
                                       + [(n, True) for n in verdict.cleared]):
                     alarm = _publish_alarm(pub_alarm, st, rig, name, cfg, fit, epoch_s, cleared)
                     sent.append(proto.encode(alarm))
+                    if trend is not None:  # marked at its time in the Trends tab
+                        trend.write("/drift/alarm", epoch_s, msgspec.to_builtins(alarm))
                     del sent[:-100]
                 msg = _state_msg(rig, st, fit, lr, epoch_s, win.duration_s, version,
                                  verdict.lines, fit_s)
