@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from controller.core.config import LoopConfig
+from controller.core.samples import STATE_COLUMNS
 from controller.core.trajectory import Trajectory
 from controller.sim.experiment import run_experiment
 from controller.sim.rig_disturbances import rig_setup
@@ -22,7 +23,7 @@ from controller.sim.sim_rig import RigFaults, SimRig
 from controller.tune.family import true_knowledge
 from controller.twin.fit import twin_from_knowledge
 from controller.twin.model import RigTwin, decode, encode
-from controller.twin.nonlinear import RunningWindow, friction_fit, noise_estimate
+from controller.twin.nonlinear import RunningWindow, friction_fit, noise_estimate, with_running
 from controller.twin.replay import replay
 
 pytestmark = pytest.mark.slow
@@ -44,9 +45,10 @@ NOISE_TOL = 0.15  # relative
 
 
 def _window(seed: int) -> RunningWindow:
+    """The state stream's columns of a 20 s run of the true rig, as a window."""
     run = run_experiment(CFG, SINE, 20.0, rig=SimRig(TRUE, seed=seed))
-    return RunningWindow(CFG.rate_hz, run.pos_deg, run.speed_deg_s, run.command_deg_s,
-                         label=f"sine run seed {seed}")
+    columns = {name: getattr(run, name) for name in STATE_COLUMNS if name != "error_deg"}
+    return RunningWindow.of_columns(CFG.rate_hz, columns, label=f"sine run seed {seed}")
 
 
 @pytest.fixture(scope="module")
@@ -110,6 +112,16 @@ def test_estimates_make_the_replay_closer(twins: tuple[RigTwin, RigTwin]) -> Non
     assert abs(after.predicted_peak_deg - peak) < abs(before.predicted_peak_deg - peak)
 
 
+def test_an_existing_twin_takes_a_window(twins: tuple[RigTwin, RigTwin]) -> None:
+    """`with_running` on the twin fitted without a window: the same estimates as fitting with
+    it (the dynamics are not fitted again), the viscous friction's deviation kept."""
+    plain, measured = twins
+    tw = with_running(plain, _window(3))
+    assert tw.params == measured.params
+    assert tw.nonlinear == measured.nonlinear
+    assert tw.fitted == plain.fitted and tw.positions == plain.positions
+
+
 def test_a_window_that_tells_nothing_is_refused() -> None:
     n = 4000
     still = RunningWindow(1000.0, np.zeros(n), np.zeros(n), np.full(n, 2.0))
@@ -122,6 +134,8 @@ def test_a_window_that_tells_nothing_is_refused() -> None:
         RunningWindow(1000.0, np.zeros(n), np.zeros(n - 1), np.zeros(n))
     with pytest.raises(ValueError, match="non-finite"):
         RunningWindow(1000.0, np.full(n, np.nan), np.zeros(n), np.zeros(n))
+    with pytest.raises(ValueError, match="no column 'command_deg_s'"):
+        RunningWindow.of_columns(1000.0, {"pos_deg": np.zeros(n), "speed_deg_s": np.zeros(n)})
 
 
 def test_noise_estimate_against_white_noise_of_known_level() -> None:

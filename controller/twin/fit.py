@@ -38,12 +38,7 @@ from controller.twin.model import (
     RigTwin,
     knowledge_digest,
 )
-from controller.twin.nonlinear import (
-    RunningWindow,
-    friction_fit,
-    noise_estimate,
-    with_friction,
-)
+from controller.twin.nonlinear import RunningWindow, running_fit
 
 __all__ = [
     "MAX_DELAY_TICKS",
@@ -254,20 +249,11 @@ def twin_from_knowledge(
     std: dict[str, float | None] = {"coulomb": None, "backlash": None, "noise": None}
     window = ""
     if running is not None:
-        nf = noise_estimate(running, params)
-        fr = friction_fit(params, faults, running)
-        params = replace(with_friction(params, fr.coulomb_n_m / params.coulomb_torque_n_m,
-                                       fr.backlash_deg), position_noise_deg=nf.position_noise_deg)
-        std = {"coulomb": fr.coulomb_std_n_m, "backlash": fr.backlash_std_deg,
-               "noise": nf.std_deg}
-        window = f"{running.label}, {running.duration_s:.3g} s"
-        how.append(f"Coulomb friction {fr.coulomb_n_m:.3g} +- {fr.coulomb_std_n_m:.2g} N m "
-                   f"(static {params.static_torque_n_m:.3g}: the base rig's ratio) and backlash "
-                   f"{fr.backlash_deg:.3g} +- {fr.backlash_std_deg:.2g} deg: estimated from "
-                   f"{window} (the plant's residual {fr.residual_rms_deg_s:.3g} -> "
-                   f"{fr.fitted_rms_deg_s:.3g} deg/s rms below 40 Hz)")
-        how.append(f"encoder noise {nf.position_noise_deg:.3g} +- {nf.std_deg:.2g} deg: "
-                   f"estimated from {nf.samples} slow samples of {window}")
+        rf = running_fit(params, faults, running)
+        params, window = rf.params, rf.window
+        std = {"coulomb": rf.friction.coulomb_std_n_m, "backlash": rf.friction.backlash_std_deg,
+               "noise": rf.noise.std_deg}
+        how.extend(rf.how)
     disturbance = None
     if d_hat_deg_s is not None:
         disturbance = disturbance_estimate(d_hat_deg_s, d_hat_period_s)

@@ -26,23 +26,29 @@ running (pure), each with its standard deviation.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
+import msgspec
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import butter, sosfiltfilt
 
 from controller.core.arrays import FloatArray
 from controller.sim.sim_rig import RigFaults, RigParams, SimRig
+from controller.twin.model import NonlinearEstimate, RigTwin
 
 __all__ = [
     "BAND_HZ",
     "FrictionFit",
     "NoiseFit",
+    "RunningFit",
     "RunningWindow",
     "friction_fit",
     "noise_estimate",
+    "running_fit",
     "with_friction",
+    "with_running",
 ]
 
 #: Samples slower than this (deg/s, the measured rate low-passed) are the noise estimate's.
@@ -83,6 +89,19 @@ class RunningWindow:
         for name in ("pos_deg", "speed_deg_s", "command_deg_s"):
             if not np.all(np.isfinite(getattr(self, name))):
                 raise ValueError(f"window: {name} has a non-finite sample")
+
+    @classmethod
+    def of_columns(cls, rate_hz: float, columns: Mapping[str, FloatArray],
+                   label: str = "recorded running") -> RunningWindow:
+        """A window from the state stream's columns (`controller.core.samples.STATE_COLUMNS`
+        names: `pos_deg`, `speed_deg_s`, `command_deg_s`; a recording's or the history's);
+        ValueError naming a missing column."""
+        got = {}
+        for name in ("pos_deg", "speed_deg_s", "command_deg_s"):
+            if name not in columns:
+                raise ValueError(f"window: no column {name!r}")
+            got[name] = np.asarray(columns[name], dtype=np.float64)
+        return cls(rate_hz, got["pos_deg"], got["speed_deg_s"], got["command_deg_s"], label)
 
     @property
     def n(self) -> int:
@@ -212,3 +231,54 @@ def friction_fit(params: RigParams, faults: RigFaults, win: RunningWindow) -> Fr
                        backlash_deg=float(x[1]), backlash_std_deg=float(std[1]),
                        residual_rms_deg_s=float(np.sqrt(np.mean(r0 * r0))),
                        fitted_rms_deg_s=float(np.sqrt(np.mean(r * r))), evaluations=evals)
+
+
+@dataclass(frozen=True)
+class RunningFit:
+    """What a window of normal running tells: the twin's `params` with the estimates in
+    them, the fits, and each estimate in words (with its deviation and its source)."""
+
+    params: RigParams
+    friction: FrictionFit
+    noise: NoiseFit
+    window: str
+    how: tuple[str, ...]
+
+
+def running_fit(params: RigParams, faults: RigFaults, win: RunningWindow) -> RunningFit:
+    """The encoder noise, the load's Coulomb friction and the backlash of the twin
+    (`params`, `faults`) estimated from `win` (`noise_estimate`, `friction_fit`)."""
+    nf = noise_estimate(win, params)
+    fr = friction_fit(params, faults, win)
+    out = replace(with_friction(params, fr.coulomb_n_m / params.coulomb_torque_n_m,
+                                fr.backlash_deg), position_noise_deg=nf.position_noise_deg)
+    window = f"{win.label}, {win.duration_s:.3g} s"
+    how = (f"Coulomb friction {fr.coulomb_n_m:.3g} +- {fr.coulomb_std_n_m:.2g} N m (static "
+           f"{out.static_torque_n_m:.3g}: the base rig's ratio) and backlash "
+           f"{fr.backlash_deg:.3g} +- {fr.backlash_std_deg:.2g} deg: estimated from {window} "
+           f"(the plant's residual {fr.residual_rms_deg_s:.3g} -> {fr.fitted_rms_deg_s:.3g} "
+           f"deg/s rms below {BAND_HZ:g} Hz)",
+           f"encoder noise {nf.position_noise_deg:.3g} +- {nf.std_deg:.2g} deg: estimated "
+           f"from {nf.samples} slow samples of {window}")
+    return RunningFit(out, fr, nf, window, how)
+
+
+def with_running(twin: RigTwin, win: RunningWindow) -> RigTwin:
+    """`twin` (its fitted dynamics kept, not fitted again) with the friction, backlash and
+    noise `win` tells (`running_fit`), in its parameters (what the offline loop runs) and in
+    its `nonlinear` estimate; the viscous friction's from the responses is kept."""
+    rf = running_fit(twin.params, twin.faults, win)
+    p, old = rf.params, twin.nonlinear
+    keep = tuple(h for h in (old.how if old is not None else ())
+                 if h.startswith("viscous") or h.startswith("drive offset"))
+    est = NonlinearEstimate(
+        coulomb_torque_n_m=p.coulomb_torque_n_m, static_torque_n_m=p.static_torque_n_m,
+        backlash_deg=p.backlash_deg + p.gearbox_backlash_deg,
+        position_noise_deg=p.position_noise_deg, how=(*rf.how, *keep),
+        viscous_n_m_s_rad=p.load_viscous_n_m_s_rad,
+        coulomb_std_n_m=rf.friction.coulomb_std_n_m,
+        backlash_std_deg=rf.friction.backlash_std_deg,
+        position_noise_std_deg=rf.noise.std_deg,
+        viscous_std_n_m_s_rad=old.viscous_std_n_m_s_rad if old is not None else None,
+        rate_noise_deg_s=rf.noise.rate_noise_deg_s, window=rf.window)
+    return msgspec.structs.replace(twin, params=p, nonlinear=est)
