@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -192,9 +193,11 @@ class TrendReader:
         span = TrendSpan(rig, t0_epoch_s, t1_epoch_s)
         paths = trend_files(root, rig, t0_epoch_s, t1_epoch_s)
         hours: list[_Hour] = []
+        paths_read: list[Path] = []
         for path in paths:
             try:
                 hours.append(self._hour(path))
+                paths_read.append(path)
             except (OSError, ValueError) as exc:
                 span.problems.append(f"{path.name}: not read ({exc})")
         with self._lock:  # files gone from the disk go from the cache
@@ -202,7 +205,8 @@ class TrendReader:
                          and not p.exists()]:
                 del self._hours[gone]
         span.files = len(hours)
-        span.problems += [h.cut_short for h in hours if h.cut_short]
+        span.problems += [h.cut_short for h, p in zip(hours, paths_read, strict=True)
+                          if h.cut_short and not _being_written(p)]
         span.residual = _in(_concat([h.residual for h in hours]), t0_epoch_s, t1_epoch_s)
         parts = _concat([h.parts for h in hours])
         states = _concat([{"t": h.parts["t"], **{k: v.astype(np.float64)
@@ -219,6 +223,18 @@ class TrendReader:
         recorded = [a for h in hours for a in h.alarms if t0_epoch_s <= a.epoch_s <= t1_epoch_s]
         span.alarms = sorted(recorded + entered_alarm(span, recorded), key=lambda a: a.epoch_s)
         return span
+
+
+#: A file written to this recently is the hour the watch is writing: its end cut short is a
+#: chunk on its way to the disk, not a fault to report.
+BEING_WRITTEN_S = 120.0
+
+
+def _being_written(path: Path) -> bool:
+    try:
+        return time.time() - path.stat().st_mtime < BEING_WRITTEN_S
+    except OSError:
+        return False
 
 
 def per_window(total: FloatArray) -> FloatArray:

@@ -149,6 +149,12 @@ def test_files_that_cannot_be_read_are_said_not_raised(tmp_path: Path) -> None:
     files[10].write_bytes(b"this is not an mcap file")
     whole = files[20].read_bytes()
     files[20].write_bytes(whole[:300])  # its writer killed mid-hour, in its first chunk
+    written = files[20].stat().st_mtime
+    span = TrendReader().read(root, RIG, w.t0_epoch_s, w.t1_epoch_s)
+    # Just written to: the hour being written (a chunk on its way), not reported.
+    assert span.problems == [f"{files[10].name}: not read ({files[10].name}: not a trend file "
+                             "(no MCAP magic))"], span.problems
+    os.utime(files[20], (written - 3600, written - 3600))  # killed an hour ago
     (root / RIG / "20270101-00.mcap").write_bytes(b"")  # an hour just opened: empty so far
     span = TrendReader().read(root, RIG, w.t0_epoch_s, w.t1_epoch_s)
     assert len(span.problems) == 2, span.problems

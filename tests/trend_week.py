@@ -16,6 +16,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from controller.recording.trend import TrendWriter
 
 DAY_S = 86400.0
@@ -47,9 +49,17 @@ def gain_at(t_epoch_s: float, week: Week) -> float:
 
 
 def write_week(root: Path, rig: str, end_epoch_s: float, window_s: float = 60.0,
-               with_ranges: bool = True) -> Week:
+               with_ranges: bool = True, noise_seed: int | None = None) -> Week:
     """A week of windows ending at `end_epoch_s` under `root/rig` (`window_s`: the watch's is
-    10 s; the tests write one a minute, the same files at a sixth of the windows)."""
+    10 s; the tests write one a minute, the same files at a sixth of the windows).
+    `noise_seed`: the values carry noise as a live watch's do (1 % on the parts, 25 % on the
+    residuals, 5 us on the p99), for the storage a day takes (smooth values compress 3x
+    better)."""
+    rng = np.random.default_rng(noise_seed) if noise_seed is not None else None
+
+    def noisy(v: float, rel: float) -> float:
+        return v if rng is None else float(v * (1.0 + rel * rng.standard_normal()))
+
     t0 = end_epoch_s - 7 * DAY_S
     drop_at = t0 + 4.5 * DAY_S
     gap = (t0 + 2 * DAY_S, t0 + 2 * DAY_S + 6 * 3600)
@@ -76,19 +86,22 @@ def write_week(root: Path, rig: str, end_epoch_s: float, window_s: float = 60.0,
                     state = "alarm" if e >= alarm_at else "outside"
                 if name == "inertia" and i % 6 == 0:
                     state = "not told"
-                parts[name] = v
-                parts[name + "_std"] = 0.001
+                parts[name] = noisy(v, 0.01)
+                parts[name + "_std"] = noisy(0.001, 0.5)
                 parts[name + "_state"] = state
                 if with_ranges:
                     parts[name + "_low"], parts[name + "_high"] = RANGES[name]
             tw.write("/drift/residual", e, {
-                "plant_residual_rms_deg_s": 0.02 if dropped else 0.004,
-                "fitted_residual_rms_deg_s": 0.004, "loop_measured_rms_deg": 0.03,
-                "loop_predicted_rms_deg": 0.03, "loop_residual_rms_deg": 0.003,
+                "plant_residual_rms_deg_s": noisy(0.02 if dropped else 0.004, 0.25),
+                "fitted_residual_rms_deg_s": noisy(0.004, 0.25),
+                "loop_measured_rms_deg": noisy(0.03, 0.25),
+                "loop_predicted_rms_deg": noisy(0.03, 0.25),
+                "loop_residual_rms_deg": noisy(0.003, 0.25),
                 "delay_ticks": 0})
             tw.write("/drift/parts", e, parts)
             tw.write("/drift/health", e, {"config_version": 1, "alarms": [],
-                                          "compute_p99_us": 40.0, "skipped_ticks": i,
+                                          "compute_p99_us": noisy(40.0, 0.125),
+                                          "skipped_ticks": i,
                                           "mode": "running"})
             if abs(e - alarm_at) < window_s / 2:
                 tw.write("/drift/alarm", e, {

@@ -48,11 +48,12 @@ def main() -> int:
         root = Path(tmp)
         end = time.time()
         t_w = time.perf_counter()
-        week = write_week(root, RIG, end, window_s=args.window_s)
+        week = write_week(root, RIG, end, window_s=args.window_s, noise_seed=1)
         write_s = time.perf_counter() - t_w
         files = sorted((root / RIG).glob("*.mcap"))
         size = sum(f.stat().st_size for f in files)
-        print(f"week: {week.windows} windows of {args.window_s:g} s (a 6 h gap), {len(files)} "
+        print(f"week: {week.windows} windows of {args.window_s:g} s (a 6 h gap, noisy values as a "
+              f"live watch's), {len(files)} "
               f"hourly files, written in {write_s:.1f} s; storage {size / 7 / 1e6:.2f} MB per "
               f"rig per day ({size / week.windows:.0f} B per window, 4 channels); {_load()}")
         cold, cold_cpu, warm, reduce, points = [], [], [], [], 0
