@@ -23,7 +23,12 @@ from controller.sim.rig_disturbances import rig_setup
 from controller.sim.sim_rig import RigFaults, RigParams
 from controller.tune.family import true_knowledge
 from controller.tune.filter_design import MIN_RAISE, design_filter
-from controller.tune.loop_design import DesignTargets, design_position, design_speed
+from controller.tune.loop_design import (
+    DesignTargets,
+    NoSpeedDesign,
+    design_position,
+    design_speed,
+)
 from controller.tune.plant import SimPlant
 from controller.tune.whole_loop import Objective, tune_whole_loop
 
@@ -102,6 +107,27 @@ def test_the_filter_covers_every_positions_mode() -> None:
         assert ms.gain_margin_db >= t.gain_margin_db - 0.1
         assert ms.phase_margin_deg >= t.phase_margin_deg - 0.2
     assert judge(cfg, k).verdict != "reject"
+
+
+def test_where_no_pi_alone_meets_the_targets_a_filter_may() -> None:
+    """Measured at 10 points a decade (a mode's frequency known to half a step): no speed PI
+    alone meets the targets (the mode's peak crosses 0 dB); the notch designed instead covers
+    the true mode and python-control's loop on the true plant meets the targets."""
+    p = _plant(30.0)
+    f = np.geomspace(0.3, 60.0, 24)
+    k = PlantKnowledge(measured=(MeasuredResponse("pos 0", f, continuous_response(p, RATE, f)),),
+                       bound=COMMISSIONING_BOUND)
+    t = DesignTargets()
+    with pytest.raises(NoSpeedDesign) as exc:
+        design_speed(k, RATE, t)
+    fd = design_filter(k, RATE, exc.value, t)
+    assert fd is not None and fd.command_filter.kind == "notch"
+    cf = fd.command_filter
+    cut = 20 * np.log10(abs(command_filter_response(cf, np.array([30.0]), RATE)[0]))
+    assert cut <= -cf.notch_depth_db / 2
+    ms = truth(p, _config(k, t, fd.speed)).margins_speed
+    assert ms is not None
+    assert ms.gain_margin_db >= t.gain_margin_db and ms.phase_margin_deg >= t.phase_margin_deg
 
 
 def test_no_filter_where_no_measured_mode_limits_the_speed_loop() -> None:

@@ -31,13 +31,14 @@ from controller.core.command_filter import NOTCH_WIDTH_RANGE, CommandFilter
 from controller.gate.knowledge import PlantKnowledge
 from controller.tune.loop_design import (
     DesignTargets,
+    NoSpeedDesign,
     SpeedDesign,
     design_speed,
     measured_modes_hz,
 )
 
 __all__ = ["MIN_RAISE", "FilterDesign", "candidate_filters", "design_filter", "mode_band_hz",
-           "mode_limits"]
+           "mode_limits", "plain_crossover_hz"]
 
 NEAR_MODE = 0.7
 #: A filter is proposed only if the speed loop crosses over at least this much higher with it.
@@ -58,8 +59,8 @@ class FilterDesign:
     command_filter: CommandFilter
     speed: SpeedDesign
     """The speed PI designed with the filter."""
-    plain: SpeedDesign
-    """The speed PI designed without one."""
+    plain: SpeedDesign | NoSpeedDesign
+    """The speed PI designed without one (or why there is none)."""
     modes_hz: tuple[float, ...]
     """Each measured position's mode."""
     band_hz: tuple[float, float]
@@ -81,7 +82,12 @@ def mode_band_hz(knowledge: PlantKnowledge) -> tuple[tuple[float, ...], tuple[fl
     return tuple(f for f, _ in modes), (lo, hi)
 
 
-def mode_limits(plain: SpeedDesign, band_hz: tuple[float, float]) -> bool:
+def plain_crossover_hz(plain: SpeedDesign | NoSpeedDesign) -> float:
+    """The crossover of the PI alone (0: none meets the targets)."""
+    return plain.crossover_hz if isinstance(plain, SpeedDesign) else 0.0
+
+
+def mode_limits(plain: SpeedDesign | NoSpeedDesign, band_hz: tuple[float, float]) -> bool:
     """Step 3: whether the first target the PI alone missed was missed near the mode (its
     crossing at or above `NEAR_MODE` x the band's bottom, at most `1 / NEAR_MODE` x its top)."""
     f = plain.limit_hz
@@ -113,10 +119,12 @@ def candidate_filters(band_hz: tuple[float, float], rate_hz: float) -> list[Comm
     return out
 
 
-def design_filter(knowledge: PlantKnowledge, rate_hz: float, plain: SpeedDesign,
-                  targets: DesignTargets | None = None) -> FilterDesign | None:
+def design_filter(knowledge: PlantKnowledge, rate_hz: float,
+                  plain: SpeedDesign | NoSpeedDesign, targets: DesignTargets | None = None,
+                  ) -> FilterDesign | None:
     """The procedure of the module docstring; `plain` is the speed PI designed without a
-    filter. None: no measured resonance, one that does not limit `plain`, or no filter that
+    filter, or why none meets the targets (then any filter that lets one meet them is a
+    raise). None: no measured resonance, one that does not limit `plain`, or no filter that
     raises the crossover `MIN_RAISE`-fold."""
     found = mode_band_hz(knowledge)
     if found is None:
@@ -133,6 +141,6 @@ def design_filter(knowledge: PlantKnowledge, rate_hz: float, plain: SpeedDesign,
             continue
         if best is None or sp.crossover_hz > best.crossover_hz:
             best = sp
-    if best is None or not best.crossover_hz >= MIN_RAISE * plain.crossover_hz:
+    if best is None or not best.crossover_hz >= MIN_RAISE * plain_crossover_hz(plain):
         return None
     return FilterDesign(best.command_filter, best, plain, modes, band, len(cands))

@@ -59,6 +59,7 @@ __all__ = [
     "DesignTargets",
     "Evidence",
     "LoopMargins",
+    "NoSpeedDesign",
     "PositionDesign",
     "SpeedDesign",
     "design_position",
@@ -246,6 +247,16 @@ class EvidenceFigures:
     robust_peak: float
 
 
+class NoSpeedDesign(ValueError):
+    """No speed crossover meets the targets: `limit` says what the lowest one missed, at
+    `limit_hz` (as `SpeedDesign`'s)."""
+
+    def __init__(self, message: str, limit: str, limit_hz: float) -> None:
+        super().__init__(message)
+        self.limit = limit
+        self.limit_hz = limit_hz
+
+
 @dataclass(frozen=True)
 class SpeedDesign:
     kp: float
@@ -423,7 +434,8 @@ def design_speed(knowledge: PlantKnowledge, rate_hz: float,
                      f"raised (corner above the crossover): a filter on the speed command "
                      f"would be needed to go faster")
     if best is None:
-        raise ValueError(f"no speed crossover from 0.2 Hz meets the targets ({limit})")
+        raise NoSpeedDesign(f"no speed crossover from 0.2 Hz meets the targets ({limit})",
+                            limit, limit_hz)
     kp, ki, fc, figs = best
     cross = max(fg.margins.crossover_hz for fg in figs)
     return SpeedDesign(kp, ki, cross, tuple(figs), limit, command_filter or CommandFilter(),

@@ -57,9 +57,11 @@ from controller.tune.filter_design import (
     design_filter,
     mode_band_hz,
     mode_limits,
+    plain_crossover_hz,
 )
 from controller.tune.loop_design import (
     DesignTargets,
+    NoSpeedDesign,
     PositionDesign,
     SpeedDesign,
     design_grid,
@@ -287,7 +289,16 @@ def tune_whole_loop(
     # 1-2: the linear design, without a filter on the speed command; then, where a measured
     # resonance limits the speed loop, with the filter designed for it (filter_design): the
     # filtered loop is kept if the gate accepts it and it scores better on the plant.
-    speed, position = _place(knowledge, rate, targets, None)
+    # No speed loop that meets the targets without a filter: one with a filter may.
+    placed: tuple[SpeedDesign, PositionDesign] | None = None
+    alone: SpeedDesign | NoSpeedDesign
+    try:
+        placed = _place(knowledge, rate, targets, None)
+        alone = placed[0]
+    except NoSpeedDesign as exc:
+        if not design_command_filter:
+            raise
+        alone = exc
     traj = objective.trajectory
     f0 = traj.omega_rad_s / (2 * math.pi) if traj.kind == "sine" else 1e-3
 
@@ -309,23 +320,32 @@ def tune_whole_loop(
                                pos_ki_per_s=_r3(cfg0.pos_ki_per_s * s)))
         return c, steps
 
-    designed, backoff = gated(speed, position)
-    fd = design_filter(knowledge, rate, speed, targets) if design_command_filter else None
-    plain: Candidate | None = None
+    fd = design_filter(knowledge, rate, alone, targets) if design_command_filter else None
+    filtered_design: tuple[SpeedDesign, PositionDesign] | None = None
     if fd is not None:
         try:
-            sp_f, po_f = _place(knowledge, rate, targets, fd.command_filter)
+            filtered_design = _place(knowledge, rate, targets, fd.command_filter)
         except ValueError:  # no position loop fits the filtered speed loop
-            sp_f = None
-        if sp_f is not None:
-            with_f, back_f = gated(sp_f, po_f)
-            if with_f.verdict == "accept" and (designed.verdict != "accept"
-                                               or with_f.score < designed.score):
-                plain = designed
-                designed, backoff, speed, position = with_f, back_f, sp_f, po_f
-            else:
-                plain = with_f  # tried, not kept: the explanation says why
-                fd = replace(fd, kept=False)
+            filtered_design = None
+    if placed is None and filtered_design is None:
+        assert isinstance(alone, NoSpeedDesign)
+        raise alone
+    plain: Candidate | None = None
+    if placed is not None:
+        speed, position = placed
+        designed, backoff = gated(speed, position)
+    if fd is not None and filtered_design is not None:
+        sp_f, po_f = filtered_design
+        with_f, back_f = gated(sp_f, po_f)
+        if placed is None or (with_f.verdict == "accept" and (
+                designed.verdict != "accept" or with_f.score < designed.score)):
+            plain = designed if placed is not None else None
+            designed, backoff, speed, position = with_f, back_f, sp_f, po_f
+        else:
+            plain = with_f  # tried, not kept: the explanation says why
+            fd = replace(fd, kept=False)
+    elif fd is not None:
+        fd = replace(fd, kept=False)
     start = run(base, judged=True)
     budget = (objective.noise_budget_deg_s if objective.noise_budget_deg_s is not None
               else 2.0 * designed.command_noise_deg_s)
@@ -563,17 +583,19 @@ def _filter_line(res: WholeLoopResult, metric: str, knowledge: PlantKnowledge) -
            f"(without a filter, {fd.plain.limit})")
     words = _filter_words(fd.command_filter)
     other = res.designed_other
+    alone = plain_crossover_hz(fd.plain)
+    instead = (f"{alone:.3g} Hz" if alone > 0 else
+               "not at all (no speed crossover meets the targets without a filter)")
     if fd.kept:
         tail = (f"; designed loop, DOB off: {metric} {res.designed.error_deg(metric):.4g} deg "
                 f"against {other.error_deg(metric):.4g} without it" if other else "")
         return (f"speed-command filter: {why}: {words} lets the speed loop cross at "
-                f"{res.speed.crossover_hz:.3g} Hz instead of {fd.plain.crossover_hz:.3g} Hz"
-                f"{tail}")
-    tail = (f"{metric} {other.error_deg(metric):.4g} deg ({other.verdict}) against "
-            f"{res.designed.error_deg(metric):.4g} without it" if other else "")
+                f"{res.speed.crossover_hz:.3g} Hz instead of {instead}{tail}")
+    tail = (f"the loop with it did not do better: {metric} {other.error_deg(metric):.4g} deg "
+            f"({other.verdict}) against {res.designed.error_deg(metric):.4g} without it"
+            if other else "no position loop meets the targets around it")
     return (f"speed-command filter: off; {why}; {words} would let it cross at "
-            f"{fd.speed.crossover_hz:.3g} Hz instead of {fd.plain.crossover_hz:.3g} Hz, but "
-            f"the loop with it did not do better: {tail}")
+            f"{fd.speed.crossover_hz:.3g} Hz instead of {instead}, but {tail}")
 
 
 def _with(res: WholeLoopResult, lines: list[str]) -> WholeLoopResult:
