@@ -245,6 +245,8 @@ class EvidenceFigures:
     name: str
     margins: LoopMargins
     robust_peak: float
+    robust_peak_hz: float = math.nan
+    """Where the robust figure peaks (nan: not evaluated)."""
 
 
 class NoSpeedDesign(ValueError):
@@ -268,8 +270,8 @@ class SpeedDesign:
     command_filter: CommandFilter = field(default_factory=CommandFilter)
     """The speed-command filter the PI was designed with (off: none)."""
     limit_hz: float = math.nan
-    """Where the first missed target was found (the crossing named in `limit`; nan: the
-    grid's top or the robust figure)."""
+    """Where the first missed target was found (the crossing or peak named in `limit`; nan:
+    the grid's top)."""
 
     @property
     def corner_hz(self) -> float:
@@ -303,9 +305,9 @@ def _speed_figures(ev: list[Evidence], kp: float, ki: float, f: FloatArray,
     out = []
     for e in ev:
         lv = c * e.g
-        t = lv / (1.0 + lv)
-        out.append(EvidenceFigures(e.name, loop_margins(lv, f),
-                                   float(np.max(e.allowance * np.abs(t)))))
+        at = e.allowance * np.abs(lv / (1.0 + lv))
+        i = int(np.argmax(at))
+        out.append(EvidenceFigures(e.name, loop_margins(lv, f), float(at[i]), float(f[i])))
     return out
 
 
@@ -314,8 +316,10 @@ def _whole_servo(e: Evidence, cv: ComplexArray, cp: ComplexArray, integ: Complex
     """The whole servo broken at the command, L = G Cv (1 + Cp Ts/(1 - z^-1)): its margins
     and its robust figure max |a L / (1 + L)| (the gate weighs that loop too)."""
     lw = e.g * cv * (1.0 + cp * integ)
-    peak = float(np.max(e.allowance * np.abs(lw / (1.0 + lw))))
-    return EvidenceFigures(f"{e.name} (whole servo)", loop_margins(lw, f), peak)
+    at = e.allowance * np.abs(lw / (1.0 + lw))
+    i = int(np.argmax(at))
+    return EvidenceFigures(f"{e.name} (whole servo)", loop_margins(lw, f), float(at[i]),
+                           float(f[i]))
 
 
 def _shortfall(figs: list[EvidenceFigures], targets: DesignTargets, robust: bool) -> str | None:
@@ -327,7 +331,7 @@ def _shortfall(figs: list[EvidenceFigures], targets: DesignTargets, robust: bool
 def _miss(figs: list[EvidenceFigures], targets: DesignTargets, robust: bool,
           ) -> tuple[str, float] | None:
     """What the first evidence misses of the targets and where (the gain crossover for the
-    phase margin, the phase crossover for the gain margin, nan for the robust figure)."""
+    phase margin, the phase crossover for the gain margin, the robust figure's peak)."""
     for fg in figs:
         m = fg.margins
         if not m.phase_margin_deg >= targets.phase_margin_deg:
@@ -340,8 +344,8 @@ def _miss(figs: list[EvidenceFigures], targets: DesignTargets, robust: bool,
                     m.phase_crossover_hz)
         if robust and fg.robust_peak > targets.robust_peak_max:  # nan: not evaluated
             return (f"robust figure max|a T| {fg.robust_peak:.2f} > {targets.robust_peak_max:g}"
-                    f" on {fg.name} (the plant is known there only within the stated bound)",
-                    math.nan)
+                    f" on {fg.name} at {fg.robust_peak_hz:.3g} Hz (the plant is known there "
+                    f"only within the stated bound)", fg.robust_peak_hz)
     return None
 
 
