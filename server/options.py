@@ -38,7 +38,9 @@ class DashboardOptions:
     rig_name: str = "demo"
     host: str = "127.0.0.1"
     port: int = 8080
-    live_rate_hz: float = 25.0
+    live_rate_hz: float = 10.0
+    """The live traces' refresh (and the banner's). At 25 Hz a page in software rendering drew
+    3 of them a second and decoded the rest (~60 kB each) for nothing."""
     live_max_points: int = 600
     query_timeout_s: float = 3.0
     verbose: bool = True

@@ -7,11 +7,15 @@ load turns; the reference angle is a translucent ghost marker on the turntable r
 
 from __future__ import annotations
 
+import asyncio
+import functools
 import math
 import time
 
 import numpy as np
 import viser
+
+from server.workers import run_logged
 
 __all__ = ["TurntableScene", "belt_path"]
 
@@ -22,10 +26,16 @@ MOTOR_PULLEY_R = 0.025
 MOTOR_X = 0.36
 BELT_Z = 0.05
 N_BELT_MARKERS = 16
-#: The scene moves at most this often (the live refresh runs at 25 Hz): each move is four
+#: The scene moves at most this often (the live refresh runs faster): each move is four
 #: messages to every browser and a redraw of its 3-D view (software WebGL on a machine without
 #: a GPU); at 25 Hz they were ~100 messages/s to each page, shown or not.
 SCENE_RATE_HZ = 10.0
+#: ... and only when the load or the reference turned this far since the last move: about the
+#: smallest change the view shows (the table's rim, 0.2 m out, moves 3.5 mm per degree: a pixel
+#: or two in the view's default framing). viser's page draws frames for 250 ms after each
+#: change it gets (its "settle" window): a scene moved 10 times a second was drawn all the time
+#: (~30 ms a frame in software WebGL: a third of a core), a still one once a second.
+SCENE_STEP_DEG = 1.0
 
 
 def _quat_z(angle_rad: float) -> tuple[float, float, float, float]:
@@ -58,10 +68,20 @@ def _add_pulley(scene: viser.SceneApi, wheel: str, mark: str, radius: float,
 
 class TurntableScene:
     """Scene handles; `update(load_deg, ref_deg)` only moves existing nodes (at most
-    SCENE_RATE_HZ times a second)."""
+    SCENE_RATE_HZ times a second, and only by SCENE_STEP_DEG or more).
 
-    def __init__(self, scene: viser.SceneApi) -> None:
+    `loop`: viser's event loop (`ViserServer.get_event_loop()`); the moves are made on it. viser
+    wakes its senders with an `asyncio.Event` set by whichever thread queues a message, and an
+    Event is not thread-safe: set from the live refresh's thread it raised "deque mutated during
+    iteration" now and then (the loop thread was adding a waiter), and that refresh was lost.
+    None: moved in the caller's thread (a scene without a running server)."""
+
+    def __init__(self, scene: viser.SceneApi,
+                 loop: asyncio.AbstractEventLoop | None = None) -> None:
         self.scene = scene
+        self._loop = loop
+        self.moves = 0
+        """The moves sent (each four messages to every browser)."""
         self._path, self._length = belt_path()
         seg = np.linalg.norm(np.diff(self._path, axis=0), axis=1)
         self._arc = np.concatenate([[0.0], np.cumsum(seg)])
@@ -110,13 +130,29 @@ class TurntableScene:
         pts[:, 2] += 0.008
         return pts.astype(np.float32)
 
-    def update(self, load_deg: float, ref_deg: float) -> None:
-        """Rotate the load and the motor pulley to `load_deg`, the ghost to `ref_deg`."""
-        key = (round(load_deg, 3), round(ref_deg, 3))
-        now = time.monotonic()
-        if key == self._last or now - self._moved_at < 1.0 / SCENE_RATE_HZ:
-            return
-        self._last, self._moved_at = key, now
+    def update(self, load_deg: float, ref_deg: float, now_s: float | None = None) -> bool:
+        """Rotate the load and the motor pulley to `load_deg`, the ghost to `ref_deg`, if
+        either turned SCENE_STEP_DEG or more since the last move and that was 1/SCENE_RATE_HZ
+        ago or more (`now_s`: time.monotonic() unless given). True: a move was sent."""
+        now = time.monotonic() if now_s is None else now_s
+        last = self._last
+        if now - self._moved_at < 1.0 / SCENE_RATE_HZ or (
+                last is not None and abs(load_deg - last[0]) < SCENE_STEP_DEG
+                and abs(ref_deg - last[1]) < SCENE_STEP_DEG):
+            return False
+        self._last, self._moved_at = (load_deg, ref_deg), now
+        self.moves += 1
+        if self._loop is None:
+            self._move(load_deg, ref_deg)
+            return True
+        try:
+            self._loop.call_soon_threadsafe(
+                functools.partial(run_logged, self._move, load_deg, ref_deg, what="3-D scene"))
+        except RuntimeError:  # viser's loop is closed: the server stopped, nothing to show
+            return False
+        return True
+
+    def _move(self, load_deg: float, ref_deg: float) -> None:
         a = math.radians(load_deg)
         self.load.wxyz = _quat_z(a)
         self.motor.wxyz = _quat_z(a * LOAD_PULLEY_R / MOTOR_PULLEY_R)

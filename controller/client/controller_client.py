@@ -53,6 +53,9 @@ class StateRing:
         self._next_seq: int | None = None
         self.gaps = 0  # samples missing according to sequence numbers
         self.batches = 0
+        self.mode = ""
+        """The loop's mode in the newest batch ("" before any, or from an older sender): an
+        e-stop shows here within a batch, the Status says it within its period (0.2 s)."""
         self._lock = threading.Lock()
 
     @property
@@ -82,6 +85,7 @@ class StateRing:
                 self._version[: k - first] = b.config_version
             self._n += k
             self.batches += 1
+            self.mode = b.mode
 
     def reset(self) -> None:
         with self._lock:

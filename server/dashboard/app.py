@@ -312,7 +312,7 @@ class Dashboard:
         gui.configure_theme(control_width="large", show_share_button=False,
                             brand_color=(31, 119, 180))
         gui.set_panel_label("dobtune")
-        self.scene = TurntableScene(server.scene)
+        self.scene = TurntableScene(server.scene, server.get_event_loop())
         self.knowledge = KnowledgePanel(gui, self.client, self.engine, self.sessions,
                                         self._requests, self.candidates.update_all)
         self.identify = IdentifyPanel(gui, self.candidates.panel_of,
@@ -324,7 +324,7 @@ class Dashboard:
             gui, self.client, self.commands.command_async, on_status=self._on_status,
             on_frame=self._on_frame, rate_hz=self.opts.live_rate_hz,
             max_points=self.opts.live_max_points, audience=pages.live_audience,
-            authorize=self.sessions.check_may_change,
+            authorize=self.sessions.check_may_change, loop=server.get_event_loop(),
         )
         self.live = live
         self.history = HistoryPanel(gui, self.client, self._requests, self.candidates.panel_of)
@@ -458,7 +458,8 @@ class Dashboard:
         self.candidates.set_active(st.config, st.config_version, st.trajectory)
 
     def _on_frame(self, latest: dict[str, float] | None) -> None:
-        if latest is not None and self.scene is not None:
+        if latest is not None and self.scene is not None and self.pages is not None and (
+                self.pages.shows_3d()):  # while none shows it, not moved (moved after)
             self.scene.update(latest["pos_deg"], latest["ref_deg"])
 
 

@@ -60,6 +60,13 @@ class PageViews:
         wide = wide_plots_px(self._browsers.viewport_px_of(browser))
         set_width_in(browser, plots, wide if hidden else PLOTS_WIDTH_PX)
 
+    def shows_3d(self) -> bool:
+        """Whether any browser connected now shows the 3-D view (the scene moves for none
+        while every one has it hidden: viser's page draws each move it gets)."""
+        with self._hidden_3d_lock:
+            hidden = set(self._hidden_3d)
+        return any(b.client_id not in hidden for b in self._browsers.all())
+
     def live_hidden(self) -> frozenset[str]:
         """The pages that said their Live traces tab is not shown."""
         with self._live_hidden_lock:

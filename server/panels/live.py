@@ -7,6 +7,9 @@ that show them) and the slower texts at a few Hz, assigning only changed propert
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import functools
 import logging
 import math
 import threading
@@ -29,11 +32,14 @@ from server.gui import Browser, on_press
 from server.health import HealthJudgement, TimingHistory, health_html, judge_timing
 from server.http_access import Refused
 from server.panels.widgets import add_chart, confirm, send_data, set_html
-from server.workers import Periodic
+from server.workers import Periodic, run_logged
 
 __all__ = ["LivePanel", "LiveStats", "banner_html", "window_metrics"]
 
 log = logging.getLogger(__name__)
+
+#: How often the live texts (metrics, loop health) are refreshed.
+TEXT_RATE_HZ = 2.0
 
 
 def window_metrics(error_deg: np.ndarray) -> tuple[float, float]:
@@ -88,7 +94,7 @@ def banner_html(client: ControllerClient) -> str:
             + ". Traces are frozen; nothing can be applied.",
             "dt-banner dt-gone",
         )
-    if st.mode == "estop":
+    if st.mode == "estop" or client.ring.mode == "estop":  # the stream says it first
         return _banner("#d62728", "E-STOP ACTIVE: speed command 0, drive disabled. "
                        "Reset fault, then Start.", "dt-banner dt-estop")
     if st.mode == "fault" or st.faults:
@@ -147,10 +153,17 @@ class LivePanel:
         max_points: int = 1000,
         audience: Callable[[], list[viser.ClientHandle]] | None = None,
         authorize: Callable[[Browser, str], object] | None = None,
+        loop: asyncio.AbstractEventLoop | None = None,
     ) -> None:
         """`authorize(browser, action)`: raises `Refused` (told to that browser) unless the
         user at `browser` may change the rig (operators): acknowledging the alarms clears
-        them for every browser. None: anyone may (one identity)."""
+        them for every browser. None: anyone may (one identity).
+
+        `loop`: viser's event loop (`ViserServer.get_event_loop()`): the refresh's charts and
+        texts are assigned on it (viser wakes its senders with an `asyncio.Event`, which is not
+        thread-safe: set from this refresh's thread it raised "deque mutated during iteration"
+        now and then, and that refresh was lost). None: in the refresh's own thread."""
+        self._loop = loop
         self.gui = gui
         self._authorize = authorize
         self.client = client
@@ -166,6 +179,7 @@ class LivePanel:
         self._last_total = -1
         self._last_window = -1.0
         self._last_status_seen: proto.Status | None = None
+        self._banner_sent = ""
         self._controller_traj_kind = ""
         self.trajectory: Any = None
         self.alarm_board = AlarmBoard()
@@ -175,7 +189,9 @@ class LivePanel:
         self._alarm_lock = threading.Lock()
         self._drift_raw: list[bytes] = []
         """Drift alarms received, not yet on the board (appended by a Zenoh thread)."""
-        self._slow_every = max(1, int(rate_hz / 5))
+        # The texts (metrics, loop health, alarms) twice a second: each change of an HTML box is
+        # a message and a re-render in every page (the banner goes at every refresh).
+        self._slow_every = max(1, int(rate_hz / TEXT_RATE_HZ))
         self._updater = Periodic(self._refresh, 1.0 / rate_hz, name="live-updater")
 
     # -- building --------------------------------------------------------------------------
@@ -320,25 +336,25 @@ class LivePanel:
         cols: dict[str, np.ndarray] | None = None
         if total != self._last_total or window != self._last_window:
             self._last_total = total
-            if window != self._last_window:
-                for handle in self._charts.values():  # the time axis spans the window
-                    handle.scales = charts.live_scales(window)
+            scales = None
+            if window != self._last_window:  # the time axis spans the window
+                scales = charts.live_scales(window)
                 self._last_window = window
             cols, version = ring.window(window)
             data = charts.live_data(cols["t_s"], cols, version, self.max_points)
-            if self._audience is None:
-                for key, handle in self._charts.items():
-                    handle.data = data[key]
-            else:
-                browsers = self._audience()
-                for key, handle in self._charts.items():
-                    send_data(handle, data[key], browsers)
+            in_loop(self._loop, self._show_charts, data, scales)
             self.stats.chart_pushes += 1
             if self._on_frame is not None:
                 self._on_frame(ring.latest())
+        banner = banner_html(self.client)
         if not slow:
+            # The banner at every refresh (an E-STOP shows at once), the rest a few times a
+            # second.
+            if banner != self._banner_sent:
+                self._banner_sent = banner
+                in_loop(self._loop, set_html, self.banner, banner)
             return
-        set_html(self.banner, banner_html(self.client))
+        self._banner_sent = banner
         self.observe_drift_alarms()
         st = self.client.status
         if st is not None and st is not self._last_status_seen:
@@ -356,8 +372,27 @@ class LivePanel:
                 self._on_status(st)
         if cols is None:
             cols, _ = ring.window(window)
-        set_html(self.metrics, self._metrics_html(cols, window, st))
-        set_html(self.health, self._health_html(st))
+        in_loop(self._loop, self._show_texts, banner, self._metrics_html(cols, window, st),
+                self._health_html(st))
+
+    def _show_charts(self, data: dict[str, tuple[np.ndarray, ...]],
+                     scales: dict[str, charts.ChartDict] | None) -> None:
+        """The charts' new data (and time axis, when the window changed) to the browsers
+        that show them (on viser's loop)."""
+        for handle in self._charts.values() if scales is not None else ():
+            handle.scales = scales
+        if self._audience is None:
+            for key, handle in self._charts.items():
+                handle.data = data[key]
+            return
+        browsers = self._audience()
+        for key, handle in self._charts.items():
+            send_data(handle, data[key], browsers)
+
+    def _show_texts(self, banner: str, metrics: str, health: str) -> None:
+        set_html(self.banner, banner)
+        set_html(self.metrics, metrics)
+        set_html(self.health, health)
 
     def _metrics_html(self, cols: dict[str, np.ndarray], window: float,
                       st: proto.Status | None) -> str:
@@ -398,6 +433,17 @@ class LivePanel:
         self.timing_history.add(st)
         j = self.timing_judgement = judge_timing(self.timing_history, st.config.rate_hz)
         return health_html(st, j, st.config.rate_hz, stream)
+
+
+def in_loop(loop: asyncio.AbstractEventLoop | None, fn: Callable[..., None],
+            *args: object) -> None:
+    """`fn(*args)` on viser's event loop `loop` (logged if it fails), or here without one."""
+    if loop is None:
+        fn(*args)
+        return
+    # A closed loop (RuntimeError): the server stopped, nobody to show it to.
+    with contextlib.suppress(RuntimeError):
+        loop.call_soon_threadsafe(functools.partial(run_logged, fn, *args, what="live refresh"))
 
 
 def _run_trajectory(st: proto.Status | None) -> Trajectory | None:

@@ -32,6 +32,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+from viser_frames import message_types  # noqa: E402
 
 from server.dashboard.app import Dashboard, DashboardOptions  # noqa: E402
 from server.dashboard.demo import controller_process, stop_process  # noqa: E402
@@ -96,31 +99,6 @@ def chromium_cpu_seconds() -> float:
             with contextlib.suppress(OSError):  # ended between the listing and the read
                 total += cpu_seconds(p)
     return total
-
-
-def message_types(frame: bytes) -> list[str]:
-    """The viser message types in one websocket frame (8-byte length, msgpack, buffers)."""
-    import msgspec
-
-    try:
-        n = int.from_bytes(frame[:8], "little")
-        obj = msgspec.msgpack.decode(frame[8:8 + n])
-    except (msgspec.DecodeError, ValueError):
-        return ["?"]
-    out: list[str] = []
-
-    def walk(o: Any, depth: int = 0) -> None:
-        if isinstance(o, dict) and "type" in o:
-            out.append(str(o["type"]))
-        elif isinstance(o, list | tuple) and depth < 3:
-            for x in o:
-                walk(x, depth + 1)
-        elif isinstance(o, dict) and depth < 3:
-            for x in o.values():
-                walk(x, depth + 1)
-
-    walk(obj)
-    return out or ["?"]
 
 
 def bench_slider(n: int = 200) -> dict[str, float]:

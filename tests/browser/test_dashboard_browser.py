@@ -11,11 +11,23 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import FINITE_JS, set_number, slider_row, wait_shown_text
+from conftest import (
+    FINITE_JS,
+    FIRST_LOAD_S,
+    VIEWPORT,
+    open_when_ready,
+    set_number,
+    slider_row,
+    wait_shown_text,
+)
 from helpers import wait_for
+from viser_frames import message_types
 
+from controller import protocol as proto
 from controller.client import ControllerClient
+from controller.core.trajectory import default_trajectory
 from server.dashboard.app import Dashboard
+from server.scene3d import SCENE_STEP_DEG
 
 pytestmark = pytest.mark.browser
 
@@ -287,6 +299,74 @@ def test_the_3d_view_is_cheap_to_draw(page: Any) -> None:
     assert not any(light["shadow"] for light in scene["lights"]), scene
     assert not scene["environment"], scene
     assert 0 < scene["calls"] <= 25, scene
+
+
+def test_the_3d_view_is_sent_only_when_the_rig_moves(
+    dashboard: Dashboard, probe: ControllerClient, chromium_browser: Any
+) -> None:
+    """A page gets the 3-D view's moves (viser's SetOrientationMessage, counted in its
+    websocket) while the table turns, none while the rig stands still (stopped, holding), and
+    again once it runs. Before, the view was moved 10 times a second whatever the rig did, and
+    viser's page draws frames for 250 ms after each move: in software WebGL it drew all the
+    time."""
+    assert dashboard.scene is not None and dashboard.live is not None
+    scene, stats = dashboard.scene, dashboard.live.stats
+    context = chromium_browser.new_context(viewport=VIEWPORT)
+    try:
+        pg = context.new_page()
+        got = {"moves": 0, "frames": 0}  # orientation messages, and every frame received
+
+        def count(data: Any) -> None:
+            if isinstance(data, bytes):
+                got["frames"] += 1
+                got["moves"] += message_types(data).count("SetOrientationMessage")
+
+        pg.on("websocket", lambda ws: ws.on("framereceived", count))
+
+        def until(condition: Any, timeout_s: float, what: str) -> None:
+            """wait_for, with Playwright running meanwhile (it delivers the page's websocket
+            events only while one of its calls runs)."""
+            wait_for(lambda: pg.wait_for_timeout(20) or condition(), timeout_s, what)
+
+        open_when_ready(pg, dashboard, FIRST_LOAD_S)
+        assert probe.command(proto.SetTrajectory(trajectory=default_trajectory("sine"))).ok
+        wait_for(lambda: probe.status is not None)
+        if probe.status is not None and probe.status.mode != "running":
+            assert probe.command(proto.Start()).ok
+        wait_for(lambda: probe.status is not None and probe.status.mode == "running", 20.0)
+
+        def pos_span(seconds: float) -> float:
+            cols, _ = dashboard.client.ring.window(seconds)
+            return float(cols["pos_deg"].max() - cols["pos_deg"].min()) if len(
+                cols["pos_deg"]) else 0.0
+
+        # Running (the sine turns the table): moves arrive.
+        start = got["moves"]
+        until(lambda: got["moves"] >= start + 3, 60.0,
+                 f"no 3-D move while the table turns ({scene.moves} moves made, the table "
+                 f"turned {pos_span(5.0):.2f} deg in the last 5 s, {probe.status})")
+        # Stopped: the loop holds the position; once it stands still, nothing is sent.
+        assert probe.command(proto.Stop()).ok
+        wait_for(lambda: probe.status is not None and probe.status.mode == "stopped", 20.0)
+        wait_for(lambda: len(dashboard.client.ring.window(1.0)[0]["pos_deg"]) > 100
+                 and pos_span(1.0) < 0.2, 60.0, "the rig never stood still after Stop")
+        moves, n_frames = scene.moves, got["frames"]
+        # Every move made so far has reached the page: frames queued after it (the live
+        # texts, the banner) have arrived.
+        until(lambda: got["frames"] >= n_frames + 3, 60.0, "no frame reached the page")
+        seen, refreshes = got["moves"], stats.frames
+        samples = dashboard.client.ring.total
+        until(lambda: stats.frames >= refreshes + 30
+              and dashboard.client.ring.total >= samples + 2000, 120.0,
+              "the live refresh or the stream stalled")
+        assert pos_span(2.0) < 0.5 * SCENE_STEP_DEG  # still all along (the premise)
+        assert scene.moves == moves, "the 3-D view was moved while the rig stood still"
+        assert got["moves"] == seen, "the page got 3-D moves while the rig stood still"
+        # Running again: moves again.
+        assert probe.command(proto.Start()).ok
+        until(lambda: got["moves"] >= seen + 3, 60.0, "no 3-D move after Start")
+    finally:
+        context.close()
 
 
 def test_estop_from_page_stops_the_controller(
