@@ -60,6 +60,8 @@ class TrendSpan:
     alarms: list[TrendAlarm] = field(default_factory=list)
     files: int = 0
     problems: list[str] = field(default_factory=list)
+    sources: tuple[tuple[str, int, int], ...] = ()
+    """(name, size, mtime ns) of every file read: the same sources, the same data."""
     """Files not read (not a trend) or cut short, each with why."""
 
     @property
@@ -205,6 +207,7 @@ class TrendReader:
                          and not p.exists()]:
                 del self._hours[gone]
         span.files = len(hours)
+        span.sources = tuple(_source(p) for p in paths_read)
         span.problems += [h.cut_short for h, p in zip(hours, paths_read, strict=True)
                           if h.cut_short and not _being_written(p)]
         span.residual = _in(_concat([h.residual for h in hours]), t0_epoch_s, t1_epoch_s)
@@ -228,6 +231,14 @@ class TrendReader:
 #: A file written to this recently is the hour the watch is writing: its end cut short is a
 #: chunk on its way to the disk, not a fault to report.
 BEING_WRITTEN_S = 120.0
+
+
+def _source(path: Path) -> tuple[str, int, int]:
+    try:
+        st = path.stat()
+    except OSError:
+        return (path.name, -1, -1)
+    return (path.name, st.st_size, st.st_mtime_ns)
 
 
 def _being_written(path: Path) -> bool:

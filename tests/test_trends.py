@@ -236,3 +236,51 @@ def test_the_watchs_trend_record_gives_the_range_band_and_the_alarm(tmp_path: Pa
         (t0 + 20, "stiffness", "stiffness x0.6 below its range")]
     stiff = next(c for c in trend_charts(span, 900) if c.spec.key == "trend_stiffness")
     assert stiff.spec.bands is not None and "allowed range" in stiff.spec.title
+
+
+def test_the_panel_sends_again_only_what_changed_and_says_what_is_missing(
+        week: tuple[Path, object], tmp_path: Path) -> None:
+    """The Trends tab in a viser server (no browser): a refresh with the same files and the
+    range moved by less than a pixel sends nothing; a changed hour, or a pixel's time later,
+    draws again; no trend directory, or none there, is said in words."""
+    import viser
+    from helpers import free_port
+
+    from server.gui import set_value
+    from server.panels.trends import TrendsPanel
+
+    root, wk = week
+    clock = [wk.t1_epoch_s]  # type: ignore[attr-defined]
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
+    panels: list[TrendsPanel] = []
+    try:
+        panel = TrendsPanel(server.gui, (root,), RIG, 900, refresh_s=3600.0,
+                            now=lambda: clock[0])
+        panels.append(panel)
+        panel.build()
+        set_value(panel.range, "last week")
+        panel.start()
+        panel.reload()
+        assert panel.wait_idle(60.0)
+        first = panel.charts["trend_gain"].data
+        assert "windows in" in panel.status.content, panel.status.content
+        clock[0] += 60.0  # a week's pixel is 672 s: nothing to redraw
+        panel.reload()
+        assert panel.wait_idle(60.0)
+        assert panel.charts["trend_gain"].data is first
+        clock[0] += 700.0
+        panel.reload()
+        assert panel.wait_idle(60.0)
+        assert panel.charts["trend_gain"].data is not first
+        for dirs, words in (((), "No trend directory"), ((tmp_path / "none",), "No trend yet")):
+            empty = TrendsPanel(server.gui, dirs, RIG, 900, refresh_s=3600.0)
+            panels.append(empty)
+            empty.build()
+            empty.start()
+            empty.reload()
+            assert empty.wait_idle(60.0)
+            assert words in empty.status.content and empty.charts == {}, empty.status.content
+    finally:
+        for p in panels:
+            p.stop()
+        server.stop()

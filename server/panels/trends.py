@@ -126,6 +126,8 @@ class TrendsPanel:
                           + self._problems(span))
                 self._show_alarms(span)
                 return
+            if self._unchanged(span, range_name):
+                return  # a refresh with nothing new: nothing sent to the browsers
             charts = trend_charts(span, self.width_px)
             self._draw(charts)
             self._show_alarms(span)
@@ -139,6 +141,16 @@ class TrendsPanel:
                       f"{esc(type(exc).__name__)}: {esc(str(exc))}")
         finally:
             self.loads += 1
+
+    def _unchanged(self, span: TrendSpan, range_name: str) -> bool:
+        """The same files as drawn, and the range moved by less than a pixel's time."""
+        last = self.span
+        if last is None or last.rig != span.rig or last.sources != span.sources:
+            return False
+        px_s = RANGES[range_name] / self.width_px
+        return (abs(span.t1_epoch_s - last.t1_epoch_s) < px_s
+                and abs((span.t1_epoch_s - span.t0_epoch_s)
+                        - (last.t1_epoch_s - last.t0_epoch_s)) < 1e-6)
 
     def _draw(self, charts: list[TrendChart]) -> None:
         keys = tuple((c.spec.key, len(c.spec.series)) for c in charts)
