@@ -147,7 +147,8 @@ def _publish_alarm(pub: Any, st: WatchState, rig: str, name: str, cfg: LoopConfi
     verdict, reasons = "", []
     if not cleared:
         try:
-            v = gate_on_drift(cfg, st.knowledge, st.params, st.faults, fit, cfg.rate_hz)
+            told = [n for n, p in st.judge.parts.items() if p.told]
+            v = gate_on_drift(cfg, st.knowledge, st.params, st.faults, fit, cfg.rate_hz, told)
             verdict, reasons = v.verdict, [*v.rejections, *v.cautions][:6]
         except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
             verdict, reasons = "", [f"the gate could not judge the drifted estimate: {exc}"]
@@ -176,7 +177,7 @@ def _state_msg(rig: str, st: WatchState, fit: DriftFit, lr: LoopResidual, epoch_
     for est in fit.parts:
         ps = st.judge.parts[est.name]
         parts.append(proto.DriftPart(name=est.name, value=est.value, std=est.std, unit=est.unit,
-                                     told=est.told, state=ps.state, low=ps.low, high=ps.high,
+                                     told=ps.told, state=ps.state, low=ps.low, high=ps.high,
                                      since_epoch_s=ps.since_s))
     return proto.DriftState(
         rig=rig, epoch_s=epoch_s, window_s=window_s, config_version=version, model=st.model,

@@ -10,6 +10,11 @@ Coulomb friction in N m; the command delay by trying whole ticks beside the twin
 estimate has a standard deviation from the fit's Jacobian and the residual's variance
 (inflated for the residual's correlation from tick to tick): where the window's command does
 not excite a part, its deviation is large and the part is reported as not told, never guessed.
+Each also has a bias bound (`PartEstimate.bias`): how far a model error as large as the whole
+fitted residual, shaped like that part's own effect, would move it. More samples shrink the
+deviation, not this: on a constant-speed ramp the command barely moves the belt's stiffness and
+the load's inertia, the deviation still looks small, and the estimate follows what the twin does
+not model (the judge takes a part as told only when its bias bound is inside the part's range).
 
 The **loop's residual** (`loop_residual`): the active configuration run on the twin in closed
 loop over the window's measured reference (the tick's own `ServoLoop`, the rate reference by a
@@ -118,6 +123,9 @@ class PartEstimate:
     std: float
     told: bool
     unit: str = "x"
+    bias: float = 0.0
+    """How far a model error as large as the fit's residual could move the estimate (the same
+    unit as `std`): the bias bound, which more samples do not shrink."""
 
 
 @dataclass(frozen=True)
@@ -133,8 +141,8 @@ class DriftFit:
     samples: int
     evaluations: int
     x: tuple[float, ...] = ()
-    """The fit's variables (log factors, friction in `friction_scale_n_m`): the next
-    window's start."""
+    """The fit's variables (log factors, friction in `friction_scale_n_m`) for the parts it
+    tells, the twin's for the others: the next window's start."""
 
     def part(self, name: str) -> PartEstimate:
         for p in self.parts:
@@ -265,28 +273,32 @@ def fit_window(params: RigParams, faults: RigFaults, win: Window,
     # independent samples than ticks.
     s2 *= win.rate_hz / (2.0 * BAND_HZ)
     std = _std(jac, s2)
+    bias = _std(jac, float(np.sum(r * r)))
     parts = []
     for i, name in enumerate(PARTS[:3]):
         v = math.exp(float(x[i]))
         sd = v * float(std[i])
-        parts.append(PartEstimate(name, v, sd, bool(sd < TOLD_REL_STD)))
+        parts.append(PartEstimate(name, v, sd, bool(sd < TOLD_REL_STD), bias=v * float(bias[i])))
     fc, fsd = float(x[3]), float(std[3])
     told = bool(fsd < FRICTION_TOLD_STD)
     if f0 > 0.0:
-        parts.append(PartEstimate("motor_friction", fc, fsd, told))
+        parts.append(PartEstimate("motor_friction", fc, fsd, told, bias=float(bias[3])))
     else:
         parts.append(PartEstimate("motor_friction", fc * scale_f, fsd * scale_f, told,
-                                  unit="N m"))
+                                  unit="N m", bias=float(bias[3]) * scale_f))
     if mode:
         for i, (name, rel) in enumerate(zip(MODE_PARTS, (TOLD_REL_STD, DAMPING_TOLD_REL_STD),
                                             strict=True), start=4):
             v = math.exp(float(x[i]))
             sd = v * float(std[i])
-            parts.append(PartEstimate(name, v, sd, bool(sd < rel)))
+            parts.append(PartEstimate(name, v, sd, bool(sd < rel), bias=v * float(bias[i])))
+    # The next window starts from this one's told parts; a part not told starts again from
+    # the twin's value (where a window that barely moved it left it says nothing).
+    x_next = np.where([p.told for p in parts], x, x_twin)
     return DriftFit(parts=tuple(parts), delay_ticks=delay, twin_delay_ticks=twin_delay,
                     residual_rms_deg_s=float(np.sqrt(np.mean(r0 * r0))),
                     fitted_rms_deg_s=float(np.sqrt(np.mean(r * r))), samples=n,
-                    evaluations=evals, x=tuple(float(v) for v in x))
+                    evaluations=evals, x=tuple(float(v) for v in x_next))
 
 
 def _std(jac: FloatArray, s2: float) -> FloatArray:

@@ -12,11 +12,21 @@ much, since when, what to do, and the gate's verdict on the active configuration
 drifted estimate, `gate_on_drift`); a part that moved significantly but stays inside is a
 note; a part the window does not tell is listed as such, with the short measurement that
 would tell it.
+
+A window tells a part when the fit says so (its deviation) and when its bias bound
+(`PartEstimate.bias`: how far a model error as large as the residual the twin leaves could move
+the estimate) is below the part's reach, the distance from the twin's value to the nearer end
+of its range: a window whose command barely moves a part (a constant-speed ramp: the belt's
+stiffness and the load's inertia show only in the small corrections of the loop, the drive's
+gain and the motor's friction in one steady level) cannot tell whether that part left its
+range, and its estimate there follows whatever the twin does not model. It says so (not told),
+never alarms on it.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -119,14 +129,16 @@ def part_ranges(params: RigParams, faults: RigFaults, bound: UncertaintyBound | 
 
 
 def gate_on_drift(cfg: LoopConfig, knowledge: PlantKnowledge, params: RigParams,
-                  faults: RigFaults, fit: DriftFit, rate_hz: float) -> Verdict:
+                  faults: RigFaults, fit: DriftFit, rate_hz: float,
+                  told: Collection[str] | None = None) -> Verdict:
     """The gate's verdict on `cfg` with the drifted estimate as the plant's evidence: the
     knowledge's model and bound, its measured responses replaced by the drifted twin's linear
-    response (the fit's told parts; the others as the twin has them)."""
+    response (the told parts: `told`, the judge's, or else the fit's; the others as the twin
+    has them)."""
     x = _part_x("gain", 1.0, params, faults)
     for name in _linear_parts(faults):
         p = fit.part(name)
-        if p.told:
+        if (p.told if told is None else name in told):
             x[(PARTS + MODE_PARTS).index(name)] = math.log(p.value)
     pd, fd = drifted(params, faults, x, fit.delay_ticks)
     f = np.geomspace(0.1, 0.4 * rate_hz, 80)
@@ -152,6 +164,13 @@ class PartState:
     outside_windows: int = 0
     since_s: float | None = None
     """When the part first left its range (the start of the first window outside)."""
+
+    def reach(self, unit: str) -> float:
+        """The distance from the twin's value (a factor 1; for a friction in N m, none: 0) to
+        the nearer end of the range: a window whose bias bound is this large or larger cannot
+        tell whether the part is inside."""
+        ref = 1.0 if unit == "x" else max(0.0, self.low)
+        return min(ref - self.low, self.high - ref) if ref > self.low else self.high - ref
 
 
 @dataclass(frozen=True)
@@ -179,11 +198,16 @@ class DriftJudge:
         new, cleared, lines = [], [], []
         for est in fit.parts:
             ps = self.parts[est.name]
-            ps.value, ps.std, ps.told = est.value, est.std, est.told
-            if not est.told:
+            reach = ps.reach(est.unit)
+            told = est.told and est.bias < reach
+            ps.value, ps.std, ps.told = est.value, est.std, told
+            if not told:
                 ps.state = "not told" if ps.state != "alarm" else "alarm"
                 ps.outside_windows = 0
-                lines.append(f"{est.name}: not told by this window (+-{est.std:.2g}); "
+                why = (f"+-{est.std:.2g}" if not est.told else
+                       f"+-{est.std:.2g}, but the residual the twin leaves could move it by "
+                       f"{est.bias:.2g}, beyond its reach {reach:.2g}")
+                lines.append(f"{est.name}: not told by this window ({why}); "
                              + SHORT_MEASUREMENT)
                 continue
             margin = SIGMAS * est.std

@@ -28,11 +28,13 @@ __all__ = ["OfflineWatch", "run_offline_watch"]
 
 @dataclass
 class OfflineWatch:
-    """What the watch said over the run: each window's end (simulated s) and result, and each
-    alarm as (part, simulated s at the end of the window that raised it)."""
+    """What the watch said over the run: each window's end (simulated s) and result, each
+    alarm as (part, simulated s at the end of the window that raised it), and each window's
+    part states as the judge left them ("ok", "note", "outside", "alarm", "not told")."""
 
     windows: list[tuple[float, WindowResult]] = field(default_factory=list)
     alarms: list[tuple[str, float]] = field(default_factory=list)
+    states: list[dict[str, str]] = field(default_factory=list)
 
     def first_alarm(self, part: str) -> float | None:
         return next((t for p, t in self.alarms if p == part), None)
@@ -84,4 +86,5 @@ def run_offline_watch(setup: RigSetup, traj: Trajectory, seconds: float, *,
         start = np.array(r.fit.x)
         res.windows.append((tick / rate, r))
         res.alarms.extend((p, tick / rate) for p in r.verdict.new_alarms)
+        res.states.append({name: ps.state for name, ps in judge.parts.items()})
     return res
