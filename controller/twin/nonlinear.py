@@ -10,13 +10,15 @@ running (pure), each with its standard deviation.
 - **Load Coulomb friction and backlash** (`friction_fit`): the twin is fed the speed command
   the loop sent over the window, in open loop, from the window's first position (the same
   kernel the offline loop runs, `SimRig.run_commands`), and its load rate is compared with the
-  measured one below `BAND_HZ` (zero-phase low-pass). At each reversal the load stops while
+  measured one below `BAND_HZ` (zero-phase low-pass), less its mean (a speed offset the
+  twin lacks, which the DOB's d_hat tells: `controller.twin.replay.disturbance_lacking`, is
+  not friction). At each reversal the load stops while
   the motor crosses the dead zone and winds the belt up to the static friction, and through
   the drive's droop the friction sets the speed error in each direction: the rate there tells
   the Coulomb friction (the static friction scaled with it, in the twin's ratio) and the total
   dead zone (belt and gearbox in series; the gearbox's share kept, the belt's fitted). A
   coarse grid first (the cost is rugged: stick and slip move in steps with the parameters),
-  then least squares from its best point; the deviation of each is its bias bound (the
+  then least squares from its best three points; the deviation of each is its bias bound (the
   Jacobian with wide differences and the whole fitted residual: how far a model error that
   large, shaped like the part's own effect, would move it).
 - **Viscous friction** comes from the responses (`controller.twin.fit`: the load's viscous
@@ -67,6 +69,8 @@ BACKLASH_MAX_DEG = 0.6
 #: enough to average over what moves in steps with the parameters.
 DIFF_STEPS = (0.05, 0.005)
 MAX_NFEV = 10
+#: Least squares runs from this many of the grid's best points.
+STARTS = 3
 
 
 @dataclass(frozen=True)
@@ -190,7 +194,8 @@ def friction_fit(params: RigParams, faults: RigFaults, win: RunningWindow) -> Fr
         if faults.active:
             rig.set_faults(faults)
         _, w = rig.run_commands(win.command_deg_s)
-        return np.asarray(meas - sosfiltfilt(band, w[:-1])[skip:], dtype=np.float64)
+        r = meas - sosfiltfilt(band, w[:-1])[skip:]
+        return np.asarray(r - np.mean(r), dtype=np.float64)  # a speed offset is not friction
 
     r0 = residual(np.array([0.0, total0]))
     floor = params.gearbox_backlash_deg  # the gearbox's share is kept: the total's least
@@ -198,14 +203,19 @@ def friction_fit(params: RigParams, faults: RigFaults, win: RunningWindow) -> Fr
                               for b in GRID_BACKLASH_DEG]
     costs = [float(np.sum(r0**2))] + [float(np.sum(residual(np.array(x)) ** 2))
                                       for x in grid[1:]]
-    x0 = np.array(grid[int(np.argmin(costs))])
     lo = np.array([-LOG_FACTOR_BOUND, floor])
     hi = np.array([LOG_FACTOR_BOUND, floor + BACKLASH_MAX_DEG])
-    x0 = np.clip(x0, lo + 1e-6, hi - 1e-6)
-    sol = least_squares(residual, x0, bounds=(lo, hi), x_scale=np.array(DIFF_STEPS),
-                        diff_step=np.array(DIFF_STEPS), jac="3-point", max_nfev=MAX_NFEV,
-                        xtol=1e-4, ftol=1e-6)
-    x = sol.x if float(np.sum(sol.fun**2)) <= min(costs) else x0
+    # The cost's valley runs diagonally (more friction, less dead zone: the same lost motion at
+    # a reversal), narrower than the grid's step: least squares from the best STARTS points.
+    x, best = np.array(grid[int(np.argmin(costs))]), min(costs)
+    for i in np.argsort(costs)[:STARTS]:
+        x0 = np.clip(np.array(grid[int(i)]), lo + 1e-6, hi - 1e-6)
+        sol = least_squares(residual, x0, bounds=(lo, hi), x_scale=np.array(DIFF_STEPS),
+                            diff_step=np.array(DIFF_STEPS), jac="3-point", max_nfev=MAX_NFEV,
+                            xtol=1e-4, ftol=1e-6)
+        cost = float(np.sum(sol.fun**2))
+        if cost < best:
+            x, best = sol.x, cost
     r = residual(x)
     # The deviation stated is the bias bound (as the watch's): how far a model error as large
     # as the whole fitted residual, shaped like each part's own effect, would move it. The
