@@ -27,6 +27,10 @@ ALARM_COLOR = "#d62728"
 ALARM_DOTS = 15
 _TIME_X: ChartDict = {"label": "time (this browser's time zone)", "scale": "x", "space": 70}
 _MARK: ChartDict = {"auto": False, "range": (0.0, 1.0)}
+#: No hover points: a series with no value under the cursor (the alarm, in-alarm and not-told
+#: points are NaN in most windows) had its hover point drawn at the plot's top-left corner, a
+#: stray red dot; the legend reads every value under the cursor.
+_CURSOR: ChartDict = {"points": {"show": False}}
 #: The residuals drawn (in milli-units: uPlot labels its ticks with at most 3 decimals, so a
 #: residual of 0.003 deg on ticks 0.0005 apart read "0.003, 0.003, 0.002, 0.002...").
 RESIDUALS = ("plant_residual_rms_deg_s", "fitted_residual_rms_deg_s", "loop_residual_rms_deg")
@@ -109,7 +113,8 @@ def _chart(key: str, title: str, series: list[ChartDict], axes: list[ChartDict],
         lo, hi = readable_range(np.concatenate(vals) if vals else np.empty(0), from_zero)
         scales[name] = {"auto": False, "range": (lo, hi)}
     spec = ChartSpec(key=key, title=title, series=({"label": "time"}, *series, _alarm_series()),
-                     scales=scales, axes=(_TIME_X, *axes), height=height, bands=bands)
+                     scales=scales, axes=(_TIME_X, *axes), height=height, bands=bands,
+                     cursor=_CURSOR)
     return TrendChart(spec, (x, *ys, mark), scales)
 
 
