@@ -34,6 +34,7 @@ __all__ = [
     "SampledBound",
     "UncertaintyBound",
     "WeightBound",
+    "measured_modes_hz",
     "position_spread",
     "readonly",
 ]
@@ -329,6 +330,25 @@ def position_spread(
         measured=readonly(np.max(diff, axis=0)),
         uncertainty=readonly(np.max(unc, axis=0)),
     )
+
+
+def measured_modes_hz(knowledge: PlantKnowledge) -> tuple[tuple[float, float], ...]:
+    """Per measured response (one per position) its first resonance: the lowest frequency
+    above 2 Hz where the response peaks by >= 3 dB over the lowest magnitude below it, with
+    the relative uncertainty of that frequency (half the measured grid's step there: the peak
+    lies between the neighbouring points). Responses that show none are left out."""
+    found: list[tuple[float, float]] = []
+    for m in knowledge.measured:
+        mag = 20.0 * np.log10(np.abs(m.response))
+        f = m.freq_hz
+        for i in range(1, len(f) - 1):
+            if f[i] < 2.0 or not (mag[i] >= mag[i - 1] and mag[i] > mag[i + 1]):
+                continue
+            if mag[i] - float(np.min(mag[: i + 1])) >= 3.0:
+                step = max(f[i + 1] / f[i], f[i] / f[i - 1])
+                found.append((float(f[i]), 0.5 * (float(step) - 1.0)))
+                break
+    return tuple(found)
 
 
 def _first_crossing(f: FloatArray, y: FloatArray, level: float) -> float | None:

@@ -47,7 +47,12 @@ import numpy as np
 
 from controller.core.arrays import ComplexArray, FloatArray
 from controller.core.command_filter import CommandFilter, command_filter_response
-from controller.gate.knowledge import MIN_ALLOWANCE, MeasuredResponse, PlantKnowledge
+from controller.gate.knowledge import (
+    MIN_ALLOWANCE,
+    MeasuredResponse,
+    PlantKnowledge,
+    measured_modes_hz,
+)
 from controller.gate.loop_model import (
     discrete_equivalent,
     discrete_plant,
@@ -516,25 +521,6 @@ def feedforward_gain(knowledge: PlantKnowledge, rate_hz: float, speed: SpeedDesi
     c = pi_response(speed.kp, speed.ki_per_s, f, rate_hz)
     t = complex((c * g / (1.0 + c * g))[0])
     return float(min(2.0, max(0.0, (1.0 / t).real)))
-
-
-def measured_modes_hz(knowledge: PlantKnowledge) -> tuple[tuple[float, float], ...]:
-    """Per measured response (one per position) its first resonance: the lowest frequency
-    above 2 Hz where the response peaks by >= 3 dB over the lowest magnitude below it, with
-    the relative uncertainty of that frequency (half the measured grid's step there: the peak
-    lies between the neighbouring points). Responses that show none are left out."""
-    found: list[tuple[float, float]] = []
-    for m in knowledge.measured:
-        mag = 20.0 * np.log10(np.abs(m.response))
-        f = m.freq_hz
-        for i in range(1, len(f) - 1):
-            if f[i] < 2.0 or not (mag[i] >= mag[i - 1] and mag[i] > mag[i + 1]):
-                continue
-            if mag[i] - float(np.min(mag[: i + 1])) >= 3.0:
-                step = max(f[i + 1] / f[i], f[i] / f[i - 1])
-                found.append((float(f[i]), 0.5 * (float(step) - 1.0)))
-                break
-    return tuple(found)
 
 
 def first_resonance_hz(knowledge: PlantKnowledge, rate_hz: float) -> float | None:

@@ -28,7 +28,12 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from controller.core.arrays import ComplexArray, FloatArray
-from controller.gate.knowledge import KnowledgeRecord, MeasuredResponse, PlantKnowledge
+from controller.gate.knowledge import (
+    KnowledgeRecord,
+    MeasuredResponse,
+    PlantKnowledge,
+    measured_modes_hz,
+)
 from controller.gate.loop_model import discrete_equivalent
 from controller.sim.sim_rig import RigFaults, RigParams
 from controller.twin.model import (
@@ -59,6 +64,13 @@ BAND_END_OF_RATE = 0.4
 #: Weight of the pull towards the base rig (log factors): the response alone leaves inertia,
 #: stiffness and friction free to scale together; the twin keeps the smallest change.
 PRIOR_WEIGHT = 0.05
+#: An extra mode (a measured resonance) is kept only if it lowers the fit's rms error (dB, all
+#: positions' points) to at most this fraction of the fit without it, and by `MODE_MIN_GAIN_DB`.
+MODE_KEEP_RATIO = 0.5
+MODE_MIN_GAIN_DB = 0.3
+#: The extra mode's damping ratio: the fit's start and bounds.
+MODE_DAMPING_START = 0.05
+MODE_DAMPING_RANGE = (0.002, 0.7)
 _POS = re.compile(r"(-?\d+(?:\.\d+)?)\s*deg$")
 
 
@@ -163,7 +175,8 @@ _FACTORS = ("inertia", "stiffness", "viscous", "gain")
 
 def _apply(base: RigParams, x: FloatArray, delay: int) -> tuple[RigParams, RigFaults]:
     """x: log factors of inertia, stiffness, viscous friction and gain; the stiffness's and
-    the damping's variation with the angle; the drive's droop in 1000 rpm per N m."""
+    the damping's variation with the angle; the drive's droop in 1000 rpm per N m; with an
+    extra mode, the logs of its frequency (Hz) and damping ratio."""
     fi, fk, fb, g = (float(math.exp(v)) for v in x[:4])
     params = replace(base, load_inertia_kg_m2=base.load_inertia_kg_m2 * fi,
                      belt_stiffness_n_m_rad=base.belt_stiffness_n_m_rad * fk,
@@ -172,6 +185,9 @@ def _apply(base: RigParams, x: FloatArray, delay: int) -> tuple[RigParams, RigFa
                      belt_damping_variation=float(np.clip(x[5], -0.85, 0.85)),
                      drive_droop_rpm_per_n_m=float(max(0.0, 1000.0 * x[6])),
                      command_delay_ticks=delay)
+    if len(x) > 7:
+        return params, RigFaults(plant_gain=min(99.0, g), resonance_hz=float(math.exp(x[7])),
+                                 resonance_damping=float(math.exp(x[8])))
     return params, RigFaults(plant_gain=min(99.0, g))
 
 
@@ -240,6 +256,8 @@ def twin_from_knowledge(
     viscous_std: float | None = None
     if data:
         params, faults, fitted, log_std = _fit(base, data, rate_hz)
+        params, faults, fitted, log_std = _with_mode(knowledge, base, data, rate_hz, (
+            params, faults, fitted, log_std), notes)
         if math.isfinite(log_std[2]):
             viscous_std = params.load_viscous_n_m_s_rad * float(log_std[2])
         fits = [position_fit(name, pos, f, h, rig_response(params, faults, f, pos, rate_hz))
@@ -289,11 +307,50 @@ def twin_from_knowledge(
         notes=tuple(notes))
 
 
-def _fit(base: RigParams, data: list[tuple[str, float, FloatArray, ComplexArray, FloatArray]],
-         rate_hz: float) -> tuple[RigParams, RigFaults, dict[str, float], FloatArray]:
+_Data = list[tuple[str, float, FloatArray, ComplexArray, FloatArray]]
+_Fit = tuple[RigParams, RigFaults, dict[str, float], FloatArray]
+
+
+def _rms_db(params: RigParams, faults: RigFaults, data: _Data, rate_hz: float) -> float:
+    """The fit's rms error in dB over every position's points."""
+    db = [20.0 * np.log10(np.abs(rig_response(params, faults, f, pos, rate_hz) / h))
+          for _, pos, f, h, _ in data]
+    return float(np.sqrt(np.mean(np.concatenate(db) ** 2)))
+
+
+def _with_mode(knowledge: PlantKnowledge, base: RigParams, data: _Data, rate_hz: float,
+               plain: _Fit, notes: list[str]) -> _Fit:
+    """Where the measured responses peak in the fitted band (`measured_modes_hz`, the tune's
+    detector), the fit again with an extra mode (`RigFaults.resonance_*`; its payload's
+    share of the load inertia the base rig's), its frequency and damping fitted with the
+    others from the lowest peak (less the payload's shift, f_pair ~ f / sqrt(1 - share)).
+    Kept only if it lowers the rms error clearly (`MODE_KEEP_RATIO`, `MODE_MIN_GAIN_DB`); the
+    notes say either way."""
+    top = BAND_END_OF_RATE * rate_hz
+    peaks = [f for f, _ in measured_modes_hz(knowledge) if f <= top]
+    if not peaks:
+        return plain
+    peak = min(peaks)
+    start = peak * math.sqrt(1.0 - RigFaults().resonance_mass_fraction)
+    before = _rms_db(plain[0], plain[1], data, rate_hz)
+    moded = _fit(base, data, rate_hz, mode_hz=start)
+    after = _rms_db(moded[0], moded[1], data, rate_hz)
+    fl = moded[1]
+    said = (f"extra mode {fl.resonance_hz:.4g} Hz, damping {fl.resonance_damping:.3g} (from the "
+            f"measured peak at {peak:.4g} Hz): fit {before:.2f} -> {after:.2f} dB rms")
+    if after <= MODE_KEEP_RATIO * before and after <= before - MODE_MIN_GAIN_DB:
+        notes.append(said + ": kept")
+        return moded
+    notes.append(said + ": not kept (it does not lower the error clearly)")
+    return plain
+
+
+def _fit(base: RigParams, data: _Data, rate_hz: float, mode_hz: float = 0.0) -> _Fit:
     """Least squares on ln(H_twin / H_meas) for each delay; the best delay's parameters and
     the standard deviations of the variables (the Jacobian at the solution and the residual's
-    variance per degree of freedom; inf for a variable the data do not move)."""
+    variance per degree of freedom; inf for a variable the data do not move). `mode_hz` > 0:
+    with an extra mode, its frequency starting there (within a factor 1.5) and its damping
+    from `MODE_DAMPING_START`."""
     spread = len({pos for _, pos, *_ in data}) > 1
 
     def residual(x: FloatArray, delay: int) -> FloatArray:
@@ -313,6 +370,11 @@ def _fit(base: RigParams, data: list[tuple[str, float, FloatArray, ComplexArray,
                    max(0.1, base.drive_droop_rpm_per_n_m / 1000.0)])  # off its bound
     lo = np.array([-3.0, -3.0, -3.0, -3.0, -vary, -vary, 0.0])
     hi = np.array([3.0, 3.0, 3.0, 3.0, vary, vary, 5.0])
+    if mode_hz > 0.0:
+        x0 = np.append(x0, [math.log(mode_hz), math.log(MODE_DAMPING_START)])
+        lo = np.append(lo, [math.log(mode_hz / 1.5), math.log(MODE_DAMPING_RANGE[0])])
+        hi = np.append(hi, [math.log(min(mode_hz * 1.5, 0.45 * rate_hz)),
+                            math.log(MODE_DAMPING_RANGE[1])])
     x0 = np.clip(x0, lo + 1e-12, hi - 1e-12)
     for delay in range(MAX_DELAY_TICKS + 1):
         r = least_squares(residual, x0, args=(delay,), bounds=(lo, hi), loss="soft_l1",
@@ -333,4 +395,7 @@ def _fit(base: RigParams, data: list[tuple[str, float, FloatArray, ComplexArray,
     fitted["damping_variation"] = params.belt_damping_variation
     fitted["droop_rpm_per_n_m"] = params.drive_droop_rpm_per_n_m
     fitted["delay_ticks"] = float(delay)
+    if faults.resonance_hz > 0.0:
+        fitted["resonance_hz"] = faults.resonance_hz
+        fitted["resonance_damping"] = faults.resonance_damping
     return params, faults, fitted, log_std
