@@ -152,6 +152,7 @@ class ZenohNode:
         self.blackbox = BlackBox(
             service.store.directory / "blackbox", opts.rig_name, service.warn
         )
+        service.recent_state = self.blackbox.held  # the twin's window of normal running
         self._bb_mode = service.rt.mode
         self._bb_rollbacks = 0
         self._threads: list[threading.Thread] = []

@@ -13,6 +13,7 @@ import dataclasses
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import msgspec
@@ -42,6 +43,7 @@ from controller.process.requests import (
     RunProgram,
 )
 from controller.process.runtime import ESTOP, FAULT, Runtime, Ticket
+from controller.process.twin_running import recent_running, twin_with_running
 from controller.twin.fit import build_twin
 from controller.twin.model import RigTwin, knowledge_digest
 from controller.twin.model import encode as encode_twin
@@ -107,6 +109,9 @@ class ControllerService:
         self._twin: tuple[str, RigTwin | None, str] | None = None
         self._twin_lock = threading.Lock()
         self._twin_building: str | None = None
+        #: The state batches held (oldest first; the node sets it to the black box's): the
+        #: twin's window of normal running comes from them. None: no window, said in the twin.
+        self.recent_state: Callable[[], list[Any]] | None = None
         #: The gate's verdict on the running configuration (re-judged on new knowledge).
         self.running_verdict = verdict
         #: The configuration the watchdog would roll back to, its verdict (judged on the
@@ -484,12 +489,24 @@ class ControllerService:
         return self._twin
 
     def _build_twin(self, digest: str, rec: KnowledgeRecord) -> None:
+        # The window of normal running is taken now (after the change, before the fit), here.
+        recent = (recent_running(self.recent_state()) if self.recent_state is not None
+                  else "the controller holds no state batches")
         try:
             rate_hz = self.rt.loop.active.config.rate_hz
             twin, note = self.worker.call(build_twin, rec, rate_hz, timeout_s=TWIN_TIMEOUT_S)
         except Exception as exc:  # a dead or late worker: said in every knowledge reply
             twin, note = None, f"no twin: the analysis worker failed: {type(exc).__name__}: {exc}"
             log.warning("twin of plant knowledge v%d: %s", rec.version, note)
+        if twin is not None:
+            try:
+                twin = self.worker.call(twin_with_running, twin, recent,
+                                        timeout_s=TWIN_TIMEOUT_S)
+            except Exception as exc:  # the fitted twin kept, with the base rig's nonlinear parts
+                why = (f"friction, backlash and encoder noise: the base rig's: their estimate "
+                       f"failed in the analysis worker: {type(exc).__name__}: {exc}")
+                twin = msgspec.structs.replace(twin, notes=(*twin.notes, why))
+                log.warning("twin of plant knowledge v%d: %s", rec.version, why)
         with self._twin_lock:
             self._twin = (digest, twin, note)
             if self._twin_building == digest:
