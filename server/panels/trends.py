@@ -116,11 +116,13 @@ class TrendsPanel:
             if rig not in found:
                 rig = str(self.rig.value)
             if rig not in found:
+                self._clear()
                 self._say(REJECT, self._no_trend_text())
                 return
             t1 = self._now()
             span = self.reader.read(found[rig], rig, t1 - RANGES[range_name], t1)
             if span.empty:
+                self._clear()  # another rig's or range's charts must not stand under it
                 self._say(REJECT, f"No trend of rig <b>{esc(rig)}</b> in the {esc(range_name)}"
                           f" ({span.files} hourly files in {esc(str(found[rig] / rig))})."
                           + self._problems(span))
@@ -137,6 +139,7 @@ class TrendsPanel:
                       + self._problems(span))
         except Exception as exc:  # said plainly in the tab (and logged with its traceback)
             log.exception("the trend of %s was not read", rig)
+            self._clear()
             self._say(REJECT, f"The trend of rig <b>{esc(rig)}</b> could not be read: "
                       f"{esc(type(exc).__name__)}: {esc(str(exc))}")
         finally:
@@ -151,6 +154,14 @@ class TrendsPanel:
         return (abs(span.t1_epoch_s - last.t1_epoch_s) < px_s
                 and abs((span.t1_epoch_s - span.t0_epoch_s)
                         - (last.t1_epoch_s - last.t0_epoch_s)) < 1e-6)
+
+    def _clear(self) -> None:
+        """No charts (what they showed is not what was asked for)."""
+        for handle in self._charts.values():
+            handle.remove()
+        self._charts = {}
+        self._keys = ()
+        self.span = None
 
     def _draw(self, charts: list[TrendChart]) -> None:
         keys = tuple((c.spec.key, len(c.spec.series)) for c in charts)
@@ -198,8 +209,8 @@ class TrendsPanel:
         if not span.problems:
             return ""
         items = "".join(f"<li>{esc(p)}</li>" for p in span.problems[:8])
-        return (f"<br>{len(span.problems)} files not read whole:<ul style='margin:2px 0 0 16px;"
-                f"padding:0' class='dt-trend-problems'>{items}</ul>")
+        return (f"<br>{_count(len(span.problems), 'file')} not read whole:<ul "
+                f"style='margin:2px 0 0 16px;padding:0' class='dt-trend-problems'>{items}</ul>")
 
     def _summary(self, span: TrendSpan, range_name: str) -> str:
         t = span.parts.get("t")

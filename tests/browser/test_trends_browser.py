@@ -233,6 +233,9 @@ def test_the_last_hour_and_a_rig_whose_trend_is_unreadable(page: Any) -> None:
     wait_for(lambda: BROKEN in status.inner_text(), SLOW_S, "the broken rig never answered")
     text = status.inner_text()
     assert "No trend of rig" in text and "not a trend file" in text, text
+    # The other rig's charts are gone: none stands under the broken rig's words.
+    wait_for(lambda: page.evaluate(CHART_JS, ["gain: ", ALARM_LABEL]) is None, SLOW_S,
+             "the other rig's charts stayed under the broken rig's status")
     assert "Traceback" not in text and "Error" not in text.replace("not a trend", ""), text
     page.screenshot(path=str(ARTIFACTS / "trends_unreadable.png"))
     _pick(page, "Rig", RIG)  # back, for whoever looks next
