@@ -1,7 +1,7 @@
 """What each page shows: whether its 3-D view is hidden (the plots panel widened over it), and
-whether it shows the Live traces tab (the live charts' data goes only to the pages that do:
-25 pushes/s of ~60 kB, which a page that had nothing to draw them on still received and
-decoded)."""
+whether it shows the Live traces tab (the live charts' data goes only to the pages that say
+they do: 25 pushes/s of ~60 kB, which a page that had nothing to draw them on still received
+and decoded)."""
 
 from __future__ import annotations
 
@@ -48,6 +48,8 @@ class PageViews:
         self._hidden_3d_lock = threading.Lock()
         self._live_hidden: set[str] = set()
         """The pages (their page script's id) whose Live traces tab is not shown."""
+        self._reported: set[str] = set()
+        """The pages connected now that said what they show (the others get no live data)."""
         self._live_hidden_lock = threading.Lock()
 
     def toggle_3d(self, browser: viser.ClientHandle | None, plots: viser.PanelHandle) -> None:
@@ -80,7 +82,9 @@ class PageViews:
         its next report)."""
         connected = page in self._browsers.connected_pages()
         with self._live_hidden_lock:
-            was_hidden = page in self._live_hidden
+            was_hidden = page in self._live_hidden or page not in self._reported
+            if connected:
+                self._reported.add(page)
             if live_shown:
                 self._live_hidden.discard(page)
             elif connected:
@@ -90,11 +94,18 @@ class PageViews:
         return [b for b in self._browsers.all() if self._browsers.page_of(b) == page]
 
     def live_audience(self) -> list[viser.ClientHandle]:
-        """The browsers the live charts' data goes to: every one but the pages that said
-        their Live traces tab is not shown (a page without the page script gets it all)."""
-        hidden = self.live_hidden()
-        return [b for b in self._browsers.all()
-                if not hidden or self._browsers.page_of(b) not in hidden]
+        """The browsers the live charts' data goes to: the pages that said they show their
+        Live traces tab, and those without the page script. A page that has not said yet gets
+        none: a new page got 400-570 pushes (6-9 MB) while it loaded, before its controls were
+        drawn, most of its load (`bench_dashboard.py --page`)."""
+        with self._live_hidden_lock:
+            showing = self._reported - self._live_hidden
+        out = []
+        for b in self._browsers.all():
+            page = self._browsers.page_of(b)
+            if not page or page in showing:
+                out.append(b)
+        return out
 
     def forget(self, client_id: int) -> None:
         """A browser left: its 3-D choice, and the pages no longer connected (a page that
@@ -104,3 +115,4 @@ class PageViews:
         pages = {self._browsers.page_of(b) for b in self._browsers.all()}
         with self._live_hidden_lock:
             self._live_hidden &= pages
+            self._reported &= pages
