@@ -478,9 +478,12 @@ def run_controller(opts: ControllerOptions, *, ready: Callable[[str], None] | No
     # the shutdown half-way.
     previous = {s: signal.signal(s, stopper.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     runner: AnalysisWorker | None = None
+    twin_runner: AnalysisWorker | None = None
     edge: EdgeLink | None = None
     try:
         runner = AnalysisWorker(subprocess=opts.gate_in_subprocess)
+        # Started on its first job (the twin's estimate from running): none before.
+        twin_runner = AnalysisWorker(subprocess=opts.gate_in_subprocess)
         _check_options(opts)
         edge_login = _edge_login(opts) if opts.edge_in_subprocess else None
         if edge_login is not None:
@@ -492,12 +495,14 @@ def run_controller(opts: ControllerOptions, *, ready: Callable[[str], None] | No
                 budget_per_s=opts.request_budget_per_s if opts.auth_dir is not None else None,
                 parent_pid=os.getpid()))
             edge.start()  # from this (the main) thread: its death signal
-        _run(opts, runner, stopper, ready, edge_login, edge)
+        _run(opts, runner, stopper, ready, edge_login, edge, twin_runner)
     finally:
         if edge is not None:
             edge.close()
         if runner is not None:
             runner.close()
+        if twin_runner is not None:
+            twin_runner.close()
         for s, h in previous.items():
             signal.signal(s, h)
     return 0
@@ -510,6 +515,7 @@ def _run(
     ready: Callable[[str], None] | None,
     edge_login: _EdgeLogin | None = None,
     edge: EdgeLink | None = None,
+    twin_runner: AnalysisWorker | None = None,
 ) -> None:
     runner.command_limit_max_deg_s = _rig_command_limit(opts)
     # The analysis worker starts loading now, beside the rest of the start-up; the first check
@@ -556,7 +562,8 @@ def _run(
                 log.warning("fault at start: %s", rig_faults[0])
             access = _open_access(opts, _warn_log)
             service = ControllerService(
-                opts, runtime, store, runner, verdict, notes, knowledge, access
+                opts, runtime, store, runner, verdict, notes, knowledge, access,
+                twin_worker=twin_runner,
             )
             access.warn = service.warn
             if start.unsaved is not None:

@@ -89,11 +89,15 @@ class ControllerService:
         notes: list[str],
         knowledge: KnowledgeRecord | None = None,
         access: Access | None = None,
+        twin_worker: AnalysisWorker | None = None,
     ) -> None:
         self.opts = opts
         self.rt = runtime
         self.store = store
         self.worker = worker
+        #: The twin's friction/backlash/noise estimate from running (seconds of CPU): its own
+        #: worker process, so no gate check (an apply) waits behind it.
+        self.twin_worker = twin_worker if twin_worker is not None else worker
         self.notes = notes
         self._warnings: dict[str, tuple[str, int]] = {}  # key -> (text, count)
         self._warn_lock = threading.Lock()
@@ -500,8 +504,8 @@ class ControllerService:
             log.warning("twin of plant knowledge v%d: %s", rec.version, note)
         if twin is not None:
             try:
-                twin = self.worker.call(twin_with_running, twin, recent,
-                                        timeout_s=TWIN_TIMEOUT_S)
+                twin = self.twin_worker.call(twin_with_running, twin, recent,
+                                             timeout_s=TWIN_TIMEOUT_S)
             except Exception as exc:  # the fitted twin kept, with the base rig's nonlinear parts
                 why = (f"friction, backlash and encoder noise: the base rig's: their estimate "
                        f"failed in the analysis worker: {type(exc).__name__}: {exc}")
