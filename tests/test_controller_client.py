@@ -3,6 +3,7 @@ gate may load its worker and save first), every read `query_timeout_s`."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -15,20 +16,41 @@ from controller.client.controller_client import (
 from controller.core.config import LoopConfig
 
 
+@pytest.fixture(scope="module")
+def zenoh_session() -> Iterator[Any]:
+    """A real Zenoh session that reaches nothing (no scouting, no endpoints): what the client
+    takes its session's id from (an EntityGlobalId has no constructor)."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", "[]")
+    with zenoh.open(conf) as s:
+        yield s
+
+
 class _SilentSession:
-    """A session whose queries get no reply; it records the timeout of each get."""
+    """A session whose queries get no reply; it records the timeout and the source info of
+    each get."""
 
-    def __init__(self) -> None:
+    def __init__(self, real: Any) -> None:
+        self.real = real
         self.timeouts: list[float] = []
+        self.sources: list[Any] = []
 
-    def get(self, key: str, payload: bytes, timeout: float) -> list[Any]:
+    def declare_querier(self, key: str) -> Any:
+        return self.real.declare_querier(key)
+
+    def get(self, key: str, payload: bytes, timeout: float, source_info: Any = None) -> list[Any]:
         self.timeouts.append(timeout)
+        self.sources.append(source_info)
         return []
 
 
-def test_an_apply_waits_longer_than_a_read() -> None:
+def test_an_apply_waits_longer_than_a_read(zenoh_session: Any) -> None:
     client = ControllerClient(ClientOptions(query_timeout_s=3.0, apply_timeout_s=30.0))
-    session = _SilentSession()
+    session = _SilentSession(zenoh_session)
     client._session = session
     with pytest.raises(ControllerUnavailable, match=r"within 3\.0 s"):
         client.get_config()
@@ -39,7 +61,7 @@ def test_an_apply_waits_longer_than_a_read() -> None:
     assert session.timeouts == [3.0, 30.0, 3.0]
 
 
-def test_adopting_knowledge_waits_as_long_as_an_apply() -> None:
+def test_adopting_knowledge_waits_as_long_as_an_apply(zenoh_session: Any) -> None:
     """Adopting plant knowledge judges the active configuration through the gate, as an apply
     does: a plain read's wait timed out on a loaded machine while the controller adopted it."""
     from controller import protocol as proto
@@ -47,7 +69,7 @@ def test_adopting_knowledge_waits_as_long_as_an_apply() -> None:
     from controller.gate.knowledge import COMMISSIONING_BOUND, KnowledgeRecord
 
     client = ControllerClient(ClientOptions(query_timeout_s=3.0, apply_timeout_s=30.0))
-    session = _SilentSession()
+    session = _SilentSession(zenoh_session)
     client._session = session
     rec = KnowledgeRecord(version=1, source="test", model=NominalModel(),
                           bound=COMMISSIONING_BOUND)
@@ -56,3 +78,17 @@ def test_adopting_knowledge_waits_as_long_as_an_apply() -> None:
         with pytest.raises(ControllerUnavailable, match=rf"within {wait} s"):
             client.knowledge(req)
     assert session.timeouts == [3.0, 30.0, 30.0]
+
+
+def test_every_query_names_the_clients_session(zenoh_session: Any) -> None:
+    """The controller's per-session budget keys on the Zenoh id a query's source info names
+    (controller/process/budget.py): one id per client, numbered queries."""
+    client = ControllerClient(ClientOptions(query_timeout_s=3.0, apply_timeout_s=30.0))
+    session = _SilentSession(zenoh_session)
+    client._session = session
+    for _ in range(3):
+        with pytest.raises(ControllerUnavailable):
+            client.get_config()
+    ids = {str(si.source_id.zid) for si in session.sources}
+    assert ids == {str(zenoh_session.zid())}
+    assert [si.source_sn for si in session.sources] == [1, 2, 3]
