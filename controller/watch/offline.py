@@ -44,12 +44,14 @@ def run_offline_watch(setup: RigSetup, traj: Trajectory, seconds: float, *,
                       cfg: LoopConfig | None = None, rig_faults: RigFaults | None = None,
                       twin_faults: RigFaults | None = None, bound: UncertaintyBound | None,
                       window_s: float = 10.0, change_at_s: float | None = None,
-                      change: Callable[[SimRig], None] | None = None, seed: int = 3
+                      change: Callable[[SimRig], None] | None = None, seed: int = 3,
+                      on_window: Callable[[OfflineWatch], None] | None = None
                       ) -> OfflineWatch:
     """Run `seconds` of `traj` on the rig `setup` (with `rig_faults`, e.g. an extra mode),
     the watch comparing with the twin `setup.params` + `twin_faults` judged on `bound`;
     `change(rig)` at `change_at_s`. The first window starts after one window of running (the
-    live watch too waits for a full window)."""
+    live watch too waits for a full window). `on_window(res)` after each judged window (a
+    long run's progress)."""
     cfg = cfg or LoopConfig()
     rate = cfg.rate_hz
     twin_faults = twin_faults or RigFaults()
@@ -87,4 +89,6 @@ def run_offline_watch(setup: RigSetup, traj: Trajectory, seconds: float, *,
         res.windows.append((tick / rate, r))
         res.alarms.extend((p, tick / rate) for p in r.verdict.new_alarms)
         res.states.append({name: ps.state for name, ps in judge.parts.items()})
+        if on_window is not None:
+            on_window(res)
     return res

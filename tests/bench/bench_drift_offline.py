@@ -77,12 +77,28 @@ def _fit_s(run: OfflineWatch) -> str:
     return f"fit per window median {np.median(f):.2f} s, max {np.max(f):.2f} s"
 
 
+def _progress(kind: str, every: int, t: float) -> Callable[[OfflineWatch], None]:
+    """A line per `every` judged windows (0: none): a long run's figures so far."""
+
+    def show(run: OfflineWatch) -> None:
+        n = len(run.windows)
+        if every <= 0 or n % every:
+            return
+        outside = sum(any(v in ("outside", "alarm") for v in st.values()) for st in run.states)
+        print(f"  {kind}: {n} windows ({run.windows[-1][0]:g} simulated s), alarms "
+              f"{len(run.alarms)}, windows with a part outside {outside}, wall "
+              f"{time.perf_counter() - t:.0f} s, load {os.getloadavg()[0]:.1f}", flush=True)
+
+    return show
+
+
 def _normal(args: argparse.Namespace) -> None:
     total_s, total_alarms = 0.0, 0
     for kind in args.trajectories.split(","):
         t = time.perf_counter()
         run = run_offline_watch(SETUP, default_trajectory(kind), args.seconds,
-                                bound=COMMISSIONING_BOUND, window_s=args.window_s)
+                                bound=COMMISSIONING_BOUND, window_s=args.window_s,
+                                on_window=_progress(kind, args.progress, t))
         wall = time.perf_counter() - t
         judged_s = len(run.windows) * args.window_s
         total_s += judged_s
@@ -144,6 +160,8 @@ def main() -> None:
                     help="normal: simulated seconds per trajectory")
     ap.add_argument("--trajectories", default="sine,step,ramp,hold")
     ap.add_argument("--window-s", type=float, default=10.0)
+    ap.add_argument("--progress", type=int, default=10,
+                    help="normal: a line every N judged windows (0: none)")
     ap.add_argument("--changes", default="", help="changes: only these parts, comma-separated")
     ap.add_argument("--change-at-s", type=float, default=25.0)
     ap.add_argument("--change-run-s", type=float, default=60.0)
