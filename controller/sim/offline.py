@@ -50,7 +50,7 @@ from controller.sim.linear_rig import BacklashRig, LinearRig, backlash_period, l
 from controller.sim.rig_disturbances import ScheduledRig
 from controller.sim.sim_rig import SimRig
 
-__all__ = ["OfflineRun", "run_speed_ticks", "run_ticks", "supported"]
+__all__ = ["OfflineRun", "run_ref_ticks", "run_speed_ticks", "run_ticks", "supported"]
 
 
 _servo_law = loop_module.servo_law
@@ -153,6 +153,49 @@ def _make_kernel(digest: str) -> Callable[..., Any]:
     return numba.njit(cache=True)(kernel)  # type: ignore[no-any-return]
 
 
+def _make_ref_kernel(digest: str) -> Callable[..., Any]:
+    """`kernel` with the reference and its rate given per tick (a recorded reference)."""
+
+    def ref_kernel(
+        x: FloatArray, p: FloatArray, noise: FloatArray, torque: FloatArray, ref_in: FloatArray,
+        rate_in: FloatArray, st: FloatArray, co: FloatArray, f1c: FloatArray, f1s: FloatArray,
+        f2c: FloatArray, f2s: FloatArray, cfc: FloatArray, cfs: FloatArray, rd: FloatArray,
+        out: FloatArray,
+    ) -> None:
+        if len(digest) == 0:  # the digest only keys numba's cache
+            raise ValueError("no source digest")
+        pos_int, e_pos_prev, cv_int, e_speed_prev = st[0], st[1], st[2], st[3]
+        u_prev, w_prev, d_hat, sref, serr = st[4], st[5], st[6], st[7], st[8]
+        pos_kp, pos_half, ff, cv_kp, cv_half, limit = co[0], co[1], co[2], co[3], co[4], co[5]
+        dob_on = co[6] != 0.0
+        f1n = len(f1c) // 5
+        f2n = len(f2c) // 5
+        cfn = len(cfc) // 5
+        pos, w = rd[0], rd[1]
+        for j in range(len(ref_in)):
+            ref = ref_in[j]
+            u, d_hat, sref, serr, pos_int, cv_int, e_pos_prev = _servo_law(
+                ref, rate_in[j], pos, w, pos_int, e_pos_prev, pos_kp, pos_half, ff, u_prev,
+                cv_int, e_speed_prev, cv_kp, cv_half, limit, dob_on, f1c, f1s, f1n, f2c, f2s,
+                f2n, cfc, cfs, cfn)
+            e_speed_prev = serr
+            u_prev = u
+            w_prev = w
+            out[0, j] = ref
+            out[1, j] = pos
+            out[2, j] = w
+            out[3, j] = sref
+            out[4, j] = u
+            out[5, j] = d_hat
+            pos, w = _advance(x, p, u, torque[j], noise[j])
+        st[0], st[1], st[2], st[3] = pos_int, e_pos_prev, cv_int, e_speed_prev
+        st[4], st[5], st[6], st[7], st[8] = u_prev, w_prev, d_hat, sref, serr
+        rd[0] = pos
+        rd[1] = w
+
+    return numba.njit(cache=True)(ref_kernel)  # type: ignore[no-any-return]
+
+
 def _make_speed_kernel(digest: str, period: Callable[..., float]) -> Callable[..., Any]:
     """The rate loop's kernel on a linear rig whose period is the plain function `period`."""
 
@@ -213,6 +256,7 @@ def _make_torque_sampler(digest: str) -> Callable[..., Any]:
 _DIGEST = _compiled_in((_servo_law, _speed_law, _trajectory_at, _ramp_step, _advance,
                         backlash_period, linear_period, flat_torque))
 _kernel = _make_kernel(_DIGEST)
+_ref_kernel = _make_ref_kernel(_DIGEST)
 _sample_torques = _make_torque_sampler(_DIGEST)
 _speed_kernels = {rig: _make_speed_kernel(_DIGEST, rig.period)
                   for rig in (BacklashRig, LinearRig)}
@@ -391,4 +435,34 @@ def run_ticks(
         approach.active = bool(rp[0] != 0.0)
         approach.pos_deg = float(rp[1])
         approach.speed_deg_s = float(rp[2])
+    return out
+
+
+def run_ref_ticks(loop: ServoLoop, rig: SimRig, ref_deg: FloatArray,
+                  ref_rate_deg_s: FloatArray) -> OfflineRun:
+    """`run_ticks` on a given reference: per tick k `loop.tick(ref_deg[k], ref_rate_deg_s[k],
+    *rig.read())`, then `rig.step` with the command (its load torque profile and noise
+    sampled as `run_ticks` does); the same result bit for bit as that Python loop. The
+    objects' states are taken and given back."""
+    if type(loop) is not ServoLoop or type(rig) is not SimRig:
+        raise TypeError(f"run_ref_ticks: needs ServoLoop and SimRig, got {type(loop).__name__} "
+                        f"and {type(rig).__name__}")
+    ref = np.ascontiguousarray(ref_deg, dtype=np.float64)
+    rate = np.ascontiguousarray(ref_rate_deg_s, dtype=np.float64)
+    if ref.ndim != 1 or rate.shape != ref.shape:
+        raise ValueError(f"run_ref_ticks: reference {ref.shape} and rate {rate.shape} differ")
+    n = ref.size
+    out = OfflineRun(np.empty((len(ROWS), n)))
+    if n == 0:
+        return out
+    _take_pending(loop)
+    st, co, f1c, f1s, f2c, f2s, cfc, cfs = _loop_arrays(loop)
+    d = rig.disturbance
+    torque = _torques(rig, None if d is None else flatten(d), n)
+    noise = rig.take_noise(n)
+    rd = np.array(rig.read())
+    _ref_kernel(rig._x, rig._p, noise, torque, ref, rate, st, co, f1c, f1s, f2c, f2s, cfc, cfs,
+                rd, out.out)
+    rig.advanced(n, float(rd[0]), float(rd[1]))
+    _loop_back(loop, st, f1s, f2s, cfs)
     return out

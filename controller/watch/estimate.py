@@ -17,7 +17,8 @@ the load's inertia, the deviation still looks small, and the estimate follows wh
 not model (the judge takes a part as told only when its bias bound is inside the part's range).
 
 The **loop's residual** (`loop_residual`): the active configuration run on the twin in closed
-loop over the window's measured reference (the tick's own `ServoLoop`, the rate reference by a
+loop over the window's measured reference (the tick's own `ServoLoop`, compiled with the twin by
+`controller.sim.offline.run_ref_ticks`, bit for bit the Python tick; the rate reference by a
 central difference of the reference) gives the error the twin predicts; against the measured
 error, it says whether the loop still does what it was approved for.
 
@@ -36,6 +37,7 @@ from scipy.signal import butter, sosfiltfilt
 from controller.core.arrays import FloatArray
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.sim.offline import run_ref_ticks
 from controller.sim.sim_rig import RigFaults, RigParams, SimRig
 
 __all__ = [
@@ -330,13 +332,8 @@ def loop_residual(cfg: LoopConfig, params: RigParams, faults: RigFaults, win: Wi
     rig = SimRig(_quiet(params), rate_hz=win.rate_hz, initial_position_deg=float(win.pos_deg[0]))
     if faults.active:
         rig.set_faults(faults)
-    err = np.empty(ref.size)
-    tick, read, step = loop.tick, rig.read, rig.step
-    for i in range(ref.size):
-        pos, w = read()
-        r = float(ref[i])
-        err[i] = r - pos
-        step(tick(r, float(rate[i]), pos, w))
+    run = run_ref_ticks(loop, rig, ref, rate)  # the tick's arithmetic, compiled
+    err = run.ref_deg - run.pos_deg
     s = round(2.0 * SETTLE_S * win.rate_hz)
     e_meas = np.asarray(win.error_deg[s:], dtype=np.float64)
     e_pred = err[s:]
