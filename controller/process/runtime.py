@@ -637,6 +637,14 @@ class Runtime:
         self._traj_at = traj.at
         self._traj_k = 0
 
+    @property
+    def following(self) -> tuple[Trajectory, int, float]:
+        """(the trajectory the tick follows, the sequence number of its time 0, the period):
+        sample seq's reference is `trajectory.at((seq - seq0) x period)` unless the approach
+        or an identification gives it. Read off the loop's thread: seq0 give or take a tick
+        (`controller.process.twin_running` finds the exact one in the samples)."""
+        return self.trajectory, self.seq + 1 - self._traj_k, self.period_s
+
     def _on_trip(self, u: float) -> None:
         """The watchdog tripped: roll back to the previous configuration (swapped at the next
         tick, bumpless), or, with none or again soon after a rollback, fault (command 0)."""

@@ -44,6 +44,7 @@ from controller.process.requests import (
 )
 from controller.process.runtime import ESTOP, FAULT, Runtime, Ticket
 from controller.process.twin_running import recent_running, twin_with_running
+from controller.sim.sim_rig import RigParams
 from controller.twin.fit import build_twin
 from controller.twin.model import RigTwin, knowledge_digest
 from controller.twin.model import encode as encode_twin
@@ -492,13 +493,30 @@ class ControllerService:
         compares)."""
         return self._twin
 
+    def _twin_base(self) -> tuple[RigParams | None, str]:
+        """The rig the twin starts from: the simulated rig this controller drives, with its
+        named disturbances (the structure a fit to responses cannot see: motor and gearbox
+        friction, the drive's offset, ...; `dobtune tune` and the watch take the same), else
+        the built-in rig."""
+        from controller.sim.rig_disturbances import rig_setup
+
+        names = list(self.opts.sim_disturbances) if self.opts.plant == "sim" else []
+        if not names:
+            return None, ""
+        setup = rig_setup(names)
+        return setup.params, f"the simulated rig {setup.label} (this controller's plant)"
+
     def _build_twin(self, digest: str, rec: KnowledgeRecord) -> None:
         # The window of normal running is taken now (after the change, before the fit), here.
-        recent = (recent_running(self.recent_state()) if self.recent_state is not None
-                  else "the controller holds no state batches")
+        active = self.rt.loop.active
+        recent = (recent_running(self.recent_state(), following=self.rt.following,
+                                 config=(active.config, active.version))
+                  if self.recent_state is not None else "the controller holds no state batches")
         try:
-            rate_hz = self.rt.loop.active.config.rate_hz
-            twin, note = self.worker.call(build_twin, rec, rate_hz, timeout_s=TWIN_TIMEOUT_S)
+            rate_hz = active.config.rate_hz
+            base, label = self._twin_base()
+            twin, note = self.worker.call(build_twin, rec, rate_hz, base, label,
+                                          timeout_s=TWIN_TIMEOUT_S)
         except Exception as exc:  # a dead or late worker: said in every knowledge reply
             twin, note = None, f"no twin: the analysis worker failed: {type(exc).__name__}: {exc}"
             log.warning("twin of plant knowledge v%d: %s", rec.version, note)

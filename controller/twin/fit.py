@@ -24,6 +24,7 @@ import math
 import re
 from dataclasses import replace
 
+import msgspec
 import numpy as np
 from scipy.optimize import least_squares
 
@@ -191,10 +192,13 @@ def _apply(base: RigParams, x: FloatArray, delay: int) -> tuple[RigParams, RigFa
     return params, RigFaults(plant_gain=min(99.0, g))
 
 
-def build_twin(record: KnowledgeRecord, rate_hz: float) -> tuple[RigTwin | None, str]:
+def build_twin(record: KnowledgeRecord, rate_hz: float, base: RigParams | None = None,
+               base_label: str = "") -> tuple[RigTwin | None, str]:
     """The twin of the knowledge `record` for the controller's analysis worker: (the twin, "")
     or (None, why not): nothing measured, a record that does not convert, or a fit that fails
-    are said, not raised (a raise would cost the worker process)."""
+    are said, not raised (a raise would cost the worker process). `base`: the rig whose
+    structure the twin starts from (`twin_from_knowledge`; the controller's simulated rig
+    passes its own, `base_label` names it in the twin's notes)."""
     try:
         knowledge = record.to_knowledge()
     except ValueError as exc:
@@ -202,9 +206,12 @@ def build_twin(record: KnowledgeRecord, rate_hz: float) -> tuple[RigTwin | None,
     if not knowledge.measured:
         return None, "no twin: nothing measured (predictions run on the built-in model)"
     try:
-        twin = twin_from_knowledge(knowledge, rate_hz=rate_hz)
+        twin = twin_from_knowledge(knowledge, rate_hz=rate_hz, base=base)
     except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
         return None, f"no twin: the fit failed: {type(exc).__name__}: {exc}"
+    if base_label:
+        twin = msgspec.structs.replace(twin, notes=(
+            *twin.notes, f"structure and unfitted parts: {base_label}"))
     return twin, ""
 
 

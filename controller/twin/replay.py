@@ -13,7 +13,9 @@ import numpy as np
 
 from controller.core.arrays import FloatArray
 from controller.core.config import LoopConfig
+from controller.core.loop import LoopCoefficients, ServoLoop
 from controller.core.trajectory import Trajectory
+from controller.sim import offline
 from controller.sim.disturbance import Disturbance
 from controller.sim.experiment import default_settle_s, run_experiment
 from controller.twin.fit import disturbance_estimate
@@ -23,6 +25,9 @@ __all__ = ["disturbance_lacking", "replay", "with_disturbance"]
 
 #: The mean's deviation comes from this many blocks of the window.
 BLOCKS = 10
+#: Seconds of the trajectory the twin runs before a window that starts later (its loop's
+#: start-up and the DOB's settling; the article's Q31 0.5 Hz settles in about 1 s).
+LEAD_S = 3.0
 
 
 def replay(twin: RigTwin, cfg: LoopConfig, trajectory: Trajectory,
@@ -56,25 +61,43 @@ def replay(twin: RigTwin, cfg: LoopConfig, trajectory: Trajectory,
 
 def disturbance_lacking(twin: RigTwin, cfg: LoopConfig, trajectory: Trajectory,
                         d_hat_deg_s: FloatArray, *, disturbance: Disturbance | None = None,
-                        seed: int = 0, settle_s: float | None = None) -> DisturbanceEstimate:
+                        seed: int = 0, settle_s: float | None = None,
+                        start_tick: int = 0) -> DisturbanceEstimate:
     """The disturbance the DOB estimated on the rig that the twin lacks: the recorded run's
-    d_hat (one per tick from the trajectory's start, `cfg` with its DOB on) less the d_hat of
-    the same configuration and reference run on the twin, from `settle_s` on (default: the
-    experiments' window): its mean (with the deviation of the mean from ten blocks), level and
-    spectrum. ValueError for a non-finite window, a DOB that is off, or fewer than 10 blocks
-    of 16 samples."""
+    d_hat (one per tick from the trajectory's tick `start_tick`, `cfg` with its DOB on) less
+    the d_hat of the same configuration and reference run on the twin, from `settle_s` on
+    (default: the experiments' window): its mean (with the deviation of the mean from ten
+    blocks), level and spectrum. From a later `start_tick` (a window of the controller's
+    running), the twin's run starts `LEAD_S` before it (at the trajectory's start at the
+    earliest, the window's first samples then skipped up to `LEAD_S` after it). ValueError
+    for a non-finite window, a DOB that is off, or fewer than 10 blocks of 16 samples."""
     d = np.asarray(d_hat_deg_s, dtype=np.float64)
     if d.ndim != 1 or not np.all(np.isfinite(d)):
         raise ValueError("d_hat_deg_s: one finite value per tick")
     if not cfg.dob_on:
         raise ValueError("cfg: the DOB is off (d_hat is not estimated)")
-    skip = round((default_settle_s(trajectory) if settle_s is None else settle_s) * cfg.rate_hz)
+    if start_tick < 0:
+        raise ValueError(f"start_tick: {start_tick} is before the trajectory's start")
+    if start_tick > 0:
+        want = round(LEAD_S * cfg.rate_hz)
+        lead = min(start_tick, want)
+        skip = want - lead
+    else:
+        lead, skip = 0, round((default_settle_s(trajectory) if settle_s is None else settle_s)
+                              * cfg.rate_hz)
     if d.size - skip < 16 * BLOCKS:
         raise ValueError(f"d_hat_deg_s: {d.size} samples, the window starts at {skip}")
-    rig = twin.sim_rig(seed=seed, disturbance=disturbance,
-                       initial_position_deg=trajectory.at(0.0)[0], rate_hz=cfg.rate_hz)
-    own = run_experiment(cfg, trajectory, d.size / cfg.rate_hz, rig=rig)
-    diff = d[skip:] - np.asarray(own.d_hat_deg_s, dtype=np.float64)[skip: d.size]
+    period = 1.0 / cfg.rate_hz
+    rig = twin.sim_rig(seed=seed, disturbance=disturbance, rate_hz=cfg.rate_hz,
+                       initial_position_deg=trajectory.at((start_tick - lead) * period)[0])
+    if start_tick > 0:
+        run = offline.run_ticks(ServoLoop(LoopCoefficients.build(cfg)), rig, trajectory,
+                                lead + d.size, traj_tick=start_tick - lead, period_s=period)
+        own_d = np.asarray(run.d_hat_deg_s, dtype=np.float64)[lead:]
+    else:
+        own_d = np.asarray(run_experiment(cfg, trajectory, d.size / cfg.rate_hz,
+                                          rig=rig).d_hat_deg_s, dtype=np.float64)
+    diff = d[skip:] - own_d[skip: d.size]
     est = disturbance_estimate(diff, 1.0 / cfg.rate_hz)
     blocks = np.array([b.mean() for b in np.array_split(diff, BLOCKS)])
     return msgspec.structs.replace(

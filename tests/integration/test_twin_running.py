@@ -1,18 +1,21 @@
 """The twin's friction, backlash and encoder noise from the controller's own running (issue 35
 item 1): a real controller process over Zenoh on loopback, on the simulated article rig (its
 disturbances), builds the twin after a knowledge change with the newest 25 s of normal running
-from its black box (`controller/process/twin_running.py`, in the analysis worker). A window
-that tells nothing (a ramp: the command never reverses, no slow sample) leaves the base rig's
-values and the twin's notes say why; the article's sine tells them, each with its deviation,
-against the simulated rig's own values (the independent reference): the noise within the
-offline test's tolerance, the Coulomb friction and the backlash within 4 of their deviations."""
+from its black box (`controller/process/twin_running.py`, in the analysis worker): the
+stretch where the loop followed its trajectory (the approach onto it cut off), the drive
+offset the twin lacks taken from the DOB's d_hat first. The twin starts from the structure of
+the rig the controller simulates (the article rig: its motor and gearbox friction, drive
+offset, ...; as `dobtune tune` and the watch do). A window that tells nothing (a ramp: the
+command never reverses, no slow sample) leaves the base rig's values and the twin's notes say
+why; the article's sine tells them, each with its deviation, against the simulated rig's own
+values (the independent reference)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from helpers import wait_until
-from procs import APPLY_TIMEOUT_S, Client, ControllerProcess
+from procs import APPLY_TIMEOUT_S, Client, ControllerProcess, StateCollector
 
 from controller import protocol as proto
 from controller.core.trajectory import Trajectory
@@ -22,7 +25,7 @@ from controller.gate.knowledge import (
     MeasuredResponse,
     PlantKnowledge,
 )
-from controller.process.twin_running import BASE_RIG, WINDOW_S
+from controller.process.twin_running import BASE_RIG, OFFSET_KEPT, WINDOW_S
 from controller.sim.rig_disturbances import rig_setup
 from controller.sim.sim_rig import RigFaults
 from controller.twin.fit import rig_response
@@ -32,9 +35,15 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(900)]
 
 TRUE = rig_setup(("article-rig",)).params
 TRUE_BACKLASH_DEG = TRUE.backlash_deg + TRUE.gearbox_backlash_deg
-#: The noise's tolerance tests/test_twin_nonlinear.py states for a 20 s sine window (its
-#: Coulomb's and backlash's are not met live: see the test).
+#: The noise's tolerance tests/test_twin_nonlinear.py states for a 20 s sine window.
 NOISE_TOL = 0.15  # relative
+#: The truth within this many of each stated deviation.
+K_STD = 4.0
+#: The deviations live are below these (a fifth of the true Coulomb friction, 60 % of the
+#: true dead zone; see the measured runs in the test): a deviation as wide as the estimate
+#: would pass K_STD vacuously.
+COULOMB_STD_MAX_N_M = 0.05
+BACKLASH_STD_MAX_DEG = 0.03
 
 
 @pytest.fixture
@@ -60,13 +69,32 @@ def _record(positions: tuple[float, ...]) -> KnowledgeRecord:
                                              source="test"))
 
 
+#: The reference's rate above which it is the approach onto a trajectory (up to 20 deg/s),
+#: not one of this test's trajectories (the sine's rate is at most 2.5 deg/s, the ramp's 1).
+APPROACH_DEG_S = 3.0
+
+
+def _followed_s(col: StateCollector, since_seq: int) -> float:
+    """Seconds of the newest samples (from `since_seq` on) since the reference last moved
+    faster than `APPROACH_DEG_S` or jumped (a lost batch counts as a break)."""
+    got = sorted((b for _, b in col.batches() if b.seq0 >= since_seq), key=lambda b: b.seq0)
+    if not got:
+        return 0.0
+    ref = np.concatenate([np.asarray(b.ref_deg) for b in got])
+    seq = np.concatenate([b.seq0 + np.arange(len(b.ref_deg)) for b in got])
+    fast = (np.abs(np.diff(ref)) * got[-1].rate_hz > APPROACH_DEG_S) | (np.diff(seq) != 1)
+    last = int(np.flatnonzero(fast)[-1]) + 1 if fast.any() else 0
+    return (ref.size - last) / got[-1].rate_hz
+
+
 def _run_then_adopt(c: Client, traj: Trajectory, positions: tuple[float, ...]) -> RigTwin:
-    """Run `traj` for more than the window (`WINDOW_S`), adopt knowledge, wait for its twin."""
+    """Run `traj` until the loop has followed it (the approach onto it over) for more than
+    the window (`WINDOW_S`), adopt knowledge, wait for its twin."""
     with c.state() as col:
         reply = c.command(proto.SetTrajectory(trajectory=traj))
         assert reply.ok, reply
-        # the whole window after the change of trajectory (its first second: the transition)
-        assert col.wait_for_seq(reply.seq + round((WINDOW_S + 1.5) * 1000), timeout_s=120.0)
+        assert wait_until(lambda: _followed_s(col, reply.seq) >= WINDOW_S + 1.5,
+                          timeout_s=300.0, poll_s=0.5), _followed_s(col, reply.seq)
         modes = {b.mode for _, b in col.batches()}
     assert modes == {"running"}, modes
     adopted = _knowledge(c, proto.KnowledgeRequest(record=_record(positions)))
@@ -83,7 +111,7 @@ def _run_then_adopt(c: Client, traj: Trajectory, positions: tuple[float, ...]) -
 def test_the_twin_takes_friction_backlash_and_noise_from_recent_running(
         article_controller: ControllerProcess) -> None:
     with Client(article_controller.endpoint, article_controller.rig) as c:
-        c.wait_ready(article_controller)
+        c.wait_ready(article_controller, timeout_s=300.0)  # start-up at load 25: > 120 s
         # A ramp: the window tells nothing; the twin keeps the base rig's and says why.
         ramp = _run_then_adopt(c, Trajectory(kind="ramp", slope_deg_s=1.0), (0.0, 180.0))
         said = [n for n in ramp.notes if n.startswith(BASE_RIG)]
@@ -97,26 +125,37 @@ def test_the_twin_takes_friction_backlash_and_noise_from_recent_running(
         sine = _run_then_adopt(c, Trajectory(), (0.0, 120.0, 240.0))
         est = sine.nonlinear
         assert est is not None
-        print("sine window:", est.window, "|", est.describe())
+        lack = sine.disturbance
+        assert lack is not None and lack.mean_std_deg_s is not None, sine.notes
+        rpm = TRUE.gear_ratio / 6.0
+        print("sine window:", est.window, "|", est.describe(), "| drive offset lacking "
+              f"{lack.mean_deg_s * rpm:.3g} +- {lack.mean_std_deg_s * rpm:.2g} rpm")
         said = [n for n in sine.notes if n.startswith("estimated from the controller's running")]
         assert len(said) == 1 and est.describe() in said[0], sine.notes
+        # the whole window is the sine's running: the approach onto it is before it
         assert f"{WINDOW_S:.3g} s" in est.window and "UTC" in est.window, est.window
+        assert "sine from its" in est.window, est.window
         assert est.coulomb_std_n_m is not None and est.backlash_std_deg is not None
         assert est.position_noise_std_deg is not None
-        assert not any(n.startswith(BASE_RIG) for n in sine.notes)
+        assert not any(n.startswith(BASE_RIG) or n.startswith(OFFSET_KEPT)
+                       for n in sine.notes), sine.notes
+        assert any(n.startswith("structure and unfitted parts: the simulated rig article-rig")
+                   for n in sine.notes), sine.notes
+        # The drive offset the twin lacks, from d_hat (the twin starts from the rig's own 2
+        # rpm: it lacks none), within 4 of its deviation.
+        assert abs(lack.mean_deg_s) <= 4 * lack.mean_std_deg_s + 1e-3, lack
         fc, bl, sd = est.coulomb_torque_n_m, est.backlash_deg, est.position_noise_deg
-        # The encoder noise within the offline test's tolerance; the Coulomb friction and the
-        # backlash less well told live than offline (the drive's offset, ripple and the belt's
-        # variation are in the live rig, not in the twin fitted to its responses, and the
-        # d_hat offset is not taken into the twin first): three runs gave Coulomb 0.262 +-
-        # 0.065, 0.393 +- 0.305 (15 s windows), 0.368 +- 0.069 N m (25 s) against 0.25, and
-        # backlash 0.083 +- 0.056, 0.002 +- 0.18, 0.014 +- 0.063 deg against 0.05. Each
-        # within 4 of its stated deviations, and those not vacuous (the fit's ranges: Coulomb
-        # x0.125-x8 of the twin's 0.25 N m, the dead zone 0-0.6 deg).
+        # Each within K_STD of its stated deviations, and those not vacuous. Measured live
+        # (load 21-25): Coulomb 0.227 +- 0.0115 / 0.247 +- 0.0029 N m, backlash 0.0638 +-
+        # 0.0096 / 0.052 +- 0.0031 deg, noise 2.92e-5 +- 1.6e-6 deg against 0.25, 0.05, 3e-5
+        # (before the twin took the rig's
+        # structure and the window only the trajectory's following: 0.262 +- 0.065, 0.393 +-
+        # 0.305, 0.368 +- 0.069, 0.372 +- 0.415 N m).
         assert sd == pytest.approx(TRUE.position_noise_deg, rel=NOISE_TOL), est.describe()
-        assert abs(sd - TRUE.position_noise_deg) <= 4 * est.position_noise_std_deg
-        assert abs(fc - TRUE.coulomb_torque_n_m) <= 4 * est.coulomb_std_n_m, est.describe()
-        assert abs(bl - TRUE_BACKLASH_DEG) <= 4 * est.backlash_std_deg + 1e-4, est.describe()
-        assert est.coulomb_std_n_m < 0.25 and est.backlash_std_deg < 0.3, est.describe()
+        assert abs(sd - TRUE.position_noise_deg) <= K_STD * est.position_noise_std_deg
+        assert abs(fc - TRUE.coulomb_torque_n_m) <= K_STD * est.coulomb_std_n_m, est.describe()
+        assert abs(bl - TRUE_BACKLASH_DEG) <= K_STD * est.backlash_std_deg + 1e-4, est.describe()
+        assert est.coulomb_std_n_m < COULOMB_STD_MAX_N_M, est.describe()
+        assert est.backlash_std_deg < BACKLASH_STD_MAX_DEG, est.describe()
         # in the twin the offline loop runs
         assert sine.params.coulomb_torque_n_m == fc and sine.params.position_noise_deg == sd
