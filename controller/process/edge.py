@@ -17,20 +17,23 @@ A worker thread per kind then serves its queue:
   handles it as before (`ZenohNode.handle_*`: lease, gate, audit) and sends the reply back.
   A payload over the size limit is not sent: only its size, for the refusal that names it.
 
-E-stops are received here too (the public key and, with authentication, every user's scope):
-the Zenoh callback writes the arrival stamp, then raises the flag, in a small shared-memory
+E-stops are received by a second process of this body, the e-stop relay (`edge_main(...,
+role="estops")`, `controller.process.estop_relay`: no request, so no other Python code wants
+its interpreter lock): the public key and, with authentication, every user's scope. Its
+Zenoh callback writes the arrival stamp, then raises the flag, in a small shared-memory
 array (`ESTOP_FLAG`, `ESTOP_ARRIVAL`) that the loop's tick reads (a plain int; the tick
 clears the flag, then reads the stamp: no e-stop is lost). No Python code of the loop's
 process runs per e-stop: an e-stop flood costs it nothing but the tick's read. Their audit
-lines are coalesced here: each sender's e-stops go to the loop process (the audit) at most
+lines are coalesced there: each sender's e-stops go to the loop process (the audit) at most
 every ESTOP_REPORT_S, the first at once, with the count of the others (`repeats`). The loop
-process's own e-stop subscriber is armed only while this process is not serving
-(`controller.process.edge_link`).
+process's own e-stop subscriber raises one only when the relay did not
+(`ZenohNode._estop_fallback`).
 
 So whatever clients send, the loop process sees at most one request per kind at a time, each
 within its sender's budget, and no read at all: the interpreter lock the loop needs is not
-theirs to take. The process is niced, ignores Ctrl-C and ends with its parent
-(`controller.process.worker_start`).
+theirs to take. The request edge is niced once it serves (every thread of it: its flood's
+work yields the CPU to the relay and the loop's process), the relay is not; both ignore
+Ctrl-C and end with their parent (`controller.process.worker_start`).
 """
 
 from __future__ import annotations
@@ -404,38 +407,48 @@ class _Edge:
                 self.stop.wait(CONNECT_RETRY_S)
         return None
 
-    def run(self) -> None:
+    def run(self, role: str = "requests") -> None:
+        """Serve the request queryables (`role` "requests", the edge) or take the e-stops
+        ("estops", the relay), until told to stop."""
         import zenoh
 
         rig = self.spec.rig
         scoped = proto.any_user_key if self.spec.auth_dir is not None else (lambda k: k)
-        threads = [threading.Thread(target=self.read_control, name="control", daemon=True),
-                   threading.Thread(target=self.report, name="report", daemon=True),
-                   threading.Thread(target=self.report_estops, name="estops", daemon=True)]
-        threads += [threading.Thread(target=self.serve, args=(k,), name=f"{k}-worker",
-                                     daemon=True) for k in KINDS]
+        requests = role == "requests"
+        threads = [threading.Thread(target=self.read_control, name="control", daemon=True)]
+        if requests:
+            threads.append(threading.Thread(target=self.report, name="report", daemon=True))
+            threads += [threading.Thread(target=self.serve, args=(k,), name=f"{k}-worker",
+                                         daemon=True) for k in KINDS]
+        else:
+            threads.append(threading.Thread(target=self.report_estops, name="estops",
+                                            daemon=True))
         for t in threads:
             t.start()
         session = self.open_session()
         if session is None:
             return
         with session:
-            entities = [
-                session.declare_queryable(
-                    scoped(key(rig)),
-                    zenoh.handlers.Callback(self.on_query(kind), indirect=False))
-                for kind, key in KINDS.items()
-            ]
-            estop_keys = [proto.key_estop(rig)]
-            if self.spec.auth_dir is not None:
-                estop_keys.append(proto.any_user_key(proto.key_estop(rig)))
-            entities += [session.declare_subscriber(
-                key, zenoh.handlers.Callback(self.on_estop, indirect=False))
-                for key in estop_keys]
+            entities: list[Any] = []
+            if requests:
+                entities += [
+                    session.declare_queryable(
+                        scoped(key(rig)),
+                        zenoh.handlers.Callback(self.on_query(kind), indirect=False))
+                    for kind, key in KINDS.items()
+                ]
+            else:
+                estop_keys = [proto.key_estop(rig)]
+                if self.spec.auth_dir is not None:
+                    estop_keys.append(proto.any_user_key(proto.key_estop(rig)))
+                entities += [session.declare_subscriber(
+                    key, zenoh.handlers.Callback(self.on_estop, indirect=False))
+                    for key in estop_keys]
             self.send_control(("ready",))
-            # Loaded and serving: from now on the loop's process wins the CPU over this one
-            # (not before: the controller's start waits for it).
-            lower_priority()
+            if requests:
+                # Loaded and serving: from now on the loop's process (and the e-stop relay)
+                # win the CPU over this one (not before: the controller's start waits for it).
+                lower_priority(every_thread=True)
             self.stop.wait()
             for e in entities:
                 with contextlib.suppress(Exception):
@@ -445,10 +458,11 @@ class _Edge:
 
 
 def edge_main(spec: EdgeSpec, conns: dict[str, Connection], control: Connection,
-              flag: Any = None) -> None:
-    """The edge process's body (multiprocessing target)."""
+              flag: Any = None, role: str = "requests") -> None:
+    """The edge process's body, or the e-stop relay's (`role` "estops") (multiprocessing
+    target)."""
     # Forked from the controller: its SIGTERM handler (stop the loop) is not this process's.
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     worker_init(spec.parent_pid, True, nice=False)  # Ctrl-C ignored, ends with its parent
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s edge: %(message)s")
-    _Edge(spec, conns, control, flag).run()
+    _Edge(spec, conns, control, flag).run(role)

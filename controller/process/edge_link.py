@@ -12,9 +12,11 @@ what it forwards, keep it informed, start it again if it dies.
   per user and report, and a Status.notes line; and the e-stops it received (each sender's,
   coalesced): their audit lines. The e-stops themselves reach the tick through the shared
   flag (`edge.estop_flag`), not through this process's Python code.
-- The node's own e-stop subscribers are the fallback (`ZenohNode._estop_fallback`): rings of
-  one sample, read every 10 ms; an e-stop the edge did not relay (dead, not yet serving, or
-  not within 0.5 s) is raised from there.
+- The e-stops are not the edge's: a process of their own relays them (`estop_relay`,
+  `RelayLink`, started and stopped with the edge: the edge's interpreter lock is the
+  requests'). The node's own e-stop subscribers are the fallback
+  (`ZenohNode._estop_fallback`): rings of one sample, read every 10 ms; an e-stop the relay
+  did not relay (dead, not yet relaying, or not within 0.5 s) is raised from there.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from controller.process.edge import (
     edge_main,
     estop_flag,
 )
+from controller.process.estop_relay import RelayLink
 
 __all__ = ["EdgeLink", "Oversized", "free_loopback_port"]
 
@@ -101,8 +104,15 @@ class EdgeLink:
         """Requests refused by the budget since the start, by user."""
         self.shed = 0
         self.restarts = 0
-        #: The e-stop flag the edge raises and the tick reads (`controller.process.edge`).
+        #: The e-stop flag the relay raises and the tick reads (`controller.process.edge`).
         self.estop_flag = estop_flag()
+        #: The e-stop relay process (`controller.process.estop_relay`).
+        self.relay = RelayLink(spec, self.estop_flag)
+
+    @property
+    def relaying(self) -> threading.Event:
+        """Set while the e-stop relay process takes the e-stops."""
+        return self.relay.relaying
 
     # -- snapshots -----------------------------------------------------------------------------
 
@@ -138,6 +148,7 @@ class EdgeLink:
         of its attempts would have cost the start CPU)."""
         self._connect = True
         self._send(CONNECT)
+        self.relay.connect_now()
 
     def _send(self, msg: Any) -> threading.Event:
         """Queue `msg` for the edge's control pipe; the event is set once it is sent."""
@@ -169,6 +180,8 @@ class EdgeLink:
         # start again spawns a fresh interpreter (a fork now would copy a running Zenoh).
         first = self._proc is None and "fork" in multiprocessing.get_all_start_methods()
         ctx: Any = multiprocessing.get_context("fork" if first else "spawn")
+        if self._proc is None:
+            self.relay.launch()  # forked too, before any thread of ours
         ours: dict[str, Connection] = {}
         theirs: dict[str, Connection] = {}
         for kind in FORWARDED:
@@ -187,6 +200,7 @@ class EdgeLink:
         threading.Thread(target=self._read_control, args=(control, proc), name="edge-control",
                          daemon=True).start()
         if self._pushing is None:  # after the fork: no thread of ours in it
+            self.relay.watch()
             self._pushing = threading.Thread(target=self._pusher, name="edge-push", daemon=True)
             self._pushing.start()
         if self._connect:  # started again: the session is open
@@ -198,6 +212,7 @@ class EdgeLink:
         """Serve the edge's forwarded requests with `node`'s handlers from now on."""
         self.node = node
         self.service = node.service
+        self.relay.service = node.service
         self.rt = node.rt
         node.rt.estop_flag = self.estop_flag
         self._handlers = {
@@ -216,8 +231,10 @@ class EdgeLink:
                              daemon=True).start()
 
     def close(self) -> None:
-        """End the edge process (SIGTERM: nothing of it needs saving; SIGKILL if it lingers)."""
+        """End the edge process (SIGTERM: nothing of it needs saving; SIGKILL if it lingers)
+        and the e-stop relay's."""
         self._closing.set()
+        self.relay.close()
         self._outq.put((None, threading.Event()))
         proc = self._proc
         if proc is not None:
@@ -278,15 +295,13 @@ class EdgeLink:
             if msg == ("ready",):
                 self.ready.set()
                 log.info("edge process %d serving requests", proc.pid)
-            elif isinstance(msg, tuple) and msg[0] == "estop" and self.service is not None:
-                self._estops(msg[1])
             elif isinstance(msg, tuple) and msg[0] == "refused" and self.service is not None:
                 self._refused(msg[1], msg[2])
         proc.join(CLOSE_S)
         if self._closing.is_set():
             return
-        # The edge process died: requests go unanswered until it is back; e-stops reach the
-        # node's fallback (`ZenohNode._estop_fallback`).
+        # The edge process died: requests go unanswered until it is back (the e-stops are
+        # the relay's, `estop_relay`).
         self.ready.clear()
         self.restarts += 1
         text = f"edge process ended (exit code {proc.exitcode}); started again"
@@ -298,16 +313,6 @@ class EdgeLink:
         if wait > 0 and self._closing.wait(wait):
             return
         self.start()
-
-    def _estops(self, estops: list[tuple[str, str, dict[str, str], int, float]]) -> None:
-        """The audit lines of the e-stops the edge received: one per sender and report, the
-        others it coalesced counted (`repeats`); `arrived_s`: when the first one reached the
-        edge (UNIX time; the line itself is written up to ESTOP_REPORT_S later)."""
-        access = self.service.access
-        for who, key, claims, n, arrived_s in estops:
-            access.record("estop", who, "accepted", source="estop key", key=key,
-                          relayed="edge", arrived_s=round(arrived_s, 6), **claims,
-                          **({"repeats": n - 1} if n > 1 else {}))
 
     def _refused(self, refused: dict[str, int], shed: int) -> None:
         access = self.service.access

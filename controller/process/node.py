@@ -259,7 +259,7 @@ class ZenohNode:
         while True:
             if flag[ESTOP_ARRIVAL] > since:
                 return True
-            if (edge is None or not edge.ready.is_set() or time.monotonic() > deadline
+            if (edge is None or not edge.relaying.is_set() or time.monotonic() > deadline
                     or self.stop_event.wait(0.002)):
                 return False
 

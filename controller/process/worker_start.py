@@ -8,6 +8,7 @@ with a traceback).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -17,6 +18,10 @@ from controller.process.parent_watch import watch_parent
 __all__ = ["lower_priority", "worker_init"]
 
 PR_SET_PDEATHSIG = 1
+#: How much lower a worker's priority is than the controller's (nice).
+NICE = 10
+#: This process's threads (Linux).
+_TASKS = "/proc/self/task"
 
 
 def _end_with_parent(parent_pid: int, death_signal: bool) -> None:
@@ -58,13 +63,24 @@ def worker_init(parent_pid: int, death_signal: bool, nice: bool = True) -> None:
         lower_priority()
 
 
-def lower_priority() -> None:
-    """os.nice(10): the loop's process wins the CPU over this one."""
+def lower_priority(every_thread: bool = False) -> None:
+    """Nice 10 more: the loop's process wins the CPU over this one.
+
+    On Linux a nice value is a thread's, not the process's (os.nice changes the calling
+    thread's, and threads started later inherit their starter's): called first thing (the
+    analysis worker), every later thread is niced; `every_thread` renices each thread that
+    runs already (the edge process: its workers and Zenoh's threads start before it serves)."""
     # The loop's process wins the CPU over an analysis on a busy machine (also over this
     # worker's loading: at normal priority it slowed the controller's own start by ~15 % at
     # load 20-25, bench_startup).
     try:
-        os.nice(10)
+        if every_thread and os.path.isdir(_TASKS):
+            for tid in os.listdir(_TASKS):
+                with contextlib.suppress(ProcessLookupError):  # a thread that ended
+                    nice = os.getpriority(os.PRIO_PROCESS, int(tid))
+                    os.setpriority(os.PRIO_PROCESS, int(tid), min(19, nice + NICE))
+        else:
+            os.nice(NICE)
     except OSError as exc:
         logging.getLogger(__name__).warning(
             "worker process: runs at the controller's priority (os.nice: %s)", exc)

@@ -1,15 +1,16 @@
 """A signed-in client's flood against the loop and the e-stop (issue 31 item 1), over real Zenoh
 with `--auth`: the request queryables run in the controller's edge process, each user has a
-request budget (here 20 requests/s, bursts of 40), the e-stop has its own subscriber in the
-loop's process.
+request budget (here 20 requests/s, bursts of 40), the e-stops are taken by a process of
+their own (the e-stop relay), the loop's process's own subscriber their fallback.
 
 While a viewer floods every read it may send (and a candidate it may not apply) from 4
 threads: its excess is refused, each refusal naming the budget, and the controller reports and
 audits the refusals; another user is served meanwhile (budgets are per user), and so is the
 viewer's own second session (a session gets a share of its user's budget); e-stops put
 during the flood are applied, and a reset followed at once by an e-stop ends in e-stop (the
-order of arrival holds across the two processes); the loop keeps running. The edge process
-ends with the controller, and one that dies is started again while the loop runs on. No
+order of arrival holds across the processes); the loop keeps running. The edge process and
+the relay end with the controller, and one that dies is started again while the loop runs on
+and the e-stops go through (the relay's, or the fallback's while the relay is dead). No
 timing is asserted (the latencies are `tests/bench/bench_flood.py`'s figures).
 """
 
@@ -225,15 +226,18 @@ def test_a_viewers_flood_is_refused_by_budget_and_the_estop_goes_through(
     assert len(records) < refused
 
 
-def _edge_pid(proc: ControllerProcess) -> int:
+def _edge_pid(proc: ControllerProcess, pattern: str = r"edge process (\d+) serving") -> int:
     found: list[int] = []
 
     def logged() -> bool:
-        found[:] = [int(p) for p in re.findall(r"edge process (\d+) serving", proc.log())]
+        found[:] = [int(p) for p in re.findall(pattern, proc.log())]
         return bool(found)
 
     assert wait_until(logged, 180.0), proc.log()[-2000:]  # a start at load 20+: a minute
     return found[-1]
+
+
+RELAY = r"e-stop relay process (\d+) relaying"
 
 
 def test_a_killed_edge_process_is_started_again_and_the_loop_runs_on(
@@ -246,15 +250,33 @@ def test_a_killed_edge_process_is_started_again_and_the_loop_runs_on(
         st0 = _status(watch)
         os.kill(edge, signal.SIGKILL)
         assert wait_until(lambda: gone(edge), 10.0)
-        # The edge took the e-stops; with it dead the loop process's own fallback does.
+        # The e-stops are the relay's: the edge's death does not touch them.
         first = _estop_applied(watch)
         assert wait_until(lambda: _edge_pid(proc) != edge, 60.0), proc.log()[-2000:]
         assert wait_until(lambda: _answers(auth, proc), 60.0, poll_s=0.5)
-        # And the new edge process's, once it serves.
         assert _estop_applied(watch) > first
         st1 = _fresh_status(watch)
         assert st1.mode == "estop" and st1.timing.ticks > st0.timing.ticks
         assert any("edge process ended" in n for n in st1.notes), st1.notes
+
+
+def test_a_killed_estop_relay_leaves_the_estop_to_the_fallback_and_is_started_again(
+    env: dict[str, Any],
+) -> None:
+    auth, proc = env["auth"], env["proc"]
+    relay = _edge_pid(proc, RELAY)
+    assert relay in children(proc.proc.pid) and relay != _edge_pid(proc)
+    with _client(auth, proc, "watch") as watch:
+        os.kill(relay, signal.SIGKILL)
+        assert wait_until(lambda: gone(relay), 10.0)
+        # With the relay dead the loop process's own subscriber (the fallback) takes it.
+        first = _estop_applied(watch)
+        assert wait_until(lambda: _edge_pid(proc, RELAY) != relay, 60.0), proc.log()[-2000:]
+        # And the new relay, once it relays (its pid logged once it does).
+        assert _estop_applied(watch) > first
+        st1 = _fresh_status(watch)
+        assert any("e-stop relay process ended" in n for n in st1.notes), st1.notes
+        assert _answers(auth, proc)  # requests were never the relay's
 
 
 def test_the_edge_process_ends_with_the_controller(tmp_path: Path) -> None:
@@ -262,10 +284,11 @@ def test_the_edge_process_ends_with_the_controller(tmp_path: Path) -> None:
     try:
         with Client(proc.endpoint, proc.rig) as c:
             c.wait_ready(proc, 180.0)
-        edge = _edge_pid(proc)
-        assert edge in children(proc.proc.pid)
+        edge, relay = _edge_pid(proc), _edge_pid(proc, RELAY)
+        assert {edge, relay} <= set(children(proc.proc.pid))
         proc.proc.send_signal(signal.SIGKILL)
         proc.proc.wait(30)
         assert wait_until(lambda: gone(edge), 30.0), "the edge process outlived its controller"
+        assert wait_until(lambda: gone(relay), 30.0), "the relay outlived its controller"
     finally:
         proc.stop()
