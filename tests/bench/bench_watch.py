@@ -5,8 +5,13 @@ not a test.
         [--only timing,normal,changes,trendweek|offline] [--trajectories sine,step,ramp,hold]
         [--changes stiffness,inertia,motor_friction,gain,resonance]
 
-- timing: the loop's tick compute p99 (each Status's, ~2 Hz) without the watch, with it, and
-  without again, in the same controller run (`--seconds` each), and the watch's CPU share.
+- timing: the loop's tick compute p99 (each Status's, ~2 Hz) in windows of `--timing-s`
+  (default 20) without the watch and with it, alternating `--timing-rounds` times (default 4)
+  and one more without, in the same controller run: the medians of the windows' p99 with and
+  without, their spread, each window with against the two without around it, and the watch's
+  CPU share. `--only timing` alone:
+  `.venv/bin/python tests/bench/bench_watch.py --only timing` (about 5 minutes; not niced:
+  the controller it starts inherits the niceness).
 - normal: `--seconds` of normal running per demo trajectory with the watch on: alarms raised
   (false alarms), the parts' estimates and how many windows told each.
 - changes: each plant change of the issue on the running rig (belt stiffness -40 %, inertia
@@ -141,32 +146,54 @@ def _uptime() -> str:
 
 def _timing(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tmp: Path
             ) -> None:
-    rows = []
-    watch = None
-    for phase in ("without", "with", "without"):
+    """Windows of `--timing-s` without the watch and with it, alternating (`--timing-rounds`
+    pairs, then one more without), in the same controller run. A window's figure is the
+    median of its Status intervals' compute p99; with the watch, the window starts at its
+    first fitted window (loaded and fitting). The machine's load drifts over minutes: each
+    window with the watch is also compared with the mean of the two without around it."""
+    rows: list[tuple[str, float, int]] = []
+    cpus: list[tuple[float, int]] = []
+    phases = ["without", "with"] * args.timing_rounds + ["without"]
+    for k, phase in enumerate(phases):
+        watch = None
         if phase == "with":
             watch = Watch(endpoint, args.window_s, None, tmp / "watch-timing.log")
             s0 = len(heard.states)
-            deadline = time.monotonic() + 180.0
+            deadline = time.monotonic() + 300.0
             while len(heard.states) <= s0 and time.monotonic() < deadline:
+                if watch.proc.poll() is not None:
+                    raise SystemExit(f"the watch exited ({watch.proc.returncode}): see "
+                                     f"{tmp / 'watch-timing.log'}")
                 time.sleep(0.2)  # measured from its first window on: loaded and fitting
+            if len(heard.states) <= s0:
+                raise SystemExit("the watch fitted no window within 300 s")
             cpu0, t0, w0 = watch.cpu_s(), time.monotonic(), len(heard.states)
         i0 = len(heard.statuses)
         time.sleep(args.timing_s)
-        p = heard.p99s(i0)
-        rows.append((phase, p))
+        p = np.asarray(heard.p99s(i0))
+        rows.append((phase, float(np.median(p)) if p.size else float("nan"), int(p.size)))
+        extra = ""
         if watch is not None:
             cpu = (watch.cpu_s() - cpu0) / (time.monotonic() - t0)
-            windows = len(heard.states) - w0
+            cpus.append((cpu, len(heard.states) - w0))
             watch.stop()
-            watch = None
-            print(f"watch CPU: {100 * cpu:.1f} % of one core over {args.timing_s:g} s "
-                  f"({windows} windows fitted)")
-    for phase, p in rows:
-        a = np.asarray(p)
-        print(f"tick compute p99 {phase:8s} the watch: median over {a.size} status intervals "
-              f"{np.median(a):.1f} us (each interval's p99; spread {np.min(a):.1f}-"
+            extra = f"; watch CPU {100 * cpu:.1f} % of one core ({cpus[-1][1]} windows fitted)"
+        print(f"  window {k + 1}/{len(phases)} {phase:7s} the watch: p99 {rows[-1][1]:.1f} us "
+              f"(median of {p.size} status intervals' p99){extra}; load "
+              f"{os.getloadavg()[0]:.1f}", flush=True)
+    for phase in ("without", "with"):
+        a = np.array([v for ph, v, _ in rows if ph == phase])
+        print(f"tick compute p99 {phase:7s} the watch: median of {a.size} windows of "
+              f"{args.timing_s:g} s {np.median(a):.2f} us (windows {np.min(a):.1f}-"
               f"{np.max(a):.1f} us)")
+    v = [r[1] for r in rows]
+    diffs = np.array([v[i] - 0.5 * (v[i - 1] + v[i + 1]) for i in range(1, len(v) - 1, 2)])
+    print(f"with minus without (each window with the watch against the mean of the two "
+          f"around it): median {np.median(diffs):+.2f} us, spread {np.min(diffs):+.2f} to "
+          f"{np.max(diffs):+.2f} us over {diffs.size} pairs; stated target: within 0.5 us")
+    ws = [w for _, w in cpus]
+    print(f"watch CPU: median {100 * np.median([c for c, _ in cpus]):.1f} % of one core "
+          f"({sum(ws)} windows fitted in {len(cpus)} x {args.timing_s:g} s)")
     print(f"load: {_uptime()}")
 
 
@@ -300,8 +327,11 @@ def _offline(args: argparse.Namespace) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=60.0)
-    ap.add_argument("--timing-s", type=float, default=40.0,
-                    help="timing: seconds without, with and without the watch")
+    ap.add_argument("--timing-s", type=float, default=20.0,
+                    help="timing: seconds per window without or with the watch")
+    ap.add_argument("--timing-rounds", type=int, default=4,
+                    help="timing: pairs of windows without and with the watch (then one more "
+                         "without)")
     ap.add_argument("--window-s", type=float, default=10.0)
     ap.add_argument("--detect-timeout-s", type=float, default=120.0)
     ap.add_argument("--only", default="timing,normal,changes")
