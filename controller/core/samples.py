@@ -7,7 +7,9 @@ other.
 
 from __future__ import annotations
 
-__all__ = ["STATE_COLUMNS"]
+from controller.core.arrays import FloatArray
+
+__all__ = ["STATE_COLUMNS", "TickSamples"]
 
 #: The per-sample columns, in order (angles in load-side degrees, speeds in load-side deg/s).
 STATE_COLUMNS: tuple[str, ...] = (
@@ -20,3 +22,19 @@ STATE_COLUMNS: tuple[str, ...] = (
     "d_hat_deg_s",
     "error_deg",
 )
+
+
+class TickSamples:
+    """A window of these samples, one per tick (`command_deg_s`, at `rate_hz`): its length
+    and duration. The base of the watch's `Window` and the twin's `RunningWindow`."""
+
+    rate_hz: float
+    command_deg_s: FloatArray
+
+    @property
+    def n(self) -> int:
+        return int(self.command_deg_s.size)
+
+    @property
+    def duration_s(self) -> float:
+        return self.n / self.rate_hz

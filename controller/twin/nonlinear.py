@@ -37,6 +37,7 @@ from scipy.optimize import least_squares
 from scipy.signal import butter, sosfiltfilt
 
 from controller.core.arrays import FloatArray
+from controller.core.samples import TickSamples
 from controller.sim.sim_rig import RigFaults, RigParams, SimRig
 from controller.twin.model import NonlinearEstimate, RigTwin
 
@@ -74,7 +75,7 @@ STARTS = 3
 
 
 @dataclass(frozen=True)
-class RunningWindow:
+class RunningWindow(TickSamples):
     """A window of normal running, one sample per tick as the state stream carries them: the
     measured position and rate before the tick's command, and the command sent."""
 
@@ -106,14 +107,6 @@ class RunningWindow:
                 raise ValueError(f"window: no column {name!r}")
             got[name] = np.asarray(columns[name], dtype=np.float64)
         return cls(rate_hz, got["pos_deg"], got["speed_deg_s"], got["command_deg_s"], label)
-
-    @property
-    def n(self) -> int:
-        return int(self.command_deg_s.size)
-
-    @property
-    def duration_s(self) -> float:
-        return self.n / self.rate_hz
 
 
 @dataclass(frozen=True)

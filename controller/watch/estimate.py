@@ -37,6 +37,7 @@ from scipy.signal import butter, sosfiltfilt
 from controller.core.arrays import FloatArray
 from controller.core.config import LoopConfig
 from controller.core.loop import LoopCoefficients, ServoLoop
+from controller.core.samples import TickSamples
 from controller.sim.offline import run_ref_ticks
 from controller.sim.sim_rig import RigFaults, RigParams, SimRig
 
@@ -93,7 +94,7 @@ F_SCALE_DEG_S = 0.01
 
 
 @dataclass(frozen=True)
-class Window:
+class Window(TickSamples):
     """One window of the loop's samples (one per tick, as the state stream carries them):
     the measured position and rate *before* the tick's command, the command sent, the
     reference and the error."""
@@ -105,14 +106,6 @@ class Window:
     command_deg_s: FloatArray
     ref_deg: FloatArray
     error_deg: FloatArray
-
-    @property
-    def n(self) -> int:
-        return int(self.command_deg_s.size)
-
-    @property
-    def duration_s(self) -> float:
-        return self.n / self.rate_hz
 
 
 @dataclass(frozen=True)
