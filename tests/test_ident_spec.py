@@ -43,6 +43,7 @@ WIRE_DEFAULTS = {
     "agreement_tol_deg": 10.0,
     "move_speed_deg_s": 30.0,
     "settle_s": 0.5,
+    "resolution_hz": None,
 }
 
 
@@ -59,6 +60,7 @@ WIRE_DEFAULTS = {
         ("window_deg", "wide"),
         ("offset_ratio", 1.0),
         ("max_duration_s", -5.0),
+        ("resolution_hz", 0.0),
     ],
 )
 def test_spec_validation_names_the_field(field: str, value: object) -> None:

@@ -186,11 +186,11 @@ def _build_excitation(spec: IdentifySpec, rate_hz: float) -> Excitation:
                     sample_rate_hz=rate_hz,
                 )
             )
-        n = math.ceil(rate_hz / spec.f_min_hz - 1e-9)
+        n = math.ceil(rate_hz / (spec.resolution_hz or spec.f_min_hz) - 1e-9)
         lead = round((LEAD_CLOSED_S if spec.closed else LEAD_S) * rate_hz)
         return multisine(
             MultisineSpec(
-                f_min_hz=rate_hz / n,
+                f_min_hz=max(rate_hz / n, spec.f_min_hz if spec.resolution_hz else 0.0),
                 f_max_hz=spec.f_max_hz,
                 period_samples=n,
                 n_periods=spec.multisine_periods,

@@ -225,11 +225,18 @@ class IdentifySpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
         unit="deg/s", gt=0.0)] = 30.0
     settle_s: Annotated[float, Param(
         "hold after each move before exciting", unit="s", ge=0.0)] = 0.5
+    resolution_hz: Annotated[float | None, Param(
+        "multisine: frequency resolution, the inverse of the period (none: f min); a zoomed "
+        "pass about a measured mode takes a finer one than its band's low end", unit="Hz",
+        gt=0.0)] = None
 
     def __post_init__(self) -> None:
         _validate(self, IDENTIFY_FIELDS)
         _ordered(self, "f_min_hz", "f_max_hz")
         _ordered(self, "fit_f_lo_hz", "fit_f_hi_hz")
+        r = self.resolution_hz
+        if r is not None and r > self.f_min_hz:
+            raise ConfigError("resolution_hz", f"must be <= f_min_hz (got {r} > {self.f_min_hz})")
 
     @property
     def centers_deg(self) -> tuple[float, ...]:
