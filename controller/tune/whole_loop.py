@@ -420,22 +420,38 @@ def tune_whole_loop(
     return _explained(res, knowledge)
 
 
+#: The speed loop's targets tightened in turn when no position loop fits it: (phase margin
+#: added, gain margin added). More phase margin flattens the closed speed loop's peak; more gain
+#: margin lowers the speed loop's gain where a resonance lifts the whole servo's response (a
+#: mode just above the speed crossover: its gain margin is what the position loop lacks).
+_TIGHTER = ((0.0, 0.0), (10.0, 0.0), (0.0, 2.0), (10.0, 2.0), (20.0, 0.0), (0.0, 4.0),
+            (10.0, 4.0), (0.0, 6.0))
+
+
 def _place(knowledge: PlantKnowledge, rate: float, targets: DesignTargets,
            cf: CommandFilter | None) -> tuple[SpeedDesign, PositionDesign]:
     """Steps 1-2 (with the speed-command filter `cf`, None: none). A speed loop whose closed
     response peaks can leave the position loop no placement that meets the targets: then the
-    speed loop is designed again with 10 deg more phase margin."""
-    speed_targets = targets
-    for attempt in range(4):
-        speed = design_speed(knowledge, rate, speed_targets, command_filter=cf)
+    speed loop is designed again with tighter targets (`_TIGHTER`: more phase margin, more
+    gain margin), the position loop always against the stated ones."""
+    first: ValueError | None = None
+    for dpm, dgm in _TIGHTER:
+        if targets.phase_margin_deg + dpm >= 90.0:
+            continue
+        speed_targets = replace(targets, phase_margin_deg=targets.phase_margin_deg + dpm,
+                                gain_margin_db=targets.gain_margin_db + dgm)
+        try:
+            speed = design_speed(knowledge, rate, speed_targets, command_filter=cf)
+        except NoSpeedDesign:
+            if first is None:  # the stated targets: no speed loop at all
+                raise
+            break  # tighter ones: none left to try
         try:
             return speed, design_position(knowledge, rate, speed, targets)
-        except ValueError:
-            if attempt == 3 or speed_targets.phase_margin_deg + 10.0 >= 90.0:
-                raise
-            speed_targets = replace(speed_targets,
-                                    phase_margin_deg=speed_targets.phase_margin_deg + 10.0)
-    raise AssertionError("unreachable")
+        except ValueError as exc:
+            first = first or exc
+    assert first is not None
+    raise first
 
 
 def _neighbours(cfg: LoopConfig, ff_allowed: bool) -> list[LoopConfig]:
