@@ -275,6 +275,36 @@ VERDICT_CHANGED_JS = """(before) => {
   const t = document.querySelector('.dt-verdict')?.innerText || '';
   return !document.querySelector('.dt-computing-on') && t !== before && t.includes('Verdict');
 }"""
+#: Arms the page's own clock for one typed cut-off (the round trips of a poll from here took
+#: seconds at load 20): window.__dt_verdict gets `enter` (the Enter key down, capture), `shown`
+#: (the first animation frame after the verdict's text changed from `before`: the verdict on
+#: screen) and `settled` (the first frame after that with nothing computing).
+VERDICT_ARM_JS = """(before) => {
+  const T = window.__dt_verdict = {before};
+  const text = () => document.querySelector('.dt-verdict')?.innerText || '';
+  if (!window.__dt_verdict_hooked) {
+    window.__dt_verdict_hooked = true;
+    document.addEventListener('keydown', (e) => {
+      const d = window.__dt_verdict;
+      if (e.key === 'Enter' && d && d.enter === undefined) d.enter = performance.now();
+    }, true);
+    new MutationObserver(() => {
+      const d = window.__dt_verdict;
+      if (!d || d.enter === undefined) return;
+      if (d.changed === undefined && text() !== d.before && text().includes('Verdict')) {
+        d.changed = true;
+        requestAnimationFrame(() => { d.shown = performance.now(); });
+      }
+      if (d.changed && d.calm === undefined && !document.querySelector('.dt-computing-on')) {
+        d.calm = true;
+        requestAnimationFrame(() => { d.settled = performance.now(); });
+      }
+    }).observe(document.body, {childList: true, subtree: true, characterData: true,
+                               attributes: true});
+  }
+}"""
+VERDICT_TIMED_JS = """() => window.__dt_verdict && window.__dt_verdict.settled !== undefined
+  && window.__dt_verdict.shown !== undefined"""
 
 
 def bench_page(loads: int, verdicts: int, hogs: int, phase_timeout_s: float,
@@ -285,7 +315,8 @@ def bench_page(loads: int, verdicts: int, hogs: int, phase_timeout_s: float,
     - page load: a new browser context opens the URL; the time until the controls are visible
       (the Q cut-off field) and until the verdict is drawn;
     - verdict update: a cut-off typed into the Q cut-off field (Enter) until the verdict's text
-      changed and nothing is computing.
+      changed and nothing is computing (from here); and on the page's own clock, Enter to the
+      first frame with the new verdict ("shown") and to the first with nothing computing.
 
     Bounded: `loads` page loads and `verdicts` cut-offs at most, each phase waited for at most
     `phase_timeout_s` (a timeout is counted and named, and the half goes on), and no new
@@ -331,6 +362,7 @@ def bench_page(loads: int, verdicts: int, hogs: int, phase_timeout_s: float,
             controls_s: list[float] = []
             verdict_drawn_s: list[float] = []
             verdict_s: list[float] = []
+            in_page: dict[str, list[float]] = {"shown": [], "settled": []}
             busy: dict[str, list[float]] = {"busy_pct": [], "frames_per_s": []}
             for k in range(loads):
                 if over_budget():
@@ -353,7 +385,7 @@ def bench_page(loads: int, verdicts: int, hogs: int, phase_timeout_s: float,
                     say(f"page {k + 1}: main thread busy {pct:.0f} % of 3 s, {fps:.0f} frames/s")
                     if k == loads - 1:
                         verdict_s += _verdict_updates(pg, verdicts, until, say, over_budget,
-                                                      timeouts)
+                                                      timeouts, in_page)
                 except PhaseTimeout as exc:
                     timeouts.append(str(exc))
                     say(f"TIMEOUT {exc}")
@@ -364,6 +396,8 @@ def bench_page(loads: int, verdicts: int, hogs: int, phase_timeout_s: float,
                     "page_load_to_controls": _stats(controls_s),
                     "page_load_to_verdict": _stats(verdict_drawn_s),
                     "verdict_update": _stats(verdict_s),
+                    "verdict_shown_in_page": _stats(in_page["shown"]),
+                    "verdict_settled_in_page": _stats(in_page["settled"]),
                     "main_thread_busy": _stats(busy["busy_pct"], "pct"),
                     "frames": _stats(busy["frames_per_s"], "per_s"),
                     "phase_timeout_s": phase_timeout_s, "timeouts": timeouts,
@@ -376,9 +410,11 @@ def bench_page(loads: int, verdicts: int, hogs: int, phase_timeout_s: float,
 
 
 def _verdict_updates(pg: Any, verdicts: int, until: Any, say: Any, over_budget: Any,
-                     timeouts: list[str]) -> list[float]:
+                     timeouts: list[str], in_page: dict[str, list[float]]) -> list[float]:
     """Cut-offs typed into the page's Q cut-off field: the seconds from Enter to the verdict's
-    text changed with nothing computing, per cut-off (a timed-out one is named in `timeouts`)."""
+    text changed with nothing computing, per cut-off (a timed-out one is named in `timeouts`);
+    `in_page` gets the page's own seconds from Enter to the new verdict's first frame
+    ("shown") and to the first frame with nothing computing ("settled")."""
     field = pg.locator("label", has_text="Q cut-off (Hz)").first
     box = field.locator("xpath=ancestor::div[contains(@class,'mantine-Flex-root')][1]").locator(
         "input").last
@@ -389,6 +425,7 @@ def _verdict_updates(pg: Any, verdicts: int, until: Any, say: Any, over_budget: 
             say(f"budget spent: {i} of {verdicts} verdict updates")
             break
         before = pg.evaluate("() => document.querySelector('.dt-verdict')?.innerText || ''")
+        pg.evaluate(VERDICT_ARM_JS, before)
         t0 = time.perf_counter()
         box.fill(f"{hz:g}")
         box.press("Enter")
@@ -400,7 +437,18 @@ def _verdict_updates(pg: Any, verdicts: int, until: Any, say: Any, over_budget: 
             say(f"TIMEOUT {exc}")
             continue
         out.append(time.perf_counter() - t0)
-        say(f"verdict update {i + 1}/{verdicts} ({hz:g} Hz): {out[-1]:.2f} s")
+        try:
+            until(pg, f"verdict update to {hz:g} Hz: the page's frames after it",
+                  VERDICT_TIMED_JS)
+        except PhaseTimeout as exc:
+            timeouts.append(str(exc))
+            say(f"TIMEOUT {exc}")
+            continue
+        d = pg.evaluate("() => window.__dt_verdict")
+        in_page["shown"].append((d["shown"] - d["enter"]) / 1e3)
+        in_page["settled"].append((d["settled"] - d["enter"]) / 1e3)
+        say(f"verdict update {i + 1}/{verdicts} ({hz:g} Hz): {out[-1]:.2f} s; in the page: "
+            f"shown {in_page['shown'][-1]:.3f} s, settled {in_page['settled'][-1]:.3f} s")
     return out
 
 
