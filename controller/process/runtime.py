@@ -31,7 +31,7 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
@@ -58,6 +58,7 @@ from controller.process.requests import (
     Start,
     Stop,
 )
+from controller.process.sample_ring import BatchSink, SampleRing
 
 __all__ = [
     "COLUMNS",
@@ -168,31 +169,6 @@ def try_realtime_priority(priority: int = 50) -> str:
     return f"realtime priority: SCHED_FIFO {priority}"
 
 
-class _Ring:
-    """Blocks of column buffers shared by the loop (producer) and the publisher (consumer).
-
-    Only the loop writes `produced` and the block it fills; only the publisher writes
-    `consumed`. Block i is free for the loop while produced - consumed < blocks.
-    """
-
-    def __init__(self, batch: int, blocks: int, ncols: int) -> None:
-        self.batch = batch
-        self.blocks = blocks
-        self.cols = [[[0.0] * batch for _ in range(ncols)] for _ in range(blocks)]
-        self.seq0 = [0] * blocks
-        self.n = [0] * blocks
-        self.version = [0] * blocks
-        self.mode = [RUNNING] * blocks
-        self.produced = 0
-        self.consumed = 0
-        self.ready = threading.Event()
-
-
-BatchSink = Callable[[int, int, str, Sequence[list[float]]], None]
-"""sink(seq0, config_version, mode, columns): columns are lists of equal length, owned by the
-caller (copies)."""
-
-
 class Runtime:
     """Runs the servo loop against a rig at a fixed rate until `stop()`."""
 
@@ -269,7 +245,7 @@ class Runtime:
         self._ti = 0  # total timing entries written
         self._snap_i = 0
         # Sample ring.
-        self._ring = _Ring(opts.batch_size, opts.ring_blocks, len(COLUMNS))
+        self._ring = SampleRing(opts.batch_size, opts.ring_blocks, len(COLUMNS), RUNNING)
         self._blk: list[list[float]] | None = None
         self._blk_n = 0
         self._blk_version = -1
@@ -433,14 +409,7 @@ class Runtime:
         while True:
             ring.ready.wait(poll_s)
             ring.ready.clear()
-            while ring.consumed < ring.produced:
-                i = ring.consumed % ring.blocks
-                n = ring.n[i]
-                cols = [c[:n] for c in ring.cols[i]]
-                try:
-                    sink(ring.seq0[i], ring.version[i], ring.mode[i], cols)
-                finally:
-                    ring.consumed += 1
+            ring.drain(sink)
             loop_done = self.finished.is_set() or not self.running.is_set()
             if stop.is_set() and loop_done and ring.consumed >= ring.produced:
                 return
