@@ -91,9 +91,13 @@ def test_a_cutoff_being_typed_or_out_of_range_is_said_not_rewritten(
     assert t.wait_idle(2.0)
     assert t.cutoff_hz_input.value == typed
     assert "Invalid candidate" in t.verdict.content and "q_cutoff_hz" in t.verdict.content
+    # the Bode tab's Decide view keeps no verdict of the previous candidate
+    assert t.bode is not None and "No verdict" in t.bode.verdict.content
+    assert "Verdict:" not in t.bode.verdict.content
     t.revert()
     assert t.wait_idle(2.0)
     assert "Invalid candidate" not in t.verdict.content
+    assert "Verdict: accept" in t.bode.verdict.content
 
 
 def test_rejected_candidate_is_highlighted(dash: Dashboard) -> None:

@@ -147,18 +147,28 @@ class BodeTab:
             self.suggest_chart.visible = False
         self.tabs = tabs
 
+    def show_invalid(self) -> None:
+        """The candidate is invalid (the Tune tab names the field): no verdict and no margins
+        here, and the charts said to be the last valid candidate's (not this one's)."""
+        set_html(self.verdict, box("dt-decide dt-decide-invalid", REJECT,
+                                   "<b>No verdict: the candidate is invalid</b> (the Tune tab "
+                                   "names the field). The charts below are the last valid "
+                                   "candidate's."))
+        set_html(self.margins, "<div class='dt-loop-margins'></div>")
+
     def show(self, cmp: Comparison) -> None:
         """A candidate against the active configuration: every chart's data (a y scale is
         assigned only when its rounded range changes: a new scale re-creates the chart), the
-        margins, the verdict and the Nyquist view."""
+        margins, the verdict and the Nyquist view. The verdict and the margins go first: the
+        page shows them before it works through the charts' data."""
+        cand = cmp.candidate.curves
+        set_html(self.verdict, decide_html(cmp.candidate))
+        set_html(self.margins, charts.loop_margins_html(cand))
         for key, handle in self.charts.items():
             data = cmp.chart_data[key]
             scales = charts.ranged_scales(self._specs[key], data, charts.Y_STEPS)
             if scales != handle.scales:
                 set_scales(handle, scales)
             handle.data = data
-        cand = cmp.candidate.curves
-        set_html(self.margins, charts.loop_margins_html(cand))
-        set_html(self.verdict, decide_html(cmp.candidate))
         set_html(self.nyquist, "<div class='dt-nyquist-box'>" + charts.nyquist_svg(
             cand, cmp.active.curves) + "</div>")

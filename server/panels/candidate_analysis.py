@@ -149,16 +149,19 @@ class CandidateAnalysis:
             set_html(p.controls.cutoff_text, p.cutoff_line_html(
                 p.controls.cutoff_hz, None, True, error=p.controls.cutoff_error))
             set_html(self.diff_text, "<div class='dt-diff'></div>")
+            if p.bode is not None:
+                p.bode.show_invalid()
             self._verdict_color = "red"
             self._same_as_active = False
             self._evaluated(gen, invalid=True)
             return
         active = p.active
         cmp = engine.compare(cand, active)
+        ev = cmp.candidate
+        # The verdict first: the page shows it before it works through the charts' data.
+        set_html(self.verdict, format_gate_html(ev))
         if p.bode is not None:
             p.bode.show(cmp)
-        ev = cmp.candidate
-        set_html(self.verdict, format_gate_html(ev))
         set_html(self.diff_text, diff_html(cand, active, p.active_version))
         known, rec = engine.cached_recommendation(cand)
         set_html(p.controls.cutoff_text, p.cutoff_line_html(cand.q_cutoff_hz, rec, known))

@@ -31,6 +31,12 @@ def _pick(page: Any, label: str, name: str) -> None:
     page.get_by_role("option", name=name, exact=True).click()
 
 
+def _pointer_off_the_fields(page: Any) -> None:
+    """The pointer onto the 3-D view: the last field typed in keeps its hover hint on screen
+    otherwise, over the field above it (the Notch (Hz) box in the screenshots)."""
+    page.mouse.move(470, 900)
+
+
 def _refused(dashboard: Dashboard, field: str) -> str:
     """The refusal's text when the candidate is refused naming `field` ("" : it is not)."""
     try:
@@ -63,6 +69,8 @@ def test_a_notch_changes_the_verdict_and_a_bad_centre_is_refused_by_name(
     wait_shown_text(page, ".dt-verdict.dt-caution", "Verdict", SLOW_S * 1000)
     wait_shown_text(page, ".dt-diff", "speed-command filter: off", SLOW_S * 1000)
     wait_shown_text(page, ".dt-diff", "notch at 12 Hz", SLOW_S * 1000)
+    wait_shown_text(page, ".dt-decide.dt-decide-caution", "Verdict: CAUTION", SLOW_S * 1000)
+    _pointer_off_the_fields(page)
     page.screenshot(path=str(artifacts / "filter_notch_12hz_caution.png"))
     # at or above 0.45 x the loop rate (450 Hz at 1 kHz): refused by name, not clamped
     set_number(page, "Notch (Hz)", "600")
@@ -71,6 +79,12 @@ def test_a_notch_changes_the_verdict_and_a_bad_centre_is_refused_by_name(
     assert "450" in _refused(dashboard, "command_filter.notch_hz")
     assert field_box(page, "Notch (Hz)").input_value() == "600"
     page.wait_for_function(APPLY_OFF_JS, timeout=SLOW_S * 1000)
+    # The Decide view's verdict is not the previous candidate's (it stood there, CAUTION,
+    # beside "Invalid candidate"): no verdict, said so.
+    wait_shown_text(page, ".dt-decide.dt-decide-invalid", "No verdict: the candidate is invalid",
+                    SLOW_S * 1000)
+    assert page.locator(".dt-decide-caution").count() == 0
+    _pointer_off_the_fields(page)
     page.screenshot(path=str(artifacts / "filter_notch_refused.png"))
     set_number(page, "Notch (Hz)", "abc")
     wait_for(lambda: "'abc' is not a number" in _refused(dashboard, "command_filter.notch_hz"),
@@ -80,6 +94,7 @@ def test_a_notch_changes_the_verdict_and_a_bad_centre_is_refused_by_name(
     # far above the crossover: accepted
     set_number(page, "Notch (Hz)", "100")
     wait_shown_text(page, ".dt-verdict.dt-accept", "Verdict", SLOW_S * 1000)
+    wait_shown_text(page, ".dt-decide.dt-decide-accept", "Verdict: accept", SLOW_S * 1000)
     assert t.candidate().command_filter.notch_hz == 100.0
     # off again: the active configuration
     _pick(page, "Speed-command filter", "off")
