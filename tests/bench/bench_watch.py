@@ -352,7 +352,7 @@ def main() -> None:
             "--realtime-priority", "--disturbance", "article-rig"))
         try:
             with Client(proc.endpoint, RIG, timeout_s=30.0) as c:
-                c.wait_ready(proc)
+                c.wait_ready(proc, timeout_s=600.0)  # start-up: 30-60 s at load 15
                 heard = Heard(c)
                 for what in args.only.split(","):
                     if what == "trendweek":
