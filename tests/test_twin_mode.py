@@ -77,9 +77,10 @@ def _against_the_true_rig(twin_params: RigParams, twin_faults: RigFaults, true: 
 @pytest.mark.slow
 def test_a_mode_measured_with_noise_is_found_and_sized() -> None:
     """The 25 Hz / 0.02 mode rig measured with 0.5 dB and 3 deg of noise per point: the mode
-    kept, its frequency within 1 % and its damping within 15 % of the true rig's, the fit's error at the noise's level
-    (below 0.8 dB rms per position, 10.9 dB without the mode), and the twin's response within
-    0.2 dB rms of the true rig's at every position (the noise averaged out, not fitted)."""
+    kept, its frequency within 1 % and its damping within 15 % of the true rig's, the fit's
+    error at the noise's level (below 0.8 dB rms per position, 10.9 dB without the mode), and
+    the twin's response within 0.2 dB rms of the true rig's at every position (the noise
+    averaged out, not fitted)."""
     true = RigFaults(resonance_hz=25.0, resonance_damping=0.02)
     knowledge = _noisy(true_knowledge(RigParams(), true, RATE), 0.5, 3.0, seed=1)
     assert measured_modes_hz(knowledge), "the noisy responses must still show the peak"
