@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from helpers import wait_until
-from procs import APPLY_TIMEOUT_S, Client, ControllerProcess, StateCollector
+from procs import APPLY_TIMEOUT_S, Client, ClientError, ControllerProcess, StateCollector
 
 from controller import protocol as proto
 from controller.core.trajectory import Trajectory
@@ -37,6 +37,9 @@ TRUE = rig_setup(("article-rig",)).params
 TRUE_BACKLASH_DEG = TRUE.backlash_deg + TRUE.gearbox_backlash_deg
 #: The noise's tolerance tests/test_twin_nonlinear.py states for a 20 s sine window.
 NOISE_TOL = 0.15  # relative
+ADOPT_TIMEOUT_S = max(APPLY_TIMEOUT_S, 180.0)
+#: A plain knowledge query's (the client's 5 s is not met at load 30+: seen).
+QUERY_TIMEOUT_S = 60.0
 #: The truth within this many of each stated deviation.
 K_STD = 4.0
 #: The deviations live are below these (a fifth of the true Coulomb friction, 60 % of the
@@ -54,9 +57,21 @@ def article_controller(start_controller_factory: object) -> ControllerProcess:
 
 def _knowledge(c: Client, req: proto.KnowledgeRequest | None = None) -> proto.KnowledgeReply:
     payload = proto.encode(req) if req is not None else None
-    timeout_s = APPLY_TIMEOUT_S if req is not None else None
+    # an adoption is judged by the gate first: at load 28 with two busy loops beside, more
+    # than the dashboard's APPLY_TIMEOUT_S (30 s) (a generous deadline, not a timing claim;
+    # the edge forwards it for 30 s at most: `_run_then_adopt`)
+    timeout_s = ADOPT_TIMEOUT_S if req is not None else QUERY_TIMEOUT_S
     return proto.decode(c.query_raw(proto.key_knowledge(c.rig), payload, timeout_s),
                         proto.KnowledgeReply)
+
+
+def _polled(c: Client) -> proto.KnowledgeReply | None:
+    """The knowledge as a poll sees it; None while the loop process does not answer in time
+    (at load 30+: the next poll asks again, the caller's deadline bounds it)."""
+    try:
+        return _knowledge(c)
+    except ClientError:
+        return None
 
 
 def _record(positions: tuple[float, ...]) -> KnowledgeRecord:
@@ -97,14 +112,24 @@ def _run_then_adopt(c: Client, traj: Trajectory, positions: tuple[float, ...]) -
                           timeout_s=300.0, poll_s=0.5), _followed_s(col, reply.seq)
         modes = {b.mode for _, b in col.batches()}
     assert modes == {"running"}, modes
-    adopted = _knowledge(c, proto.KnowledgeRequest(record=_record(positions)))
-    assert adopted.ok, adopted.message
-    assert wait_until(lambda: bool(_knowledge(c).twin) or "being built" not in
-                      _knowledge(c).twin_note, timeout_s=600.0)
+    before = _knowledge(c).record.version
+    try:
+        adopted = _knowledge(c, proto.KnowledgeRequest(record=_record(positions)))
+        assert adopted.ok, adopted.message
+        version = adopted.record.version
+    except ClientError as exc:
+        # at load 30+ the loop process may answer after the edge's 30 s: it still takes
+        # effect (the edge says so); wait for the new version (a generous deadline)
+        assert "may still take effect" in str(exc), exc
+        assert wait_until(lambda: (k := _polled(c)) is not None and k.record.version > before,
+                          timeout_s=300.0, poll_s=1.0), exc
+        version = _knowledge(c).record.version
+    assert wait_until(lambda: (k := _polled(c)) is not None and (
+        bool(k.twin) or "being built" not in k.twin_note), timeout_s=600.0, poll_s=0.5)
     got = _knowledge(c)
     assert got.twin, got.twin_note
     twin = decode(got.twin)
-    assert twin.knowledge_version == adopted.record.version
+    assert twin.knowledge_version == version
     return twin
 
 
