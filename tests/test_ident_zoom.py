@@ -92,8 +92,9 @@ def test_zoom_band_is_about_the_scans_lowest_mode() -> None:
 
 def test_a_family_rigs_mode_above_the_first_band_is_measured() -> None:
     """A lightly damped mode at 25 Hz (damping 0.01: its half-power band 0.5 Hz wide), above
-    the first pass's 20 Hz: the identified responses show a mode and peak where the true rig does, ten or more
-    points lie within 10 % of the peak, and they agree with the true rig's sampled response."""
+    the first pass's 20 Hz: the identified responses show a mode and peak where the true rig
+    does, ten or more points lie within 10 % of the peak, and they agree with the true rig's
+    sampled response."""
     fr, z = 25.0, 0.01
     params = RigParams()
     faults = RigFaults(resonance_hz=fr, resonance_damping=z)
@@ -117,9 +118,10 @@ def test_a_family_rigs_mode_above_the_first_band_is_measured() -> None:
         f = m.freq_hz[near]
         true = discrete_equivalent(rig_response(params, faults, f, pos), f, 1000.0)
         ratio = m.response[near] / true
-        # magnitude within 1 dB across the mode (0.5 dB in the median); the phase leads `discrete_equivalent` of
-        # the continuous response by one tick (0.36 deg/Hz, seen over the whole band: the two
-        # count the held command's tick differently), within 5 deg of that (2.5 in the median)
+        # magnitude within 1 dB across the mode (0.5 dB in the median); the phase leads
+        # `discrete_equivalent` of the continuous response by one tick (0.36 deg/Hz, seen
+        # over the whole band: the two count the held command's tick differently), within
+        # 5 deg of that (2.5 in the median)
         db = np.abs(20.0 * np.log10(np.abs(ratio)))
         assert np.all(db < 1.0) and float(np.median(db)) < 0.5, db
         lag = np.degrees(np.angle(ratio * np.exp(-2j * math.pi * f / 1000.0)))
