@@ -106,7 +106,7 @@ def _state(c: ControllerClient) -> tuple[int, str, int]:
 
 
 def _status(c: ControllerClient) -> proto.Status:
-    assert wait_until(lambda: c.status is not None, 5.0)
+    assert wait_until(lambda: c.status is not None, 60.0), "no status in 60 s"
     st = c.status
     assert st is not None
     return st
