@@ -2,14 +2,14 @@
 
     dobtune watch --connect EP --rig-name R [--window-s 10] [--trend-dir DIR]
                   [--prediction-window-s 10] [--prediction-log FILE]
-                  [--disturbance NAME ...] [--auth DIR --user NAME]
+                  [--disturbance NAME ...] [--auth DIR --user NAME] [--priority low|idle]
 
 Reads the loop's state stream (nothing added to the tick), fits the twin's parts to each
 window, publishes the drift state and alarms (`dobtune ctl drift`, `dobtune ctl wait-alarm`),
 and keeps the rig's trend in DIR (MCAP, one file per hour). After each Apply it checks the
-twin's prediction against what the rig then did (`dobtune ctl prediction`). Runs niced:
-the controller's process wins the CPU. Exit codes: 0 stopped (Ctrl-C / SIGTERM), 2 bad input, 4 the
-controller is not reachable.
+twin's prediction against what the rig then did (`dobtune ctl prediction`). Runs niced
+(`--priority idle`: SCHED_IDLE): the controller's process wins the CPU. Exit codes: 0
+stopped (Ctrl-C / SIGTERM), 2 bad input, 4 the controller is not reachable.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import os
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 from controller.cli.common import add_parent_pid, end_with_parent
@@ -48,10 +49,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     prediction_log = args.prediction_log or (
         args.trend_dir / f"{args.rig_name}-predictions.jsonl" if args.trend_dir else None)
-    try:
-        os.nice(10)
-    except OSError as exc:
-        say(f"runs at the controller's priority (os.nice: {exc})")
+    _yield_cpu(args.priority, say)
     opts = WatchOptions(
         client=ClientOptions(connect=tuple(args.connect), rig_name=args.rig_name,
                              client_name="watch", auth=args.auth, user=args.user or "",
@@ -89,6 +87,23 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(s, h)
 
 
+def _yield_cpu(priority: str, say: Callable[[str], None]) -> None:
+    """The controller's process wins the CPU: `low` nice 10 (the watch still gets a share of
+    a saturated machine), `idle` SCHED_IDLE (only what nothing else wants)."""
+    if priority == "idle":
+        from controller.process.worker_start import idle_priority
+
+        try:
+            say(f"priority: {idle_priority()}")
+            return
+        except OSError as exc:
+            say(f"priority: no SCHED_IDLE ({exc}); nice 10 instead")
+    try:
+        os.nice(10)
+    except OSError as exc:
+        say(f"runs at the controller's priority (os.nice: {exc})")
+
+
 class _Stopped(BaseException):
     """SIGINT or SIGTERM: the watch ends (exit 0)."""
 
@@ -117,6 +132,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--disturbance", action="append", default=[], metavar="NAME",
                    help="without a twin: the simulated rig the controller runs (as its "
                    "--disturbance; default article-rig; 'none': the plain rig)")
+    p.add_argument("--priority", choices=("low", "idle"), default="low",
+                   help="low: nice 10 (default; still a share of a saturated machine); idle: "
+                   "SCHED_IDLE, every thread (Linux): runs only on a core nothing else wants")
     p.add_argument("--timeout-s", type=float, default=30.0,
                    help="a query's reply timeout (the controller may be busy; default: 30)")
     add_parent_pid(p, "watch")

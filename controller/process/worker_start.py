@@ -15,7 +15,7 @@ import signal
 
 from controller.process.parent_watch import watch_parent
 
-__all__ = ["lower_priority", "worker_init"]
+__all__ = ["idle_priority", "lower_priority", "worker_init"]
 
 PR_SET_PDEATHSIG = 1
 #: How much lower a worker's priority is than the controller's (nice).
@@ -84,3 +84,21 @@ def lower_priority(every_thread: bool = False) -> None:
     except OSError as exc:
         logging.getLogger(__name__).warning(
             "worker process: runs at the controller's priority (os.nice: %s)", exc)
+
+
+def idle_priority() -> str:
+    """Every thread of this process, and each it starts later, to SCHED_IDLE (Linux): it runs
+    only on a core nothing else wants, so it yields to the loop's process entirely (its
+    publisher and Zenoh threads, which the loop's thread waits on for the interpreter lock,
+    too). On a saturated machine it then gets almost no CPU (weight 3 against nice 0's 1024).
+    Returns what happened; raises OSError when the policy cannot be set (the caller says so
+    and lowers the priority the other way)."""
+    if not hasattr(os, "SCHED_IDLE"):
+        raise OSError("SCHED_IDLE: not on this platform")
+    param = os.sched_param(0)
+    os.sched_setscheduler(0, os.SCHED_IDLE, param)  # this thread: later threads inherit it
+    tids = os.listdir(_TASKS) if os.path.isdir(_TASKS) else []
+    for tid in tids:
+        with contextlib.suppress(ProcessLookupError):  # a thread that ended
+            os.sched_setscheduler(int(tid), os.SCHED_IDLE, param)
+    return f"SCHED_IDLE ({len(tids) or 1} threads)"
