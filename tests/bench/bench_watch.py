@@ -6,12 +6,14 @@ not a test.
         [--changes stiffness,inertia,motor_friction,gain,resonance]
 
 - timing: the loop's tick compute p99 (each Status's, ~2 Hz) in windows of `--timing-s`
-  (default 20) without the watch and with it, alternating `--timing-rounds` times (default 4)
-  and one more without, in the same controller run: the medians of the windows' p99 with and
-  without, their spread, each window with against the two without around it, and the watch's
-  CPU share. `--only timing` alone:
-  `.venv/bin/python tests/bench/bench_watch.py --only timing` (about 5 minutes; not niced:
-  the controller it starts inherits the niceness).
+  (default 15): `--timing-rounds` blocks (default 10), each a window without the watch and
+  one with it at each `--timing-priorities` (default low; `low,idle` compares both), in a
+  random order (`--seed`), in the same controller run. Per block, with minus without: the
+  paired differences' median with its sign-test 95 % interval, bootstrap intervals of median
+  and mean, and whether that is within `--target-us` (0.5) at 95 %; the watch's CPU share.
+  `--only timing` alone: `.venv/bin/python tests/bench/bench_watch.py --only timing`
+  (10 blocks of one arm: about 8 minutes; not niced: the controller it starts inherits the
+  niceness).
 - normal: `--seconds` of normal running per demo trajectory with the watch on: alarms raised
   (false alarms), the parts' estimates and how many windows told each.
 - changes: each plant change of the issue on the running rig (belt stiffness -40 %, inertia
@@ -29,6 +31,7 @@ The controller runs with --realtime-priority as on a rig; report `uptime` beside
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import subprocess
 import sys
@@ -67,10 +70,10 @@ class Watch:
     """`dobtune watch` as a subprocess, and a subscriber to its states and alarms."""
 
     def __init__(self, endpoint: str, window_s: float, trend: Path | None, log: Path,
-                 mode: proto.SimFault | None = None) -> None:
+                 mode: proto.SimFault | None = None, priority: str = "low") -> None:
         cmd = [str(Path(sys.executable).parent / "dobtune"), "watch", "--connect", endpoint,
                "--rig-name", RIG, "--window-s", str(window_s), "--disturbance", "article-rig",
-               "--parent-pid", str(os.getpid())]
+               "--parent-pid", str(os.getpid()), "--priority", priority]
         if mode is not None:
             cmd += ["--resonance-hz", str(mode.resonance_hz), "--resonance-damping",
                     str(mode.resonance_damping)]
@@ -144,56 +147,92 @@ def _uptime() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
 
+def _paired(d: np.ndarray, target_us: float, rng: np.random.Generator) -> str:
+    """The paired differences' median and mean with 95 % intervals (the sign test's for the
+    median, distribution-free; a bootstrap's for both), and the one-sided sign test of "the
+    cost is at least `target_us`" (pairs below the target, and its p)."""
+    n = d.size
+    srt = np.sort(d)
+    # Sign-test interval: [d_(k), d_(n-k+1)], k the largest with P(Bin(n, 1/2) <= k-1) <= 2.5 %.
+    cdf = np.cumsum([math.comb(n, i) for i in range(n + 1)]) / 2.0**n
+    k = int(np.sum(cdf <= 0.025))
+    sign_ci = (f"[{srt[k - 1]:+.2f}, {srt[n - k]:+.2f}] us (sign test, "
+               f"{100 * (1 - 2 * cdf[k - 1]):.1f} %)" if k >= 1 else
+               "none (the sign test needs 6 pairs for 95 %)")
+    boot = rng.choice(d, size=(20000, n), replace=True)
+    med_ci = np.percentile(np.median(boot, axis=1), [2.5, 97.5])
+    mean_ci = np.percentile(boot.mean(axis=1), [2.5, 97.5])
+    below = int(np.sum(d < target_us))
+    p = float(sum(math.comb(n, i) for i in range(below, n + 1)) / 2.0**n)
+    hi = srt[n - k] if k >= 1 else float("inf")
+    lo = srt[k - 1] if k >= 1 else float("-inf")
+    verdict = ("within the target at 95 % (the interval's top is below it)" if hi <= target_us
+               else "above the target at 95 % (the interval's bottom is above it)"
+               if lo > target_us else "not decided at 95 % (the interval spans the target)")
+    return (f"median {np.median(d):+.2f} us, 95 % interval {sign_ci}, bootstrap "
+            f"[{med_ci[0]:+.2f}, {med_ci[1]:+.2f}] us; mean {d.mean():+.2f} us, bootstrap 95 % "
+            f"[{mean_ci[0]:+.2f}, {mean_ci[1]:+.2f}] us; {below} of {n} pairs below "
+            f"+{target_us:g} us (one-sided sign test of a cost of at least {target_us:g} us: "
+            f"p = {p:.3g}); {verdict}")
+
+
 def _timing(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tmp: Path
             ) -> None:
-    """Windows of `--timing-s` without the watch and with it, alternating (`--timing-rounds`
-    pairs, then one more without), in the same controller run. A window's figure is the
-    median of its Status intervals' compute p99; with the watch, the window starts at its
-    first fitted window (loaded and fitting). The machine's load drifts over minutes: each
-    window with the watch is also compared with the mean of the two without around it."""
-    rows: list[tuple[str, float, int]] = []
-    cpus: list[tuple[float, int]] = []
-    phases = ["without", "with"] * args.timing_rounds + ["without"]
-    for k, phase in enumerate(phases):
-        watch = None
-        if phase == "with":
-            watch = Watch(endpoint, args.window_s, None, tmp / "watch-timing.log")
-            s0 = len(heard.states)
-            deadline = time.monotonic() + 300.0
-            while len(heard.states) <= s0 and time.monotonic() < deadline:
-                if watch.proc.poll() is not None:
-                    raise SystemExit(f"the watch exited ({watch.proc.returncode}): see "
-                                     f"{tmp / 'watch-timing.log'}")
-                time.sleep(0.2)  # measured from its first window on: loaded and fitting
-            if len(heard.states) <= s0:
-                raise SystemExit("the watch fitted no window within 300 s")
-            cpu0, t0, w0 = watch.cpu_s(), time.monotonic(), len(heard.states)
-        i0 = len(heard.statuses)
-        time.sleep(args.timing_s)
-        p = np.asarray(heard.p99s(i0))
-        rows.append((phase, float(np.median(p)) if p.size else float("nan"), int(p.size)))
-        extra = ""
-        if watch is not None:
-            cpu = (watch.cpu_s() - cpu0) / (time.monotonic() - t0)
-            cpus.append((cpu, len(heard.states) - w0))
-            watch.stop()
-            extra = f"; watch CPU {100 * cpu:.1f} % of one core ({cpus[-1][1]} windows fitted)"
-        print(f"  window {k + 1}/{len(phases)} {phase:7s} the watch: p99 {rows[-1][1]:.1f} us "
-              f"(median of {p.size} status intervals' p99){extra}; load "
-              f"{os.getloadavg()[0]:.1f}", flush=True)
-    for phase in ("without", "with"):
-        a = np.array([v for ph, v, _ in rows if ph == phase])
-        print(f"tick compute p99 {phase:7s} the watch: median of {a.size} windows of "
-              f"{args.timing_s:g} s {np.median(a):.2f} us (windows {np.min(a):.1f}-"
-              f"{np.max(a):.1f} us)")
-    v = [r[1] for r in rows]
-    diffs = np.array([v[i] - 0.5 * (v[i - 1] + v[i + 1]) for i in range(1, len(v) - 1, 2)])
-    print(f"with minus without (each window with the watch against the mean of the two "
-          f"around it): median {np.median(diffs):+.2f} us, spread {np.min(diffs):+.2f} to "
-          f"{np.max(diffs):+.2f} us over {diffs.size} pairs; stated target: within 0.5 us")
-    ws = [w for _, w in cpus]
-    print(f"watch CPU: median {100 * np.median([c for c, _ in cpus]):.1f} % of one core "
-          f"({sum(ws)} windows fitted in {len(cpus)} x {args.timing_s:g} s)")
+    """Blocks (`--timing-rounds`) of one window of `--timing-s` without the watch and one with
+    it at each `--timing-priorities`, in a random order within each block (seeded), all in
+    the same controller run. A window's figure is the median of its Status intervals' compute
+    p99; with the watch, the window starts at its first fitted window (loaded and fitting).
+    The load drifts over minutes: each window with the watch is paired with the window without
+    it in the same block, and the paired differences get 95 % intervals (`_paired`)."""
+    rng = np.random.default_rng(args.seed)
+    arms = ["without", *args.timing_priorities.split(",")]
+    rows: list[tuple[int, str, float]] = []
+    cpus: dict[str, list[tuple[float, int]]] = {a: [] for a in arms[1:]}
+    k = 0
+    for block in range(args.timing_rounds):
+        for arm in rng.permutation(arms):
+            k += 1
+            watch = None
+            if arm != "without":
+                watch = Watch(endpoint, args.window_s, None, tmp / "watch-timing.log",
+                              priority=str(arm))
+                s0 = len(heard.states)
+                deadline = time.monotonic() + 300.0
+                while len(heard.states) <= s0 and time.monotonic() < deadline:
+                    if watch.proc.poll() is not None:
+                        raise SystemExit(f"the watch exited ({watch.proc.returncode}): see "
+                                         f"{tmp / 'watch-timing.log'}")
+                    time.sleep(0.2)  # measured from its first window on: loaded and fitting
+                if len(heard.states) <= s0:
+                    raise SystemExit("the watch fitted no window within 300 s")
+                cpu0, t0, w0 = watch.cpu_s(), time.monotonic(), len(heard.states)
+            i0 = len(heard.statuses)
+            time.sleep(args.timing_s)
+            p = np.asarray(heard.p99s(i0))
+            rows.append((block, str(arm), float(np.median(p)) if p.size else float("nan")))
+            extra = ""
+            if watch is not None:
+                cpu = (watch.cpu_s() - cpu0) / (time.monotonic() - t0)
+                cpus[str(arm)].append((cpu, len(heard.states) - w0))
+                watch.stop()
+                extra = (f"; watch CPU {100 * cpu:.1f} % of one core ({cpus[str(arm)][-1][1]} "
+                         f"windows fitted)")
+            print(f"  block {block + 1}/{args.timing_rounds} window {k}: {arm:7s} p99 "
+                  f"{rows[-1][2]:.1f} us (median of {p.size} status intervals' p99){extra}; "
+                  f"load {os.getloadavg()[0]:.1f}", flush=True)
+    for arm in arms:
+        a = np.array([v for _, ar, v in rows if ar == arm])
+        name = "without the watch" if arm == "without" else f"with the watch ({arm})"
+        print(f"tick compute p99 {name}: median of {a.size} windows of {args.timing_s:g} s "
+              f"{np.median(a):.2f} us (windows {np.min(a):.1f}-{np.max(a):.1f} us)")
+    without = {b: v for b, ar, v in rows if ar == "without"}
+    for arm in arms[1:]:
+        d = np.array([v - without[b] for b, ar, v in rows if ar == arm])
+        print(f"with ({arm}) minus without, paired within each block: "
+              f"{_paired(d, args.target_us, rng)}")
+        ws = [w for _, w in cpus[arm]]
+        print(f"watch ({arm}) CPU: median {100 * np.median([c for c, _ in cpus[arm]]):.1f} % "
+              f"of one core ({sum(ws)} windows fitted in {len(ws)} x {args.timing_s:g} s)")
     print(f"load: {_uptime()}")
 
 
@@ -327,11 +366,17 @@ def _offline(args: argparse.Namespace) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=60.0)
-    ap.add_argument("--timing-s", type=float, default=20.0,
+    ap.add_argument("--timing-s", type=float, default=15.0,
                     help="timing: seconds per window without or with the watch")
-    ap.add_argument("--timing-rounds", type=int, default=4,
-                    help="timing: pairs of windows without and with the watch (then one more "
-                         "without)")
+    ap.add_argument("--timing-rounds", type=int, default=10,
+                    help="timing: blocks, each a window without the watch and one with it at "
+                         "each --timing-priorities, in a random order")
+    ap.add_argument("--timing-priorities", default="low",
+                    help="timing: the watch's --priority in the windows with it "
+                         "(comma-separated: low, idle)")
+    ap.add_argument("--target-us", type=float, default=0.5,
+                    help="timing: the stated bound on the watch's cost to the p99")
+    ap.add_argument("--seed", type=int, default=0, help="timing: the blocks' orders")
     ap.add_argument("--window-s", type=float, default=10.0)
     ap.add_argument("--detect-timeout-s", type=float, default=120.0)
     ap.add_argument("--only", default="timing,normal,changes")
