@@ -61,7 +61,7 @@ from controller.process.runtime import (
     RuntimeOptions,
     try_realtime_priority,
 )
-from controller.process.service import ControllerService
+from controller.process.service import TWIN_TIMEOUT_S, ControllerService
 
 if TYPE_CHECKING:
     from controller.sim.rig_disturbances import RigSetup
@@ -482,8 +482,11 @@ def run_controller(opts: ControllerOptions, *, ready: Callable[[str], None] | No
     edge: EdgeLink | None = None
     try:
         runner = AnalysisWorker(subprocess=opts.gate_in_subprocess)
-        # Started on its first job (the twin's estimate from running): none before.
-        twin_runner = AnalysisWorker(subprocess=opts.gate_in_subprocess)
+        # The twin's fit and its estimate from running, off the analysis worker (no request
+        # waits behind them). Started on its first job, none before: its start (imports, the
+        # rig kernel) gets the twin's bound, not a verdict's (over 60 s seen under load).
+        twin_runner = AnalysisWorker(subprocess=opts.gate_in_subprocess,
+                                     start_timeout_s=TWIN_TIMEOUT_S)
         _check_options(opts)
         edge_login = _edge_login(opts) if opts.edge_in_subprocess else None
         if edge_login is not None:

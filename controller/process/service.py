@@ -49,7 +49,7 @@ from controller.twin.fit import build_twin
 from controller.twin.model import RigTwin, knowledge_digest
 from controller.twin.model import encode as encode_twin
 
-__all__ = ["ControllerService", "RuntimeEvents", "config_changes"]
+__all__ = ["TWIN_TIMEOUT_S", "ControllerService", "RuntimeEvents", "config_changes"]
 
 log = logging.getLogger(__name__)
 
@@ -72,9 +72,11 @@ def config_changes(old: LoopConfig, new: LoopConfig) -> str:
 
 
 
-#: The rig's twin gets this long in the analysis worker: a hung worker's bound, not a fit's
+#: The rig's twin gets this long in the twin's worker: a hung worker's bound, not a fit's
 #: budget (a fit with a measured mode took 20-57 s at load 22-25 and over 120 s at load 30-37;
-#: the twin is built in the background, nothing waits on it but the twin's own readers).
+#: the twin is built in the background, in a worker process of its own: nothing waits on it
+#: but the twin's own readers; in the analysis worker an adoption's gate check waited behind
+#: it, past the edge's 30 s).
 TWIN_TIMEOUT_S = 600.0
 
 
@@ -97,8 +99,9 @@ class ControllerService:
         self.rt = runtime
         self.store = store
         self.worker = worker
-        #: The twin's friction/backlash/noise estimate from running (seconds of CPU): its own
-        #: worker process, so no gate check (an apply) waits behind it.
+        #: The twin's fit and its friction/backlash/noise estimate from running (seconds to
+        #: minutes of CPU): their own worker process, so no request served by `worker` (an
+        #: apply's or an adoption's gate check, an identification's estimate) waits behind them.
         self.twin_worker = twin_worker if twin_worker is not None else worker
         self.notes = notes
         self._warnings: dict[str, tuple[str, int]] = {}  # key -> (text, count)
@@ -114,7 +117,12 @@ class ControllerService:
         #: The rig's twin of the knowledge's content (digest, twin or None, why none).
         self._twin: tuple[str, RigTwin | None, str] | None = None
         self._twin_lock = threading.Lock()
+        #: The content whose twin is wanted and not built yet (the latest asked for wins: a
+        #: fit of older content finishing after it was asked is dropped, never kept over it).
         self._twin_building: str | None = None
+        #: What the builder thread fits next (digest, record), and whether it runs.
+        self._twin_next: tuple[str, KnowledgeRecord] | None = None
+        self._twin_builder = False
         #: The state batches held (oldest first; the node sets it to the black box's): the
         #: twin's window of normal running comes from them. None: no window, said in the twin.
         self.recent_state: Callable[[], list[Any]] | None = None
@@ -465,8 +473,8 @@ class ControllerService:
 
     def twin_of(self, rec: KnowledgeRecord) -> tuple[str, str]:
         """(the rig's twin of `rec` as JSON, "" or why there is none). Built once per content
-        (the last one kept) in the analysis worker, by a thread of its own that this starts:
-        never on the tick nor in a request's time; until it is done the note says so."""
+        (the last one kept) in the twin's worker, by a builder thread that this starts: never
+        on the tick nor in a request's time; until it is done the note says so."""
         try:
             knowledge = rec.to_knowledge()
         except ValueError as exc:
@@ -479,8 +487,11 @@ class ControllerService:
             if got is None:
                 if self._twin_building != digest:
                     self._twin_building = digest
-                    threading.Thread(target=self._build_twin, args=(digest, rec),
-                                     name="twin-build", daemon=True).start()
+                    self._twin_next = (digest, rec)
+                    if not self._twin_builder:
+                        self._twin_builder = True
+                        threading.Thread(target=self._build_twins, name="twin-build",
+                                         daemon=True).start()
                 return "", f"no twin yet: being built for plant knowledge v{rec.version}"
         _, built, note = got
         if built is None:
@@ -507,7 +518,32 @@ class ControllerService:
         setup = rig_setup(names)
         return setup.params, f"the simulated rig {setup.label} (this controller's plant)"
 
-    def _build_twin(self, digest: str, rec: KnowledgeRecord) -> None:
+    def _build_twins(self) -> None:
+        """The builder thread: fits the twin of the content asked for last, one at a time,
+        until nothing more is asked; a fit finished after newer content was asked for is
+        dropped (the newer one is built next), never kept over it."""
+        while True:
+            with self._twin_lock:
+                job, self._twin_next = self._twin_next, None
+                if job is None:
+                    self._twin_builder = False
+                    return
+            digest, rec = job
+            try:
+                twin, note = self._build_twin(rec)
+            except Exception as exc:  # said in every knowledge reply, never lost
+                twin, note = None, f"no twin: its build failed: {type(exc).__name__}: {exc}"
+                log.warning("twin of plant knowledge v%d: %s", rec.version, note)
+            with self._twin_lock:
+                if self._twin_building != digest:
+                    log.info("twin of plant knowledge v%d: dropped (newer knowledge since)",
+                             rec.version)
+                    continue
+                self._twin = (digest, twin, note)
+                self._twin_building = None
+
+    def _build_twin(self, rec: KnowledgeRecord) -> tuple[RigTwin | None, str]:
+        """The twin of `rec` and why there is none, fitted in the twin's worker."""
         # The window of normal running is taken now (after the change, before the fit), here.
         active = self.rt.loop.active
         recent = (recent_running(self.recent_state(), following=self.rt.following,
@@ -516,10 +552,10 @@ class ControllerService:
         try:
             rate_hz = active.config.rate_hz
             base, label = self._twin_base()
-            twin, note = self.worker.call(build_twin, rec, rate_hz, base, label,
-                                          timeout_s=TWIN_TIMEOUT_S)
+            twin, note = self.twin_worker.call(build_twin, rec, rate_hz, base, label,
+                                               timeout_s=TWIN_TIMEOUT_S)
         except Exception as exc:  # a dead or late worker: said in every knowledge reply
-            twin, note = None, f"no twin: the analysis worker failed: {type(exc).__name__}: {exc}"
+            twin, note = None, f"no twin: the twin's worker failed: {type(exc).__name__}: {exc}"
             log.warning("twin of plant knowledge v%d: %s", rec.version, note)
         if twin is not None:
             try:
@@ -527,13 +563,10 @@ class ControllerService:
                                              timeout_s=TWIN_TIMEOUT_S)
             except Exception as exc:  # the fitted twin kept, with the base rig's nonlinear parts
                 why = (f"friction, backlash and encoder noise: the base rig's: their estimate "
-                       f"failed in the analysis worker: {type(exc).__name__}: {exc}")
+                       f"failed in the twin's worker: {type(exc).__name__}: {exc}")
                 twin = msgspec.structs.replace(twin, notes=(*twin.notes, why))
                 log.warning("twin of plant knowledge v%d: %s", rec.version, why)
-        with self._twin_lock:
-            self._twin = (digest, twin, note)
-            if self._twin_building == digest:
-                self._twin_building = None
+        return twin, note
 
     def handle_knowledge(self, req: proto.KnowledgeRequest) -> proto.KnowledgeReply:
         """Return the plant knowledge, or adopt new knowledge (a record, or the measured

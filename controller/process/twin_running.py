@@ -1,7 +1,7 @@
 """The twin's friction, backlash and encoder noise from the controller's own running (issue 35
 item 1): when the controller builds the twin after a knowledge change, the newest unbroken
 stretch of normal running in the black box's state batches (`recent_running`, in the twin's
-build thread, never on the tick) goes with it to the analysis worker, which estimates them
+build thread, never on the tick) goes with it to the twin's worker, which estimates them
 there (`twin_with_running`: `controller.twin.nonlinear.with_running`). The stretch is only
 where the loop followed its trajectory, bit for bit (`Runtime.following`): not the approach
 onto it after a change of trajectory or a start, not an identification's excitation. The
@@ -168,8 +168,8 @@ def _with_offset(twin: RigTwin, recent: RecentRunning) -> RigTwin:
 def twin_with_running(twin: RigTwin, recent: RecentRunning | str) -> RigTwin:
     """`twin` (`build_twin`'s) with the friction, backlash and noise `recent` tells, said in
     its notes with the window and the deviations; with the base rig's and the reason in its
-    notes where `recent` is a reason or tells nothing. For the analysis worker (runs there,
-    a call of its own after the fit: a gate check waiting for the worker gets in between)."""
+    notes where `recent` is a reason or tells nothing. For the twin's worker (a process of its
+    own, after the fit there: no gate check waits behind either)."""
     if isinstance(recent, str):
         said = f"{BASE_RIG}: no window of normal running: {recent}"
     else:

@@ -194,7 +194,7 @@ def _apply(base: RigParams, x: FloatArray, delay: int) -> tuple[RigParams, RigFa
 
 def build_twin(record: KnowledgeRecord, rate_hz: float, base: RigParams | None = None,
                base_label: str = "") -> tuple[RigTwin | None, str]:
-    """The twin of the knowledge `record` for the controller's analysis worker: (the twin, "")
+    """The twin of the knowledge `record` for the controller's twin worker: (the twin, "")
     or (None, why not): nothing measured, a record that does not convert, or a fit that fails
     are said, not raised (a raise would cost the worker process). `base`: the rig whose
     structure the twin starts from (`twin_from_knowledge`; the controller's simulated rig

@@ -55,7 +55,7 @@ def test_adopted_knowledge_comes_with_its_twin(controller: ControllerProcess,
                                             source="test"))
     reply = _knowledge(client, proto.KnowledgeRequest(record=rec))
     assert reply.ok, reply.message
-    # built in the analysis worker after the adoption: the reply says so until it is done
+    # built in the twin's worker after the adoption: the reply says so until it is done
     assert reply.twin or "being built" in reply.twin_note, reply.twin_note
     assert wait_until(lambda: _knowledge(client).twin or "being built" not in
                       _knowledge(client).twin_note, timeout_s=180.0)

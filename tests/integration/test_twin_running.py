@@ -1,7 +1,7 @@
 """The twin's friction, backlash and encoder noise from the controller's own running (issue 35
 item 1): a real controller process over Zenoh on loopback, on the simulated article rig (its
 disturbances), builds the twin after a knowledge change with the newest 25 s of normal running
-from its black box (`controller/process/twin_running.py`, in the analysis worker): the
+from its black box (`controller/process/twin_running.py`, in the twin's worker): the
 stretch where the loop followed its trajectory (the approach onto it cut off), the drive
 offset the twin lacks taken from the DOB's d_hat first. The twin starts from the structure of
 the rig the controller simulates (the article rig: its motor and gearbox friction, drive
