@@ -19,7 +19,7 @@ import msgspec
 import numpy as np
 
 from controller import protocol as proto
-from controller.client.session import SessionOptions, connect
+from controller.client.session import SessionOptions, connect, put_estop
 from controller.core.config import LoopConfig
 
 __all__ = [
@@ -450,8 +450,8 @@ class ControllerClient:
         """Fire-and-forget put on the e-stop key: any payload stops the loop, no reply needed."""
         if self._session is None:
             raise ControllerUnavailable("not connected")
-        msg = proto.Command(body=proto.EStop(), client=self.opts.client_name)
-        self._session.put(self.key(proto.key_estop(self.opts.rig_name)), proto.encode(msg))
+        put_estop(self._session, self.key(proto.key_estop(self.opts.rig_name)),
+                  self.opts.client_name)
 
     def estop(self) -> proto.CommandReply | None:
         """The e-stop put first (always works), then the EStop command for a reply."""

@@ -20,6 +20,7 @@ from typing import Any, TypeVar
 
 from controller import protocol as proto
 from controller.client.controller_client import quietly
+from controller.client.session import put_estop
 
 __all__ = ["DECIMATE", "TRACE_POINTS", "FleetMonitor", "RigRow", "drift_summary"]
 
@@ -211,5 +212,4 @@ class FleetMonitor:
     def estop(self, rig: str) -> None:
         """The e-stop put on `rig` (any payload stops its loop; no reply needed)."""
         proto.check_rig_name(rig)
-        msg = proto.Command(body=proto.EStop(), client="dashboard fleet overview")
-        self._session.put(self._estop_key(rig), proto.encode(msg))
+        put_estop(self._session, self._estop_key(rig), "dashboard fleet overview")

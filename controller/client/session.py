@@ -46,6 +46,7 @@ __all__ = [
     "connect",
     "exposure_problem",
     "is_loopback",
+    "put_estop",
     "server_config",
     "session_config",
     "zenoh_config",
@@ -189,6 +190,15 @@ def session_config(o: SessionOptions) -> zenoh.Config:
         raise ValueError("user: required with auth")
     return client_config(o.auth, o.user, o.connect, o.listen, fail_after_s=o.fail_after_s,
                          mode=o.mode)
+
+
+def put_estop(session: zenoh.Session, key: str, sender: str) -> None:
+    """An e-stop put on `key` (any payload stops the loop; no reply): never dropped under
+    congestion (Zenoh's default for a put is to drop), sent at once (express) and ahead of
+    every message of the session still queued (real-time priority)."""
+    msg = proto.Command(body=proto.EStop(), client=sender)
+    session.put(key, proto.encode(msg), congestion_control=zenoh.CongestionControl.BLOCK,
+                priority=zenoh.Priority.REAL_TIME, express=True)
 
 
 def connect(o: SessionOptions) -> zenoh.Session:

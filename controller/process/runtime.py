@@ -712,7 +712,13 @@ class Runtime:
         self._safe_state()
 
     def _serve_requests(self) -> None:
+        flag = self.estop_flag
         while self._inbox:
+            if flag[0]:
+                # Raised since this tick's first look (another process raises it): before any
+                # request, so a request that arrived after an e-stop is served after it too.
+                self._take_estop_flag()
+                self._enter_estop(self._estop_request or "estop key")
             t = self._inbox.popleft()
             try:
                 self._serve(t)
