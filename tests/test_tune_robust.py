@@ -1,0 +1,56 @@
+"""The whole-loop tune's robustness check (controller.tune.whole_loop, step 6): a twin is an
+estimate, so the best candidates are also run on its variants (`twin_variants`), and one whose
+score on a variant is worse than `FRAGILE_RATIO` x its score on the twin is passed over."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+
+from controller.core.config import LoopConfig
+from controller.sim.rig_disturbances import rig_setup
+from controller.tune.plant import SimPlant
+from controller.tune.whole_loop import (
+    FRAGILE_RATIO,
+    VARIANT_INERTIA,
+    Objective,
+    evaluate,
+    twin_variants,
+)
+
+SETUP = rig_setup(("article-rig",))
+
+
+def test_the_built_in_model_has_no_variants() -> None:
+    assert twin_variants(SimPlant.of_setup(SETUP)) == []
+
+
+@pytest.mark.parametrize("delay", [0, 3])
+def test_a_twins_variants_are_its_delay_a_tick_either_way_and_its_inertia(delay: int) -> None:
+    base = SimPlant.of_setup(SETUP, source="a twin")
+    twin = replace(base, params=replace(base.params, command_delay_ticks=delay))
+    got = dict(twin_variants(twin))
+    delays = [delay - 1, delay + 1] if delay else [1]
+    assert len(got) == len(delays) + 2
+    for d in delays:
+        v = got[f"delay {d} ticks"]
+        assert v.params == replace(twin.params, command_delay_ticks=d)
+        assert (v.faults, v.torque, v.source) == (twin.faults, twin.torque, twin.source)
+    j = twin.params.load_inertia_kg_m2
+    inertias = sorted(v.params.load_inertia_kg_m2 for k, v in got.items() if "inertia" in k)
+    assert inertias == pytest.approx([j / VARIANT_INERTIA, j * VARIANT_INERTIA], rel=1e-12)
+
+
+def test_a_robust_loop_is_not_fragile_on_the_variants() -> None:
+    """The starting loop on the article rig taken as a twin: its score moves well within the
+    fragility ratio on every variant (the check does not pass over an ordinary loop)."""
+    twin = SimPlant.of_setup(SETUP, source="a twin")
+    obj = Objective()
+    cfg = LoopConfig()
+    own = evaluate(cfg, twin, obj, None).score
+    assert math.isfinite(own)
+    for name, v in twin_variants(twin):
+        s = evaluate(cfg, v, obj, None).score
+        assert s < FRAGILE_RATIO * own, name
