@@ -398,6 +398,11 @@ def test_a_gain_typed_out_of_range_or_not_a_number_is_refused_by_name(
     assert "Invalid candidate" in t.verdict.content and "cv_kp" in t.verdict.content
     assert html.escape(f"Cv Kp: {typed!r} is not a number from 0.05 to 3") in \
         t.controls.gain_text.content
+    # No recommendation for an invalid candidate, said as such (it read "the gate accepts no
+    # cut-off with these gains").
+    line = html.unescape(t.cutoff_text.content)
+    assert "another field of the candidate is rejected" in line, line
+    assert "accepts no cut-off" not in line
     assert t.cv_kp.value == kp  # the slider: the gain in force, not clamped
     t.cv_kp.value = 1.1  # a drag: the field follows, the refusal goes
     assert t.wait_idle(2.0)

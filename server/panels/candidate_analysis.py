@@ -48,7 +48,7 @@ class AnalysedCandidate(Protocol):
     def candidate(self) -> LoopConfig: ...
 
     def cutoff_line_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
-                         error: str = "") -> str: ...
+                         error: str = "", invalid: bool = False) -> str: ...
 
 
 class CandidateAnalysis:
@@ -147,7 +147,8 @@ class CandidateAnalysis:
         except ConfigError as exc:
             set_html(self.verdict, format_gate_html(None, str(exc)))
             set_html(p.controls.cutoff_text, p.cutoff_line_html(
-                p.controls.cutoff_hz, None, True, error=p.controls.cutoff_error))
+                p.controls.cutoff_hz, None, True, error=p.controls.cutoff_error,
+                invalid=True))
             set_html(self.diff_text, "<div class='dt-diff'></div>")
             if p.bode is not None:
                 p.bode.show_invalid()

@@ -51,8 +51,8 @@ class NominalTuningPanel(TuningPanel):
         self.nominal_override = nominal
 
     def cutoff_line_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
-                         error: str = "") -> str:
-        html = super().cutoff_line_html(cutoff_hz, rec, known, error)
+                         error: str = "", invalid: bool = False) -> str:
+        html = super().cutoff_line_html(cutoff_hz, rec, known, error, invalid)
         n = self.nominal_override
         if n is None:
             return html

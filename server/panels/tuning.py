@@ -341,9 +341,10 @@ class TuningPanel:
     # -- text --------------------------------------------------------------------------------
 
     def cutoff_line_html(self, cutoff_hz: float, rec: float | None, known: bool = True,
-                         error: str = "") -> str:
+                         error: str = "", invalid: bool = False) -> str:
         """The cut-off line under the slider (`tuning_html.cutoff_html`)."""
-        return cutoff_html(cutoff_hz, rec, known, error, self.engine.position_spread())
+        return cutoff_html(cutoff_hz, rec, known, error, self.engine.position_spread(),
+                           invalid)
 
     def show_kept_problem(self, text: str) -> None:
         """What the user should know about their candidates on disk ("" : nothing)."""

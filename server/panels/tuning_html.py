@@ -187,14 +187,18 @@ def computing_html(on: bool) -> str:
 
 
 def cutoff_html(cutoff_hz: float, rec: float | None, known: bool, error: str,
-                spread: PositionSpread | None) -> str:
+                spread: PositionSpread | None, invalid: bool = False) -> str:
     """The cut-off line under the slider: the value, the gate's recommended maximum (or why
-    there is none yet), where the measured responses diverge; the error of a typed value."""
+    there is none yet), where the measured responses diverge; the error of a typed value.
+    `invalid`: another field of the candidate is rejected (no recommendation is searched)."""
     if error:
         return ("<div class='dt-cutoff dt-cutoff-invalid' style='font-size:13px;"
                 "color:#d62728'><b>Q cut-off (Hz) rejected</b>: "
                 f"{esc(error)}. Apply is disabled until it is a number in range.</div>")
-    if not known:
+    if invalid:
+        rec_txt = (" &middot; no recommended max: another field of the candidate is rejected "
+                   "(see the verdict)")
+    elif not known:
         rec_txt = " &middot; recommended max: computing..."
     elif rec is None:
         rec_txt = " &middot; <span style='color:#d62728'>the gate accepts no cut-off with " \
