@@ -281,7 +281,14 @@ class AnalysisWorker:
         with contextlib.suppress(Exception):
             pool.shutdown(wait=False, cancel_futures=True)
 
-    def close(self) -> None:
+    def close(self, *, wait: bool = True) -> None:
+        """Stop the worker. `wait`: let a job in progress finish first (a gate check: seconds);
+        without it the worker is killed at once (the twin's fit: minutes on a busy machine,
+        of no use to a controller that stops; its caller gets the worker's failure)."""
+        if not wait:
+            self._warming = None
+            self._kill()
+            return
         warming = self._warming
         if warming is not None and not warming.done():
             # Still loading (a stop right after the start, on a busy machine: the niced worker

@@ -505,7 +505,7 @@ def run_controller(opts: ControllerOptions, *, ready: Callable[[str], None] | No
         if runner is not None:
             runner.close()
         if twin_runner is not None:
-            twin_runner.close()
+            twin_runner.close(wait=False)  # a fit in progress (minutes) never holds up the stop
         for s, h in previous.items():
             signal.signal(s, h)
     return 0

@@ -9,6 +9,7 @@ the twin fit of the previous version, past the edge's 30 s."""
 
 from __future__ import annotations
 
+import signal
 from collections.abc import Callable
 from pathlib import Path
 
@@ -113,3 +114,21 @@ def test_an_adoption_is_answered_while_a_twin_fit_is_in_progress(
         assert twin.knowledge_digest == knowledge_digest(rec2.to_knowledge())  # v2's content
         assert _started(hold) == [v1, v2]
         assert f"twin of plant knowledge v{v1}: dropped" in ctl.log()
+
+
+def test_a_stop_does_not_wait_for_a_twin_fit_in_progress(
+    start_controller_factory: Callable[..., ControllerProcess], tmp_path: Path
+) -> None:
+    """SIGTERM while a twin fit is in progress (held, never released): a clean stop (0), the
+    fit's worker killed, not waited for (it waited for the job: SIGKILLed after the 10 s of
+    test_knowledge's stop under load). The deadline is generous: the hold lasts 900 s."""
+    hold = tmp_path / "never-released"
+    ctl = start_controller_factory(python_code=controller_code(hold),
+                                   extra_args=(*RIG_ARGS, "--no-watch"))
+    with Client(ctl.endpoint, ctl.rig) as c:
+        c.wait_ready(ctl, timeout_s=300.0)
+        reply = _adopt(c, _record((0.0, 180.0)))
+        assert reply.ok, reply.message
+        assert wait_until(lambda: reply.record.version in _started(hold), timeout_s=600.0)
+    assert ctl.stop(signal.SIGTERM, timeout_s=300.0) == 0, ctl.log()
+    assert not hold.exists()  # (the fit was still held when the controller stopped)
