@@ -22,7 +22,7 @@ import numpy as np
 import viser
 
 from controller import protocol as proto
-from controller.client import ControllerClient
+from controller.client import ControllerClient, StateRing
 from controller.core.trajectory import TRAJECTORY_KINDS, Trajectory, default_trajectory
 from controller.core.verdict import kind_of
 from server import charts
@@ -307,9 +307,10 @@ class LivePanel:
             )
 
     def show_in(self, browser: viser.ClientHandle) -> None:
-        """The charts' present data to `browser` (its page shows them from now on)."""
-        for handle in self._charts.values():
-            send_data(handle, handle.data, [browser])
+        """The charts' data cut now to `browser` (its page shows them from now on)."""
+        data = _window_data(self.client.ring, float(self.window_s.value), self.max_points)[1]
+        for key, handle in self._charts.items():
+            send_data(handle, data[key], [browser])
 
     # -- running -----------------------------------------------------------------------------
 
@@ -335,15 +336,19 @@ class LivePanel:
         total = ring.total
         cols: dict[str, np.ndarray] | None = None
         if total != self._last_total or window != self._last_window:
-            self._last_total = total
             scales = None
             if window != self._last_window:  # the time axis spans the window
                 scales = charts.live_scales(window)
                 self._last_window = window
-            cols, version = ring.window(window)
-            data = charts.live_data(cols["t_s"], cols, version, self.max_points)
-            in_loop(self._loop, self._show_charts, data, scales)
-            self.stats.chart_pushes += 1
+            if self._audience is not None and not self._audience():
+                # None shows them: none cut for nobody (`show_in` cuts them for a page).
+                if scales is not None:
+                    in_loop(self._loop, self._show_charts, {}, scales)
+            else:
+                self._last_total = total
+                cols, data = _window_data(ring, window, self.max_points)
+                in_loop(self._loop, self._show_charts, data, scales)
+                self.stats.chart_pushes += 1
             if self._on_frame is not None:
                 self._on_frame(ring.latest())
         banner = banner_html(self.client)
@@ -377,17 +382,17 @@ class LivePanel:
 
     def _show_charts(self, data: dict[str, tuple[np.ndarray, ...]],
                      scales: dict[str, charts.ChartDict] | None) -> None:
-        """The charts' new data (and time axis, when the window changed) to the browsers
-        that show them (on viser's loop)."""
+        """The charts' new data (of those in `data`) and time axis (when the window changed)
+        to the browsers that show them (on viser's loop)."""
         for handle in self._charts.values() if scales is not None else ():
             handle.scales = scales
         if self._audience is None:
-            for key, handle in self._charts.items():
-                handle.data = data[key]
+            for key, values in data.items():
+                self._charts[key].data = values
             return
         browsers = self._audience()
-        for key, handle in self._charts.items():
-            send_data(handle, data[key], browsers)
+        for key, values in data.items():
+            send_data(self._charts[key], values, browsers)
 
     def _show_texts(self, banner: str, metrics: str, health: str) -> None:
         set_html(self.banner, banner)
@@ -444,6 +449,13 @@ def in_loop(loop: asyncio.AbstractEventLoop | None, fn: Callable[..., None],
     # A closed loop (RuntimeError): the server stopped, nobody to show it to.
     with contextlib.suppress(RuntimeError):
         loop.call_soon_threadsafe(functools.partial(run_logged, fn, *args, what="live refresh"))
+
+
+def _window_data(ring: StateRing, window_s: float, max_points: int
+                 ) -> tuple[dict[str, np.ndarray], dict[str, tuple[np.ndarray, ...]]]:
+    """The ring's last `window_s` seconds (its columns) and the live charts' data of them."""
+    cols, version = ring.window(window_s)
+    return cols, charts.live_data(cols["t_s"], cols, version, max_points)
 
 
 def _run_trajectory(st: proto.Status | None) -> Trajectory | None:
