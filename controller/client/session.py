@@ -193,12 +193,9 @@ def session_config(o: SessionOptions) -> zenoh.Config:
 
 
 def put_estop(session: zenoh.Session, key: str, sender: str) -> None:
-    """An e-stop put on `key` (any payload stops the loop; no reply): never dropped under
-    congestion (Zenoh's default for a put is to drop), sent at once (express) and ahead of
-    every message of the session still queued (real-time priority)."""
+    """An e-stop put on `key` (any payload stops the loop; no reply needed)."""
     msg = proto.Command(body=proto.EStop(), client=sender)
-    session.put(key, proto.encode(msg), congestion_control=zenoh.CongestionControl.BLOCK,
-                priority=zenoh.Priority.REAL_TIME, express=True)
+    session.put(key, proto.encode(msg))
 
 
 def connect(o: SessionOptions) -> zenoh.Session:

@@ -90,8 +90,8 @@ KINDS: dict[str, Callable[[str], str]] = {
     "lease": proto.key_lease,
     "history": proto.key_history,
 }
-#: The kinds that can move the rig: an e-stop received before one is raised before it is
-#: forwarded (`_Edge.estops_before`).
+#: The kinds that can move the rig: an e-stop the loop's process received before one is
+#: raised before it is served (`ZenohNode.estops_before`).
 ORDERED = ("config", "command", "identify")
 #: The kinds the loop process serves (each over a pipe of its own); history never reaches it.
 FORWARDED = ("config", "command", "identify", "knowledge", "lease")
@@ -197,11 +197,6 @@ class _Edge:
         #: The loop process's session is open (CONNECT): connect.
         self.go = threading.Event()
         self._control_lock = threading.Lock()
-        #: The e-stop keys' samples as this process receives them (rings of one, filled by
-        #: Zenoh: no Python code per sample), and when they were last looked at
-        #: (`estops_before`).
-        self._estop_rings: list[Any] = []
-        self._estops_seen_ns = 0
 
     # -- Zenoh callbacks: budget, then hand over ---------------------------------------------
 
@@ -212,7 +207,6 @@ class _Edge:
         refusal = self.refusal
         user_of_key = proto.user_of_key
         clock = time.monotonic_ns
-        ordered = kind in ORDERED
 
         def put(query: Any) -> None:
             arrival = clock()
@@ -222,36 +216,12 @@ class _Edge:
                     query.reply_err(refusal)
                     query.drop()
                 return
-            if ordered:
-                self.estops_before(arrival)
             if q.qsize() < limit:
                 q.put((query, arrival))
             else:
                 self.shed += 1  # released unanswered (the client times out)
 
         return put
-
-    def estops_before(self, arrival: int) -> None:
-        """An e-stop this process received before a request that can move the rig (Zenoh
-        delivers one link's messages in order: the e-stop's sample is in the ring before the
-        request's callback runs) raises the loop's flag now, before the request is forwarded,
-        unless the relay already did since the last look. The relay is another process: under
-        load it may take the e-stop after this request reached the loop (bench: 2 of 3000
-        reset / e-stop / Start triples, the Start served 1-21 ticks before the e-stop). Stamped
-        just before the request: a reset that came before it is refused (the safe side)."""
-        got = False
-        for ring in self._estop_rings:
-            if ring.try_recv() is not None:
-                got = True
-        flag = self.flag
-        with self._estop_lock:
-            seen, self._estops_seen_ns = self._estops_seen_ns, arrival
-            if not got or flag[ESTOP_ARRIVAL] > seen:
-                return
-            stamp = arrival - 1
-            if stamp > flag[ESTOP_ARRIVAL]:
-                flag[ESTOP_ARRIVAL] = stamp
-            flag[ESTOP_FLAG] = 1
 
     def on_estop(self, sample: Any) -> None:
         """An e-stop (Zenoh callback): the loop's flag first, then count it for the audit.
@@ -463,15 +433,7 @@ class _Edge:
             return
         with session:
             entities: list[Any] = []
-            estop_keys = [proto.key_estop(rig)]
-            if self.spec.auth_dir is not None:
-                estop_keys.append(proto.any_user_key(proto.key_estop(rig)))
             if requests:
-                # The rings first: declared before the queryables, so no request is served
-                # before this process sees the e-stops that came before it.
-                self._estop_rings = [session.declare_subscriber(
-                    key, zenoh.handlers.RingChannel(1)) for key in estop_keys]
-                entities += self._estop_rings
                 entities += [
                     session.declare_queryable(
                         scoped(key(rig)),
@@ -479,6 +441,9 @@ class _Edge:
                     for kind, key in KINDS.items()
                 ]
             else:
+                estop_keys = [proto.key_estop(rig)]
+                if self.spec.auth_dir is not None:
+                    estop_keys.append(proto.any_user_key(proto.key_estop(rig)))
                 entities += [session.declare_subscriber(
                     key, zenoh.handlers.Callback(self.on_estop, indirect=False))
                     for key in estop_keys]

@@ -36,6 +36,7 @@ from controller import protocol as proto
 from controller.process.edge import (
     CONNECT,
     FORWARDED,
+    ORDERED,
     EdgeSnapshot,
     EdgeSpec,
     edge_main,
@@ -264,6 +265,8 @@ class EdgeLink:
         handle = self._handlers[kind]
         access = self.service.access
         rt = self.rt
+        node = self.node
+        ordered = kind in ORDERED
         with conn:
             while True:
                 try:
@@ -272,6 +275,8 @@ class EdgeLink:
                     return  # the edge process ended
                 snap: EdgeSnapshot | None = None
                 try:
+                    if ordered:
+                        node.estops_before(arrival)
                     who = access.who(key)
                     with rt.arrival_scope(arrival):
                         reply: bytes | None = handle(

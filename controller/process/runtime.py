@@ -714,11 +714,12 @@ class Runtime:
     def _serve_requests(self) -> None:
         flag = self.estop_flag
         while self._inbox:
+            # Raised since this tick's first look (by another process, or a thread): before
+            # any request, so a request that arrived after an e-stop is served after it too.
             if flag[0]:
-                # Raised since this tick's first look (another process raises it): before any
-                # request, so a request that arrived after an e-stop is served after it too.
                 self._take_estop_flag()
-                self._enter_estop(self._estop_request or "estop key")
+            if self._estop_request is not None:
+                self._enter_estop(self._estop_request)
             t = self._inbox.popleft()
             try:
                 self._serve(t)
