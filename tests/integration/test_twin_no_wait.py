@@ -69,20 +69,33 @@ def _started(hold: Path) -> list[int]:
     return [int(v) for v in p.read_text().split()] if p.exists() else []
 
 
+def _held_controller(start_controller_factory: Callable[..., ControllerProcess],
+                     hold: Path) -> ControllerProcess:
+    """A controller whose twin fits wait until `hold` exists (`twin_hold`)."""
+    return start_controller_factory(python_code=controller_code(hold),
+                                    extra_args=(*RIG_ARGS, "--no-watch"))
+
+
+def _first_fit_held(c: Client, ctl: ControllerProcess, hold: Path) -> proto.KnowledgeReply:
+    """The first knowledge adopted, once its twin's fit has begun (and is held)."""
+    c.wait_ready(ctl, timeout_s=300.0)
+    first = _adopt(c, _record((0.0, 180.0)))
+    assert first.ok, first.message
+    v1 = first.record.version
+    assert wait_until(lambda: v1 in _started(hold), timeout_s=600.0), ctl.log()
+    return first
+
+
 def test_an_adoption_is_answered_while_a_twin_fit_is_in_progress(
     start_controller_factory: Callable[..., ControllerProcess], tmp_path: Path
 ) -> None:
     hold = tmp_path / "release-twin-fits"
-    ctl = start_controller_factory(python_code=controller_code(hold),
-                                   extra_args=(*RIG_ARGS, "--no-watch"))
+    ctl = _held_controller(start_controller_factory, hold)
     with Client(ctl.endpoint, ctl.rig) as c:
-        c.wait_ready(ctl, timeout_s=300.0)
-        first = _adopt(c, _record((0.0, 180.0)))
-        assert first.ok, first.message
+        first = _first_fit_held(c, ctl, hold)
         v1 = first.record.version
         assert f"being built for plant knowledge v{v1}" in first.twin_note, first.twin_note
         # The fit of v1 is in progress (held in its worker) ...
-        assert wait_until(lambda: v1 in _started(hold), timeout_s=600.0), ctl.log()
         got = _knowledge(c)
         assert got is None or "being built" in got.twin_note, got
 
@@ -123,12 +136,8 @@ def test_a_stop_does_not_wait_for_a_twin_fit_in_progress(
     fit's worker killed, not waited for (it waited for the job: SIGKILLed after the 10 s of
     test_knowledge's stop under load). The deadline is generous: the hold lasts 900 s."""
     hold = tmp_path / "never-released"
-    ctl = start_controller_factory(python_code=controller_code(hold),
-                                   extra_args=(*RIG_ARGS, "--no-watch"))
+    ctl = _held_controller(start_controller_factory, hold)
     with Client(ctl.endpoint, ctl.rig) as c:
-        c.wait_ready(ctl, timeout_s=300.0)
-        reply = _adopt(c, _record((0.0, 180.0)))
-        assert reply.ok, reply.message
-        assert wait_until(lambda: reply.record.version in _started(hold), timeout_s=600.0)
+        _first_fit_held(c, ctl, hold)
     assert ctl.stop(signal.SIGTERM, timeout_s=300.0) == 0, ctl.log()
     assert not hold.exists()  # (the fit was still held when the controller stopped)
