@@ -249,12 +249,8 @@ class ZenohNode:
             with self._ring_lock:
                 self._look_rings()
                 pending = self._ring_pending
-            if pending is not None and not self._relayed(pending[1]):
-                self._raise_pending(pending, None)
-            elif pending is not None:
-                with self._ring_lock:
-                    if self._ring_pending is pending:
-                        self._ring_pending = None
+            if pending is not None:
+                self._settle(pending, self._relayed(pending[1]), None)
 
     def _look_rings(self) -> None:
         """Take the rings' samples (under `_ring_lock`): one the relay has not raised since
@@ -270,15 +266,17 @@ class ZenohNode:
                 and not self.rt.estop_flag[ESTOP_ARRIVAL] > seen):
             self._ring_pending = (got, seen)
 
-    def _raise_pending(self, pending: tuple[Any, int], arrival: int | None) -> None:
-        """Stop the loop for `pending` unless another thread did (or the relay has)."""
+    def _settle(self, pending: tuple[Any, int], relayed: bool, arrival: int | None) -> None:
+        """`pending` settled by one thread only (the fallback's or a request's): dropped if
+        the relay raised it, else the loop stopped for it from here."""
         with self._ring_lock:
             if self._ring_pending is not pending:
-                return
+                return  # another thread settled it
             self._ring_pending = None
-        callback = self._estop_callback
-        assert callback is not None  # declared with the rings
-        callback(pending[0], arrival)
+        if not relayed:
+            callback = self._estop_callback
+            assert callback is not None  # declared with the rings
+            callback(pending[0], arrival)
 
     def estops_before(self, arrival: int) -> None:
         """Before a forwarded request that can move the rig (config, command, identify;
@@ -294,14 +292,8 @@ class ZenohNode:
         with self._ring_lock:
             self._look_rings()
             pending = self._ring_pending
-        if pending is None:
-            return
-        if self.rt.estop_flag[ESTOP_ARRIVAL] > pending[1]:
-            with self._ring_lock:  # the relay raised it meanwhile
-                if self._ring_pending is pending:
-                    self._ring_pending = None
-            return
-        self._raise_pending(pending, arrival - 1)
+        if pending is not None:
+            self._settle(pending, self.rt.estop_flag[ESTOP_ARRIVAL] > pending[1], arrival - 1)
 
     def _relayed(self, since: int) -> bool:
         """Whether the edge process relayed an e-stop that arrived after `since` (waits up to

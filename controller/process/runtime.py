@@ -480,10 +480,8 @@ class Runtime:
         self._ring.ready.set()
 
     def _tick(self, t_s: float) -> None:
-        if self.estop_flag[0]:
-            self._take_estop_flag()
-        if self._estop_request is not None:
-            self._enter_estop(self._estop_request)
+        if self.estop_flag[0] or self._estop_request is not None:
+            self._take_estops()
         if self._fault_request is not None:
             self._enter_fault(self._fault_request)
             self._fault_request = None
@@ -676,12 +674,15 @@ class Runtime:
                 self.fault = self.fault or f"drive stop failed: {exc}"
         self.loop.reset()
 
-    def _take_estop_flag(self) -> None:
-        """A relayed e-stop: the flag cleared before the stamp is read (one raised meanwhile
-        is seen by the next tick; none is lost)."""
+    def _take_estops(self) -> None:
+        """E-stops raised since the last look: the relayed flag (cleared before its stamp is
+        read: one raised meanwhile is seen by the next look; none is lost), then a request."""
         flag = self.estop_flag
-        flag[0] = 0
-        self.estop("estop key", flag[1])
+        if flag[0]:
+            flag[0] = 0
+            self.estop("estop key", flag[1])
+        if self._estop_request is not None:
+            self._enter_estop(self._estop_request)
 
     def _enter_estop(self, source: str) -> None:
         self._estop_request = None
@@ -716,10 +717,8 @@ class Runtime:
         while self._inbox:
             # Raised since this tick's first look (by another process, or a thread): before
             # any request, so a request that arrived after an e-stop is served after it too.
-            if flag[0]:
-                self._take_estop_flag()
-            if self._estop_request is not None:
-                self._enter_estop(self._estop_request)
+            if flag[0] or self._estop_request is not None:
+                self._take_estops()
             t = self._inbox.popleft()
             try:
                 self._serve(t)
