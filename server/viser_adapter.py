@@ -37,7 +37,8 @@ if TYPE_CHECKING:
 
 __all__ = ["IncomingJudge", "connection_of", "control_uuid", "disable_share_url", "drop_upload",
            "filter_incoming", "gated_serve", "input_handle", "live_connections",
-           "messages", "resend_value", "send_prop_to", "set_slider_marks", "set_width_in"]
+           "messages", "removed", "resend_value", "send_prop_to", "set_slider_marks",
+           "set_width_in"]
 
 #: judge(client_id, message, report) -> whether viser may handle the message; `report`: the
 #: call that should count, log and tell (the server-level dispatch; the per-client dispatch of
@@ -186,6 +187,14 @@ def send_prop_to(handle: object, prop: str, value: object,
     message = GuiUpdateMessage(handle._impl.uuid, {prop: value})
     for browser in browsers:
         browser.gui._websock_interface.queue_message(message)
+
+
+def removed(handle: object) -> bool:
+    """Whether viser removed the GUI element (`_impl.removed`; viser has no public reader):
+    removed by `remove()`, or a browser's own element (in a shared tab or folder) whose
+    browser left: viser marks those removed at the disconnect, before the dashboard's
+    disconnect callback runs, and then refuses every assignment to them with RuntimeError."""
+    return bool(_gui_handle(handle)._impl.removed)
 
 
 def resend_value(handle: object, browser: viser.ClientHandle) -> None:

@@ -242,3 +242,31 @@ def test_the_incoming_messages_have_the_fields_the_message_gate_reads() -> None:
         m.ViewerCameraMessage)
     assert {"source_component_uuid", "transfer_uuid"} <= fields(m.FileTransferStartUpload)
     assert {"transfer_uuid"} <= fields(m.FileTransferPart)
+
+
+def test_a_browsers_own_element_is_removed_when_it_leaves(served: tuple[Any, _Seen]) -> None:
+    """A browser's own elements in a shared tab (as each browser's candidate panel is built)
+    are marked removed when that browser leaves, and viser then refuses assignments to them:
+    `removed` reads that mark (what a worker of a closed page checks)."""
+    server, _ = served
+    before = set(server.get_clients())
+    tabs = server.gui.add_tab_group()
+    tab = tabs.add_tab("shared tab")
+    with RawViser(f"ws://127.0.0.1:{server.get_port()}/"):
+        wait_for(lambda: set(server.get_clients()) - before, 20.0, "the client never connected")
+        (client_id,) = set(server.get_clients()) - before
+        browser = server.get_clients()[client_id]
+        with tab:
+            own = browser.gui.add_html("<p>own</p>")
+        assert not viser_adapter.removed(own)
+        own.content = "<p>still here</p>"  # no error while the browser is there
+    wait_for(lambda: viser_adapter.removed(own), 20.0, "the element was never marked removed")
+    with pytest.raises(RuntimeError, match="removed"):
+        own.content = "<p>after</p>"
+    shared = server.gui.add_html("<p>shared</p>")
+    assert not viser_adapter.removed(shared)
+    shared.remove()
+    assert viser_adapter.removed(shared)
+    with pytest.raises(TypeError):
+        viser_adapter.removed(object())
+    tabs.remove()

@@ -5,6 +5,7 @@ Apply is on only when the verdict shown is the present candidate's."""
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -15,7 +16,7 @@ import viser
 from controller.core.config import LoopConfig
 from controller.core.errors import ConfigError
 from controller.core.trajectory import Trajectory
-from server import charts
+from server import charts, viser_adapter
 from server.engine import Evaluation, PreviewResult, TuningEngine
 from server.gui import set_scales
 from server.panels.apply_box import ApplyBox
@@ -26,6 +27,8 @@ from server.panels.widgets import set_html
 from server.workers import LatestWins
 
 __all__ = ["AnalysedCandidate", "CandidateAnalysis"]
+
+log = logging.getLogger(__name__)
 
 
 class AnalysedCandidate(Protocol):
@@ -71,7 +74,7 @@ class CandidateAnalysis:
         self.update_count = 0
         self._worker = LatestWins(self._update, name="tuning-update")
         self._preview_worker = LatestWins(
-            self._run_preview, name="tuning-preview", debounce_s=0.08
+            self._preview, name="tuning-preview", debounce_s=0.08
         )
 
     def build_verdict(self, gui: viser.GuiApi) -> None:
@@ -139,7 +142,33 @@ class CandidateAnalysis:
 
     # -- the workers -------------------------------------------------------------------------
 
+    def page_closed(self) -> bool:
+        """The browser of this panel left: viser removed the panel's elements (the verdict's
+        among them) at the disconnect, and refuses to show anything in them."""
+        return self.built and viser_adapter.removed(self.verdict)
+
     def _update(self, gen: int) -> None:
+        """`_evaluate(gen)`; a run cut short because the page was closed meanwhile (viser's
+        RuntimeError on a removed element) ends quietly: a closed page is normal (the panel
+        is stopped by the disconnect callback, which viser runs after removing its elements).
+        Any other failure, or one while the page is open, is raised (and logged)."""
+        try:
+            self._evaluate(gen)
+        except RuntimeError:
+            if not self.page_closed():
+                raise
+            log.debug("verdict not shown: its page was closed")
+
+    def _preview(self, item: tuple[LoopConfig, LoopConfig, Trajectory]) -> None:
+        """`_run_preview(item)`; a closed page ends it quietly, as `_update`."""
+        try:
+            self._run_preview(item)
+        except RuntimeError:
+            if not self.page_closed():
+                raise
+            log.debug("preview not shown: its page was closed")
+
+    def _evaluate(self, gen: int) -> None:
         p, engine = self.panel, self.panel.engine
         t0 = time.perf_counter()
         try:
