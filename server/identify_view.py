@@ -20,7 +20,12 @@ from controller.core.config import NominalModel
 from controller.core.errors import ConfigError
 from controller.gate.knowledge import MeasuredResponse
 from controller.ident.report import nominal_from_summary
-from controller.ident.result import IdentifyResult, PositionRecord, position_name
+from controller.ident.result import (
+    IdentifyResult,
+    PositionRecord,
+    position_name,
+    position_uncertainty,
+)
 from server import charts
 from server.escape import esc
 
@@ -207,8 +212,10 @@ def view_from_status(
         curves.append(_curve(p.index, p.center_deg, f, mag, ph, std, p.coherence, p.complete))
         if p.complete and f.size >= 2:
             resp = (10.0 ** (mag / 20.0) * np.exp(1j * np.radians(ph))).astype(np.complex128)
+            unc = position_uncertainty(p.freq_hz, p.coherence, p.mag_std_db, p.phase_std_deg)
             measured.append(MeasuredResponse(
-                name=position_name(p.index, p.center_deg), freq_hz=f, response=resp))
+                name=position_name(p.index, p.center_deg), freq_hz=f, response=resp,
+                spread=None if unc is None else np.asarray(unc, dtype=np.float64)))
     complete = st.state == "done" and bool(st.positions) and all(
         p.complete for p in st.positions) and len(st.positions) == n_positions
     fit = _fit_from_summary(summary.get("fit")) if complete else None

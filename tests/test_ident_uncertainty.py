@@ -12,9 +12,11 @@ import pytest
 
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import (
+    COMMISSIONING_BOUND,
     DIVERGENCE_FRACTION,
     UNCERTAINTY_SIGMAS,
     MeasuredResponse,
+    PlantKnowledge,
     position_spread,
 )
 from controller.ident.estimate import FrdEstimate, agreement
@@ -121,3 +123,57 @@ def test_on_the_demo_rig_the_low_point_does_not_decide_the_cut_off() -> None:
     assert 2.0 < res.agreement.first_disagree_hz <= 5.5
     assert res.recommended_cutoff_hz["q31"] is not None
     assert res.recommended_cutoff_hz["q31"] > 1.0
+
+
+def _status_of(out_positions: list, state: str = "done") -> object:
+    """The identification status a controller sends for these offline positions, through the
+    wire (the controller's own column builder)."""
+    from controller import protocol as proto
+    from controller.process.identify_runs import _position_response, _response_columns
+
+    pos = [_position_response(i, p.center_deg, 1, 1, _response_columns(p.estimate))
+           for i, p in enumerate(out_positions)]
+    st = proto.IdentifyStatus(rig="r", state=state, run_id=1, progress=1.0, positions=pos)
+    return proto.decode(proto.encode(st), proto.IdentifyStatus)
+
+
+def test_the_dashboard_and_the_controller_state_the_uncertainty_the_command_line_does() -> None:
+    """The Measure of the guided path adopts the responses from the controller's status
+    (`view_from_status`, `IdentifyRuns.adoptable`): they carried no uncertainty (dashboard)
+    or twice it (controller), so the demo's Measure at 3 positions still capped Q31 at
+    0.113 Hz where `dobtune identify` said the gate's 4.8 Hz. Both now state exactly the
+    estimate's `relative_uncertainty_of`, and with NaN standard deviations the coherence's
+    random error (Bendat & Piersol, n = 1: sqrt(1 - g^2) / (g sqrt 2) in nepers and rad)."""
+    from controller.gate.search import knowledge_spread, recommend
+    from controller.ident.result import position_uncertainty
+    from server.identify_view import view_from_status
+
+    setup = rig_setup(("article-rig",))
+    cfg = LoopConfig().with_(dob_on=False)
+    out = run_offline(IdentifySpec(positions=3), cfg, _Never(),
+                      rig_factory=lambda c, seed: SimRig(setup.params, rate_hz=c.rate_hz,
+                                                         seed=seed, disturbance=setup.torque))
+    assert out.complete and out.result is not None
+    positions = list(out.result.positions)
+    st = _status_of(positions)
+    view = view_from_status(st, 3, cfg.nominal)  # type: ignore[arg-type]
+    assert len(view.measured) == 3
+    for p, m in zip(positions, view.measured, strict=True):
+        want = relative_uncertainty_of(p.estimate)
+        assert m.spread is not None
+        np.testing.assert_allclose(m.spread, want, rtol=1e-12, atol=1e-15)
+    # the 0.1 Hz point is the uncertain one (friction at small amplitude, noise lines)
+    assert max(float(m.spread[0]) for m in view.measured if m.spread is not None) > 0.1
+    # the recommendation on the dashboard's knowledge is the command line's, not 0.113 Hz
+    kn = PlantKnowledge(measured=view.measured, bound=COMMISSIONING_BOUND)  # as the CLI judges
+    sp = knowledge_spread(kn, cfg.rate_hz)
+    assert sp is not None and sp.divergence_hz is not None and sp.divergence_hz > 2.0
+    rec = recommend(cfg, kn, q_type="q31")
+    assert rec.recommended_hz is not None and rec.recommended_hz > 1.0, rec.describe()
+    # an older sender: no standard deviations, only the coherence
+    g = np.array([0.5, 0.9, 0.99])
+    u = position_uncertainty([1.0, 2.0, 3.0], g.tolist(), [], [])
+    eps = np.sqrt(1 - g) / np.sqrt(2 * g)
+    assert u is not None
+    np.testing.assert_allclose(u, np.hypot(eps, eps), rtol=1e-12)
+    assert position_uncertainty([1.0, 2.0], [], [], []) is None

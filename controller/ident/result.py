@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from controller.core.arrays import FloatArray, IntArray
 from controller.core.config import LoopConfig, NominalModel
@@ -223,12 +223,39 @@ def relative_uncertainty_of(est: FrdEstimate) -> FloatArray:
     """The estimate's relative standard uncertainty per point, |dH| / |H| = sqrt(e_mag^2 +
     e_phase^2) (nepers and radians), from its magnitude and phase standard deviations (the
     noise lines or the periods), or from its coherence where those are not known."""
-    mag_db, ph_deg = est.mag_std_db, est.phase_std_deg
-    alt_db, alt_deg = coherence_std(est.coherence, np.maximum(est.n_averages, 1))
+    return relative_uncertainty(est.mag_std_db, est.phase_std_deg, est.coherence,
+                                est.n_averages)
+
+
+def relative_uncertainty(
+    mag_std_db: ArrayLike, phase_std_deg: ArrayLike, coherence: ArrayLike,
+    n_averages: ArrayLike = 1,
+) -> FloatArray:
+    """`relative_uncertainty_of` from the columns a status or a file carries (NaN where a
+    standard deviation is not known: the coherence's random error with `n_averages` then)."""
+    mag_db = np.asarray(mag_std_db, dtype=np.float64)
+    ph_deg = np.asarray(phase_std_deg, dtype=np.float64)
+    alt_db, alt_deg = coherence_std(coherence, np.maximum(n_averages, 1))
     mag_db = np.where(np.isfinite(mag_db), mag_db, alt_db)
     ph_deg = np.where(np.isfinite(ph_deg), ph_deg, alt_deg)
     u = np.hypot(mag_db * math.log(10.0) / 20.0, np.radians(ph_deg))
     return np.asarray(np.nan_to_num(u, nan=0.0, posinf=1.0), dtype=np.float64)
+
+
+def position_uncertainty(
+    freq_hz: Sequence[float], coherence: Sequence[float], mag_std_db: Sequence[float],
+    phase_std_deg: Sequence[float],
+) -> list[float] | None:
+    """`relative_uncertainty` of one position's columns as an identification status carries
+    them (a std list empty from an older sender: the coherence's error then; None when the
+    coherence is missing too)."""
+    n = len(freq_hz)
+    if len(coherence) != n:
+        return None
+    nan = [math.nan] * n
+    mag = mag_std_db if len(mag_std_db) == n else nan
+    ph = phase_std_deg if len(phase_std_deg) == n else nan
+    return [float(x) for x in relative_uncertainty(mag, ph, coherence)]
 
 
 def continuous_equivalent(est: FrdEstimate, rate_hz: float) -> FrdEstimate:

@@ -20,6 +20,7 @@ from controller import protocol as proto
 from controller.core.config import LoopConfig
 from controller.gate.knowledge import MeasuredRecord
 from controller.ident.program import ExcitationProgram
+from controller.ident.result import position_uncertainty
 from controller.process.analysis_worker import AnalysisWorker
 
 __all__ = ["IdentifyJob", "IdentifyRuns", "identify_analysis", "identify_segments"]
@@ -237,7 +238,8 @@ class IdentifyRuns:
 
     def adoptable(self, run_id: int | None) -> list[MeasuredRecord]:
         """The measured responses of finished run `run_id`, one per complete position, as
-        plant knowledge (spread: twice the per-point standard deviation, relative). Raises
+        plant knowledge (spread: the relative standard uncertainty per point, as `dobtune
+        identify` states it; the position spread judges against twice that). Raises
         ValueError saying why there is nothing to adopt."""
         job = self.job
         if job is None or job.run_id != run_id:
@@ -252,11 +254,7 @@ class IdentifyRuns:
             mag = 10.0 ** (np.asarray(p.mag_db) / 20.0)
             ph = np.radians(np.asarray(p.phase_deg))
             h = mag * np.exp(1j * ph)
-            spread = None
-            if len(p.mag_std_db) == len(p.freq_hz) and len(p.phase_std_deg) == len(p.freq_hz):
-                rel = np.hypot(np.log(10.0) / 20.0 * np.asarray(p.mag_std_db),
-                               np.radians(np.asarray(p.phase_std_deg)))
-                spread = np.where(np.isfinite(rel), 2.0 * rel, 0.0).tolist()
+            spread = position_uncertainty(p.freq_hz, p.coherence, p.mag_std_db, p.phase_std_deg)
             out.append(MeasuredRecord(
                 name=f"run {run_id} position {p.index} ({p.center_deg:.4g} deg)",
                 freq_hz=list(p.freq_hz), re=h.real.tolist(), im=h.imag.tolist(),
