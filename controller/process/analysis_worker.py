@@ -27,7 +27,7 @@ from controller.core.verdict import Verdict
 from controller.gate.knowledge import KnowledgeRecord
 from controller.process.worker_start import worker_init
 
-__all__ = ["AnalysisWorker", "clear_caches", "gate", "gate_and_build", "judged"]
+__all__ = ["AnalysisWorker", "WorkerStopped", "clear_caches", "gate", "gate_and_build", "judged"]
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +136,11 @@ def _warm_up() -> None:
     freeze_startup_heap()
 
 
+class WorkerStopped(RuntimeError):
+    """The job was cut short because its worker was stopped (`close(wait=False)`: the
+    controller stops): not a failure of the job or of the worker."""
+
+
 class AnalysisWorker:
     """Runs the gate and other heavy work in a worker process (default) or in the caller."""
 
@@ -164,6 +169,8 @@ class AnalysisWorker:
         #: The worker has been given its first job (`prime` is worth it only before).
         self._primed = False
         self._lock = threading.Lock()
+        #: `close(wait=False)` killed the worker: a job it cut short raises WorkerStopped.
+        self._stopped = False
 
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
@@ -262,6 +269,11 @@ class AnalysisWorker:
                 self._fresh = False
                 return result
             except Exception as exc:
+                if self._stopped:
+                    log.info("analysis worker: %s stopped with the controller",
+                             getattr(fn, "__name__", fn))
+                    raise WorkerStopped(
+                        f"{getattr(fn, '__name__', fn)}: stopped with the controller") from exc
                 log.warning(
                     "analysis worker: %s failed (%s: %s); worker killed",
                     getattr(fn, "__name__", fn),
@@ -286,6 +298,7 @@ class AnalysisWorker:
         without it the worker is killed at once (the twin's fit: minutes on a busy machine,
         of no use to a controller that stops; its caller gets the worker's failure)."""
         if not wait:
+            self._stopped = True
             self._warming = None
             self._kill()
             return

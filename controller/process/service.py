@@ -23,7 +23,7 @@ from controller.core.config import LoopConfig
 from controller.core.verdict import Verdict
 from controller.gate.knowledge import KnowledgeRecord
 from controller.process.access import Access
-from controller.process.analysis_worker import AnalysisWorker
+from controller.process.analysis_worker import AnalysisWorker, WorkerStopped
 from controller.process.history import history_reply
 from controller.process.identify_runs import IdentifyRuns
 from controller.process.options import ControllerOptions
@@ -554,6 +554,9 @@ class ControllerService:
             base, label = self._twin_base()
             twin, note = self.twin_worker.call(build_twin, rec, rate_hz, base, label,
                                                timeout_s=TWIN_TIMEOUT_S)
+        except WorkerStopped:  # the controller stops: the fit is of no use now
+            twin, note = None, "no twin: the controller stopped during its fit"
+            log.info("twin of plant knowledge v%d: %s", rec.version, note)
         except Exception as exc:  # a dead or late worker: said in every knowledge reply
             twin, note = None, f"no twin: the twin's worker failed: {type(exc).__name__}: {exc}"
             log.warning("twin of plant knowledge v%d: %s", rec.version, note)
@@ -561,6 +564,9 @@ class ControllerService:
             try:
                 twin = self.twin_worker.call(twin_with_running, twin, recent,
                                              timeout_s=TWIN_TIMEOUT_S)
+            except WorkerStopped:
+                twin, note = None, "no twin: the controller stopped during its fit"
+                log.info("twin of plant knowledge v%d: %s", rec.version, note)
             except Exception as exc:  # the fitted twin kept, with the base rig's nonlinear parts
                 why = (f"friction, backlash and encoder noise: the base rig's: their estimate "
                        f"failed in the twin's worker: {type(exc).__name__}: {exc}")
