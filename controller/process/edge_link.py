@@ -33,6 +33,7 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from controller import protocol as proto
+from controller.process.child_link import CLOSE_S, ChildLink
 from controller.process.edge import (
     CONNECT,
     FORWARDED,
@@ -48,10 +49,6 @@ __all__ = ["EdgeLink", "Oversized", "free_loopback_port"]
 
 log = logging.getLogger(__name__)
 
-#: How long `close` waits for the edge process to end before killing it.
-CLOSE_S = 5.0
-#: The shortest time between two starts of the edge process.
-RESTART_S = 1.0
 #: How long `push` waits for its snapshot to be sent.
 PUSH_WAIT_S = 0.05
 
@@ -78,14 +75,18 @@ class Oversized(bytes):
         return self.size
 
 
-class EdgeLink:
+class EdgeLink(ChildLink):
     """Runs the edge process: `start()` early (it loads and connects beside the controller's
     start-up), `attach(node)` once the node exists (the forwarded requests wait until then)."""
 
+    child_name = "edge process"
+    ready_text = "serving requests"
+    warn_key = "edge"
+
     def __init__(self, spec: EdgeSpec) -> None:
+        super().__init__()
         self.spec = spec
         self.node: Any = None
-        self.service: Any = None
         self.rt: Any = None
         self._handlers: dict[str, Callable[[bytes, Any], bytes]] = {}
         self._snap_lock = threading.Lock()
@@ -98,13 +99,10 @@ class EdgeLink:
         self._pushing: threading.Thread | None = None
         self._proc: Any = None
         self._conns: dict[str, Connection] = {}
-        self._closing = threading.Event()
-        self._started_at = 0.0
         self.ready = threading.Event()
         self.refused: dict[str, int] = {}
         """Requests refused by the budget since the start, by user."""
         self.shed = 0
-        self.restarts = 0
         #: The e-stop flag the relay raises and the tick reads (`controller.process.edge`).
         self.estop_flag = estop_flag()
         #: The e-stop relay process (`controller.process.estop_relay`).
@@ -291,32 +289,15 @@ class EdgeLink:
                 except (OSError, ValueError):
                     return
 
-    def _read_control(self, control: Connection, proc: Any) -> None:
-        while True:
-            try:
-                msg = control.recv()
-            except (EOFError, OSError):
-                break
-            if msg == ("ready",):
-                self.ready.set()
-                log.info("edge process %d serving requests", proc.pid)
-            elif isinstance(msg, tuple) and msg[0] == "refused" and self.service is not None:
-                self._refused(msg[1], msg[2])
-        proc.join(CLOSE_S)
-        if self._closing.is_set():
-            return
-        # The edge process died: requests go unanswered until it is back (the e-stops are
-        # the relay's, `estop_relay`).
-        self.ready.clear()
-        self.restarts += 1
-        text = f"edge process ended (exit code {proc.exitcode}); started again"
-        if self.service is not None:
-            self.service.warn(text, key="edge")
-        else:
-            log.warning("%s", text)
-        wait = RESTART_S - (time.monotonic() - self._started_at)
-        if wait > 0 and self._closing.wait(wait):
-            return
+    @property
+    def ready_event(self) -> threading.Event:
+        return self.ready
+
+    def on_message(self, msg: tuple[Any, ...]) -> None:
+        if msg[0] == "refused":
+            self._refused(msg[1], msg[2])
+
+    def restart(self) -> None:
         self.start()
 
     def _refused(self, refused: dict[str, int], shed: int) -> None:

@@ -30,35 +30,31 @@ import time
 from multiprocessing.connection import Connection
 from typing import Any
 
+from controller.process.child_link import CLOSE_S, ChildLink
 from controller.process.edge import CONNECT, EdgeSpec, edge_main
 
 __all__ = ["RelayLink"]
 
 log = logging.getLogger(__name__)
 
-#: How long `close` waits for the relay process to end before killing it.
-CLOSE_S = 5.0
-#: The shortest time between two starts of the relay process.
-RESTART_S = 1.0
-
-
-class RelayLink:
+class RelayLink(ChildLink):
     """Runs the e-stop relay process: `launch()` (the process) then `watch()` (the thread
     that reads it), so that a first start forks before any thread of the caller's exists."""
 
+    child_name = "e-stop relay process"
+    ready_text = "relaying e-stops"
+    warn_key = "estop-relay"
+
     def __init__(self, spec: EdgeSpec, flag: Any) -> None:
+        super().__init__()
         self.spec = spec
         self.flag = flag
-        self.service: Any = None
         self.relaying = threading.Event()
         """Set while the relay process takes e-stops (the node's fallback waits for it)."""
-        self.restarts = 0
         self._proc: Any = None
         self._control: Connection | None = None
         self._control_lock = threading.Lock()
         self._connect = False
-        self._closing = threading.Event()
-        self._started_at = 0.0
 
     @property
     def pid(self) -> int | None:
@@ -116,31 +112,15 @@ class RelayLink:
             with contextlib.suppress(OSError):
                 control.close()
 
-    def _read_control(self, control: Connection, proc: Any) -> None:
-        while True:
-            try:
-                msg = control.recv()
-            except (EOFError, OSError):
-                break
-            if msg == ("ready",):
-                self.relaying.set()
-                log.info("e-stop relay process %d relaying e-stops", proc.pid)
-            elif isinstance(msg, tuple) and msg[0] == "estop" and self.service is not None:
-                self._estops(msg[1])
-        proc.join(CLOSE_S)
-        self.relaying.clear()
-        if self._closing.is_set():
-            return
-        # E-stops reach the node's fallback (`ZenohNode._estop_fallback`) meanwhile.
-        self.restarts += 1
-        text = f"e-stop relay process ended (exit code {proc.exitcode}); started again"
-        if self.service is not None:
-            self.service.warn(text, key="estop-relay")
-        else:
-            log.warning("%s", text)
-        wait = RESTART_S - (time.monotonic() - self._started_at)
-        if wait > 0 and self._closing.wait(wait):
-            return
+    @property
+    def ready_event(self) -> threading.Event:
+        return self.relaying
+
+    def on_message(self, msg: tuple[Any, ...]) -> None:
+        if msg[0] == "estop":
+            self._estops(msg[1])
+
+    def restart(self) -> None:
         self.launch()
         self.watch()
 
