@@ -174,17 +174,21 @@ def set_width_in(browser: viser.ClientHandle, panel: viser.PanelHandle,
 
 
 def send_prop_to(handle: object, prop: str, value: object,
-                 browsers: Iterable[viser.ClientHandle]) -> None:
+                 browsers: Iterable[viser.ClientHandle],
+                 wire: Callable[[object], object] | None = None) -> None:
     """A GUI handle's property `prop` set here (cast as viser casts it) and sent to `browsers`
     only, where an assignment goes to every browser (and stays in viser's buffer for later
     ones): `_cast_value_recursive`, `_prop_hints`, `_impl.props`, `_impl.uuid`,
-    `viser._messages.GuiUpdateMessage` and each browser GUI's `_websock_interface`."""
+    `viser._messages.GuiUpdateMessage` and each browser GUI's `_websock_interface`.
+    `wire(value)`: what the message carries instead of the value kept here (e.g. float32
+    copies of float64 arrays: viser's messages carry an array's dtype and its page makes a
+    typed array of it)."""
     from viser._messages import GuiUpdateMessage
 
     handle = _gui_handle(handle)
     value = handle._cast_value_recursive(handle._prop_hints[prop], value, prop)
     setattr(handle._impl.props, prop, value)
-    message = GuiUpdateMessage(handle._impl.uuid, {prop: value})
+    message = GuiUpdateMessage(handle._impl.uuid, {prop: value if wire is None else wire(value)})
     for browser in browsers:
         browser.gui._websock_interface.queue_message(message)
 

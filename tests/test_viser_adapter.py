@@ -157,6 +157,37 @@ def test_a_property_goes_to_the_browsers_named_and_is_kept_here(
     chart.remove()
 
 
+def test_a_property_may_go_as_another_value_than_is_kept_here(
+    served: tuple[Any, _Seen], raw: tuple[RawViser, Any]
+) -> None:
+    """`wire`: the message carries float32 arrays (their dtype named, as the page decodes
+    them: viser's BinaryMessageDecode makes a Float32Array of "<f4"), the value kept here is
+    viser's float64 cast."""
+    import viser.uplot
+
+    server, _ = served
+    c, browser = raw
+    chart = server.gui.add_uplot(data=(np.arange(3.0), np.zeros(3)),
+                                 series=(viser.uplot.Series(label="x"),
+                                         viser.uplot.Series(label="y")))
+    uuid = viser_adapter.control_uuid(chart)
+    viser_adapter.send_prop_to(chart, "data", (np.arange(4.0), np.full(4, 0.1)), [browser],
+                               wire=lambda v: tuple(np.asarray(a, np.float32) for a in v))
+    got: list[Any] = []
+
+    def came() -> bool:
+        got[:] = [m for m in c.messages if m["type"] == "GuiUpdateMessage"
+                  and m["uuid"] == uuid and "data" in m["updates"]]
+        return bool(got)
+
+    c.pump_until(came, 20.0, "the chart's data never came")
+    assert [a["dtype"] for a in got[0]["updates"]["data"]] == ["<f4", "<f4"]
+    kept = chart.data
+    assert all(np.asarray(a).dtype == np.float64 for a in kept)
+    assert np.asarray(kept[1])[0] == 0.1  # not rounded to float32 (0.100000001...)
+    chart.remove()
+
+
 def test_slider_marks_change_after_creation(served: tuple[Any, _Seen],
                                             raw: tuple[RawViser, Any]) -> None:
     server, _ = served
