@@ -63,6 +63,9 @@ _advance = sim_rig.advance_tick
 _STATE = ("pos_int", "e_pos_prev", "cv_int", "e_speed_prev", "u_prev", "w_prev", "d_hat",
           "speed_ref_deg_s", "speed_error_deg_s")
 _COEFFS = ("_pos_kp", "_pos_half", "_ff", "_cv_kp", "_cv_half", "_limit", "_dob_on")
+#: The trajectory code of a recorded reference: the kernel reads it per tick.
+RECORDED = -1
+_NO_REF = np.empty(0)
 #: Rows of the output array.
 ROWS = ("ref_deg", "pos_deg", "speed_deg_s", "speed_ref_deg_s", "command_deg_s", "d_hat_deg_s")
 
@@ -104,11 +107,12 @@ def _make_kernel(digest: str) -> Callable[..., Any]:
         x: FloatArray, p: FloatArray, noise: FloatArray, torque: FloatArray, tr: FloatArray,
         k0: int, rp: FloatArray, st: FloatArray, co: FloatArray, f1c: FloatArray,
         f1s: FloatArray, f2c: FloatArray, f2s: FloatArray, cfc: FloatArray, cfs: FloatArray,
-        rd: FloatArray, out: FloatArray, j0: int, n: int,
+        rd: FloatArray, out: FloatArray, j0: int, n: int, ref_in: FloatArray,
+        rate_in: FloatArray,
     ) -> None:
         if len(digest) == 0:  # the digest only keys numba's cache
             raise ValueError("no source digest")
-        kind = int(tr[0])
+        kind = int(tr[0])  # RECORDED: the reference and its rate per tick from ref_in, rate_in
         amp, om, off, slope, t_step, period = tr[1], tr[2], tr[3], tr[4], tr[5], tr[6]
         ramp_on = rp[0] != 0.0
         ramp_pos, ramp_speed = rp[1], rp[2]
@@ -122,7 +126,11 @@ def _make_kernel(digest: str) -> Callable[..., Any]:
         cfn = len(cfc) // 5
         pos, w = rd[0], rd[1]
         for i in range(n):
-            ref, ref_rate = _trajectory_at(kind, amp, om, off, slope, t_step, (k0 + i) * period)
+            if kind == RECORDED:
+                ref, ref_rate = ref_in[i], rate_in[i]
+            else:
+                ref, ref_rate = _trajectory_at(kind, amp, om, off, slope, t_step,
+                                               (k0 + i) * period)
             if ramp_on:
                 ref, ramp_pos, ramp_speed, ramp_on = _ramp_step(
                     ramp_pos, ramp_speed, ref, ref_rate, ramp_period, ramp_vmax, ramp_amax)
@@ -151,49 +159,6 @@ def _make_kernel(digest: str) -> Callable[..., Any]:
         rd[1] = w
 
     return numba.njit(cache=True)(kernel)  # type: ignore[no-any-return]
-
-
-def _make_ref_kernel(digest: str) -> Callable[..., Any]:
-    """`kernel` with the reference and its rate given per tick (a recorded reference)."""
-
-    def ref_kernel(
-        x: FloatArray, p: FloatArray, noise: FloatArray, torque: FloatArray, ref_in: FloatArray,
-        rate_in: FloatArray, st: FloatArray, co: FloatArray, f1c: FloatArray, f1s: FloatArray,
-        f2c: FloatArray, f2s: FloatArray, cfc: FloatArray, cfs: FloatArray, rd: FloatArray,
-        out: FloatArray,
-    ) -> None:
-        if len(digest) == 0:  # the digest only keys numba's cache
-            raise ValueError("no source digest")
-        pos_int, e_pos_prev, cv_int, e_speed_prev = st[0], st[1], st[2], st[3]
-        u_prev, w_prev, d_hat, sref, serr = st[4], st[5], st[6], st[7], st[8]
-        pos_kp, pos_half, ff, cv_kp, cv_half, limit = co[0], co[1], co[2], co[3], co[4], co[5]
-        dob_on = co[6] != 0.0
-        f1n = len(f1c) // 5
-        f2n = len(f2c) // 5
-        cfn = len(cfc) // 5
-        pos, w = rd[0], rd[1]
-        for j in range(len(ref_in)):
-            ref = ref_in[j]
-            u, d_hat, sref, serr, pos_int, cv_int, e_pos_prev = _servo_law(
-                ref, rate_in[j], pos, w, pos_int, e_pos_prev, pos_kp, pos_half, ff, u_prev,
-                cv_int, e_speed_prev, cv_kp, cv_half, limit, dob_on, f1c, f1s, f1n, f2c, f2s,
-                f2n, cfc, cfs, cfn)
-            e_speed_prev = serr
-            u_prev = u
-            w_prev = w
-            out[0, j] = ref
-            out[1, j] = pos
-            out[2, j] = w
-            out[3, j] = sref
-            out[4, j] = u
-            out[5, j] = d_hat
-            pos, w = _advance(x, p, u, torque[j], noise[j])
-        st[0], st[1], st[2], st[3] = pos_int, e_pos_prev, cv_int, e_speed_prev
-        st[4], st[5], st[6], st[7], st[8] = u_prev, w_prev, d_hat, sref, serr
-        rd[0] = pos
-        rd[1] = w
-
-    return numba.njit(cache=True)(ref_kernel)  # type: ignore[no-any-return]
 
 
 def _make_speed_kernel(digest: str, period: Callable[..., float]) -> Callable[..., Any]:
@@ -256,7 +221,6 @@ def _make_torque_sampler(digest: str) -> Callable[..., Any]:
 _DIGEST = _compiled_in((_servo_law, _speed_law, _trajectory_at, _ramp_step, _advance,
                         backlash_period, linear_period, flat_torque))
 _kernel = _make_kernel(_DIGEST)
-_ref_kernel = _make_ref_kernel(_DIGEST)
 _sample_torques = _make_torque_sampler(_DIGEST)
 _speed_kernels = {rig: _make_speed_kernel(_DIGEST, rig.period)
                   for rig in (BacklashRig, LinearRig)}
@@ -425,7 +389,7 @@ def run_ticks(
         noise = base.take_noise(m)
         rd = np.array(base.read())
         _kernel(base._x, base._p, noise, torque, tr, traj_tick + done, rp, st, co, f1c, f1s,
-                f2c, f2s, cfc, cfs, rd, out.out, at + done, m)
+                f2c, f2s, cfc, cfs, rd, out.out, at + done, m, _NO_REF, _NO_REF)
         base.advanced(m, float(rd[0]), float(rd[1]))
         if isinstance(rig, ScheduledRig):
             rig.tick += m
@@ -461,8 +425,9 @@ def run_ref_ticks(loop: ServoLoop, rig: SimRig, ref_deg: FloatArray,
     torque = _torques(rig, None if d is None else flatten(d), n)
     noise = rig.take_noise(n)
     rd = np.array(rig.read())
-    _ref_kernel(rig._x, rig._p, noise, torque, ref, rate, st, co, f1c, f1s, f2c, f2s, cfc, cfs,
-                rd, out.out)
+    tr = np.array([float(RECORDED), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    _kernel(rig._x, rig._p, noise, torque, tr, 0, np.zeros(6), st, co, f1c, f1s, f2c, f2s, cfc,
+            cfs, rd, out.out, 0, n, ref, rate)
     rig.advanced(n, float(rd[0]), float(rd[1]))
     _loop_back(loop, st, f1s, f2s, cfs)
     return out
