@@ -5,15 +5,16 @@ not a test.
         [--only timing,normal,changes,trendweek|offline] [--trajectories sine,step,ramp,hold]
         [--changes stiffness,inertia,motor_friction,gain,resonance]
 
-- timing: the loop's tick compute p99 (each Status's, ~2 Hz) in windows of `--timing-s`
-  (default 15): `--timing-rounds` blocks (default 10), each a window without the watch and
-  one with it at each `--timing-priorities` (default low; `low,idle` compares both), in a
-  random order (`--seed`), in the same controller run. Per block, with minus without: the
-  paired differences' median with its sign-test 95 % interval, bootstrap intervals of median
-  and mean, and whether that is within `--target-us` (0.5) at 95 %; the watch's CPU share.
-  `--only timing` alone: `.venv/bin/python tests/bench/bench_watch.py --only timing`
-  (10 blocks of one arm: about 8 minutes; not niced: the controller it starts inherits the
-  niceness).
+- timing: the loop's tick compute p99 with and without the watch, in the same controller run,
+  from every tick's compute time (the controller runs with a probe on its timing history,
+  tests/bench/tick_probe.py). `--timing-rounds` blocks (default 6) of four windows of
+  `--timing-s` (default 15): without, with, with, without the watch (one `dobtune watch
+  --priority --timing-priority` per block, measured from its first fitted window on, stopped
+  and exited before the last window). Printed: the pooled p50/p99/p99.9 of all ticks per arm,
+  with minus without, and its 95 % interval from a bootstrap over whole blocks (windows near in
+  time share the load), and whether the p99's interval lies within +-`--target-us` (0.5).
+  `nice -n 10 .venv/bin/python tests/bench/bench_watch.py --only timing` (about 8 minutes;
+  the loop's thread is SCHED_FIFO whatever the niceness).
 - normal: `--seconds` of normal running per demo trajectory with the watch on: alarms raised
   (false alarms), the parts' estimates and how many windows told each.
 - changes: each plant change of the issue on the running rig (belt stiffness -40 %, inertia
@@ -31,7 +32,6 @@ The controller runs with --realtime-priority as on a rig; report `uptime` beside
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import subprocess
 import sys
@@ -45,7 +45,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: helpers, for procs
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
 
+import tick_probe
 from procs import Client, start_controller
+from tick_probe import Probe, block_bootstrap, histogram
 
 from controller import protocol as proto
 from controller.core.trajectory import default_trajectory
@@ -62,6 +64,10 @@ CHANGES = (
 )
 #: The extra mode the rig gets (a sim_fault) before the resonance's change, and the watch is
 #: told of (`--resonance-hz`: there is no twin): a payload mode at 30 Hz, damping 0.05.
+#: After the watch has exited, before the next window without it.
+SETTLE_S = 2.0
+#: After the controller is ready, before the first window.
+WARMUP_S = 15.0
 MODE = proto.SimFault(resonance_hz=30.0, resonance_damping=0.05)
 BACK = (proto.SimDrift(), proto.SimFault())
 
@@ -147,92 +153,83 @@ def _uptime() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
 
-def _paired(d: np.ndarray, target_us: float, rng: np.random.Generator) -> str:
-    """The paired differences' median and mean with 95 % intervals (the sign test's for the
-    median, distribution-free; a bootstrap's for both), and the one-sided sign test of "the
-    cost is at least `target_us`" (pairs below the target, and its p)."""
-    n = d.size
-    srt = np.sort(d)
-    # Sign-test interval: [d_(k), d_(n-k+1)], k the largest with P(Bin(n, 1/2) <= k-1) <= 2.5 %.
-    cdf = np.cumsum([math.comb(n, i) for i in range(n + 1)]) / 2.0**n
-    k = int(np.sum(cdf <= 0.025))
-    sign_ci = (f"[{srt[k - 1]:+.2f}, {srt[n - k]:+.2f}] us (sign test, "
-               f"{100 * (1 - 2 * cdf[k - 1]):.1f} %)" if k >= 1 else
-               "none (the sign test needs 6 pairs for 95 %)")
-    boot = rng.choice(d, size=(20000, n), replace=True)
-    med_ci = np.percentile(np.median(boot, axis=1), [2.5, 97.5])
-    mean_ci = np.percentile(boot.mean(axis=1), [2.5, 97.5])
-    below = int(np.sum(d < target_us))
-    p = float(sum(math.comb(n, i) for i in range(below, n + 1)) / 2.0**n)
-    hi = srt[n - k] if k >= 1 else float("inf")
-    lo = srt[k - 1] if k >= 1 else float("-inf")
-    verdict = ("within the target at 95 % (the interval's top is below it)" if hi <= target_us
-               else "above the target at 95 % (the interval's bottom is above it)"
-               if lo > target_us else "not decided at 95 % (the interval spans the target)")
-    return (f"median {np.median(d):+.2f} us, 95 % interval {sign_ci}, bootstrap "
-            f"[{med_ci[0]:+.2f}, {med_ci[1]:+.2f}] us; mean {d.mean():+.2f} us, bootstrap 95 % "
-            f"[{mean_ci[0]:+.2f}, {mean_ci[1]:+.2f}] us; {below} of {n} pairs below "
-            f"+{target_us:g} us (one-sided sign test of a cost of at least {target_us:g} us: "
-            f"p = {p:.3g}); {verdict}")
-
-
-def _timing(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tmp: Path
-            ) -> None:
-    """Blocks (`--timing-rounds`) of one window of `--timing-s` without the watch and one with
-    it at each `--timing-priorities`, in a random order within each block (seeded), all in
-    the same controller run. A window's figure is the median of its Status intervals' compute
-    p99; with the watch, the window starts at its first fitted window (loaded and fitting).
-    The load drifts over minutes: each window with the watch is paired with the window without
-    it in the same block, and the paired differences get 95 % intervals (`_paired`)."""
+def _timing(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tmp: Path,
+            probe: Probe) -> None:
+    """`--timing-rounds` blocks, each four windows of `--timing-s` in the order without, with,
+    with, without (symmetric in time: a load drifting linearly over the block weighs on both
+    arms alike), all in the same controller run. Per window the controller's own per-tick
+    compute times (`tick_probe`), all of them, not the statuses' p99s. With the watch: one
+    `dobtune watch` process per block, started after the first window and measured from its
+    first fitted window on (loaded and fitting); stopped (exited) after the third, then
+    `SETTLE_S` before the fourth. The figure: the p99 of all ticks with the watch minus that of
+    all ticks without it, with a 95 % interval from a bootstrap over whole blocks (windows near
+    in time share the load; resampling blocks keeps that dependence in)."""
     rng = np.random.default_rng(args.seed)
-    arms = ["without", *args.timing_priorities.split(",")]
-    rows: list[tuple[int, str, float]] = []
-    cpus: dict[str, list[tuple[float, int]]] = {a: [] for a in arms[1:]}
-    k = 0
+    hists: dict[str, list[np.ndarray]] = {"without": [], "with": []}
+    win_p99: dict[str, list[float]] = {"without": [], "with": []}
+    cpus: list[float] = []
+    starts: list[float] = []
+    t_start = time.monotonic()
+
+    def window(arm: str) -> np.ndarray:
+        i0 = len(heard.statuses)
+        probe.mark()
+        time.sleep(args.timing_s)
+        x = probe.dump()
+        modes = {s.mode for s in heard.statuses[i0:]}
+        if modes != {"running"}:
+            raise SystemExit(f"the loop was not only running in a window: {modes}")
+        win_p99[arm].append(float(np.percentile(x, 99)))
+        print(f"    {arm:7s} {x.size} ticks: p50 {np.percentile(x, 50):.1f} p99 "
+              f"{win_p99[arm][-1]:.1f} p99.9 {np.percentile(x, 99.9):.1f} us; load "
+              f"{os.getloadavg()[0]:.1f}", flush=True)
+        return x
+
+    time.sleep(WARMUP_S)  # the controller's start-up work (its workers' first jobs) done
     for block in range(args.timing_rounds):
-        for arm in rng.permutation(arms):
-            k += 1
-            watch = None
-            if arm != "without":
-                watch = Watch(endpoint, args.window_s, None, tmp / "watch-timing.log",
-                              priority=str(arm))
-                s0 = len(heard.states)
-                deadline = time.monotonic() + 300.0
-                while len(heard.states) <= s0 and time.monotonic() < deadline:
-                    if watch.proc.poll() is not None:
-                        raise SystemExit(f"the watch exited ({watch.proc.returncode}): see "
-                                         f"{tmp / 'watch-timing.log'}")
-                    time.sleep(0.2)  # measured from its first window on: loaded and fitting
-                if len(heard.states) <= s0:
-                    raise SystemExit("the watch fitted no window within 300 s")
-                cpu0, t0, w0 = watch.cpu_s(), time.monotonic(), len(heard.states)
-            i0 = len(heard.statuses)
-            time.sleep(args.timing_s)
-            p = np.asarray(heard.p99s(i0))
-            rows.append((block, str(arm), float(np.median(p)) if p.size else float("nan")))
-            extra = ""
-            if watch is not None:
-                cpu = (watch.cpu_s() - cpu0) / (time.monotonic() - t0)
-                cpus[str(arm)].append((cpu, len(heard.states) - w0))
-                watch.stop()
-                extra = (f"; watch CPU {100 * cpu:.1f} % of one core ({cpus[str(arm)][-1][1]} "
-                         f"windows fitted)")
-            print(f"  block {block + 1}/{args.timing_rounds} window {k}: {arm:7s} p99 "
-                  f"{rows[-1][2]:.1f} us (median of {p.size} status intervals' p99){extra}; "
-                  f"load {os.getloadavg()[0]:.1f}", flush=True)
-    for arm in arms:
-        a = np.array([v for _, ar, v in rows if ar == arm])
-        name = "without the watch" if arm == "without" else f"with the watch ({arm})"
-        print(f"tick compute p99 {name}: median of {a.size} windows of {args.timing_s:g} s "
-              f"{np.median(a):.2f} us (windows {np.min(a):.1f}-{np.max(a):.1f} us)")
-    without = {b: v for b, ar, v in rows if ar == "without"}
-    for arm in arms[1:]:
-        d = np.array([v - without[b] for b, ar, v in rows if ar == arm])
-        print(f"with ({arm}) minus without, paired within each block: "
-              f"{_paired(d, args.target_us, rng)}")
-        ws = [w for _, w in cpus[arm]]
-        print(f"watch ({arm}) CPU: median {100 * np.median([c for c, _ in cpus[arm]]):.1f} % "
-              f"of one core ({sum(ws)} windows fitted in {len(ws)} x {args.timing_s:g} s)")
+        print(f"  block {block + 1}/{args.timing_rounds} ({time.monotonic() - t_start:.0f} s)",
+              flush=True)
+        a = [window("without")]
+        t_w = time.monotonic()
+        watch = Watch(endpoint, args.window_s, None, tmp / "watch-timing.log",
+                      priority=args.timing_priority)
+        s0 = len(heard.states)
+        deadline = time.monotonic() + 300.0
+        while len(heard.states) <= s0 and time.monotonic() < deadline:
+            if watch.proc.poll() is not None:
+                raise SystemExit(f"the watch exited ({watch.proc.returncode}): see "
+                                 f"{tmp / 'watch-timing.log'}")
+            time.sleep(0.2)
+        if len(heard.states) <= s0:
+            raise SystemExit("the watch fitted no window within 300 s")
+        starts.append(time.monotonic() - t_w)
+        cpu0, t0 = watch.cpu_s(), time.monotonic()
+        b = [window("with"), window("with")]
+        cpus.append((watch.cpu_s() - cpu0) / (time.monotonic() - t0))
+        watch.stop()
+        time.sleep(SETTLE_S)
+        a.append(window("without"))
+        hists["without"].append(histogram(np.concatenate(a)))
+        hists["with"].append(histogram(np.concatenate(b)))
+    wh, woh = np.array(hists["with"]), np.array(hists["without"])
+    print(f"{args.timing_rounds} blocks, {2 * args.timing_rounds} windows of {args.timing_s:g} s "
+          f"per arm ({int(woh.sum())} ticks without, {int(wh.sum())} with), "
+          f"{time.monotonic() - t_start:.0f} s; the watch's start to its first window: median "
+          f"{np.median(starts):.1f} s; its CPU: median {100 * np.median(cpus):.1f} % of one core")
+    for arm in ("without", "with"):
+        v = win_p99[arm]
+        print(f"  windows' p99 {arm:7s}: {min(v):.1f}-{max(v):.1f} us (median {np.median(v):.1f})")
+    for q in (0.5, 0.99, 0.999):
+        w, wo, d, lo, hi = block_bootstrap(wh, woh, q, rng)
+        line = (f"tick compute p{100 * q:g} of all ticks: with the watch {w:.2f} us, without "
+                f"{wo:.2f} us; with minus without {d:+.2f} us, 95 % interval [{lo:+.2f}, "
+                f"{hi:+.2f}] us (bootstrap over {wh.shape[0]} blocks)")
+        if q == 0.99:
+            t = args.target_us
+            line += ("; WITHIN" if -t <= lo and hi <= t else "; NOT within") + (
+                f" +-{t:g} us at 95 %" + ("" if hi <= t else
+                                          f" (the top is {hi - t:+.2f} us past +{t:g})"))
+        print(line)
     print(f"load: {_uptime()}")
 
 
@@ -368,15 +365,13 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--timing-s", type=float, default=15.0,
                     help="timing: seconds per window without or with the watch")
-    ap.add_argument("--timing-rounds", type=int, default=10,
-                    help="timing: blocks, each a window without the watch and one with it at "
-                         "each --timing-priorities, in a random order")
-    ap.add_argument("--timing-priorities", default="low",
-                    help="timing: the watch's --priority in the windows with it "
-                         "(comma-separated: low, idle)")
+    ap.add_argument("--timing-rounds", type=int, default=6,
+                    help="timing: blocks, each windows without, with, with, without the watch")
+    ap.add_argument("--timing-priority", default="low", choices=("low", "idle"),
+                    help="timing: the watch's --priority in the windows with it")
     ap.add_argument("--target-us", type=float, default=0.5,
                     help="timing: the stated bound on the watch's cost to the p99")
-    ap.add_argument("--seed", type=int, default=0, help="timing: the blocks' orders")
+    ap.add_argument("--seed", type=int, default=0, help="timing: the bootstrap's")
     ap.add_argument("--window-s", type=float, default=10.0)
     ap.add_argument("--detect-timeout-s", type=float, default=120.0)
     ap.add_argument("--only", default="timing,normal,changes")
@@ -393,8 +388,12 @@ def main() -> None:
         if args.only == "offline":
             _offline(args)
             return
-        proc = start_controller(tmp / "state", rig=RIG, extra_args=(
-            "--realtime-priority", "--disturbance", "article-rig"))
+        fifo = tmp / "tick-probe"
+        os.mkfifo(fifo)
+        os.environ["DOBTUNE_TICK_PROBE"] = str(fifo)  # the controller's probe reads it
+        proc = start_controller(tmp / "state", rig=RIG, python_code=tick_probe.CODE,
+                                extra_args=("--realtime-priority", "--disturbance",
+                                            "article-rig", "--no-watch"))
         try:
             with Client(proc.endpoint, RIG, timeout_s=30.0) as c:
                 c.wait_ready(proc, timeout_s=600.0)  # start-up: 30-60 s at load 15
@@ -403,7 +402,10 @@ def main() -> None:
                     if what == "trendweek":
                         _trend_week(args, tmp)
                         continue
-                    {"timing": _timing, "normal": _normal, "changes": _changes}[what](
+                    if what == "timing":
+                        _timing(c, heard, proc.endpoint, args, tmp, Probe(fifo, tmp))
+                        continue
+                    {"normal": _normal, "changes": _changes}[what](
                         c, heard, proc.endpoint, args, tmp)
         finally:
             proc.stop()
