@@ -103,6 +103,20 @@ class Watch:
         self._log.close()
 
 
+class Decoy(Watch):
+    """A control for `--only timing`: a process of the watch's niceness that burns `share` of
+    a core (in bursts of 0.1 s) and has no Zenoh session: is a change in the tick the watch's
+    connection to the loop, or only another busy process on the machine?"""
+
+    def __init__(self, share: float) -> None:  # not Watch.__init__: no watch started
+        code = ("import os, time\nos.nice(10)\nwhile True:\n    t = time.perf_counter()\n"
+                f"    while time.perf_counter() - t < 0.1 * {share!r}: pass\n"
+                f"    time.sleep(0.1 * (1 - {share!r}))\n")
+        self._log = open(os.devnull, "ab")  # noqa: SIM115
+        self.proc = subprocess.Popen([sys.executable, "-c", code], stdout=self._log,
+                                     stderr=subprocess.STDOUT)
+
+
 class Heard:
     """Drift states, alarms and statuses received. The callbacks keep the raw bytes; they are
     decoded in the bench's thread (msgspec segfaulted here when two Zenoh threads built the
@@ -169,19 +183,27 @@ def _timing(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tm
     win_p99: dict[str, list[float]] = {"without": [], "with": []}
     cpus: list[float] = []
     starts: list[float] = []
+    missed = {"without": 0, "with": 0}
+    periods: dict[str, list[float]] = {"without": [], "with": []}
     t_start = time.monotonic()
 
     def window(arm: str) -> np.ndarray:
         i0 = len(heard.statuses)
         probe.mark()
         time.sleep(args.timing_s)
-        x = probe.dump()
+        x, period = probe.dump()
+        if args.timing_save:
+            k = sum(len(v) for v in win_p99.values())
+            np.save(Path(args.timing_save) / f"window{k:02d}-{arm}.npy", np.stack([x, period]))
+        missed[arm] += int(np.rint(period.sum() / 1e3)) - period.size  # deadlines given up
+        periods[arm].append(float(np.percentile(np.abs(period - 1e3), 99)))
         modes = {s.mode for s in heard.statuses[i0:]}
         if modes != {"running"}:
             raise SystemExit(f"the loop was not only running in a window: {modes}")
         win_p99[arm].append(float(np.percentile(x, 99)))
         print(f"    {arm:7s} {x.size} ticks: p50 {np.percentile(x, 50):.1f} p99 "
-              f"{win_p99[arm][-1]:.1f} p99.9 {np.percentile(x, 99.9):.1f} us; load "
+              f"{win_p99[arm][-1]:.1f} p99.9 {np.percentile(x, 99.9):.1f} us; start jitter "
+              f"p99 {periods[arm][-1]:.0f} us; load "
               f"{os.getloadavg()[0]:.1f}", flush=True)
         return x
 
@@ -191,16 +213,22 @@ def _timing(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tm
               flush=True)
         a = [window("without")]
         t_w = time.monotonic()
-        watch = Watch(endpoint, args.window_s, None, tmp / "watch-timing.log",
-                      priority=args.timing_priority)
+        watch: Watch | Decoy
+        if args.timing_against == "decoy":
+            watch = Decoy(args.timing_decoy_share)
+            time.sleep(SETTLE_S)
+        else:
+            watch = Watch(endpoint, args.window_s, None, tmp / "watch-timing.log",
+                          priority=args.timing_priority)
         s0 = len(heard.states)
         deadline = time.monotonic() + 300.0
-        while len(heard.states) <= s0 and time.monotonic() < deadline:
+        while (isinstance(watch, Watch) and len(heard.states) <= s0
+               and time.monotonic() < deadline):
             if watch.proc.poll() is not None:
                 raise SystemExit(f"the watch exited ({watch.proc.returncode}): see "
                                  f"{tmp / 'watch-timing.log'}")
             time.sleep(0.2)
-        if len(heard.states) <= s0:
+        if isinstance(watch, Watch) and len(heard.states) <= s0:
             raise SystemExit("the watch fitted no window within 300 s")
         starts.append(time.monotonic() - t_w)
         cpu0, t0 = watch.cpu_s(), time.monotonic()
@@ -218,7 +246,9 @@ def _timing(c: Client, heard: Heard, endpoint: str, args: argparse.Namespace, tm
           f"{np.median(starts):.1f} s; its CPU: median {100 * np.median(cpus):.1f} % of one core")
     for arm in ("without", "with"):
         v = win_p99[arm]
-        print(f"  windows' p99 {arm:7s}: {min(v):.1f}-{max(v):.1f} us (median {np.median(v):.1f})")
+        print(f"  windows' p99 {arm:7s}: {min(v):.1f}-{max(v):.1f} us (median {np.median(v):.1f}); "
+              f"the period's deviation p99 {min(periods[arm]):.0f}-{max(periods[arm]):.0f} us; "
+              f"{missed[arm]} deadlines given up (skipped ticks)")
     for q in (0.5, 0.99, 0.999):
         w, wo, d, lo, hi = block_bootstrap(wh, woh, q, rng)
         line = (f"tick compute p{100 * q:g} of all ticks: with the watch {w:.2f} us, without "
@@ -369,6 +399,12 @@ def main() -> None:
                     help="timing: blocks, each windows without, with, with, without the watch")
     ap.add_argument("--timing-priority", default="low", choices=("low", "idle"),
                     help="timing: the watch's --priority in the windows with it")
+    ap.add_argument("--timing-against", default="watch", choices=("watch", "decoy"),
+                    help="timing: the windows 'with' run the watch, or a decoy process of "
+                         "its niceness burning --timing-decoy-share of a core (a control)")
+    ap.add_argument("--timing-decoy-share", type=float, default=0.1)
+    ap.add_argument("--timing-save", default="",
+                    help="timing: a directory for each window's ticks (compute_us, period_us)")
     ap.add_argument("--target-us", type=float, default=0.5,
                     help="timing: the stated bound on the watch's cost to the p99")
     ap.add_argument("--seed", type=int, default=0, help="timing: the bootstrap's")

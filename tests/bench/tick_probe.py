@@ -90,7 +90,7 @@ class Probe:
         self._send("mark")
 
     def dump(self, timeout_s: float = 120.0) -> np.ndarray:
-        """compute_us of every tick since the last mark, in order."""
+        """(compute_us, period_us) rows of every tick since the last mark, in order."""
         import time
 
         self._k += 1
@@ -105,7 +105,7 @@ class Probe:
         a = np.load(out)
         out.unlink()
         done.unlink()
-        return a[0]
+        return a
 
 
 #: Histogram bins for pooled quantiles: 0.01 us wide up to 1000 us (the last bin: beyond).
