@@ -420,14 +420,15 @@ class TuningEngine:
         with self._plant_lock:
             return self._generation, self.plant
 
-    def with_measured(self, m: MeasuredResponse) -> KnowledgeRecord:
-        """The present knowledge plus `m` (same name replaces), as a record to send to the
+    def with_measured(self, *ms: MeasuredResponse) -> KnowledgeRecord:
+        """The present knowledge plus `ms` (same name replaces), as a record to send to the
         controller for adoption (only the controller's knowledge is ever judged on)."""
         p = self.plant
-        kept = tuple(x for x in p.measured if x.name != m.name)
-        return KnowledgeRecord.of(
-            PlantKnowledge((*kept, m), p.bound, p.model, p.version, f"{p.source} + {m.name}")
-        )
+        names = {m.name for m in ms}
+        kept = tuple(x for x in p.measured if x.name not in names)
+        return KnowledgeRecord.of(PlantKnowledge(
+            (*kept, *ms), p.bound, p.model, p.version,
+            f"{p.source} + {' + '.join(m.name for m in ms)}"))
 
     def position_spread(self) -> PositionSpread | None:
         """The spread between the knowledge's measured responses (None with fewer than two;

@@ -300,3 +300,30 @@ def test_abort_on_the_controller_keeps_partial_data(remote_dash: Dashboard) -> N
     assert not p.use_as_nominal()
     st = remote_dash.client.status
     assert st is not None and st.mode == "stopped"  # the controller holds (stopped); no fault
+
+
+@pytest.mark.integration
+def test_an_identifications_positions_are_adopted_as_one_knowledge(remote_dash: Dashboard) -> None:
+    """Use fit adopts every position's response in one request: one new plant knowledge on
+    the controller (one by one it made a version, a verdict and a twin build per position:
+    v2, v3, v4 after a Measure at 3 positions), with each response and its uncertainty."""
+    from controller.gate.knowledge import MeasuredResponse
+
+    d = remote_dash
+    before = d.client.knowledge().record
+    assert before is not None
+    f = np.geomspace(0.5, 8.0, 6)
+    h = 1.0 / (1.0 + 1j * f / 7.0)
+    ms = [MeasuredResponse(f"identify pos{i}_{120 * i}deg", f, (1.0 + 0.01 * i) * h,
+                           spread=np.full(f.size, 0.02)) for i in range(3)]
+    d.knowledge.add_identified(ms, None)
+    after = d.client.knowledge().record
+    assert after is not None and after.version == before.version + 1
+    got = {m.name: m for m in after.to_knowledge().measured}
+    for m in ms:
+        assert m.name in got
+        np.testing.assert_allclose(got[m.name].response, m.response, rtol=1e-12)
+        assert got[m.name].spread is not None
+        np.testing.assert_allclose(got[m.name].spread, m.spread, rtol=1e-12)
+    assert d.engine.plant.version == after.version
+    assert f"v{after.version}: " in d.knowledge.text.content

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import viser
 
@@ -150,7 +150,7 @@ class IdentifyPanel:
         tuning_for: Callable[[Browser], NominalTuningPanel | None] | None,
         config_fn: Callable[[], LoopConfig] | None = None,
         rig_factory: Callable[[LoopConfig, int], RigLike] | None = None,
-        add_measured: Callable[[MeasuredResponse, Browser], None] | None = None,
+        add_measured: Callable[[Sequence[MeasuredResponse], Browser], None] | None = None,
         client: ControllerClient | None = None,
         client_for: Callable[[Browser, str], ControllerClient] | None = None,
         leased: Leased | None = None,

@@ -6,7 +6,7 @@ and sent only by the Tune tab's Apply."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import viser
 
@@ -21,13 +21,14 @@ EMPTY = "<div class='dt-id-use' style='font-size:12px'></div>"
 
 class UseFit:
     """The button and the line under it, built in `gui` at once. `tuning_for(browser)`: that
-    browser's candidate panel; `add_measured(response, browser)`: a measured response into
+    browser's candidate panel; `add_measured(responses, browser)`: the measured responses into
     the knowledge that browser's candidate is judged on."""
 
     def __init__(
         self, gui: viser.GuiApi,
         tuning_for: Callable[[viser.ClientHandle | None], NominalTuningPanel | None] | None,
-        add_measured: Callable[[MeasuredResponse, viser.ClientHandle | None], None] | None,
+        add_measured: Callable[[Sequence[MeasuredResponse], viser.ClientHandle | None], None]
+        | None,
     ) -> None:
         self._tuning_for = tuning_for
         self._add_measured = add_measured
@@ -54,9 +55,9 @@ class UseFit:
                 "<div class='dt-id-use' style='color:#d62728;font-size:12px'>This browser has "
                 "no tuning candidate to put the fit into.</div>")
             return False
-        if self._add_measured is not None:
-            for m in view.measured:
-                self._add_measured(dataclasses.replace(m, name=f"identify {m.name}"), browser)
+        if self._add_measured is not None and view.measured:
+            self._add_measured([dataclasses.replace(m, name=f"identify {m.name}")
+                                for m in view.measured], browser)
         tuning.set_nominal(view.nominal)
         fit = view.fit
         wn = f" (f<sub>n</sub> {fit.natural_freq_hz:.3f} Hz, &zeta; {fit.zeta:.3f})" if fit else ""

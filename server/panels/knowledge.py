@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import viser
 
@@ -118,35 +118,40 @@ class KnowledgePanel:
             log.warning("measured response %s not used: %s", name, exc)
             self.text.content = _measured_html(f"{esc(name)}: {esc(str(exc))}", error=True)
             return
-        self.adopt(measured, "CSV", browser)
+        self.adopt((measured,), "CSV", browser)
         self._on_changed()
 
-    def add_identified(self, m: MeasuredResponse, browser: Browser = None) -> None:
-        self.adopt(m, "Identify", browser)
+    def add_identified(self, ms: Sequence[MeasuredResponse], browser: Browser = None) -> None:
+        """An identification's responses (one per position), adopted together: one new
+        plant knowledge, judged once (one by one made a version, a verdict and a twin each)."""
+        self.adopt(tuple(ms), "Identify", browser)
 
-    def adopt(self, m: MeasuredResponse, source: str, browser: Browser = None) -> None:
-        """Send the response to the controller for adoption into its plant knowledge: the
-        verdicts (the controller's and this dashboard's) use it once the controller has it."""
+    def adopt(self, ms: tuple[MeasuredResponse, ...], source: str,
+              browser: Browser = None) -> None:
+        """Send the response(s) to the controller for adoption into its plant knowledge: the
+        verdicts (the controller's and this dashboard's) use them once the controller has
+        them."""
+        what = ", ".join(x.name for x in ms)
         try:
-            req = proto.KnowledgeRequest(record=self.engine.with_measured(m))
+            req = proto.KnowledgeRequest(record=self.engine.with_measured(*ms))
             reply = self.sessions.act(browser, "plant knowledge", lambda c: c.knowledge(req))
         except Refused:
             return  # logged, and told to the browser that asked (only)
         except (ControllerUnavailable, proto.ProtocolError) as exc:
-            log.warning("measured response %s not adopted: %s", m.name, exc)
+            log.warning("measured response(s) %s not adopted: %s", what, exc)
             self.text.content = _measured_html(
-                f"{esc(m.name)}: not adopted by the controller: {esc(str(exc))}", error=True)
+                f"{esc(what)}: not adopted by the controller: {esc(str(exc))}", error=True)
             return
         if not reply.ok:
             self.text.content = _measured_html(
-                f"{esc(m.name)}: refused by the controller: {esc(reply.message)}", error=True)
+                f"{esc(what)}: refused by the controller: {esc(reply.message)}", error=True)
             return
         self.engine.set_knowledge(reply.record)
         self.follow.version = reply.record.version
         n = len(reply.record.measured)
-        log.info("measured response %s adopted (%s); plant knowledge v%d has %d", m.name,
+        log.info("measured response(s) %s adopted (%s); plant knowledge v%d has %d", what,
                  source, reply.record.version, n)
         self.text.content = _measured_html(
             f"plant knowledge v{reply.record.version}: {n} measured response(s); last: "
-            f"{esc(m.name)} ({esc(source)}). The verdicts (here and in the controller) use "
+            f"{esc(what)} ({esc(source)}). The verdicts (here and in the controller) use "
             "them.")
