@@ -365,7 +365,10 @@ def _with_mode(knowledge: PlantKnowledge, base: RigParams, data: _Data, rate_hz:
     if peaks:
         peak = min(peaks)
         start = peak * math.sqrt(1.0 - RigFaults().resonance_mass_fraction)
-        moded = _fit(base, data, rate_hz, mode_hz=start)
+        # a weak mode's lag below it is what the fit without it took as more delay: up to
+        # that fit's delay (family rigs: 4 ticks without it, 1 and 3 with it)
+        moded = _fit(base, data, rate_hz, mode_hz=start, max_delay=(
+            MAX_DELAY_TICKS if what == "measured peak" else int(plain[2]["delay_ticks"])))
         after = _rms_db(moded[0], moded[1], data, rate_hz)
         fl = moded[1]
         said = (f"extra mode {fl.resonance_hz:.4g} Hz, damping {fl.resonance_damping:.3g} (from "
@@ -401,7 +404,8 @@ def _above_band(base: RigParams, data: _Data, rate_hz: float, plain: _Fit, befor
     start = ABOVE_BAND_START * top
     if start * 1.5 > 0.45 * rate_hz:
         return plain
-    moded = _fit(base, data, rate_hz, mode_hz=start)
+    # the mode's lag is what the fit without it took as more delay: up to that fit's delay
+    moded = _fit(base, data, rate_hz, mode_hz=start, max_delay=int(plain[2]["delay_ticks"]))
     after = _rms_db(moded[0], moded[1], data, rate_hz)
     fl = moded[1]
     c0, c1 = _change(plain, base), _change(moded, base)
@@ -434,12 +438,13 @@ def _weak_peaks_hz(data: _Data, top_hz: float) -> list[float]:
     return out
 
 
-def _fit(base: RigParams, data: _Data, rate_hz: float, mode_hz: float = 0.0) -> _Fit:
+def _fit(base: RigParams, data: _Data, rate_hz: float, mode_hz: float = 0.0,
+         max_delay: int = MAX_DELAY_TICKS) -> _Fit:
     """Least squares on ln(H_twin / H_meas) for each delay; the best delay's parameters and
     the standard deviations of the variables (the Jacobian at the solution and the residual's
     variance per degree of freedom; inf for a variable the data do not move). `mode_hz` > 0:
     with an extra mode, its frequency starting there (within a factor 1.5) and its damping
-    from `MODE_DAMPING_START`."""
+    from `MODE_DAMPING_START`. Delays from 0 to `max_delay` ticks are tried."""
     spread = len({pos for _, pos, *_ in data}) > 1
     droop0 = base.drive_droop_rpm_per_n_m / 1000.0
 
@@ -467,7 +472,7 @@ def _fit(base: RigParams, data: _Data, rate_hz: float, mode_hz: float = 0.0) -> 
         hi = np.append(hi, [math.log(min(mode_hz * 1.5, 0.45 * rate_hz)),
                             math.log(MODE_DAMPING_RANGE[1])])
     x0 = np.clip(x0, lo + 1e-12, hi - 1e-12)
-    for delay in range(MAX_DELAY_TICKS + 1):
+    for delay in range(max_delay + 1):
         r = least_squares(residual, x0, args=(delay,), bounds=(lo, hi), loss="soft_l1",
                           f_scale=0.05, x_scale=0.3)
         if best is None or r.cost < best[0]:
