@@ -126,3 +126,47 @@ def test_a_measured_resonance_lowers_the_crossover_and_is_named() -> None:
     res = ct.tf([wr**2], [1.0, 2 * 0.02 * wr, wr**2])
     gm, pm, _ = _margins(_resp(_pi(sp.kp, sp.ki_per_s)) * _resp(_g_discrete(MP * res)))
     assert gm >= 8.0 - 0.3 and pm >= 45.0 - 0.5
+
+
+class _Never:
+    def is_set(self) -> bool:
+        return False
+
+    def wait(self, timeout: float | None = None) -> bool:
+        return False
+
+
+def test_a_poorly_known_low_interval_does_not_hold_the_speed_loop_down() -> None:
+    """The demo's Measure at 3 positions (article-rig: friction at 3 deg/s makes the 0.1 Hz
+    point 24 % uncertain, and the 0.1-0.3 Hz interval's allowance about 0.67): a speed loop
+    crossing at about 0.4 Hz has |T| a little above 1 there and misses the 0.7 robust figure,
+    while faster loops (|T| = 1 there) meet it. Searched from the bottom, the design stopped
+    at 0.42 Hz and the whole-loop tune proposed a loop 13x worse than the starting one; from
+    the top it finds the crossover the model alone gives. The gate, judging independently,
+    accepts the designed speed loop on that knowledge."""
+    from controller.core.config import LoopConfig
+    from controller.gate.verdict import judge
+    from controller.ident.offline import run_offline
+    from controller.ident.spec import IdentifySpec
+    from controller.sim.rig_disturbances import rig_setup
+    from controller.sim.sim_rig import SimRig
+
+    setup = rig_setup(("article-rig",))
+    cfg = LoopConfig().with_(dob_on=False)
+    out = run_offline(IdentifySpec(positions=3), cfg, _Never(),
+                      rig_factory=lambda c, seed: SimRig(setup.params, rate_hz=c.rate_hz,
+                                                         seed=seed, disturbance=setup.torque))
+    assert out.complete and out.result is not None
+    measured = out.result.measured_responses()
+    assert max(float(m.spread[0]) for m in measured if m.spread is not None) > 0.1
+    k = PlantKnowledge(measured=measured, bound=COMMISSIONING_BOUND)
+    t = DesignTargets()
+    sp = design_speed(k, RATE, t)
+    model_only = design_speed(PlantKnowledge(bound=COMMISSIONING_BOUND), RATE, t)
+    assert sp.crossover_hz > 0.5 * model_only.crossover_hz > 2.0, sp.limit
+    assert "robust" not in sp.limit  # what limits it is a margin near the crossover
+    po = design_position(k, RATE, sp, t)
+    designed = cfg.with_(cv_kp=sp.kp, cv_ki_per_s=sp.ki_per_s, pos_kp_per_s=po.kp_per_s,
+                         pos_ki_per_s=po.ki_per_s)
+    v = judge(designed, k)
+    assert v.verdict in ("accept", "caution"), v.rejections
