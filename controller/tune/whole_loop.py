@@ -286,6 +286,9 @@ class WholeLoopResult:
     unrefined: Candidate | None = None
     """The best candidate before step 5b refined the position loop toward its floor (the
     same as `best` when no refinement scored better, or `best` passed it over)."""
+    beaten: Candidate | None = None
+    """Set when `best` is the starting loop: the best the tune found (None: none), which
+    scored worse on the plant (step 6b)."""
 
 
 #: A candidate is fragile when one of the twin's variants scores it worse than this times its
@@ -502,6 +505,12 @@ def tune_whole_loop(
         break
     if final is None and fragile:  # every one fragile: the twin's best, and the words say so
         final = fragile[0]
+    # 6b: never worse than where the tune started: an accepted starting loop that scores
+    # better on the plant than what was found is what the tune proposes (the words say so).
+    found = final
+    if counts(start) and (final is None or start.score < final.score) and judge(
+            start.config, knowledge, nonlinear=nonlinear).verdict == "accept":
+        final = start
     same_off = cached(final.config.with_(dob_on=False)) if final is not None else None
     elapsed = time.perf_counter() - t0
     if progress is not None:
@@ -510,7 +519,8 @@ def tune_whole_loop(
                           objective, plant.source, runs[0], elapsed, backoff, same_off, fd,
                           design_command_filter, plain,
                           tuple(fragile),
-                          tuple(name for name, _ in variants), refined_from)
+                          tuple(name for name, _ in variants), refined_from,
+                          found if final is start else None)
     return _explained(res, knowledge)
 
 
@@ -699,9 +709,16 @@ def _explained(res: WholeLoopResult, knowledge: PlantKnowledge) -> WholeLoopResu
             + (f" (best DOB: {best_dob.config.q_type} at {best_dob.config.q_cutoff_hz:.3g} Hz,"
                f" {m} {best_dob.error_deg(m):.4g} deg, noise "
                f"{best_dob.command_noise_deg_s:.3g} deg/s)" if best_dob else ""))
-    lines.append(_position_line(res, knowledge, m))
-    if res.variants:
-        lines.append(_robust_line(res, m))
+    if b is not res.start:
+        lines.append(_position_line(res, knowledge, m))
+        if res.variants:
+            lines.append(_robust_line(res, m))
+    else:
+        found = res.beaten
+        lines.append(
+            "the starting loop is proposed unchanged: nothing the tune found beats it on this "
+            "plant" + (f" (its best, {_describe(found.config)}: {m} {found.error_deg(m):.4g} "
+                       f"deg)" if found is not None else ""))
     lines.append(
         f"candidate ({_describe(b.config)}): {m} {b.error_deg(m):.4g} deg "
         f"({_pct(b.error_deg(m), st.error_deg(m))} against the starting loop), peak "
