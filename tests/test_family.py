@@ -62,6 +62,7 @@ def test_the_family_is_drawn_from_its_seed_within_the_ranges() -> None:
 
 
 @pytest.mark.parametrize("index", [0, 1])
+@pytest.mark.timeout(1200)  # a hang's bound: 290-300 s each at load 17-20 (four busy loops)
 def test_tuned_loop_on_the_true_rig(index: int) -> None:
     rig = draw_family(1, 2)[index]
     grid = BruteGrid(speed_scales=tuple(float(x) for x in np.geomspace(0.1, 3.0, 6)),
