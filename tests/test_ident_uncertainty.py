@@ -9,8 +9,8 @@ import math
 
 import numpy as np
 import pytest
+from demo_identification import DEMO_CONFIG, demo_identification
 
-from controller.core.config import LoopConfig
 from controller.gate.knowledge import (
     COMMISSIONING_BOUND,
     DIVERGENCE_FRACTION,
@@ -20,11 +20,7 @@ from controller.gate.knowledge import (
     position_spread,
 )
 from controller.ident.estimate import FrdEstimate, agreement
-from controller.ident.offline import run_offline
 from controller.ident.result import relative_uncertainty_of
-from controller.ident.spec import IdentifySpec
-from controller.sim.rig_disturbances import rig_setup
-from controller.sim.sim_rig import SimRig
 
 F = np.geomspace(0.1, 10.0, 12)
 
@@ -96,26 +92,12 @@ def test_relative_uncertainty_is_magnitude_and_phase_together() -> None:
     assert relative_uncertainty_of(e) == pytest.approx(np.full(F.size, want))
 
 
-class _Never:
-    def is_set(self) -> bool:
-        return False
-
-    def wait(self, timeout: float | None = None) -> bool:
-        return False
-
-
 def test_on_the_demo_rig_the_low_point_does_not_decide_the_cut_off() -> None:
     """`dobtune identify --plant sim --positions 3 --disturbance article-rig`: before, the
     0.1 Hz point (about 2.2 dB apart, 2 sigma about 3.4 dB) made the responses 'diverge above
     0.1 Hz' and capped Q31 at 0.113 Hz. Now the divergence is where the spread table shows it
     (between 2 Hz, 0.3 dB, and 5 Hz, 1.35 dB) and the cut-off is the gate's."""
-    setup = rig_setup(("article-rig",))
-    cfg = LoopConfig().with_(dob_on=False)
-    out = run_offline(IdentifySpec(positions=3), cfg, _Never(),
-                      rig_factory=lambda c, seed: SimRig(setup.params, rate_hz=c.rate_hz,
-                                                         seed=seed, disturbance=setup.torque))
-    assert out.complete and out.result is not None
-    res = out.result
+    res = demo_identification()
     sp = res.position_spread
     assert sp is not None and sp.divergence_hz is not None
     assert 2.0 < sp.divergence_hz < 5.0
@@ -148,13 +130,9 @@ def test_the_dashboard_and_the_controller_state_the_uncertainty_the_command_line
     from controller.ident.result import position_uncertainty
     from server.identify_view import view_from_status
 
-    setup = rig_setup(("article-rig",))
-    cfg = LoopConfig().with_(dob_on=False)
-    out = run_offline(IdentifySpec(positions=3), cfg, _Never(),
-                      rig_factory=lambda c, seed: SimRig(setup.params, rate_hz=c.rate_hz,
-                                                         seed=seed, disturbance=setup.torque))
-    assert out.complete and out.result is not None
-    positions = list(out.result.positions)
+    cfg = DEMO_CONFIG
+    result = demo_identification()
+    positions = list(result.positions)
     st = _status_of(positions)
     view = view_from_status(st, 3, cfg.nominal)  # type: ignore[arg-type]
     assert len(view.measured) == 3
