@@ -9,7 +9,8 @@ import logging
 import math
 import threading
 import time
-from typing import Protocol
+from collections.abc import Callable
+from typing import Protocol, TypeVar
 
 import viser
 
@@ -29,6 +30,7 @@ from server.workers import LatestWins
 __all__ = ["AnalysedCandidate", "CandidateAnalysis"]
 
 log = logging.getLogger(__name__)
+_T = TypeVar("_T")
 
 
 class AnalysedCandidate(Protocol):
@@ -148,25 +150,23 @@ class CandidateAnalysis:
         return self.built and viser_adapter.removed(self.verdict)
 
     def _update(self, gen: int) -> None:
-        """`_evaluate(gen)`; a run cut short because the page was closed meanwhile (viser's
-        RuntimeError on a removed element) ends quietly: a closed page is normal (the panel
-        is stopped by the disconnect callback, which viser runs after removing its elements).
-        Any other failure, or one while the page is open, is raised (and logged)."""
-        try:
-            self._evaluate(gen)
-        except RuntimeError:
-            if not self.page_closed():
-                raise
-            log.debug("verdict not shown: its page was closed")
+        self._unless_closed(self._evaluate, gen, "verdict")
 
     def _preview(self, item: tuple[LoopConfig, LoopConfig, Trajectory]) -> None:
-        """`_run_preview(item)`; a closed page ends it quietly, as `_update`."""
+        self._unless_closed(self._run_preview, item, "preview")
+
+    def _unless_closed(self, work: Callable[[_T], None], arg: _T, what: str) -> None:
+        """`work(arg)` (the verdict's `_evaluate`, the preview's `_run_preview`); a run cut
+        short because the page was closed meanwhile (viser's RuntimeError on a removed
+        element) ends quietly: a closed page is normal (the panel is stopped by the
+        disconnect callback, which viser runs after removing its elements). Any other
+        failure, or one while the page is open, is raised (and logged)."""
         try:
-            self._run_preview(item)
+            work(arg)
         except RuntimeError:
             if not self.page_closed():
                 raise
-            log.debug("preview not shown: its page was closed")
+            log.debug("%s not shown: its page was closed", what)
 
     def _evaluate(self, gen: int) -> None:
         p, engine = self.panel, self.panel.engine
