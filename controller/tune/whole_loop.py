@@ -289,6 +289,9 @@ class WholeLoopResult:
     beaten: Candidate | None = None
     """Set when `best` is the starting loop: the best the tune found (None: none), which
     scored worse on the plant (step 6b)."""
+    other_best: Candidate | None = None
+    """With `filter_design` and both designed loops accepted: the tuned best (steps 4-5b) the
+    other way (without the filter when it was kept, with it when not)."""
 
 
 #: A candidate is fragile when one of the twin's variants scores it worse than this times its
@@ -412,25 +415,26 @@ def tune_whole_loop(
     if placed is None and filtered_design is None:
         assert isinstance(alone, NoSpeedDesign)
         raise alone
-    plain: Candidate | None = None
+    # The designed loops, each gated (step 3): without the filter and, where one was designed,
+    # with it. Steps 4-5b search from each one the gate accepts; the better tuned loop is kept,
+    # so the filter is kept only where the tuned loop with it scores better than the tuned loop
+    # without it (the position loop's refinement can lift a slower speed loop past a faster
+    # one whose whole servo the gate then holds at its sensitivity limit).
+    branches: list[tuple[Candidate, int, SpeedDesign, PositionDesign]] = []
     if placed is not None:
-        speed, position = placed
-        designed, backoff = gated(speed, position)
+        branches.append((*gated(*placed), *placed))
     if fd is not None and filtered_design is not None:
-        sp_f, po_f = filtered_design
-        with_f, back_f = gated(sp_f, po_f)
-        if placed is None or (with_f.verdict == "accept" and (
-                designed.verdict != "accept" or with_f.score < designed.score)):
-            plain = designed if placed is not None else None
-            designed, backoff, speed, position = with_f, back_f, sp_f, po_f
-        else:
-            plain = with_f  # tried, not kept: the explanation says why
-            fd = replace(fd, kept=False)
+        branches.append((*gated(*filtered_design), *filtered_design))
     elif fd is not None:
         fd = replace(fd, kept=False)
+    # the budget comes from the loop the designed scores prefer (as before a tuned comparison)
+    lead = branches[0]
+    if len(branches) == 2 and branches[1][0].verdict == "accept" and (
+            lead[0].verdict != "accept" or branches[1][0].score < lead[0].score):
+        lead = branches[1]
     start = run(base, judged=True)
     budget = (objective.noise_budget_deg_s if objective.noise_budget_deg_s is not None
-              else 2.0 * designed.command_noise_deg_s)
+              else 2.0 * lead[0].command_noise_deg_s)
 
     def counts(c: Candidate) -> bool:
         return (c.verdict == "accept" and math.isfinite(c.score)
@@ -449,45 +453,53 @@ def tune_whole_loop(
             seen[k] = run(cfg)
         return seen[k]
 
-    seen[key(designed.config)] = designed
-    # 4: the DOB's Q type and cut-off on the plant.
-    curve: list[Candidate] = []
-    pi_cfg = designed.config
-    if designed.verdict == "accept":
-        for qt in q_types:
-            grid = np.geomspace(lowest_hz, highest_hz, cutoffs)
-            pts = [cached(pi_cfg.with_(dob_on=True, q_type=qt, q_cutoff_hz=_r3(float(fc))))
-                   for fc in grid]
-            ok = [i for i, p in enumerate(pts) if counts(p)]
-            if ok:
-                i = min(ok, key=lambda k: pts[k].score)
-                lo = grid[max(i - 1, 0)]
-                hi = grid[min(i + 1, len(grid) - 1)]
-                for fc in np.geomspace(lo, hi, 4)[1:-1]:
-                    pts.append(cached(pi_cfg.with_(dob_on=True, q_type=qt,
-                                                   q_cutoff_hz=_r3(float(fc)))))
-            curve += sorted(pts, key=lambda p: p.config.q_cutoff_hz)
-    pool = [c for c in [designed, *curve] if counts(c)]
-    best = min(pool, key=lambda c: c.score) if pool else None
-    # 5: local refinement.
-    if best is not None:
-        for _ in range(refine_rounds):
-            improved = False
-            for cfg in _neighbours(best.config, objective.feedforward):
-                if key(cfg) in seen:
-                    c = seen[key(cfg)]
-                else:
-                    if meets_targets(cfg, knowledge, targets) is not None:
-                        continue
-                    c = cached(cfg)
-                if counts(c) and c.score < best.score:
-                    best, improved = c, True
-            if not improved:
-                break
-    # 5b: the position loop refined below the design's phase margin, down to the stated floor.
-    refined_from = best
-    if best is not None and refine_position:
-        best = _refine_position(best, knowledge, targets, objective.feedforward, cached, counts)
+    def search(designed: Candidate) -> tuple[list[Candidate], Candidate | None,
+                                             Candidate | None]:
+        """Steps 4-5b from one designed loop: the DOB's curve, the best, and the best before
+        step 5b."""
+        seen[key(designed.config)] = designed
+        # 4: the DOB's Q type and cut-off on the plant.
+        curve: list[Candidate] = []
+        pi_cfg = designed.config
+        if designed.verdict == "accept":
+            for qt in q_types:
+                grid = np.geomspace(lowest_hz, highest_hz, cutoffs)
+                pts = [cached(pi_cfg.with_(dob_on=True, q_type=qt, q_cutoff_hz=_r3(float(fc))))
+                       for fc in grid]
+                ok = [i for i, p in enumerate(pts) if counts(p)]
+                if ok:
+                    i = min(ok, key=lambda k: pts[k].score)
+                    lo = grid[max(i - 1, 0)]
+                    hi = grid[min(i + 1, len(grid) - 1)]
+                    for fc in np.geomspace(lo, hi, 4)[1:-1]:
+                        pts.append(cached(pi_cfg.with_(dob_on=True, q_type=qt,
+                                                       q_cutoff_hz=_r3(float(fc)))))
+                curve += sorted(pts, key=lambda p: p.config.q_cutoff_hz)
+        pool = [c for c in [designed, *curve] if counts(c)]
+        best = min(pool, key=lambda c: c.score) if pool else None
+        # 5: local refinement.
+        if best is not None:
+            for _ in range(refine_rounds):
+                improved = False
+                for cfg in _neighbours(best.config, objective.feedforward):
+                    if key(cfg) in seen:
+                        c = seen[key(cfg)]
+                    else:
+                        if meets_targets(cfg, knowledge, targets) is not None:
+                            continue
+                        c = cached(cfg)
+                    if counts(c) and c.score < best.score:
+                        best, improved = c, True
+                if not improved:
+                    break
+        # 5b: the position loop refined below the design's phase margin, down to the floor.
+        refined_from = best
+        if best is not None and refine_position:
+            best = _refine_position(best, knowledge, targets, objective.feedforward, cached,
+                                    counts)
+        return curve, best, refined_from
+
+    searched = [(b, search(b[0])) for b in branches]
     # 6: the final verdict, with the nonlinear check and the recommendation; on a twin, the
     # candidate also run on the twin's variants (`twin_variants`): a fragile one is passed over.
     ranked = sorted((c for c in seen.values() if counts(c)), key=lambda c: c.score)
@@ -511,6 +523,20 @@ def tune_whole_loop(
     if counts(start) and (final is None or start.score < final.score) and judge(
             start.config, knowledge, nonlinear=nonlinear).verdict == "accept":
         final = start
+    # the branch of what was found (ranked over both: its filter says which); none found: the
+    # branch whose designed loop the scores prefer
+    pick = next((i for i, s in enumerate(searched) if found is not None
+                 and s[0][0].config.command_filter == found.config.command_filter),
+                next(i for i, s in enumerate(searched) if s[0] is lead))
+    (designed, backoff, speed, position), (curve, _, refined_from) = searched[pick]
+    plain: Candidate | None = None  # the designed loop the other way
+    other_best: Candidate | None = None  # and its tuned best
+    if len(searched) == 2:
+        plain, other_best = searched[1 - pick][0][0], searched[1 - pick][1][1]
+    if fd is not None and filtered_design is not None:
+        kept = designed.config.command_filter == fd.command_filter
+        if kept != fd.kept:
+            fd = replace(fd, kept=kept)
     same_off = cached(final.config.with_(dob_on=False)) if final is not None else None
     elapsed = time.perf_counter() - t0
     if progress is not None:
@@ -520,7 +546,7 @@ def tune_whole_loop(
                           design_command_filter, plain,
                           tuple(fragile),
                           tuple(name for name, _ in variants), refined_from,
-                          found if final is start else None)
+                          found if final is start else None, other_best)
     return _explained(res, knowledge)
 
 
@@ -826,14 +852,25 @@ def _filter_line(res: WholeLoopResult, metric: str, knowledge: PlantKnowledge) -
     alone = plain_crossover_hz(fd.plain)
     instead = (f"{alone:.3g} Hz" if alone > 0 else
                "not at all (no speed crossover meets the targets without a filter)")
+    tuned = res.other_best
     if fd.kept:
         tail = (f"; designed loop, DOB off: {metric} {res.designed.error_deg(metric):.4g} deg "
                 f"against {other.error_deg(metric):.4g} without it" if other else "")
+        if tuned is not None and res.best is not None:
+            tail += (f"; tuned: {metric} {res.best.error_deg(metric):.4g} deg against "
+                     f"{tuned.error_deg(metric):.4g} without it")
         return (f"speed-command filter: {why}: {words} lets the speed loop cross at "
                 f"{res.speed.crossover_hz:.3g} Hz instead of {instead}{tail}")
-    tail = (f"the loop with it did not do better: {metric} {other.error_deg(metric):.4g} deg "
-            f"({other.verdict}) against {res.designed.error_deg(metric):.4g} without it"
-            if other else "no position loop meets the targets around it")
+    if tuned is not None and res.best is not None:
+        tail = (f"the loop tuned with it did not do better: {metric} "
+                f"{tuned.error_deg(metric):.4g} deg against {res.best.error_deg(metric):.4g} "
+                f"without it (designed, DOB off: {other.error_deg(metric):.4g} "
+                f"({other.verdict}) against {res.designed.error_deg(metric):.4g})"
+                if other else "")
+    else:
+        tail = (f"the loop with it did not do better: {metric} {other.error_deg(metric):.4g} "
+                f"deg ({other.verdict}) against {res.designed.error_deg(metric):.4g} without it"
+                if other else "no position loop meets the targets around it")
     return (f"speed-command filter: off; {why}; {words} would let it cross at "
             f"{fd.speed.crossover_hz:.3g} Hz instead of {instead}, but {tail}")
 
