@@ -133,9 +133,14 @@ def test_abort_mid_run_keeps_partial_data_marked_incomplete(dash: Dashboard) -> 
     assert p.start(slow)
     assert not p.start(slow)  # a second start while running is refused (server-side check)
     assert "already" in p.status.content
-    wait_for(lambda: len(p.responses.curves) >= 1, 30.0)  # the first position is on the chart
-    assert _finite(p.responses.charts["identify_mag"].data[1]) > 0
-    assert p.abort()
+    try:
+        # the first position is on the chart: its curve is appended, then the chart published
+        # (waiting on the list alone raced the publish: 'assert 0 > 0' under load)
+        wait_for(lambda: len(p.responses.curves) >= 1
+                 and _finite(p.responses.charts["identify_mag"].data[1]) > 0, 120.0)
+    finally:  # never leave the module's panel running for the next test
+        aborted = p.abort()
+    assert aborted
     assert p.wait_done(10.0)
     assert p.state == ABORTED
     r = p.result

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import html
 import math
+import threading
 import time
 from typing import Any
 
@@ -466,3 +467,39 @@ def test_a_loaded_speed_command_filter_is_in_the_controls_and_the_candidate(
     t.revert()
     assert t.wait_idle(5.0)
     assert t.candidate().command_filter == t.active.command_filter
+
+
+def test_a_late_recommendation_never_draws_an_older_cutoff(dash: Dashboard,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """The preview computes the gate's recommended maximum off the verdict's path. Held there
+    while the user types another cut-off, it must not then draw the line of the cut-off it was
+    asked for: the line is the current candidate's (headless Chromium 156 left '0.500 Hz'
+    under a typed 0.9 for good, failing test_guide_browser in CI)."""
+    t = dash.panel_of(None)
+    assert t is not None and t.wait_preview_idle(30.0)
+    engine = t.engine
+    real = engine.recommended_max_cutoff_hz
+    held, release = threading.Event(), threading.Event()
+
+    def slow(cfg: LoopConfig) -> float | None:
+        held.set()
+        assert release.wait(60.0)
+        return real(cfg)
+
+    monkeypatch.setattr(engine, "recommended_max_cutoff_hz", slow)
+    try:
+        t.cv_kp_input.value = "1.37"  # gains with no recommendation cached yet
+        assert held.wait(30.0), "the preview did not compute the recommendation"
+        first = t.candidate().q_cutoff_hz
+        typed = 0.9 if first != 0.9 else 0.85
+        t.cutoff_hz_input.value = str(typed)
+        assert t.wait_idle(30.0)
+        assert "computing" in t.cutoff_text.content  # its verdict drew the line, rec unknown
+    finally:
+        release.set()
+    assert t.wait_preview_idle(60.0)
+    line = html.unescape(t.cutoff_text.content)
+    assert f"{typed:.3f} Hz" in line and f"{first:.3f} Hz" not in line, line
+    assert "recommended max" in line and "computing" not in line, line
+    t.revert()
+    assert t.wait_preview_idle(30.0)

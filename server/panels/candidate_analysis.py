@@ -206,14 +206,29 @@ class CandidateAnalysis:
         self._evaluated(gen, invalid=False)
         self._preview_worker.submit((cand, active, p.trajectory))
 
+    def _cutoff_line_now(self) -> None:
+        """The cut-off line of the candidate the controls hold now, if its recommendation is
+        known. A recommendation computed for the candidate a preview was asked for may arrive
+        after the user typed another value (whose verdict drew its line, "computing..."): the
+        line is drawn for the current candidate, never for the one that asked (the chromium
+        156 runs left "0.500 Hz" under a typed 0.9 for good)."""
+        p, engine = self.panel, self.panel.engine
+        try:
+            cur = p.candidate()
+        except ConfigError:
+            return  # the verdict shows the rejected field and its line
+        known, rec = engine.cached_recommendation(cur)
+        if known:
+            set_html(p.controls.cutoff_text, p.cutoff_line_html(cur.q_cutoff_hz, rec, True))
+            p.controls.update_marks(rec)
+
     def _run_preview(self, item: tuple[LoopConfig, LoopConfig, Trajectory]) -> None:
         p, engine = self.panel, self.panel.engine
         cand, active, traj = item
         known, _ = engine.cached_recommendation(cand)
         if not known:
-            rec = engine.recommended_max_cutoff_hz(cand)
-            set_html(p.controls.cutoff_text, p.cutoff_line_html(cand.q_cutoff_hz, rec, True))
-            p.controls.update_marks(rec)
+            engine.recommended_max_cutoff_hz(cand)  # computed here, off the verdict's path
+            self._cutoff_line_now()
         preview = engine.compare_preview(cand, active, traj)
         if p.bode is not None:
             p.bode.steps_chart.data = engine.steps_data(cand, active)

@@ -287,6 +287,7 @@ class IdentifyPanel:
         set_value(self.progress_bar, 0.0)
         self.progress_bar.animated = True
         self.status.content = _status_html(RUNNING, self.text, self.where_note)
+        self.responses.start(spec.positions)  # the last run's curves off before this one runs
         self._thread.start()
         return True
 
@@ -335,8 +336,6 @@ class IdentifyPanel:
         return self.state != RUNNING
 
     def _run(self, spec: IdentifySpec, cfg: LoopConfig, pace: float) -> None:
-        self.responses.start(spec.positions)
-
         def on_position(r: IdentifyResult) -> None:
             self.responses.curves.append(curve_of(r.positions[0]))
             self.responses.publish(None)
@@ -354,7 +353,6 @@ class IdentifyPanel:
         client = self._run_client
         assert client is not None
         n = spec.positions
-        self.responses.start(n)
         try:
             prev = _query_identify(client).run_id
             reply = self._leased(client, lambda: client.command(proto.IdentifyStart(spec=spec)))

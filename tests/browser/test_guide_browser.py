@@ -185,12 +185,6 @@ def test_loop_health_states_its_normal_range_and_is_red_only_outside_it(
     page.get_by_role("tab", name="Tune").click()
 
 
-def _input(page: Any, label: str) -> Any:
-    fid = page.locator("label", has_text=label).first.get_attribute("for")
-    el = page.locator(f"[id='{fid}']")
-    return el if el.evaluate("e => e.tagName") == "INPUT" else el.locator("input").first
-
-
 def _step(page: Any, key: str) -> tuple[str, str]:
     """(state class, text) of one guided step as the page shows it."""
     li = page.locator(f".dt-step-{key}").first
@@ -232,9 +226,9 @@ def test_the_guided_path_measures_and_fits(
     tabs.nth(0).click()
     for label, value in (("f min (Hz)", 1.0), ("f max (Hz)", 8.0), ("Points per decade", 4),
                          ("Positions", 1)):
-        box = _input(page, label)
-        box.fill(str(value))
-        box.press("Enter")
+        # a locator resolved when typed into (the label's `for` read first could name an
+        # element the form's re-render had just replaced: a 30 s timeout in a quiet run)
+        set_number(page, label, value)
     wait_for(lambda: dashboard.identify is not None
              and dashboard.identify.settings().values["positions"] == 1, 10.0,
              "the identification settings did not reach the dashboard")
