@@ -3,10 +3,12 @@ gate may load its worker and save first), every read `query_timeout_s`."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from helpers import wait_until
 
 from controller.client.controller_client import (
     ClientOptions,
@@ -92,3 +94,44 @@ def test_every_query_names_the_clients_session(zenoh_session: Any) -> None:
     ids = {str(si.source_id.zid) for si in session.sources}
     assert ids == {str(zenoh_session.zid())}
     assert [si.source_sn for si in session.sources] == [1, 2, 3]
+
+
+def test_zenohs_own_timeout_reads_as_no_reply() -> None:
+    """A controller that holds a query past its timeout: Zenoh ends the get with an error
+    reply of its own ('Timeout'); the client says no reply came in that time, not that the
+    controller answered with an error (it read "controller replied with an error: Timeout")."""
+    import socket
+
+    import zenoh
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+
+    def conf(listen: list[str], connect: list[str]) -> Any:
+        c = zenoh.Config()
+        c.insert_json5("mode", '"peer"')
+        c.insert_json5("scouting/multicast/enabled", "false")
+        c.insert_json5("listen/endpoints", json.dumps(listen))
+        c.insert_json5("connect/endpoints", json.dumps(connect))
+        return c
+
+    held: list[Any] = []  # never answered, never dropped while the get waits
+    with zenoh.open(conf([f"tcp/127.0.0.1:{port}"], [])) as ctl_side, \
+            zenoh.open(conf([], [f"tcp/127.0.0.1:{port}"])) as client_side:
+        q = ctl_side.declare_queryable("**", held.append)
+        client = ControllerClient(ClientOptions(query_timeout_s=0.5))
+        client._session = client_side
+        errors: list[str] = []
+
+        def held_one() -> bool:
+            """A get (until one reaches the queryable: its declaration takes a moment)."""
+            with pytest.raises(ControllerUnavailable) as exc:
+                client.get_config()
+            errors.append(str(exc.value))
+            return bool(held)
+
+        assert wait_until(held_one, 20.0, poll_s=0.0)
+        assert "within 0.5 s" in errors[-1] and "replied" not in errors[-1], errors[-1]
+        q.undeclare()
+        held.clear()
