@@ -151,6 +151,8 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
     (a later test of the module failing behind it shows whether the page was still usable)."""
     rep = yield
     page = getattr(item, "funcargs", {}).get("page")
+    if rep.failed and page is not None:
+        _FAILED_ON.add(id(page))  # the next test of the module loads it again
     if rep.when == "call" and rep.failed and page is not None and not page.is_closed():
         path = ARTIFACTS / f"failed_{item.name}.png"
         try:
@@ -160,6 +162,26 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
         except Exception as exc:  # the report says why; the test's own failure stands
             rep.sections.append(("failure screenshot", f"not taken: {exc!r}"))
     return rep
+
+
+#: The pages (ids) a test failed on: a module's page is shared by its tests, and a failure can
+#: leave it unusable for the next (a confirmation dialog left open intercepted every click of
+#: the six tests after it at load 14).
+_FAILED_ON: set[int] = set()
+
+
+@pytest.fixture(autouse=True)
+def _page_loaded_again_after_a_failure(request: pytest.FixtureRequest) -> None:
+    """Before a test that takes `page` and `dashboard`: if a test failed on that page, load
+    the page again (`open_when_ready`), so one failure is one failure."""
+    names = request.fixturenames
+    if "page" not in names or "dashboard" not in names:
+        return
+    page = request.getfixturevalue("page")
+    if id(page) not in _FAILED_ON or page.is_closed():
+        return
+    _FAILED_ON.discard(id(page))
+    open_when_ready(page, request.getfixturevalue("dashboard"), FIRST_LOAD_S)
 
 
 @pytest.fixture(scope="module")
