@@ -37,6 +37,7 @@ import viser
 from controller import protocol as proto
 from controller.client import ControllerClient
 from controller.core.errors import ConfigError
+from server import viser_adapter
 from server.escape import esc
 from server.gui import Browser
 from server.panels.identify import ABORTED, DONE, FAILED, RUNNING, IdentifyPanel
@@ -216,7 +217,14 @@ class GuidePanel:
         steps = self._steps()
         self.steps = steps
         if hasattr(self, "html"):
-            set_html(self.html, guide_html(steps))
+            try:
+                set_html(self.html, guide_html(steps))
+            except RuntimeError:
+                # the page closed meanwhile: viser removed its elements at the disconnect,
+                # before the dashboard's callback stops this refresh (as the verdict's and
+                # the preview's, 3eb5845); on an open page the error is raised and logged
+                if not viser_adapter.removed(self.html):
+                    raise
 
     def step(self, key: str) -> StepState:
         """One step's state as last shown."""

@@ -74,6 +74,10 @@ class HistoryPanel:
             self.table.content = f"<div class='dt-history'>{esc(reply.message)}</div>"
             return
         self.versions = {e.version: e.config for e in reply.entries}
+        if (reply.entries[-1].version if reply.entries else -1) < self.follow.version:
+            # the history lagged the status that asked for it (at load ~12 the table stayed on
+            # v2 under a v3 banner for a minute): the next status fetches again
+            self.follow.forget()
         try:
             checks = self.client.prediction_checks(2.0)
         except proto.ProtocolError as exc:  # a watch of another version: said, not guessed

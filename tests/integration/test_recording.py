@@ -142,5 +142,12 @@ def test_a_recording_recovers_the_batches_it_lost(
     rec = read_recording(out)
     seq = rec.state["seq"]
     assert np.all(np.diff(seq) == 1), "every sample, once, in seq order"
-    assert all(s in set(seq.tolist()) for s in dropped[:-1])
+    # Each batch dropped inside the recorded span is in the file (recovered: the span has
+    # every seq once); batches dropped after the recording's end are not its samples (under
+    # load they arrive in bursts: at load ~12 two came after the end, not only the last).
+    inside = [s for s in dropped if int(seq[0]) <= s <= int(seq[-1])]
+    have = set(seq.tolist())
+    assert len(inside) >= 4 and all(s in have for s in inside), (
+        dropped, int(seq[0]), int(seq[-1]))
+    assert all(s > int(seq[-1]) for s in dropped if s not in have), (dropped, int(seq[-1]))
     assert not [e for e in rec.events if e.get("kind") == "gap"]
