@@ -73,6 +73,9 @@ def _panel(page: Any, dashboard: Dashboard) -> Any:
     # seconds apart on a loaded machine).
     wait_for(lambda: re.search(r"plant knowledge v[1-9]", _text(page, ".dt-verdict")),
              SLOW_S * 2, "the verdict never named the controller's plant knowledge")
+    # a browser another test closed leaves when viser handles its disconnect (seconds at load)
+    wait_for(lambda: len(dashboard.server.get_clients()) == 1, SLOW_S,
+             "another browser's page is still connected")
     clients = list(dashboard.server.get_clients().values())
     assert len(clients) == 1
     panel = dashboard.panel_of(clients[0])
