@@ -201,6 +201,21 @@ def removed(handle: object) -> bool:
     return bool(_gui_handle(handle)._impl.removed)
 
 
+def unless_closed(closed: Callable[[], bool], work: Callable[..., object],
+                  *args: object) -> bool:
+    """`work(*args)`; False if it was cut short because its page closed meanwhile (viser's
+    RuntimeError on an element it removed at the disconnect, before the dashboard's callback
+    stops the page's panels: a closed page is normal). Any other failure, or one while
+    `closed()` is false, is raised."""
+    try:
+        work(*args)
+    except RuntimeError:
+        if not closed():
+            raise
+        return False
+    return True
+
+
 def resend_value(handle: object, browser: viser.ClientHandle) -> None:
     """The control's value (as kept here) sent again to `browser` alone: its page shows what
     the dashboard holds after a change it refused (a `GuiUpdateMessage` on the browser GUI's

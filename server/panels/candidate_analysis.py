@@ -156,16 +156,9 @@ class CandidateAnalysis:
         self._unless_closed(self._run_preview, item, "preview")
 
     def _unless_closed(self, work: Callable[[_T], None], arg: _T, what: str) -> None:
-        """`work(arg)` (the verdict's `_evaluate`, the preview's `_run_preview`); a run cut
-        short because the page was closed meanwhile (viser's RuntimeError on a removed
-        element) ends quietly: a closed page is normal (the panel is stopped by the
-        disconnect callback, which viser runs after removing its elements). Any other
-        failure, or one while the page is open, is raised (and logged)."""
-        try:
-            work(arg)
-        except RuntimeError:
-            if not self.page_closed():
-                raise
+        """`work(arg)` (the verdict's `_evaluate`, the preview's `_run_preview`); a page closed
+        meanwhile ends it quietly (`viser_adapter.unless_closed`)."""
+        if not viser_adapter.unless_closed(self.page_closed, work, arg):
             log.debug("%s not shown: its page was closed", what)
 
     def _evaluate(self, gen: int) -> None:

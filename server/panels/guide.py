@@ -217,14 +217,9 @@ class GuidePanel:
         steps = self._steps()
         self.steps = steps
         if hasattr(self, "html"):
-            try:
-                set_html(self.html, guide_html(steps))
-            except RuntimeError:
-                # the page closed meanwhile: viser removed its elements at the disconnect,
-                # before the dashboard's callback stops this refresh (as the verdict's and
-                # the preview's, 3eb5845); on an open page the error is raised and logged
-                if not viser_adapter.removed(self.html):
-                    raise
+            # a page closed meanwhile ends it quietly, as the verdict and the preview
+            viser_adapter.unless_closed(lambda: viser_adapter.removed(self.html), set_html,
+                                        self.html, guide_html(steps))
 
     def step(self, key: str) -> StepState:
         """One step's state as last shown."""
