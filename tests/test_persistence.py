@@ -510,3 +510,20 @@ def test_check_writable_leaves_nothing_behind(tmp_path: Path) -> None:
     store = StateStore(tmp_path)
     store.check_writable()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_run_marker_tells_an_unclean_stop_from_a_clean_one(tmp_path: Path) -> None:
+    """No marker: the last run stopped cleanly (or there was none). A marker left behind names
+    the run that did not stop cleanly; an unreadable one still counts as an unclean stop."""
+    store = StateStore(tmp_path)
+    assert store.unclean_stop() == ""
+    t = 1796070662.0  # 2026-11-30 20:31:02 UTC
+    store.mark_running(4321, t)
+    assert StateStore(tmp_path).unclean_stop() == "pid 4321, started 2026-11-30 20:31:02 UTC"
+    store.clear_running()
+    assert StateStore(tmp_path).unclean_stop() == ""
+    store.clear_running()  # twice: nothing to remove, no error
+    for bad in (b"{", b"[]", b'{"pid": "x", "started_at_s": 1}', b'{"pid": 1}'):
+        store.run_path.write_bytes(bad)
+        said = store.unclean_stop()
+        assert said.startswith("running.json unreadable ("), (bad, said)

@@ -17,6 +17,7 @@ import signal
 import sys
 import tempfile
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -444,6 +445,33 @@ def _restore_latch(store: StateStore, runtime: Runtime, notes: list[str]) -> Non
     log.warning("%s", notes[-1])
 
 
+def _check_clean_stop(store: StateStore, runtime: Runtime, notes: list[str]) -> None:
+    """A run marker left by the previous run (`StateStore.unclean_stop`: it was killed, crashed
+    or lost power while its loop ran) starts this one latched in fault until a reset: what the
+    rig did since is unknown, and a latch the previous run had no time to write (the fault
+    came a moment before the crash) is not lost. A fault already latched keeps its reason."""
+    previous = store.unclean_stop()
+    if not previous:
+        return
+    reason = (f"controller: the previous run ({previous}) ended without a clean stop (killed, "
+              "crashed or powered off while the loop ran); check the rig, then send reset")
+    if runtime.fault:
+        notes.append(reason)
+        log.warning("%s", reason)
+    else:
+        _start_faulted(runtime, reason, notes)
+
+
+def _mark_running(store: StateStore, service: ControllerService) -> None:
+    """The run marker written just before the loop runs; a directory that refuses it is
+    reported (the loop runs: its latch and configuration are the store's other files)."""
+    try:
+        store.mark_running(os.getpid(), time.time())
+    except PersistenceError as exc:
+        service.warn(f"state_dir: the run marker was not written ({exc}): a crash of this run "
+                     "will not be seen at the next start", key="run_marker")
+
+
 def _start_faulted(runtime: Runtime, reason: str, notes: list[str]) -> None:
     """The loop starts latched in fault for `reason` (an e-stop or fault latched before
     stays, this one reported beside it)."""
@@ -556,6 +584,7 @@ def _run(
             _restore_latch(store, runtime, notes)
             if start.fault:
                 _start_faulted(runtime, start.fault, notes)
+            _check_clean_stop(store, runtime, notes)
             if start.note:
                 notes.append(start.note)
             if rig_faults:
@@ -594,6 +623,7 @@ def _run(
                 if edge is not None:
                     edge.connect_now()
                 node = ZenohNode(service)
+                clean = False
                 try:
                     node.declare(session, queryables=edge is None)
                     if edge is not None:
@@ -614,14 +644,19 @@ def _run(
                         + (f", connected to {', '.join(opts.connect)}" if opts.connect else "")
                         + (f" as {opts.auth_user}" if opts.auth_user else "")
                     )
+                    _mark_running(store, service)
                     if ready is not None:
                         ready(text)
                     if not stopper.event.is_set():
                         runtime.run()
+                    clean = True
                 finally:
                     runtime.stop()
                     if edge is not None:
                         edge.close()  # no request reaches the node any more
-                    node.close()
+                    node.close()  # its last act: the latch of the mode the loop ended in
+                if clean:
+                    # Only now: a stop that raised on the way leaves the marker.
+                    store.clear_running()
     finally:
         sys.setswitchinterval(previous_switch)

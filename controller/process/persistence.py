@@ -24,6 +24,10 @@
 - `latch.json`: {"mode": "estop" | "fault", "reason", "fault", "saved_at_s"} while the loop is
   latched in e-stop or fault (written atomically, removed on reset): a restart comes back in
   that mode until an explicit reset.
+- `running.json`: {"pid", "started_at_s"} while the loop runs (written atomically just before
+  it starts, removed once it stopped cleanly and the latch was written): found at a start, the
+  previous run ended without a clean stop (killed, crashed, power lost), and the new run
+  starts latched in fault until a reset (`controller.process.main`).
 - `plant_knowledge.json`: the plant knowledge every candidate is judged on (a
   `controller.gate.knowledge.KnowledgeRecord`: model, bound, measured responses, version,
   source), written atomically whenever an operator adopts new knowledge.
@@ -77,6 +81,7 @@ __all__ = [
 ACTIVE_FILE = "active_config.json"
 LOG_FILE = "applied_changes.jsonl"
 LATCH_FILE = "latch.json"
+RUN_FILE = "running.json"
 KNOWLEDGE_FILE = "plant_knowledge.json"
 MAX_VERSION = 2**53 - 1
 #: The change-log key of a watchdog rollback not saved yet (`StateStore.record_pending_rollback`).
@@ -311,13 +316,7 @@ class StateStore:
     def save_latch(self, latch: Latch | None) -> None:
         """Write the latch atomically, or remove it (None: not latched)."""
         if latch is None:
-            try:
-                self.latch_path.unlink()
-            except FileNotFoundError:
-                return
-            except OSError as exc:
-                raise PersistenceError(f"{self.latch_path}: cannot remove: {exc}") from exc
-            self._fsync_dir()
+            self._remove(self.latch_path)
             return
         doc = {
             "mode": latch.mode,
@@ -342,6 +341,52 @@ class StateStore:
         if not isinstance(reason, str) or not isinstance(fault, str):
             raise PersistenceError(f"{path}: reason/fault: expected strings")
         return Latch(str(data["mode"]), reason[:500], fault[:500])
+
+    # -- the run marker ---------------------------------------------------------------------
+
+    @property
+    def run_path(self) -> Path:
+        return self.directory / RUN_FILE
+
+    def mark_running(self, pid: int, started_at_s: float) -> None:
+        """The loop is about to run (atomic): until `clear_running`, a start finds it."""
+        self._atomic_write(self.run_path, _json.encode(
+            {"pid": pid, "started_at_s": started_at_s}) + b"\n")
+
+    def clear_running(self) -> None:
+        """The loop stopped cleanly: remove the marker (durably)."""
+        self._remove(self.run_path)
+
+    def _remove(self, path: Path) -> None:
+        """Remove `path` if it is there, durably (the directory fsynced)."""
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            return
+        except OSError as exc:
+            raise PersistenceError(f"{path}: cannot remove: {exc}") from exc
+        self._fsync_dir()
+
+    def unclean_stop(self) -> str:
+        """"" if the last run stopped cleanly (no marker); else what the marker says of the run
+        that did not ("pid 123, started 2026-11-29 20:31:02 UTC"; an unreadable marker still
+        counts as an unclean stop, named so)."""
+        path = self.run_path
+        try:
+            raw = _read_or_none(path)
+        except PersistenceError as exc:
+            return f"{RUN_FILE} unreadable ({exc})"
+        if raw is None:
+            return ""
+        try:
+            data = _decode_json(path, raw)
+            pid, t = data["pid"], data["started_at_s"]
+            if not isinstance(pid, int) or not isinstance(t, (int, float)):
+                raise ValueError("pid/started_at_s: expected numbers")
+            when = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(t))
+        except (PersistenceError, KeyError, TypeError, ValueError, OverflowError, OSError) as exc:
+            return f"{RUN_FILE} unreadable ({exc})"
+        return f"pid {pid}, started {when}"
 
     @property
     def knowledge_path(self) -> Path:

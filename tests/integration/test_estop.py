@@ -1,7 +1,8 @@
 """The e-stop holds: a reset sent just before an e-stop never clears it (1000 pairs over real
 Zenoh), nor does a reset from one session clear an e-stop another session pressed around it
 (the reset names the e-stop its sender saw), and a latched e-stop survives a controller
-restart (SIGKILL included) until a reset.
+restart (SIGKILL included) until a reset. A controller killed while its loop ran comes back
+latched in fault (what the rig did since is unknown), a cleanly stopped one running.
 """
 
 from __future__ import annotations
@@ -131,3 +132,44 @@ def test_a_fault_latch_from_a_previous_run_comes_back(
         assert status.mode == "fault" and "heartbeat lost" in " ".join(status.faults)
         assert c.reset().ok
         assert wait_until(lambda: c.fresh_status().mode == "stopped", 10.0)
+
+
+def test_a_run_killed_while_running_comes_back_faulted_until_reset(
+    start_controller_factory: Callable[..., ControllerProcess], tmp_path: Path
+) -> None:
+    """SIGKILL while the loop runs, no e-stop nor fault latched: the next start is latched in
+    fault naming the killed run (its pid) until a reset; a clean stop (SIGTERM) after that
+    leaves nothing behind, and the start after it runs. Before, the killed run's restart came
+    back running: a fault announced a moment before a crash (its latch not yet written) was
+    lost the same way."""
+    state = tmp_path / "killed"
+    first = start_controller_factory(state)
+    with Client(first.endpoint, first.rig) as c:
+        c.wait_ready(first)
+        assert c.fresh_status().mode == "running"
+    assert (state / "running.json").exists()
+    killed_pid = first.proc.pid
+    first.stop(signal.SIGKILL)
+
+    second = start_controller_factory(state)
+    with Client(second.endpoint, second.rig) as c:
+        c.wait_ready(second)
+        status = c.fresh_status()
+        assert status.mode == "fault", status
+        said = " ".join(status.faults)
+        assert f"previous run (pid {killed_pid}," in said and "without a clean stop" in said
+        refused = c.command(proto.Start())
+        assert not refused.ok and refused.mode == "fault"
+        # Latched on disk too: a second kill before the reset comes back faulted again.
+        assert wait_until(lambda: (state / "latch.json").exists(), 10.0)
+        assert c.reset().ok
+        assert wait_until(lambda: c.fresh_status().mode == "stopped", 10.0)
+        assert c.command(proto.Start()).ok
+    assert second.stop(signal.SIGTERM) == 0, second.log()
+    assert not (state / "running.json").exists() and not (state / "latch.json").exists()
+
+    third = start_controller_factory(state)
+    with Client(third.endpoint, third.rig) as c:
+        c.wait_ready(third)
+        status = c.fresh_status()
+        assert status.mode == "running" and not status.faults, status
