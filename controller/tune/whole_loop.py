@@ -20,7 +20,9 @@ measured plant"):
 2. Feedforward gain: Re(1 / T_v) at the trajectory's frequency (about 1), if allowed.
 3. The gate judges this loop with the DOB off (`controller.gate.verdict.judge`); should it not
    accept it (the gate's evidence is wider than the design's), both loops' gains step down by
-   15 % until it does.
+   15 % until it does. Here and in every step below the gate's limits are the tune's
+   (`tune_limits`): the peak sensitivity 0.5 dB inside the gate's 6 dB, for the twin's
+   uncertainty; the gate itself judges what the tune proposes.
 4. The DOB: every Q type over a log grid of cut-offs (then refined around the best), each
    judged first (only `accept` counts; a rejected one is never run), then run on the plant
    (`SimPlant`: the rig's twin when the knowledge holds measurements; the compiled offline
@@ -65,6 +67,7 @@ from controller.core.command_filter import CommandFilter
 from controller.core.config import LoopConfig
 from controller.core.trajectory import Trajectory
 from controller.gate.knowledge import PlantKnowledge
+from controller.gate.limits import GateLimits
 from controller.gate.verdict import NonlinearCheck, judge
 from controller.sim.experiment import run_experiment
 from controller.tune.autotune import command_noise_deg_s
@@ -94,10 +97,22 @@ from controller.tune.loop_design import (
 )
 from controller.tune.plant import SimPlant
 
-__all__ = ["Candidate", "Objective", "WholeLoopResult", "evaluate", "reference_lag",
+__all__ = ["Candidate", "Objective", "WholeLoopResult", "evaluate", "reference_lag", "tune_limits",
            "tune_whole_loop"]
 
 OBJECTIVES = ("rmse", "peak")
+
+
+def tune_limits(targets: DesignTargets) -> GateLimits:
+    """The gate's limits as the tune holds its candidates to them: the peak sensitivity
+    `targets.sensitivity_inside_db` inside the gate's, for the twin's uncertainty (as the
+    position loop's floors add 5 deg and 1 dB to the gate's 30 deg and 6 dB). What the tune
+    proposes is judged again by the gate itself."""
+    gate = GateLimits()
+    return replace(gate, peak_sensitivity_max_db=gate.peak_sensitivity_max_db
+                   - targets.sensitivity_inside_db)
+
+
 TWO_PI = 2.0 * math.pi
 GAIN_STEP = 1.15
 CUTOFF_STEP = 1.3
@@ -147,12 +162,14 @@ class Candidate:
 
 def evaluate(cfg: LoopConfig, plant: SimPlant, objective: Objective,
              knowledge: PlantKnowledge | None, *, nonlinear: NonlinearCheck | None = None,
-             ) -> Candidate:
-    """Judge `cfg` on `knowledge` (None: not judged, verdict "unjudged"); run it on `plant`
-    unless rejected. A run that diverges scores inf."""
+             limits: GateLimits | None = None) -> Candidate:
+    """Judge `cfg` on `knowledge` with `limits` (None: the gate's; `knowledge` None: not
+    judged, verdict "unjudged"); run it on `plant` unless rejected. A run that diverges
+    scores inf."""
     verdict = "unjudged"
     if knowledge is not None:
-        verdict = judge(cfg, knowledge, nonlinear=nonlinear, recommendation=False).verdict
+        verdict = judge(cfg, knowledge, limits, nonlinear=nonlinear,
+                        recommendation=False).verdict
         if verdict == "reject":
             return Candidate(cfg, verdict)
     traj = objective.trajectory
@@ -362,6 +379,7 @@ def tune_whole_loop(
     t0 = time.perf_counter()
     objective = objective or Objective()
     targets = targets or DesignTargets()
+    limits = tune_limits(targets)
     if not 0.0 < lowest_hz < highest_hz < base.rate_hz / 2:
         raise ValueError(f"cut-off range: need 0 < {lowest_hz} < {highest_hz} < Nyquist")
     rate = base.rate_hz
@@ -372,7 +390,8 @@ def tune_whole_loop(
         runs[0] += 1
         if progress is not None:
             progress(min(0.99, runs[0] / total))
-        return evaluate(cfg, plant, objective, knowledge if judged else None)
+        return evaluate(cfg, plant, objective, knowledge if judged else None,
+                        limits=limits)
 
     # 1-2: the linear design, without a filter on the speed command; then, where a measured
     # resonance limits the speed loop, with the filter designed for it (filter_design): the
@@ -511,7 +530,7 @@ def tune_whole_loop(
     final: Candidate | None = None
     fragile: list[Candidate] = []
     for c in shortlist:
-        if judge(c.config, knowledge, nonlinear=nonlinear).verdict != "accept":
+        if judge(c.config, knowledge, limits, nonlinear=nonlinear).verdict != "accept":
             continue
         if _fragile(c, variants, objective, runs):
             fragile.append(c)
@@ -524,7 +543,7 @@ def tune_whole_loop(
     # better on the plant than what was found is what the tune proposes (the words say so).
     found = final
     if counts(start) and (final is None or start.score < final.score) and judge(
-            start.config, knowledge, nonlinear=nonlinear).verdict == "accept":
+            start.config, knowledge, limits, nonlinear=nonlinear).verdict == "accept":
         final = start
     # the branch of what was found (ranked over both: its filter says which); none found: the
     # branch whose designed loop the scores prefer
@@ -667,7 +686,10 @@ def _explained(res: WholeLoopResult, knowledge: PlantKnowledge) -> WholeLoopResu
         f"1/{t.position_corner_ratio:g} (position) of each crossover; then the position "
         f"loop refined on the twin down to PM {t.position_floor_pm_deg:g} deg and GM "
         f"{t.position_floor_gm_db:g} dB (the gate's 30 deg and 6 dB + 5 deg and 1 dB for the "
-        f"twin's uncertainty; whole servo too) and a corner at 1/{t.position_corner_floor:g}",
+        f"twin's uncertainty; whole servo too) and a corner at 1/{t.position_corner_floor:g}; "
+        f"every candidate's peak sensitivity <= {tune_limits(t).peak_sensitivity_max_db:g} dB "
+        f"(the gate's {GateLimits().peak_sensitivity_max_db:g} dB - "
+        f"{t.sensitivity_inside_db:g} dB for the twin's uncertainty)",
     ]
     worst = min(sp.figures, key=lambda fg: fg.margins.phase_margin_deg)
     res_hz = first_resonance_hz(knowledge, res.designed.config.rate_hz)
