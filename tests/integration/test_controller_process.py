@@ -325,7 +325,7 @@ def test_restart_restores_the_last_accepted_config(
         assert reply.accepted, reply.reasons
         rejected = c.apply(candidate.with_(cv_kp=30.0))
         assert not rejected.accepted
-    assert first.stop(signal.SIGTERM) == 0, first.log()
+    assert first.stop(signal.SIGTERM, timeout_s=60.0) == 0, first.log()
     assert wait_until(lambda: port_is_free(first.port), 5.0)
     second = start_controller_factory(state_dir=state, port=first.port)
     with Client(second.endpoint, second.rig) as c:

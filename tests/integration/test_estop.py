@@ -109,7 +109,8 @@ def test_a_latched_estop_survives_a_restart_until_reset(
         assert code == 0 and "reset: ok (mode stopped)" in text, text
         assert wait_until(lambda: not latch.exists(), 10.0), "latch not cleared by the reset"
         assert c.command(proto.Start()).ok
-    second.stop()
+    # A clean stop (the next start runs): SIGKILL after the default 10 s would leave its marker.
+    assert second.stop(signal.SIGTERM, timeout_s=60.0) == 0, second.log()
 
     third = start_controller_factory(state)
     with Client(third.endpoint, third.rig) as c:
@@ -165,7 +166,7 @@ def test_a_run_killed_while_running_comes_back_faulted_until_reset(
         assert c.reset().ok
         assert wait_until(lambda: c.fresh_status().mode == "stopped", 10.0)
         assert c.command(proto.Start()).ok
-    assert second.stop(signal.SIGTERM) == 0, second.log()
+    assert second.stop(signal.SIGTERM, timeout_s=60.0) == 0, second.log()
     assert not (state / "running.json").exists() and not (state / "latch.json").exists()
 
     third = start_controller_factory(state)

@@ -141,7 +141,7 @@ def test_knowledge_is_adopted_numbered_persisted_and_hostile_records_refused(
                                proto.KnowledgeReply)
             assert not out.ok and field in out.field, out
             assert out.record.version == 2
-    assert first.stop(signal.SIGTERM) == 0, first.log()
+    assert first.stop(signal.SIGTERM, timeout_s=60.0) == 0, first.log()
     assert wait_until(lambda: port_is_free(first.port), 5.0)
     saved = json.loads((state / "plant_knowledge.json").read_text())
     assert saved["version"] == 2 and saved["measured"][0]["name"] == "pos0"
