@@ -13,7 +13,8 @@ from rig_linear import linear_params
 
 from controller.gate.loop_model import discrete_equivalent
 from controller.sim.sim_rig import RigFaults, SimRig
-from controller.tune.family import RANGES, BruteGrid, draw_family, run_rig
+from controller.core.config import LoopConfig, NominalModel
+from controller.tune.family import RANGES, BruteGrid, draw_family, identify, run_rig
 from controller.tune.whole_loop import Objective
 from controller.twin.fit import rig_response
 
@@ -59,6 +60,21 @@ def test_the_family_is_drawn_from_its_seed_within_the_ranges() -> None:
         assert 1 <= r.delay_ticks <= 3
         assert r.params.command_delay_ticks == r.delay_ticks
         assert r.faults.plant_gain == r.drive_gain
+
+
+@pytest.mark.timeout(600)  # a hang's bound
+def test_a_rig_whose_drive_gain_is_not_1_is_fitted_with_its_dc_gain() -> None:
+    """Seed 271127335 rig 4 (drive gain x0.55, inertia x0.31, 3 ticks of delay): its speed
+    response's DC gain is 0.55, which a unit-DC second order cannot follow (3.0 dB / 16 deg rms,
+    not a usable model: the knowledge then held the built-in article model, and the gate judged
+    the tuned loop's peak sensitivity 8.2 dB on it against 2.1 dB on the true rig). Identified
+    now, the knowledge's model has the fitted DC gain, close to the rig's, and is not the
+    built-in one."""
+    rig = draw_family(271127335, 5)[4]
+    assert rig.drive_gain == pytest.approx(0.55, abs=0.01)
+    known = identify(rig.plant, LoopConfig())
+    assert known.model != NominalModel()
+    assert known.model.dc_gain == pytest.approx(rig.drive_gain, rel=0.04)
 
 
 @pytest.mark.parametrize("index", [0, 1])

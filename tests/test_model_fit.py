@@ -37,7 +37,7 @@ def noisy(h: np.ndarray, rel: float, rng: np.random.Generator) -> np.ndarray:
     return h * (1.0 + rel * e)
 
 
-@pytest.mark.parametrize("model", ["unit_dc", "general"])
+@pytest.mark.parametrize("model", ["unit_dc", "dc_gain", "general"])
 def test_exact_data_gives_exact_model(model: str) -> None:
     fit = fit_second_order(F, mp(F), model=model)  # type: ignore[arg-type]
     assert fit.converged
@@ -51,13 +51,17 @@ def test_exact_data_gives_exact_model(model: str) -> None:
         assert fit.params["a2"] == pytest.approx(1 / 1935, rel=1e-9)
         assert fit.params["a1"] == pytest.approx(62.2 / 1935, rel=1e-9)
         np.testing.assert_allclose(fit.den, [1 / 1935, 62.2 / 1935, 1.0], rtol=1e-9)
+    elif model == "dc_gain":
+        assert fit.params["k"] == pytest.approx(1.0, rel=1e-9)
+        np.testing.assert_allclose(fit.num, [1.0], rtol=1e-9)
+        np.testing.assert_allclose(fit.den, [1 / 1935, 62.2 / 1935, 1.0], rtol=1e-9)
     else:
         np.testing.assert_allclose(fit.num, [1935.0], rtol=1e-9)
         np.testing.assert_allclose(fit.den, [1.0, 62.2, 1935.0], rtol=1e-9)
     np.testing.assert_allclose(fit.response(F), mp(F), rtol=1e-9)
 
 
-@pytest.mark.parametrize("model", ["unit_dc", "general"])
+@pytest.mark.parametrize("model", ["unit_dc", "dc_gain", "general"])
 def test_recovers_wn_and_zeta_from_noisy_data(model: str) -> None:
     rng = np.random.default_rng(0)
     fit = fit_second_order(F, noisy(mp(F), 0.03, rng), np.full(F.size, 0.99), model=model)  # type: ignore[arg-type]
@@ -69,6 +73,32 @@ def test_recovers_wn_and_zeta_from_noisy_data(model: str) -> None:
     # residual of 3 % circular noise: 8.686 * 0.03 / sqrt 2 = 0.18 dB, 1.2 deg rms
     assert 0.12 < fit.residual_rms_db < 0.25
     assert 0.8 < fit.residual_rms_deg < 1.6
+
+
+@pytest.mark.parametrize("k", [0.55, 1.0, 1.9])
+def test_dc_gain_model_recovers_the_gain_as_the_general_model_does(k: float) -> None:
+    """k / (a2 s^2 + a1 s + 1): on exact data k, a2, a1 exactly (against the generating
+    coefficients and the general model's b / a0, 1 / a0, a1 / a0); on noisy data k within its
+    reported uncertainty, which matches a Monte-Carlo spread. The unit-DC model cannot follow
+    k != 1 (its residual says so)."""
+    exact = k * mp(F)
+    fit = fit_second_order(F, exact, model="dc_gain")
+    gen = fit_second_order(F, exact, model="general")
+    b, a1, a0 = gen.params["b"], gen.params["a1"], gen.params["a0"]
+    assert fit.params["k"] == pytest.approx(k, rel=1e-9) == pytest.approx(b / a0, rel=1e-9)
+    assert fit.params["a2"] == pytest.approx(1 / 1935, rel=1e-9) == pytest.approx(1 / a0, rel=1e-9)
+    assert fit.params["a1"] == pytest.approx(62.2 / 1935, rel=1e-9)
+    assert fit.params["a1"] == pytest.approx(a1 / a0, rel=1e-9)
+    assert fit.dc_gain == pytest.approx(k, rel=1e-9)
+    unit = fit_second_order(F, exact, model="unit_dc")
+    if k != 1.0:
+        assert unit.residual_rms_db > 1.0 and fit.residual_rms_db < 1e-9
+    rng = np.random.default_rng(5)
+    fits = [fit_second_order(F, noisy(exact, 0.03, rng), model="dc_gain") for _ in range(60)]
+    ks = np.array([f.params["k"] for f in fits])
+    k_std = np.mean([f.param_std["k"] for f in fits])
+    assert 0.7 < np.std(ks) / k_std < 1.35
+    assert abs(np.mean(ks) - k) < 4 * np.std(ks) / math.sqrt(ks.size)
 
 
 def test_reported_uncertainty_matches_monte_carlo() -> None:

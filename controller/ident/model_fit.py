@@ -3,6 +3,8 @@
 Models, in the article's form (control.md eqs. 12-13, 33-34):
 
 * ``unit_dc``:  ``Mn Pn = 1 / (a2 s^2 + a1 s + 1)`` (unit DC gain, load-side speeds);
+* ``dc_gain``:  ``Mn Pn = k / (a2 s^2 + a1 s + 1)`` (the same with its DC gain fitted: a drive
+  whose speed scaling or gain is not the article's);
 * ``general``:  ``b / (s^2 + a1 s + a0)``, i.e. ``b / (a2 s^2 + a1 s + a0)`` normalised to
   ``a2 = 1`` (the four coefficients are only defined up to a common factor).
 
@@ -52,10 +54,11 @@ __all__ = [
     "uncertainty_bound",
 ]
 
-ModelKind = Literal["unit_dc", "general"]
-MODELS: tuple[ModelKind, ...] = ("unit_dc", "general")
+ModelKind = Literal["unit_dc", "dc_gain", "general"]
+MODELS: tuple[ModelKind, ...] = ("unit_dc", "dc_gain", "general")
 _PARAM_NAMES: dict[ModelKind, tuple[str, ...]] = {
     "unit_dc": ("a2", "a1"),
+    "dc_gain": ("k", "a2", "a1"),
     "general": ("b", "a1", "a0"),
 }
 _DB_PER_NEPER = 20.0 / math.log(10.0)
@@ -71,7 +74,7 @@ class SecondOrderFit:
     den: FloatArray
     """Denominator coefficients in s, highest power first."""
     params: dict[str, float]
-    """``a2, a1`` (unit_dc) or ``b, a1, a0`` (general)."""
+    """``a2, a1`` (unit_dc), ``k, a2, a1`` (dc_gain) or ``b, a1, a0`` (general)."""
     param_std: dict[str, float]
     """Standard uncertainty of each parameter."""
     covariance: FloatArray
@@ -150,6 +153,7 @@ def frd_weights(frd: FrdEstimate | FrdData) -> FloatArray:
 # --------------------------------------------------------------------------- model algebra
 # theta holds normalised parameters (frequency scaled by w_ref, s_n = s / w_ref):
 #   unit_dc: (alpha2, alpha1),       D = alpha2 s_n^2 + alpha1 s_n + 1, G = 1 / D
+#   dc_gain: (k, alpha2, alpha1),    D = alpha2 s_n^2 + alpha1 s_n + 1, G = k / D
 #   general: (beta, alpha1, alpha0), D = s_n^2 + alpha1 s_n + alpha0,   G = beta / D
 
 
@@ -159,6 +163,10 @@ def _model(kind: ModelKind, theta: FloatArray, sn: NDArray[Any]) -> tuple[Any, A
         d = theta[0] * sn**2 + theta[1] * sn + 1.0
         g = 1.0 / d
         dg = np.array([-(sn**2) * g / d, -sn * g / d])
+    elif kind == "dc_gain":
+        d = theta[1] * sn**2 + theta[2] * sn + 1.0
+        g = theta[0] / d
+        dg = np.array([1.0 / d, -(sn**2) * g / d, -sn * g / d])
     else:
         d = sn**2 + theta[1] * sn + theta[2]
         g = theta[0] / d
@@ -178,6 +186,10 @@ def _levy_sk(
             # H (alpha2 s^2 + alpha1 s) = 1 - H
             a = np.stack([h * sn**2, h * sn], axis=1)
             rhs = 1.0 - h
+        elif kind == "dc_gain":
+            # k - H (alpha2 s^2 + alpha1 s) = H
+            a = np.stack([np.ones_like(h), -h * sn**2, -h * sn], axis=1)
+            rhs = h
         else:
             # beta - H s alpha1 - H alpha0 = H s^2
             a = np.stack([np.ones_like(h), -h * sn, -h], axis=1)
@@ -189,6 +201,8 @@ def _levy_sk(
         new = np.linalg.lstsq(a_real, rhs_real, rcond=None)[0]
         if kind == "unit_dc":
             d_prev = new[0] * sn**2 + new[1] * sn + 1.0
+        elif kind == "dc_gain":
+            d_prev = new[1] * sn**2 + new[2] * sn + 1.0
         else:
             d_prev = sn**2 + new[1] * sn + new[2]
         converged = np.allclose(new, theta, rtol=1e-10, atol=1e-12)
@@ -200,6 +214,9 @@ def _levy_sk(
 
 def _wn_zeta(kind: ModelKind, p: FloatArray) -> tuple[float, float, FloatArray, FloatArray]:
     """wn, zeta and their gradients w.r.t. the physical parameters."""
+    if kind == "dc_gain":  # k does not enter them
+        wn, zeta, g_wn, g_zeta = _wn_zeta("unit_dc", p[1:])
+        return wn, zeta, np.concatenate([[0.0], g_wn]), np.concatenate([[0.0], g_zeta])
     if kind == "unit_dc":
         a2, a1 = p
         if a2 <= 0:
@@ -308,6 +325,8 @@ def fit_second_order(
 
     if model == "unit_dc":
         scale = np.array([1.0 / w_ref**2, 1.0 / w_ref])
+    elif model == "dc_gain":
+        scale = np.array([1.0, 1.0 / w_ref**2, 1.0 / w_ref])
     else:
         scale = np.array([w_ref**2, w_ref, w_ref**2])
     p = theta * scale
@@ -316,6 +335,8 @@ def fit_second_order(
     wn, zeta, g_wn, g_zeta = _wn_zeta(model, p)
     if model == "unit_dc":
         num, den = np.array([1.0]), np.array([p[0], p[1], 1.0])
+    elif model == "dc_gain":
+        num, den = np.array([p[0]]), np.array([p[1], p[2], 1.0])
     else:
         num, den = np.array([p[0]]), np.array([1.0, p[1], p[2]])
 

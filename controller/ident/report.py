@@ -50,6 +50,13 @@ def nominal_from_summary(obj: dict[str, Any]) -> NominalModel:
     )
 
 
+def _gain_text(fit: dict[str, Any]) -> str:
+    """The fit's numerator: "1", or the fitted DC gain with its uncertainty."""
+    k = fit.get("k", 1.0)
+    return "1" if fit.get("k_std", 0.0) == 0.0 and k == 1.0 else (
+        f"k (k = {k:.3g} +- {fit.get('k_std', 0.0):.2g})")
+
+
 def summary_json(
     result: IdentifyResult,
     files: dict[int, tuple[str | None, str]],
@@ -90,7 +97,10 @@ def summary_json(
     fit_obj = None
     if fit is not None:
         fit_obj = {
-            "model": "Mn Pn = 1 / (a2 s^2 + a1 s + 1)",
+            "model": ("Mn Pn = k / (a2 s^2 + a1 s + 1)" if "k" in fit.params
+                      else "Mn Pn = 1 / (a2 s^2 + a1 s + 1)"),
+            "k": fit.params.get("k", 1.0),
+            "k_std": fit.param_std.get("k", 0.0),
             "a2": fit.params["a2"],
             "a2_std": fit.param_std["a2"],
             "a1": fit.params["a1"],
@@ -205,8 +215,9 @@ def report_text(summary: dict[str, Any], out_dir: Path) -> str:
     fit = summary["fit"]
     if fit is not None:
         lines.append(
-            f"  fit Mn Pn = 1/(a2 s^2 + a1 s + 1), {fit['band_hz'][0]:.3g}-{fit['band_hz'][1]:.3g}"
-            f" Hz: natural frequency {_fmt(fit['natural_freq_hz'], '.3f')} +- "
+            f"  fit Mn Pn = {_gain_text(fit)}/(a2 s^2 + a1 s + 1), "
+            f"{fit['band_hz'][0]:.3g}-{fit['band_hz'][1]:.3g} Hz: natural frequency "
+            f"{_fmt(fit['natural_freq_hz'], '.3f')} +- "
             f"{_fmt(fit['natural_freq_std_hz'], '.2g')} Hz, damping {_fmt(fit['zeta'], '.3f')} +- "
             f"{_fmt(fit['zeta_std'], '.2g')}; residual {fit['residual_rms_db']:.2f} dB / "
             f"{fit['residual_rms_deg']:.2f} deg rms"

@@ -303,8 +303,17 @@ def position_record(
 # ---------------------------------------------------------------------- fit, Delta, the gate
 
 
+#: The fitted DC gain is taken (the `dc_gain` model) when it differs from 1 by more than this
+#: and by more than 3 of its standard uncertainties; else the article's unit DC gain.
+DC_GAIN_TOL = 0.05
+
+
 def _fit(spec: IdentifySpec, estimates: list[FrdEstimate], notes: list[str]) -> SecondOrderFit:
-    """Unit-DC second order on all positions together, inverse-variance weights with a floor.
+    """Second order on all positions together, inverse-variance weights with a floor: unit DC
+    gain (the article's form: the drive's speed loop integrates), unless the DC gain fitted
+    beside it is measurably not 1 (`DC_GAIN_TOL`: a drive with another speed scaling or gain;
+    a family rig with drive gain x0.55 was fitted at 3.0 dB / 16 deg rms with unit DC gain,
+    not a usable model, and at 0.5 dB / 3.3 deg with k = 0.543). The note says which.
 
     The weights are ``1 / (var + floor^2)``: the between-period variance of each point plus
     `fit_error_floor` squared, because a second order is never exact and a nearly noise-free
@@ -313,6 +322,7 @@ def _fit(spec: IdentifySpec, estimates: list[FrdEstimate], notes: list[str]) -> 
     var = np.concatenate([1.0 / frd_weights(e) for e in estimates])
     weights = 1.0 / (np.nan_to_num(var, nan=0.0, posinf=1e12) + spec.fit_error_floor**2)
     f = np.concatenate([e.freq_hz for e in estimates])
+    h = np.concatenate([e.response for e in estimates])
     lo, hi = spec.fit_f_lo_hz, spec.fit_f_hi_hz
     in_band = np.unique(f[(f >= (lo or 0.0)) & (f <= (hi or math.inf))])
     if in_band.size < 3:
@@ -321,21 +331,29 @@ def _fit(spec: IdentifySpec, estimates: list[FrdEstimate], notes: list[str]) -> 
             f"[{lo or 'min'}, {hi or 'max'}] Hz: fitted over the whole measured band instead"
         )
         lo = hi = None
-    return fit_second_order(
-        f,
-        np.concatenate([e.response for e in estimates]),
-        model="unit_dc",
-        f_lo_hz=lo,
-        f_hi_hz=hi,
-        weights=weights,
-    )
+    unit = fit_second_order(f, h, model="unit_dc", f_lo_hz=lo, f_hi_hz=hi, weights=weights)
+    try:
+        free = fit_second_order(f, h, model="dc_gain", f_lo_hz=lo, f_hi_hz=hi, weights=weights)
+    except ValueError:  # too few points for three parameters: the unit-DC fit stands
+        return unit
+    k, k_std = free.params["k"], free.param_std["k"]
+    if math.isfinite(k) and abs(k - 1.0) > max(DC_GAIN_TOL, 3.0 * k_std):
+        notes.append(
+            f"DC gain fitted: {k:.3g} +- {k_std:.2g} (not 1: the drive's speed gain or scaling "
+            f"differs from the article's); residual {free.residual_rms_db:.2f} dB / "
+            f"{free.residual_rms_deg:.1f} deg rms, with unit DC gain "
+            f"{unit.residual_rms_db:.2f} dB / {unit.residual_rms_deg:.1f} deg")
+        return free
+    return unit
 
 
 def fitted_nominal(fit: SecondOrderFit, base: NominalModel) -> NominalModel:
-    """The fitted Mn Pn = 1/(a2 s^2 + a1 s + 1) in the article's form: Mn kept from `base`,
-    Pn = mn_den / fit_den, so the product is exactly the fit."""
-    a2, a1 = fit.params["a2"], fit.params["a1"]
-    return NominalModel(mn_den=base.mn_den, pn_num=base.mn_den, pn_den=(a2, a1, 1.0))
+    """The fitted Mn Pn = k / (a2 s^2 + a1 s + 1) in the article's form (k = 1 for the unit-DC
+    model): Mn kept from `base`, Pn = k mn_den / fit_den, so the product is exactly the fit."""
+    k, a2, a1 = fit.params.get("k", 1.0), fit.params["a2"], fit.params["a1"]
+    m2, m1, m0 = base.mn_den
+    return NominalModel(mn_den=base.mn_den, pn_num=(k * m2, k * m1, k * m0),
+                        pn_den=(a2, a1, 1.0))
 
 
 def analyse_result(result: IdentifyResult) -> IdentifyResult:
