@@ -23,6 +23,8 @@ from server.dashboard.demo import DemoOptions, fleet_processes
 
 pytestmark = pytest.mark.browser
 
+#: Each step's wait on the page (conditions, not sleeps): generous for a loaded machine.
+WAIT_MS = 60_000
 ROWS_JS = """() => Array.from(document.querySelectorAll('.dt-fleet-row')).map(r => [
   r.dataset.rig, r.querySelector('.dt-fleet-mode').innerText,
   r.querySelector('.dt-spark')?.getAttribute('points') || ''])"""
@@ -68,17 +70,20 @@ def test_the_fleet_tab_shows_every_rig_and_stops_one(fleet: Dashboard, artifacts
                                                      chromium_browser: Any) -> None:
     with contextlib.closing(chromium_browser.new_context(viewport=VIEWPORT)) as context:
         page = context.new_page()
+        # Clicks wait for a stable element: at load ~12 the page drew too few frames for the
+        # default 30 s (a clean-clone run with two busy loops). Waits are on conditions.
+        page.set_default_timeout(WAIT_MS)
         page.goto(fleet.url, wait_until="domcontentloaded", timeout=FIRST_LOAD_S * 1000)
         page.wait_for_selector(".dt-banner", timeout=FIRST_LOAD_S * 1000)
         page.get_by_role("tab", name="Fleet").click()
-        page.wait_for_function(f"() => ({ROWS_JS})().length === 2", timeout=20_000)
+        page.wait_for_function(f"() => ({ROWS_JS})().length === 2", timeout=WAIT_MS)
         rows = page.evaluate(ROWS_JS)
         assert [(r[0], r[1]) for r in rows] == [("rig1", "running"), ("rig2", "running")]
         assert all(r[2].count(",") > 100 for r in rows)  # a trace of >100 points each
         # The traces move (what is drawn changes, not only what was sent).
         page.wait_for_function(
             f"(a) => JSON.stringify(({ROWS_JS})()) !== JSON.stringify(a)", arg=rows,
-            timeout=10_000)
+            timeout=WAIT_MS)
         page.screenshot(path=str(artifacts / "fleet_1_overview.png"))
         # Choose rig1 as a user does (the default is whichever rig appeared first).
         label = page.locator("label").filter(has_text=re.compile(r"^Rig$")).first
@@ -88,11 +93,12 @@ def test_the_fleet_tab_shows_every_rig_and_stops_one(fleet: Dashboard, artifacts
         page.get_by_role("option", name="rig1", exact=True).click()
         panel = fleet.fleet
         assert panel is not None
-        wait_for(lambda: str(panel.pick.value) == "rig1", 10.0, "the choice never arrived")
+        wait_for(lambda: str(panel.pick.value) == "rig1", WAIT_MS / 1000,
+                 "the choice never arrived")
         page.get_by_role("button", name="E-STOP this rig").click()
         page.wait_for_function(
             f"() => ({ROWS_JS})().map(r => r[1]).join() === 'estop,running'",
-            timeout=15_000)
+            timeout=WAIT_MS)
         page.wait_for_selector(".dt-fleet-result >> text=E-STOP sent to rig1",
-                               timeout=10_000)
+                               timeout=WAIT_MS)
         page.screenshot(path=str(artifacts / "fleet_2_estop_one.png"))

@@ -429,9 +429,14 @@ def _flood(controller: ControllerProcess, client: Client, threading: Any) -> Non
                 t.join(10.0)
         last = col.last_seq()
         assert col.wait_for_seq(last + 100, 5.0)
-    st1 = client.fresh_status()
+    # The next Status (every 0.2 s): more than 5 s at load ~12 once (a clean-clone run with two
+    # busy loops; the stream above was whole): the status thread shares the process with the
+    # flood's backlog. Waited up to 30 s, the wait printed.
+    t_status = time.monotonic()
+    st1 = client.fresh_status(30.0)
     assert min(counts) > 10, (counts, waited_out)
-    print(f"flood: {counts} answers, {waited_out} waited out")
+    print(f"flood: {counts} answers, {waited_out} waited out; next status after "
+          f"{time.monotonic() - t_status:.1f} s")
     batches = [b for _, b in col.batches()]
     for a, b in itertools.pairwise(batches):
         assert b.seq0 == a.seq0 + len(a.t_s), "gap in the state stream during the flood"

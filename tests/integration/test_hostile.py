@@ -398,7 +398,10 @@ def test_xss_in_every_text_field_is_stored_as_data(
     assert op1.lease("acquire").ok
     req = proto.ConfigRequest(candidate=LoopConfig(q_cutoff_hz=0.65), client=XSS,
                               lease=op1.lease_token)
-    r = op1.query(proto.key_config(RIG), req, proto.ConfigReply)
+    # An apply (the gate runs): waited as `apply` waits, not the module's 2 s (which the
+    # denial tests need short): it ran out at load ~12 in a clean-clone run.
+    r = op1.query(proto.key_config(RIG), req, proto.ConfigReply,
+                  timeout_s=op1.opts.apply_timeout_s)
     assert r.accepted
     rec = KnowledgeRecord(source=XSS)
     k = op1.knowledge(proto.KnowledgeRequest(record=rec))
