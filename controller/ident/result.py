@@ -303,17 +303,23 @@ def position_record(
 # ---------------------------------------------------------------------- fit, Delta, the gate
 
 
-#: The fitted DC gain is taken (the `dc_gain` model) when it differs from 1 by more than this
-#: and by more than 3 of its standard uncertainties; else the article's unit DC gain.
+#: Where the unit-DC fit is not a usable model, the fitted DC gain is taken (the `dc_gain`
+#: model) when it differs from 1 by more than this and by more than 3 of its standard
+#: uncertainties.
 DC_GAIN_TOL = 0.05
 
 
 def _fit(spec: IdentifySpec, estimates: list[FrdEstimate], notes: list[str]) -> SecondOrderFit:
     """Second order on all positions together, inverse-variance weights with a floor: unit DC
-    gain (the article's form: the drive's speed loop integrates), unless the DC gain fitted
-    beside it is measurably not 1 (`DC_GAIN_TOL`: a drive with another speed scaling or gain;
-    a family rig with drive gain x0.55 was fitted at 3.0 dB / 16 deg rms with unit DC gain,
-    not a usable model, and at 0.5 dB / 3.3 deg with k = 0.543). The note says which.
+    gain (the article's form: the drive's speed loop integrates) where that is a usable model
+    (a2, a1 > 0); where it is not and the DC gain fitted beside it is measurably not 1
+    (`DC_GAIN_TOL`: a drive with another speed scaling or gain), the fit with that DC gain,
+    and the note says so. A family rig with drive gain x0.55 was fitted at 3.0 dB / 16 deg rms
+    with unit DC gain and a2 < 0 (its knowledge then held the built-in article model), and at
+    0.5 dB / 3.3 deg with k = 0.543. Where the unit-DC fit is usable it stays: taking the
+    fitted k wherever it differs moved the family's tuned loops against the brute force both
+    ways (seed 2632146472 rig 18, gain x1.95: 1.06 -> 1.51; seed 271127335 rig 4: 1.48 ->
+    0.97), 13-14/20 and 5-6/10 within 10 % either way.
 
     The weights are ``1 / (var + floor^2)``: the between-period variance of each point plus
     `fit_error_floor` squared, because a second order is never exact and a nearly noise-free
@@ -332,6 +338,8 @@ def _fit(spec: IdentifySpec, estimates: list[FrdEstimate], notes: list[str]) -> 
         )
         lo = hi = None
     unit = fit_second_order(f, h, model="unit_dc", f_lo_hz=lo, f_hi_hz=hi, weights=weights)
+    if unit.params["a2"] > 0 and unit.params["a1"] > 0:
+        return unit
     try:
         free = fit_second_order(f, h, model="dc_gain", f_lo_hz=lo, f_hi_hz=hi, weights=weights)
     except ValueError:  # too few points for three parameters: the unit-DC fit stands

@@ -52,6 +52,8 @@ measured plant"):
    a tick either way, the load inertia x/÷ 1.3, what a fitted twin gets that wrong): one that
    scores worse than `FRAGILE_RATIO` x its twin score on a variant is fragile and passed over
    for the next (the best DOB-off candidate among them), and the explanation says so.
+   A DOB is kept only where it beats the same loop with the DOB off by more than
+   `SIGNIFICANT_REL` (1 %, the prediction's accuracy: the rule Suggest follows).
 """
 
 from __future__ import annotations
@@ -70,7 +72,7 @@ from controller.gate.knowledge import PlantKnowledge
 from controller.gate.limits import GateLimits
 from controller.gate.verdict import NonlinearCheck, judge
 from controller.sim.experiment import run_experiment
-from controller.tune.autotune import command_noise_deg_s
+from controller.tune.autotune import SIGNIFICANT_REL, command_noise_deg_s, differs
 from controller.tune.filter_design import (
     MIN_RAISE,
     FilterDesign,
@@ -312,6 +314,9 @@ class WholeLoopResult:
     other_best: Candidate | None = None
     """With `filter_design` and both designed loops accepted: the tuned best (steps 4-5b) the
     other way (without the filter when it was kept, with it when not)."""
+    dob_dropped: Candidate | None = None
+    """Set when step 6a turned the DOB off: the candidate with it, which scored within
+    `SIGNIFICANT_REL` of `best` (the same loop without it)."""
 
 
 #: A candidate is fragile when one of the twin's variants scores it worse than this times its
@@ -539,6 +544,15 @@ def tune_whole_loop(
         break
     if final is None and fragile:  # every one fragile: the twin's best, and the words say so
         final = fragile[0]
+    # 6a: the DOB is kept only where it beats the same loop without it by more than the
+    # prediction's accuracy (`SIGNIFICANT_REL`, the rule Suggest follows): a DOB the twin
+    # ranks 0.5 % ahead is no gain, and costs command noise and a rate-disturbance waterbed.
+    dob_dropped: Candidate | None = None
+    if final is not None and final.config.dob_on:
+        off = cached(final.config.with_(dob_on=False))
+        if counts(off) and differs(final.score, off.score) >= 0 and judge(
+                off.config, knowledge, limits, nonlinear=nonlinear).verdict == "accept":
+            dob_dropped, final = final, off
     # 6b: never worse than where the tune started: an accepted starting loop that scores
     # better on the plant than what was found is what the tune proposes (the words say so).
     found = final
@@ -568,7 +582,8 @@ def tune_whole_loop(
                           design_command_filter, plain,
                           tuple(fragile),
                           tuple(name for name, _ in variants), refined_from,
-                          found if final is start else None, other_best)
+                          found if final is start else None, other_best,
+                          dob_dropped if final is not start else None)
     return _explained(res, knowledge)
 
 
@@ -750,13 +765,23 @@ def _explained(res: WholeLoopResult, knowledge: PlantKnowledge) -> WholeLoopResu
             f"below about half its cut-off and costs above it (the waterbed) and in command "
             f"noise: {b.command_noise_deg_s:.3g} against {ref.command_noise_deg_s:.3g} deg/s "
             f"({_pct(b.command_noise_deg_s, ref.command_noise_deg_s)})")
+    elif res.dob_dropped is not None:
+        d = res.dob_dropped
+        lines.append(
+            f"DOB off: with it ({d.config.q_type} at {d.config.q_cutoff_hz:.3g} Hz) the same loop "
+            f"scores {d.score:.4g} against {b.score:.4g} without it: within "
+            f"{100 * SIGNIFICANT_REL:g} % (the prediction's accuracy), no gain worth its "
+            f"command noise ({d.command_noise_deg_s:.3g} against "
+            f"{b.command_noise_deg_s:.3g} deg/s) and waterbed")
     else:
         best_dob = min(dob_runs, key=lambda c: c.score) if dob_runs else None
         fragile_dob = any(c.config.dob_on for c in res.passed_over)
         lines.append(
             ("DOB off: the Q settings that beat it on the twin are fragile (below)"
              if fragile_dob else
-             "DOB off: no Q setting the gate accepts beats it on this plant and trajectory")
+             f"DOB off: no Q setting the gate accepts beats it by more than "
+             f"{100 * SIGNIFICANT_REL:g} % (the prediction's accuracy) on this plant and "
+             f"trajectory")
             + (f" (best DOB: {best_dob.config.q_type} at {best_dob.config.q_cutoff_hz:.3g} Hz,"
                f" {m} {best_dob.error_deg(m):.4g} deg, noise "
                f"{best_dob.command_noise_deg_s:.3g} deg/s)" if best_dob else ""))
@@ -800,6 +825,8 @@ def _position_line(res: WholeLoopResult, knowledge: PlantKnowledge, metric: str)
     """Which phase margin the candidate's position loop has, and why (step 5b)."""
     b, u, t = res.best, res.unrefined, res.targets
     assert b is not None
+    if res.dob_dropped is not None:  # the refinement's result is the loop with the DOB
+        b = res.dob_dropped
     pm, name, ratio = position_figures(b.config, knowledge)
     have = (f"position loop of the candidate: PM {pm:.1f} deg on {name}, integral corner at "
             f"1/{ratio:.2g} of its crossover")
