@@ -657,6 +657,10 @@ def _run(
                     node.close()  # its last act: the latch of the mode the loop ended in
                 if clean:
                     # Only now: a stop that raised on the way leaves the marker.
-                    store.clear_running()
+                    try:
+                        store.clear_running()
+                    except PersistenceError as exc:
+                        log.error("state_dir: the run marker was not removed (%s): the next "
+                                  "start comes back in fault", exc)
     finally:
         sys.setswitchinterval(previous_switch)
