@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from rig_linear import linear_params
 
+from controller.core.config import LoopConfig, NominalModel
 from controller.gate.loop_model import discrete_equivalent
 from controller.sim.sim_rig import RigFaults, SimRig
-from controller.core.config import LoopConfig, NominalModel
 from controller.tune.family import RANGES, BruteGrid, draw_family, identify, run_rig
 from controller.tune.whole_loop import Objective
 from controller.twin.fit import rig_response
