@@ -70,14 +70,20 @@ def test_an_estop_flood_is_one_record_and_a_count_and_the_chain_verifies(tmp_pat
     recs = _records(log)[n0:]
     estops = [r for r in recs if r["action"] == "estop"]
     counts = [r for r in recs if r["action"] == "estop.repeated"]
-    assert len(estops) == 1 and estops[0]["claimed_client"] == "flood"
-    # One count, or one a minute had the flood been that slow; written before the reset.
-    assert 1 <= len(counts) <= 1 + elapsed_s / 60.0
     reset_at = next(i for i, r in enumerate(recs)
                     if r["action"] == "reset" and r["outcome"] == "accepted")
-    assert all(recs.index(c) < reset_at for c in counts)
-    assert all(c["latched_seq"] == estops[0]["seq"] for c in counts)
-    received = 1 + sum(c["count"] for c in counts)
+    assert estops and all(r["claimed_client"] == "flood" for r in estops)
+    # The flood's puts still arriving after the operator's reset latch again: a new e-stop
+    # record, after that reset (at load ~12 in a clean-clone run the last puts came 0.5 s
+    # after the first reset). Never a second record for the same latch.
+    assert all(recs.index(e) > reset_at for e in estops[1:]), [r["action"] for r in recs]
+    # One count per latch, or one a minute had the flood been that slow; the first latch's
+    # written before the reset.
+    assert 1 <= len(counts) <= len(estops) * (1 + elapsed_s / 60.0)
+    first = [c for c in counts if c["latched_seq"] == estops[0]["seq"]]
+    assert first and all(recs.index(c) < reset_at for c in first)
+    assert all(c["latched_seq"] in {e["seq"] for e in estops} for c in counts)
+    received = len(estops) + sum(c["count"] for c in counts)
     assert 1 < received <= N_PUTS
     # O(1) records for the flood: the e-stop, its count(s), the reset, the controller's own.
     assert len(recs) <= 10, [r["action"] for r in recs]
