@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import open_when_ready
+from conftest import FIRST_LOAD_S, open_when_ready
 from helpers import wait_for
 
 from server import charts
@@ -359,7 +359,7 @@ def test_the_decision_views_fit_a_1920_by_1080_screen(
     other = page.context.browser.new_context(viewport={"width": 1920, "height": 1080})
     try:
         fresh = other.new_page()
-        open_when_ready(fresh, dashboard, SLOW_S * 2)
+        open_when_ready(fresh, dashboard, FIRST_LOAD_S)  # a second page: 120 s ran out at load ~12
         wait_for(lambda: "phase margin" in _text(fresh, ".dt-loop-margins")
                  and fresh.evaluate(CHART_JS, "|S| candidate"), SLOW_S * 2,
                  "the Decide view never drew")
@@ -430,7 +430,7 @@ def test_the_3d_view_hides_and_comes_back_in_this_browser_only(
     other = page.context.browser.new_context(viewport={"width": 1600, "height": 1000})
     try:
         fresh = other.new_page()
-        open_when_ready(fresh, dashboard, SLOW_S * 2)
+        open_when_ready(fresh, dashboard, FIRST_LOAD_S)  # a second page: 120 s ran out at load ~12
         before = page.evaluate(PLOTS_BOX_JS)
         controls_before = page.evaluate(CONTROLS_BOX_JS)
         other_before = fresh.evaluate(PLOTS_BOX_JS)
