@@ -122,7 +122,9 @@ def test_a_second_trip_soon_after_a_rollback_is_a_fault() -> None:
     _apply(rt, BAD, BAD)  # the "previous" configuration misbehaves too
     _more(rt, 12_000)
     assert rt.rollbacks == 1 and rt.mode == FAULT
-    assert rt.fault is not None and "again after a rollback" in rt.fault
+    assert rt.last_rollback is not None
+    assert rt.fault is not None and f"again after it rolled back to v{rt.last_rollback[2]}" in (
+        rt.fault)
 
 
 def test_fault_injection_reaches_only_the_simulated_rig() -> None:

@@ -318,8 +318,9 @@ def _fit(spec: IdentifySpec, estimates: list[FrdEstimate], notes: list[str]) -> 
     with unit DC gain and a2 < 0 (its knowledge then held the built-in article model), and at
     0.5 dB / 3.3 deg with k = 0.543. Where the unit-DC fit is usable it stays: taking the
     fitted k wherever it differs moved the family's tuned loops against the brute force both
-    ways (seed 2632146472 rig 18, gain x1.95: 1.06 -> 1.51; seed 271127335 rig 4: 1.48 ->
-    0.97), 13-14/20 and 5-6/10 within 10 % either way.
+    ways (seed 2632146472 rig 18, gain x1.95: 1.06 -> 1.51), and fewer came within 10 % of it
+    (seed 271127335: 5/10, against 7/10 with this rule; seed 2632146472: 12 of the first 19,
+    against 14/20).
 
     The weights are ``1 / (var + floor^2)``: the between-period variance of each point plus
     `fit_error_floor` squared, because a second order is never exact and a nearly noise-free

@@ -657,8 +657,10 @@ class Runtime:
             why = self._fallback_dropped
         elif fallback is None and self.rollbacks == 0:
             why = "no previous configuration to roll back to"
-        else:
-            why = "again after a rollback"
+        else:  # (the text names the rollback: an alarm shown after both still says it)
+            last = self.last_rollback
+            why = ("again after a rollback" if last is None
+                   else f"again after it rolled back to v{last[2]}")
         self._enter_fault(f"watchdog: {trip.reason} ({why})")
 
     def _end_program(self, pos: float, done: bool) -> None:
